@@ -1,0 +1,1 @@
+"""Model registry: SQL metadata and checksummed blobs (lands with the service issue)."""

@@ -1,0 +1,1 @@
+"""One module per synthesis method (pdm, pose_space, shape_space, ...)."""

@@ -1,0 +1,1 @@
+"""The synthetic sample actor built on the ICT face rig (service/samples/data)."""
