@@ -1,0 +1,220 @@
+"""UV-space maps as OpenEXR files (float32 by default, half on request).
+
+Channel names follow API.md: ``Y`` for a scalar map, ``R``, ``G``, ``B`` for colour and vectors,
+``<component>.a<k>`` for model coefficient maps (``x.a0`` ... ``z.a5``). Row 0 of every array is
+the top scanline of the image (v near 1), as in OpenEXR: nothing is flipped.
+
+Readers take a path, bytes or a binary file object, read the header first and bound the image
+size before any pixel data is decoded; malformed files raise
+:class:`~service.io.errors.MapFormatError`, oversized ones
+:class:`~service.io.errors.SizeLimitError`.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from typing import BinaryIO, Mapping, Union
+
+import numpy as np
+import OpenEXR
+
+from service.io.errors import MapFormatError, SizeLimitError
+
+MAX_TEXELS = 8192 * 8192
+"""Default bound on H*W of a map a reader accepts."""
+MAX_CHANNELS = 64
+"""Default bound on the channel count a reader accepts."""
+
+Source = Union[str, os.PathLike, bytes, bytearray, memoryview, BinaryIO]
+Target = Union[str, os.PathLike, BinaryIO]
+
+COMPRESSIONS = {
+    "none": OpenEXR.NO_COMPRESSION,
+    "rle": OpenEXR.RLE_COMPRESSION,
+    "zips": OpenEXR.ZIPS_COMPRESSION,
+    "zip": OpenEXR.ZIP_COMPRESSION,
+    "piz": OpenEXR.PIZ_COMPRESSION,
+    "pxr24": OpenEXR.PXR24_COMPRESSION,
+    "b44": OpenEXR.B44_COMPRESSION,
+    "b44a": OpenEXR.B44A_COMPRESSION,
+    "dwaa": OpenEXR.DWAA_COMPRESSION,
+    "dwab": OpenEXR.DWAB_COMPRESSION,
+}
+"""Compression names accepted by :func:`write_exr`. Lossless: none, rle, zips, zip, piz;
+pxr24 rounds float32 to 24 bits; b44/b44a (half only) and dwaa/dwab are lossy."""
+
+
+def write_exr(
+    target: Target,
+    channels: Mapping[str, np.ndarray],
+    *,
+    half: bool = False,
+    compression: str = "zip",
+) -> None:
+    """Write named (H,W) channels as a single-part scanline EXR.
+
+    Parameters
+    ----------
+    target : path or binary file (needs write, seek and tell)
+    channels : dict of str -> (H,W) float array
+        All the same shape; row 0 is the top of the image. Stored in the file sorted by name
+        (the EXR rule).
+    half : bool
+        Store 16-bit half floats instead of 32-bit floats (values rounded to nearest; beyond
+        +-65504 they become +-inf).
+    compression : str
+        One of :data:`COMPRESSIONS`; the default ``zip`` is lossless.
+
+    Raises
+    ------
+    ValueError
+        For no channels, an empty name, non-2-D or mismatched shapes, or an unknown compression.
+    """
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression '{compression}' is not one of {sorted(COMPRESSIONS)}")
+    if not channels:
+        raise ValueError("an EXR needs at least one channel")
+    dtype = np.float16 if half else np.float32
+    pixels, shape = {}, None
+    for name, values in channels.items():
+        values = np.asarray(values)
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"channel names must be non-empty strings, got {name!r}")
+        if values.ndim != 2 or 0 in values.shape:
+            raise ValueError(
+                f"channel '{name}' must be a non-empty (H,W) array, got {values.shape}"
+            )
+        if shape is not None and values.shape != shape:
+            raise ValueError(f"channel '{name}' has shape {values.shape}, the others {shape}")
+        shape = values.shape
+        with np.errstate(over="ignore"):  # beyond the half range is +-inf, as in OpenEXR
+            pixels[name] = np.ascontiguousarray(values, dtype=dtype)
+    header = {"compression": COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, pixels).write(os.fspath(target) if _is_path(target) else target)
+
+
+def read_exr(
+    source: Source,
+    *,
+    max_texels: int = MAX_TEXELS,
+    max_channels: int = MAX_CHANNELS,
+) -> dict[str, np.ndarray]:
+    """Read every channel of an EXR's first part as float32.
+
+    Parameters
+    ----------
+    source : path, bytes or binary file
+    max_texels : int
+        Bound on H*W, checked from the header before pixel data is read.
+    max_channels : int
+        Bound on the channel count, checked from the header.
+
+    Returns
+    -------
+    dict of str -> (H,W) float32
+        In the file's channel order (sorted by name); row 0 is the top scanline. Half channels
+        are widened exactly.
+
+    Raises
+    ------
+    MapFormatError
+        If the file is not a readable EXR, has unsigned-int or subsampled channels, or its data
+        window differs from its display window.
+    SizeLimitError
+    """
+    if _is_path(source):
+        with open(source, "rb") as stream:
+            data = stream.read()
+    elif isinstance(source, (bytes, bytearray, memoryview)):
+        data = bytes(source)
+    else:
+        data = source.read()
+    header = _open(data, header_only=True).header()
+    (x0, y0), (x1, y1) = (tuple(map(int, corner)) for corner in header["dataWindow"])
+    display = tuple(tuple(map(int, corner)) for corner in header["displayWindow"])
+    if display != ((x0, y0), (x1, y1)):
+        raise MapFormatError(
+            f"EXR data window {((x0, y0), (x1, y1))} differs from its display window {display}; "
+            "a UV-space map must cover the whole image"
+        )
+    height, width = y1 - y0 + 1, x1 - x0 + 1
+    if height * width > max_texels:
+        raise SizeLimitError("texels", height * width, max_texels)
+    if len(header["channels"]) > max_channels:
+        raise SizeLimitError("channels", len(header["channels"]), max_channels)
+    out = {}
+    for name, channel in _open(data, header_only=False).channels().items():
+        if channel.xSampling != 1 or channel.ySampling != 1:
+            raise MapFormatError(f"EXR channel '{name}' is subsampled; maps need full resolution")
+        if channel.pixels.dtype.kind != "f":
+            raise MapFormatError(
+                f"EXR channel '{name}' holds {channel.pixels.dtype} values, expected float or half"
+            )
+        out[name] = np.asarray(channel.pixels, dtype=np.float32)
+    return out
+
+
+def _is_path(value) -> bool:
+    return isinstance(value, (str, os.PathLike))
+
+
+def _open(data: bytes, header_only: bool) -> OpenEXR.File:
+    try:
+        exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, header_only=header_only)
+        if not header_only:
+            exr.channels()
+    except (RuntimeError, ValueError) as error:
+        raise MapFormatError(f"not a readable EXR file: {error}") from None
+    return exr
+
+
+def write_map(
+    target: Target, values: np.ndarray, *, half: bool = False, compression: str = "zip"
+) -> None:
+    """Write one map: (H,W) as channel ``Y``, (H,W,3) as channels ``R``, ``G``, ``B``.
+
+    Parameters
+    ----------
+    target : path or binary file
+    values : (H,W) or (H,W,3) float array, row 0 the top of the image
+    half, compression
+        As for :func:`write_exr`.
+    """
+    values = np.asarray(values)
+    if values.ndim == 2:
+        channels = {"Y": values}
+    elif values.ndim == 3 and values.shape[2] == 3:
+        channels = {name: values[:, :, k] for k, name in enumerate("RGB")}
+    else:
+        raise ValueError(f"a map must have shape (H,W) or (H,W,3), got {values.shape}")
+    write_exr(target, channels, half=half, compression=compression)
+
+
+def read_map(source: Source, *, max_texels: int = MAX_TEXELS) -> np.ndarray:
+    """Read one map written by :func:`write_map` (or any EXR with channels Y or R,G,B).
+
+    Parameters
+    ----------
+    source : path, bytes or binary file
+    max_texels : int
+        Bound on H*W.
+
+    Returns
+    -------
+    (H,W) float32 for a ``Y`` file, (H,W,3) float32 for an ``R,G,B`` file.
+
+    Raises
+    ------
+    MapFormatError
+        If the channels are neither exactly ``Y`` nor exactly ``R, G, B``.
+    SizeLimitError
+    """
+    channels = read_exr(source, max_texels=max_texels)
+    if set(channels) == {"Y"}:
+        return channels["Y"]
+    if set(channels) == {"R", "G", "B"}:
+        return np.stack([channels[name] for name in "RGB"], axis=2)
+    raise MapFormatError(
+        f"expected channel Y or channels R, G, B in a map, found {sorted(channels)}"
+    )
