@@ -1,0 +1,92 @@
+"""The sample actor: deterministic by seed, detail zero at neutral and growing with compression."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from service.samples import detail, performances
+from service.samples.actor import build_sample_actor, render_performance
+
+
+def _clip(actor, name):
+    clips = performances.training_clips(actor.rig.expression_names, actor.seed)
+    return next(c for c in clips if c.name == name)
+
+
+def test_detail_is_zero_at_neutral(actor0):
+    out = render_performance(actor0, _clip(actor0, "train_brow_raise"), np.array([0]))
+    np.testing.assert_array_equal(out["weights"][0], 0)
+    # wrinkles vanish exactly at neutral; only pores remain in the displacement map
+    assert np.abs(out["vertices"][0] - out["vertices_medium"][0]).max() < 1e-5
+    assert -0.21 < out["displacement"][0].min() < -0.04          # pore depth, mm
+    assert out["displacement"][0].max() <= 0.0
+
+
+@pytest.mark.parametrize("clip, site", [("train_brow_raise", "forehead"),
+                                        ("train_brow_furrow", "glabella"),
+                                        ("train_smile", "crows_feet_L")])
+def test_wrinkles_grow_with_compression_at_their_site(actor0, clip, site):
+    perf = _clip(actor0, clip)
+    out = render_performance(actor0, perf, np.arange(0))
+    i = [s.name for s in actor0.sites].index(site)
+    idx, pattern, _ = actor0.vertex_patterns[i]
+    idx = idx[np.abs(pattern) > 0.3 * np.abs(pattern).max()]
+    depth = np.linalg.norm(out["vertices"][:, idx] - out["vertices_medium"][:, idx], axis=2).max(axis=1)
+    rise = np.argmax(perf.weights.sum(axis=1))
+    # monotone growth while the expression eases in, and a real wrinkle at the peak
+    assert np.all(np.diff(depth[: rise + 1]) >= -1e-6)
+    assert depth[rise] > 0.15
+    assert depth[0] == 0.0
+
+
+def test_buckling_response_is_nonlinear():
+    site = detail.WrinkleSite("t", "lines", np.zeros(3), np.eye(3)[0], np.eye(3)[1],
+                              (10.0, 10.0), 5.0, 1.5, threshold=0.05, scale=0.15)
+    c = np.array([0.0, 0.05, 0.10, 0.20, 0.40, 1.0])
+    a = site.response(c)
+    assert a[0] == 0 and a[1] == 0                      # below the buckling threshold
+    assert np.all(np.diff(a[1:]) > 0) and a[-1] < 1.5  # grows, saturates below A_max
+    # √-onset: the first 5 % of compression past threshold gives more than a linear share
+    assert a[2] / a[3] > (0.05 / 0.15) * 1.3
+
+
+def test_pores_flatten_when_stretched_and_deepen_when_compressed():
+    offset = np.array([[0.1, 0.0, 0.0]])
+    pores = detail.PoreField(offset, np.array([0.1]), np.array([0.25]), np.array([[0, 0, 1.0]]))
+    rest = np.diag([1.0, 1.0, 0.0])[None]
+    stretched = np.diag([1.2 ** 2, 1.2 ** 2, 0.0])[None]
+    compressed = np.diag([0.85 ** 2, 0.85 ** 2, 0.0])[None]
+    h0, J0 = detail.pore_height(pores, rest, rest)
+    hs, Js = detail.pore_height(pores, stretched, rest)
+    hc, Jc = detail.pore_height(pores, compressed, rest)
+    np.testing.assert_allclose([J0[0], Js[0], Jc[0]], [1.0, 1.44, 0.7225], rtol=1e-12)
+    assert abs(hs[0]) < abs(h0[0]) < abs(hc[0])
+
+
+def test_surface_strain_of_uniform_scaling(rig):
+    Q = detail.surface_strain(rig.neutral, 1.1 * rig.neutral, rig.triangles)
+    Q0 = detail.surface_strain(rig.neutral, rig.neutral, rig.triangles)
+    a = np.tile([1.0, 0.0, 0.0], (len(Q), 1))
+    ratio = detail.quadratic_form(Q, a) / detail.quadratic_form(Q0, a)
+    np.testing.assert_allclose(ratio[detail.quadratic_form(Q0, a) > 0.5], 1.21, rtol=1e-9)
+
+
+def test_build_is_deterministic_by_seed(tmp_path):
+    m1 = build_sample_actor(tmp_path / "a", seed=5, level=0, with_tracking=False, map_resolution=128,
+                            performance_names=("train_smile", "heldout_in_range"))
+    m2 = build_sample_actor(tmp_path / "b", seed=5, level=0, with_tracking=False, map_resolution=128,
+                            performance_names=("train_smile", "heldout_in_range"))
+    m3 = build_sample_actor(tmp_path / "c", seed=6, level=0, with_tracking=False, map_resolution=128,
+                            performance_names=("train_smile",))
+    digests = lambda m: {k: v["sha256"] for k, v in m["files"].items()}
+    assert digests(m1) == digests(m2)
+    assert digests(m1)["performances/train_smile.npz"] != digests(m3)["performances/train_smile.npz"]
+    manifest = json.loads((tmp_path / "a" / "manifest.json").read_text())
+    assert manifest["files"] == m1["files"]
+    with np.load(tmp_path / "a" / "performances/train_smile.npz") as d:
+        assert d["vertices"].shape == (20, 11248, 3) and d["markers"].shape == (20, 150, 3)
+        assert d["displacement"].shape == (20, 128, 128) and d["albedo"].shape == (20, 64, 64, 3)
+        assert np.isfinite(d["vertices"]).all()
