@@ -1,0 +1,126 @@
+"""Weighted rigid (optionally similarity) alignment of corresponding point sets.
+
+Finds the rotation R (det R = +1), translation t and, optionally, uniform scale s that
+minimize ``Σ_i w_i ‖s R p_i + t − q_i‖²`` in closed form: the weighted cross-covariance's
+SVD (Kabsch 1976; Horn 1987 solves the same problem with quaternions) with the
+reflection fix and the scale of Umeyama 1991 ("Least-squares estimation of transformation
+parameters between two point patterns", IEEE PAMI 13(4), eqs. 40-42). Used to remove rigid
+head motion before anything measures deformation (DESIGN.md) and to put it back after.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: fewest valid correspondences accepted (3 non-collinear points fix a rotation)
+MIN_POINTS = 3
+
+
+@dataclass(frozen=True)
+class RigidTransform:
+    """``x ↦ s R x + t`` (a rigid motion when s = 1).
+
+    Attributes
+    ----------
+    R : (3,3) float64   rotation, det = +1
+    t : (3,) float64    translation, units of the points (mm)
+    s : float           uniform scale (1.0 unless estimated)
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    s: float = 1.0
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """Transform points X (...,3) — one point set (n,3) or frames (F,n,3) — to (...,3) float64."""
+        X = np.asarray(X, dtype=np.float64)
+        if X.shape[-1] != 3:
+            raise ValueError(f"points must be (...,3), got {X.shape}")
+        return self.s * (X @ self.R.T) + self.t
+
+    __call__ = apply
+
+    def inverse(self) -> "RigidTransform":
+        """The transform undoing this one: ``x ↦ (1/s) Rᵀ (x − t)``."""
+        Rt = self.R.T
+        return RigidTransform(R=Rt, t=-(Rt @ self.t) / self.s, s=1.0 / self.s)
+
+    def matrix(self) -> np.ndarray:
+        """Homogeneous (4,4) matrix ``[[s R, t], [0, 1]]``."""
+        M = np.eye(4)
+        M[:3, :3] = self.s * self.R
+        M[:3, 3] = self.t
+        return M
+
+
+def rigid_align(
+    P: np.ndarray, Q: np.ndarray, weights: np.ndarray | None = None, scale: bool = False
+) -> RigidTransform:
+    """Least-squares rigid (or similarity) transform taking P onto Q (Kabsch / Umeyama 1991).
+
+    Minimizes ``Σ_i w_i ‖s R p_i + t − q_i‖²`` over rotations R (det R = +1, never a
+    reflection), translations t and, if ``scale``, s > 0.
+
+    Parameters
+    ----------
+    P : (n,3) float         source points, e.g. markers of a frame, mm
+    Q : (n,3) float         corresponding target points, e.g. the same markers at rest, mm
+    weights : (n,) float    non-negative per-point weights (default all 1)
+    scale : bool            also estimate a uniform scale (Umeyama 1991, eq. 42)
+
+    Returns
+    -------
+    RigidTransform
+        ``T.apply(P) ≈ Q``.
+
+    Raises
+    ------
+    ValueError
+        mismatched shapes, negative or non-finite weights, fewer than ``MIN_POINTS`` valid
+        rows, or all valid source points coincide.
+
+    Notes
+    -----
+    Rows where P or Q has a NaN (occluded markers) or whose weight is 0 are ignored.
+    With R = U S Vᵀ from the SVD of the weighted cross-covariance Σ = Σ w (q−q̄)(p−p̄)ᵀ,
+    S = diag(1, 1, sign det(U Vᵀ)) (Umeyama eq. 39-40), and ``s = tr(D S) / σ_p²``
+    (eq. 42) with σ_p² the weighted variance of P. For collinear points the rotation
+    about their line is not determined; the SVD returns one of the minimizers.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or P.shape != Q.shape:
+        raise ValueError(f"P and Q must both be (n,3), got {P.shape} and {Q.shape}")
+    if weights is None:
+        w = np.ones(len(P))
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(P),):
+            raise ValueError(f"weights must be ({len(P)},), got {w.shape}")
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError("weights must be finite and non-negative")
+    valid = np.isfinite(P).all(axis=1) & np.isfinite(Q).all(axis=1) & (w > 0)
+    if valid.sum() < MIN_POINTS:
+        raise ValueError(f"need at least {MIN_POINTS} valid correspondences (finite, weight > 0), "
+                         f"got {int(valid.sum())} of {len(P)}")
+    P, Q, w = P[valid], Q[valid], w[valid] / w[valid].sum()
+    p_mean = w @ P
+    q_mean = w @ Q
+    Pc = P - p_mean
+    Qc = Q - q_mean
+    sigma = (Qc * w[:, None]).T @ Pc                    # (3,3) cross-covariance
+    U, D, Vt = np.linalg.svd(sigma)
+    S = np.ones(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2] = -1.0
+    R = (U * S) @ Vt
+    s = 1.0
+    if scale:
+        var_p = float(w @ np.einsum("nd,nd->n", Pc, Pc))
+        if var_p <= 0:
+            raise ValueError("all valid source points coincide; scale is undefined")
+        s = float(D @ S) / var_p
+    t = q_mean - s * (R @ p_mean)
+    return RigidTransform(R=R, t=t, s=s)

@@ -1,0 +1,159 @@
+"""Per-vertex tangent frames that follow a mesh's UV layout (for tangent-space details).
+
+bickel2008 §3 and §5.2 store fine-scale displacements "per-vertex in local tangent
+frames", and UV-space detail maps are interpreted in the same frames, so the frame's
+tangent must follow the texture's +u direction. Per triangle, the surface derivatives
+dP/du and dP/dv follow from the UV edge differences (the standard normal-mapping
+tangent, e.g. Lengyel 2001; mikktspace):
+
+    [dP/du  dP/dv] = [e1  e2] · [[Δu1, Δu2], [Δv1, Δv2]]⁻¹,   e_k = P_k − P_0,  Δ(u,v)_k = uv_k − uv_0.
+
+Each triangle's unit dP/du is accumulated at its corners with the corner angle as weight
+(like :func:`service.geometry.normals.vertex_normals`), orthogonalized against the
+angle-weighted vertex normal N (Gram-Schmidt) to give T, and ``B = N × T``.
+
+Conventions
+-----------
+``frames[..., i, :, :]`` has **rows** (T, B, N): orthonormal, right-handed (det = +1),
+T along increasing u. ``frames[i] @ d`` expresses a world vector d in the frame (tangent,
+bitangent, normal components), ``frames[i].T @ c`` maps back.
+
+Seams and mirrored charts
+-------------------------
+- A vertex with several UVs (a seam) averages the contributions of all its charts.
+- Mirrored charts (UV triangles with clockwise orientation, det < 0) have
+  ``dP/du × dP/dv = −N``. The frame stays right-handed with the surface normal
+  (``B = N × T``, which then points along −v); :func:`uv_handedness` gives the sign per
+  vertex (``+v = handedness · B``, mikktspace's w). Where mirrored and unmirrored charts
+  meet, only triangles of the vertex's majority handedness contribute, so opposite u
+  directions do not cancel.
+- Triangles degenerate in UV (``|det| ≤ UV_DEGENERATE_SIN · |Δuv1| |Δuv2|``) are skipped.
+- A vertex whose contributions vanish or cancel exactly gets a tangent perpendicular to
+  N along the coordinate axis least aligned with N; a vertex without any non-degenerate
+  triangle (no normal) gets the identity frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from service.geometry.normals import _flatten_frames, _normalize, corner_angles, vertex_normals
+
+#: UV triangles whose UV-space angle sine is below this are degenerate (skipped)
+UV_DEGENERATE_SIN = 1e-8
+#: accumulated tangent shorter than this fraction of the summed weights counts as cancelled
+CANCEL_RTOL = 1e-6
+
+
+def _uv_determinants(uv: np.ndarray, uv_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """UV edge differences d1, d2 (m,2) and det = Δu1 Δv2 − Δu2 Δv1 (m,) per triangle."""
+    U = uv[uv_faces]                                  # (m,3,2)
+    d1 = U[:, 1] - U[:, 0]
+    d2 = U[:, 2] - U[:, 0]
+    return d1, d2, d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+
+
+def _check(F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray):
+    F = np.asarray(F, dtype=np.int64)
+    uv = np.asarray(uv, dtype=np.float64)
+    uv_faces = np.asarray(uv_faces, dtype=np.int64)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv must be (K,2), got {uv.shape}")
+    if uv_faces.shape != F.shape or F.ndim != 2 or F.shape[1] != 3:
+        raise ValueError(f"F and uv_faces must both be (m,3), got {F.shape} and {uv_faces.shape}")
+    if len(uv_faces) and (uv_faces.min() < 0 or uv_faces.max() >= len(uv)):
+        raise ValueError(f"uv_faces index out of range [0, {len(uv)})")
+    return F, uv, uv_faces
+
+
+def _triangle_signs(uv: np.ndarray, uv_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """d1, d2, det and the per-triangle handedness (+1, −1, or 0 if UV-degenerate)."""
+    d1, d2, det = _uv_determinants(uv, uv_faces)
+    scale = np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)
+    ok = np.abs(det) > UV_DEGENERATE_SIN * scale
+    return d1, d2, det, np.where(ok, np.sign(det), 0.0)
+
+
+def uv_handedness(F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray, n: int) -> np.ndarray:
+    """Per-vertex UV handedness: +1 where the UV chart keeps the orientation, −1 mirrored.
+
+    Parameters
+    ----------
+    F : (m,3) int          triangles over n vertices
+    uv : (K,2) float       UV coordinates
+    uv_faces : (m,3) int   per-corner indices into uv
+    n : int                vertex count
+
+    Returns
+    -------
+    sign : (n,) float64   ±1 by the majority (by triangle count) of the incident,
+                          non-degenerate UV triangles; +1 where there is none. The +v
+                          direction at vertex i is ``sign[i] * frames[i, 1]``.
+    """
+    F, uv, uv_faces = _check(F, uv, uv_faces)
+    sign = _triangle_signs(uv, uv_faces)[3]
+    vote = np.bincount(F.ravel(), weights=np.repeat(sign, 3), minlength=n)
+    return np.where(vote < 0, -1.0, 1.0)
+
+
+def tangent_frames(
+    V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
+    normals: np.ndarray | None = None,
+) -> np.ndarray:
+    """Orthonormal per-vertex frames (T, B, N) with T along +u (see the module notes).
+
+    Parameters
+    ----------
+    V : (n,3) or (frames,n,3) float   vertices (rest pose or deformed frames), mm
+    F : (m,3) int                     triangles
+    uv : (K,2) float                  UV coordinates (any tile/scale)
+    uv_faces : (m,3) int              per-corner indices into uv (seams: several per vertex)
+    normals : (n,3) or (frames,n,3) float, optional
+        unit vertex normals to use as N (default: angle-weighted
+        :func:`~service.geometry.normals.vertex_normals`)
+
+    Returns
+    -------
+    frames : (n,3,3) or (frames,n,3,3) float64
+        rows T, B, N; orthonormal and right-handed (det +1) at every vertex
+    """
+    F, uv, uv_faces = _check(F, uv, uv_faces)
+    Vb, lead = _flatten_frames(V)
+    nb, n = Vb.shape[:2]
+    m = len(F)
+    N = vertex_normals(Vb, F) if normals is None else _normalize(
+        np.asarray(normals, dtype=np.float64).reshape(nb, n, 3))
+
+    d1, d2, det, tri_sign = _triangle_signs(uv, uv_faces)
+    # keep, per corner, only triangles of the vertex's majority handedness
+    vert_sign = uv_handedness(F, uv, uv_faces, n)
+    use = (tri_sign[:, None] != 0) & (tri_sign[:, None] == vert_sign[F])        # (m,3)
+    inv_det = np.divide(1.0, det, out=np.zeros(m), where=tri_sign != 0)
+
+    P = Vb[:, F]                                                                 # (B,m,3,3)
+    e1 = P[:, :, 1] - P[:, :, 0]
+    e2 = P[:, :, 2] - P[:, :, 0]
+    dPdu = _normalize((e1 * d2[:, 1, None] - e2 * d1[:, 1, None]) * inv_det[:, None])
+    w = corner_angles(Vb, F) * use                                               # (B,m,3)
+    contrib = w[..., None] * dPdu[:, :, None, :]                                 # (B,m,3,3)
+
+    S = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.arange(3 * m))), shape=(n, 3 * m))
+    T = (S @ np.ascontiguousarray(contrib.transpose(1, 2, 0, 3)).reshape(3 * m, nb * 3))
+    T = T.reshape(n, nb, 3).transpose(1, 0, 2)                                   # (B,n,3)
+    wsum = (S @ w.transpose(1, 2, 0).reshape(3 * m, nb)).T                       # (B,n)
+
+    # Gram-Schmidt against N, with fallbacks for cancelled / missing tangents
+    T = T - np.einsum("bnd,bnd->bn", T, N)[..., None] * N
+    tn = np.linalg.norm(T, axis=-1)
+    has_n = np.linalg.norm(N, axis=-1) > 0.5
+    weak = has_n & ~(tn > CANCEL_RTOL * wsum)
+    if weak.any():
+        Nw = N[weak]
+        axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
+        T[weak] = axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw
+    T = _normalize(T)
+    B = np.cross(N, T)
+    frames = np.stack([T, B, N], axis=-2)                                       # (B,n,3,3)
+    frames[~has_n] = np.eye(3)
+    return frames.reshape(*lead, n, 3, 3)
