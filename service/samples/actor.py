@@ -205,7 +205,9 @@ Progress = Callable[[float, str], None]
 
 def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
                        progress: Progress | None = None,
-                       with_tracking: bool = True) -> dict:
+                       with_tracking: bool = True,
+                       map_resolution: int | None = None,
+                       performance_names: tuple[str, ...] | None = None) -> dict:
     """Build the sample actor into directory ``out`` and return its manifest.
 
     Parameters
@@ -214,6 +216,8 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
     level : 0, 1, 2    rig resolution, ~45k or ~179k vertices
     progress : callable(fraction in [0,1], stage) or None
     with_tracking : also render camera images for the tracking method
+    map_resolution : displacement map size (default 512/1024/2048 by level; albedo is half)
+    performance_names : build only these performances (default: all)
     """
     from service.io.mesh import Mesh, write_obj
 
@@ -222,7 +226,7 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report(0.0, "skin, markers and detail sites")
-    actor = make_actor(seed, level)
+    actor = make_actor(seed, level, map_resolution)
     skin, rig = actor.skin, actor.rig
     files: dict[str, dict] = {}
 
@@ -252,6 +256,13 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
              + [performances.heldout_in_range(names, seed),
                 performances.heldout_out_of_range(names, seed),
                 performances.database_performance(names, seed)])
+    if performance_names is not None:
+        unknown = set(performance_names) - {p.name for p in perfs}
+        if unknown:
+            raise ValueError(f"unknown performances {sorted(unknown)}; "
+                             f"known: {[p.name for p in perfs]}")
+        perfs = [p for p in perfs if p.name in performance_names]
+        with_tracking = with_tracking and {"heldout_in_range", *TRACKING_STATIC} <= set(performance_names)
     total = sum(p.frames for p in perfs)
     done = 0
     static, tracked = {}, None
