@@ -1,6 +1,7 @@
 """The ``facesynth`` command line: one entry point, a subcommand per task.
 
     facesynth sample-actor --out DIR --seed N --level 0|1|2   build the sample actor
+    facesynth sample-gallery --actor DIR --out DIR             render a built actor to PNGs
     facesynth demo [--out DIR]                                 build a level-1 actor, summarise it
 """
 
@@ -54,6 +55,14 @@ def cmd_sample_actor(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sample_gallery(args: argparse.Namespace) -> int:
+    from service.samples.gallery import write_gallery
+
+    for path in write_gallery(args.actor, args.out):
+        print(path)
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     args.no_tracking = False
     args.out = Path(args.out) / "actor"
@@ -71,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resolution: 0 rig (11k vertices), 1 (~45k), 2 (~179k); default 1")
     p.add_argument("--no-tracking", action="store_true", help="skip the camera renders")
     p.set_defaults(func=cmd_sample_actor)
+
+    p = sub.add_parser("sample-gallery", help="render a built sample actor to PNGs (shaded meshes, maps)")
+    p.add_argument("--actor", required=True, type=Path, help="directory written by sample-actor")
+    p.add_argument("--out", required=True, type=Path, help="directory for the PNGs")
+    p.set_defaults(func=cmd_sample_gallery)
 
     p = sub.add_parser("demo", help="build the level-1 sample actor and summarise it")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")

@@ -21,13 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-#: A texel centre belongs to a triangle when its smallest barycentric coordinate is
-#: ``>= -BARY_TOL``: the slack closes cracks that floating-point rounding would open along
-#: shared edges; ties are then resolved so that every texel goes to exactly one triangle.
-BARY_TOL = 1e-10
-
-#: Candidate texels (bounding-box texels) processed per vectorized chunk of triangles.
-CHUNK_TEXELS = 1 << 22
+from service.geometry.scan_convert import BARY_TOL, barycentric_2d, scan_convert
 
 
 @dataclass(frozen=True)
@@ -87,30 +81,11 @@ def texel_centers_uv(H: int, W: int) -> np.ndarray:
     return np.stack(np.broadcast_arrays(u[None, :], v[:, None]), axis=-1)
 
 
-def _barycentric(P: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (N,3) of points (px, py) in triangles P (N,3,2), Cramer's rule.
-
-    ``λ1, λ2`` from the 2×2 system on the edges from corner 0, ``λ0 = 1 - λ1 - λ2`` so the
-    three sum to one up to rounding; works for either orientation (signed area).
-    """
-    e1 = P[:, 1] - P[:, 0]
-    e2 = P[:, 2] - P[:, 0]
-    dx = px - P[:, 0, 0]
-    dy = py - P[:, 0, 1]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    l1 = (dx * e2[:, 1] - dy * e2[:, 0]) / det
-    l2 = (e1[:, 0] * dy - e1[:, 1] * dx) / det
-    return np.stack([1.0 - l1 - l2, l1, l2], axis=1)
-
-
 def rasterize_uv(uv: np.ndarray, uv_faces: np.ndarray, H: int, W: int) -> UVRaster:
     """Rasterize a UV layout: which triangle covers each texel centre, and where.
 
-    Vectorized scan conversion: every triangle's bounding box is split into texel rows, each
-    row's column span inside the triangle is solved for from the (affine) barycentric
-    coordinates, the spans are expanded into candidate texels with NumPy (in chunks of about
-    ``CHUNK_TEXELS``), tested, and overlaps resolved with two scatter passes (largest score,
-    then lowest index). No Python loop over triangles or texels. Measured on 2 cores: the
+    Vectorized scan conversion (:func:`~service.geometry.scan_convert.scan_convert`), overlaps
+    resolved with two scatter passes (largest score, then lowest index). Measured on 2 cores: the
     ICT rig subdivided once (89k triangles) at 1024² in ~0.5-1 s, at 2048² in ~2-3 s.
 
     Parameters
@@ -144,84 +119,21 @@ def rasterize_uv(uv: np.ndarray, uv_faces: np.ndarray, H: int, W: int) -> UVRast
         raise ValueError(f"map size must be positive, got {H}x{W}")
 
     P = uv_to_texel(uv, H, W)[UF]                              # (m,3,2) texel coordinates
-    lo = np.ceil(P.min(axis=1)).astype(np.int64)              # first texel centre inside bbox
-    hi = np.floor(P.max(axis=1)).astype(np.int64)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, [W - 1, H - 1])
-    e1 = P[:, 1] - P[:, 0]
-    e2 = P[:, 2] - P[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    bw = hi[:, 0] - lo[:, 0] + 1
-    bh = hi[:, 1] - lo[:, 1] + 1
-    live = (bw > 0) & (bh > 0) & (det != 0) & np.isfinite(det)
-    tri_ids = np.flatnonzero(live)
-    # barycentrics are affine in texel coordinates: λ(x,y) = λ(lo) + (x-lo_x) gx + (y-lo_y) gy
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam0 = _barycentric(P, lo[:, 0].astype(np.float64), lo[:, 1].astype(np.float64))
-        g1 = np.stack([e2[:, 1], -e2[:, 0]], axis=1) / det[:, None]     # ∇λ1
-        g2 = np.stack([-e1[:, 1], e1[:, 0]], axis=1) / det[:, None]     # ∇λ2
-    g0 = -g1 - g2
-    gx = np.stack([g0[:, 0], g1[:, 0], g2[:, 0]], axis=1)             # (m,3) ∂λ/∂x
-    gy = np.stack([g0[:, 1], g1[:, 1], g2[:, 1]], axis=1)             # (m,3) ∂λ/∂y
-
-    # scan lines: one row per (triangle, texel row of its bbox), with the column span where
-    # all λ >= -span_tol (looser than BARY_TOL, so rounding never drops a texel the exact
-    # test below would accept)
-    row_tri = np.repeat(tri_ids, bh[tri_ids])
-    row_j = np.arange(len(row_tri)) - np.repeat(np.cumsum(bh[tri_ids]) - bh[tri_ids],
-                                                bh[tri_ids])
-    base = lam0[row_tri] + row_j[:, None] * gy[row_tri]               # λ at x = lo_x
-    rgx = gx[row_tri]
-    span_tol = 10 * BARY_TOL
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = (-span_tol - base) / rgx                               # λ_k = -tol at x offset
-    s_lo = np.max(np.where(rgx > 0, bound, -np.inf), axis=1)
-    s_hi = np.min(np.where(rgx < 0, bound, np.inf), axis=1)
-    empty = np.any((rgx == 0) & (base < -span_tol), axis=1)
-    width = bw[row_tri]
-    s_lo = np.maximum(np.ceil(np.maximum(s_lo, -1.0)), 0).astype(np.int64)
-    s_hi = np.minimum(np.floor(np.minimum(s_hi, width)), width - 1).astype(np.int64)
-    cnt_all = np.where(empty, 0, np.maximum(s_hi - s_lo + 1, 0))
-    rows = np.flatnonzero(cnt_all)
-    counts = cnt_all[rows]
-
-    # pass 1: every candidate texel centre inside a triangle, and the best score per texel
+    cover = scan_convert(P, H, W)
+    # overlaps: the largest score wins, then the lowest triangle index
+    score = cover.score
     best_score = np.full(H * W, -np.inf)
-    kept_texel, kept_tri, kept_score = [], [], []
-    csum = np.cumsum(counts)
-    cuts = np.searchsorted(csum, np.arange(CHUNK_TEXELS, csum[-1] if len(csum) else 0,
-                                           CHUNK_TEXELS), side="right")
-    bounds = np.unique(np.r_[0, cuts, len(rows)])
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        rr = rows[a:b]
-        cnt = counts[a:b]
-        rid = np.repeat(rr, cnt)
-        s = s_lo[rid] + (np.arange(len(rid)) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-        lam = base[rid] + s[:, None] * rgx[rid]
-        score = lam.min(axis=1)
-        inside = score >= -BARY_TOL
-        rid, s, score = rid[inside], s[inside], score[inside]
-        tt = row_tri[rid]
-        texel = (lo[tt, 1] + row_j[rid]) * W + lo[tt, 0] + s
-        np.maximum.at(best_score, texel, score)
-        kept_texel.append(texel)
-        kept_tri.append(tt)
-        kept_score.append(score)
-
-    # pass 2: among the candidates with the best score, the lowest triangle index wins
+    np.maximum.at(best_score, cover.pixel, score)
+    win = score == best_score[cover.pixel]
     best_tri = np.full(H * W, np.iinfo(np.int64).max, dtype=np.int64)
-    if kept_texel:
-        texel = np.concatenate(kept_texel)
-        tt = np.concatenate(kept_tri)
-        win = np.concatenate(kept_score) == best_score[texel]
-        np.minimum.at(best_tri, texel[win], tt[win])
+    np.minimum.at(best_tri, cover.pixel[win], cover.triangle[win])
     best_tri[best_tri == np.iinfo(np.int64).max] = -1
 
     triangle = best_tri.reshape(H, W)
     mask = triangle >= 0
     bary = np.zeros((H, W, 3))
     r, c = np.nonzero(mask)
-    bary[r, c] = _barycentric(P[triangle[r, c]], c.astype(np.float64), r.astype(np.float64))
+    bary[r, c] = barycentric_2d(P[triangle[r, c]], c.astype(np.float64), r.astype(np.float64))
     return UVRaster(triangle=triangle, barycentric=bary, mask=mask)
 
 

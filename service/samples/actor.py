@@ -12,7 +12,10 @@
                                detail), weights (F,53), head_rotation (F,3,3),
                                head_translation (F,3), fps; and for the frames in
                                map_frames: displacement (f,H,W) (normal displacement over
-                               vertices_medium, mm) and albedo (f,H/2,W/2,3) linear RGB
+                               vertices_medium, mm, float32) and albedo (f,H/2,W/2,3)
+                               (linear RGB, float16 as in a half EXR); map_frames (f,)
+                               (the database performance has no maps and no
+                               vertices_medium)
     tracking/...               cameras and rendered images (see service.samples.render)
 
 Deterministic per seed: every random choice draws from ``np.random.default_rng([seed, …])``.
@@ -20,8 +23,11 @@ Deterministic per seed: every random choice draws from ``np.random.default_rng([
 
 from __future__ import annotations
 
+import io
 import json
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -29,8 +35,9 @@ from typing import Callable
 import numpy as np
 
 from service.geometry.normals import vertex_normals
-from service.io.atomic import atomic_open, sha256_file, write_bytes, write_npz
 from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
+from service.io.atomic import atomic_open, sha256_file, write_bytes, write_npz
+from service.io.markers import write_marker_layout
 from service.samples import detail, performances
 from service.samples.markers import MarkerLayout, place_markers
 from service.samples.render import write_tracking_data
@@ -41,8 +48,9 @@ MARKER_COUNT = 150
 FRAME_CHUNK = 48                    # frames processed at once (bounds peak memory)
 HELDOUT_MAP_STRIDE = 5              # held-out performances get maps every 5th frame
 TRACKING_STATIC = ("train_brow_raise", "train_smile", "train_brow_furrow")  # + neutral
-TRACKING_FRAMES = 48                # frames of the held-out performance rendered per camera
+TRACKING_FRAMES = 30                # frames (1 s) of the held-out performance rendered per camera
 MAP_RESOLUTION = {0: 512, 1: 1024, 2: 2048}
+WORKERS = min(4, os.cpu_count() or 1)   # threads for per-frame maps and camera images
 
 
 @dataclass
@@ -56,9 +64,10 @@ class SampleActor:
     markers: MarkerLayout
     sites: list
     vertex_patterns: list
-    rest_normals: np.ndarray          # (n,3) unit normals of the neutral
-    rest_strain: np.ndarray           # (n,3,3) strain tensors of the neutral itself
+    rest_normals: np.ndarray          # (3,n) unit normals of the neutral (component-major)
+    rest_strain: np.ndarray           # (6,n) strain tensors of the neutral itself (Voigt)
     vertex_albedo: np.ndarray         # (n,3) static albedo at the vertices
+    wrinkle_faces: np.ndarray         # (w,) triangles touching a vertex some site displaces
     texels: "TexelData | None" = None
 
 
@@ -72,7 +81,7 @@ class TexelData:
     patterns: list
     pores: detail.PoreField
     base_albedo: np.ndarray      # (k,3)
-    rest_strain: np.ndarray      # (k,3,3)
+    rest_strain: np.ndarray      # (6,k) float32 (Voigt, component-major)
 
 
 def make_actor(seed: int = 1, level: int = 1, map_resolution: int | None = None,
@@ -85,11 +94,15 @@ def make_actor(seed: int = 1, level: int = 1, map_resolution: int | None = None,
                            MARKER_COUNT, seed)
     sites = detail.wrinkle_sites(skin.rig_neutral, rig.landmarks68)
     N0 = vertex_normals(skin.neutral, skin.faces)
-    Q0 = detail.surface_strain(skin.rig_neutral, skin.rig_neutral, rig.triangles)
-    Q0 = (skin.S @ Q0.reshape(-1, 9)).reshape(-1, 3, 3)
-    actor = SampleActor(seed, level, rig, skin, layout, sites,
-                        detail.site_patterns(sites, skin.neutral, N0), N0, Q0,
-                        detail.base_albedo(skin.neutral, lm, None, seed))
+    Q0 = skin.S @ detail.surface_strain(skin.rig_neutral, skin.rig_neutral, rig.triangles)
+    patterns = detail.site_patterns(sites, skin.neutral, N0)
+    displaced = np.zeros(len(skin.neutral), bool)
+    for idx, _, _ in patterns:
+        displaced[idx] = True
+    actor = SampleActor(seed, level, rig, skin, layout, sites, patterns,
+                        np.ascontiguousarray(N0.T), np.ascontiguousarray(Q0.T),
+                        detail.base_albedo(skin.neutral, lm, None, seed),
+                        np.flatnonzero(displaced[skin.faces].any(axis=1)))
     if with_maps:
         actor.texels = _texel_data(actor, map_resolution or MAP_RESOLUTION[level], N0)
     return actor
@@ -105,7 +118,7 @@ def _texel_data(actor: SampleActor, res: int, N0: np.ndarray) -> TexelData:
     skin = actor.skin
     raster = rasterize_uv(skin.uv, skin.uv_faces, res, res)
     index = np.flatnonzero(raster.mask.ravel())
-    sampler = interpolation_matrix(raster, skin.faces, len(skin.neutral))[index]
+    sampler = interpolation_matrix(raster, skin.faces, len(skin.neutral))[index].astype(np.float32)
     P = sampler @ skin.neutral
     N = sampler @ N0
     N /= np.linalg.norm(N, axis=1, keepdims=True)
@@ -121,18 +134,29 @@ def _texel_data(actor: SampleActor, res: int, N0: np.ndarray) -> TexelData:
     lm = actor.skin.rig_neutral[actor.rig.landmarks68]
     nose_cheeks = np.exp(-np.sum((P - lm[30]) ** 2, axis=1) / (2 * 18.0 ** 2))
     pores = detail.pore_field(uv, J0, N, actor.seed, 1.0 + 0.6 * nose_cheeks)
-    return TexelData(res, index, sampler, detail.site_patterns(actor.sites, P, N), pores,
-                     detail.base_albedo(P, lm, index, actor.seed),
-                     (sampler @ actor.rest_strain.reshape(-1, 9)).reshape(-1, 3, 3))
+    # per-frame texel arithmetic runs in float32: detail is < 2 mm, so ~1e-7 mm rounding
+    pores = detail.PoreField(*(np.asarray(x, np.float32) for x in vars(pores).values()))
+    patterns = [(i, p.astype(np.float32), a.astype(np.float32))
+                for i, p, a in detail.site_patterns(actor.sites, P, N)]
+    return TexelData(res, index, sampler, patterns, pores,
+                     detail.base_albedo(P, lm, index, actor.seed).astype(np.float32),
+                     _at_texels(sampler, actor.rest_strain))
+
+
+def _at_texels(sampler, X: np.ndarray) -> np.ndarray:
+    """Component-major vertex values X (C,n) interpolated at the texels: (C,k) float32."""
+    return np.ascontiguousarray((sampler @ X.T.astype(np.float32)).T)
 
 
 def render_performance(actor: SampleActor, perf: performances.Performance,
-                       map_frames: np.ndarray) -> dict[str, np.ndarray]:
+                       map_frames: np.ndarray, albedo_frames=()) -> dict[str, np.ndarray]:
     """Markers, meshes and maps of one performance (keys in the module docstring).
 
     Per frame: rig pose → strain tensors of the rig surface → high-resolution medium
     surface ``S @ pose`` → wrinkles along its normals (ground truth) → head pose; markers
-    sit on the ground-truth skin. Maps only for the frames listed in ``map_frames``.
+    sit on the ground-truth skin. Maps only for the frames listed in ``map_frames``;
+    per-vertex albedo (key ``vertex_albedo``, (len(albedo_frames),n,3), for the camera
+    images) only for ``albedo_frames``.
     """
     skin, rig = actor.skin, actor.rig
     n, nf = len(skin.neutral), perf.frames
@@ -141,7 +165,7 @@ def render_performance(actor: SampleActor, perf: performances.Performance,
         "lowres": np.empty((nf, rig.n_vertices, 3), np.float32),
         "vertices_medium": np.empty((nf, n, 3), np.float32),
         "vertices": np.empty((nf, n, 3), np.float32),
-        "vertex_albedo": np.empty((nf, n, 3), np.float32),
+        "vertex_albedo": np.empty((len(albedo_frames), n, 3), np.float32),
         "weights": perf.weights.astype(np.float32),
         "head_rotation": perf.rotation.astype(np.float32),
         "head_translation": perf.translation.astype(np.float32),
@@ -152,26 +176,33 @@ def render_performance(actor: SampleActor, perf: performances.Performance,
     if tex is not None:
         res = tex.resolution
         out["displacement"] = np.zeros((len(map_frames), res, res), np.float32)
-        out["albedo"] = np.zeros((len(map_frames), res // 2, res // 2, 3), np.float32)
+        out["albedo"] = np.zeros((len(map_frames), res // 2, res // 2, 3), np.float16)
     map_slot = {int(f): i for i, f in enumerate(map_frames)}
+    albedo_slot = {int(f): i for i, f in enumerate(albedo_frames)}
     for start in range(0, nf, FRAME_CHUNK):
         sl = slice(start, min(start + FRAME_CHUNK, nf))
         rig_v = skin.rig_neutral + rig.expression_offsets(perf.weights[sl])
         Q_rig = detail.surface_strain(skin.rig_neutral, rig_v, rig.triangles)
         medium = skin.upsample(rig_v)
-        Q = skin.upsample(Q_rig.reshape(len(rig_v), rig.n_vertices, 9)).reshape(len(rig_v), n, 3, 3)
-        normals = vertex_normals(medium, skin.faces, weighting="area")
-        truth = np.empty_like(medium)
+        Q = np.ascontiguousarray(skin.upsample(Q_rig).transpose(2, 0, 1))   # (6,T,n)
+        # normals are only needed where wrinkles displace: the triangles around those vertices
+        normals = vertex_normals(medium, skin.faces[actor.wrinkle_faces], weighting="area")
+        h, activation = detail.wrinkle_height(actor.sites, actor.vertex_patterns, Q,
+                                              actor.rest_strain, n)
+        truth = medium + h[..., None] * normals
         for k in range(len(rig_v)):
-            h, activation = detail.wrinkle_height(actor.sites, actor.vertex_patterns, Q[k],
-                                                  actor.rest_strain, n)
-            truth[k] = medium[k] + h[:, None] * normals[k]
-            out["vertex_albedo"][start + k] = detail.skin_albedo(
-                actor.vertex_albedo, detail.area_ratio(Q[k], actor.rest_normals, actor.rest_strain),
-                activation)
-            slot = map_slot.get(start + k)
-            if slot is not None and tex is not None:
-                out["displacement"][slot], out["albedo"][slot] = detail_maps(actor, Q[k])
+            slot = albedo_slot.get(start + k)
+            if slot is not None:
+                out["vertex_albedo"][slot] = detail.skin_albedo(
+                    actor.vertex_albedo, detail.area_ratio(Q[:, k], actor.rest_normals,
+                                                           actor.rest_strain), activation[k])
+        if tex is not None:
+            # NumPy releases the GIL in the large per-texel array operations: two threads
+            # keep both cores busy
+            todo = [(map_slot[f], Q[:, f - start]) for f in range(sl.start, sl.stop) if f in map_slot]
+            with ThreadPoolExecutor(WORKERS) as pool:
+                for (slot, _), maps in zip(todo, pool.map(lambda job: detail_maps(actor, job[1]), todo)):
+                    out["displacement"][slot], out["albedo"][slot] = maps
         posed = performances.Performance(perf.name, perf.kind, perf.weights[sl],
                                          perf.rotation[sl], perf.translation[sl])
         out["lowres"][sl] = posed.pose(rig_v)
@@ -182,22 +213,23 @@ def render_performance(actor: SampleActor, perf: performances.Performance,
 
 
 def detail_maps(actor: SampleActor, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Displacement (H,W) mm and albedo (H/2,W/2,3) maps for strain tensors Q (n,3,3).
+    """Displacement (H,W) mm and albedo (H/2,W/2,3) maps for vertex strain tensors Q (6,n).
 
     Texels outside the UV charts are 0. Albedo is computed at full resolution and
     box-filtered 2×2 (anti-aliasing the pore darkening).
     """
     tex = actor.texels
     res, k = tex.resolution, len(tex.index)
-    Qt = (tex.sampler @ Q.reshape(len(Q), 9)).reshape(k, 3, 3)
+    Qt = _at_texels(tex.sampler, Q)
     wrinkles, activation = detail.wrinkle_height(actor.sites, tex.patterns, Qt, tex.rest_strain, k)
     pores, area = detail.pore_height(tex.pores, Qt, tex.rest_strain)
-    disp = np.zeros(res * res)
+    disp = np.zeros(res * res, np.float32)
     disp[tex.index] = wrinkles + pores
-    albedo = np.zeros((res * res, 3))
+    albedo = np.zeros((res * res, 3), np.float32)
     albedo[tex.index] = detail.skin_albedo(tex.base_albedo, area, activation, pores)
-    albedo = albedo.reshape(res // 2, 2, res // 2, 2, 3).mean(axis=(1, 3))
-    return disp.reshape(res, res).astype(np.float32), albedo.astype(np.float32)
+    albedo = albedo.reshape(res, res, 3)
+    albedo = 0.25 * (albedo[0::2, 0::2] + albedo[0::2, 1::2] + albedo[1::2, 0::2] + albedo[1::2, 1::2])
+    return disp.reshape(res, res), albedo
 
 
 Progress = Callable[[float, str], None]
@@ -242,8 +274,9 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
         write_obj(f, Mesh(skin.neutral.astype(np.float32).astype(np.float64), skin.faces,
                           skin.uv, skin.uv_faces))
     record("neutral.obj", sha256_file(out / "neutral.obj"), description="neutral.npz as OBJ")
-    record("markers.json", write_bytes(out / "markers.json",
-                                       json.dumps(actor.markers.to_json(), indent=1).encode()),
+    layout_json = io.BytesIO()
+    write_marker_layout(layout_json, actor.markers.to_layout())
+    record("markers.json", write_bytes(out / "markers.json", layout_json.getvalue()),
            description="marker layout, API.md PUT /markers form")
     record("input_rig.npz", write_npz(out / "input_rig.npz", {
         "vertices": skin.rig_neutral.astype(np.float32), "faces": rig.triangles.astype(np.int32),
@@ -274,14 +307,18 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
             map_frames = np.arange(0, perf.frames, HELDOUT_MAP_STRIDE)
         else:
             map_frames = np.arange(0)
-        arrays = render_performance(actor, perf, map_frames)
-        if perf.name in TRACKING_STATIC:
+        peak = int(np.argmax(perf.weights.sum(axis=1)))
+        albedo_frames = ((0, peak) if with_tracking and perf.name in TRACKING_STATIC else
+                         range(TRACKING_FRAMES) if with_tracking and perf.kind == "heldout_in_range"
+                         else ())
+        arrays = render_performance(actor, perf, map_frames, albedo_frames)
+        albedo = arrays.pop("vertex_albedo")
+        if perf.name in TRACKING_STATIC and with_tracking:
             if not static:
-                static["neutral"] = (arrays["vertices"][0], arrays["vertex_albedo"][0])
-            peak = int(np.argmax(perf.weights.sum(axis=1)))
-            static[perf.name] = (arrays["vertices"][peak], arrays["vertex_albedo"][peak])
-        if perf.kind == "heldout_in_range":
-            tracked = (arrays["vertices"][:TRACKING_FRAMES], arrays["vertex_albedo"][:TRACKING_FRAMES])
+                static["neutral"] = (arrays["vertices"][0], albedo[0])
+            static[perf.name] = (arrays["vertices"][peak], albedo[1])
+        if perf.kind == "heldout_in_range" and with_tracking:
+            tracked = (arrays["vertices"][:TRACKING_FRAMES], albedo)
         if perf.kind == "database":
             del arrays["vertices_medium"]
         name = f"performances/{perf.name}.npz"
@@ -291,7 +328,7 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
 
     if with_tracking:
         report(0.9, "tracking cameras and images")
-        for name, digest in write_tracking_data(actor, out, static, tracked, performances.FPS).items():
+        for name, digest in write_tracking_data(actor, out, static, tracked, performances.FPS, WORKERS).items():
             record(name, digest)
 
     manifest = {

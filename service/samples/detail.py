@@ -21,6 +21,11 @@ Strain is the per-vertex area-averaged right Cauchy-Green tensor ``Q = ⟨F_tᵀ
 rig-resolution surface (F_t the triangle's deformation gradient on its tangent plane),
 carried to the high-resolution mesh and to texels linearly: ``λ_a² = aᵀ Q a`` for a unit
 tangent direction a of the rest surface.
+
+Layout: :func:`surface_strain` returns tensors point-major in Voigt order, (…,n,6) with
+components ``xx yy zz xy xz yz`` (what a sparse upsampling ``S @ Q`` wants); the per-point
+functions take them component-major, tensors (6,k) and vectors (3,k), so that every
+component is one contiguous array (3-5× faster on the ~0.7M texels of a 1024² map).
 """
 
 from __future__ import annotations
@@ -30,7 +35,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from service.geometry.laplacian import triangle_areas
 from service.geometry.topology import vertex_face_adjacency
 
 # pores
@@ -144,9 +148,9 @@ def site_patterns(sites: list[WrinkleSite], P: np.ndarray, N: np.ndarray):
 
     Returns
     -------
-    list of (index (j,) int, pattern (j,) float, across (j,3) float) per site: the points
+    list of (index (j,) int, pattern (j,) float, across (3,j) float) per site: the points
     in the site's support, their unit-amplitude height pattern (furrows negative), and the
-    rest tangent direction across the lines at each point
+    rest tangent direction across the lines at each point (component-major)
     """
     out = []
     for s_i, s in enumerate(sites):
@@ -174,42 +178,46 @@ def site_patterns(sites: list[WrinkleSite], P: np.ndarray, N: np.ndarray):
             pattern = (0.25 * (1 - furrow) - furrow) * _line_strength(k, s_i)
         a = across_dir[idx] - np.einsum("ij,ij->i", across_dir[idx], N[idx])[:, None] * N[idx]
         a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
-        out.append((idx, pattern * envelope[idx], a))
+        out.append((idx, pattern * envelope[idx], np.ascontiguousarray(a.T)))
     return out
 
 
+VOIGT = np.array([0, 4, 8, 1, 2, 5])     # xx yy zz xy xz yz in a flattened 3×3
+
+
 def quadratic_form(Q: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """``aᵀ Q a`` (k,) for symmetric Q (k,3,3) and vectors a (k,3), written out (fast)."""
-    return (Q[:, 0, 0] * a[:, 0] ** 2 + Q[:, 1, 1] * a[:, 1] ** 2 + Q[:, 2, 2] * a[:, 2] ** 2
-            + 2 * (Q[:, 0, 1] * a[:, 0] * a[:, 1] + Q[:, 0, 2] * a[:, 0] * a[:, 2]
-                   + Q[:, 1, 2] * a[:, 1] * a[:, 2]))
+    """``aᵀ Q a`` (…,k) for symmetric tensors Q (6,…,k) (Voigt, component-major), a (3,k)."""
+    return (Q[0] * a[0] ** 2 + Q[1] * a[1] ** 2 + Q[2] * a[2] ** 2
+            + 2 * (Q[3] * a[0] * a[1] + Q[4] * a[0] * a[2] + Q[5] * a[1] * a[2]))
 
 
-def _det3(A: np.ndarray) -> np.ndarray:
-    """Determinants (k,) of (k,3,3) matrices, written out (np.linalg.det loops in LAPACK)."""
-    return (A[:, 0, 0] * (A[:, 1, 1] * A[:, 2, 2] - A[:, 1, 2] * A[:, 2, 1])
-            - A[:, 0, 1] * (A[:, 1, 0] * A[:, 2, 2] - A[:, 1, 2] * A[:, 2, 0])
-            + A[:, 0, 2] * (A[:, 1, 0] * A[:, 2, 1] - A[:, 1, 1] * A[:, 2, 0]))
+def _det_plus_outer(Q: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """``det(Q + n nᵀ)`` (k,) for symmetric Q (6,k) (Voigt, component-major), n (3,k)."""
+    xx, yy, zz = Q[0] + n[0] * n[0], Q[1] + n[1] * n[1], Q[2] + n[2] * n[2]
+    xy, xz, yz = Q[3] + n[0] * n[1], Q[4] + n[0] * n[2], Q[5] + n[1] * n[2]
+    return xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
 
 
 def area_ratio(Q: np.ndarray, N: np.ndarray, Q_rest: np.ndarray) -> np.ndarray:
-    """Local area ratio J (k,) from strain tensors Q, Q_rest (k,3,3) and rest normals N (k,3).
+    """Local area ratio J (k,) from strain tensors Q, Q_rest (6,k) and rest normals N (3,k).
 
     Q is (nearly) rank 2 with the rest normal in its kernel, so ``det(Q + N Nᵀ) ≈ J²``;
     dividing by the same at rest makes J exactly 1 there. Clamped to [0.25, 4].
     """
-    NN = N[:, :, None] * N[:, None, :]
-    J2 = _det3(Q + NN) / np.maximum(_det3(Q_rest + NN), 1e-12)
+    J2 = _det_plus_outer(Q, N) / np.maximum(_det_plus_outer(Q_rest, N), 1e-12)
     return np.sqrt(np.clip(J2, 1 / 16, 16))
 
 
 def surface_strain(V0: np.ndarray, V1: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Per-vertex right Cauchy-Green tensors of the deformation V0 → V1.
+    """Per-vertex right Cauchy-Green tensors (Voigt order) of the deformation V0 → V1.
 
-    ``Q_i = Σ_t A_t F_tᵀ F_t / Σ_t A_t`` over the triangles t around vertex i, with
-    ``F_t = E1 E0⁺`` the deformation gradient of triangle t on its rest tangent plane
-    (E0, E1 (3,2) rest and deformed edge vectors). For a unit rest tangent a,
-    ``aᵀ Q a`` is the squared stretch along a.
+    ``Q_i = Σ_t A_t C_t / Σ_t A_t`` over the triangles t around vertex i, with
+    ``C_t = F_tᵀF_t`` and ``F_t = E1 E0⁺`` the deformation gradient of triangle t on its
+    rest tangent plane (E0, E1 (3,2) rest and deformed edge vectors). Since
+    ``F_tᵀF_t = E0⁺ᵀ G E0⁺`` with ``G = E1ᵀE1`` the deformed triangle's first fundamental
+    form in the edge basis, C_t is linear in the three entries of G with rest-only
+    coefficients, which is how it is computed. For a unit rest tangent a, ``aᵀ Q a`` is the
+    squared stretch along a.
 
     Parameters
     ----------
@@ -219,24 +227,40 @@ def surface_strain(V0: np.ndarray, V1: np.ndarray, F: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    Q : (n,3,3) or (T,n,3,3) float
+    Q : (n,6) or (T,n,6) float   components xx yy zz xy xz yz (:data:`VOIGT`)
     """
     V0 = np.asarray(V0, dtype=np.float64)
     V1 = np.asarray(V1, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
     batched = V1.ndim == 3
     V1 = V1 if batched else V1[None]
-    E0 = np.stack([V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]], axis=-1)   # (m,3,2)
-    E0_pinv = np.linalg.pinv(E0)                                                   # (m,2,3)
-    E1 = np.stack([V1[:, F[:, 1]] - V1[:, F[:, 0]], V1[:, F[:, 2]] - V1[:, F[:, 0]]], axis=-1)
-    Ft = E1 @ E0_pinv                                                               # (T,m,3,3)
-    C = np.swapaxes(Ft, -1, -2) @ Ft
-    area = triangle_areas(V0, F)
+    e1, e2 = V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]
+    # rows p1, p2 of E0⁺ = (E0ᵀE0)⁻¹ E0ᵀ
+    g11, g22, g12 = (e1 * e1).sum(1), (e2 * e2).sum(1), (e1 * e2).sum(1)
+    det = g11 * g22 - g12 ** 2
+    p1 = (g22[:, None] * e1 - g12[:, None] * e2) / det[:, None]
+    p2 = (g11[:, None] * e2 - g12[:, None] * e1) / det[:, None]
+
+    def voigt_outer(a, b):                      # Voigt components of a bᵀ + b aᵀ, halved
+        return np.stack([a[:, 0] * b[:, 0], a[:, 1] * b[:, 1], a[:, 2] * b[:, 2],
+                         (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0]) / 2,
+                         (a[:, 0] * b[:, 2] + a[:, 2] * b[:, 0]) / 2,
+                         (a[:, 1] * b[:, 2] + a[:, 2] * b[:, 1]) / 2], axis=1)
+
+    area = 0.5 * np.sqrt(det)
+    K = np.stack([voigt_outer(p1, p1), voigt_outer(p2, p2), 2 * voigt_outer(p1, p2)], axis=1)
+    K *= area[:, None, None]                                       # (m,3,6)
     VF = vertex_face_adjacency(F, len(V0)).astype(np.float64)
-    weight = VF @ area
-    T, m = C.shape[:2]
-    flat = (C * area[None, :, None, None]).transpose(1, 0, 2, 3).reshape(m, T * 9)
-    Q = (VF @ flat) / weight[:, None]
-    Q = Q.reshape(len(V0), T, 3, 3).transpose(1, 0, 2, 3)
+    VF = sp.diags(1.0 / (VF @ area)) @ VF                          # area-weighted mean
+    T, m = len(V1), len(F)
+    Q = np.empty((T, len(V0), 6))
+    step = max(1, 400_000 // max(m, 1))
+    for s in range(0, T, step):
+        E1 = V1[s:s + step, F[:, 1]] - V1[s:s + step, F[:, 0]]
+        E2 = V1[s:s + step, F[:, 2]] - V1[s:s + step, F[:, 0]]
+        G = np.stack([(E1 * E1).sum(-1), (E2 * E2).sum(-1), (E1 * E2).sum(-1)], axis=-1)
+        C = np.einsum("tmk,mkc->mtc", G, K)                        # (m,t,6), area-weighted
+        Q[s:s + step] = (VF @ C.reshape(m, -1)).reshape(len(V0), -1, 6).transpose(1, 0, 2)
     return Q if batched else Q[0]
 
 
@@ -247,25 +271,27 @@ def wrinkle_height(sites, patterns, Q: np.ndarray, Q_rest: np.ndarray,
     Parameters
     ----------
     patterns : output of :func:`site_patterns` for these points
-    Q, Q_rest : (n,3,3) float   strain tensors at the points, in this frame and at rest
+    Q : (6,n) or (6,T,n) float   strain tensors at the points (Voigt, component-major), in
+        one frame or T frames
+    Q_rest : (6,n) float         the same at rest
         (the stretch is ``√(aᵀQa / aᵀQ_rest a)``: exactly 1 at rest, where averaging the
         triangles' tangent projectors makes aᵀQ_rest a slightly less than 1)
     n : int             number of points
 
     Returns
     -------
-    height : (n,) float       mm, negative in furrows
-    activation : (n,) float   Σ_s (amplitude_s / A_max_s) · envelope_s, in [0, ~1]: how
+    height : (n,) or (T,n) float       mm, negative in furrows
+    activation : (n,) or (T,n) float   Σ_s (amplitude_s / A_max_s) · envelope_s, in [0, ~1]: how
                               strongly each point is wrinkled (drives fold redness)
     """
-    height = np.zeros(n)
-    activation = np.zeros(n)
+    height = np.zeros((*Q.shape[1:-1], n), Q.dtype)
+    activation = np.zeros_like(height)
     for s, (idx, pattern, a) in zip(sites, patterns):
-        stretch = np.sqrt(np.maximum(quadratic_form(Q[idx], a), 0.0)
-                          / np.maximum(quadratic_form(Q_rest[idx], a), 1e-12))
+        stretch = np.sqrt(np.maximum(quadratic_form(Q[..., idx], a), 0.0)
+                          / np.maximum(quadratic_form(Q_rest[:, idx], a), 1e-12))
         amp = s.response(1.0 - stretch)
-        height[idx] += amp * pattern
-        activation[idx] += amp / s.amplitude * np.abs(pattern)
+        height[..., idx] += amp * pattern
+        activation[..., idx] += amp / s.amplitude * np.abs(pattern)
     return height, activation
 
 
@@ -273,9 +299,9 @@ def wrinkle_height(sites, patterns, Q: np.ndarray, Q_rest: np.ndarray,
 class PoreField:
     """Static per-texel data of the pore pattern (see :func:`pore_field`).
 
-    offset : (k,3) float     rest-surface vector from the texel to its nearest pore, mm
+    offset : (3,k) float     rest-surface vector from the texel to its nearest pore, mm
     depth, radius : (k,) float   the pore's rest depth and radius, mm
-    normal : (k,3) float     rest unit normal at the texel
+    normal : (3,k) float     rest unit normal at the texel (vectors component-major)
     """
 
     offset: np.ndarray
@@ -311,7 +337,9 @@ def pore_field(uv: np.ndarray, J0: np.ndarray, N: np.ndarray, seed: int,
             best_d2[closer], best_off[closer], best_key[closer] = d2[closer], d3[closer], key[closer]
     depth = (PORE_DEPTH_MM[0] + (PORE_DEPTH_MM[1] - PORE_DEPTH_MM[0]) * _hash01(best_key, seed, 3) ** 2)
     radius = PORE_RADIUS_MM[0] + (PORE_RADIUS_MM[1] - PORE_RADIUS_MM[0]) * _hash01(best_key, seed, 4)
-    return PoreField(best_off, np.minimum(depth * region_gain, PORE_DEPTH_MM[1]), radius, N)
+    return PoreField(np.ascontiguousarray(best_off.T),
+                     np.minimum(depth * region_gain, PORE_DEPTH_MM[1]), radius,
+                     np.ascontiguousarray(N.T))
 
 
 def _hash01(key: np.ndarray, seed: int, salt: int) -> np.ndarray:
@@ -327,11 +355,13 @@ def _hash01(key: np.ndarray, seed: int, salt: int) -> np.ndarray:
 def pore_height(pores: PoreField, Q: np.ndarray, Q_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pore displacement (k,) mm at texels, and the area ratio J (k,), for one frame.
 
+    Q, Q_rest (6,k) are the strain tensors at the texels (Voigt, component-major).
+
     With δ the rest vector to the pore centre, the skin's stretch toward the pore is
     ``λ² = δᵀQδ / δᵀQ_rest δ`` and J its area ratio (:func:`area_ratio`); the pore profile is
     ``−depth · J^-γ · exp(−(|δ| / (radius · λ^β))²)``.
     """
-    q0 = np.einsum("ki,ki->k", pores.offset, pores.offset)
+    q0 = np.einsum("ik,ik->k", pores.offset, pores.offset)
     lam = np.sqrt(np.maximum(quadratic_form(Q, pores.offset), 1e-12)
                   / np.maximum(quadratic_form(Q_rest, pores.offset), 1e-12))
     area = area_ratio(Q, pores.normal, Q_rest)
@@ -358,7 +388,7 @@ def skin_albedo(base: np.ndarray, area: np.ndarray, activation: np.ndarray,
     """
     rho = (1.8 * np.maximum(1 - area, 0) ** 1.2 + 0.35 * activation
            - 0.3 * np.tanh(3 * np.maximum(area - 1, 0)))
-    out = base * np.exp(-rho[:, None] * REDNESS_ABSORPTION)
+    out = base * np.exp(-rho[:, None] * REDNESS_ABSORPTION.astype(base.dtype))
     if pore is not None:
         out = out * (1 + 2.0 * np.clip(pore, -0.2, 0))[:, None]
     return np.clip(out, 0.0, 1.0)

@@ -15,6 +15,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from service.geometry.topology import edge_face_counts, vertex_face_adjacency
+from service.io import markers as io_markers
 
 EYELID_CLEARANCE_MM = 9.0    # no marker closer than this to an eye opening
 INNER_LIP_CLEARANCE_MM = 4.0  # ... or to the mouth opening
@@ -42,12 +43,14 @@ class MarkerLayout:
         corners = np.asarray(V)[..., F[self.triangle], :]          # (…,M,3,3)
         return np.einsum("...mkd,mk->...md", corners, self.barycentric)
 
-    def to_json(self) -> dict:
-        """The API.md marker-layout JSON (triangle + barycentric form)."""
-        return {"markers": [
-            {"name": n, "triangle": int(t), "barycentric": [float(b) for b in bc]}
-            for n, t, bc in zip(self.names, self.triangle, self.barycentric)
-        ]}
+    def to_layout(self) -> io_markers.MarkerLayout:
+        """The API.md marker layout (every marker in triangle + barycentric form)."""
+        M = len(self.names)
+        return io_markers.MarkerLayout(
+            names=tuple(self.names), kinds=("triangle",) * M, vertex=np.full(M, -1),
+            triangle=np.asarray(self.triangle, np.int64),
+            barycentric=np.asarray(self.barycentric, np.float64),
+            position=np.full((M, 3), np.nan))
 
 
 def hole_loops(V: np.ndarray, F: np.ndarray) -> list[np.ndarray]:

@@ -99,8 +99,10 @@ class Performance:
 
     def pose(self, X: np.ndarray) -> np.ndarray:
         """Apply the per-frame head pose to head-frame positions X (F,n,3)."""
-        return (np.einsum("fij,fnj->fni", self.rotation, X - HEAD_PIVOT_MM)
-                + HEAD_PIVOT_MM + self.translation[:, None, :])
+        out = np.empty(np.shape(X))
+        for f, (R, t) in enumerate(zip(self.rotation, self.translation)):
+            out[f] = (X[f] - HEAD_PIVOT_MM) @ R.T + (HEAD_PIVOT_MM + t)   # one GEMM a frame
+        return out
 
 
 def smoothstep(x: np.ndarray) -> np.ndarray:

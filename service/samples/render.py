@@ -7,6 +7,7 @@ pixel centres at integer + 0.5.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,9 +16,9 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from service.geometry.normals import vertex_normals
+from service.geometry.scan_convert import scan_convert
 from service.io.atomic import atomic_open, sha256_file, write_bytes, write_npz
 
-TRACKING_FRAMES = 48
 IMAGE_SIZE = 384
 
 
@@ -59,40 +60,27 @@ def face_cameras(target: np.ndarray, distance: float = 520.0, size: int = IMAGE_
 def rasterize(camera: Camera, V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Visible triangle (H,W) int (−1 for background) and barycentrics (H,W,3) per pixel.
 
-    Vectorized z-buffer: every (triangle, pixel) pair inside the triangle's bounding box is
-    tested at once; per pixel the nearest covering triangle wins.
+    Z-buffer over :func:`~service.geometry.scan_convert.scan_convert`: triangles wholly in
+    front of the camera and facing it (counter-clockwise in the world is clockwise on the
+    y-down image) are scan-converted, and per pixel the nearest covering triangle wins
+    (ties to the lowest triangle index). Barycentrics are in image space, which is what a
+    z-buffer samples at this scale.
     """
     W, H = camera.width, camera.height
     p = camera.project(V)
-    tri = p[F]                                              # (m,3,3)
-    lo = np.clip(np.floor(tri[..., :2].min(axis=1) - 0.5).astype(np.int64), 0, [W - 1, H - 1])
-    hi = np.clip(np.ceil(tri[..., :2].max(axis=1) - 0.5).astype(np.int64), 0, [W - 1, H - 1])
-    ext = hi - lo + 1
-    keep = np.flatnonzero((tri[:, :, 2].min(axis=1) > 0) & (ext > 0).all(axis=1))
-    counts = ext[keep, 0] * ext[keep, 1]
-    t_idx = np.repeat(keep, counts)
-    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    px = lo[t_idx, 0] + local % ext[t_idx, 0]
-    py = lo[t_idx, 1] + local // ext[t_idx, 0]
-    a, b, c = tri[t_idx, 0], tri[t_idx, 1], tri[t_idx, 2]
-    q = np.column_stack([px + 0.5, py + 0.5])
-    v0, v1, v2 = b[:, :2] - a[:, :2], c[:, :2] - a[:, :2], q - a[:, :2]
-    den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
-    ok = np.abs(den) > 1e-12
-    den = np.where(ok, den, 1.0)
-    l1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
-    l2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
-    l0 = 1 - l1 - l2
-    inside = ok & (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
-    depth = l0 * a[:, 2] + l1 * b[:, 2] + l2 * c[:, 2]
-    pix = (py * W + px)[inside]
-    order = np.lexsort((depth[inside], pix))
-    first = np.r_[True, pix[order][1:] != pix[order][:-1]]
-    win = np.flatnonzero(inside)[order[first]]
+    tri = p[F]                                              # (m,3,3): u, v, depth
+    e1, e2 = tri[:, 1, :2] - tri[:, 0, :2], tri[:, 2, :2] - tri[:, 0, :2]
+    facing = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] < 0
+    keep = np.flatnonzero(facing & (tri[:, :, 2].min(axis=1) > 0))
+    cover = scan_convert(tri[keep, :, :2] - 0.5, H, W)     # pixel centres at integer + 0.5
+    t = keep[cover.triangle]
+    depth = np.einsum("pk,pk->p", cover.barycentric, tri[t, :, 2])
+    order = np.lexsort((t, depth, cover.pixel))
+    first = order[np.diff(cover.pixel[order], prepend=-1) != 0]     # nearest per pixel
     triangle = np.full(H * W, -1, dtype=np.int64)
     bary = np.zeros((H * W, 3))
-    triangle[pix[order][first]] = t_idx[win]
-    bary[pix[order][first]] = np.column_stack([l0[win], l1[win], l2[win]])
+    triangle[cover.pixel[first]] = t[first]
+    bary[cover.pixel[first]] = cover.barycentric[first]
     return triangle.reshape(H, W), bary.reshape(H, W, 3)
 
 
@@ -104,7 +92,7 @@ def shade(camera: Camera, V: np.ndarray, F: np.ndarray, albedo: np.ndarray,
     The light is directional, given in world coordinates (toward the light).
     """
     triangle, bary = rasterize(camera, V, F)
-    N = vertex_normals(V, F)
+    N = vertex_normals(V, F, weighting="area")
     fg = triangle >= 0
     corners = F[triangle[fg]]
     n = np.einsum("pk,pkd->pd", bary[fg], N[corners])
@@ -132,7 +120,8 @@ def write_png(path: str | Path, image: np.ndarray) -> str:
 
 
 def write_tracking_data(actor, out: Path, static: dict[str, tuple[np.ndarray, np.ndarray]],
-                        performance: tuple[np.ndarray, np.ndarray], fps: float) -> dict[str, str]:
+                        performance: tuple[np.ndarray, np.ndarray], fps: float,
+                        workers: int = 2) -> dict[str, str]:
     """Cameras plus rendered images for performance-flow tracking (Fyffe et al.).
 
     Parameters
@@ -153,8 +142,10 @@ def write_tracking_data(actor, out: Path, static: dict[str, tuple[np.ndarray, np
         out / "tracking/cameras.json", json.dumps([c.to_json() for c in cams], indent=1).encode())}
 
     def images(vertices, albedo):
-        return np.stack([[to_srgb8(shade(c, v, skin.faces, a)) for c in cams]
-                         for v, a in zip(vertices, albedo)])
+        jobs = [(v, a, c) for v, a in zip(vertices, albedo) for c in cams]
+        with ThreadPoolExecutor(workers) as pool:      # NumPy releases the GIL: both cores
+            shots = list(pool.map(lambda j: to_srgb8(shade(j[2], j[0], skin.faces, j[1])), jobs))
+        return np.stack(shots).reshape(len(vertices), len(cams), *shots[0].shape)
 
     names = list(static)
     static_v = np.stack([static[k][0] for k in names])

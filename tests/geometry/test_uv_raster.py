@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
 
-from service.geometry import uv_raster
+from service.geometry import scan_convert, uv_raster
 from service.geometry.topology import edge_face_counts
 from service.geometry.uv_raster import (
     dilate,
@@ -94,7 +94,7 @@ def test_rasterize_rig_coverage_matches_uv_area_and_is_chunk_independent(rig_lay
     assert abs(r.mask.sum() - area) < 0.25 * perimeter
     assert abs(r.mask.sum() / area - 1) < 0.01
     # tiny chunks: ties are resolved across chunk boundaries the same way
-    monkeypatch.setattr(uv_raster, "CHUNK_TEXELS", 997)
+    monkeypatch.setattr(scan_convert, "CHUNK_PIXELS", 997)
     small = rasterize_uv(uv, UF, R, R)
     np.testing.assert_array_equal(small.triangle, r.triangle)
     np.testing.assert_array_equal(small.barycentric, r.barycentric)
