@@ -13,6 +13,12 @@ def rig():
 
 
 @pytest.fixture(scope="session")
+def rig_mesh(rig):
+    """The rig's neutral as plain arrays: vertices (n,3) float64 mm, triangles (m,3) int64."""
+    return rig.neutral, rig.triangles
+
+
+@pytest.fixture(scope="session")
 def actor0():
     """The level-0 sample actor with 256² maps (fast; same code path as level 1)."""
     from service.samples.actor import make_actor

@@ -1,7 +1,5 @@
 """Tests for service.geometry.curvature_flow: bermano2014 §4.2 frequency separation."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -16,15 +14,6 @@ from service.geometry.curvature_flow import (
     uniform_laplacian_smoothing,
 )
 from service.geometry.laplacian import cotangents, triangle_areas
-
-RIG = Path(__file__).resolve().parents[2] / "service" / "samples" / "data" / "ict_face_rig.npz"
-
-
-@pytest.fixture(scope="module")
-def rig():
-    d = np.load(RIG)
-    return d["neutral"].astype(np.float64), d["triangles"].astype(np.int64)
-
 
 def vertex_normals(V, F):
     """Area-weighted vertex normals, (n,3) unit."""
@@ -46,8 +35,8 @@ def paper_K(V, F):
     return (K - sp.diags(np.asarray(K.sum(axis=1)).ravel())).tocsr()
 
 
-def test_curvature_flow_solves_the_papers_equation_1(rig):
-    V, F = rig
+def test_curvature_flow_solves_the_papers_equation_1(rig_mesh):
+    V, F = rig_mesh
     Y = implicit_curvature_flow(V, F, lam_dt=125.0)
     K = paper_K(V, F)
     residual = Y - 125.0 * (K @ Y) - V        # (I - λdt K) X¹ = X⁰
@@ -60,8 +49,8 @@ def test_curvature_flow_solves_the_papers_equation_1(rig):
     np.testing.assert_array_equal(implicit_curvature_flow(V, F, iterations=0), V)
 
 
-def test_frequency_separation_removes_high_frequency_noise(rig):
-    V, F = rig
+def test_frequency_separation_removes_high_frequency_noise(rig_mesh):
+    V, F = rig_mesh
     N = vertex_normals(V, F)
     noise = 0.1 * np.random.default_rng(0).standard_normal(len(V))[:, None] * N   # 0.1 mm
     low = frequency_separation(V, F)
@@ -106,8 +95,8 @@ def test_curvature_flow_keeps_a_plane_flat():
     np.testing.assert_allclose(low[:, 2], 12.5, rtol=0, atol=1e-12)
 
 
-def test_frequency_separation_is_rotation_equivariant(rig):
-    V, F = rig
+def test_frequency_separation_is_rotation_equivariant(rig_mesh):
+    V, F = rig_mesh
     q = np.array([0.3, -0.5, 0.2, 0.78])
     w, x, y, z = q / np.linalg.norm(q)
     R = np.array([
@@ -121,10 +110,9 @@ def test_frequency_separation_is_rotation_equivariant(rig):
     assert np.abs(a - b).max() < 1e-9
 
 
-def test_batched_frames_and_rest_operator(rig):
-    V, F = rig
-    d = np.load(RIG)
-    V1 = V + d["expression_deltas"][list(d["expression_names"]).index("jawOpen")]
+def test_batched_frames_and_rest_operator(rig, rig_mesh):
+    V, F = rig_mesh
+    V1 = V + rig.expression_deltas[rig.expression_index("jawOpen")]
     frames = np.stack([V, V1])
     low = frequency_separation(frames, F)
     assert low.shape == (2,) + V.shape

@@ -1,7 +1,5 @@
 """Tests for service.geometry.geodesic: heat-method distances against Euclidean and Dijkstra."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -12,9 +10,6 @@ from service.geometry.geodesic import (
     geodesic_distance,
     mean_edge_length,
 )
-
-RIG = Path(__file__).resolve().parents[2] / "service" / "samples" / "data" / "ict_face_rig.npz"
-
 
 @pytest.fixture(scope="module")
 def plane():
@@ -28,12 +23,6 @@ def plane():
     P[inner] += rng.uniform(-0.3 * h, 0.3 * h, (inner.sum(), 2))
     F = Delaunay(P).simplices.astype(np.int64)
     return np.c_[P, np.zeros(len(P))], F, h
-
-
-@pytest.fixture(scope="module")
-def rig():
-    d = np.load(RIG)
-    return d["neutral"].astype(np.float64), d["triangles"].astype(np.int64), d["landmarks68"]
 
 
 def test_heat_geodesics_on_a_plane_match_euclidean_distance(plane):
@@ -54,8 +43,9 @@ def test_heat_geodesics_on_a_plane_match_euclidean_distance(plane):
     assert np.all(dj >= e - 1e-9)
 
 
-def test_heat_geodesics_on_the_rig_are_bounded_by_and_correlated_with_dijkstra(rig):
-    V, F, lm = rig
+def test_heat_geodesics_on_the_rig_are_bounded_by_and_correlated_with_dijkstra(rig, rig_mesh):
+    V, F = rig_mesh
+    lm = rig.landmarks68
     h = mean_edge_length(V, F)
     hg = HeatGeodesics(V, F)
     for src in (lm[30], lm[48]):               # nose tip, left mouth corner
@@ -72,8 +62,9 @@ def test_heat_geodesics_on_the_rig_are_bounded_by_and_correlated_with_dijkstra(r
         assert np.corrcoef(d, dj)[0, 1] > 0.99
 
 
-def test_heat_geodesics_multiple_sources_and_reuse(rig):
-    V, F, lm = rig
+def test_heat_geodesics_multiple_sources_and_reuse(rig, rig_mesh):
+    V, F = rig_mesh
+    lm = rig.landmarks68
     hg = HeatGeodesics(V, F)
     a, b = int(lm[36]), int(lm[45])            # outer eye corners
     da, db, dab = hg(np.array([a])), hg.distance([b]), hg.distance([a, b])

@@ -23,6 +23,7 @@ from service.io.markers import (
     write_markers_json,
     write_markers_trc,
 )
+from tests.io.corruption import corrupt
 
 NAMES = ("FH1", "L_brow", "nose.tip, left", "Chin_x")
 
@@ -273,19 +274,6 @@ def test_barycentric_sum_tolerance_is_one_in_a_million():
         read_marker_layout(_layout_with({"name": "X", "triangle": 1, "barycentric": [0.2, 0.3, 0.500002]}))
 
 
-def _corrupt(data, rng, trial):
-    """Truncate, overwrite a few bytes, or insert a plausible character, by turns."""
-    data = bytearray(data)
-    if trial % 3 == 0:
-        return bytes(data[: rng.integers(0, len(data))])
-    if trial % 3 == 1:
-        for _ in range(rng.integers(1, 4)):
-            data[rng.integers(0, len(data))] = rng.integers(0, 256)
-        return bytes(data)
-    at = rng.integers(0, len(data))
-    return bytes(data[:at] + bytes([rng.choice(list(b"0123456789-,\t .\nnan"))]) + data[at:])
-
-
 def test_corrupted_marker_files_raise_only_format_errors(sequence):
     rng = np.random.default_rng(12)
     layout = json.dumps(LAYOUT).encode()
@@ -302,6 +290,6 @@ def test_corrupted_marker_files_raise_only_format_errors(sequence):
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    read(_corrupt(buffer.getvalue(), rng, trial))
+                    read(corrupt(buffer.getvalue(), rng, trial, b"0123456789-,\t .\nnan"))
             except FormatError:
                 pass

@@ -19,6 +19,7 @@ from service.io.mesh import (
     write_obj,
     write_ply,
 )
+from tests.io.corruption import corrupt
 
 RIG = Path(__file__).parents[2] / "service" / "samples" / "data" / "ict_face_rig.npz"
 
@@ -401,19 +402,6 @@ def test_mesh_seam_vertices_are_those_with_several_uv():
     assert mesh.seam_vertices().tolist() == [0]
 
 
-def _corrupt(data, rng, trial):
-    """Truncate, overwrite a few bytes, or insert a plausible character, by turns."""
-    data = bytearray(data)
-    if trial % 3 == 0:
-        return bytes(data[: rng.integers(0, len(data))])
-    if trial % 3 == 1:
-        for _ in range(rng.integers(1, 4)):
-            data[rng.integers(0, len(data))] = rng.integers(0, 256)
-        return bytes(data)
-    at = rng.integers(0, len(data))
-    return bytes(data[:at] + bytes([rng.choice(list(b"0123456789-/ .\nnan"))]) + data[at:])
-
-
 def test_corrupted_mesh_files_raise_only_format_errors():
     rng = np.random.default_rng(11)
     mesh = _fan_mesh(_random_mesh(seed=4).vertices, _random_mesh(seed=4).uv, _POLYGONS)
@@ -422,6 +410,6 @@ def test_corrupted_mesh_files_raise_only_format_errors():
         write(buffer, mesh)
         for trial in range(90):
             try:
-                read(_corrupt(buffer.getvalue(), rng, trial))
+                read(corrupt(buffer.getvalue(), rng, trial, b"0123456789-/ .\nnan"))
             except FormatError:
                 pass
