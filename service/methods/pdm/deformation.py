@@ -1,0 +1,345 @@
+"""The PDM's input parameters: low-frequency deformation at the markers (ma2008 §4.1).
+
+A coarse triangle mesh is laid over the marker sites (triangulated in texture space). At
+each of its vertices V_i and frame t the 5D deformation vector (§4.1)
+
+    S_i(t) = {O_i(t), E_i^u(t), E_i^v(t)}
+
+joins the offset ``O_i = R(P_i(t)) − P_i^ref`` of the rigidly aligned marker from its
+neutral position with the absolute strains of eq. 2,
+
+    E_i^u(t) = σ{û·P_j(t)} − σ{û·P_j^ref},   E_i^v(t) = σ{v̂·P_j(t)} − σ{v̂·P_j^ref},
+
+the change of the standard deviation of the marker positions P_j of the two-ring N2(V_i),
+projected on the local texture axes (û, v̂). Before PCA the strains are scaled by
+``√|N2(V_i)|``. The first two principal axes Q̂_i, R̂_i of each marker's S_i over all
+training frames are smoothed across the coarse mesh into q̂_i, r̂_i, and the PDM
+parameters are (eq. 3)
+
+    d1 = S · q̂,   d2 = S · r̂,
+
+with S, q̂ and r̂ interpolated barycentrically over texture space through the coarse mesh.
+
+Conventions chosen here where the paper is silent:
+
+* PCA is taken about the neutral (the second moment of S, not its covariance): S = 0 at
+  the neutral, so d1 = d2 = 0 there, and the polynomial's constant term is the neutral's
+  displacement;
+* the principal axes are oriented consistently over the coarse mesh (each axis flipped to
+  agree with its already-oriented neighbours, breadth first) before smoothing, since an
+  eigenvector's sign is arbitrary and smoothing could not repair a flipped one;
+* texels outside the marker hull take the parameters of the nearest point of the coarse
+  mesh (barycentrics clamped to the nearest triangle), a constant extension.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import Delaunay, cKDTree
+
+from service.geometry.topology import adjacency_matrix, edges, k_ring_matrix
+
+#: Coarse triangles whose longest 3D edge exceeds this multiple of the median coarse edge
+#: are dropped: they bridge the eyes and the mouth, where the skin is not continuous.
+MAX_EDGE_RATIO = 2.5
+
+
+@dataclass(frozen=True)
+class MarkerMesh:
+    """The coarse mesh over the markers, at rest (ma2008 §4.1).
+
+    Attributes
+    ----------
+    uv : (M,2) float           texture coordinates of the markers on the neutral
+    faces : (k,3) int          coarse triangles (indices into the markers)
+    two_ring : (M,M) sparse bool   row i marks N2(V_i), V_i included
+    rest : (M,3) float         neutral marker positions P^ref, mm
+    axes : (M,2,3) float       unit texture axes (û, v̂) at each marker, on the neutral
+    rest_sigma : (M,2) float   σ{û·P_j^ref}, σ{v̂·P_j^ref} over N2, mm
+    """
+
+    uv: np.ndarray
+    faces: np.ndarray
+    two_ring: sp.csr_matrix
+    rest: np.ndarray
+    axes: np.ndarray
+    rest_sigma: np.ndarray
+
+    @property
+    def n2_sizes(self) -> np.ndarray:
+        """(M,) |N2(V_i)|."""
+        return np.asarray(self.two_ring.sum(axis=1)).ravel()
+
+    @property
+    def adjacency(self) -> sp.csr_matrix:
+        """(M,M) coarse-mesh edge adjacency."""
+        return adjacency_matrix(self.faces, len(self.uv))
+
+
+def marker_mesh(uv: np.ndarray, rest: np.ndarray, axes: np.ndarray,
+                max_edge_ratio: float = MAX_EDGE_RATIO) -> MarkerMesh:
+    """Triangulate the markers in texture space and measure their rest neighbourhoods.
+
+    Parameters
+    ----------
+    uv : (M,2) float       marker texture coordinates
+    rest : (M,3) float     neutral marker positions, mm
+    axes : (M,2,3) float   unit texture axes (û, v̂) at the markers (e.g. the T and B rows of
+                           :func:`~service.geometry.tangent_frames.tangent_frames`)
+    max_edge_ratio : float drop Delaunay triangles with a 3D edge longer than this times the
+                           median edge (the eye and mouth openings)
+
+    Returns
+    -------
+    MarkerMesh
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    rest = np.asarray(rest, dtype=np.float64)
+    faces = Delaunay(uv).simplices.astype(np.int64)
+    # counter-clockwise in uv, like the surface charts
+    e1, e2 = uv[faces[:, 1]] - uv[faces[:, 0]], uv[faces[:, 2]] - uv[faces[:, 0]]
+    cw = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] < 0
+    faces[cw] = faces[cw][:, ::-1]
+    length = np.linalg.norm(rest[faces] - rest[np.roll(faces, 1, axis=1)], axis=2)   # (k,3)
+    E, _ = edges(faces)
+    median = np.median(np.linalg.norm(rest[E[:, 0]] - rest[E[:, 1]], axis=1))
+    faces = faces[length.max(axis=1) <= max_edge_ratio * median]
+    two_ring = k_ring_matrix(faces, len(uv), 2).tocsr()
+    mesh = MarkerMesh(uv, faces, two_ring, rest, np.asarray(axes, dtype=np.float64),
+                      np.zeros((len(uv), 2)))
+    sigma = neighbourhood_sigma(mesh, rest[None])[0]
+    return MarkerMesh(uv, faces, two_ring, rest, mesh.axes, sigma)
+
+
+def neighbourhood_sigma(mesh: MarkerMesh, P: np.ndarray) -> np.ndarray:
+    """σ{û·P_j}, σ{v̂·P_j} over the two-rings: (T,M,2) for positions P (T,M,3), mm.
+
+    Population standard deviations; markers that are NaN (occluded) are left out of every
+    neighbourhood they belong to (ma2008 §5: a missing marker contributes no strain).
+    """
+    P = np.asarray(P, dtype=np.float64)
+    T, M = P.shape[:2]
+    proj = np.einsum("tjd,iad->tiaj", np.nan_to_num(P), mesh.axes)       # (T,M_i,2,M_j)
+    valid = np.isfinite(P).all(axis=2)                                  # (T,M)
+    N2 = mesh.two_ring.toarray().astype(np.float64)                     # (M_i,M_j)
+    w = N2[None] * valid[:, None, :]                                    # (T,M_i,M_j)
+    count = np.maximum(w.sum(axis=2), 1.0)[..., None]                   # (T,M_i,1)
+    mean = np.einsum("tij,tiaj->tia", w, proj) / count
+    second = np.einsum("tij,tiaj->tia", w, proj ** 2) / count
+    return np.sqrt(np.maximum(second - mean ** 2, 0.0))
+
+
+def deformation_vectors(mesh: MarkerMesh, P: np.ndarray) -> np.ndarray:
+    """The 5D deformation vectors S (T,M,5) of rigidly aligned markers P (T,M,3) (eq. 2).
+
+    ``S = (O_x, O_y, O_z, E^u, E^v)`` in mm, unscaled. Rows of occluded (NaN) markers are
+    NaN in O; their strains are measured from the visible neighbours.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    O = P - mesh.rest
+    E = neighbourhood_sigma(mesh, P) - mesh.rest_sigma
+    return np.concatenate([O, E], axis=2)
+
+
+def strain_scale(mesh: MarkerMesh) -> np.ndarray:
+    """(M,5) per-component scale applied before PCA: 1 for O, √|N2(V_i)| for E (§4.1)."""
+    s = np.ones((len(mesh.uv), 5))
+    s[:, 3:] = np.sqrt(mesh.n2_sizes)[:, None]
+    return s
+
+
+@dataclass(frozen=True)
+class DeformationAxes:
+    """Per-marker PDM domain axes (ma2008 §4.1).
+
+    q, r : (M,5) float      smoothed unit axes q̂, r̂ in the scaled 5D deformation space
+    scale : (M,5) float     :func:`strain_scale` (S is multiplied by it before projecting)
+    energy : (M,5) float    cumulative explained energy of the 1..5 principal axes at each
+                            marker before smoothing (the paper's Table 1, averaged: ``energy.mean(0)``)
+    replaced : int          how many outlier vectors the smoothing pass replaced
+    """
+
+    q: np.ndarray
+    r: np.ndarray
+    scale: np.ndarray
+    energy: np.ndarray
+    replaced: int
+
+
+def principal_axes(S: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First two principal axes (M,5) each of the scaled deformation vectors, and energy.
+
+    PCA about the neutral: the eigenvectors of ``Σ_t s_t s_tᵀ`` with ``s = scale · S_i(t)``,
+    frames with NaN skipped per marker. Returns (Q̂, R̂, cumulative energy (M,5)).
+    """
+    X = np.nan_to_num(S * scale)                                     # (T,M,5)
+    C = np.einsum("tma,tmb->mab", X, X)                              # (M,5,5)
+    lam, vec = np.linalg.eigh(C)                                     # ascending
+    lam, vec = lam[:, ::-1].clip(min=0), vec[:, :, ::-1]
+    energy = np.cumsum(lam, axis=1) / np.maximum(lam.sum(axis=1, keepdims=True), 1e-300)
+    return vec[:, :, 0], vec[:, :, 1], energy
+
+
+def orient_consistently(V: np.ndarray, adjacency: sp.csr_matrix) -> np.ndarray:
+    """Flip rows of V (M,d) so that neighbours agree in sign, breadth first from row 0.
+
+    Each unvisited vertex is oriented against the sum of its already-oriented neighbours;
+    every connected component starts from its lowest index as given.
+    """
+    V = np.array(V, dtype=np.float64)
+    M = len(V)
+    seen = np.zeros(M, bool)
+    A = adjacency.tocsr()
+    for start in range(M):
+        if seen[start]:
+            continue
+        seen[start] = True
+        queue = deque([start])
+        while queue:
+            i = queue.popleft()
+            for j in A.indices[A.indptr[i]:A.indptr[i + 1]]:
+                if seen[j]:
+                    continue
+                nb = A.indices[A.indptr[j]:A.indptr[j + 1]]
+                ref = V[nb[seen[nb]]].sum(axis=0)
+                if V[j] @ ref < 0:
+                    V[j] = -V[j]
+                seen[j] = True
+                queue.append(j)
+    return V
+
+
+def smooth_axes(Q: np.ndarray, R: np.ndarray, adjacency: sp.csr_matrix,
+                threshold_deg: float = 20.0, max_steps: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The axis-smoothing pass of ma2008 §4.1.
+
+    Repeatedly find the worst outlier over the whole mesh — the basis vector (of Q or R)
+    with the largest angle to the average of the corresponding vectors at its adjacent
+    vertices — replace it by that average, re-orthonormalize the pair (the other vector is
+    Gram-Schmidt'ed against the replaced one), until the worst angle is within
+    ``threshold_deg``. ``max_steps`` (default 20·M) bounds the loop.
+
+    Returns (q̂ (M,5), r̂ (M,5), number of replacements).
+    """
+    Q, R = np.array(Q, dtype=np.float64), np.array(R, dtype=np.float64)
+    A = adjacency.tocsr().astype(np.float64)
+    M = len(Q)
+    threshold = np.deg2rad(threshold_deg)
+    steps = 0
+    for steps in range(max_steps if max_steps is not None else 20 * M):
+        worst_angle, worst = -1.0, None
+        for k, X in enumerate((Q, R)):
+            avg = A @ X
+            norm = np.linalg.norm(avg, axis=1)
+            ok = norm > 1e-12
+            cos = np.where(ok, np.einsum("md,md->m", X, avg) / np.where(ok, norm, 1), 1.0)
+            angle = np.arccos(np.clip(cos, -1, 1))
+            i = int(np.argmax(angle))
+            if angle[i] > worst_angle:
+                worst_angle, worst = angle[i], (k, i, avg[i] / max(norm[i], 1e-300))
+        if worst_angle <= threshold:
+            return Q, R, steps
+        k, i, new = worst
+        if k == 0:
+            Q[i] = new
+            R[i] = _orthonormalize(R[i], Q[i])
+        else:
+            R[i] = _orthonormalize(new, Q[i])
+    return Q, R, steps + 1
+
+
+def _orthonormalize(v: np.ndarray, against: np.ndarray) -> np.ndarray:
+    """v minus its component along the unit vector ``against``, normalized."""
+    w = v - (v @ against) * against
+    n = np.linalg.norm(w)
+    if n < 1e-12:                     # degenerate: any unit vector orthogonal to `against`
+        w = np.eye(len(v))[np.argmin(np.abs(against))]
+        w = w - (w @ against) * against
+        n = np.linalg.norm(w)
+    return w / n
+
+
+def deformation_axes(mesh: MarkerMesh, S: np.ndarray, threshold_deg: float = 20.0) -> DeformationAxes:
+    """PCA, consistent orientation and smoothing of the per-marker axes from training S (T,M,5)."""
+    scale = strain_scale(mesh)
+    Q, R, energy = principal_axes(S, scale)
+    A = mesh.adjacency
+    Q, R = orient_consistently(Q, A), orient_consistently(R, A)
+    q, r, replaced = smooth_axes(Q, R, A, threshold_deg)
+    return DeformationAxes(q, r, scale, energy, replaced)
+
+
+def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
+    """Sparse (P,M) barycentric interpolation from the markers to points uv (P,2).
+
+    Points inside a coarse triangle get its barycentric coordinates; points outside the
+    coarse mesh get those of the nearest point of the nearest triangles (clamped to the
+    triangle, a constant extension of the parameters beyond the marker hull).
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    T = mesh.uv[mesh.faces]                                          # (k,3,2)
+    # candidates: a few triangles nearest by centroid, then the best clamped barycentrics
+    tree = cKDTree(T.mean(axis=1))
+    k = min(8, len(T))
+    _, cand = tree.query(uv, k=k)
+    cand = cand.reshape(len(uv), k)
+    lam = _barycentric(T[cand], uv[:, None, :])                       # (P,k,3)
+    clamped = _clamp_to_triangle(T[cand], uv[:, None, :], lam)        # (P,k,3)
+    pos = np.einsum("pkc,pkcd->pkd", clamped, T[cand])
+    dist = np.linalg.norm(pos - uv[:, None, :], axis=2)
+    best = np.argmin(dist, axis=1)
+    rows = np.arange(len(uv))
+    tri = cand[rows, best]
+    w = clamped[rows, best]
+    return sp.csr_matrix((w.ravel(), (np.repeat(rows, 3), mesh.faces[tri].ravel())),
+                         shape=(len(uv), len(mesh.uv)))
+
+
+def _barycentric(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (...,3) of points p (...,2) in triangles T (...,3,2)."""
+    e1, e2, d = T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], p - T[..., 0, :]
+    det = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+    l1 = (d[..., 0] * e2[..., 1] - d[..., 1] * e2[..., 0]) / det
+    l2 = (e1[..., 0] * d[..., 1] - e1[..., 1] * d[..., 0]) / det
+    return np.stack([1 - l1 - l2, l1, l2], axis=-1)
+
+
+def _clamp_to_triangle(T: np.ndarray, p: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Barycentrics (...,3) of the point of each triangle nearest to p (inside: unchanged)."""
+    inside = (lam >= 0).all(axis=-1, keepdims=True)
+    best = lam
+    best_d = np.full(lam.shape[:-1], np.inf)
+    out = np.zeros_like(lam)
+    # nearest point on each edge (a,b): t = clip(((p-a)·(b-a)) / |b-a|², 0, 1)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        A, B = T[..., a, :], T[..., b, :]
+        ab = B - A
+        t = np.clip(np.einsum("...d,...d->...", p - A, ab) / np.maximum(np.einsum("...d,...d->...", ab, ab), 1e-300), 0, 1)
+        d = np.linalg.norm(A + t[..., None] * ab - p, axis=-1)
+        closer = d < best_d
+        cand = np.zeros_like(lam)
+        cand[..., a] = 1 - t
+        cand[..., b] = t
+        out = np.where(closer[..., None], cand, out)
+        best_d = np.where(closer, d, best_d)
+    return np.where(inside, best, out)
+
+
+def pdm_parameters(axes: DeformationAxes, S: np.ndarray, W: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """d1, d2 (T,P) at P points for deformation vectors S (T,M,5) (eq. 3).
+
+    W (P,M) is the :func:`barycentric_operator` to the points; S, q̂ and r̂ are
+    interpolated separately and then dotted, as in the paper.
+    """
+    S = np.asarray(S, dtype=np.float64)
+    T, M = S.shape[:2]
+    Xs = np.nan_to_num(S * axes.scale)                               # (T,M,5)
+    Sp = (W @ Xs.transpose(1, 0, 2).reshape(M, T * 5)).reshape(-1, T, 5)   # (P,T,5)
+    q, r = W @ axes.q, W @ axes.r                                    # (P,5)
+    return np.einsum("ptd,pd->tp", Sp, q), np.einsum("ptd,pd->tp", Sp, r)
+

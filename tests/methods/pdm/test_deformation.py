@@ -1,0 +1,123 @@
+"""ma2008 §4.1: coarse marker mesh, 5D deformation vectors, axes, d1/d2."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.methods.pdm import deformation as dm
+
+
+def _grid(n=7, spacing=10.0, seed=0):
+    """Markers on a jittered n×n grid in the plane z=0; uv = xy / 100; axes = x, y."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
+    P = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    P[:, :2] += rng.uniform(-1.5, 1.5, size=(n * n, 2))
+    axes = np.tile(np.eye(3)[:2], (n * n, 1, 1))
+    return dm.marker_mesh(P[:, :2] / 100.0, P, axes), P
+
+
+def test_two_ring_and_rest_sigma():
+    mesh, P = _grid()
+    assert mesh.faces.shape[1] == 3 and len(mesh.faces) >= 2 * 36 - 4
+    N2 = mesh.two_ring.toarray()
+    assert N2.diagonal().all() and (N2 == N2.T).all()
+    # the two-ring of an interior marker of a triangulated grid holds 13-19 markers
+    centre = 24
+    assert 13 <= N2[centre].sum() <= 25
+    sig = dm.neighbourhood_sigma(mesh, P[None])[0]
+    j = np.flatnonzero(N2[centre])
+    np.testing.assert_allclose(sig[centre], P[j, :2].std(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(mesh.rest_sigma, sig)
+
+
+def test_strain_of_a_uniformly_scaled_patch_is_analytic():
+    """Scaling the patch by s about any point changes σ by (s−1)σ_ref exactly; O = (s−1)P."""
+    mesh, P = _grid()
+    s = 1.15
+    S = dm.deformation_vectors(mesh, (s * P)[None])[0]
+    np.testing.assert_allclose(S[:, 3:], (s - 1) * mesh.rest_sigma, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(S[:, :3], (s - 1) * P, atol=1e-12)
+    # anisotropic: stretch along u only
+    S = dm.deformation_vectors(mesh, (P * [1.2, 1.0, 1.0])[None])[0]
+    np.testing.assert_allclose(S[:, 3], 0.2 * mesh.rest_sigma[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(S[:, 4], 0.0, atol=1e-12)
+
+
+def test_neutral_gives_zero_and_occluded_markers_drop_out():
+    mesh, P = _grid()
+    np.testing.assert_allclose(dm.deformation_vectors(mesh, P[None]), 0.0, atol=1e-12)
+    Q = P.copy()
+    Q[10] = np.nan
+    S = dm.deformation_vectors(mesh, Q[None])[0]
+    assert np.isnan(S[10, :3]).all() and np.isfinite(S[:, 3:]).all()
+    # a neighbour's σ is now over the remaining visible markers
+    i = 11
+    j = np.setdiff1d(np.flatnonzero(mesh.two_ring.toarray()[i]), [10])
+    np.testing.assert_allclose(S[i, 3:] + mesh.rest_sigma[i], P[j, :2].std(axis=0), rtol=1e-12)
+
+
+def test_pca_axes_recover_a_planted_two_dimensional_deformation():
+    mesh, P = _grid()
+    rng = np.random.default_rng(1)
+    M = len(P)
+    a, b = np.zeros(5), np.zeros(5)
+    a[1], a[3] = 0.8, 0.6                     # "raise + stretch along u"
+    b[0], b[2] = 0.6, -0.8
+    t1, t2 = rng.normal(0, 3, 40), rng.normal(0, 1, 40)
+    t2 -= (t2 @ t1) / (t1 @ t1) * t1          # uncorrelated samples: the axes are exactly a, b
+    scale = dm.strain_scale(mesh)
+    X = t1[:, None, None] * a + t2[:, None, None] * b + rng.normal(0, 1e-3, (40, M, 5))
+    S = X / scale                              # so that scale·S = X
+    axes = dm.deformation_axes(mesh, S)
+    assert np.all(np.abs(np.abs(axes.q @ a) - 1) < 1e-3)
+    assert np.all(np.abs(np.abs(axes.r @ b) - 1) < 1e-3)
+    # consistently oriented over the mesh
+    assert abs(np.sign(axes.q @ a).sum()) == M and abs(np.sign(axes.r @ b).sum()) == M
+    assert np.all(axes.energy[:, 1] > 0.999)
+    d1, d2 = dm.pdm_parameters(axes, S, dm.barycentric_operator(mesh, mesh.uv))
+    sign1, sign2 = np.sign(axes.q[0] @ a), np.sign(axes.r[0] @ b)
+    np.testing.assert_allclose(d1, sign1 * t1[:, None] * np.ones(M), atol=0.02)
+    np.testing.assert_allclose(d2, sign2 * t2[:, None] * np.ones(M), atol=0.02)
+
+
+def test_smoothing_replaces_the_outlier_and_keeps_pairs_orthonormal():
+    mesh, _ = _grid()
+    M = len(mesh.uv)
+    Q = np.tile(np.eye(5)[0], (M, 1))
+    R = np.tile(np.eye(5)[1], (M, 1))
+    Q[24] = np.eye(5)[2]                       # one outlier axis
+    R[24] = np.eye(5)[1]
+    q, r, replaced = dm.smooth_axes(Q, R, mesh.adjacency, threshold_deg=10.0)
+    assert replaced >= 1
+    np.testing.assert_allclose(q[24], np.eye(5)[0], atol=1e-12)
+    np.testing.assert_allclose(np.einsum("md,md->m", q, r), 0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(r, axis=1), 1, atol=1e-12)
+
+
+def test_orientation_flips_disagreeing_neighbours():
+    mesh, _ = _grid()
+    V = np.tile([1.0, 0, 0, 0, 0], (len(mesh.uv), 1))
+    V[::3] *= -1
+    out = dm.orient_consistently(V, mesh.adjacency)
+    assert np.all(out[:, 0] == out[0, 0])
+
+
+def test_barycentric_operator_interpolates_inside_and_clamps_outside():
+    mesh, P = _grid()
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(0.05, 0.55, size=(200, 2))
+    W = dm.barycentric_operator(mesh, uv)
+    np.testing.assert_allclose(np.asarray(W.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    assert W.min() >= -1e-12
+    # linear functions of uv are reproduced inside the hull
+    inside = (uv > 0.02).all(axis=1) & (uv < 0.58).all(axis=1)
+    f = mesh.uv @ [2.0, -3.0] + 1
+    np.testing.assert_allclose((W @ f)[inside], (uv @ [2.0, -3.0] + 1)[inside], atol=1e-9)
+    # far outside: the value of the nearest hull point (constant extension)
+    far = dm.barycentric_operator(mesh, np.array([[0.3, 5.0]]))
+    top = (W @ f).max()
+    assert (far @ f)[0] <= f.max() + 1e-9
+    assert np.isfinite(top)
