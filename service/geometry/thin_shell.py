@@ -356,3 +356,58 @@ def apply_basis(B: np.ndarray, u_H: np.ndarray) -> np.ndarray:
         out = (B @ rhs).reshape(n, nf, 3).transpose(1, 0, 2)            # (F,n,3) view
     out = np.ascontiguousarray(out)
     return out if batched else out[0]
+
+
+def handle_energy_matrix(V: np.ndarray, F: np.ndarray, B: np.ndarray, ks: float = KS,
+                         kb: float = KB, mass: str = "voronoi") -> np.ndarray:
+    """Thin-shell energy as a quadratic form of the handle displacements: ``G = Bᵀ K B``.
+
+    For the minimizer ``u = B u_H`` of ``uᵀKu`` (bickel2008 eq. 1) the energy is
+    ``u_Hᵀ G u_H``, so :func:`complete_handles` can drop handles exactly.
+
+    Parameters
+    ----------
+    V : (n,3) float   rest vertices, mm;   F : (m,3) int
+    B : (n,h) float   the basis of :func:`thin_shell_basis` for the same V, F, ks, kb, mass
+
+    Returns
+    -------
+    G : (h,h) float64   symmetric positive semi-definite
+    """
+    K = thin_shell_operator(V, F, ks, kb, mass).tocsr()
+    B = np.asarray(B, dtype=np.float64)
+    G = B.T @ (K @ B)
+    return 0.5 * (G + G.T)
+
+
+def complete_handles(G: np.ndarray, u_H: np.ndarray) -> np.ndarray:
+    """Fill unknown (NaN) handle displacements so that ``B @ u_H`` is the thin shell
+    solved with the known handles only (missing markers: their constraints dropped).
+
+    Minimizing ``u_Hᵀ G u_H`` over the unknown rows U with the known rows K fixed gives
+    ``G_UU u_U = −G_UK u_K``: exact, an (|U|,|U|) solve instead of a new factorization.
+
+    Parameters
+    ----------
+    G : (h,h) float             :func:`handle_energy_matrix`
+    u_H : (h,3) float           handle displacements, NaN rows unknown
+
+    Returns
+    -------
+    u_H : (h,3) float64         with the unknown rows filled (a copy)
+
+    Raises
+    ------
+    ValueError   when no handle is known
+    """
+    u = np.array(u_H, dtype=np.float64)
+    unknown = ~np.isfinite(u).all(axis=1)
+    if not unknown.any():
+        return u
+    known = ~unknown
+    if not known.any():
+        raise ValueError("all handles are unknown; at least one is needed")
+    G_UU = G[np.ix_(unknown, unknown)]
+    rhs = -G[np.ix_(unknown, known)] @ u[known]
+    u[unknown] = np.linalg.solve(G_UU, rhs)
+    return u

@@ -9,8 +9,8 @@ import scipy.sparse as sp
 from service.geometry.laplacian import cotangent_laplacian, mass_matrix
 from service.geometry.normals import vertex_normals
 from service.geometry.thin_shell import (
-    KB, KS, ThinShellSolver, apply_basis, thin_shell_basis, thin_shell_operator,
-    thin_shell_system,
+    KB, KS, ThinShellSolver, apply_basis, complete_handles, handle_energy_matrix,
+    thin_shell_basis, thin_shell_operator, thin_shell_system,
 )
 from service.geometry.topology import adjacency_matrix, boundary_vertices, k_ring
 
@@ -214,3 +214,21 @@ def test_component_without_handle_is_reported_with_its_size():
     with pytest.raises(ValueError, match=r"1 vertices \(e\.g\. vertex 36\)"):
         thin_shell_system(V3, F, np.array([0]))
     ThinShellSolver(V2, F2, np.array([0, 40]))         # one handle per component is enough
+
+
+def test_completing_missing_handles_equals_solving_without_them(basis):
+    """Dropping 7 markers via the handle energy matrix matches a solver built without them."""
+    rng = np.random.default_rng(4)
+    u_H = rng.normal(0, 2.0, size=(len(HANDLES), 3))
+    missing = rng.choice(len(HANDLES), 7, replace=False)
+    keep = np.setdiff1d(np.arange(len(HANDLES)), missing)
+    reference = ThinShellSolver(V0, F0, HANDLES[keep]).deform(u_H[keep])
+    G = handle_energy_matrix(V0, F0, basis)
+    np.testing.assert_allclose(G, G.T, atol=1e-9)
+    partial = u_H.copy()
+    partial[missing] = np.nan
+    filled = complete_handles(G, partial)
+    np.testing.assert_array_equal(filled[keep], u_H[keep])
+    np.testing.assert_allclose(apply_basis(basis, filled), reference, atol=1e-7)
+    with pytest.raises(ValueError, match="at least one"):
+        complete_handles(G, np.full_like(u_H, np.nan))
