@@ -160,7 +160,8 @@ class DeformationAxes:
     scale : (M,5) float     :func:`strain_scale` (S is multiplied by it before projecting)
     energy : (M,5) float    cumulative explained energy of the 1..5 principal axes at each
                             marker before smoothing (the paper's Table 1, averaged: ``energy.mean(0)``)
-    replaced : int          how many outlier vectors the smoothing pass replaced
+    replaced : int          how many outlier pairs the smoothing pass replaced
+    worst_angle_deg : float the largest remaining angle to the neighbour average
     """
 
     q: np.ndarray
@@ -168,6 +169,7 @@ class DeformationAxes:
     scale: np.ndarray
     energy: np.ndarray
     replaced: int
+    worst_angle_deg: float
 
 
 def principal_axes(S: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -214,64 +216,67 @@ def orient_consistently(V: np.ndarray, adjacency: sp.csr_matrix) -> np.ndarray:
 
 
 def smooth_axes(Q: np.ndarray, R: np.ndarray, adjacency: sp.csr_matrix,
-                threshold_deg: float = 20.0, max_steps: int | None = None
-                ) -> tuple[np.ndarray, np.ndarray, int]:
+                threshold_deg: float = 30.0, max_steps: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray, int, float]:
     """The axis-smoothing pass of ma2008 §4.1.
 
     Repeatedly find the worst outlier over the whole mesh — the basis vector (of Q or R)
     with the largest angle to the average of the corresponding vectors at its adjacent
-    vertices — replace it by that average, re-orthonormalize the pair (the other vector is
-    Gram-Schmidt'ed against the replaced one), until the worst angle is within
-    ``threshold_deg``. ``max_steps`` (default 20·M) bounds the loop.
+    vertices — and replace that vertex's pair by the neighbour averages, re-orthonormalized
+    (the nearest orthonormal pair: the polar factor of the 5×2 matrix of averages), until
+    the worst angle is within ``threshold_deg``.
 
-    Returns (q̂ (M,5), r̂ (M,5), number of replacements).
+    Where the deformation axes genuinely change across the face (e.g. Q and R trade places
+    between the brow and the cheek) the neighbour averages are far from orthogonal and no
+    pair is within the threshold of both; the pass then stops once the worst angle has not
+    improved for M consecutive steps (or after ``max_steps``, default 20·M), and reports
+    the worst angle it reached.
+
+    Returns
+    -------
+    q, r : (M,5) float   smoothed orthonormal axes q̂, r̂
+    steps : int          replacements made
+    worst_deg : float    the largest remaining angle, degrees
     """
     Q, R = np.array(Q, dtype=np.float64), np.array(R, dtype=np.float64)
     A = adjacency.tocsr().astype(np.float64)
     M = len(Q)
     threshold = np.deg2rad(threshold_deg)
+    best, since_best = np.inf, 0
+    limit = max_steps if max_steps is not None else 20 * M
     steps = 0
-    for steps in range(max_steps if max_steps is not None else 20 * M):
-        worst_angle, worst = -1.0, None
-        for k, X in enumerate((Q, R)):
-            avg = A @ X
-            norm = np.linalg.norm(avg, axis=1)
-            ok = norm > 1e-12
-            cos = np.where(ok, np.einsum("md,md->m", X, avg) / np.where(ok, norm, 1), 1.0)
-            angle = np.arccos(np.clip(cos, -1, 1))
-            i = int(np.argmax(angle))
-            if angle[i] > worst_angle:
-                worst_angle, worst = angle[i], (k, i, avg[i] / max(norm[i], 1e-300))
-        if worst_angle <= threshold:
-            return Q, R, steps
-        k, i, new = worst
-        if k == 0:
-            Q[i] = new
-            R[i] = _orthonormalize(R[i], Q[i])
+    while True:
+        avg = [A @ Q, A @ R]
+        angle = np.maximum(_angles(Q, avg[0]), _angles(R, avg[1]))
+        i = int(np.argmax(angle))
+        worst = float(angle[i])
+        if worst < best - 1e-12:
+            best, since_best = worst, 0
         else:
-            R[i] = _orthonormalize(new, Q[i])
-    return Q, R, steps + 1
+            since_best += 1
+        if worst <= threshold or steps >= limit or since_best >= M:
+            return Q, R, steps, float(np.rad2deg(worst))
+        U, _, Vt = np.linalg.svd(np.column_stack([avg[0][i], avg[1][i]]), full_matrices=False)
+        Q[i], R[i] = (U @ Vt).T
+        steps += 1
 
 
-def _orthonormalize(v: np.ndarray, against: np.ndarray) -> np.ndarray:
-    """v minus its component along the unit vector ``against``, normalized."""
-    w = v - (v @ against) * against
-    n = np.linalg.norm(w)
-    if n < 1e-12:                     # degenerate: any unit vector orthogonal to `against`
-        w = np.eye(len(v))[np.argmin(np.abs(against))]
-        w = w - (w @ against) * against
-        n = np.linalg.norm(w)
-    return w / n
+def _angles(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Angles (M,) between rows of X and of Y, radians (0 where Y is a zero row)."""
+    nx, ny = np.linalg.norm(X, axis=1), np.linalg.norm(Y, axis=1)
+    ok = (nx > 1e-12) & (ny > 1e-12)
+    cos = np.einsum("md,md->m", X, Y) / np.where(ok, nx * ny, 1.0)
+    return np.where(ok, np.arccos(np.clip(cos, -1, 1)), 0.0)
 
 
-def deformation_axes(mesh: MarkerMesh, S: np.ndarray, threshold_deg: float = 20.0) -> DeformationAxes:
+def deformation_axes(mesh: MarkerMesh, S: np.ndarray, threshold_deg: float = 30.0) -> DeformationAxes:
     """PCA, consistent orientation and smoothing of the per-marker axes from training S (T,M,5)."""
     scale = strain_scale(mesh)
     Q, R, energy = principal_axes(S, scale)
     A = mesh.adjacency
     Q, R = orient_consistently(Q, A), orient_consistently(R, A)
-    q, r, replaced = smooth_axes(Q, R, A, threshold_deg)
-    return DeformationAxes(q, r, scale, energy, replaced)
+    q, r, replaced, worst = smooth_axes(Q, R, A, threshold_deg)
+    return DeformationAxes(q, r, scale, energy, replaced, worst)
 
 
 def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
