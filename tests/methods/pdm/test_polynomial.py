@@ -1,0 +1,285 @@
+"""Per-texel polynomial fitting of deformation-driven PDMs (ma2008 §4.2, eq. 1)."""
+
+import numpy as np
+import pytest
+
+from service.methods.pdm.polynomial import (
+    ORDERS,
+    TERM_POWERS,
+    design_matrix,
+    evaluate,
+    fit,
+    fit_residual_rms,
+    regularization_weights,
+)
+
+
+def _params(rng, T, P):
+    """Deformation parameters in the paper's range (Figure 3: about -2 … 2)."""
+    return rng.uniform(-2, 2, (T, P)), rng.uniform(-2, 2, (T, P))
+
+
+def _exact(order, T=30, P=500, C=3, seed=0):
+    rng = np.random.default_rng(seed)
+    d1, d2 = _params(rng, T, P)
+    a = rng.normal(size=(P, C, ORDERS[order]))
+    return d1, d2, a, evaluate(a, d1, d2)
+
+
+def _lstsq(d1, d2, f, order="biquadratic"):
+    """Reference: np.linalg.lstsq on the rows of one texel, (T,), (T,), (T,C) → (C,K)."""
+    return np.linalg.lstsq(design_matrix(d1, d2, order), f, rcond=None)[0].T
+
+
+# --- 8. term order -----------------------------------------------------------------------
+
+
+def test_design_matrix_biquadratic_term_order_is_eq1():
+    np.testing.assert_array_equal(design_matrix(2.0, 3.0, "biquadratic"), [4, 9, 6, 2, 3, 1])
+
+
+def test_design_matrix_linear_and_bicubic_term_order():
+    np.testing.assert_array_equal(design_matrix(2.0, 3.0, "linear"), [2, 3, 1])
+    np.testing.assert_array_equal(
+        design_matrix(2.0, 3.0, "bicubic"), [8, 27, 12, 18, 4, 9, 6, 2, 3, 1]
+    )
+    for order, K in ORDERS.items():
+        assert len(TERM_POWERS[order]) == K and TERM_POWERS[order][-1] == (0, 0)
+
+
+def test_design_matrix_shapes():
+    rng = np.random.default_rng(1)
+    d1, d2 = _params(rng, 4, 5)
+    assert design_matrix(d1, d2, "bicubic").shape == (4, 5, 10)
+    assert design_matrix(d1[0], d2[0]).dtype == np.float64
+
+
+# --- regularization rows ------------------------------------------------------------------
+
+
+def test_regularization_weights_are_gamma_over_sigma_powers():
+    w = regularization_weights("biquadratic", 2.0, 0.5, 0.1)
+    np.testing.assert_allclose(w, [0.1 / 4, 0.1 / 0.25, 0.1 / 1.0, 0.1 / 2, 0.1 / 0.5, 0.0])
+    w = regularization_weights("linear", np.array([1.0, 4.0]), np.array([2.0, 1.0]), 1.0)
+    np.testing.assert_allclose(w, [[1, 0.5, 0], [0.25, 1, 0]])
+
+
+def test_regularization_weights_floor_sigma():
+    w = regularization_weights("linear", 0.0, 1.0, 1e-3, sigma_floor=1e-6)
+    np.testing.assert_allclose(w, [1e3, 1e-3, 0.0])
+
+
+# --- 1. exact recovery -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("gamma", [1e-12, 0.0])
+def test_fit_recovers_exact_biquadratic(gamma):
+    d1, d2, a, f = _exact("biquadratic")
+    coeffs = fit(d1, d2, f, gamma=gamma)
+    assert coeffs.shape == (500, 3, 6) and coeffs.dtype == np.float64
+    np.testing.assert_allclose(coeffs, a, atol=1e-6)
+    np.testing.assert_allclose(fit_residual_rms(coeffs, d1, d2, f), 0, atol=1e-9)
+
+
+def test_fit_accepts_float32_and_single_channel():
+    d1, d2, a, f = _exact("biquadratic", C=1)
+    c64 = fit(d1, d2, f[..., 0], gamma=1e-12)
+    assert c64.shape == (500, 1, 6)
+    d1_32, d2_32, f_32 = (x.astype(np.float32) for x in (d1, d2, f[..., 0]))
+    c32 = fit(d1_32, d2_32, f_32, gamma=1e-12)
+    assert c32.dtype == np.float64
+    # float32 rounding of the inputs (~1e-7 relative), not of the arithmetic
+    np.testing.assert_allclose(c32, a, atol=1e-4)
+
+
+# --- 2. gamma → 0 is plain least squares ----------------------------------------------------
+
+
+@pytest.mark.parametrize("gamma", [1e-12, 0.0])
+def test_fit_small_gamma_equals_lstsq_on_noisy_data(gamma):
+    d1, d2, _, f = _exact("biquadratic", T=40, P=50)
+    f = f + np.random.default_rng(2).normal(scale=0.3, size=f.shape)
+    coeffs = fit(d1, d2, f, gamma=gamma)
+    for p in (0, 7, 19, 33, 49):
+        np.testing.assert_allclose(coeffs[p], _lstsq(d1[:, p], d2[:, p], f[:, p]), atol=1e-8)
+
+
+def test_fit_equals_stacked_lstsq_with_regularization_rows():
+    """γ > 0: the normal equations solve ma2008 §4.2's stacked system [Φ; diag(w)] a = [f; 0]."""
+    d1, d2, _, f = _exact("biquadratic", T=25, P=20)
+    f = f + np.random.default_rng(3).normal(size=f.shape)
+    gamma = 0.5
+    coeffs = fit(d1, d2, f, gamma=gamma)
+    for p in (0, 11, 19):
+        w = regularization_weights("biquadratic", d1[:, p].std(), d2[:, p].std(), gamma)
+        A = np.vstack([design_matrix(d1[:, p], d2[:, p]), np.diag(w)[:-1]])   # 5 γ rows
+        b = np.vstack([f[:, p], np.zeros((5, 3))])
+        np.testing.assert_allclose(coeffs[p], np.linalg.lstsq(A, b, rcond=None)[0].T, atol=1e-10)
+
+
+def test_fit_default_sigma_is_std_of_parameters_over_frames():
+    d1, d2, _, f = _exact("biquadratic", T=20, P=30)
+    f = f + np.random.default_rng(4).normal(size=f.shape)
+    sigma = np.stack([d1.std(axis=0), d2.std(axis=0)], axis=1)
+    np.testing.assert_allclose(
+        fit(d1, d2, f, gamma=0.3), fit(d1, d2, f, gamma=0.3, sigma=sigma), rtol=1e-12, atol=1e-12
+    )
+
+
+# --- 3. regularization ---------------------------------------------------------------------
+
+
+def test_fit_constant_parameter_terms_go_to_zero():
+    rng = np.random.default_rng(5)
+    T, P = 30, 40
+    d1 = rng.uniform(-2, 2, (T, P))
+    d2 = np.full((T, P), 0.7)                                      # d2 never varies
+    a0, a3, a5 = rng.normal(size=(3, P, 1))
+    f = a0 * d1[..., None] ** 2 + a3 * d1[..., None] + a5         # (T,P,1)
+    coeffs = fit(d1, d2, f, gamma=1e-3)
+    assert np.all(np.isfinite(coeffs))
+    np.testing.assert_allclose(coeffs[..., [1, 2, 4]], 0, atol=1e-9)   # d2², d1 d2, d2
+    np.testing.assert_allclose(coeffs[..., 0], a0, atol=1e-6)         # d1² still fit
+    np.testing.assert_allclose(coeffs[..., 3], a3, atol=1e-6)         # d1
+    np.testing.assert_allclose(coeffs[..., 5], a5, atol=1e-6)         # constant
+
+
+def test_fit_larger_gamma_shrinks_nonconstant_coefficients_monotonically():
+    d1, d2, _, f = _exact("biquadratic", T=30, P=60)
+    f = f + np.random.default_rng(6).normal(scale=0.5, size=f.shape)
+    s1, s2 = d1.std(axis=0), d2.std(axis=0)
+    scale = regularization_weights("biquadratic", s1, s2, 1.0)[:, None, :5]   # (P,1,5)
+    norms = []
+    for gamma in (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0):
+        coeffs = fit(d1, d2, f, gamma=gamma)
+        norms.append(np.linalg.norm(scale * coeffs[..., :5], axis=-1))      # (P,C) penalty
+    norms = np.array(norms)
+    assert np.all(np.diff(norms, axis=0) <= 1e-12)
+    assert np.all(norms[-1] < 0.05 * norms[0])
+    # the unregularized constant absorbs the mean when everything else is shrunk away
+    np.testing.assert_allclose(fit(d1, d2, f, gamma=1e6)[..., 5], f.mean(axis=0), atol=1e-6)
+
+
+# --- 4. other orders ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("order", ["linear", "bicubic"])
+def test_fit_recovers_exact_data_of_its_order(order):
+    d1, d2, a, f = _exact(order, T=30, P=200)
+    coeffs = fit(d1, d2, f, order=order, gamma=1e-12)
+    assert coeffs.shape == (200, 3, ORDERS[order])
+    np.testing.assert_allclose(coeffs, a, atol=1e-6)
+
+
+def test_bicubic_fit_of_biquadratic_data_has_no_cubic_terms():
+    d1, d2, a, f = _exact("biquadratic", T=30, P=200)
+    coeffs = fit(d1, d2, f, order="bicubic", gamma=1e-12)
+    np.testing.assert_allclose(coeffs[..., :4], 0, atol=1e-7)        # d1³, d2³, d1²d2, d1d2²
+    np.testing.assert_allclose(coeffs[..., 4:], a, atol=1e-6)        # same term order as eq. 1
+
+
+# --- 5. missing measurements ----------------------------------------------------------------
+
+
+def test_fit_ignores_nan_rows():
+    d1, d2, _, f = _exact("biquadratic", T=30, P=40)
+    rng = np.random.default_rng(7)
+    f = f + rng.normal(scale=0.2, size=f.shape)
+    seen = rng.random((30, 40)) > 0.3
+    f_nan = np.where(seen[..., None], f, np.nan)
+    coeffs = fit(d1, d2, f_nan, gamma=1e-2)
+    for p in range(0, 40, 7):
+        k = seen[:, p]
+        ref = fit(d1[k, p : p + 1], d2[k, p : p + 1], f[k, p : p + 1], gamma=1e-2)
+        np.testing.assert_allclose(coeffs[p], ref[0], rtol=1e-10, atol=1e-12)
+
+
+def test_fit_ignores_nan_per_channel_and_nan_parameters():
+    d1, d2, _, f = _exact("biquadratic", T=30, P=20)
+    rng = np.random.default_rng(8)
+    f = f + rng.normal(scale=0.2, size=f.shape)
+    f_nan = f.copy()
+    f_nan[rng.random(f.shape) < 0.2] = np.nan                      # channels differ
+    d1_nan = d1.copy()
+    d1_nan[3, ::2] = np.nan                                        # parameter missing too
+    sigma = np.ones((20, 2))
+    coeffs = fit(d1_nan, d2, f_nan, gamma=0.1, sigma=sigma)
+    for p in (0, 5, 12):
+        for c in range(3):
+            k = np.isfinite(f_nan[:, p, c]) & np.isfinite(d1_nan[:, p])
+            one = np.s_[k, p : p + 1]
+            ref = fit(d1[one], d2[one], f[one][..., c], gamma=0.1, sigma=sigma[:1])
+            np.testing.assert_allclose(coeffs[p, c], ref[0, 0], rtol=1e-10, atol=1e-12)
+
+
+def test_fit_underdetermined_and_unseen_texels_do_not_crash():
+    d1, d2, _, f = _exact("biquadratic", T=20, P=3, C=1)
+    f = f.copy()
+    f[3:, 0] = np.nan                                              # 3 rows < 6 coefficients
+    f[:, 1] = np.nan                                               # never seen
+    coeffs = fit(d1, d2, f, gamma=0.0)
+    assert np.all(np.isfinite(coeffs))
+    np.testing.assert_allclose(evaluate(coeffs, d1[:3], d2[:3])[:, 0], f[:3, 0], atol=1e-9)
+    np.testing.assert_array_equal(coeffs[1], 0)                    # no data: zero map
+    rms = fit_residual_rms(coeffs, d1, d2, f)
+    assert np.isnan(rms[1, 0]) and rms[0, 0] < 1e-9 and rms[2, 0] < 1e-9
+    assert np.all(np.isfinite(fit(d1, d2, f, gamma=1e-3)))
+
+
+def test_fit_singular_without_regularization_matches_lstsq_prediction():
+    rng = np.random.default_rng(9)
+    d1 = rng.uniform(-2, 2, (25, 4))
+    d2 = np.full((25, 4), 0.3)                                     # rank-deficient Φ
+    f = rng.normal(size=(25, 4, 2))
+    coeffs = fit(d1, d2, f, gamma=0.0)
+    assert np.all(np.isfinite(coeffs))
+    for p in range(4):
+        Phi = design_matrix(d1[:, p], d2[:, p])
+        ref = np.linalg.lstsq(Phi, f[:, p], rcond=None)[0]
+        np.testing.assert_allclose(Phi @ coeffs[p].T, Phi @ ref, atol=1e-8)
+
+
+# --- 6. chunking ----------------------------------------------------------------------------
+
+
+def test_fit_chunking_does_not_change_result():
+    d1, d2, _, f = _exact("biquadratic", T=30, P=100)
+    f = f + np.random.default_rng(10).normal(size=f.shape)
+    f[np.random.default_rng(11).random(f.shape) < 0.1] = np.nan
+    np.testing.assert_allclose(fit(d1, d2, f, chunk=7), fit(d1, d2, f), rtol=0, atol=1e-12)
+
+
+# --- 7. evaluation --------------------------------------------------------------------------
+
+
+def test_evaluate_shapes_one_and_several_frames():
+    rng = np.random.default_rng(12)
+    P, C, F = 50, 3, 4
+    coeffs = rng.normal(size=(P, C, 6))
+    d1, d2 = _params(rng, F, P)
+    one = evaluate(coeffs, d1[0], d2[0])
+    many = evaluate(coeffs, d1, d2)
+    assert one.shape == (P, C) and many.shape == (F, P, C) and many.dtype == np.float64
+    np.testing.assert_allclose(many[0], one, rtol=1e-15)
+    ref = np.einsum("fpk,pck->fpc", design_matrix(d1, d2), coeffs)
+    np.testing.assert_allclose(many, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_evaluate_rejects_wrong_texel_count():
+    with pytest.raises(ValueError):
+        evaluate(np.zeros((5, 1, 6)), np.zeros(4), np.zeros(4))
+    with pytest.raises(ValueError):
+        evaluate(np.zeros((5, 1, 7)), np.zeros(5), np.zeros(5))
+
+
+def test_fit_residual_rms_is_nan_aware_rms():
+    rng = np.random.default_rng(13)
+    T, P, C = 12, 10, 2
+    d1, d2 = _params(rng, T, P)
+    coeffs = rng.normal(size=(P, C, 6))
+    f = evaluate(coeffs, d1, d2) + rng.normal(size=(T, P, C))
+    f[rng.random(f.shape) < 0.3] = np.nan
+    r = evaluate(coeffs, d1, d2) - f
+    np.testing.assert_allclose(
+        fit_residual_rms(coeffs, d1, d2, f), np.sqrt(np.nanmean(r**2, axis=0)), rtol=1e-12
+    )
