@@ -14,12 +14,11 @@ wrote and writes three PNGs:
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from service.samples.render import Camera, shade, to_srgb8, write_png
+from service.samples.render import Camera, face_cameras, shade, to_srgb8, write_png
 from service.samples.rig import load_ict_rig
 
 FRAMES = (("neutral", "train_brow_raise", "first"), ("brow raise", "train_brow_raise", "peak"),
@@ -30,21 +29,20 @@ SIZE = 480                              # shaded renders, pixels
 PANEL = 512                             # map panels, pixels
 
 
-def _frame(actor: Path, performance: str, which: str) -> tuple[dict, int, int]:
-    data = np.load(actor / "performances" / f"{performance}.npz")
-    f = 0 if which == "first" else int(np.argmax(data["weights"].sum(axis=1)))
-    slot = int(np.flatnonzero(data["map_frames"] == f)[0])
-    return data, f, slot
+def _frame(actor: Path, performance: str, which: str) -> dict[str, np.ndarray]:
+    """One frame's meshes and maps (each array of the file read once, for that frame only)."""
+    with np.load(actor / "performances" / f"{performance}.npz") as data:
+        f = 0 if which == "first" else int(np.argmax(data["weights"].sum(axis=1)))
+        slot = int(np.flatnonzero(data["map_frames"] == f)[0])
+        return {"vertices": data["vertices"][f], "vertices_medium": data["vertices_medium"][f],
+                "displacement": data["displacement"][slot],
+                "albedo": data["albedo"][slot].astype(np.float32)}
 
 
 def _front_camera(V: np.ndarray, size: int) -> Camera:
-    """A camera 600 mm in front of the face, framing its upper 80 %."""
+    """A camera 600 mm in front of the face (V (n,3), mm), framing its upper 80 %."""
     centre = np.array([np.median(V[:, 0]), np.percentile(V[:, 1], 70), V[:, 2].max()])
-    distance, field = 600.0, 190.0
-    f = size * distance / field
-    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    R = np.diag([1.0, -1.0, -1.0])
-    return Camera(K, R, -R @ (centre + [0, 0, distance]), size, size)
+    return face_cameras(centre, distance=600.0, size=size, yaws_deg=(0.0,), field_mm=190.0)[0]
 
 
 def _diverging(x: np.ndarray, limit: float) -> np.ndarray:
@@ -78,17 +76,16 @@ def write_gallery(actor_dir: str | Path, out_dir: str | Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     neutral = np.load(actor / "neutral.npz")
     faces, uv, uv_faces = neutral["faces"], neutral["uv"], neutral["uv_faces"]
-    res = json.loads((actor / "manifest.json").read_text())["map_resolution"]
     cam = _front_camera(neutral["vertices"], SIZE)
     grey = np.full((len(neutral["vertices"]), 3), 0.6)
 
-    frames = [(label, *_frame(actor, perf, which)) for label, perf, which in FRAMES]
+    frames = [(label, _frame(actor, perf, which)) for label, perf, which in FRAMES]
     rows = []
     for key in ("vertices", "vertices_medium"):
         rows.append(np.concatenate([
-            _label(to_srgb8(shade(cam, data[key][f], faces, grey, light_dir=GRAZING_LIGHT,
+            _label(to_srgb8(shade(cam, data[key], faces, grey, light_dir=GRAZING_LIGHT,
                                   ambient=0.05)), f"{label} ({'detail' if key == 'vertices' else 'no detail'})")
-            for label, data, f, _ in frames], axis=1))
+            for label, data in frames], axis=1))
     paths = [out / "shaded.png"]
     write_png(paths[-1], np.concatenate(rows, axis=0))
 
@@ -116,14 +113,13 @@ def write_gallery(actor_dir: str | Path, out_dir: str | Path) -> list[Path]:
     maps = [np.concatenate([
         _label(to_srgb8(_diverging(face_tile(d), 1.0)), f"{label}: displacement (face tile), ±1 mm"),
         _label(to_srgb8(_diverging(crop(d, forehead, 4), 0.4)), "forehead ×4, ±0.4 mm")], axis=0)
-        for label, data, _, slot in frames for d in [data["displacement"][slot]]]
+        for label, data in frames for d in [data["displacement"]]]
     paths.append(out / "maps.png")
     write_png(paths[-1], np.concatenate(maps, axis=1))
 
     albedo = [np.concatenate([_label(to_srgb8(face_tile(a)), f"{label}: albedo (face tile)"),
                               _label(to_srgb8(crop(a, left_eye, 4)), "left eye and cheek ×4")], axis=0)
-              for label, data, _, slot in (frames[0], frames[3], frames[4])
-              for a in [data["albedo"][slot].astype(np.float32)]]
+              for label, data in (frames[0], frames[3], frames[4]) for a in [data["albedo"]]]
     paths.append(out / "albedo.png")
     write_png(paths[-1], np.concatenate(albedo, axis=1))
     return paths

@@ -35,12 +35,13 @@ Conventions chosen here where the paper is silent:
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import Delaunay, cKDTree
 
+from service.geometry.scan_convert import barycentric_2d
 from service.geometry.topology import adjacency_matrix, edges, k_ring_matrix
 
 #: Coarse triangles whose longest 3D edge exceeds this multiple of the median coarse edge
@@ -111,8 +112,7 @@ def marker_mesh(uv: np.ndarray, rest: np.ndarray, axes: np.ndarray,
     two_ring = k_ring_matrix(faces, len(uv), 2).tocsr()
     mesh = MarkerMesh(uv, faces, two_ring, rest, np.asarray(axes, dtype=np.float64),
                       np.zeros((len(uv), 2)))
-    sigma = neighbourhood_sigma(mesh, rest[None])[0]
-    return MarkerMesh(uv, faces, two_ring, rest, mesh.axes, sigma)
+    return replace(mesh, rest_sigma=neighbourhood_sigma(mesh, rest[None])[0])
 
 
 def neighbourhood_sigma(mesh: MarkerMesh, P: np.ndarray) -> np.ndarray:
@@ -293,7 +293,9 @@ def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
     k = min(8, len(T))
     _, cand = tree.query(uv, k=k)
     cand = cand.reshape(len(uv), k)
-    lam = _barycentric(T[cand], uv[:, None, :])                       # (P,k,3)
+    Tc = T[cand].reshape(-1, 3, 2)
+    p = np.repeat(uv, k, axis=0)
+    lam = barycentric_2d(Tc, p[:, 0], p[:, 1]).reshape(len(uv), k, 3)
     clamped = _clamp_to_triangle(T[cand], uv[:, None, :], lam)        # (P,k,3)
     pos = np.einsum("pkc,pkcd->pkd", clamped, T[cand])
     dist = np.linalg.norm(pos - uv[:, None, :], axis=2)
@@ -303,15 +305,6 @@ def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
     w = clamped[rows, best]
     return sp.csr_matrix((w.ravel(), (np.repeat(rows, 3), mesh.faces[tri].ravel())),
                          shape=(len(uv), len(mesh.uv)))
-
-
-def _barycentric(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (...,3) of points p (...,2) in triangles T (...,3,2)."""
-    e1, e2, d = T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], p - T[..., 0, :]
-    det = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
-    l1 = (d[..., 0] * e2[..., 1] - d[..., 1] * e2[..., 0]) / det
-    l2 = (e1[..., 0] * d[..., 1] - e1[..., 1] * d[..., 0]) / det
-    return np.stack([1 - l1 - l2, l1, l2], axis=-1)
 
 
 def _clamp_to_triangle(T: np.ndarray, p: np.ndarray, lam: np.ndarray) -> np.ndarray:
