@@ -294,6 +294,62 @@ def map_to_vertices(image: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
     return out[:, 0] if squeeze else out
 
 
+def sampling_matrix(uv: np.ndarray, uv_faces: np.ndarray, faces: np.ndarray, n: int,
+                    mask: np.ndarray) -> sp.csr_matrix:
+    """Map → vertex as a sparse operator that reads covered texels only: (n, H·W).
+
+    Like :func:`map_to_vertices` (bilinear at each distinct UV of a vertex, averaged over a
+    seam vertex's UVs), but the bilinear weights of uncovered texels are dropped and the rest
+    renormalized, so no dilation is needed; a UV whose whole footprint is uncovered reads the
+    nearest covered texel. Use it when one map layout is sampled many times (per-frame maps,
+    coefficient maps).
+
+    Parameters
+    ----------
+    uv : (K,2) float; uv_faces : (m,3) int; faces : (m,3) int; n : int   as in map_to_vertices
+    mask : (H,W) bool       covered texels (``UVRaster.mask``)
+
+    Returns
+    -------
+    S : (n, H·W) csr float64   rows sum to 1 (empty for vertices used by no triangle);
+                               ``S @ image.reshape(H*W, C)`` gives per-vertex values
+    """
+    from scipy.spatial import cKDTree
+
+    mask = np.asarray(mask, dtype=bool)
+    H, W = mask.shape
+    F = np.asarray(faces, dtype=np.int64).ravel()
+    UF = np.asarray(uv_faces, dtype=np.int64).ravel()
+    K = len(uv)
+    pair = np.unique(F * K + UF)
+    vert, uvi = pair // K, pair % K
+    xy = uv_to_texel(np.asarray(uv, dtype=np.float64)[uvi], H, W)
+    x = np.clip(xy[:, 0], 0.0, W - 1)
+    y = np.clip(xy[:, 1], 0.0, H - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
+    fx, fy = x - x0, y - y0
+    cols = np.stack([y0 * W + x0, y0 * W + np.minimum(x0 + 1, W - 1),
+                     np.minimum(y0 + 1, H - 1) * W + x0,
+                     np.minimum(y0 + 1, H - 1) * W + np.minimum(x0 + 1, W - 1)], axis=1)
+    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    w = w * mask.ravel()[cols]
+    total = w.sum(axis=1)
+    empty = total <= 0
+    if empty.any():
+        covered = np.flatnonzero(mask.ravel())
+        r, c = np.divmod(covered, W)
+        _, nearest = cKDTree(np.column_stack([c, r])).query(np.column_stack([x, y])[empty])
+        cols[empty] = covered[nearest][:, None]
+        w[empty] = [1.0, 0.0, 0.0, 0.0]
+        total[empty] = 1.0
+    count = np.bincount(vert, minlength=n).astype(np.float64)
+    w = w / (total * count[vert])[:, None]
+    S = sp.csr_matrix((w.ravel(), (np.repeat(vert, 4), cols.ravel())), shape=(n, H * W))
+    S.eliminate_zeros()
+    return S
+
+
 def dilate(image: np.ndarray, mask: np.ndarray, pixels: int,
            return_mask: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Push values ``pixels`` texels past the chart borders (edge padding).

@@ -209,3 +209,27 @@ def test_dilate_grows_like_binary_dilation_and_keeps_covered_values():
     i, j = 20, 31                              # right of the disc, touches (19..21, 30)
     assert not mask[i, j] and mask[i - 1:i + 2, j - 1].all() and not mask[i - 1:i + 2, j].any()
     np.testing.assert_allclose(out[i, j], np.mean(img[i - 1:i + 2, j - 1]), rtol=0, atol=1e-12)
+
+
+def test_sampling_matrix_equals_map_to_vertices_inside_and_reads_only_covered_texels():
+    # two charts side by side, the right one mirrored: a seam vertex samples both
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
+    F = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+    uv = np.array([[0.05, 0.05], [0.45, 0.05], [0.45, 0.95], [0.05, 0.95],
+                   [0.55, 0.05], [0.95, 0.05], [0.95, 0.95], [0.55, 0.95]])
+    UF = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    H, W = 16, 16
+    raster = uv_raster.rasterize_uv(uv, UF, H, W)
+    S = uv_raster.sampling_matrix(uv, UF, F, len(V), raster.mask)
+    np.testing.assert_allclose(np.asarray(S.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    assert raster.mask.ravel()[S.indices].all()               # never reads an empty texel
+    # an affine map is reproduced at vertices whose footprint is covered; the seam vertex 1
+    # averages its two UVs exactly like map_to_vertices on the dilated map
+    img = 3.0 + uv_raster.texel_centers_uv(H, W) @ np.array([2.0, -1.0])
+    dil = uv_raster.dilate(img, raster.mask, 2)
+    ref = uv_raster.map_to_vertices(dil, uv, UF, F, len(V))
+    got = S @ np.where(raster.mask, img, 0.0).ravel()
+    np.testing.assert_allclose(got, ref, atol=0.35)   # dilation extrapolates, S renormalizes
+    expect = 3.0 + uv @ np.array([2.0, -1.0])
+    np.testing.assert_allclose(got[0], expect[0], atol=0.2)
+    np.testing.assert_allclose(got[1], 0.5 * (expect[1] + expect[4]), atol=0.2)

@@ -39,10 +39,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import Delaunay
 
 from service.geometry.scan_convert import barycentric_2d
-from service.geometry.topology import adjacency_matrix, edges, k_ring_matrix
+from service.geometry.topology import adjacency_matrix, edge_face_counts, edges, k_ring_matrix
 
 #: Coarse triangles whose longest 3D edge exceeds this multiple of the median coarse edge
 #: are dropped: they bridge the eyes and the mouth, where the skin is not continuous.
@@ -133,15 +133,21 @@ def neighbourhood_sigma(mesh: MarkerMesh, P: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(second - mean ** 2, 0.0))
 
 
-def deformation_vectors(mesh: MarkerMesh, P: np.ndarray) -> np.ndarray:
+def deformation_vectors(mesh: MarkerMesh, P: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
     """The 5D deformation vectors S (T,M,5) of rigidly aligned markers P (T,M,3) (eq. 2).
 
-    ``S = (O_x, O_y, O_z, E^u, E^v)`` in mm, unscaled. Rows of occluded (NaN) markers are
-    NaN in O; their strains are measured from the visible neighbours.
+    ``S = (O_x, O_y, O_z, E^u, E^v)`` in mm, unscaled. An occluded (NaN) marker drops out of
+    the strain of every neighbourhood it belongs to, at rest and in the frame alike, so a
+    missing marker biases no strain. Its offset row is NaN unless ``offsets`` (T,M,3) gives
+    the offsets to use (e.g. the thin shell's completed handle displacements).
     """
     P = np.asarray(P, dtype=np.float64)
-    O = P - mesh.rest
-    E = neighbourhood_sigma(mesh, P) - mesh.rest_sigma
+    O = P - mesh.rest if offsets is None else np.asarray(offsets, dtype=np.float64)
+    missing = ~np.isfinite(P).all(axis=2, keepdims=True)
+    rest = mesh.rest_sigma
+    if missing.any():
+        rest = neighbourhood_sigma(mesh, np.where(missing, np.nan, mesh.rest))
+    E = neighbourhood_sigma(mesh, P) - rest
     return np.concatenate([O, E], axis=2)
 
 
@@ -279,65 +285,86 @@ def deformation_axes(mesh: MarkerMesh, S: np.ndarray, threshold_deg: float = 30.
     return DeformationAxes(q, r, scale, energy, replaced, worst)
 
 
-def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
+def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray, chunk: int = 1 << 14) -> sp.csr_matrix:
     """Sparse (P,M) barycentric interpolation from the markers to points uv (P,2).
 
     Points inside a coarse triangle get its barycentric coordinates; points outside the
-    coarse mesh get those of the nearest point of the nearest triangles (clamped to the
-    triangle, a constant extension of the parameters beyond the marker hull).
+    coarse mesh (beyond the marker hull, or in the eye and mouth holes) get those of the
+    nearest point of the mesh, which lies on a boundary edge: a constant extension of the
+    parameters beyond the markers.
     """
     uv = np.asarray(uv, dtype=np.float64)
-    T = mesh.uv[mesh.faces]                                          # (k,3,2)
-    # candidates: a few triangles nearest by centroid, then the best clamped barycentrics
-    tree = cKDTree(T.mean(axis=1))
-    k = min(8, len(T))
-    _, cand = tree.query(uv, k=k)
-    cand = cand.reshape(len(uv), k)
-    Tc = T[cand].reshape(-1, 3, 2)
-    p = np.repeat(uv, k, axis=0)
-    lam = barycentric_2d(Tc, p[:, 0], p[:, 1]).reshape(len(uv), k, 3)
-    clamped = _clamp_to_triangle(T[cand], uv[:, None, :], lam)        # (P,k,3)
-    pos = np.einsum("pkc,pkcd->pkd", clamped, T[cand])
-    dist = np.linalg.norm(pos - uv[:, None, :], axis=2)
-    best = np.argmin(dist, axis=1)
-    rows = np.arange(len(uv))
-    tri = cand[rows, best]
-    w = clamped[rows, best]
-    return sp.csr_matrix((w.ravel(), (np.repeat(rows, 3), mesh.faces[tri].ravel())),
-                         shape=(len(uv), len(mesh.uv)))
+    P, M = len(uv), len(mesh.uv)
+    tri = np.full(P, -1)
+    # inside: locate in the Delaunay triangulation the coarse mesh was cut from
+    dl = Delaunay(mesh.uv)
+    key = {tuple(sorted(f)): i for i, f in enumerate(mesh.faces.tolist())}
+    simplex_face = np.array([key.get(tuple(sorted(f)), -1) for f in dl.simplices.tolist()])
+    found = dl.find_simplex(uv)
+    tri[found >= 0] = simplex_face[found[found >= 0]]
+    inside = np.flatnonzero(tri >= 0)
+    lam = barycentric_2d(mesh.uv[mesh.faces[tri[inside]]], uv[inside, 0], uv[inside, 1])
+    lam = np.clip(lam, 0.0, None)
+    rows = [np.repeat(inside, 3)]
+    cols = [mesh.faces[tri[inside]].ravel()]
+    vals = [(lam / lam.sum(axis=1, keepdims=True)).ravel()]
+    # outside: nearest point on the boundary edges, t = clip((p−a)·(b−a) / |b−a|², 0, 1)
+    outside = np.flatnonzero(tri < 0)
+    E, count = edge_face_counts(mesh.faces)
+    E = E[count == 1]
+    a, ab = mesh.uv[E[:, 0]], mesh.uv[E[:, 1]] - mesh.uv[E[:, 0]]
+    inv_len2 = 1.0 / np.maximum(np.einsum("ed,ed->e", ab, ab), 1e-300)
+    for s in range(0, len(outside), chunk):
+        idx = outside[s:s + chunk]
+        d = uv[idx, None, :] - a[None]                                        # (p,e,2)
+        t = np.clip(np.einsum("ped,ed->pe", d, ab) * inv_len2, 0.0, 1.0)
+        gap = d - t[..., None] * ab
+        best = np.argmin(np.einsum("ped,ped->pe", gap, gap), axis=1)
+        tb = t[np.arange(len(idx)), best]
+        rows.append(np.repeat(idx, 2))
+        cols.append(E[best].ravel())
+        vals.append(np.column_stack([1.0 - tb, tb]).ravel())
+    W = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(P, M))
+    W.sum_duplicates()
+    return W
 
 
-def _clamp_to_triangle(T: np.ndarray, p: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """Barycentrics (...,3) of the point of each triangle nearest to p (inside: unchanged)."""
-    inside = (lam >= 0).all(axis=-1, keepdims=True)
-    best = lam
-    best_d = np.full(lam.shape[:-1], np.inf)
-    out = np.zeros_like(lam)
-    # nearest point on each edge (a,b): t = clip(((p-a)·(b-a)) / |b-a|², 0, 1)
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        A, B = T[..., a, :], T[..., b, :]
-        ab = B - A
-        t = np.clip(np.einsum("...d,...d->...", p - A, ab) / np.maximum(np.einsum("...d,...d->...", ab, ab), 1e-300), 0, 1)
-        d = np.linalg.norm(A + t[..., None] * ab - p, axis=-1)
-        closer = d < best_d
-        cand = np.zeros_like(lam)
-        cand[..., a] = 1 - t
-        cand[..., b] = t
-        out = np.where(closer[..., None], cand, out)
-        best_d = np.where(closer, d, best_d)
-    return np.where(inside, best, out)
+@dataclass(frozen=True)
+class ParameterField:
+    """eq. 3 at fixed points: d1 = (W S)·(W q̂), d2 = (W S)·(W r̂), with W q̂, W r̂ precomputed.
+
+    W : (P,M) sparse   :func:`barycentric_operator` to the points
+    q, r : (P,5)       the interpolated axes W q̂, W r̂
+    scale : (M,5)      :func:`strain_scale`
+    """
+
+    W: sp.csr_matrix
+    q: np.ndarray
+    r: np.ndarray
+    scale: np.ndarray
+
+    @classmethod
+    def build(cls, axes: DeformationAxes, W: sp.csr_matrix) -> "ParameterField":
+        W = sp.csr_matrix(W)
+        return cls(W, W @ axes.q, W @ axes.r, axes.scale)
+
+    def __call__(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """d1, d2 (T,P) float64 for deformation vectors S (T,M,5)."""
+        S = np.nan_to_num(np.asarray(S, dtype=np.float64) * self.scale)
+        d1 = np.zeros((self.q.shape[0], len(S)))
+        d2 = np.zeros_like(d1)
+        for k in range(5):                          # (P,T) products, no (P,T,5) temporary
+            Sk = self.W @ S[:, :, k].T
+            d1 += Sk * self.q[:, k, None]
+            d2 += Sk * self.r[:, k, None]
+        return d1.T, d2.T
 
 
 def pdm_parameters(axes: DeformationAxes, S: np.ndarray, W: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     """d1, d2 (T,P) at P points for deformation vectors S (T,M,5) (eq. 3).
 
     W (P,M) is the :func:`barycentric_operator` to the points; S, q̂ and r̂ are
-    interpolated separately and then dotted, as in the paper.
+    interpolated separately and then dotted, as in the paper. For many calls at the same
+    points build a :class:`ParameterField` once.
     """
-    S = np.asarray(S, dtype=np.float64)
-    T, M = S.shape[:2]
-    Xs = np.nan_to_num(S * axes.scale)                               # (T,M,5)
-    Sp = (W @ Xs.transpose(1, 0, 2).reshape(M, T * 5)).reshape(-1, T, 5)   # (P,T,5)
-    q, r = W @ axes.q, W @ axes.r                                    # (P,5)
-    return np.einsum("ptd,pd->tp", Sp, q), np.einsum("ptd,pd->tp", Sp, r)
-
+    return ParameterField.build(axes, W)(S)

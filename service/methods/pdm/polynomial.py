@@ -334,25 +334,29 @@ def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    D : (P,C) or (F,P,C) float64   displacement, in the units of the fitted f
+    D : (P,C) or (F,P,C)       displacement, in the units of the fitted f; float64 unless
+                               every input is float32 (then float32, e.g. for synthesis)
     """
-    coeffs = np.asarray(coeffs, np.float64)
+    coeffs = np.asarray(coeffs)
     powers = TERM_POWERS[_order_of(coeffs.shape[-1])]
-    d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float64), np.asarray(d2, np.float64))
+    dtype = np.result_type(coeffs, d1, d2, np.float32)
+    d1, d2 = np.broadcast_arrays(np.asarray(d1, dtype), np.asarray(d2, dtype))
     if d1.shape[-1:] != coeffs.shape[:1] or d1.ndim > 2:
         raise ValueError(
             f"expected d1, d2 (P,) or (F,P) with P = {coeffs.shape[0]}, got {d1.shape}"
         )
     deg = max(max(p) for p in powers) + 1
-    X, Y = [np.ones_like(d1)], [np.ones_like(d2)]
-    for _ in range(1, deg):
+    X, Y = [None, d1], [None, d2]
+    for _ in range(2, deg):
         X.append(X[-1] * d1)
         Y.append(Y[-1] * d2)
-    a = np.moveaxis(coeffs, -1, 0).copy()                         # (K,P,C), contiguous per term
-    out = np.zeros(d1.shape + coeffs.shape[1:2])
-    for k, (i, j) in enumerate(powers):                           # one pass per term
+    a = np.moveaxis(coeffs.astype(dtype, copy=False), -1, 0)       # (K,P,C) view
+    out = np.broadcast_to(a[-1], d1.shape + coeffs.shape[1:2]).copy()   # constant term last
+    tmp = np.empty_like(out)
+    for k, (i, j) in enumerate(powers[:-1]):                      # one pass per term
         term = X[i] if j == 0 else Y[j] if i == 0 else X[i] * Y[j]
-        out += term[..., None] * a[k]
+        np.multiply(term[..., None], a[k], out=tmp)
+        out += tmp
     return out
 
 

@@ -52,10 +52,17 @@ def test_neutral_gives_zero_and_occluded_markers_drop_out():
     Q[10] = np.nan
     S = dm.deformation_vectors(mesh, Q[None])[0]
     assert np.isnan(S[10, :3]).all() and np.isfinite(S[:, 3:]).all()
-    # a neighbour's σ is now over the remaining visible markers
+    # at the neutral, a missing marker leaves every strain exactly zero (it drops out of
+    # the rest σ too), and the offsets can be supplied (e.g. completed by the thin shell)
+    np.testing.assert_allclose(S[:, 3:], 0.0, atol=1e-12)
+    S2 = dm.deformation_vectors(mesh, Q[None], offsets=np.zeros((1,) + P.shape))[0]
+    assert np.isfinite(S2).all()
+    # stretched by 1.5 along u: a neighbour's strain is measured over the visible markers only
     i = 11
     j = np.setdiff1d(np.flatnonzero(mesh.two_ring.toarray()[i]), [10])
-    np.testing.assert_allclose(S[i, 3:] + mesh.rest_sigma[i], P[j, :2].std(axis=0), rtol=1e-12)
+    Q[:, 0] *= 1.5
+    S = dm.deformation_vectors(mesh, Q[None])[0]
+    np.testing.assert_allclose(S[i, 3], 0.5 * P[j, 0].std(), rtol=1e-12)
 
 
 def test_pca_axes_recover_a_planted_two_dimensional_deformation():

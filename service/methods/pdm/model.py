@@ -1,0 +1,549 @@
+"""Training and synthesis of deformation-driven PDMs (ma2008 §4–5, §6 albedo PTM).
+
+Training (§4, Figure 2), for every frame of every clip:
+
+1. remove the head pose (weighted Kabsch on the markers, :mod:`.base_surface`);
+2. base surface: the smooth neutral deformed to the markers by the linear thin shell;
+   medium-band targets ``c = Frame(base) · (captured − base)`` per vertex, in the base's
+   tangent frames, interpolated into the ``medium_resolution`` map;
+3. 5D deformation vectors S at the markers, per-marker PCA axes, d1, d2 (§4.1, eq. 2–3);
+4. the medium PDM: 3 channels per texel, regularized least squares (§4.2);
+5. the fine band: the normal component of ``captured − (base + medium PDM)`` (plus the
+   clip's own fine displacement map, if it has one), high-pass filtered, fitted as a 1D
+   PDM at ``fine_resolution`` (§4: "a high-pass filtered version of the residual");
+6. with albedo maps: a 3-channel PTM of the albedo driven by the same d1, d2 (§6).
+
+Synthesis (§5) runs the same chain forwards from markers: head pose, thin shell (missing
+markers dropped exactly), S and d1, d2, the medium PDM applied to the vertices, the fine
+PDM as a displacement map, the albedo map, a tangent-space normal map, and the head pose
+put back.
+
+Departures and choices (the paper is silent or differs):
+
+* the medium PDM is fitted in texture space, as in the paper, but evaluated at the
+  vertices: its coefficient maps are sampled once per vertex (bilinear, covered texels
+  only) and d1, d2 are evaluated at each vertex's UV. Equal to evaluating the map and
+  sampling it for coefficients that vary bilinearly, and O(vertices) per frame;
+* extrapolation limit: d1, d2 are clamped per texel (and per vertex) to the training range
+  widened by ``extrapolation_margin`` × its width on each side (``None`` disables it).
+  Beyond the training data a biquadratic PDM grows quadratically, and bermano2014 §7
+  shows the artefacts of extrapolating detail; the clamp holds the detail of the most
+  extreme trained expression instead;
+* coefficients are rounded to float32 when training ends (the stored precision), so a
+  saved and reloaded model synthesizes bit-identical results.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.ndimage import gaussian_filter
+
+from service.geometry.curvature_flow import LAMBDA_DT
+from service.geometry.laplacian import triangle_areas
+from service.geometry.tangent_frames import tangent_frames, uv_handedness
+from service.geometry.uv_raster import interpolation_matrix, rasterize_uv, sampling_matrix, texel_centers_uv, sample_map
+from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
+from service.methods.pdm import polynomial
+from service.methods.pdm.base_surface import (
+    BaseSurface, HeadPose, TooFewMarkers, handle_vertices, head_alignment, stability_weights,
+)
+from service.methods.pdm.deformation import (
+    DeformationAxes, MarkerMesh, ParameterField, barycentric_operator, deformation_axes,
+    deformation_vectors, marker_mesh,
+)
+
+#: outputs of :meth:`PdmModel.synthesize` (API.md)
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
+#: frames processed at once (bounds the (frames, texels) work arrays)
+FRAME_CHUNK = 8
+#: threads for per-frame map filtering (NumPy and SciPy release the GIL)
+WORKERS = 2
+
+
+@dataclass(frozen=True)
+class PdmParams:
+    """Training parameters (API.md: ``POST /models`` with ``kind: pdm``).
+
+    order : "linear" | "biquadratic" | "bicubic"   polynomial order (§4.3; eq. 1 is biquadratic)
+    medium_resolution : int      texels per side of the 3D medium-band PDM (§4.2: 512)
+    fine_resolution : int        texels per side of the 1D fine-band PDM (§4.2: 1024)
+    gamma : float                regularization constant γ of §4.2
+    axis_threshold_deg : float   axis-smoothing threshold angle of §4.1
+    extrapolation_margin : float | None   clamp d1, d2 to the training range widened by this
+                                 fraction of its width (None: no limit)
+    fine_highpass_mm : float     σ (on the surface) of the Gaussian whose complement splits
+                                 the fine band off the residual (0: no filter)
+    smoothing_lam_dt : float     curvature-flow step of the smooth neutral, mm²
+    """
+
+    order: str = "biquadratic"
+    medium_resolution: int = 512
+    fine_resolution: int = 1024
+    gamma: float = 1e-3
+    axis_threshold_deg: float = 30.0
+    extrapolation_margin: float | None = 0.25
+    fine_highpass_mm: float = 2.0
+    smoothing_lam_dt: float = LAMBDA_DT
+
+    def __post_init__(self):
+        if self.order not in polynomial.ORDERS:
+            raise InvalidInput(f"order must be one of {sorted(polynomial.ORDERS)}, got '{self.order}'")
+        for name in ("medium_resolution", "fine_resolution"):
+            if not 16 <= getattr(self, name) <= 8192:
+                raise InvalidInput(f"{name} must be in [16, 8192], got {getattr(self, name)}")
+        if self.gamma < 0 or self.fine_highpass_mm < 0 or self.smoothing_lam_dt <= 0:
+            raise InvalidInput("gamma and fine_highpass_mm must be >= 0, smoothing_lam_dt > 0")
+        if self.extrapolation_margin is not None and self.extrapolation_margin < 0:
+            raise InvalidInput(f"extrapolation_margin must be >= 0 or None, got {self.extrapolation_margin}")
+
+
+@dataclass
+class TexelBand:
+    """One PDM over the covered texels of an H×H map.
+
+    resolution : int;  index : (P,) flat indices of the covered texels (row-major)
+    coeffs : (P,C,K) float32   polynomial coefficients (§4.2)
+    field : ParameterField     d1, d2 at the texel centres
+    lo, hi : (2,P) float       training range of (d1, d2) per texel (extrapolation limit)
+    """
+
+    resolution: int
+    index: np.ndarray
+    coeffs: np.ndarray
+    field: ParameterField | None = None
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
+
+    def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
+        """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
+        values = np.asarray(values)
+        lead = values.shape[:-2] if channels else values.shape[:-1]
+        C = values.shape[-1] if channels else 1
+        H = self.resolution
+        out = np.zeros(lead + (H * H, C), np.float32)
+        out[..., self.index, :] = values.reshape(lead + (len(self.index), C))
+        return out.reshape(lead + (H, H) + ((C,) if channels else ()))
+
+
+def _texel_uv(index: np.ndarray, H: int) -> np.ndarray:
+    return texel_centers_uv(H, H).reshape(-1, 2)[index]
+
+
+def _vertex_uv(actor_uv: np.ndarray, uv_faces: np.ndarray, F: np.ndarray, n: int) -> np.ndarray:
+    """One UV per vertex (the last corner that names it; seams pick one chart)."""
+    out = np.zeros((n, 2))
+    out[F.ravel()] = actor_uv[uv_faces.ravel()]
+    return out
+
+
+def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d1, d2 (T,P) float32 for S (T,M,5), frames in chunks (bounds the (P,T,5) temporary)."""
+    T, P = len(S), pf.q.shape[0]
+    d1, d2 = np.empty((T, P), np.float32), np.empty((T, P), np.float32)
+    for t in range(0, T, FRAME_CHUNK):
+        d1[t:t + FRAME_CHUNK], d2[t:t + FRAME_CHUNK] = pf(S[t:t + FRAME_CHUNK])
+    return d1, d2
+
+
+def _ranges(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point min and max (2,P) of (d1, d2) over the training S (T,M,5)."""
+    P = pf.q.shape[0]
+    lo, hi = np.full((2, P), np.inf), np.full((2, P), -np.inf)
+    for t in range(0, len(S), FRAME_CHUNK):
+        d = np.stack(pf(S[t:t + FRAME_CHUNK]))                       # (2,t,P)
+        lo, hi = np.minimum(lo, d.min(axis=1)), np.maximum(hi, d.max(axis=1))
+    return lo, hi
+
+
+def _clamp(d1, d2, lo, hi, margin):
+    if margin is None:
+        return d1, d2, 0.0
+    w = hi - lo
+    a, b = lo - margin * w, hi + margin * w
+    c1, c2 = np.clip(d1, a[0], b[0]), np.clip(d2, a[1], b[1])
+    clamped = np.mean((c1 != d1) | (c2 != d2), axis=-1)
+    return c1, c2, clamped
+
+
+def _highpass(img_values: np.ndarray, index: np.ndarray, H: int, sigma: float,
+              mask_blur: np.ndarray) -> np.ndarray:
+    """``r − G_σ∗r`` over covered texels, the Gaussian normalized by the blurred mask."""
+    if sigma <= 0:
+        return img_values
+    img = np.zeros(H * H)
+    img[index] = img_values
+    low = gaussian_filter(img.reshape(H, H), sigma, mode="constant").ravel()[index]
+    return img_values - low / mask_blur
+
+
+@dataclass
+class PdmModel:
+    """A trained PDM model (ma2008); :meth:`synthesize` turns markers into meshes and maps.
+
+    Build with :func:`train` or :meth:`load`. Arrays as documented on the fields.
+    """
+
+    params: PdmParams
+    faces: np.ndarray                 # (m,3)
+    uv: np.ndarray                    # (K,2)
+    uv_faces: np.ndarray              # (m,3)
+    base: BaseSurface
+    mesh: MarkerMesh
+    axes: DeformationAxes
+    pose_weights: np.ndarray          # (M,) head-pose weights
+    S_train: np.ndarray               # (T,M,5) deformation vectors of the training frames
+    medium: TexelBand                 # C = 3 (tangent, bitangent, normal), mm
+    fine: TexelBand                   # C = 1 (normal), mm
+    albedo: TexelBand | None          # C = 3 (linear RGB)
+    metrics: dict = field(default_factory=dict)
+    # derived at build/load time (not stored)
+    vertex_coeffs: np.ndarray | None = None      # (n,3,K) medium coefficients at the vertices
+    vertex_field: ParameterField | None = None
+    vertex_lo: np.ndarray | None = None
+    vertex_hi: np.ndarray | None = None
+    fine_sampler: sp.csr_matrix | None = None    # (n,Pf) fine map → vertices
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.base.smooth)
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.base.handles)
+
+    # ------------------------------------------------------------------ preparation
+    def prepare(self) -> "PdmModel":
+        """Derive the per-site parameter fields, ranges and samplers (after train or load)."""
+        n, F = self.n_vertices, self.faces
+        for band in (self.medium, self.fine, self.albedo):
+            if band is None:
+                continue
+            if band.field is None:
+                band.field = ParameterField.build(
+                    self.axes, barycentric_operator(self.mesh, _texel_uv(band.index, band.resolution)))
+            band.lo, band.hi = _ranges(band.field, self.S_train)
+        if self.vertex_field is None:
+            vuv = _vertex_uv(self.uv, self.uv_faces, F, n)
+            self.vertex_field = ParameterField.build(self.axes, barycentric_operator(self.mesh, vuv))
+        self.vertex_lo, self.vertex_hi = _ranges(self.vertex_field, self.S_train)
+        self.vertex_coeffs = self._sampler(self.medium) @ self.medium.coeffs.reshape(len(self.medium.index), -1)
+        self.vertex_coeffs = self.vertex_coeffs.reshape(n, 3, -1)
+        self.fine_sampler = self._sampler(self.fine)
+        return self
+
+    def _sampler(self, band: TexelBand) -> sp.csr_matrix:
+        H = band.resolution
+        mask = np.zeros(H * H, bool)
+        mask[band.index] = True
+        S = sampling_matrix(self.uv, self.uv_faces, self.faces, self.n_vertices, mask.reshape(H, H))
+        return S[:, band.index].tocsr()
+
+    # ------------------------------------------------------------------ synthesis
+    def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
+        """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers."""
+        pose = head_alignment(markers, self.base.rest_markers, self.pose_weights)
+        aligned = pose.remove(markers)
+        u_H = self.base.handle_displacements(aligned)
+        return pose, u_H, deformation_vectors(self.mesh, aligned, offsets=u_H)
+
+    def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
+                   clamp: bool = True) -> dict[str, np.ndarray]:
+        """Meshes and maps for world-space markers (F,M,3), NaN for occluded (ma2008 §5).
+
+        Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
+        scale in the input's world pose, ``vertices_detailed`` (F,n,3) with the fine map
+        baked along the normals, ``displacement`` (F,H,H) fine-scale normal displacement,
+        ``albedo`` (F,Ha,Ha,3), ``normal_map`` (F,H,H,3) tangent space; always ``faces`` and
+        ``clamped`` (F,) the fraction of texels whose d1/d2 hit the extrapolation limit.
+
+        Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
+        """
+        markers = np.asarray(markers, dtype=np.float64)
+        if markers.ndim == 2:
+            markers = markers[None]
+        M = self.n_markers
+        if markers.ndim != 3 or markers.shape[1:] != (M, 3):
+            raise InvalidInput(f"model expects markers (F,{M},3), got {markers.shape}")
+        unknown = set(outputs) - set(OUTPUTS)
+        if unknown:
+            raise InvalidInput(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+        if "albedo" in outputs and self.albedo is None:
+            raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
+        nf, n = len(markers), self.n_vertices
+        out: dict[str, np.ndarray] = {"faces": self.faces.astype(np.int32),
+                                      "clamped": np.zeros(nf, np.float32)}
+        want = set(outputs)
+        if want & {"mesh", "mesh_detailed"}:
+            out["vertices"] = np.empty((nf, n, 3), np.float32)
+        if "mesh_detailed" in want:
+            out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
+        Hf = self.fine.resolution
+        if want & {"displacement", "normal_map"}:
+            out["displacement"] = np.zeros((nf, Hf, Hf), np.float32)
+        if "normal_map" in want:
+            from service.geometry.normal_map import NormalMapper
+            mapper = self._normal_mapper(NormalMapper)
+            out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
+        if "albedo" in want:
+            Ha = self.albedo.resolution
+            out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
+        margin = self.params.extrapolation_margin if clamp else None
+        for s in range(0, nf, FRAME_CHUNK):
+            sl = slice(s, min(s + FRAME_CHUNK, nf))
+            try:
+                pose, u_H, S = self.deformation(markers[sl])
+            except TooFewMarkers as e:
+                raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at least "
+                                   f"{e.required} are needed") from None
+            X = self.base.deform(u_H)
+            frames = self.base.frames(X)
+            d1, d2 = self.vertex_field(S)
+            d1, d2, _ = _clamp(d1, d2, self.vertex_lo, self.vertex_hi, margin)
+            c = polynomial.evaluate(self.vertex_coeffs, d1, d2)               # (f,n,3)
+            medium = X + np.einsum("fnji,fnj->fni", frames, c)
+            f1, f2 = self.fine.field(S)
+            f1, f2, frac = _clamp(f1, f2, self.fine.lo, self.fine.hi, margin)
+            out["clamped"][sl] = frac
+            disp = polynomial.evaluate(self.fine.coeffs, f1, f2)[..., 0]     # (f,Pf)
+            if "displacement" in out:
+                out["displacement"][sl] = self.fine.image(disp)
+            if "vertices" in out:
+                out["vertices"][sl] = pose.restore(medium)
+            if want & {"mesh_detailed", "normal_map"}:
+                mframes = self.base.frames(medium)
+            if "mesh_detailed" in want:
+                h = (self.fine_sampler @ disp.T).T                           # (f,n)
+                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
+            if "normal_map" in want:
+                for k in range(sl.stop - sl.start):
+                    out["normal_map"][s + k] = mapper.normal_map(out["displacement"][s + k], medium[k], mframes[k])
+            if "albedo" in want:
+                a1, a2 = self.albedo.field(S)
+                a1, a2, _ = _clamp(a1, a2, self.albedo.lo, self.albedo.hi, margin)
+                out["albedo"][sl] = self.albedo.image(
+                    np.maximum(polynomial.evaluate(self.albedo.coeffs, a1, a2), 0.0), channels=True)
+        if "displacement" not in want:
+            out.pop("displacement", None)
+        return out
+
+    def _normal_mapper(self, cls):
+        if getattr(self, "_mapper", None) is None:
+            H = self.fine.resolution
+            self._mapper = cls(rasterize_uv(self.uv, self.uv_faces, H, H), self.faces, self.uv,
+                               self.uv_faces, self.n_vertices)
+        return self._mapper
+
+    # ------------------------------------------------------------------ storage
+    def save(self, path) -> dict:
+        """Write the model directory (manifest.json, model.npz, *.exr); see :mod:`.store`."""
+        from service.methods.pdm.store import save_model
+        return save_model(self, path)
+
+    @classmethod
+    def load(cls, path) -> "PdmModel":
+        """Read a model directory written by :meth:`save`, verifying checksums."""
+        from service.methods.pdm.store import load_model
+        return load_model(path)
+
+
+# ---------------------------------------------------------------------- training
+def marker_axes(actor: ActorData) -> np.ndarray:
+    """Unit texture axes (û, v̂) (M,2,3) of the neutral at the markers (ma2008 eq. 2)."""
+    V, F = actor.vertices, actor.faces
+    fr = tangent_frames(V, F, actor.uv, actor.uv_faces)
+    sign = uv_handedness(F, actor.uv, actor.uv_faces, len(V))
+    corners = F[actor.marker_triangle]                                        # (M,3)
+    w = actor.marker_barycentric[..., None]
+    u = np.sum(w * fr[corners, 0], axis=1)
+    v = np.sum(w * (sign[corners, None] * fr[corners, 1]), axis=1)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v -= np.sum(v * u, axis=1, keepdims=True) * u
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return np.stack([u, v], axis=1)
+
+
+def mean_texel_size(actor: ActorData, H: int) -> float:
+    """Mean surface length (actor's unit) of one texel side of an H×H map."""
+    A3 = triangle_areas(actor.vertices, actor.faces).sum()
+    U = actor.uv[actor.uv_faces]
+    e1, e2 = U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]
+    Auv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    return float(np.sqrt(A3 / Auv) / H)
+
+
+def _band_raster(actor: ActorData, H: int):
+    raster = rasterize_uv(actor.uv, actor.uv_faces, H, H)
+    index = np.flatnonzero(raster.mask.ravel())
+    interp = interpolation_matrix(raster, actor.faces, actor.n_vertices)[index].tocsr()
+    return raster, index, interp
+
+
+def _region_rms(sq: np.ndarray, count: float, regions: dict) -> dict:
+    out = {"all": float(np.sqrt(sq.sum() / (count * len(sq))))}
+    for name, sel in regions.items():
+        if np.any(sel):
+            out[name] = float(np.sqrt(sq[sel].sum() / (count * np.count_nonzero(sel))))
+    return out
+
+
+def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams(),
+          progress: Progress = no_progress) -> PdmModel:
+    """Fit a PDM model to training clips (ma2008 §4; steps in the module docstring).
+
+    Raises :class:`InvalidInput` for clips that do not match the actor, frames with too few
+    markers, or marker layouts whose markers share a thin-shell handle.
+    """
+    clips = list(clips)
+    check_clips(actor, clips)
+    n, F = actor.n_vertices, np.asarray(actor.faces, np.int64)
+    progress(0.0, "alignment")
+    markers = np.concatenate([c.markers for c in clips]).astype(np.float64)
+    names = [f"clip '{c.name}' frame {f}" for c in clips for f in range(c.frames)]
+    rest = actor.marker_positions()
+    try:
+        pose = head_alignment(markers, rest)
+        weights = stability_weights(pose.remove(markers), rest)
+        pose = head_alignment(markers, rest, weights)
+    except TooFewMarkers as e:
+        raise InvalidInput(f"{names[e.frame]} has {e.visible} visible markers, at least "
+                           f"{e.required} are needed") from None
+    aligned = pose.remove(markers)
+    try:
+        handles = handle_vertices(F, actor.marker_triangle, actor.marker_barycentric, actor.marker_names)
+    except ValueError as e:
+        raise InvalidInput(str(e)) from None
+
+    progress(0.05, "base surface")
+    base = BaseSurface.build(actor.vertices, F, actor.uv, actor.uv_faces, handles, rest,
+                             lam_dt=params.smoothing_lam_dt)
+    u_H = base.handle_displacements(aligned)
+
+    progress(0.15, "deformation space")
+    mesh = marker_mesh(actor.marker_uv(), rest, marker_axes(actor))
+    S = deformation_vectors(mesh, aligned, offsets=u_H)
+    axes = deformation_axes(mesh, S, params.axis_threshold_deg)
+
+    frames_of = [(c, f) for c in clips for f in range(c.frames)]
+    T = len(frames_of)
+
+    def world_vertices(t0, t1):
+        return np.concatenate([clips[i].vertices[a:b] for i, a, b in _clip_slices(clips, t0, t1)])
+
+    # ---- medium band (3D, in the base's tangent frames)
+    progress(0.2, "medium band")
+    Hm = params.medium_resolution
+    _, idx_m, interp_m = _band_raster(actor, Hm)
+    f_med = np.empty((T, len(idx_m), 3), np.float32)
+    for t0 in range(0, T, FRAME_CHUNK):
+        t1 = min(t0 + FRAME_CHUNK, T)
+        X = base.deform(u_H[t0:t1])
+        c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
+        f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
+    medium = TexelBand(Hm, idx_m, None)
+    medium.field = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_m, Hm)))
+    d1, d2 = _parameters(medium.field, S)
+    progress(0.3, "medium band fit")
+    medium.coeffs = polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32)
+    med_rms = polynomial.fit_residual_rms(medium.coeffs, d1, d2, f_med)
+    del f_med, d1, d2
+
+    model = PdmModel(params, F, np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64),
+                     base, mesh, axes, weights, S, medium,
+                     TexelBand(params.fine_resolution, np.zeros(0, np.int64), np.zeros((0, 1, 1), np.float32)),
+                     None)
+    # the medium result at the vertices, as synthesis computes it (without the clamp)
+    model.vertex_field = ParameterField.build(axes, barycentric_operator(
+        mesh, _vertex_uv(model.uv, model.uv_faces, F, n)))
+    model.vertex_coeffs = model._sampler(medium) @ medium.coeffs.reshape(len(idx_m), -1)
+    model.vertex_coeffs = model.vertex_coeffs.reshape(n, 3, -1)
+    dv1, dv2 = _parameters(model.vertex_field, S)
+
+    # ---- fine band (1D along the normal, high-pass residual)
+    progress(0.45, "fine band")
+    Hf = params.fine_resolution
+    _, idx_f, interp_f = _band_raster(actor, Hf)
+    sigma = params.fine_highpass_mm / mean_texel_size(actor, Hf)
+    mask = np.zeros(Hf * Hf)
+    mask[idx_f] = 1.0
+    mask_blur = gaussian_filter(mask.reshape(Hf, Hf), sigma, mode="constant").ravel()[idx_f] if sigma > 0 else None
+    uv_f = _texel_uv(idx_f, Hf)
+    f_fine = np.empty((T, len(idx_f)), np.float32)
+    vert_sq = np.zeros(n)
+    for t0 in range(0, T, FRAME_CHUNK):
+        t1 = min(t0 + FRAME_CHUNK, T)
+        X = base.deform(u_H[t0:t1])
+        fr = base.frames(X)
+        c = polynomial.evaluate(model.vertex_coeffs, dv1[t0:t1], dv2[t0:t1])
+        result = X + np.einsum("fnji,fnj->fni", fr, c)
+        err = pose[t0:t1].remove(world_vertices(t0, t1)) - result
+        vert_sq += np.einsum("fnd,fnd->n", err, err)
+        r = interp_f @ np.einsum("fnd,fnd->nf", err, fr[..., 2, :])           # (Pf,f)
+        disp = [clips[i].displacement[a:b] for i, a, b in _clip_slices(clips, t0, t1)
+                if clips[i].displacement is not None]
+        if disp:
+            disp = np.concatenate(disp)
+            r = r + (disp.reshape(len(disp), -1)[:, idx_f].T if disp.shape[1] == Hf
+                     else np.stack([sample_map(d, uv_f) for d in disp], axis=1))
+        with ThreadPoolExecutor(WORKERS) as pool:
+            cols = list(pool.map(lambda k: _highpass(r[:, k], idx_f, Hf, sigma, mask_blur), range(t1 - t0)))
+        f_fine[t0:t1] = np.stack(cols)
+    model.fine = fine = TexelBand(Hf, idx_f, None)
+    fine.field = ParameterField.build(axes, barycentric_operator(mesh, uv_f))
+    d1, d2 = _parameters(fine.field, S)
+    progress(0.6, "fine band fit")
+    fine.coeffs = polynomial.fit(d1, d2, f_fine, params.order, params.gamma).astype(np.float32)
+    fine_rms = polynomial.fit_residual_rms(fine.coeffs, d1, d2, f_fine)[:, 0]
+    fine_signal = np.sqrt(np.mean(f_fine.astype(np.float64) ** 2, axis=0))
+    del f_fine, d1, d2
+
+    # ---- albedo PTM (§6)
+    alb_rms = None
+    if clips[0].albedo is not None:
+        progress(0.8, "albedo")
+        Ha = clips[0].albedo.shape[1]
+        _, idx_a, _ = _band_raster(actor, Ha)
+        f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a] for c in clips]).astype(np.float32)
+        model.albedo = alb = TexelBand(Ha, idx_a, None)
+        alb.field = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_a, Ha)))
+        d1, d2 = _parameters(alb.field, S)
+        alb.coeffs = polynomial.fit(d1, d2, f_alb, params.order, params.gamma).astype(np.float32)
+        alb_rms = polynomial.fit_residual_rms(alb.coeffs, d1, d2, f_alb)
+        del f_alb, d1, d2
+
+    progress(0.9, "metrics")
+    regions = {k: np.asarray(v, bool) for k, v in actor.regions.items()}
+    tex_region = {k: v[F[rasterize_uv(actor.uv, actor.uv_faces, Hf, Hf).triangle.ravel()[idx_f], 0]]
+                  for k, v in regions.items()}
+    model.metrics = {
+        "training_frames": T,
+        "clips": [c.name for c in clips],
+        "medium_fit_rms_mm": float(np.sqrt(np.nanmean(med_rms ** 2))),
+        "medium_vertex_rms_mm": _region_rms(vert_sq, T, regions),
+        "fine_fit_rms_mm": _region_rms(np.nan_to_num(fine_rms) ** 2, 1, tex_region),
+        "fine_signal_rms_mm": _region_rms(fine_signal ** 2, 1, tex_region),
+        "albedo_fit_rms": None if alb_rms is None else float(np.sqrt(np.nanmean(alb_rms ** 2))),
+        "pca_energy": [float(x) for x in axes.energy.mean(axis=0)],
+        "axis_smoothing": {"replaced": int(axes.replaced), "worst_angle_deg": float(axes.worst_angle_deg),
+                           "threshold_deg": params.axis_threshold_deg},
+        "highpass_sigma_texels": float(sigma),
+        "params": asdict(params),
+    }
+    progress(0.95, "prepare")
+    model.prepare()
+    progress(1.0, "done")
+    return model
+
+
+def _clip_slices(clips: Sequence[Clip], t0: int, t1: int):
+    """(clip index, start, stop) pieces of the global frame range [t0, t1)."""
+    start = 0
+    for i, c in enumerate(clips):
+        a, b = max(t0 - start, 0), min(t1 - start, c.frames)
+        if a < b:
+            yield i, a, b
+        start += c.frames

@@ -1,0 +1,142 @@
+"""A PDM model on disk: ``manifest.json`` + ``model.npz`` + coefficient maps as EXR.
+
+Layout (DESIGN.md "Data and storage"):
+
+* ``medium.exr``  channels ``x.a0 … z.a<K-1>``: the 3D medium-band PDM in the base surface's
+  tangent frames (x tangent along +u, y bitangent, z normal), actor units;
+* ``fine.exr``    channels ``n.a0 … n.a<K-1>``: the 1D fine-band PDM along the normal;
+* ``albedo.exr``  channels ``r.a0 … b.a<K-1>``: the albedo PTM (if trained with albedo);
+* ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
+  marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
+  deformation vectors S (from which the training ranges of d1, d2 are derived);
+* ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
+
+Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the
+biquadratic: d1², d2², d1·d2, d1, d2, 1, as ma2008 eq. 1). Maps are float32 and edge-padded
+past the UV charts (so a renderer's filtering at chart borders reads plausible values);
+loading reads the covered texels only. Every file is written atomically, the manifest
+last; a load verifies every checksum before it trusts a byte.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from service.geometry.uv_raster import dilate, rasterize_uv
+from service.io.atomic import sha256_file, write_bytes, write_npz
+from service.io.exr import read_exr, write_exr
+from service.methods.pdm import polynomial
+from service.methods.pdm.base_surface import BaseSurface
+from service.methods.pdm.deformation import DeformationAxes, MarkerMesh, marker_mesh
+from service.methods.pdm.model import PdmModel, PdmParams, TexelBand
+
+KIND = "pdm"
+FORMAT_VERSION = 1
+#: texels of edge padding around the UV charts in the written maps
+PAD_TEXELS = 4
+COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b")}
+
+
+class ModelCorrupt(ValueError):
+    """A stored model is incomplete, altered, or of an unknown format."""
+
+
+def save_model(model: PdmModel, path) -> dict:
+    """Write ``model`` into directory ``path`` (created); returns the manifest."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for name, band in (("medium", model.medium), ("fine", model.fine), ("albedo", model.albedo)):
+        if band is None:
+            continue
+        files[f"{name}.exr"] = _write_band(path / f"{name}.exr", model, band, COMPONENTS[name])
+    m, ax, base = model.mesh, model.axes, model.base
+    arrays = {
+        "smooth": base.smooth, "faces": model.faces, "uv": model.uv, "uv_faces": model.uv_faces,
+        "handles": base.handles, "rest_markers": base.rest_markers,
+        "marker_uv": m.uv, "marker_faces": m.faces, "marker_axes": m.axes,
+        "q": ax.q, "r": ax.r, "scale": ax.scale, "energy": ax.energy,
+        "pose_weights": model.pose_weights, "S_train": model.S_train,
+        "resolutions": np.array([model.medium.resolution, model.fine.resolution,
+                                 0 if model.albedo is None else model.albedo.resolution]),
+    }
+    files["model.npz"] = write_npz(path / "model.npz", arrays)
+    manifest = {
+        "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
+        "axis_smoothing": {"replaced": int(ax.replaced), "worst_angle_deg": float(ax.worst_angle_deg)},
+        "metrics": model.metrics, "files": files,
+        "size_bytes": sum((path / f).stat().st_size for f in files),
+    }
+    write_bytes(path / "manifest.json", json.dumps(manifest, indent=1).encode())
+    return manifest
+
+
+def _write_band(file: Path, model: PdmModel, band: TexelBand, components) -> str:
+    H = band.resolution
+    P, C, K = band.coeffs.shape
+    img = np.zeros((H * H, C * K), np.float32)
+    img[band.index] = band.coeffs.reshape(P, C * K)
+    mask = np.zeros(H * H, bool)
+    mask[band.index] = True
+    img = dilate(img.reshape(H, H, C * K), mask.reshape(H, H), PAD_TEXELS).reshape(H, H, C, K)
+    write_exr(file, {f"{c}.a{k}": img[:, :, i, k] for i, c in enumerate(components) for k in range(K)})
+    return sha256_file(file)
+
+
+def read_manifest(path) -> dict:
+    """The manifest of a stored model, after checking every file's sha256."""
+    path = Path(path)
+    try:
+        manifest = json.loads((path / "manifest.json").read_bytes())
+    except (OSError, ValueError) as e:
+        raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
+    if manifest.get("kind") != KIND or manifest.get("format_version") != FORMAT_VERSION:
+        raise ModelCorrupt(f"{path}: not a {KIND} model of format {FORMAT_VERSION} "
+                           f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
+    for name, digest in manifest["files"].items():
+        f = path / name
+        if not f.is_file():
+            raise ModelCorrupt(f"{path}: {name} is missing")
+        if sha256_file(f) != digest:
+            raise ModelCorrupt(f"{path}: {name} does not match its checksum")
+    return manifest
+
+
+def load_model(path) -> PdmModel:
+    """Read a model written by :func:`save_model` (checksums verified first)."""
+    path = Path(path)
+    manifest = read_manifest(path)
+    params = PdmParams(**manifest["params"])
+    with np.load(path / "model.npz", allow_pickle=False) as d:
+        a = {k: d[k] for k in d.files}
+    F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
+    K = polynomial.ORDERS[params.order]
+    bands = {}
+    for name, res in zip(("medium", "fine", "albedo"), a["resolutions"]):
+        if res == 0:
+            bands[name] = None
+            continue
+        res = int(res)
+        index = np.flatnonzero(rasterize_uv(uv, uvf, res, res).mask.ravel())
+        ch = read_exr(path / f"{name}.exr")
+        comps = COMPONENTS[name]
+        try:
+            coeffs = np.stack([np.stack([ch[f"{c}.a{k}"].ravel()[index] for k in range(K)], axis=1)
+                               for c in comps], axis=1)
+        except KeyError as e:
+            raise ModelCorrupt(f"{path}: {name}.exr lacks channel {e}") from None
+        bands[name] = TexelBand(res, index, coeffs)
+    mesh = marker_mesh(a["marker_uv"], a["rest_markers"], a["marker_axes"])
+    if not np.array_equal(mesh.faces, a["marker_faces"]):
+        raise ModelCorrupt(f"{path}: the coarse marker mesh does not rebuild identically")
+    sm = manifest.get("axis_smoothing", {})
+    axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
+                           sm.get("worst_angle_deg", 0.0))
+    base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"])
+    model = PdmModel(params, F, uv, uvf, base, mesh, axes, a["pose_weights"], a["S_train"],
+                     bands["medium"], bands["fine"], bands["albedo"], manifest["metrics"])
+    return model.prepare()
