@@ -24,6 +24,11 @@ Departures and choices (the paper is silent or differs):
   vertices: its coefficient maps are sampled once per vertex (bilinear, covered texels
   only) and d1, d2 are evaluated at each vertex's UV. Equal to evaluating the map and
   sampling it for coefficients that vary bilinearly, and O(vertices) per frame;
+* the neutral's own medium detail (detailed neutral − smooth neutral, in the smooth
+  neutral's tangent frames) is kept per vertex, and the medium PDM fits what the
+  expressions add to it: the paper's constant term a5 would otherwise have to carry sharp
+  static features (eyelid creases, lip edges, nostrils) through a 512² map, and the neutral
+  would not be reproduced exactly. ``neutral.exr`` holds it as a map for renderers;
 * extrapolation limit: d1, d2 are clamped per texel (and per vertex) to the training range
   widened by ``extrapolation_margin`` × its width on each side (``None`` disables it).
   Beyond the training data a biquadratic PDM grows quadratically, and bermano2014 §7
@@ -106,7 +111,8 @@ class PdmParams:
 class TexelBand:
     """One PDM over the covered texels of an H×H map.
 
-    resolution : int;  index : (P,) flat indices of the covered texels (row-major)
+    resolution : int;  index : (P,) flat indices of the covered texels (0 and the vertex
+                       indices for the medium PDM sampled at the vertices)
     coeffs : (P,C,K) float32   polynomial coefficients (§4.2)
     field : ParameterField     d1, d2 at the texel centres
     lo, hi : (2,P) float       training range of (d1, d2) per texel (extrapolation limit)
@@ -118,6 +124,28 @@ class TexelBand:
     field: ParameterField | None = None
     lo: np.ndarray | None = None
     hi: np.ndarray | None = None
+
+    def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """d1, d2 (F,P) for S (F,M,5), limited to the training range widened by ``margin``
+        × its width (None: unlimited), and the fraction (F,) of points that were limited."""
+        d1, d2 = self.field(S)
+        if margin is None:
+            return d1, d2, np.zeros(len(S))
+        if getattr(self, "_bounds", (None,))[0] != margin:
+            w = self.hi - self.lo
+            self._bounds = (margin, (self.lo - margin * w).astype(np.float32),
+                            (self.hi + margin * w).astype(np.float32))
+        _, a, b = self._bounds
+        c1, c2 = np.clip(d1, a[0], b[0]), np.clip(d2, a[1], b[1])
+        changed = c1 != d1
+        changed |= c2 != d2
+        return c1, c2, np.count_nonzero(changed, axis=-1) / max(changed.shape[-1], 1)
+
+    def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        """The PDM (…,P,C) at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
+        if getattr(self, "_terms", None) is None:     # term-major (K,C,P): contiguous per term
+            self._terms = np.ascontiguousarray(self.coeffs.transpose(2, 1, 0))
+        return polynomial.evaluate(self._terms.transpose(2, 1, 0), d1, d2)
 
     def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
         """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
@@ -143,7 +171,7 @@ def _vertex_uv(actor_uv: np.ndarray, uv_faces: np.ndarray, F: np.ndarray, n: int
 
 def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d1, d2 (T,P) float32 for S (T,M,5), frames in chunks (bounds the (P,T,5) temporary)."""
-    T, P = len(S), pf.q.shape[0]
+    T, P = len(S), pf.n_points
     d1, d2 = np.empty((T, P), np.float32), np.empty((T, P), np.float32)
     for t in range(0, T, FRAME_CHUNK):
         d1[t:t + FRAME_CHUNK], d2[t:t + FRAME_CHUNK] = pf(S[t:t + FRAME_CHUNK])
@@ -152,22 +180,12 @@ def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def _ranges(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-point min and max (2,P) of (d1, d2) over the training S (T,M,5)."""
-    P = pf.q.shape[0]
+    P = pf.n_points
     lo, hi = np.full((2, P), np.inf), np.full((2, P), -np.inf)
     for t in range(0, len(S), FRAME_CHUNK):
         d = np.stack(pf(S[t:t + FRAME_CHUNK]))                       # (2,t,P)
         lo, hi = np.minimum(lo, d.min(axis=1)), np.maximum(hi, d.max(axis=1))
     return lo, hi
-
-
-def _clamp(d1, d2, lo, hi, margin):
-    if margin is None:
-        return d1, d2, 0.0
-    w = hi - lo
-    a, b = lo - margin * w, hi + margin * w
-    c1, c2 = np.clip(d1, a[0], b[0]), np.clip(d2, a[1], b[1])
-    clamped = np.mean((c1 != d1) | (c2 != d2), axis=-1)
-    return c1, c2, clamped
 
 
 def _highpass(img_values: np.ndarray, index: np.ndarray, H: int, sigma: float,
@@ -197,15 +215,14 @@ class PdmModel:
     axes: DeformationAxes
     pose_weights: np.ndarray          # (M,) head-pose weights
     S_train: np.ndarray               # (T,M,5) deformation vectors of the training frames
+    neutral_offset: np.ndarray        # (n,3) float32 the neutral's medium detail in the smooth
+                                      # neutral's tangent frames (static part, per vertex)
     medium: TexelBand                 # C = 3 (tangent, bitangent, normal), mm
     fine: TexelBand                   # C = 1 (normal), mm
     albedo: TexelBand | None          # C = 3 (linear RGB)
     metrics: dict = field(default_factory=dict)
     # derived at build/load time (not stored)
-    vertex_coeffs: np.ndarray | None = None      # (n,3,K) medium coefficients at the vertices
-    vertex_field: ParameterField | None = None
-    vertex_lo: np.ndarray | None = None
-    vertex_hi: np.ndarray | None = None
+    vertex_band: TexelBand | None = None          # the medium coefficients sampled at the vertices
     fine_sampler: sp.csr_matrix | None = None    # (n,Pf) fine map → vertices
 
     @property
@@ -223,18 +240,26 @@ class PdmModel:
         for band in (self.medium, self.fine, self.albedo):
             if band is None:
                 continue
-            if band.field is None:
-                band.field = ParameterField.build(
-                    self.axes, barycentric_operator(self.mesh, _texel_uv(band.index, band.resolution)))
+            # texels grouped by coarse element: the parameters then come in runs
+            W = barycentric_operator(self.mesh, _texel_uv(band.index, band.resolution))
+            order = ParameterField.element_order(W)
+            band.index, band.coeffs, band._terms = band.index[order], band.coeffs[order], None
+            band.field = ParameterField.build(self.axes, W[order])
             band.lo, band.hi = _ranges(band.field, self.S_train)
-        if self.vertex_field is None:
-            vuv = _vertex_uv(self.uv, self.uv_faces, F, n)
-            self.vertex_field = ParameterField.build(self.axes, barycentric_operator(self.mesh, vuv))
-        self.vertex_lo, self.vertex_hi = _ranges(self.vertex_field, self.S_train)
-        self.vertex_coeffs = self._sampler(self.medium) @ self.medium.coeffs.reshape(len(self.medium.index), -1)
-        self.vertex_coeffs = self.vertex_coeffs.reshape(n, 3, -1)
+        if self.vertex_band is None:
+            self.vertex_band = self._vertex_band()
+        self.vertex_band.lo, self.vertex_band.hi = _ranges(self.vertex_band.field, self.S_train)
         self.fine_sampler = self._sampler(self.fine)
         return self
+
+    def _vertex_band(self) -> TexelBand:
+        """The medium PDM sampled at the vertices (bilinear, covered texels only), with d1, d2
+        at each vertex's UV."""
+        n = self.n_vertices
+        coeffs = self._sampler(self.medium) @ self.medium.coeffs.reshape(len(self.medium.index), -1)
+        W = barycentric_operator(self.mesh, _vertex_uv(self.uv, self.uv_faces, self.faces, n))
+        return TexelBand(0, np.arange(n), coeffs.reshape(n, 3, -1).astype(np.float32),
+                         ParameterField.build(self.axes, W))
 
     def _sampler(self, band: TexelBand) -> sp.csr_matrix:
         H = band.resolution
@@ -293,43 +318,46 @@ class PdmModel:
             Ha = self.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
         margin = self.params.extrapolation_margin if clamp else None
-        for s in range(0, nf, FRAME_CHUNK):
-            sl = slice(s, min(s + FRAME_CHUNK, nf))
-            try:
-                pose, u_H, S = self.deformation(markers[sl])
-            except TooFewMarkers as e:
-                raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at least "
-                                   f"{e.required} are needed") from None
-            X = self.base.deform(u_H)
-            frames = self.base.frames(X)
-            d1, d2 = self.vertex_field(S)
-            d1, d2, _ = _clamp(d1, d2, self.vertex_lo, self.vertex_hi, margin)
-            c = polynomial.evaluate(self.vertex_coeffs, d1, d2)               # (f,n,3)
-            medium = X + np.einsum("fnji,fnj->fni", frames, c)
-            f1, f2 = self.fine.field(S)
-            f1, f2, frac = _clamp(f1, f2, self.fine.lo, self.fine.hi, margin)
-            out["clamped"][sl] = frac
-            disp = polynomial.evaluate(self.fine.coeffs, f1, f2)[..., 0]     # (f,Pf)
-            if "displacement" in out:
-                out["displacement"][sl] = self.fine.image(disp)
-            if "vertices" in out:
-                out["vertices"][sl] = pose.restore(medium)
-            if want & {"mesh_detailed", "normal_map"}:
-                mframes = self.base.frames(medium)
-            if "mesh_detailed" in want:
-                h = (self.fine_sampler @ disp.T).T                           # (f,n)
-                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
-            if "normal_map" in want:
-                for k in range(sl.stop - sl.start):
-                    out["normal_map"][s + k] = mapper.normal_map(out["displacement"][s + k], medium[k], mframes[k])
-            if "albedo" in want:
-                a1, a2 = self.albedo.field(S)
-                a1, a2, _ = _clamp(a1, a2, self.albedo.lo, self.albedo.hi, margin)
-                out["albedo"][sl] = self.albedo.image(
-                    np.maximum(polynomial.evaluate(self.albedo.coeffs, a1, a2), 0.0), channels=True)
+        with ThreadPoolExecutor(1) as pool:
+            for s in range(0, nf, FRAME_CHUNK):
+                sl = slice(s, min(s + FRAME_CHUNK, nf))
+                try:
+                    pose, u_H, S = self.deformation(markers[sl])
+                except TooFewMarkers as e:
+                    raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
+                                       f"least {e.required} are needed") from None
+                # the fine band runs beside the vertex chain (NumPy releases the GIL)
+                fine = pool.submit(self._fine_band, S, margin)
+                X = self.base.deform(u_H)
+                d1, d2, _ = self.vertex_band.parameters(S, margin)
+                medium = X + np.einsum("fnji,fnj->fni", self.base.frames(X),
+                                       self.vertex_band.evaluate(d1, d2) + self.neutral_offset)
+                if "vertices" in out:
+                    out["vertices"][sl] = pose.restore(medium)
+                disp, out["clamped"][sl] = fine.result()
+                if "displacement" in out:
+                    out["displacement"][sl] = self.fine.image(disp)
+                if want & {"mesh_detailed", "normal_map"}:
+                    mframes = self.base.frames(medium)
+                if "mesh_detailed" in want:
+                    h = (self.fine_sampler @ disp.T).T                           # (f,n)
+                    out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
+                if "normal_map" in want:
+                    for k in range(sl.stop - sl.start):
+                        out["normal_map"][s + k] = mapper.normal_map(out["displacement"][s + k],
+                                                                     medium[k], mframes[k])
+                if "albedo" in want:
+                    a1, a2, _ = self.albedo.parameters(S, margin)
+                    out["albedo"][sl] = self.albedo.image(
+                        np.maximum(self.albedo.evaluate(a1, a2), 0.0), channels=True)
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
+
+    def _fine_band(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,)."""
+        d1, d2, frac = self.fine.parameters(S, margin)
+        return self.fine.evaluate(d1, d2)[..., 0], frac
 
     def _normal_mapper(self, cls):
         if getattr(self, "_mapper", None) is None:
@@ -437,12 +465,16 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     # ---- medium band (3D, in the base's tangent frames)
     progress(0.2, "medium band")
     Hm = params.medium_resolution
+    # the neutral's own medium detail is static: kept per vertex (exact at any map size); the
+    # map holds what the expressions add to it
+    neutral_offset = np.einsum("nij,nj->ni", base.frames(base.smooth), actor.vertices - base.smooth).astype(np.float32)
     _, idx_m, interp_m = _band_raster(actor, Hm)
     f_med = np.empty((T, len(idx_m), 3), np.float32)
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
+        c -= neutral_offset
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
     medium = TexelBand(Hm, idx_m, None)
     medium.field = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_m, Hm)))
@@ -453,15 +485,12 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     del f_med, d1, d2
 
     model = PdmModel(params, F, np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64),
-                     base, mesh, axes, weights, S, medium,
+                     base, mesh, axes, weights, S, neutral_offset, medium,
                      TexelBand(params.fine_resolution, np.zeros(0, np.int64), np.zeros((0, 1, 1), np.float32)),
                      None)
     # the medium result at the vertices, as synthesis computes it (without the clamp)
-    model.vertex_field = ParameterField.build(axes, barycentric_operator(
-        mesh, _vertex_uv(model.uv, model.uv_faces, F, n)))
-    model.vertex_coeffs = model._sampler(medium) @ medium.coeffs.reshape(len(idx_m), -1)
-    model.vertex_coeffs = model.vertex_coeffs.reshape(n, 3, -1)
-    dv1, dv2 = _parameters(model.vertex_field, S)
+    model.vertex_band = model._vertex_band()
+    dv1, dv2 = _parameters(model.vertex_band.field, S)
 
     # ---- fine band (1D along the normal, high-pass residual)
     progress(0.45, "fine band")
@@ -478,7 +507,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         fr = base.frames(X)
-        c = polynomial.evaluate(model.vertex_coeffs, dv1[t0:t1], dv2[t0:t1])
+        c = model.vertex_band.evaluate(dv1[t0:t1], dv2[t0:t1]) + neutral_offset
         result = X + np.einsum("fnji,fnj->fni", fr, c)
         err = pose[t0:t1].remove(world_vertices(t0, t1)) - result
         vert_sq += np.einsum("fnd,fnd->n", err, err)

@@ -335,7 +335,10 @@ def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     Returns
     -------
     D : (P,C) or (F,P,C)       displacement, in the units of the fitted f; float64 unless
-                               every input is float32 (then float32, e.g. for synthesis)
+                               every input is float32 (then float32, e.g. for synthesis).
+                               A view of a (…,C,P) array; pass coefficients whose memory is
+                               term-major (K,C,P), ``coeffs = terms.transpose(2, 1, 0)``, for
+                               contiguous passes over the texels
     """
     coeffs = np.asarray(coeffs)
     powers = TERM_POWERS[_order_of(coeffs.shape[-1])]
@@ -350,14 +353,15 @@ def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     for _ in range(2, deg):
         X.append(X[-1] * d1)
         Y.append(Y[-1] * d2)
-    a = np.moveaxis(coeffs.astype(dtype, copy=False), -1, 0)       # (K,P,C) view
-    out = np.broadcast_to(a[-1], d1.shape + coeffs.shape[1:2]).copy()   # constant term last
+    a = coeffs.astype(dtype, copy=False).transpose(2, 1, 0)       # (K,C,P) view
+    # accumulate as (…,C,P): the innermost loop runs over texels, not over C (often 1)
+    out = np.broadcast_to(a[-1], d1.shape[:-1] + a.shape[1:]).copy()   # constant term last
     tmp = np.empty_like(out)
     for k, (i, j) in enumerate(powers[:-1]):                      # one pass per term
         term = X[i] if j == 0 else Y[j] if i == 0 else X[i] * Y[j]
-        np.multiply(term[..., None], a[k], out=tmp)
+        np.multiply(term[..., None, :], a[k], out=tmp)
         out += tmp
-    return out
+    return np.swapaxes(out, -1, -2)
 
 
 def fit_residual_rms(

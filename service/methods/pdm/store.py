@@ -6,6 +6,8 @@ Layout (DESIGN.md "Data and storage"):
   tangent frames (x tangent along +u, y bitangent, z normal), actor units;
 * ``fine.exr``    channels ``n.a0 … n.a<K-1>``: the 1D fine-band PDM along the normal;
 * ``albedo.exr``  channels ``r.a0 … b.a<K-1>``: the albedo PTM (if trained with albedo);
+* ``neutral.exr`` channels ``x y z``: the neutral's static medium detail (kept per vertex in
+  ``model.npz``; add it to the constant term a<K-1> to evaluate the medium map alone);
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
   deformation vectors S (from which the training ranges of d1, d2 are derived);
@@ -61,10 +63,12 @@ def save_model(model: PdmModel, path) -> dict:
         "marker_uv": m.uv, "marker_faces": m.faces, "marker_axes": m.axes,
         "q": ax.q, "r": ax.r, "scale": ax.scale, "energy": ax.energy,
         "pose_weights": model.pose_weights, "S_train": model.S_train,
+        "neutral_offset": model.neutral_offset,
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
     }
     files["model.npz"] = write_npz(path / "model.npz", arrays)
+    files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
         "axis_smoothing": {"replaced": int(ax.replaced), "worst_angle_deg": float(ax.worst_angle_deg)},
@@ -84,6 +88,16 @@ def _write_band(file: Path, model: PdmModel, band: TexelBand, components) -> str
     mask[band.index] = True
     img = dilate(img.reshape(H, H, C * K), mask.reshape(H, H), PAD_TEXELS).reshape(H, H, C, K)
     write_exr(file, {f"{c}.a{k}": img[:, :, i, k] for i, c in enumerate(components) for k in range(K)})
+    return sha256_file(file)
+
+
+def _write_neutral(file: Path, model: PdmModel) -> str:
+    """The per-vertex neutral offset as an x, y, z map at the medium resolution (for renderers:
+    the full constant term is ``x.a<K-1> + x``); not read back."""
+    H = model.medium.resolution
+    raster = rasterize_uv(model.uv, model.uv_faces, H, H)
+    img = dilate(raster.interpolate(model.neutral_offset, model.faces), raster.mask, PAD_TEXELS)
+    write_exr(file, {c: img[:, :, i] for i, c in enumerate("xyz")})
     return sha256_file(file)
 
 
@@ -138,5 +152,6 @@ def load_model(path) -> PdmModel:
                            sm.get("worst_angle_deg", 0.0))
     base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"])
     model = PdmModel(params, F, uv, uvf, base, mesh, axes, a["pose_weights"], a["S_train"],
+                     a["neutral_offset"],
                      bands["medium"], bands["fine"], bands["albedo"], manifest["metrics"])
     return model.prepare()

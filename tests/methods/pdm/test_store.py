@@ -1,0 +1,59 @@
+"""Tests for service.methods.pdm.store: the model directory round trip and its integrity checks."""
+
+import json
+
+import numpy as np
+import pytest
+
+from service.io.exr import read_exr
+from service.methods.pdm.model import PdmModel
+from service.methods.pdm.store import ModelCorrupt
+
+
+@pytest.fixture(scope="module")
+def saved(pdm_model, tmp_path_factory):
+    path = tmp_path_factory.mktemp("pdm_store") / "model"
+    return path, pdm_model.save(path)
+
+
+def test_round_trip_is_bit_exact(pdm_model, pdm_data, saved):
+    path, manifest = saved
+    loaded = PdmModel.load(path)
+    markers = pdm_data[1][4].markers[[0, 9, 15]]
+    a = pdm_model.synthesize(markers, outputs=("mesh", "mesh_detailed", "displacement", "albedo"))
+    b = loaded.synthesize(markers, outputs=("mesh", "mesh_detailed", "displacement", "albedo"))
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert manifest["kind"] == "pdm" and manifest["metrics"]["pca_energy"] == pdm_model.metrics["pca_energy"]
+    assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir() if p.name != "manifest.json")
+
+
+def test_coefficient_maps_use_the_api_channel_names(saved):
+    path, _ = saved
+    medium, fine = read_exr(path / "medium.exr"), read_exr(path / "fine.exr")
+    assert sorted(medium) == sorted(f"{c}.a{k}" for c in "xyz" for k in range(6))
+    assert sorted(fine) == [f"n.a{k}" for k in range(6)]
+    assert sorted(read_exr(path / "albedo.exr")) == sorted(f"{c}.a{k}" for c in "rgb" for k in range(6))
+    assert medium["x.a0"].shape == (256, 256) and fine["n.a0"].shape == (128, 128)
+
+
+def test_a_changed_or_missing_file_is_refused(saved, tmp_path):
+    path, _ = saved
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(path, broken)
+    data = bytearray((broken / "fine.exr").read_bytes())
+    data[len(data) // 2] ^= 0x01
+    (broken / "fine.exr").write_bytes(bytes(data))
+    with pytest.raises(ModelCorrupt, match="fine.exr does not match its checksum"):
+        PdmModel.load(broken)
+    (broken / "fine.exr").unlink()
+    with pytest.raises(ModelCorrupt, match="fine.exr is missing"):
+        PdmModel.load(broken)
+    manifest = json.loads((path / "manifest.json").read_text())
+    manifest["format_version"] = 99
+    (broken / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ModelCorrupt, match="not a pdm model of format 1"):
+        PdmModel.load(broken)
