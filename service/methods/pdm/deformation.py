@@ -39,7 +39,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import Delaunay
+from scipy.spatial import Delaunay, cKDTree
 
 from service.geometry.scan_convert import barycentric_2d
 from service.geometry.topology import adjacency_matrix, edge_face_counts, edges, k_ring_matrix
@@ -47,6 +47,8 @@ from service.geometry.topology import adjacency_matrix, edge_face_counts, edges,
 #: Coarse triangles whose longest 3D edge exceeds this multiple of the median coarse edge
 #: are dropped: they bridge the eyes and the mouth, where the skin is not continuous.
 MAX_EDGE_RATIO = 2.5
+#: boundary edges (nearest by midpoint) searched for the nearest point outside the coarse mesh
+EDGE_CANDIDATES = 12
 
 
 @dataclass(frozen=True)
@@ -285,7 +287,7 @@ def deformation_axes(mesh: MarkerMesh, S: np.ndarray, threshold_deg: float = 30.
     return DeformationAxes(q, r, scale, energy, replaced, worst)
 
 
-def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray, chunk: int = 1 << 14) -> sp.csr_matrix:
+def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
     """Sparse (P,M) barycentric interpolation from the markers to points uv (P,2).
 
     Points inside a coarse triangle get its barycentric coordinates; points outside the
@@ -314,16 +316,20 @@ def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray, chunk: int = 1 << 14)
     E = E[count == 1]
     a, ab = mesh.uv[E[:, 0]], mesh.uv[E[:, 1]] - mesh.uv[E[:, 0]]
     inv_len2 = 1.0 / np.maximum(np.einsum("ed,ed->e", ab, ab), 1e-300)
-    for s in range(0, len(outside), chunk):
-        idx = outside[s:s + chunk]
-        d = uv[idx, None, :] - a[None]                                        # (p,e,2)
-        t = np.clip(np.einsum("ped,ed->pe", d, ab) * inv_len2, 0.0, 1.0)
-        gap = d - t[..., None] * ab
-        best = np.argmin(np.einsum("ped,ped->pe", gap, gap), axis=1)
-        tb = t[np.arange(len(idx)), best]
-        rows.append(np.repeat(idx, 2))
-        cols.append(E[best].ravel())
-        vals.append(np.column_stack([1.0 - tb, tb]).ravel())
+    # candidates: the boundary edges with the nearest midpoints (coarse edges are within
+    # MAX_EDGE_RATIO of each other in length, so the nearest edge is among them)
+    k = min(EDGE_CANDIDATES, len(E))
+    _, cand = cKDTree(a + 0.5 * ab).query(uv[outside], k=k)
+    cand = cand.reshape(len(outside), k)
+    d = uv[outside, None, :] - a[cand]                                        # (p,k,2)
+    t = np.clip(np.einsum("pkd,pkd->pk", d, ab[cand]) * inv_len2[cand], 0.0, 1.0)
+    gap = d - t[..., None] * ab[cand]
+    best = np.argmin(np.einsum("pkd,pkd->pk", gap, gap), axis=1)
+    rows_ = np.arange(len(outside))
+    tb = t[rows_, best]
+    rows.append(np.repeat(outside, 2))
+    cols.append(E[cand[rows_, best]].ravel())
+    vals.append(np.column_stack([1.0 - tb, tb]).ravel())
     W = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(P, M))
     W.sum_duplicates()
     return W

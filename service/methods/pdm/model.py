@@ -158,6 +158,14 @@ class TexelBand:
         return out.reshape(lead + (H, H) + ((C,) if channels else ()))
 
 
+def _element_field(mesh: MarkerMesh, axes: DeformationAxes, index: np.ndarray,
+                   H: int) -> tuple[np.ndarray, ParameterField]:
+    """The texels' order grouped by coarse element, and their parameter field in that order."""
+    W = barycentric_operator(mesh, _texel_uv(index, H))
+    order = ParameterField.element_order(W)
+    return order, ParameterField.build(axes, W[order])
+
+
 def _texel_uv(index: np.ndarray, H: int) -> np.ndarray:
     return texel_centers_uv(H, H).reshape(-1, 2)[index]
 
@@ -234,23 +242,34 @@ class PdmModel:
         return len(self.base.handles)
 
     # ------------------------------------------------------------------ preparation
-    def prepare(self) -> "PdmModel":
-        """Derive the per-site parameter fields, ranges and samplers (after train or load)."""
-        n, F = self.n_vertices, self.faces
-        for band in (self.medium, self.fine, self.albedo):
-            if band is None:
-                continue
-            # texels grouped by coarse element: the parameters then come in runs
-            W = barycentric_operator(self.mesh, _texel_uv(band.index, band.resolution))
-            order = ParameterField.element_order(W)
-            band.index, band.coeffs, band._terms = band.index[order], band.coeffs[order], None
-            band.field = ParameterField.build(self.axes, W[order])
-            band.lo, band.hi = _ranges(band.field, self.S_train)
+    def prepare(self, ranges: dict | None = None) -> "PdmModel":
+        """Derive the per-site parameter fields, ranges and samplers (after train or load).
+
+        ``ranges`` maps band names (medium, fine, albedo, vertex) to stored (lo, hi) training
+        ranges of d1, d2; missing ones are recomputed from ``S_train``.
+        """
+        ranges = ranges or {}
+        for name, band in self.bands().items():
+            if band.field is None:
+                order, band.field = _element_field(self.mesh, self.axes, band.index, band.resolution)
+                band.index, band.coeffs, band._terms = band.index[order], band.coeffs[order], None
         if self.vertex_band is None:
             self.vertex_band = self._vertex_band()
-        self.vertex_band.lo, self.vertex_band.hi = _ranges(self.vertex_band.field, self.S_train)
+        for name, band in self.bands(vertex=True).items():
+            if name in ranges:
+                band.lo, band.hi = ranges[name]
+            elif band.lo is None:
+                band.lo, band.hi = _ranges(band.field, self.S_train)
         self.fine_sampler = self._sampler(self.fine)
         return self
+
+    def bands(self, vertex: bool = False) -> dict[str, TexelBand]:
+        """The trained texel bands by name (and the vertex-sampled medium band if asked)."""
+        out = {k: b for k, b in (("medium", self.medium), ("fine", self.fine), ("albedo", self.albedo))
+               if b is not None}
+        if vertex and self.vertex_band is not None:
+            out["vertex"] = self.vertex_band
+        return out
 
     def _vertex_band(self) -> TexelBand:
         """The medium PDM sampled at the vertices (bilinear, covered texels only), with d1, d2
@@ -469,6 +488,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     # map holds what the expressions add to it
     neutral_offset = np.einsum("nij,nj->ni", base.frames(base.smooth), actor.vertices - base.smooth).astype(np.float32)
     _, idx_m, interp_m = _band_raster(actor, Hm)
+    order, field_m = _element_field(mesh, axes, idx_m, Hm)
+    idx_m, interp_m = idx_m[order], interp_m[order]
     f_med = np.empty((T, len(idx_m), 3), np.float32)
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
@@ -476,8 +497,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
         c -= neutral_offset
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
-    medium = TexelBand(Hm, idx_m, None)
-    medium.field = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_m, Hm)))
+    medium = TexelBand(Hm, idx_m, None, field_m)
     d1, d2 = _parameters(medium.field, S)
     progress(0.3, "medium band fit")
     medium.coeffs = polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32)
@@ -496,6 +516,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     progress(0.45, "fine band")
     Hf = params.fine_resolution
     _, idx_f, interp_f = _band_raster(actor, Hf)
+    order, field_f = _element_field(mesh, axes, idx_f, Hf)
+    idx_f, interp_f = idx_f[order], interp_f[order]
     sigma = params.fine_highpass_mm / mean_texel_size(actor, Hf)
     mask = np.zeros(Hf * Hf)
     mask[idx_f] = 1.0
@@ -521,8 +543,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         with ThreadPoolExecutor(WORKERS) as pool:
             cols = list(pool.map(lambda k: _highpass(r[:, k], idx_f, Hf, sigma, mask_blur), range(t1 - t0)))
         f_fine[t0:t1] = np.stack(cols)
-    model.fine = fine = TexelBand(Hf, idx_f, None)
-    fine.field = ParameterField.build(axes, barycentric_operator(mesh, uv_f))
+    model.fine = fine = TexelBand(Hf, idx_f, None, field_f)
     d1, d2 = _parameters(fine.field, S)
     progress(0.6, "fine band fit")
     fine.coeffs = polynomial.fit(d1, d2, f_fine, params.order, params.gamma).astype(np.float32)
@@ -536,9 +557,10 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         progress(0.8, "albedo")
         Ha = clips[0].albedo.shape[1]
         _, idx_a, _ = _band_raster(actor, Ha)
+        order, field_a = _element_field(mesh, axes, idx_a, Ha)
+        idx_a = idx_a[order]
         f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a] for c in clips]).astype(np.float32)
-        model.albedo = alb = TexelBand(Ha, idx_a, None)
-        alb.field = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_a, Ha)))
+        model.albedo = alb = TexelBand(Ha, idx_a, None, field_a)
         d1, d2 = _parameters(alb.field, S)
         alb.coeffs = polynomial.fit(d1, d2, f_alb, params.order, params.gamma).astype(np.float32)
         alb_rms = polynomial.fit_residual_rms(alb.coeffs, d1, d2, f_alb)

@@ -11,6 +11,10 @@ Layout (DESIGN.md "Data and storage"):
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
   deformation vectors S (from which the training ranges of d1, d2 are derived);
+* ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
+  basis and handle energy, the training ranges of d1, d2 per texel): listed under
+  ``derived`` in the manifest, checksummed like the rest, and optional (a model directory
+  without it loads, more slowly); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the
@@ -32,6 +36,7 @@ from service.geometry.uv_raster import dilate, rasterize_uv
 from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
 from service.methods.pdm import polynomial
+from service.geometry.tangent_frames import FrameField
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pdm.deformation import DeformationAxes, MarkerMesh, marker_mesh
 from service.methods.pdm.model import PdmModel, PdmParams, TexelBand
@@ -41,6 +46,8 @@ FORMAT_VERSION = 1
 #: texels of edge padding around the UV charts in the written maps
 PAD_TEXELS = 4
 COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b")}
+#: what load would otherwise recompute (thin-shell basis, training ranges): seconds saved
+CACHE = "cache.npz"
 
 
 class ModelCorrupt(ValueError):
@@ -69,11 +76,16 @@ def save_model(model: PdmModel, path) -> dict:
     }
     files["model.npz"] = write_npz(path / "model.npz", arrays)
     files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
+    cache = {"basis": base.basis, "energy": base.energy}
+    for name, band in model.bands(vertex=True).items():
+        cache[f"{name}_lo"], cache[f"{name}_hi"] = band.lo, band.hi
+    derived = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
         "axis_smoothing": {"replaced": int(ax.replaced), "worst_angle_deg": float(ax.worst_angle_deg)},
-        "metrics": model.metrics, "files": files,
+        "metrics": model.metrics, "files": files, "derived": derived,
         "size_bytes": sum((path / f).stat().st_size for f in files),
+        "derived_bytes": sum((path / f).stat().st_size for f in derived),
     }
     write_bytes(path / "manifest.json", json.dumps(manifest, indent=1).encode())
     return manifest
@@ -111,7 +123,7 @@ def read_manifest(path) -> dict:
     if manifest.get("kind") != KIND or manifest.get("format_version") != FORMAT_VERSION:
         raise ModelCorrupt(f"{path}: not a {KIND} model of format {FORMAT_VERSION} "
                            f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
-    for name, digest in manifest["files"].items():
+    for name, digest in {**manifest["files"], **manifest.get("derived", {})}.items():
         f = path / name
         if not f.is_file():
             raise ModelCorrupt(f"{path}: {name} is missing")
@@ -150,8 +162,17 @@ def load_model(path) -> PdmModel:
     sm = manifest.get("axis_smoothing", {})
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
-    base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"])
+    ranges = {}
+    if CACHE in manifest.get("derived", {}):
+        with np.load(path / CACHE, allow_pickle=False) as c:
+            cache = {k: c[k] for k in c.files}
+        base = BaseSurface(a["smooth"], F, a["handles"], a["rest_markers"],
+                           np.asfortranarray(cache["basis"]), cache["energy"],
+                           FrameField.build(a["smooth"], F, uv, uvf))
+        ranges = {k[:-3]: (cache[k], cache[k[:-3] + "_hi"]) for k in cache if k.endswith("_lo")}
+    else:
+        base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"])
     model = PdmModel(params, F, uv, uvf, base, mesh, axes, a["pose_weights"], a["S_train"],
                      a["neutral_offset"],
                      bands["medium"], bands["fine"], bands["albedo"], manifest["metrics"])
-    return model.prepare()
+    return model.prepare(ranges)

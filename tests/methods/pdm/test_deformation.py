@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.geometry import scan_convert
 from service.methods.pdm import deformation as dm
 
 
@@ -128,6 +129,24 @@ def test_barycentric_operator_interpolates_inside_and_clamps_outside():
     top = (W @ f).max()
     assert (far @ f)[0] <= f.max() + 1e-9
     assert np.isfinite(top)
+
+
+def test_barycentric_operator_outside_is_the_nearest_point_of_the_coarse_mesh():
+    mesh, P = _grid()
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(-0.5, 1.1, size=(400, 2))
+    W = dm.barycentric_operator(mesh, uv)
+    pos = W @ mesh.uv
+    # brute force: nearest point over every coarse triangle's three edges and interior
+    T = mesh.uv[mesh.faces]
+    best = np.full(len(uv), np.inf)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        A, AB = T[:, a], T[:, b] - T[:, a]
+        t = np.clip(np.einsum("pkd,kd->pk", uv[:, None] - A, AB) / np.einsum("kd,kd->k", AB, AB), 0, 1)
+        best = np.minimum(best, np.linalg.norm(A + t[..., None] * AB - uv[:, None], axis=2).min(axis=1))
+    lam = np.stack([scan_convert.barycentric_2d(T, np.full(len(T), x), np.full(len(T), y)) for x, y in uv])
+    best[(lam >= -1e-12).all(axis=2).any(axis=1)] = 0.0
+    np.testing.assert_allclose(np.linalg.norm(pos - uv, axis=1), best, atol=1e-12)
 
 
 def test_sample_actor_deformation_is_mostly_two_dimensional(actor0):

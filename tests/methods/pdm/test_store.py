@@ -26,7 +26,9 @@ def test_round_trip_is_bit_exact(pdm_model, pdm_data, saved):
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert manifest["kind"] == "pdm" and manifest["metrics"]["pca_energy"] == pdm_model.metrics["pca_energy"]
-    assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir() if p.name != "manifest.json")
+    assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir()
+                                         if p.name not in ("manifest.json", "cache.npz"))
+    assert manifest["derived_bytes"] == (path / "cache.npz").stat().st_size
 
 
 def test_coefficient_maps_use_the_api_channel_names(saved):
@@ -57,3 +59,20 @@ def test_a_changed_or_missing_file_is_refused(saved, tmp_path):
     (broken / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ModelCorrupt, match="not a pdm model of format 1"):
         PdmModel.load(broken)
+
+
+def test_the_derived_cache_is_optional_and_changes_nothing(pdm_model, pdm_data, saved, tmp_path):
+    import shutil
+
+    path, _ = saved
+    bare = tmp_path / "bare"
+    shutil.copytree(path, bare)
+    (bare / "cache.npz").unlink()
+    manifest = json.loads((bare / "manifest.json").read_text())
+    del manifest["derived"]
+    (bare / "manifest.json").write_text(json.dumps(manifest))
+    markers = pdm_data[1][2].markers[[5, 11]]
+    a = pdm_model.synthesize(markers, outputs=("mesh", "displacement"))
+    b = PdmModel.load(bare).synthesize(markers, outputs=("mesh", "displacement"))
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
