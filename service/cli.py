@@ -69,6 +69,52 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return cmd_sample_actor(args)
 
 
+def cmd_pdm_train(args: argparse.Namespace) -> int:
+    from service.methods.pdm.model import PdmParams, train
+    from service.samples import dataset
+
+    actor = dataset.load_actor(args.actor)
+    names = args.clips or dataset.performance_names(args.actor, "train_")
+    clips = [dataset.load_clip(args.actor, name, actor) for name in names]
+    params = PdmParams(order=args.order, medium_resolution=args.medium_resolution,
+                       fine_resolution=args.fine_resolution, gamma=args.gamma,
+                       extrapolation_margin=None if args.margin < 0 else args.margin)
+    model = train(actor, clips, params, progress=_progress_bar("pdm train"))
+    manifest = model.save(args.out)
+    m = model.metrics
+    print(f"{args.out}: pdm ({params.order}), {m['training_frames']} frames from {len(clips)} clips, "
+          f"{manifest['size_bytes'] / 2**20:.1f} MiB")
+    print(f"  medium vertex RMS (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in m["medium_vertex_rms_mm"].items()))
+    print(f"  fine fit RMS (mm):      " + ", ".join(f"{k} {v:.4f}" for k, v in m["fine_fit_rms_mm"].items()))
+    print(f"  PCA energy (Table 1):   " + " / ".join(f"{100 * e:.1f}%" for e in m["pca_energy"]))
+    return 0
+
+
+def cmd_pdm_synthesize(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from service.io.atomic import write_npz
+    from service.io.markers import read_markers
+    from service.methods.pdm.model import PdmModel
+
+    model = PdmModel.load(args.model)
+    if args.markers.suffix == ".npz":
+        with np.load(args.markers, allow_pickle=False) as d:
+            markers = d["markers"]
+    else:
+        markers = read_markers(args.markers).positions
+    outputs = tuple(args.outputs.split(","))
+    bar = _progress_bar("pdm synthesize")
+    parts = []
+    for s in range(0, len(markers), 8):
+        parts.append(model.synthesize(markers[s:s + 8], outputs=outputs, clamp=not args.no_clamp))
+        bar(min(s + 8, len(markers)) / len(markers), "synthesize")
+    out = {k: parts[0][k] if k == "faces" else np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    write_npz(args.out, out)
+    print(f"{args.out}: {len(markers)} frames, " + ", ".join(f"{k} {v.shape}" for k, v in out.items()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facesynth", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -85,6 +131,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--actor", required=True, type=Path, help="directory written by sample-actor")
     p.add_argument("--out", required=True, type=Path, help="directory for the PNGs")
     p.set_defaults(func=cmd_sample_gallery)
+
+    p = sub.add_parser("pdm-train", help="train a polynomial displacement map model (Ma 2008) on a sample actor")
+    p.add_argument("--actor", required=True, type=Path, help="directory written by sample-actor")
+    p.add_argument("--out", required=True, type=Path, help="model directory to write")
+    p.add_argument("--clips", nargs="*", help="performance names (default: every train_* clip)")
+    p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
+    p.add_argument("--medium-resolution", type=int, default=512)
+    p.add_argument("--fine-resolution", type=int, default=1024)
+    p.add_argument("--gamma", type=float, default=1e-3, help="regularization γ of ma2008 §4.2")
+    p.add_argument("--margin", type=float, default=0.25,
+                   help="extrapolation limit: fraction of the training range (negative: none)")
+    p.set_defaults(func=cmd_pdm_train)
+
+    p = sub.add_parser("pdm-synthesize", help="meshes and maps from markers with a trained pdm model")
+    p.add_argument("--model", required=True, type=Path, help="model directory (pdm-train --out)")
+    p.add_argument("--markers", required=True, type=Path,
+                   help=".npz with 'markers' (F,M,3), or a .c3d/.trc/.csv/.json marker file")
+    p.add_argument("--out", required=True, type=Path, help=".npz to write")
+    p.add_argument("--outputs", default="mesh,displacement",
+                   help="comma-separated: mesh, mesh_detailed, displacement, albedo, normal_map")
+    p.add_argument("--no-clamp", action="store_true", help="let the polynomials extrapolate")
+    p.set_defaults(func=cmd_pdm_synthesize)
 
     p = sub.add_parser("demo", help="build the level-1 sample actor and summarise it")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")

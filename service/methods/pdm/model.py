@@ -142,10 +142,10 @@ class TexelBand:
         return c1, c2, np.count_nonzero(changed, axis=-1) / max(changed.shape[-1], 1)
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-        """The PDM (…,P,C) at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
+        """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
         if getattr(self, "_terms", None) is None:     # term-major (K,C,P): contiguous per term
             self._terms = np.ascontiguousarray(self.coeffs.transpose(2, 1, 0))
-        return polynomial.evaluate(self._terms.transpose(2, 1, 0), d1, d2)
+        return np.ascontiguousarray(polynomial.evaluate(self._terms.transpose(2, 1, 0), d1, d2))
 
     def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
         """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""

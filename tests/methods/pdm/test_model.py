@@ -99,6 +99,12 @@ def test_outputs_and_bad_requests(pdm_model, pdm_data):
     assert out["vertices"].dtype == np.float32 and out["faces"].dtype == np.int32
     assert out["albedo"].shape == (2, 64, 64, 3) and out["albedo"].min() >= 0
     assert out["displacement"].shape == (2, 128, 128)
+    nm = pdm_model.synthesize(markers[:1], outputs=("normal_map",))["normal_map"]
+    assert nm.shape == (1, 128, 128, 3) and nm.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(nm, axis=-1), 1.0, atol=1e-5)
+    # the fine detail tilts the normals: a few degrees on average where the map is covered
+    tilt = np.degrees(np.arccos(np.clip(nm[..., 2], -1, 1)))[0][pdm_model.fine.image(np.ones(len(pdm_model.fine.index))) > 0]
+    assert 0.1 < tilt.mean() < 20
     # the fine detail is baked along the normals: sub-millimetre, not zero
     shift = np.linalg.norm(out["vertices_detailed"] - out["vertices"], axis=-1)
     assert 1e-4 < shift.mean() < 0.5
