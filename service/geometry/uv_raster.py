@@ -294,36 +294,27 @@ def map_to_vertices(image: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
     return out[:, 0] if squeeze else out
 
 
-def sampling_matrix(uv: np.ndarray, uv_faces: np.ndarray, faces: np.ndarray, n: int,
-                    mask: np.ndarray) -> sp.csr_matrix:
-    """Map → vertex as a sparse operator that reads covered texels only: (n, H·W).
+def uv_sampling_matrix(uv: np.ndarray, mask: np.ndarray) -> sp.csr_matrix:
+    """Bilinear lookup at UV points as a sparse operator that reads covered texels only: (K, H·W).
 
-    Like :func:`map_to_vertices` (bilinear at each distinct UV of a vertex, averaged over a
-    seam vertex's UVs), but the bilinear weights of uncovered texels are dropped and the rest
-    renormalized, so no dilation is needed; a UV whose whole footprint is uncovered reads the
-    nearest covered texel. Use it when one map layout is sampled many times (per-frame maps,
-    coefficient maps).
+    The bilinear weights of uncovered texels are dropped and the rest renormalized (no
+    dilation needed); a point whose whole footprint is uncovered reads the nearest covered
+    texel. Positions are clamped like :func:`sample_map`.
 
     Parameters
     ----------
-    uv : (K,2) float; uv_faces : (m,3) int; faces : (m,3) int; n : int   as in map_to_vertices
+    uv : (K,2) float        UV points
     mask : (H,W) bool       covered texels (``UVRaster.mask``)
 
     Returns
     -------
-    S : (n, H·W) csr float64   rows sum to 1 (empty for vertices used by no triangle);
-                               ``S @ image.reshape(H*W, C)`` gives per-vertex values
+    S : (K, H·W) csr float64   rows sum to 1
     """
     from scipy.spatial import cKDTree
 
     mask = np.asarray(mask, dtype=bool)
     H, W = mask.shape
-    F = np.asarray(faces, dtype=np.int64).ravel()
-    UF = np.asarray(uv_faces, dtype=np.int64).ravel()
-    K = len(uv)
-    pair = np.unique(F * K + UF)
-    vert, uvi = pair // K, pair % K
-    xy = uv_to_texel(np.asarray(uv, dtype=np.float64)[uvi], H, W)
+    xy = uv_to_texel(np.asarray(uv, dtype=np.float64), H, W)
     x = np.clip(xy[:, 0], 0.0, W - 1)
     y = np.clip(xy[:, 1], 0.0, H - 1)
     x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
@@ -343,11 +334,47 @@ def sampling_matrix(uv: np.ndarray, uv_faces: np.ndarray, faces: np.ndarray, n: 
         cols[empty] = covered[nearest][:, None]
         w[empty] = [1.0, 0.0, 0.0, 0.0]
         total[empty] = 1.0
-    count = np.bincount(vert, minlength=n).astype(np.float64)
-    w = w / (total * count[vert])[:, None]
-    S = sp.csr_matrix((w.ravel(), (np.repeat(vert, 4), cols.ravel())), shape=(n, H * W))
+    S = sp.csr_matrix(((w / total[:, None]).ravel(), (np.repeat(np.arange(len(w)), 4), cols.ravel())),
+                      shape=(len(w), H * W))
     S.eliminate_zeros()
     return S
+
+
+def seam_average_matrix(uv_faces: np.ndarray, faces: np.ndarray, n: int, K: int) -> sp.csr_matrix:
+    """(n, K) sparse: each vertex's value as the mean over its distinct UV indices.
+
+    A vertex on a UV seam has one UV per chart; values defined per UV (samples of a map)
+    become per-vertex values by this unweighted mean, as in :func:`map_to_vertices`. Rows
+    of vertices used by no triangle are empty.
+    """
+    F = np.asarray(faces, dtype=np.int64).ravel()
+    UF = np.asarray(uv_faces, dtype=np.int64).ravel()
+    pair = np.unique(F * K + UF)
+    vert, uvi = pair // K, pair % K
+    count = np.bincount(vert, minlength=n).astype(np.float64)
+    return sp.csr_matrix((1.0 / count[vert], (vert, uvi)), shape=(n, K))
+
+
+def sampling_matrix(uv: np.ndarray, uv_faces: np.ndarray, faces: np.ndarray, n: int,
+                    mask: np.ndarray) -> sp.csr_matrix:
+    """Map → vertex as a sparse operator that reads covered texels only: (n, H·W).
+
+    Like :func:`map_to_vertices` (bilinear at each distinct UV of a vertex, averaged over a
+    seam vertex's UVs), but built from :func:`uv_sampling_matrix`, so no dilation is needed.
+    Use it when one map layout is sampled many times (per-frame maps).
+
+    Parameters
+    ----------
+    uv : (K,2) float; uv_faces : (m,3) int; faces : (m,3) int; n : int   as in map_to_vertices
+    mask : (H,W) bool       covered texels (``UVRaster.mask``)
+
+    Returns
+    -------
+    S : (n, H·W) csr float64   rows sum to 1 (empty for vertices used by no triangle)
+    """
+    S = seam_average_matrix(uv_faces, faces, n, len(uv)) @ uv_sampling_matrix(uv, mask)
+    S.eliminate_zeros()
+    return S.tocsr()
 
 
 def dilate(image: np.ndarray, mask: np.ndarray, pixels: int,

@@ -21,19 +21,22 @@ put back.
 Departures and choices (the paper is silent or differs):
 
 * the medium PDM is fitted in texture space, as in the paper, but evaluated at the
-  vertices: its coefficient maps are sampled once per vertex (bilinear, covered texels
-  only) and d1, d2 are evaluated at each vertex's UV. Equal to evaluating the map and
-  sampling it for coefficients that vary bilinearly, and O(vertices) per frame;
+  mesh's UV points: its coefficient maps are sampled once per UV point (bilinear, covered
+  texels only) and d1, d2 are evaluated at the same points; a seam vertex averages its
+  charts' results. Equal to evaluating the map and sampling it for coefficients that vary
+  bilinearly, and O(vertices) per frame;
 * the neutral's own medium detail (detailed neutral − smooth neutral, in the smooth
   neutral's tangent frames) is kept per vertex, and the medium PDM fits what the
   expressions add to it: the paper's constant term a5 would otherwise have to carry sharp
   static features (eyelid creases, lip edges, nostrils) through a 512² map, and the neutral
   would not be reproduced exactly. ``neutral.exr`` holds it as a map for renderers;
-* extrapolation limit: d1, d2 are clamped per texel (and per vertex) to the training range
-  widened by ``extrapolation_margin`` × its width on each side (``None`` disables it).
-  Beyond the training data a biquadratic PDM grows quadratically, and bermano2014 §7
-  shows the artefacts of extrapolating detail; the clamp holds the detail of the most
-  extreme trained expression instead;
+* extrapolation limit: per texel (and UV point), (d1, d2) is scaled back towards the
+  neutral when its Mahalanobis radius in the training data's second moment exceeds
+  ``1 + extrapolation_margin`` times the largest training radius (``None`` disables it;
+  :func:`_limits`). Beyond the training data a biquadratic PDM grows quadratically, and
+  bermano2014 §7 shows the artefacts of extrapolating detail; the limit holds the detail
+  of the most extreme trained expression instead. A per-axis box would not do: its
+  corners are (d1, d2) pairs no training frame visited;
 * coefficients are rounded to float32 when training ends (the stored precision), so a
   saved and reloaded model synthesizes bit-identical results.
 """
@@ -51,7 +54,10 @@ from scipy.ndimage import gaussian_filter
 from service.geometry.curvature_flow import LAMBDA_DT
 from service.geometry.laplacian import triangle_areas
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
-from service.geometry.uv_raster import interpolation_matrix, rasterize_uv, sampling_matrix, texel_centers_uv, sample_map
+from service.geometry.uv_raster import (
+    interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
+    texel_centers_uv, uv_sampling_matrix,
+)
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.pdm import polynomial
 from service.methods.pdm.base_surface import (
@@ -79,8 +85,8 @@ class PdmParams:
     fine_resolution : int        texels per side of the 1D fine-band PDM (§4.2: 1024)
     gamma : float                regularization constant γ of §4.2
     axis_threshold_deg : float   axis-smoothing threshold angle of §4.1
-    extrapolation_margin : float | None   clamp d1, d2 to the training range widened by this
-                                 fraction of its width (None: no limit)
+    extrapolation_margin : float | None   limit (d1, d2) to (1 + this) × the training radius
+                                 (None: no limit; see ``_limits``)
     fine_highpass_mm : float     σ (on the surface) of the Gaussian whose complement splits
                                  the fine band off the residual (0: no filter)
     smoothing_lam_dt : float     curvature-flow step of the smooth neutral, mm²
@@ -115,31 +121,29 @@ class TexelBand:
                        indices for the medium PDM sampled at the vertices)
     coeffs : (P,C,K) float32   polynomial coefficients (§4.2)
     field : ParameterField     d1, d2 at the texel centres
-    lo, hi : (2,P) float       training range of (d1, d2) per texel (extrapolation limit)
+    limit : (4,P) float32      extrapolation limit per texel (:func:`_limits`): the inverse
+                               second moment (i11, i12, i22) of the training (d1, d2) and the
+                               largest training Mahalanobis radius R
     """
 
     resolution: int
     index: np.ndarray
     coeffs: np.ndarray
     field: ParameterField | None = None
-    lo: np.ndarray | None = None
-    hi: np.ndarray | None = None
+    limit: np.ndarray | None = None
 
     def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """d1, d2 (F,P) for S (F,M,5), limited to the training range widened by ``margin``
-        × its width (None: unlimited), and the fraction (F,) of points that were limited."""
+        """d1, d2 (F,P) for S (F,M,5), limited to ``(1 + margin)`` × the training radius
+        (None: unlimited; see :func:`_limits`), and the fraction (F,) of points limited."""
         d1, d2 = self.field(S)
         if margin is None:
             return d1, d2, np.zeros(len(S))
-        if getattr(self, "_bounds", (None,))[0] != margin:
-            w = self.hi - self.lo
-            self._bounds = (margin, (self.lo - margin * w).astype(np.float32),
-                            (self.hi + margin * w).astype(np.float32))
-        _, a, b = self._bounds
-        c1, c2 = np.clip(d1, a[0], b[0]), np.clip(d2, a[1], b[1])
-        changed = c1 != d1
-        changed |= c2 != d2
-        return c1, c2, np.count_nonzero(changed, axis=-1) / max(changed.shape[-1], 1)
+        i11, i12, i22, R = self.limit
+        m2 = d1 * d1 * i11 + 2 * d1 * d2 * i12 + d2 * d2 * i22                # Mahalanobis²
+        L = np.float32(1 + margin) * R
+        over = m2 > L * L
+        scale = np.where(over, L / np.sqrt(np.maximum(m2, 1e-30)), np.float32(1))
+        return d1 * scale, d2 * scale, np.count_nonzero(over, axis=-1) / max(over.shape[-1], 1)
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
@@ -170,13 +174,6 @@ def _texel_uv(index: np.ndarray, H: int) -> np.ndarray:
     return texel_centers_uv(H, H).reshape(-1, 2)[index]
 
 
-def _vertex_uv(actor_uv: np.ndarray, uv_faces: np.ndarray, F: np.ndarray, n: int) -> np.ndarray:
-    """One UV per vertex (the last corner that names it; seams pick one chart)."""
-    out = np.zeros((n, 2))
-    out[F.ravel()] = actor_uv[uv_faces.ravel()]
-    return out
-
-
 def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d1, d2 (T,P) float32 for S (T,M,5), frames in chunks (bounds the (P,T,5) temporary)."""
     T, P = len(S), pf.n_points
@@ -186,14 +183,32 @@ def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return d1, d2
 
 
-def _ranges(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point min and max (2,P) of (d1, d2) over the training S (T,M,5)."""
-    P = pf.n_points
-    lo, hi = np.full((2, P), np.inf), np.full((2, P), -np.inf)
-    for t in range(0, len(S), FRAME_CHUNK):
-        d = np.stack(pf(S[t:t + FRAME_CHUNK]))                       # (2,t,P)
-        lo, hi = np.minimum(lo, d.min(axis=1)), np.maximum(hi, d.max(axis=1))
-    return lo, hi
+def _limits(pf: ParameterField, S: np.ndarray) -> np.ndarray:
+    """Per-point extrapolation limit (4,P) float32 from the training S (T,M,5).
+
+    The training parameters d_t = (d1, d2)_t of a point span an ellipse about the neutral
+    (d = 0): their second moment Σ = mean_t d_t d_tᵀ (ridged by 1e-6 tr Σ), and the largest
+    Mahalanobis radius R = max_t √(d_tᵀ Σ⁻¹ d_t). Synthesis scales a d with
+    √(dᵀ Σ⁻¹ d) > (1 + margin) R back towards the neutral onto that bound: along the
+    direction of the expression, with the detail of the most extreme trained one, and never
+    into the corners of the (d1, d2) box that no training frame visited, where a
+    biquadratic is unconstrained. Returns rows (i11, i12, i22, R) with Σ⁻¹ = [[i11, i12], [i12, i22]].
+    """
+    P, T = pf.n_points, len(S)
+    m = np.zeros((3, P))
+    for t in range(0, T, FRAME_CHUNK):
+        d1, d2 = (x.astype(np.float64) for x in pf(S[t:t + FRAME_CHUNK]))
+        m += [(d1 * d1).sum(0), (d1 * d2).sum(0), (d2 * d2).sum(0)]
+    s11, s12, s22 = m / max(T, 1)
+    ridge = 1e-6 * (s11 + s22) + 1e-12
+    s11, s22 = s11 + ridge, s22 + ridge
+    det = s11 * s22 - s12 * s12
+    inv = np.stack([s22 / det, -s12 / det, s11 / det])
+    R2 = np.zeros(P)
+    for t in range(0, T, FRAME_CHUNK):
+        d1, d2 = (x.astype(np.float64) for x in pf(S[t:t + FRAME_CHUNK]))
+        R2 = np.maximum(R2, (d1 * d1 * inv[0] + 2 * d1 * d2 * inv[1] + d2 * d2 * inv[2]).max(0))
+    return np.vstack([inv, np.sqrt(R2)[None]]).astype(np.float32)
 
 
 def _highpass(img_values: np.ndarray, index: np.ndarray, H: int, sigma: float,
@@ -230,7 +245,8 @@ class PdmModel:
     albedo: TexelBand | None          # C = 3 (linear RGB)
     metrics: dict = field(default_factory=dict)
     # derived at build/load time (not stored)
-    vertex_band: TexelBand | None = None          # the medium coefficients sampled at the vertices
+    vertex_band: TexelBand | None = None          # the medium PDM at the mesh's K UV points
+    seam_average: sp.csr_matrix | None = None     # (n,K) UV points → vertices (seam mean)
     fine_sampler: sp.csr_matrix | None = None    # (n,Pf) fine map → vertices
 
     @property
@@ -242,24 +258,24 @@ class PdmModel:
         return len(self.base.handles)
 
     # ------------------------------------------------------------------ preparation
-    def prepare(self, ranges: dict | None = None) -> "PdmModel":
-        """Derive the per-site parameter fields, ranges and samplers (after train or load).
+    def prepare(self, limits: dict | None = None) -> "PdmModel":
+        """Derive the per-site parameter fields, extrapolation limits and samplers (after train or load).
 
-        ``ranges`` maps band names (medium, fine, albedo, vertex) to stored (lo, hi) training
-        ranges of d1, d2; missing ones are recomputed from ``S_train``.
+        ``limits`` maps band names (medium, fine, albedo, vertex) to stored extrapolation
+        limits (:func:`_limits`); missing ones are recomputed from ``S_train``.
         """
-        ranges = ranges or {}
+        limits = limits or {}
         for name, band in self.bands().items():
             if band.field is None:
                 order, band.field = _element_field(self.mesh, self.axes, band.index, band.resolution)
                 band.index, band.coeffs, band._terms = band.index[order], band.coeffs[order], None
-        if self.vertex_band is None:
+        if self.vertex_band is None or self.seam_average is None:
             self.vertex_band = self._vertex_band()
         for name, band in self.bands(vertex=True).items():
-            if name in ranges:
-                band.lo, band.hi = ranges[name]
-            elif band.lo is None:
-                band.lo, band.hi = _ranges(band.field, self.S_train)
+            if name in limits:
+                band.limit = limits[name]
+            elif band.limit is None:
+                band.limit = _limits(band.field, self.S_train)
         self.fine_sampler = self._sampler(self.fine)
         return self
 
@@ -272,13 +288,27 @@ class PdmModel:
         return out
 
     def _vertex_band(self) -> TexelBand:
-        """The medium PDM sampled at the vertices (bilinear, covered texels only), with d1, d2
-        at each vertex's UV."""
-        n = self.n_vertices
-        coeffs = self._sampler(self.medium) @ self.medium.coeffs.reshape(len(self.medium.index), -1)
-        W = barycentric_operator(self.mesh, _vertex_uv(self.uv, self.uv_faces, self.faces, n))
-        return TexelBand(0, np.arange(n), coeffs.reshape(n, 3, -1).astype(np.float32),
+        """The medium PDM at the mesh's UV points: coefficients sampled there (bilinear,
+        covered texels only) and d1, d2 at the same points. A seam vertex has one UV per
+        chart, and d1, d2 jump across seams (they live in texture space), so each chart's
+        coefficients are evaluated with that chart's parameters, and :meth:`medium_offsets`
+        averages the results."""
+        H = self.medium.resolution
+        mask = np.zeros(H * H, bool)
+        mask[self.medium.index] = True
+        S = uv_sampling_matrix(self.uv, mask.reshape(H, H))[:, self.medium.index]
+        coeffs = (S @ self.medium.coeffs.reshape(len(self.medium.index), -1)).reshape(len(self.uv), 3, -1)
+        W = barycentric_operator(self.mesh, self.uv)
+        self.seam_average = seam_average_matrix(self.uv_faces, self.faces, self.n_vertices, len(self.uv))
+        return TexelBand(0, np.arange(len(self.uv)), coeffs.astype(np.float32),
                          ParameterField.build(self.axes, W))
+
+    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV points."""
+        c = self.vertex_band.evaluate(d1, d2)                                   # (F,K,3)
+        F, K = c.shape[:2]
+        c = (self.seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
+        return c.transpose(1, 0, 2) + self.neutral_offset
 
     def _sampler(self, band: TexelBand) -> sp.csr_matrix:
         H = band.resolution
@@ -349,8 +379,7 @@ class PdmModel:
                 fine = pool.submit(self._fine_band, S, margin)
                 X = self.base.deform(u_H)
                 d1, d2, _ = self.vertex_band.parameters(S, margin)
-                medium = X + np.einsum("fnji,fnj->fni", self.base.frames(X),
-                                       self.vertex_band.evaluate(d1, d2) + self.neutral_offset)
+                medium = X + np.einsum("fnji,fnj->fni", self.base.frames(X), self.medium_offsets(d1, d2))
                 if "vertices" in out:
                     out["vertices"][sl] = pose.restore(medium)
                 disp, out["clamped"][sl] = fine.result()
@@ -529,7 +558,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         fr = base.frames(X)
-        c = model.vertex_band.evaluate(dv1[t0:t1], dv2[t0:t1]) + neutral_offset
+        c = model.medium_offsets(dv1[t0:t1], dv2[t0:t1])
         result = X + np.einsum("fnji,fnj->fni", fr, c)
         err = pose[t0:t1].remove(world_vertices(t0, t1)) - result
         vert_sq += np.einsum("fnd,fnd->n", err, err)

@@ -10,9 +10,9 @@ Layout (DESIGN.md "Data and storage"):
   ``model.npz``; add it to the constant term a<K-1> to evaluate the medium map alone);
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
-  deformation vectors S (from which the training ranges of d1, d2 are derived);
+  deformation vectors S (from which the extrapolation limits of d1, d2 are derived);
 * ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
-  basis and handle energy, the training ranges of d1, d2 per texel): listed under
+  basis and handle energy, the extrapolation limits per texel): listed under
   ``derived`` in the manifest, checksummed like the rest, and optional (a model directory
   without it loads, more slowly); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
@@ -46,7 +46,7 @@ FORMAT_VERSION = 1
 #: texels of edge padding around the UV charts in the written maps
 PAD_TEXELS = 4
 COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b")}
-#: what load would otherwise recompute (thin-shell basis, training ranges): seconds saved
+#: what load would otherwise recompute (thin-shell basis, extrapolation limits): seconds saved
 CACHE = "cache.npz"
 
 
@@ -78,7 +78,7 @@ def save_model(model: PdmModel, path) -> dict:
     files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
     cache = {"basis": base.basis, "energy": base.energy}
     for name, band in model.bands(vertex=True).items():
-        cache[f"{name}_lo"], cache[f"{name}_hi"] = band.lo, band.hi
+        cache[f"{name}_limit"] = band.limit
     derived = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
@@ -162,17 +162,17 @@ def load_model(path) -> PdmModel:
     sm = manifest.get("axis_smoothing", {})
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
-    ranges = {}
+    limits = {}
     if CACHE in manifest.get("derived", {}):
         with np.load(path / CACHE, allow_pickle=False) as c:
             cache = {k: c[k] for k in c.files}
         base = BaseSurface(a["smooth"], F, a["handles"], a["rest_markers"],
                            np.asfortranarray(cache["basis"]), cache["energy"],
                            FrameField.build(a["smooth"], F, uv, uvf))
-        ranges = {k[:-3]: (cache[k], cache[k[:-3] + "_hi"]) for k in cache if k.endswith("_lo")}
+        limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}
     else:
         base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"])
     model = PdmModel(params, F, uv, uvf, base, mesh, axes, a["pose_weights"], a["S_train"],
                      a["neutral_offset"],
                      bands["medium"], bands["fine"], bands["albedo"], manifest["metrics"])
-    return model.prepare(ranges)
+    return model.prepare(limits)
