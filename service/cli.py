@@ -116,6 +116,8 @@ def cmd_pdm_synthesize(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from service.methods.pdm.model import PdmParams
+
     parser = argparse.ArgumentParser(prog="facesynth", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -139,8 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
     p.add_argument("--medium-resolution", type=int, default=512)
     p.add_argument("--fine-resolution", type=int, default=1024)
-    p.add_argument("--gamma", type=float, default=1e-3, help="regularization γ of ma2008 §4.2")
-    p.add_argument("--margin", type=float, default=0.25,
+    p.add_argument("--gamma", type=float, default=PdmParams.gamma, help="regularization γ of ma2008 §4.2")
+    p.add_argument("--margin", type=float, default=PdmParams.extrapolation_margin,
                    help="extrapolation limit: fraction of the training range (negative: none)")
     p.set_defaults(func=cmd_pdm_train)
 
