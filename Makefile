@@ -26,6 +26,7 @@ test: $(STAMP)
 ## bench: speed and accuracy benchmarks (slow; not part of CI)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/thin_shell.py
+	$(BIN)/python benchmarks/pdm_report.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
