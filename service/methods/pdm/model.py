@@ -263,6 +263,11 @@ class PdmModel:
     def n_markers(self) -> int:
         return len(self.base.handles)
 
+    def neutral(self) -> np.ndarray:
+        """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset."""
+        frames = self.base.frames(self.base.smooth)
+        return self.base.smooth + np.einsum("nji,nj->ni", frames, self.neutral_offset)
+
     # ------------------------------------------------------------------ preparation
     def prepare(self, limits: dict | None = None) -> "PdmModel":
         """Derive the per-site parameter fields, extrapolation limits and samplers (after train or load).
