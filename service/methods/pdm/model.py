@@ -378,37 +378,34 @@ class PdmModel:
             Ha = self.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
         margin = self.params.extrapolation_margin if clamp else None
-        with ThreadPoolExecutor(1) as pool:
-            for s in range(0, nf, FRAME_CHUNK):
-                sl = slice(s, min(s + FRAME_CHUNK, nf))
-                try:
-                    pose, u_H, S = self.deformation(markers[sl])
-                except TooFewMarkers as e:
-                    raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
-                                       f"least {e.required} are needed") from None
-                # the fine band runs beside the vertex chain (NumPy releases the GIL)
-                fine = pool.submit(self._fine_band, S, margin)
-                X = self.base.deform(u_H)
-                d1, d2, _ = self.vertex_band.parameters(S, margin)
-                medium = X + np.einsum("fnji,fnj->fni", self.base.frames(X), self.medium_offsets(d1, d2))
-                if "vertices" in out:
-                    out["vertices"][sl] = pose.restore(medium)
-                disp, out["clamped"][sl] = fine.result()
-                if "displacement" in out:
-                    out["displacement"][sl] = self.fine.image(disp)
-                if want & {"mesh_detailed", "normal_map"}:
-                    mframes = self.base.frames(medium)
-                if "mesh_detailed" in want:
-                    h = (self.fine_sampler @ disp.T).T                           # (f,n)
-                    out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
-                if "normal_map" in want:
-                    for k in range(sl.stop - sl.start):
-                        out["normal_map"][s + k] = mapper.normal_map(out["displacement"][s + k],
-                                                                     medium[k], mframes[k])
-                if "albedo" in want:
-                    a1, a2, _ = self.albedo.parameters(S, margin)
-                    out["albedo"][sl] = self.albedo.image(
-                        np.maximum(self.albedo.evaluate(a1, a2), 0.0), channels=True)
+        for s in range(0, nf, FRAME_CHUNK):
+            sl = slice(s, min(s + FRAME_CHUNK, nf))
+            try:
+                pose, u_H, S = self.deformation(markers[sl])
+            except TooFewMarkers as e:
+                raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
+                                   f"least {e.required} are needed") from None
+            X = self.base.deform(u_H)
+            d1, d2, _ = self.vertex_band.parameters(S, margin)
+            medium = X + np.einsum("fnji,fnj->fni", self.base.frames(X), self.medium_offsets(d1, d2))
+            if "vertices" in out:
+                out["vertices"][sl] = pose.restore(medium)
+            disp, out["clamped"][sl] = self._fine_band(S, margin)
+            if "displacement" in out:          # straight into the (zeroed) output maps
+                out["displacement"][sl].reshape(len(disp), -1)[:, self.fine.index] = disp
+            if want & {"mesh_detailed", "normal_map"}:
+                mframes = self.base.frames(medium)
+            if "mesh_detailed" in want:
+                h = (self.fine_sampler @ disp.T).T                           # (f,n)
+                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
+            if "normal_map" in want:
+                for k in range(sl.stop - sl.start):
+                    out["normal_map"][s + k] = mapper.normal_map(out["displacement"][s + k],
+                                                                 medium[k], mframes[k])
+            if "albedo" in want:
+                a1, a2, _ = self.albedo.parameters(S, margin)
+                out["albedo"][sl] = self.albedo.image(
+                    np.maximum(self.albedo.evaluate(a1, a2), 0.0), channels=True)
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
