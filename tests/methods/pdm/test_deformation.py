@@ -172,3 +172,28 @@ def test_sample_actor_deformation_is_mostly_two_dimensional(actor0):
     assert energy[1] > 0.85 and energy[0] < energy[1] < energy[2] <= 1.0 + 1e-12
     assert result.worst_angle_deg <= 30.0
     np.testing.assert_allclose(np.einsum("md,md->m", result.q, result.r), 0, atol=1e-9)
+
+
+def test_parameter_field_is_interpolate_then_dot_in_either_point_order():
+    mesh, P = _grid()
+    rng = np.random.default_rng(5)
+    M = len(P)
+    q = rng.normal(size=(M, 5))
+    r = rng.normal(size=(M, 5))
+    scale = rng.uniform(0.5, 2.0, size=(M, 5))
+    axes = dm.DeformationAxes(q, r, scale, np.ones((M, 5)), 0, 0.0)
+    uv = rng.uniform(-0.1, 0.7, size=(300, 2))               # inside and outside the hull
+    W = dm.barycentric_operator(mesh, uv)
+    S = rng.normal(size=(4, M, 5))
+    Sp = np.einsum("pm,tmd->tpd", W.toarray(), S * scale)
+    d1_ref = np.einsum("tpd,pd->tp", Sp, W @ q)
+    d2_ref = np.einsum("tpd,pd->tp", Sp, W @ r)
+    d1, d2 = dm.ParameterField.build(axes, W)(S)             # gather path
+    np.testing.assert_allclose(d1, d1_ref, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(d2, d2_ref, rtol=1e-5, atol=1e-4)
+    order = dm.ParameterField.element_order(W)
+    field = dm.ParameterField.build(axes, W[order])
+    assert field.runs is not None                           # grouped: the run-length path
+    e1, e2 = field(S)
+    np.testing.assert_allclose(e1, d1_ref[:, order], rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(e2, d2_ref[:, order], rtol=1e-5, atol=1e-4)
