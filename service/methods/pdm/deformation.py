@@ -287,32 +287,37 @@ def deformation_axes(mesh: MarkerMesh, S: np.ndarray, threshold_deg: float = 30.
     return DeformationAxes(q, r, scale, energy, replaced, worst)
 
 
-def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray) -> sp.csr_matrix:
+def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray, bridge_holes: bool = True) -> sp.csr_matrix:
     """Sparse (P,M) barycentric interpolation from the markers to points uv (P,2).
 
-    Points inside a coarse triangle get its barycentric coordinates; points outside the
-    coarse mesh (beyond the marker hull, or in the eye and mouth holes) get those of the
-    nearest point of the mesh, which lies on a boundary edge: a constant extension of the
-    parameters beyond the markers.
+    Points inside a coarse triangle get its barycentric coordinates; points beyond the
+    marker hull get those of the nearest point of the mesh, which lies on a boundary edge:
+    a constant extension of the parameters beyond the markers. The eye and mouth holes are
+    interpolated across by the Delaunay triangles the coarse mesh dropped (``bridge_holes``;
+    parameters only, the strain neighbourhoods keep the holes): the eyelids, where no
+    marker can sit, then follow the brow and cheek markers on both sides instead of the
+    nearest hole edge alone. Measured on the level-1 sample actor (biquadratic, held-out
+    in-range): medium p95 0.728 → 0.700 mm, mean 0.194 → 0.191 mm, fine r 0.745 → 0.747.
     """
     uv = np.asarray(uv, dtype=np.float64)
     P, M = len(uv), len(mesh.uv)
     tri = np.full(P, -1)
     # inside: locate in the Delaunay triangulation the coarse mesh was cut from
     dl = Delaunay(mesh.uv)
-    key = {tuple(sorted(f)): i for i, f in enumerate(mesh.faces.tolist())}
+    faces = dl.simplices.astype(np.int64) if bridge_holes else mesh.faces
+    key = {tuple(sorted(f)): i for i, f in enumerate(faces.tolist())}
     simplex_face = np.array([key.get(tuple(sorted(f)), -1) for f in dl.simplices.tolist()])
     found = dl.find_simplex(uv)
     tri[found >= 0] = simplex_face[found[found >= 0]]
     inside = np.flatnonzero(tri >= 0)
-    lam = barycentric_2d(mesh.uv[mesh.faces[tri[inside]]], uv[inside, 0], uv[inside, 1])
+    lam = barycentric_2d(mesh.uv[faces[tri[inside]]], uv[inside, 0], uv[inside, 1])
     lam = np.clip(lam, 0.0, None)
     rows = [np.repeat(inside, 3)]
-    cols = [mesh.faces[tri[inside]].ravel()]
+    cols = [faces[tri[inside]].ravel()]
     vals = [(lam / lam.sum(axis=1, keepdims=True)).ravel()]
     # outside: nearest point on the boundary edges, t = clip((p−a)·(b−a) / |b−a|², 0, 1)
     outside = np.flatnonzero(tri < 0)
-    E, count = edge_face_counts(mesh.faces)
+    E, count = edge_face_counts(faces)
     E = E[count == 1]
     a, ab = mesh.uv[E[:, 0]], mesh.uv[E[:, 1]] - mesh.uv[E[:, 0]]
     inv_len2 = 1.0 / np.maximum(np.einsum("ed,ed->e", ab, ab), 1e-300)

@@ -135,7 +135,7 @@ def test_barycentric_operator_outside_is_the_nearest_point_of_the_coarse_mesh():
     mesh, P = _grid()
     rng = np.random.default_rng(3)
     uv = rng.uniform(-0.5, 1.1, size=(400, 2))
-    W = dm.barycentric_operator(mesh, uv)
+    W = dm.barycentric_operator(mesh, uv, bridge_holes=False)
     pos = W @ mesh.uv
     # brute force: nearest point over every coarse triangle's three edges and interior
     T = mesh.uv[mesh.faces]
@@ -197,3 +197,21 @@ def test_parameter_field_is_interpolate_then_dot_in_either_point_order():
     e1, e2 = field(S)
     np.testing.assert_allclose(e1, d1_ref[:, order], rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(e2, d2_ref[:, order], rtol=1e-5, atol=1e-4)
+
+
+def test_holes_are_bridged_for_the_parameters_only():
+    # a ring of markers around a wide hole: the hole's Delaunay triangles have long edges,
+    # so the coarse mesh drops them (no strain across the hole) ...
+    t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    ring = np.concatenate([np.column_stack([np.cos(t), np.sin(t)]) * r for r in (1.0, 1.25, 1.5)])
+    P = np.column_stack([ring * 20.0, np.zeros(len(ring))])
+    mesh = dm.marker_mesh(ring * 0.2 + 0.5, P, np.tile(np.eye(3)[:2], (len(P), 1, 1)))
+    centre = np.array([[0.5, 0.5], [0.52, 0.47]])
+    f = mesh.uv @ [2.0, -3.0] + 1.0
+    bridged = dm.barycentric_operator(mesh, centre)
+    edge = dm.barycentric_operator(mesh, centre, bridge_holes=False)
+    # ... but the parameters inside it interpolate across (linear functions reproduced)
+    np.testing.assert_allclose(bridged @ f, centre @ [2.0, -3.0] + 1.0, atol=1e-9)
+    assert np.diff(edge.indptr).max() == 2                   # the hole's edge: 2 markers
+    assert np.abs(edge @ f - (centre @ [2.0, -3.0] + 1.0)).max() > 0.1
+    assert np.diff(bridged.indptr).max() == 3
