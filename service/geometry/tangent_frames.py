@@ -214,6 +214,26 @@ class FrameField:
 
     def frames(self, V: np.ndarray) -> np.ndarray:
         """Frames (n,3,3) or (frames,n,3,3), rows (T, B, N), of poses V (n,3) or (frames,n,3)."""
+        T, B, N, has_n, lead = self._rows(V)
+        frames = np.stack([T, B, N], axis=-2)
+        frames[~has_n] = np.eye(3)
+        return frames.reshape(*lead, T.shape[1], 3, 3)
+
+    def to_world(self, V: np.ndarray, C: np.ndarray) -> np.ndarray:
+        """Frame coordinates C (…,n,3) of poses V (…,n,3) as world vectors ``Σ_j C_j row_j``.
+
+        Equal to ``einsum("...nji,...nj->...ni", frames(V), C)`` without forming the frames.
+        """
+        T, B, N, has_n, lead = self._rows(V)
+        C = np.asarray(C).reshape(T.shape)
+        out = C[..., 0:1] * T
+        out += C[..., 1:2] * B
+        out += C[..., 2:3] * N
+        out[~has_n] = C[~has_n]                     # identity frames
+        return out.reshape(*lead, T.shape[1], 3)
+
+    def _rows(self, V: np.ndarray):
+        """T, B, N (b,n,3), has_n (b,n) and the leading shape of poses V."""
         Vb, lead = _flatten_frames(V)
         nb, n = Vb.shape[:2]
         F = self.faces
@@ -232,6 +252,4 @@ class FrameField:
             axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
             T[weak] = axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw
         T = _normalize(T)
-        frames = np.stack([T, _cross(N, T), N], axis=-2)
-        frames[~has_n] = np.eye(3)
-        return frames.reshape(*lead, n, 3, 3)
+        return T, _cross(N, T), N, has_n, lead

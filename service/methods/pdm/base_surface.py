@@ -201,3 +201,7 @@ class BaseSurface:
     def frames(self, X: np.ndarray) -> np.ndarray:
         """Tangent frames (…,n,3,3), rows (T, B, N), of base surfaces X (…,n,3)."""
         return self.frame_field.frames(X)
+
+    def to_world(self, X: np.ndarray, C: np.ndarray) -> np.ndarray:
+        """Offsets C (…,n,3) in the tangent frames of base surfaces X (…,n,3), as world vectors."""
+        return self.frame_field.to_world(X, C)

@@ -387,7 +387,7 @@ class PdmModel:
                                    f"least {e.required} are needed") from None
             X = self.base.deform(u_H)
             d1, d2, _ = self.vertex_band.parameters(S, margin)
-            medium = X + np.einsum("fnji,fnj->fni", self.base.frames(X), self.medium_offsets(d1, d2))
+            medium = X + self.base.to_world(X, self.medium_offsets(d1, d2))
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             disp, out["clamped"][sl] = self._fine_band(S, margin)

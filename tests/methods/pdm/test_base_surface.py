@@ -85,6 +85,9 @@ def test_frame_field_rotates_with_the_surface_and_matches_tangent_frames(rig_mes
     fr = ff.frames(V)
     np.testing.assert_allclose(np.einsum("nij,nkj->nik", fr, fr), np.broadcast_to(np.eye(3), fr.shape), atol=1e-12)
     assert np.linalg.det(fr).min() > 0.999999
+    C = np.random.default_rng(1).normal(size=(2,) + V.shape)
+    np.testing.assert_allclose(ff.to_world(np.stack([V, 1.1 * V]), C),
+                               np.einsum("fnji,fnj->fni", ff.frames(np.stack([V, 1.1 * V])), C), atol=1e-12)
     R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
     np.testing.assert_allclose(ff.frames(V @ R.T), fr @ R.T, atol=1e-9)     # rows rotate with V
     # against the per-pose angle-weighted frames: same up to the weighting
