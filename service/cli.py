@@ -84,9 +84,9 @@ def cmd_pdm_train(args: argparse.Namespace) -> int:
     m = model.metrics
     print(f"{args.out}: pdm ({params.order}), {m['training_frames']} frames from {len(clips)} clips, "
           f"{manifest['size_bytes'] / 2**20:.1f} MiB")
-    print(f"  medium vertex RMS (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in m["medium_vertex_rms_mm"].items()))
-    print(f"  fine fit RMS (mm):      " + ", ".join(f"{k} {v:.4f}" for k, v in m["fine_fit_rms_mm"].items()))
-    print(f"  PCA energy (Table 1):   " + " / ".join(f"{100 * e:.1f}%" for e in m["pca_energy"]))
+    print("  medium vertex RMS (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in m["medium_vertex_rms_mm"].items()))
+    print("  fine fit RMS (mm):      " + ", ".join(f"{k} {v:.4f}" for k, v in m["fine_fit_rms_mm"].items()))
+    print("  PCA energy (Table 1):   " + " / ".join(f"{100 * e:.1f}%" for e in m["pca_energy"]))
     return 0
 
 

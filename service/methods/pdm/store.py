@@ -38,7 +38,7 @@ from service.io.exr import read_exr, write_exr
 from service.methods.pdm import polynomial
 from service.geometry.tangent_frames import FrameField
 from service.methods.pdm.base_surface import BaseSurface
-from service.methods.pdm.deformation import DeformationAxes, MarkerMesh, marker_mesh
+from service.methods.pdm.deformation import DeformationAxes, marker_mesh
 from service.methods.pdm.model import PdmModel, PdmParams, TexelBand
 
 KIND = "pdm"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from service.geometry import scan_convert
 from service.methods.pdm import deformation as dm
