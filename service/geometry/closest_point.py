@@ -7,7 +7,7 @@ vectorized over all pairs; the candidates come from a k-d tree over the triangle
 and a query is widened until no unchecked triangle can be closer, so the answer equals a
 brute-force search over every triangle.
 
-:func:`resolve_marker_layout` turns an API.md marker layout (markers on vertices, in
+:func:`surface_points` evaluates (triangle, barycentric) pairs; :func:`resolve_marker_layout` turns an API.md marker layout (markers on vertices, in
 triangles, or at free positions) into one (triangle, barycentric) form for every marker.
 """
 
@@ -46,6 +46,16 @@ class ClosestPoints:
     barycentric: np.ndarray
     point: np.ndarray
     distance: np.ndarray
+
+
+def surface_points(V: np.ndarray, F: np.ndarray, triangle: np.ndarray,
+                   barycentric: np.ndarray) -> np.ndarray:
+    """Points (…,M,d) at (triangle (M,), barycentric (M,3)) on a mesh with vertices V (…,n,d).
+
+    V may carry leading frame axes, and may be UVs (with per-corner ``uv_faces`` as F).
+    """
+    corners = np.asarray(V)[..., np.asarray(F)[triangle], :]                 # (…,M,3,d)
+    return np.einsum("...mkd,mk->...md", corners, barycentric)
 
 
 def closest_points(V: np.ndarray, F: np.ndarray, P: np.ndarray, k: int = 16) -> ClosestPoints:

@@ -12,6 +12,8 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from service.geometry.closest_point import surface_points
+
 #: progress callback of long work: (fraction 0..1, stage name)
 Progress = Callable[[float, str], None]
 
@@ -59,14 +61,12 @@ class ActorData:
 
     def marker_positions(self, V: np.ndarray | None = None) -> np.ndarray:
         """Marker positions (…,M,3) on vertices V (…,n,3) (default: the neutral)."""
-        V = self.vertices if V is None else np.asarray(V)
-        corners = V[..., self.faces[self.marker_triangle], :]              # (…,M,3,3)
-        return np.einsum("...mkd,mk->...md", corners, self.marker_barycentric)
+        V = self.vertices if V is None else V
+        return surface_points(V, self.faces, self.marker_triangle, self.marker_barycentric)
 
     def marker_uv(self) -> np.ndarray:
         """Texture coordinates (M,2) of the markers."""
-        corners = self.uv[self.uv_faces[self.marker_triangle]]              # (M,3,2)
-        return np.einsum("mkd,mk->md", corners, self.marker_barycentric)
+        return surface_points(self.uv, self.uv_faces, self.marker_triangle, self.marker_barycentric)
 
 
 @dataclass(frozen=True)

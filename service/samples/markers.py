@@ -14,6 +14,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from service.geometry.closest_point import surface_points
 from service.geometry.topology import edge_face_counts, vertex_face_adjacency
 from service.io import markers as io_markers
 
@@ -40,8 +41,7 @@ class MarkerLayout:
 
     def positions(self, V: np.ndarray, F: np.ndarray) -> np.ndarray:
         """Marker positions (…,M,3) on a surface with vertices V (…,n,3) and faces F."""
-        corners = np.asarray(V)[..., F[self.triangle], :]          # (…,M,3,3)
-        return np.einsum("...mkd,mk->...md", corners, self.barycentric)
+        return surface_points(V, F, self.triangle, self.barycentric)
 
     def to_layout(self) -> io_markers.MarkerLayout:
         """The API.md marker layout (every marker in triangle + barycentric form)."""
@@ -115,7 +115,7 @@ def place_markers(
     corner = np.argmax(F[triangle] == vertex[:, None], axis=1)
     weights[np.arange(count), corner] += 0.5
     # order markers top-to-bottom, then left-to-right, so names read like a layout sheet
-    pos = np.einsum("mkd,mk->md", V[F[triangle]], weights)
+    pos = surface_points(V, F, triangle, weights)
     order = np.lexsort((pos[:, 0], -np.round(pos[:, 1] / 10.0)))
     names = tuple(f"M{i:03d}" for i in range(count))
     nearest_corner = F[triangle[order], np.argmax(weights[order], axis=1)]

@@ -76,9 +76,6 @@ class HeadPose:
         """Neutral-aligned points X (F,k,3) → world ``Rᵀ (X − t)`` (F,k,3)."""
         return np.einsum("fji,fkj->fki", self.R, X - self.t[:, None, :])
 
-    def restore_vectors(self, D: np.ndarray) -> np.ndarray:
-        """Neutral-aligned vectors D (F,k,3) → world ``Rᵀ D``."""
-        return np.einsum("fji,fkj->fki", self.R, D)
 
 
 def head_alignment(markers: np.ndarray, rest: np.ndarray,
@@ -177,12 +174,15 @@ class BaseSurface:
 
     @classmethod
     def from_smooth(cls, smooth, F, uv, uv_faces, handles, rest_markers,
-                    ks: float = KS, kb: float = KB) -> "BaseSurface":
-        """As :meth:`build` for an already smooth neutral (e.g. loaded from a model)."""
+                    ks: float = KS, kb: float = KB, basis: np.ndarray | None = None,
+                    energy: np.ndarray | None = None) -> "BaseSurface":
+        """As :meth:`build` for an already smooth neutral (e.g. loaded from a model); a stored
+        ``basis`` (n,M) float32 and ``energy`` (M,M) of the same inputs skip their solves."""
         smooth = np.asarray(smooth, dtype=np.float64)
         F = np.asarray(F, dtype=np.int64)
-        B = thin_shell_basis(smooth, F, handles, ks=ks, kb=kb, dtype=np.float32)
-        G = handle_energy_matrix(smooth, F, B, ks=ks, kb=kb)
+        B = (thin_shell_basis(smooth, F, handles, ks=ks, kb=kb, dtype=np.float32)
+             if basis is None else np.asfortranarray(basis))
+        G = handle_energy_matrix(smooth, F, B, ks=ks, kb=kb) if energy is None else energy
         return cls(smooth, F, np.asarray(handles, np.int64), np.asarray(rest_markers, np.float64),
                    B, G, FrameField.build(smooth, F, uv, uv_faces))
 

@@ -43,6 +43,7 @@ Departures and choices (the paper is silent or differs):
 
 from __future__ import annotations
 
+import dataclasses
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Sequence
@@ -53,6 +54,7 @@ from scipy.ndimage import gaussian_filter
 
 from service.geometry.curvature_flow import LAMBDA_DT
 from service.geometry.laplacian import triangle_areas
+from service.geometry.normal_map import NormalMapper
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
@@ -137,6 +139,7 @@ class TexelBand:
     coeffs: np.ndarray
     field: ParameterField | None = None
     limit: np.ndarray | None = None
+    _terms: np.ndarray | None = dataclasses.field(default=None, repr=False)   # (K,C,P) layout
 
     def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """d1, d2 (F,P) for S (F,M,5), limited to ``(1 + margin)`` × the training radius
@@ -153,9 +156,15 @@ class TexelBand:
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
-        if getattr(self, "_terms", None) is None:     # term-major (K,C,P): contiguous per term
+        if self._terms is None:                       # term-major (K,C,P): contiguous per term
             self._terms = np.ascontiguousarray(self.coeffs.transpose(2, 1, 0))
         return np.ascontiguousarray(polynomial.evaluate(self._terms.transpose(2, 1, 0), d1, d2))
+
+    def mask(self) -> np.ndarray:
+        """(H,W) bool: the covered texels."""
+        m = np.zeros(self.resolution ** 2, bool)
+        m[self.index] = True
+        return m.reshape(self.resolution, self.resolution)
 
     def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
         """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
@@ -253,7 +262,8 @@ class PdmModel:
     # derived at build/load time (not stored)
     vertex_band: TexelBand | None = None          # the medium PDM at the mesh's K UV points
     seam_average: sp.csr_matrix | None = None     # (n,K) UV points → vertices (seam mean)
-    fine_sampler: sp.csr_matrix | None = None    # (n,Pf) fine map → vertices
+    fine_sampler: sp.csr_matrix | None = None     # (n,Pf) fine map → vertices
+    normal_mapper: NormalMapper | None = None     # built on the first normal_map request
 
     @property
     def n_vertices(self) -> int:
@@ -270,33 +280,37 @@ class PdmModel:
 
     # ------------------------------------------------------------------ preparation
     def prepare(self, limits: dict | None = None) -> "PdmModel":
-        """Derive the per-site parameter fields, extrapolation limits and samplers (after train or load).
+        """Derive what synthesis evaluates per frame (after train or load): the parameter
+        fields of the fine and albedo texels (grouped by coarse element) and of the UV points,
+        their extrapolation limits, and the samplers.
 
-        ``limits`` maps band names (medium, fine, albedo, vertex) to stored extrapolation
-        limits (:func:`_limits`); missing ones are recomputed from ``S_train``.
+        ``limits`` maps the names of :meth:`evaluated_bands` to stored limits
+        (:func:`_limits`, in the element order this method produces); missing ones are
+        recomputed from ``S_train``.
         """
         limits = limits or {}
-        for name, band in self.bands().items():
-            if band.field is None:
+        for band in (self.fine, self.albedo):
+            if band is not None and band.field is None:
                 order, band.field = _element_field(self.mesh, self.axes, band.index, band.resolution)
                 band.index, band.coeffs, band._terms = band.index[order], band.coeffs[order], None
-        if self.vertex_band is None or self.seam_average is None:
+        self.seam_average = seam_average_matrix(self.uv_faces, self.faces, self.n_vertices, len(self.uv))
+        if self.vertex_band is None:
             self.vertex_band = self._vertex_band()
-        for name, band in self.bands(vertex=True).items():
+        for name, band in self.evaluated_bands().items():
             if name in limits:
                 band.limit = limits[name]
             elif band.limit is None:
                 band.limit = _limits(band.field, self.S_train)
-        self.fine_sampler = self._sampler(self.fine)
+        self.fine_sampler = sampling_matrix(self.uv, self.uv_faces, self.faces, self.n_vertices,
+                                            self.fine.mask())[:, self.fine.index].tocsr()
         return self
 
-    def bands(self, vertex: bool = False) -> dict[str, TexelBand]:
-        """The trained texel bands by name (and the vertex-sampled medium band if asked)."""
-        out = {k: b for k, b in (("medium", self.medium), ("fine", self.fine), ("albedo", self.albedo))
-               if b is not None}
-        if vertex and self.vertex_band is not None:
-            out["vertex"] = self.vertex_band
-        return out
+    def evaluated_bands(self) -> dict[str, TexelBand]:
+        """The bands synthesis evaluates per frame: the medium PDM at the UV points
+        (``vertex``), the fine and (if trained) the albedo texels. The medium texel maps
+        themselves are only read to build ``vertex`` and written for renderers."""
+        return {k: b for k, b in (("vertex", self.vertex_band), ("fine", self.fine),
+                                  ("albedo", self.albedo)) if b is not None}
 
     def _vertex_band(self) -> TexelBand:
         """The medium PDM at the mesh's UV points: coefficients sampled there (bilinear,
@@ -304,13 +318,9 @@ class PdmModel:
         chart, and d1, d2 jump across seams (they live in texture space), so each chart's
         coefficients are evaluated with that chart's parameters, and :meth:`medium_offsets`
         averages the results."""
-        H = self.medium.resolution
-        mask = np.zeros(H * H, bool)
-        mask[self.medium.index] = True
-        S = uv_sampling_matrix(self.uv, mask.reshape(H, H))[:, self.medium.index]
+        S = uv_sampling_matrix(self.uv, self.medium.mask())[:, self.medium.index]
         coeffs = (S @ self.medium.coeffs.reshape(len(self.medium.index), -1)).reshape(len(self.uv), 3, -1)
         W = barycentric_operator(self.mesh, self.uv)
-        self.seam_average = seam_average_matrix(self.uv_faces, self.faces, self.n_vertices, len(self.uv))
         return TexelBand(0, np.arange(len(self.uv)), coeffs.astype(np.float32),
                          ParameterField.build(self.axes, W))
 
@@ -320,13 +330,6 @@ class PdmModel:
         F, K = c.shape[:2]
         c = (self.seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
         return c.transpose(1, 0, 2) + self.neutral_offset
-
-    def _sampler(self, band: TexelBand) -> sp.csr_matrix:
-        H = band.resolution
-        mask = np.zeros(H * H, bool)
-        mask[band.index] = True
-        S = sampling_matrix(self.uv, self.uv_faces, self.faces, self.n_vertices, mask.reshape(H, H))
-        return S[:, band.index].tocsr()
 
     # ------------------------------------------------------------------ synthesis
     def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
@@ -371,8 +374,9 @@ class PdmModel:
         if want & {"displacement", "normal_map"}:
             out["displacement"] = np.zeros((nf, Hf, Hf), np.float32)
         if "normal_map" in want:
-            from service.geometry.normal_map import NormalMapper
-            mapper = self._normal_mapper(NormalMapper)
+            if self.normal_mapper is None:
+                self.normal_mapper = NormalMapper(rasterize_uv(self.uv, self.uv_faces, Hf, Hf),
+                                                  self.faces, self.uv, self.uv_faces, n)
             out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
         if "albedo" in want:
             Ha = self.albedo.resolution
@@ -400,8 +404,8 @@ class PdmModel:
                 out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
             if "normal_map" in want:
                 for k in range(sl.stop - sl.start):
-                    out["normal_map"][s + k] = mapper.normal_map(out["displacement"][s + k],
-                                                                 medium[k], mframes[k])
+                    out["normal_map"][s + k] = self.normal_mapper.normal_map(
+                        out["displacement"][s + k], medium[k], mframes[k])
             if "albedo" in want:
                 a1, a2, _ = self.albedo.parameters(S, margin)
                 out["albedo"][sl] = self.albedo.image(
@@ -414,13 +418,6 @@ class PdmModel:
         """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,)."""
         d1, d2, frac = self.fine.parameters(S, margin)
         return self.fine.evaluate(d1, d2)[..., 0], frac
-
-    def _normal_mapper(self, cls):
-        if getattr(self, "_mapper", None) is None:
-            H = self.fine.resolution
-            self._mapper = cls(rasterize_uv(self.uv, self.uv_faces, H, H), self.faces, self.uv,
-                               self.uv_faces, self.n_vertices)
-        return self._mapper
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
@@ -512,8 +509,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     S = deformation_vectors(mesh, aligned, offsets=u_H)
     axes = deformation_axes(mesh, S, params.axis_threshold_deg)
 
-    frames_of = [(c, f) for c in clips for f in range(c.frames)]
-    T = len(frames_of)
+    T = len(markers)
 
     def world_vertices(t0, t1):
         return np.concatenate([clips[i].vertices[a:b] for i, a, b in _clip_slices(clips, t0, t1)])
@@ -525,8 +521,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     # map holds what the expressions add to it
     neutral_offset = np.einsum("nij,nj->ni", base.frames(base.smooth), actor.vertices - base.smooth).astype(np.float32)
     _, idx_m, interp_m = _band_raster(actor, Hm)
-    order, field_m = _element_field(mesh, axes, idx_m, Hm)
-    idx_m, interp_m = idx_m[order], interp_m[order]
+    # row-major texel order, as load reads the maps back (the vertex band sums in that order)
+    field_m = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_m, Hm)))
     f_med = np.empty((T, len(idx_m), 3), np.float32)
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
@@ -534,8 +530,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
         c -= neutral_offset
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
-    medium = TexelBand(Hm, idx_m, None, field_m)
-    d1, d2 = _parameters(medium.field, S)
+    medium = TexelBand(Hm, idx_m, None)
+    d1, d2 = _parameters(field_m, S)
     progress(0.3, "medium band fit")
     medium.coeffs = polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32)
     med_rms = polynomial.fit_residual_rms(medium.coeffs, d1, d2, f_med)
@@ -546,13 +542,14 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
                      TexelBand(params.fine_resolution, np.zeros(0, np.int64), np.zeros((0, 1, 1), np.float32)),
                      None)
     # the medium result at the vertices, as synthesis computes it (without the clamp)
+    model.seam_average = seam_average_matrix(model.uv_faces, F, n, len(model.uv))
     model.vertex_band = model._vertex_band()
     dv1, dv2 = _parameters(model.vertex_band.field, S)
 
     # ---- fine band (1D along the normal, high-pass residual)
     progress(0.45, "fine band")
     Hf = params.fine_resolution
-    _, idx_f, interp_f = _band_raster(actor, Hf)
+    raster_f, idx_f, interp_f = _band_raster(actor, Hf)
     order, field_f = _element_field(mesh, axes, idx_f, Hf)
     idx_f, interp_f = idx_f[order], interp_f[order]
     sigma = params.fine_highpass_mm / mean_texel_size(actor, Hf)
@@ -605,8 +602,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
 
     progress(0.9, "metrics")
     regions = {k: np.asarray(v, bool) for k, v in actor.regions.items()}
-    tex_region = {k: v[F[rasterize_uv(actor.uv, actor.uv_faces, Hf, Hf).triangle.ravel()[idx_f], 0]]
-                  for k, v in regions.items()}
+    tex_region = {k: v[F[raster_f.triangle.ravel()[idx_f], 0]] for k, v in regions.items()}
     model.metrics = {
         "training_frames": T,
         "clips": [c.name for c in clips],

@@ -61,7 +61,7 @@ def register_markers(V: np.ndarray, F: np.ndarray, P: np.ndarray,
     closest surface points (Kabsch).
     """
     P = np.asarray(P, dtype=np.float64)
-    T = rigid_align(P, P)                               # identity
+    T = RigidTransform(np.eye(3), np.zeros(3))
     previous = np.inf
     for _ in range(iterations):
         X = T.apply(P)
@@ -113,7 +113,7 @@ def remap_model(model: PdmModel, triangle: np.ndarray, barycentric: np.ndarray,
     out = replace(model, base=base, mesh=mesh, axes=axes, pose_weights=W @ model.pose_weights,
                   metrics={**model.metrics, "remapped_markers": len(triangle)})
     # same texels, same coefficients and limits; only the parameter fields change
-    for name, band in model.bands(vertex=True).items():
+    for name, band in model.evaluated_bands().items():
         points = model.uv if band.resolution == 0 else _texel_uv(band.index, band.resolution)
         setattr(out, "vertex_band" if name == "vertex" else name,
                 replace(band, field=ParameterField.build(axes, barycentric_operator(mesh, points))))

@@ -26,6 +26,8 @@ last; a load verifies every checksum before it trusts a byte.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -36,7 +38,6 @@ from service.geometry.uv_raster import dilate, rasterize_uv
 from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
 from service.methods.pdm import polynomial
-from service.geometry.tangent_frames import FrameField
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
 from service.methods.pdm.model import PdmModel, PdmParams, TexelBand
@@ -62,7 +63,7 @@ def save_model(model: PdmModel, path) -> dict:
     for name, band in (("medium", model.medium), ("fine", model.fine), ("albedo", model.albedo)):
         if band is None:
             continue
-        files[f"{name}.exr"] = _write_band(path / f"{name}.exr", model, band, COMPONENTS[name])
+        files[f"{name}.exr"] = _write_band(path / f"{name}.exr", band, COMPONENTS[name])
     m, ax, base = model.mesh, model.axes, model.base
     arrays = {
         "smooth": base.smooth, "faces": model.faces, "uv": model.uv, "uv_faces": model.uv_faces,
@@ -77,12 +78,11 @@ def save_model(model: PdmModel, path) -> dict:
     files["model.npz"] = write_npz(path / "model.npz", arrays)
     files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
     cache = {"basis": base.basis, "energy": base.energy}
-    for name, band in model.bands(vertex=True).items():
+    for name, band in model.evaluated_bands().items():
         cache[f"{name}_limit"] = band.limit
     derived = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
-        "axis_smoothing": {"replaced": int(ax.replaced), "worst_angle_deg": float(ax.worst_angle_deg)},
         "metrics": model.metrics, "files": files, "derived": derived,
         "size_bytes": sum((path / f).stat().st_size for f in files),
         "derived_bytes": sum((path / f).stat().st_size for f in derived),
@@ -91,14 +91,12 @@ def save_model(model: PdmModel, path) -> dict:
     return manifest
 
 
-def _write_band(file: Path, model: PdmModel, band: TexelBand, components) -> str:
+def _write_band(file: Path, band: TexelBand, components) -> str:
     H = band.resolution
     P, C, K = band.coeffs.shape
     img = np.zeros((H * H, C * K), np.float32)
     img[band.index] = band.coeffs.reshape(P, C * K)
-    mask = np.zeros(H * H, bool)
-    mask[band.index] = True
-    img = dilate(img.reshape(H, H, C * K), mask.reshape(H, H), PAD_TEXELS).reshape(H, H, C, K)
+    img = dilate(img.reshape(H, H, C * K), band.mask(), PAD_TEXELS).reshape(H, H, C, K)
     write_exr(file, {f"{c}.a{k}": img[:, :, i, k] for i, c in enumerate(components) for k in range(K)})
     return sha256_file(file)
 
@@ -113,8 +111,9 @@ def _write_neutral(file: Path, model: PdmModel) -> str:
     return sha256_file(file)
 
 
-def read_manifest(path) -> dict:
-    """The manifest of a stored model, after checking every file's sha256."""
+def read_model_files(path) -> tuple[dict, dict[str, bytes]]:
+    """The manifest of a stored model and the bytes of every file it lists, each read once
+    and checked against its sha256 before anything is parsed."""
     path = Path(path)
     try:
         manifest = json.loads((path / "manifest.json").read_bytes())
@@ -123,22 +122,28 @@ def read_manifest(path) -> dict:
     if manifest.get("kind") != KIND or manifest.get("format_version") != FORMAT_VERSION:
         raise ModelCorrupt(f"{path}: not a {KIND} model of format {FORMAT_VERSION} "
                            f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
+    data = {}
     for name, digest in {**manifest["files"], **manifest.get("derived", {})}.items():
-        f = path / name
-        if not f.is_file():
-            raise ModelCorrupt(f"{path}: {name} is missing")
-        if sha256_file(f) != digest:
+        try:
+            data[name] = (path / name).read_bytes()
+        except OSError:
+            raise ModelCorrupt(f"{path}: {name} is missing") from None
+        if hashlib.sha256(data[name]).hexdigest() != digest:
             raise ModelCorrupt(f"{path}: {name} does not match its checksum")
-    return manifest
+    return manifest, data
+
+
+def _npz(data: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as d:
+        return {k: d[k] for k in d.files}
 
 
 def load_model(path) -> PdmModel:
     """Read a model written by :func:`save_model` (checksums verified first)."""
     path = Path(path)
-    manifest = read_manifest(path)
+    manifest, data = read_model_files(path)
     params = PdmParams(**manifest["params"])
-    with np.load(path / "model.npz", allow_pickle=False) as d:
-        a = {k: d[k] for k in d.files}
+    a = _npz(data["model.npz"])
     F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
     K = polynomial.ORDERS[params.order]
     bands = {}
@@ -148,7 +153,7 @@ def load_model(path) -> PdmModel:
             continue
         res = int(res)
         index = np.flatnonzero(rasterize_uv(uv, uvf, res, res).mask.ravel())
-        ch = read_exr(path / f"{name}.exr")
+        ch = read_exr(data[f"{name}.exr"])
         comps = COMPONENTS[name]
         try:
             coeffs = np.stack([np.stack([ch[f"{c}.a{k}"].ravel()[index] for k in range(K)], axis=1)
@@ -159,19 +164,13 @@ def load_model(path) -> PdmModel:
     mesh = marker_mesh(a["marker_uv"], a["rest_markers"], a["marker_axes"])
     if not np.array_equal(mesh.faces, a["marker_faces"]):
         raise ModelCorrupt(f"{path}: the coarse marker mesh does not rebuild identically")
-    sm = manifest.get("axis_smoothing", {})
+    sm = manifest["metrics"].get("axis_smoothing", {})
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
-    limits = {}
-    if CACHE in manifest.get("derived", {}):
-        with np.load(path / CACHE, allow_pickle=False) as c:
-            cache = {k: c[k] for k in c.files}
-        base = BaseSurface(a["smooth"], F, a["handles"], a["rest_markers"],
-                           np.asfortranarray(cache["basis"]), cache["energy"],
-                           FrameField.build(a["smooth"], F, uv, uvf))
-        limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}
-    else:
-        base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"])
+    cache = _npz(data[CACHE]) if CACHE in data else {}
+    base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"],
+                                   basis=cache.get("basis"), energy=cache.get("energy"))
+    limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}
     model = PdmModel(params, F, uv, uvf, base, mesh, axes, a["pose_weights"], a["S_train"],
                      a["neutral_offset"],
                      bands["medium"], bands["fine"], bands["albedo"], manifest["metrics"])
