@@ -69,6 +69,7 @@ from service.methods.pdm.deformation import (
     DeformationAxes, MarkerMesh, ParameterField, barycentric_operator, deformation_axes,
     deformation_vectors, marker_mesh,
 )
+from service.methods.pdm.extrapolation import limit_parameters, training_limit
 
 #: outputs of :meth:`PdmModel.synthesize` (API.md)
 OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
@@ -147,12 +148,8 @@ class TexelBand:
         d1, d2 = self.field(S)
         if margin is None:
             return d1, d2, np.zeros(len(S))
-        i11, i12, i22, R = self.limit
-        m2 = d1 * d1 * i11 + 2 * d1 * d2 * i12 + d2 * d2 * i22                # Mahalanobis²
-        L = np.float32(1 + margin) * R
-        over = m2 > L * L
-        scale = np.where(over, L / np.sqrt(np.maximum(m2, 1e-30)), np.float32(1))
-        return d1 * scale, d2 * scale, np.count_nonzero(over, axis=-1) / max(over.shape[-1], 1)
+        d1, d2, over = limit_parameters(d1, d2, self.limit, margin)
+        return d1, d2, np.count_nonzero(over, axis=-1) / max(over.shape[-1], 1)
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
@@ -199,31 +196,8 @@ def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def _limits(pf: ParameterField, S: np.ndarray) -> np.ndarray:
-    """Per-point extrapolation limit (4,P) float32 from the training S (T,M,5).
-
-    The training parameters d_t = (d1, d2)_t of a point span an ellipse about the neutral
-    (d = 0): their second moment Σ = mean_t d_t d_tᵀ (ridged by 1e-6 tr Σ), and the largest
-    Mahalanobis radius R = max_t √(d_tᵀ Σ⁻¹ d_t). Synthesis scales a d with
-    √(dᵀ Σ⁻¹ d) > (1 + margin) R back towards the neutral onto that bound: along the
-    direction of the expression, with the detail of the most extreme trained one, and never
-    into the corners of the (d1, d2) box that no training frame visited, where a
-    biquadratic is unconstrained. Returns rows (i11, i12, i22, R) with Σ⁻¹ = [[i11, i12], [i12, i22]].
-    """
-    P, T = pf.n_points, len(S)
-    m = np.zeros((3, P))
-    for t in range(0, T, FRAME_CHUNK):
-        d1, d2 = (x.astype(np.float64) for x in pf(S[t:t + FRAME_CHUNK]))
-        m += [(d1 * d1).sum(0), (d1 * d2).sum(0), (d2 * d2).sum(0)]
-    s11, s12, s22 = m / max(T, 1)
-    ridge = 1e-6 * (s11 + s22) + 1e-12
-    s11, s22 = s11 + ridge, s22 + ridge
-    det = s11 * s22 - s12 * s12
-    inv = np.stack([s22 / det, -s12 / det, s11 / det])
-    R2 = np.zeros(P)
-    for t in range(0, T, FRAME_CHUNK):
-        d1, d2 = (x.astype(np.float64) for x in pf(S[t:t + FRAME_CHUNK]))
-        R2 = np.maximum(R2, (d1 * d1 * inv[0] + 2 * d1 * d2 * inv[1] + d2 * d2 * inv[2]).max(0))
-    return np.vstack([inv, np.sqrt(R2)[None]]).astype(np.float32)
+    """Per-point extrapolation limit (4,P) float32 (:mod:`.extrapolation`) of the training S (T,M,5)."""
+    return training_limit(lambda: (pf(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK)))
 
 
 def _highpass(img_values: np.ndarray, index: np.ndarray, H: int, sigma: float,
