@@ -1,0 +1,328 @@
+"""The blob store: immutable files and directories under one local root, checksummed.
+
+A blob is a file (an uploaded mesh, a clip, an artifact) or a directory (a trained model:
+``manifest.json`` + ``.npz`` + ``.exr``), stored under a caller-chosen key such as
+``actors/act_…/clips/clp_….npz`` or ``models/mdl_…/01j9…``. The database keeps each blob's
+key and sha256; reading a blob back verifies it and raises
+:class:`~models_store.errors.BlobCorrupt` on a mismatch.
+
+Writes are atomic: a file is written to a temporary sibling, fsynced, chmodded, renamed into
+place (:func:`service.io.atomic.atomic_open`), and its directory fsynced; a directory is
+copied under a temporary sibling name, every file and directory in it fsynced, then renamed
+into place in one step. Readers in other processes therefore see a whole blob or none.
+Blobs are write-once: putting to an existing key raises
+:class:`~models_store.errors.Conflict` (callers make keys unique, e.g. with
+:func:`models_store.ids.new_token`).
+
+Files get mode 0644 and directories 0755 whatever the umask, so workers running as another
+user can read them (``atomic_open``'s ``mkstemp`` alone would leave 0600).
+
+Keys are ``/``-separated segments of ``[A-Za-z0-9._-]`` each starting with a letter or
+digit: no absolute paths, no ``..``, no hidden names (temporary names start with a dot, so
+they can never collide with a key).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+from models_store.errors import BlobCorrupt, Conflict, InvalidId, NotFound
+from models_store.ids import new_token
+from service.io.atomic import atomic_open, sha256_file
+
+FILE_MODE = 0o644
+DIR_MODE = 0o755
+CHUNK = 1 << 20
+MAX_KEY_LENGTH = 512
+_SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+
+
+@dataclass(frozen=True)
+class BlobInfo:
+    """What was stored: the key, the sha256 hex digest and the size in bytes.
+
+    For a directory, ``sha256`` is the tree digest (:func:`tree_digest`) and ``size`` the
+    total size of its files.
+    """
+
+    key: str
+    sha256: str
+    size: int
+
+
+def validate_key(key: object) -> str:
+    """Return ``key`` if it is a well-formed blob key, else raise :class:`InvalidId`."""
+    if not isinstance(key, str) or not key or len(key) > MAX_KEY_LENGTH:
+        raise InvalidId(f"blob key {key!r} must be a non-empty string of at most "
+                        f"{MAX_KEY_LENGTH} characters")
+    bad = [s for s in key.split("/") if not _SEGMENT.fullmatch(s)]
+    if bad:
+        raise InvalidId(f"blob key {key!r} has an invalid segment {bad[0]!r}: segments are "
+                        "[A-Za-z0-9._-], start with a letter or digit, at most 128 characters")
+    return key
+
+
+def tree_digest(entries: dict[str, str]) -> str:
+    """sha256 of a directory from its files' digests.
+
+    Parameters
+    ----------
+    entries : dict   relative POSIX path → sha256 hex digest of that file
+
+    Returns
+    -------
+    str   sha256 hex digest of the lines ``"<sha256>  <path>\\n"`` sorted by path (the
+          format of ``sha256sum``), so ``sha256sum`` can reproduce it
+    """
+    lines = "".join(f"{entries[p]}  {p}\n" for p in sorted(entries))
+    return hashlib.sha256(lines.encode()).hexdigest()
+
+
+class BlobStore:
+    """Blobs in a local directory (see the module docstring).
+
+    Parameters
+    ----------
+    root : str | Path   directory of the store; created if missing
+    """
+
+    def __init__(self, root: str | os.PathLike[str]):
+        self.root = Path(root).absolute()
+        if not self.root.is_dir():
+            self.root.mkdir(parents=True, exist_ok=True)
+            os.chmod(self.root, DIR_MODE)
+
+    def __repr__(self) -> str:
+        return f"BlobStore({str(self.root)!r})"
+
+    # -- paths ---------------------------------------------------------------------------
+    def path(self, key: str) -> Path:
+        """The filesystem path of ``key`` (whether or not it exists)."""
+        return self.root.joinpath(*validate_key(key).split("/"))
+
+    def exists(self, key: str) -> bool:
+        """Whether a blob is stored under ``key``."""
+        return self.path(key).exists()
+
+    # -- writing -------------------------------------------------------------------------
+    def put_bytes(self, key: str, data: bytes) -> BlobInfo:
+        """Store ``data`` as a file blob."""
+        return self._put_stream(key, io.BytesIO(data))
+
+    def put_file(self, key: str, source: str | os.PathLike[str]) -> BlobInfo:
+        """Store a copy of the file ``source`` as a file blob."""
+        with open(source, "rb") as stream:
+            return self._put_stream(key, stream)
+
+    def put_dir(self, key: str, source: str | os.PathLike[str]) -> BlobInfo:
+        """Store a copy of the directory tree ``source`` as a directory blob.
+
+        Raises
+        ------
+        ValueError   if ``source`` is not a directory or contains a symbolic link
+        Conflict     if ``key`` is taken
+        """
+        source = Path(source)
+        if not source.is_dir():
+            raise ValueError(f"{source} is not a directory")
+        final = self._vacant(key)
+        tmp = self._temporary_sibling(final)
+        entries: dict[str, str] = {}
+        size = 0
+        try:
+            _make_dir(tmp)
+            for src, rel in _walk_files(source):
+                dst = tmp.joinpath(*rel.split("/"))
+                self._make_parents(dst, stop=tmp)
+                with open(src, "rb") as fin, _create(dst) as fout:
+                    entries[rel], n = _copy(fin, fout)
+                size += n
+            for directory in sorted((p for p in tmp.rglob("*") if p.is_dir()), reverse=True):
+                _fsync_dir(directory)
+            _fsync_dir(tmp)
+            if final.exists():
+                raise Conflict(f"blob key {key!r} is already taken")
+            os.rename(tmp, final)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        _fsync_dir(final.parent)
+        return BlobInfo(key, tree_digest(entries), size)
+
+    def _put_stream(self, key: str, stream: BinaryIO) -> BlobInfo:
+        final = self._vacant(key)
+        with atomic_open(final) as out:
+            os.fchmod(out.fileno(), FILE_MODE)
+            sha256, size = _copy(stream, out)
+        _fsync_dir(final.parent)
+        return BlobInfo(key, sha256, size)
+
+    def _vacant(self, key: str) -> Path:
+        """The path for a new blob at ``key``, with its parent directories made."""
+        final = self.path(key)
+        if final.exists():
+            raise Conflict(f"blob key {key!r} is already taken; blobs are write-once")
+        self._make_parents(final, stop=self.root)
+        return final
+
+    @staticmethod
+    def _make_parents(path: Path, stop: Path) -> None:
+        """Create the missing directories between ``stop`` and ``path``'s parent (0755)."""
+        missing = [p for p in path.relative_to(stop).parents if not (stop / p).is_dir()]
+        for rel in reversed(missing):
+            _make_dir(stop / rel)
+
+    @staticmethod
+    def _temporary_sibling(path: Path) -> Path:
+        return path.with_name(f".{path.name}.{new_token()}.tmp")
+
+    # -- reading -------------------------------------------------------------------------
+    def read_bytes(self, key: str, sha256: str) -> bytes:
+        """The content of a file blob, verified against ``sha256``.
+
+        Raises
+        ------
+        NotFound      no file blob under ``key``
+        BlobCorrupt   the content does not match ``sha256``
+        """
+        data = self._file(key).read_bytes()
+        _check(key, sha256, hashlib.sha256(data).hexdigest())
+        return data
+
+    def open(self, key: str, sha256: str) -> BinaryIO:
+        """A binary file object on a file blob, positioned at the start, after verifying the
+        whole file against ``sha256`` (the caller closes it).
+
+        Raises
+        ------
+        NotFound, BlobCorrupt   as :meth:`read_bytes`
+        """
+        path = self._file(key)
+        _check(key, sha256, sha256_file(path))
+        return open(path, "rb")  # blobs are write-once: what was verified is what is read
+
+    def open_dir(self, key: str, sha256: str) -> Path:
+        """The path of a directory blob after verifying every file against ``sha256`` (the
+        tree digest returned by :meth:`put_dir`).
+
+        Raises
+        ------
+        NotFound, BlobCorrupt   as :meth:`read_bytes`
+        """
+        path = self.path(key)
+        if not path.is_dir():
+            raise NotFound("blob directory", key)
+        _check(key, sha256, self.digest(key))
+        return path
+
+    def digest(self, key: str) -> str:
+        """The sha256 of what is stored under ``key`` now (file digest or tree digest)."""
+        path = self.path(key)
+        if path.is_dir():
+            return tree_digest({rel: sha256_file(src) for src, rel in _walk_files(path)})
+        if path.is_file():
+            return sha256_file(path)
+        raise NotFound("blob", key)
+
+    def _file(self, key: str) -> Path:
+        path = self.path(key)
+        if not path.is_file():
+            raise NotFound("blob", key)
+        return path
+
+    # -- deleting ------------------------------------------------------------------------
+    def delete(self, key: str) -> bool:
+        """Remove the file or directory blob (or key prefix) ``key``.
+
+        A directory is first renamed to a temporary name, so no reader sees it half gone.
+
+        Returns
+        -------
+        bool   whether anything was there
+        """
+        path = self.path(key)
+        if path.is_dir() and not path.is_symlink():
+            doomed = self._temporary_sibling(path)
+            try:
+                os.rename(path, doomed)
+            except FileNotFoundError:
+                return False
+            shutil.rmtree(doomed)
+        else:
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                return False
+        _fsync_dir(path.parent)
+        return True
+
+
+# -- file-system helpers -----------------------------------------------------------------
+def _walk_files(top: Path) -> Iterator[tuple[Path, str]]:
+    """Regular files under ``top`` as (path, relative POSIX path), sorted.
+
+    Raises
+    ------
+    ValueError   for a symbolic link or anything that is neither a file nor a directory
+    """
+    for dirpath, dirnames, filenames in os.walk(top):
+        dirnames.sort()
+        for name in dirnames + filenames:
+            path = Path(dirpath, name)
+            if path.is_symlink() or not (path.is_file() or path.is_dir()):
+                raise ValueError(f"{path} is a symbolic link or special file; a directory "
+                                 "blob holds only regular files and directories")
+        for name in sorted(filenames):
+            path = Path(dirpath, name)
+            yield path, path.relative_to(top).as_posix()
+
+
+def _copy(source: BinaryIO, target: BinaryIO) -> tuple[str, int]:
+    """Copy a stream in chunks; flush and fsync ``target``; return (sha256, bytes copied)."""
+    h = hashlib.sha256()
+    size = 0
+    while block := source.read(CHUNK):
+        target.write(block)
+        h.update(block)
+        size += len(block)
+    target.flush()
+    os.fsync(target.fileno())
+    return h.hexdigest(), size
+
+
+def _create(path: Path) -> BinaryIO:
+    """A new file opened for binary writing, mode 0644 whatever the umask."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, FILE_MODE)
+    os.fchmod(fd, FILE_MODE)
+    return os.fdopen(fd, "wb")
+
+
+def _make_dir(path: Path) -> None:
+    """Create one directory with mode 0755 whatever the umask (no error if it exists)."""
+    try:
+        os.mkdir(path, DIR_MODE)
+    except FileExistsError:
+        return
+    os.chmod(path, DIR_MODE)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(path: Path) -> None:
+    """fsync a directory, making the renames and creations in it durable."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _check(key: str, expected: str, actual: str) -> None:
+    if actual != expected:
+        raise BlobCorrupt(key, expected, actual)

@@ -1,0 +1,107 @@
+"""Helpers shared by the registry modules: row lookup, blob puts, commits, error records."""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Iterable, Mapping, TypeVar
+
+from sqlalchemy import update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from models_store.blobs import BlobInfo, BlobStore
+from models_store.errors import Conflict, NotFound
+from models_store.ids import is_valid_id
+from models_store.schema import Base, Model
+
+Row = TypeVar("Row", bound=Base)
+#: blob content: bytes in memory, or the path of a file to copy
+Data = bytes | bytearray | memoryview | os.PathLike
+
+
+def get_row(session: Session, row_type: type[Row], kind: str, row_id: str) -> Row:
+    """The row of ``row_type`` with id ``row_id``, or :class:`NotFound`."""
+    if not is_valid_id(kind, row_id):
+        raise NotFound(kind, str(row_id), f"not a valid {kind} id")
+    row = session.get(row_type, row_id, populate_existing=True)
+    if row is None:
+        raise NotFound(kind, row_id)
+    return row
+
+
+def owned(row: Row, kind: str, actor_id: str | None) -> Row:
+    """``row`` if it belongs to ``actor_id`` (or no actor was named), else NotFound."""
+    if actor_id is not None and row.actor_id != actor_id:  # type: ignore[attr-defined]
+        raise NotFound(kind, row.id, f"it belongs to another actor than {actor_id!r}")  # type: ignore[attr-defined]
+    return row
+
+
+def put_blob(blobs: BlobStore, key: str, data: Data) -> BlobInfo:
+    """Store bytes or a file's content under ``key``."""
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return blobs.put_bytes(key, bytes(data))
+    return blobs.put_file(key, data)
+
+
+def commit(session: Session, blobs: BlobStore | None = None, new_keys: Iterable[str] = (),
+           old_keys: Iterable[str | None] = ()) -> None:
+    """Commit; on failure roll back and delete the blobs written for this unit of work, on
+    success delete the blobs it stopped referencing.
+
+    An integrity violation at commit means a concurrent change got there first (a row
+    added to an actor being deleted, a second rig of the same name): it becomes a Conflict.
+    """
+    try:
+        try:
+            session.commit()
+        except IntegrityError as exc:
+            raise Conflict(f"the change conflicts with a concurrent one: {exc.orig}") from exc
+    except BaseException:
+        session.rollback()
+        for key in new_keys:
+            blobs.delete(key)  # type: ignore[union-attr]
+        raise
+    for key in old_keys:
+        if key:
+            blobs.delete(key)  # type: ignore[union-attr]
+
+
+def refetch(session: Session, row_type: type[Row], row_id: str) -> Row:
+    """Reload a row after a bulk UPDATE (the identity map is refreshed)."""
+    row = session.get(row_type, row_id, populate_existing=True)
+    assert row is not None, f"{row_type.__name__} {row_id} vanished"
+    return row
+
+
+def error_record(code: str, message: str) -> dict[str, str]:
+    """A job or model error, ``{code, message}``."""
+    return {"code": code, "message": message}
+
+
+def check_error(error: Mapping[str, Any]) -> dict[str, str]:
+    """``error`` as a ``{code, message}`` record, or ValueError if it lacks either."""
+    if not isinstance(error, Mapping) or not {"code", "message"} <= set(error):
+        raise ValueError(f"an error must be a mapping with 'code' and 'message', got {error!r}")
+    return {"code": str(error["code"]), "message": str(error["message"])}
+
+
+def actor_prefix(actor_id: str) -> str:
+    """Blob-key prefix of everything an actor owns but its models (deleted with the actor)."""
+    return f"actors/{actor_id}"
+
+
+def model_prefix(model_id: str) -> str:
+    """Blob-key prefix of a model's directory (one per training attempt)."""
+    return f"models/{model_id}"
+
+
+def fail_training_model(session: Session, model_id: str | None,
+                        error: Mapping[str, str]) -> bool:
+    """Within the current transaction, mark ``model_id`` failed if it is still training."""
+    if model_id is None:
+        return False
+    return session.execute(
+        update(Model).where(Model.id == model_id, Model.status == "training")
+        .values(status="failed", error=dict(error))
+        .execution_options(synchronize_session=False)).rowcount == 1
+

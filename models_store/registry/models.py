@@ -1,0 +1,114 @@
+"""Models: created with their training job, marked ready (then immutable) or failed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from models_store.blobs import BlobStore
+from models_store.errors import Conflict
+from models_store.ids import new_id, new_token
+from models_store.registry._common import (commit, fail_training_model, get_row, error_record,
+                                           model_prefix, owned, refetch)
+from models_store.registry.actors import get_actor
+from models_store.registry.clips import get_clip
+from models_store.registry.jobs import cancel_active_jobs, new_job
+from models_store.schema import Job, Model, utcnow
+
+
+def create_model(session: Session, actor_id: str, kind: str,
+                 params: Mapping[str, Any] | None = None, *, clip_ids: Sequence[str] = (),
+                 job_kind: str = "train") -> tuple[Model, Job]:
+    """Create a model in status ``training`` together with its queued training job.
+
+    Both rows are committed at once, so a model never exists without the job that trains
+    it. The job's payload is ``{"model_id", "clip_ids"}``.
+
+    Raises
+    ------
+    NotFound   unknown actor, or a clip that is not the actor's
+    """
+    get_actor(session, actor_id)
+    clip_ids = list(clip_ids)
+    for clip_id in clip_ids:
+        get_clip(session, clip_id, actor_id)
+    model = Model(id=new_id("model"), actor_id=actor_id, kind=kind, status="training",
+                  params=dict(params or {}), created_at=utcnow())
+    job = new_job(job_kind, actor_id, model.id, {"model_id": model.id, "clip_ids": clip_ids})
+    session.add_all([model, job])
+    commit(session)
+    return model, job
+
+
+def get_model(session: Session, model_id: str, actor_id: str | None = None) -> Model:
+    """The model ``model_id`` (of ``actor_id``, if given)."""
+    return owned(get_row(session, Model, "model", model_id), "model", actor_id)
+
+
+def list_models(session: Session, actor_id: str | None = None,
+                status: str | None = None) -> list[Model]:
+    """Models, oldest first, optionally of one actor (NotFound if unknown) or status."""
+    query = select(Model).order_by(Model.created_at, Model.id)
+    if actor_id is not None:
+        get_actor(session, actor_id)
+        query = query.where(Model.actor_id == actor_id)
+    if status is not None:
+        query = query.where(Model.status == status)
+    return list(session.scalars(query))
+
+
+def mark_model_ready(session: Session, blobs: BlobStore, model_id: str, model_dir: Path, *,
+                     metrics: Mapping[str, Any]) -> Model:
+    """Store a trained model's directory and mark the model ready.
+
+    A ready model is immutable: this raises :class:`Conflict` unless the model is
+    ``training`` (so a second call, or a call after it failed, is refused), also when two
+    workers race to finish it.
+    """
+    model = get_model(session, model_id)
+    if model.status != "training":
+        raise Conflict(f"model {model_id!r} is {model.status}, not training; "
+                       "only a training model can become ready")
+    info = blobs.put_dir(f"{model_prefix(model_id)}/{new_token()}", model_dir)
+    changed = session.execute(
+        update(Model).where(Model.id == model_id, Model.status == "training")
+        .values(status="ready", metrics=dict(metrics), size_bytes=info.size, blob=info.key,
+                sha256=info.sha256, error=None)
+        .execution_options(synchronize_session=False)).rowcount
+    if changed != 1:
+        session.rollback()
+        blobs.delete(info.key)
+        raise Conflict(f"model {model_id!r} stopped training while its files were stored")
+    commit(session, blobs, new_keys=[info.key])
+    return refetch(session, Model, model_id)
+
+
+def mark_model_failed(session: Session, model_id: str, code: str, message: str) -> Model:
+    """Mark a training model failed with ``{code, message}`` (Conflict unless training)."""
+    if not fail_training_model(session, model_id, error_record(code, message)):
+        session.rollback()  # release the write lock the UPDATE took (SQLite)
+        model = get_model(session, model_id)
+        raise Conflict(f"model {model_id!r} is {model.status}, not training")
+    commit(session)
+    return refetch(session, Model, model_id)
+
+
+def model_dir(session: Session, blobs: BlobStore, model_id: str) -> Path:
+    """The verified directory of a ready model (Conflict if it is not ready)."""
+    model = get_model(session, model_id)
+    if model.status != "ready":
+        raise Conflict(f"model {model_id!r} is {model.status}, not ready")
+    return blobs.open_dir(model.blob, model.sha256)  # type: ignore[arg-type]
+
+
+def delete_model(session: Session, blobs: BlobStore, model_id: str,
+                 actor_id: str | None = None) -> None:
+    """Delete a model and its files; its queued or running jobs are cancelled."""
+    model = get_model(session, model_id, actor_id)
+    cancel_active_jobs(session, Job.model_id == model_id, "its model was deleted")
+    session.delete(model)
+    commit(session, blobs, old_keys=[model_prefix(model_id)])
+

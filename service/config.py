@@ -1,0 +1,123 @@
+"""Settings of the service, read from ``FACESYNTH_*`` environment variables.
+
+One :class:`Settings` class, every field with a default, so ``Settings()`` works on a fresh
+machine and a test builds ``Settings(data_dir=tmp_path)`` with nothing in the environment.
+Nothing is read at import time: the process-wide instance comes from the cached
+:func:`get_settings`, which the API injects as a dependency.
+
+Examples
+--------
+>>> Settings(data_dir="/srv/facesynth").database_url_resolved
+'sqlite:////srv/facesynth/facesynth.db'
+
+In the environment, ``FACESYNTH_TOKENS=alpha,beta`` gives ``tokens == ["alpha", "beta"]``
+(a JSON list works too).
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MiB = 1 << 20
+GiB = 1 << 30
+
+
+class Settings(BaseSettings):
+    """Configuration of the API server and the workers.
+
+    Every field is the environment variable ``FACESYNTH_<FIELD>`` (case-insensitive).
+    """
+
+    model_config = SettingsConfigDict(env_prefix="FACESYNTH_", extra="ignore",
+                                      validate_default=True)
+
+    # -- storage -----------------------------------------------------------------------------
+    data_dir: Path = Field(
+        default=Path("./facesynth-data"),
+        description="Directory holding the default SQLite database, the blob store and the "
+                    "embedded queue.")
+    database_url: str | None = Field(
+        default=None,
+        description="SQLAlchemy URL of the metadata database, e.g. "
+                    "'postgresql://user@db/facesynth'. None: the SQLite file "
+                    "<data_dir>/facesynth.db.")
+    queue_url: str | None = Field(
+        default=None,
+        description="URL of the task queue's storage, e.g. 'redis://queue:6379/0'. None: the "
+                    "embedded queue in the data directory (one machine).")
+
+    # -- network -----------------------------------------------------------------------------
+    host: str = Field(default="127.0.0.1", description="Address the HTTP API listens on.")
+    port: int = Field(default=8000, ge=1, le=65535, description="Port of the HTTP API.")
+    grpc_port: int = Field(default=50051, ge=1, le=65535,
+                           description="Port of the gRPC streaming server.")
+    workers: int = Field(default=1, ge=1,
+                         description="Number of job worker threads/processes to run.")
+    tokens: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, repr=False,
+        description="Accepted bearer tokens; in the environment a comma-separated list (or a "
+                    "JSON list). Empty: no authentication, and the API only listens on "
+                    "loopback.")
+
+    # -- limits ------------------------------------------------------------------------------
+    max_body_bytes: int = Field(default=256 * MiB, ge=1,
+                                description="Largest accepted request body, in bytes (413 above).")
+    max_frames_per_request: int = Field(
+        default=64, ge=1,
+        description="Most frames a synchronous synthesis request may carry (413 above; larger "
+                    "work goes to a synthesis job).")
+    max_map_resolution: int = Field(default=4096, ge=1,
+                                    description="Largest UV-space map side, in texels.")
+    max_vertices: int = Field(default=2_000_000, ge=1,
+                              description="Most vertices an uploaded mesh may have.")
+    model_cache_bytes: int = Field(
+        default=2 * GiB, ge=0,
+        description="Memory budget of the in-process cache of loaded models, in bytes.")
+
+    # -- jobs --------------------------------------------------------------------------------
+    job_max_retries: int = Field(
+        default=2, ge=0,
+        description="How often a job whose worker died is requeued before it is failed.")
+    job_lease_seconds: float = Field(
+        default=60.0, gt=0,
+        description="A running job's lease; a worker renews it by heartbeats, and a job whose "
+                    "lease expired is requeued or failed.")
+
+    @field_validator("tokens", mode="before")
+    @classmethod
+    def _split_tokens(cls, value: Any) -> Any:
+        """Accept ``"a,b"`` and ``'["a","b"]'`` as well as a list; drop blanks."""
+        if isinstance(value, str):
+            text = value.strip()
+            value = json.loads(text) if text.startswith("[") else text.split(",")
+        if isinstance(value, (list, tuple)):
+            return [str(t).strip() for t in value if str(t).strip()]
+        return value
+
+    @property
+    def database_url_resolved(self) -> str:
+        """The database URL to connect to: ``database_url``, or the SQLite file in the data
+        directory (absolute, so every process started anywhere finds the same file)."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'facesynth.db').absolute()}"
+
+    @property
+    def blob_dir(self) -> Path:
+        """Root of the blob store, ``<data_dir>/blobs``."""
+        return self.data_dir / "blobs"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings, read from the environment on first call and cached.
+
+    Tests that change the environment call ``get_settings.cache_clear()``.
+    """
+    return Settings()

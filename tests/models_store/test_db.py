@@ -1,0 +1,150 @@
+"""Engines and migrations: URL handling, SQLite pragmas, the migrated schema equals the ORM,
+upgrades are idempotent and safe when processes start at once, timestamps are aware UTC."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import inspect, select, text
+
+from models_store.db import (alembic_config, make_engine, make_session_factory, normalize_url,
+                             sqlite_path, upgrade)
+from models_store.schema import Actor, Base
+
+REPO = Path(__file__).resolve().parents[2]
+HEAD = ScriptDirectory.from_config(alembic_config()).get_current_head()
+
+
+def schema_diff(url):
+    """Alembic autogenerate's differences between the database and the ORM metadata."""
+    engine = make_engine(url)
+    try:
+        with engine.connect() as connection:
+            context = MigrationContext.configure(connection, opts={"compare_type": True})
+            return compare_metadata(context, Base.metadata)
+    finally:
+        engine.dispose()
+
+
+def revision_of(url):
+    engine = make_engine(url)
+    try:
+        with engine.connect() as connection:
+            return MigrationContext.configure(connection).get_current_revision()
+    finally:
+        engine.dispose()
+
+
+@pytest.mark.parametrize("given, driver", [
+    ("postgresql://u:p@db:5432/fs", "postgresql+psycopg"),
+    ("postgres://u@db/fs", "postgresql+psycopg"),
+    ("postgresql+psycopg2://u@db/fs", "postgresql+psycopg"),
+    ("postgresql+psycopg://u@db/fs", "postgresql+psycopg"),
+    ("sqlite:////data/facesynth.db", "sqlite"),
+])
+def test_normalize_url_uses_psycopg3_for_postgres(given, driver):
+    url = normalize_url(given)
+    assert url.drivername == driver
+    assert url.database in ("fs", "/data/facesynth.db")
+
+
+def test_normalize_url_rejects_other_backends():
+    with pytest.raises(ValueError, match="unsupported database URL 'mysql://u:\\*\\*\\*@db/fs'"):
+        normalize_url("mysql://u:secret@db/fs")
+
+
+def test_sqlite_path_of_file_and_memory_urls(tmp_path):
+    assert sqlite_path(f"sqlite:///{tmp_path}/x.db") == tmp_path / "x.db"
+    assert sqlite_path("sqlite://") is None
+    assert sqlite_path("postgresql://db/x") is None
+
+
+def test_migrated_schema_equals_the_orm_metadata(fresh_db_url):
+    upgrade(fresh_db_url)
+    assert schema_diff(fresh_db_url) == []
+    assert revision_of(fresh_db_url) == HEAD
+    engine = make_engine(fresh_db_url)
+    tables = set(inspect(engine).get_table_names())
+    engine.dispose()
+    assert tables == set(Base.metadata.tables) | {"alembic_version"}
+
+
+def test_an_empty_database_differs_from_the_orm(fresh_db_url):
+    """The comparison above has teeth: it sees every missing table."""
+    diff = schema_diff(fresh_db_url)
+    assert {d[1].name for d in diff if d[0] == "add_table"} == set(Base.metadata.tables)
+
+
+def test_upgrade_is_idempotent(fresh_db_url):
+    upgrade(fresh_db_url)
+    sessions = make_session_factory(fresh_db_url)
+    with sessions() as session:
+        session.add(Actor(id="act_" + "0" * 26, name="kept"))
+        session.commit()
+    upgrade(fresh_db_url)
+    with sessions() as session:
+        assert session.scalars(select(Actor.name)).all() == ["kept"]
+    sessions.kw["bind"].dispose()
+    assert revision_of(fresh_db_url) == HEAD
+
+
+def test_processes_starting_at_once_migrate_once(fresh_db_url):
+    code = "import sys; from models_store.db import upgrade; upgrade(sys.argv[1])"
+    procs = [subprocess.Popen([sys.executable, "-c", code, fresh_db_url], cwd=REPO,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+             for _ in range(2)]
+    outputs = [p.communicate(timeout=120)[0].decode() for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(outputs)
+    assert revision_of(fresh_db_url) == HEAD
+    assert schema_diff(fresh_db_url) == []
+
+
+def test_sqlite_connections_use_wal_foreign_keys_and_a_busy_timeout(tmp_path):
+    engine = make_engine(f"sqlite:///{tmp_path}/sub/dir/x.db")     # parent made on demand
+    with engine.connect() as connection:
+        assert connection.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+        assert connection.exec_driver_sql("PRAGMA busy_timeout").scalar() >= 10_000
+    engine.dispose()
+
+
+def test_sqlite_enforces_foreign_keys(tmp_path):
+    url = f"sqlite:///{tmp_path}/x.db"
+    upgrade(url)
+    engine = make_engine(url)
+    with pytest.raises(Exception, match="FOREIGN KEY"):
+        with engine.begin() as connection:
+            connection.execute(text(
+                "INSERT INTO clips (id, actor_id, frames, blob, sha256, size_bytes, created_at)"
+                " VALUES ('clp_x', 'act_missing', 1, 'k', 's', 1, '2024-01-01 00:00:00')"))
+    engine.dispose()
+
+
+def test_timestamps_round_trip_as_aware_utc(db_url):
+    sessions = make_session_factory(db_url)
+    eastern = timezone(timedelta(hours=-5))
+    moment = datetime(2024, 3, 1, 7, 30, 15, 123456, tzinfo=eastern)
+    with sessions() as session:
+        session.add(Actor(id="act_" + "1" * 26, name="t", created_at=moment))
+        session.commit()
+    with sessions() as session:
+        stored = session.scalars(select(Actor.created_at)).one()
+    assert stored == moment and stored.utcoffset() == timedelta(0)
+    assert stored.hour == 12
+    sessions.kw["bind"].dispose()
+
+
+def test_naive_timestamps_are_refused(db_url):
+    sessions = make_session_factory(db_url)
+    with sessions() as session:
+        session.add(Actor(id="act_" + "2" * 26, name="t", created_at=datetime(2024, 1, 1)))
+        with pytest.raises(Exception, match="naive datetime"):
+            session.commit()
+    sessions.kw["bind"].dispose()

