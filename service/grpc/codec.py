@@ -1,0 +1,128 @@
+"""NumPy arrays to and from the ``facesynth.v1`` messages (``facesynth/v1/synthesis.proto``).
+
+One place for the wire layout that the server and the client share: markers as a repeated
+float (M·3, NaN for occluded), meshes and maps as little-endian float32 / int32 ``bytes``.
+Decoded arrays are zero-copy views of the message's bytes, hence read-only.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from service.grpc.facesynth.v1 import synthesis_pb2 as pb
+from service.methods.inputs import InvalidInput
+
+#: the ``outputs`` a stream may ask for (API.md), each named like a MeshFrame field or group
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
+#: outputs when the first MarkerFrame asks for none
+DEFAULT_OUTPUTS = ("mesh",)
+#: mesh outputs → their MeshFrame ``bytes`` field (and synthesize's result key)
+MESH_FIELDS = {"mesh": "vertices", "mesh_detailed": "vertices_detailed"}
+#: map outputs: MeshFrame ``Map`` field = synthesize's result key = output name
+MAP_FIELDS = ("displacement", "albedo", "normal_map")
+#: default gRPC message size limit, bytes, both directions: a reply with 1024² displacement,
+#: albedo and normal maps is 28 MiB, plus the meshes
+MAX_MESSAGE_BYTES = 64 * 2**20
+
+F32 = np.dtype("<f4")
+I32 = np.dtype("<i4")
+
+
+def check_outputs(outputs: Sequence[str]) -> tuple[str, ...]:
+    """Validated outputs without repeats, in the given order; :data:`DEFAULT_OUTPUTS` for none.
+
+    Raises :class:`InvalidInput` naming unknown outputs.
+    """
+    unknown = sorted(set(outputs) - set(OUTPUTS))
+    if unknown:
+        raise InvalidInput(f"unknown outputs {unknown}; choose from {list(OUTPUTS)}")
+    return tuple(dict.fromkeys(outputs)) or DEFAULT_OUTPUTS
+
+
+# ---------------------------------------------------------------------- MarkerFrame
+def encode_markers(markers: np.ndarray, frame: int, **first: object) -> pb.MarkerFrame:
+    """A MarkerFrame for markers (M,3), actor's unit, NaN for occluded.
+
+    ``first`` takes the first message's fields (``model_id``, ``outputs``, ``clamp``).
+    """
+    markers = np.asarray(markers, dtype=np.float32)
+    if markers.ndim != 2 or markers.shape[1] != 3:
+        raise ValueError(f"markers must be (M,3), got {markers.shape}")
+    return pb.MarkerFrame(frame=frame, markers=markers.ravel(), marker_count=len(markers), **first)
+
+
+def decode_markers(msg: pb.MarkerFrame) -> np.ndarray:
+    """Markers (M,3) float32 of a MarkerFrame; :class:`InvalidInput` for a bad length."""
+    values = np.array(msg.markers, dtype=np.float32)
+    count = msg.marker_count
+    if count and len(values) != 3 * count:
+        raise InvalidInput(f"{len(values)} marker values for marker_count {count}, expected {3 * count}")
+    if len(values) % 3:
+        raise InvalidInput(f"{len(values)} marker values is not a multiple of 3 (x, y, z per marker)")
+    return values.reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------- MeshFrame
+def encode_map(values: np.ndarray) -> pb.Map:
+    """A Map of a (H,W) or (H,W,C) array."""
+    values = np.asarray(values, dtype=F32)
+    H, W = values.shape[:2]
+    return pb.Map(height=H, width=W, channels=1 if values.ndim == 2 else values.shape[2],
+                  data=values.tobytes())
+
+
+def decode_map(m: pb.Map) -> np.ndarray:
+    """(H,W) float32 for one channel, else (H,W,C)."""
+    shape = (m.height, m.width) + ((m.channels,) if m.channels != 1 else ())
+    return np.frombuffer(m.data, F32).reshape(shape)
+
+
+def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame: int,
+                 faces: bool, index: int = 0) -> pb.MeshFrame:
+    """The MeshFrame of frame ``index`` of a ``synthesize`` result.
+
+    Parameters
+    ----------
+    result : dict       ``synthesize``'s arrays: vertices (F,V,3), vertices_detailed (F,V,3),
+                        faces (T,3), displacement (F,H,W), albedo / normal_map (F,H,W,3),
+                        clamped (F,)
+    outputs : names of :data:`OUTPUTS` to put in the reply (others in ``result`` are left out)
+    frame : the client's frame number to echo;  faces : include the triangles
+    """
+    reply = pb.MeshFrame(frame=frame, clamped=float(result["clamped"][index]))
+    for output, key in MESH_FIELDS.items():
+        if output in outputs:
+            V = np.asarray(result[key][index], dtype=F32)
+            reply.vertex_count = len(V)
+            setattr(reply, key, V.tobytes())
+    if faces:
+        reply.faces = np.asarray(result["faces"], dtype=I32).tobytes()
+    for key in MAP_FIELDS:
+        if key in outputs:
+            getattr(reply, key).CopyFrom(encode_map(result[key][index]))
+    return reply
+
+
+def decode_reply(reply: pb.MeshFrame) -> dict[str, np.ndarray | int | float]:
+    """The arrays of a MeshFrame, under ``synthesize``'s keys, for the fields it carries.
+
+    Returns
+    -------
+    dict with ``frame`` int, ``clamped`` float, ``latency_ms`` float, and as present:
+    ``vertices`` / ``vertices_detailed`` (V,3) float32, ``faces`` (T,3) int32,
+    ``displacement`` (H,W) float32, ``albedo`` / ``normal_map`` (H,W,3) float32.
+    """
+    out: dict[str, np.ndarray | int | float] = {
+        "frame": reply.frame, "clamped": reply.clamped, "latency_ms": reply.latency_ms}
+    for key in MESH_FIELDS.values():
+        data = getattr(reply, key)
+        if data:
+            out[key] = np.frombuffer(data, F32).reshape(reply.vertex_count, 3)
+    if reply.faces:
+        out["faces"] = np.frombuffer(reply.faces, I32).reshape(-1, 3)
+    for key in MAP_FIELDS:
+        if reply.HasField(key):
+            out[key] = decode_map(getattr(reply, key))
+    return out

@@ -1,0 +1,270 @@
+"""The real-time path of API.md: ``facesynth.v1.Synthesis/StreamSynthesize`` over gRPC.
+
+A live motion-capture stream in, one detailed mesh (and the asked maps) out per frame, in
+order. :class:`SynthesisServicer` does the work, with the model store injected as a
+``load_model(model_id) -> model`` callable (any object with ``synthesize`` as
+:meth:`service.methods.pdm.model.PdmModel.synthesize`); :func:`serve` starts a server.
+
+Errors end the stream with a status (the full list is in ``synthesis.proto``):
+``InvalidInput`` from the model → INVALID_ARGUMENT with its message, the frame named;
+``load_model`` raising ``LookupError`` (``KeyError``, ``models_store.errors.NotFound``) or
+an ``InvalidId`` → NOT_FOUND, a ``NotReady`` / ``Conflict`` → FAILED_PRECONDITION. The
+store's errors are recognized by class name (anywhere in their MRO), so this module does
+not depend on the store.
+
+Each open stream holds one worker thread for its whole life and frames are synthesized one
+at a time (the model's per-frame work is NumPy, which releases the GIL, so streams on
+different threads overlap). A server runs at most ``max_workers`` streams; one more is
+refused with RESOURCE_EXHAUSTED rather than queued behind a live stream.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import logging
+import re
+import time
+from concurrent import futures
+from dataclasses import dataclass
+from typing import Callable, Iterable, Iterator, Protocol, Sequence
+
+import grpc
+import numpy as np
+
+from service.grpc import codec
+from service.grpc.facesynth.v1 import synthesis_pb2 as pb
+from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
+from service.methods.inputs import InvalidInput
+
+log = logging.getLogger(__name__)
+
+#: exception class names (in the MRO) that ``load_model`` raises for an unknown model (as
+#: the HTTP API, a malformed id is a 404: ``models_store.errors.InvalidId``) …
+NOT_FOUND_ERRORS = frozenset({"NotFound", "ModelNotFound", "InvalidId"})
+#: … and for a model that exists but cannot synthesize yet (e.g. still training)
+NOT_READY_ERRORS = frozenset({"NotReady", "ModelNotReady", "Conflict"})
+DEFAULT_PORT = 50051
+
+
+class StreamModel(Protocol):
+    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature."""
+
+    def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
+                   clamp: bool = ...) -> dict[str, np.ndarray]: ...
+
+
+#: the injected model store: model id → model; raises for unknown or not-ready models
+LoadModel = Callable[[str], StreamModel]
+
+
+class StreamError(Exception):
+    """Ends a stream with a gRPC status code and a message for the client."""
+
+    def __init__(self, code: grpc.StatusCode, details: str):
+        super().__init__(details)
+        self.code = code
+        self.details = details
+
+
+@dataclass(frozen=True)
+class _Stream:
+    """What the first MarkerFrame fixes for the whole stream."""
+
+    model_id: str
+    model: StreamModel
+    outputs: tuple[str, ...]
+    clamp: bool
+
+    def check(self, msg: pb.MarkerFrame, where: str) -> None:
+        """Raise INVALID_ARGUMENT if a later message changes what the first one fixed."""
+        if msg.model_id and msg.model_id != self.model_id:
+            raise _invalid(f"{where}: model_id '{msg.model_id}' differs from the stream's "
+                           f"'{self.model_id}' (one model per stream)")
+        if msg.outputs and tuple(dict.fromkeys(msg.outputs)) != self.outputs:
+            raise _invalid(f"{where}: outputs {list(msg.outputs)} differ from the first message's "
+                           f"{list(self.outputs)} (outputs are fixed per stream)")
+        if msg.HasField("clamp") and msg.clamp != self.clamp:
+            raise _invalid(f"{where}: clamp {msg.clamp} differs from the first message's {self.clamp}")
+
+
+class SynthesisServicer(pb_grpc.SynthesisServicer):
+    """``StreamSynthesize``: one MeshFrame per MarkerFrame, in order.
+
+    Parameters
+    ----------
+    load_model : model id → model with ``synthesize(markers (F,M,3), outputs, clamp) ->
+                 dict`` as :meth:`~service.methods.pdm.model.PdmModel.synthesize`; called
+                 once per stream. Raises ``KeyError`` / a ``NotFound`` for an unknown id,
+                 a ``NotReady`` / ``Conflict`` for a model that cannot synthesize yet.
+    """
+
+    def __init__(self, load_model: LoadModel):
+        self._load_model = load_model
+
+    def StreamSynthesize(self, request_iterator: Iterable[pb.MarkerFrame],
+                         context: grpc.ServicerContext) -> Iterator[pb.MeshFrame]:
+        try:
+            yield from self._replies(request_iterator)
+        except StreamError as e:
+            context.abort(e.code, e.details)
+        except Exception:
+            if not context.is_active():          # the client went away: nothing to answer
+                return
+            log.exception("StreamSynthesize failed")
+            context.abort(grpc.StatusCode.INTERNAL, "internal error while synthesizing (see the server log)")
+
+    def _replies(self, requests: Iterable[pb.MarkerFrame]) -> Iterator[pb.MeshFrame]:
+        stream = None
+        for index, msg in enumerate(requests):
+            start = time.perf_counter()
+            where = f"frame {msg.frame}" + (f" (message {index} of the stream)" if msg.frame != index else "")
+            if stream is None:
+                stream = self._open(msg)
+            else:
+                stream.check(msg, where)
+            try:
+                markers = codec.decode_markers(msg)
+                result = stream.model.synthesize(markers[None], list(stream.outputs), stream.clamp)
+            except InvalidInput as e:
+                raise _invalid(_name_frame(str(e), where)) from None
+            reply = codec.encode_reply(result, stream.outputs, msg.frame, faces=index == 0)
+            reply.latency_ms = (time.perf_counter() - start) * 1e3
+            yield reply
+
+    def _open(self, first: pb.MarkerFrame) -> _Stream:
+        """The stream's model, outputs and clamp from its first message."""
+        if not first.model_id:
+            raise _invalid("the first MarkerFrame of a stream must name a model_id")
+        try:
+            outputs = codec.check_outputs(first.outputs)
+        except InvalidInput as e:
+            raise _invalid(str(e)) from None
+        clamp = first.clamp if first.HasField("clamp") else True
+        return _Stream(first.model_id, self._load(first.model_id), outputs, clamp)
+
+    def _load(self, model_id: str) -> StreamModel:
+        try:
+            return self._load_model(model_id)
+        except Exception as e:
+            names = {cls.__name__ for cls in type(e).__mro__}
+            if isinstance(e, LookupError) or names & NOT_FOUND_ERRORS:
+                raise StreamError(grpc.StatusCode.NOT_FOUND, f"model '{model_id}' not found") from e
+            if names & NOT_READY_ERRORS:
+                raise StreamError(grpc.StatusCode.FAILED_PRECONDITION,
+                                  f"model '{model_id}' cannot synthesize yet: {e}") from e
+            raise
+
+
+def _invalid(details: str) -> StreamError:
+    return StreamError(grpc.StatusCode.INVALID_ARGUMENT, details)
+
+
+def _name_frame(message: str, where: str) -> str:
+    """A model message about one frame, naming the stream's frame: the model is called
+    with one frame at a time, so its "frame 0" is ``where``."""
+    named, n = re.subn(r"^frame 0\b", where, message)
+    return named if n else f"{where}: {message}"
+
+
+# ---------------------------------------------------------------------- auth
+class BearerTokenAuth(grpc.ServerInterceptor):
+    """Refuses calls without ``authorization: Bearer <token>`` metadata naming one of ``tokens``
+    (UNAUTHENTICATED); tokens are compared in constant time."""
+
+    def __init__(self, tokens: Sequence[str]):
+        if not tokens or not all(tokens):
+            raise ValueError("BearerTokenAuth needs one or more non-empty tokens")
+        self._tokens = tuple(t.encode() for t in tokens)
+
+    def authorized(self, metadata: Sequence[tuple[str, str | bytes]] | None) -> bool:
+        """Whether the call metadata carries a valid bearer token."""
+        for key, value in metadata or ():
+            if key != "authorization" or not isinstance(value, str):
+                continue
+            scheme, _, token = value.partition(" ")
+            if scheme.lower() == "bearer":
+                given = token.strip().encode()
+                # no short-circuit: every token is compared
+                if sum(hmac.compare_digest(given, t) for t in self._tokens):
+                    return True
+        return False
+
+    def intercept_service(self, continuation, handler_call_details):
+        handler = continuation(handler_call_details)
+        if handler is None or self.authorized(handler_call_details.invocation_metadata):
+            return handler
+        return _refusing(handler)
+
+
+def _refusing(handler: grpc.RpcMethodHandler) -> grpc.RpcMethodHandler:
+    """A handler of the same kind as ``handler`` that fails with UNAUTHENTICATED."""
+    def refuse(request_or_iterator, context: grpc.ServicerContext):
+        context.abort(grpc.StatusCode.UNAUTHENTICATED,
+                      "missing or invalid token: send metadata 'authorization: Bearer <token>'")
+
+    kind = (("stream" if handler.request_streaming else "unary") + "_"
+            + ("stream" if handler.response_streaming else "unary"))
+    make = getattr(grpc, f"{kind}_rpc_method_handler")
+    return make(refuse, request_deserializer=handler.request_deserializer,
+                response_serializer=handler.response_serializer)
+
+
+# ---------------------------------------------------------------------- server
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` ("localhost", "127.0.0.1", "::1", "[::1]", …) is a loopback address."""
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[str] = (),
+                  max_message_bytes: int = codec.MAX_MESSAGE_BYTES) -> grpc.Server:
+    """A gRPC server with the Synthesis service, not yet bound or started.
+
+    Parameters
+    ----------
+    load_model : see :class:`SynthesisServicer`
+    max_workers : int         threads = streams served at once; more are refused
+                              (RESOURCE_EXHAUSTED)
+    tokens : bearer tokens; none: no authentication
+    max_message_bytes : int   largest message received or sent, bytes (a reply with a
+                              1024² normal map alone is 12 MiB)
+    """
+    options = [("grpc.max_send_message_length", max_message_bytes),
+               ("grpc.max_receive_message_length", max_message_bytes),
+               ("grpc.so_reuseport", 0)]       # a port in use is an error, not shared
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers, thread_name_prefix="facesynth-grpc"),
+                         interceptors=[BearerTokenAuth(tokens)] if tokens else None,
+                         options=options, maximum_concurrent_rpcs=max_workers)
+    pb_grpc.add_SynthesisServicer_to_server(SynthesisServicer(load_model), server)
+    return server
+
+
+def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
+          max_workers: int = 4, *, tokens: Sequence[str] = (),
+          max_message_bytes: int = codec.MAX_MESSAGE_BYTES) -> grpc.Server:
+    """Start a Synthesis server on ``host:port`` (plaintext) and return it.
+
+    Stop it with ``server.stop(grace)``; ``server.wait_for_termination()`` blocks until then.
+    As the HTTP API: without tokens it only listens on loopback (TLS belongs in front of
+    it, e.g. the ingress proxy). Other parameters as :func:`create_server`.
+
+    Raises
+    ------
+    ValueError  a non-loopback host without tokens
+    RuntimeError  the address cannot be bound (e.g. the port is in use)
+    """
+    if not tokens and not is_loopback(host):
+        raise ValueError(f"refusing to listen on {host} without tokens: "
+                         "give tokens, or listen on loopback (127.0.0.1)")
+    server = create_server(load_model, max_workers, tokens, max_message_bytes)
+    address = f"[{host.strip('[]')}]:{port}" if ":" in host else f"{host}:{port}"
+    if server.add_insecure_port(address) == 0:        # older grpcio returns 0, newer raise
+        raise RuntimeError(f"cannot listen on {address}")
+    server.start()
+    return server

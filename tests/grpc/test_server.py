@@ -1,0 +1,141 @@
+"""StreamSynthesize end to end: a real server on loopback, a trained PDM model, the client helper."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import grpc
+import numpy as np
+import pytest
+
+from service.grpc.client import stream_synthesize
+from service.grpc.server import serve
+from tests.grpc.conftest import MODEL_ID, TRAINING_ID, running
+
+ALL = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
+
+
+def _shapes(model) -> dict[str, tuple[int, ...]]:
+    """Per-frame array shapes of all outputs: (V,3) meshes, (Hf,Hf) fine maps, (Ha,Ha,3) albedo."""
+    V, Hf, Ha = model.n_vertices, model.fine.resolution, model.albedo.resolution
+    return {"vertices": (V, 3), "vertices_detailed": (V, 3), "displacement": (Hf, Hf),
+            "albedo": (Ha, Ha, 3), "normal_map": (Hf, Hf, 3)}
+
+
+def _status(frames_call) -> grpc.RpcError:
+    with pytest.raises(grpc.RpcError) as e:
+        list(frames_call)
+    return e.value
+
+
+def test_stream_equals_direct_synthesis_bit_exactly_in_order(channel, pdm_model, heldout_markers):
+    markers = heldout_markers.copy()
+    markers[3, [0, 7, 20]] = np.nan                      # occluded markers travel as NaN
+    start = time.perf_counter()
+    got = list(stream_synthesize(channel, MODEL_ID, markers, ALL))
+    streamed = time.perf_counter() - start
+    start = time.perf_counter()
+    direct = [pdm_model.synthesize(markers[i:i + 1], ALL, True) for i in range(len(markers))]
+    print(f"\n{len(markers)} frames, all outputs: streamed {len(markers) / streamed:.1f} frames/s, "
+          f"direct synthesize {len(markers) / (time.perf_counter() - start):.1f} frames/s")
+    assert [g["frame"] for g in got] == list(range(len(markers)))
+    for i, (g, d) in enumerate(zip(got, direct)):
+        for key, shape in _shapes(pdm_model).items():
+            assert g[key].shape == shape and g[key].dtype == np.float32, key
+            np.testing.assert_array_equal(g[key], d[key][0], err_msg=f"frame {i} {key}")
+        assert g["clamped"] == np.float32(d["clamped"][0])
+        assert g["latency_ms"] > 0
+    np.testing.assert_array_equal(got[0]["faces"], pdm_model.faces)
+    assert all("faces" not in g for g in got[1:])
+
+
+def test_only_the_asked_outputs_are_sent(channel, heldout_markers):
+    got = list(stream_synthesize(channel, MODEL_ID, heldout_markers[:2]))      # default: mesh
+    assert set(got[1]) == {"frame", "clamped", "latency_ms", "vertices"}
+    got = list(stream_synthesize(channel, MODEL_ID, heldout_markers[:1], ["displacement"]))
+    assert set(got[0]) == {"frame", "clamped", "latency_ms", "faces", "displacement"}
+
+
+def test_clamp_false_reports_nothing_clamped(channel, pdm_model, heldout_markers):
+    far = heldout_markers[:1] * np.float32(1.3)           # well beyond the training range
+    clamped = next(stream_synthesize(channel, MODEL_ID, far, ["displacement"]))
+    free = next(stream_synthesize(channel, MODEL_ID, far, ["displacement"], clamp=False))
+    assert clamped["clamped"] > 0 and free["clamped"] == 0
+    np.testing.assert_array_equal(free["displacement"],
+                                  pdm_model.synthesize(far, ["displacement"], False)["displacement"][0])
+
+
+def test_unknown_model_is_not_found(channel, heldout_markers):
+    e = _status(stream_synthesize(channel, "no-such-model", heldout_markers[:1]))
+    assert e.code() == grpc.StatusCode.NOT_FOUND and "no-such-model" in e.details()
+
+
+def test_model_not_ready_is_failed_precondition(channel, heldout_markers):
+    e = _status(stream_synthesize(channel, TRAINING_ID, heldout_markers[:1]))
+    assert e.code() == grpc.StatusCode.FAILED_PRECONDITION and "training" in e.details()
+
+
+def test_wrong_marker_count_is_invalid_argument_with_the_models_message(channel, heldout_markers):
+    M = heldout_markers.shape[1]
+    e = _status(stream_synthesize(channel, MODEL_ID, heldout_markers[:3, :-1]))
+    assert e.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.details() == f"frame 0: model expects markers (F,{M},3), got (1, {M - 1}, 3)"
+
+
+def test_a_frame_with_too_few_visible_markers_is_named(channel, heldout_markers):
+    markers = heldout_markers[:6].copy()
+    markers[4, 2:] = np.nan
+    replies = stream_synthesize(channel, MODEL_ID, markers)
+    got = [next(replies) for _ in range(4)]               # the frames before it are answered
+    with pytest.raises(grpc.RpcError) as e:
+        next(replies)
+    assert [g["frame"] for g in got] == [0, 1, 2, 3]
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details().startswith("frame 4 has 2 visible markers, at least")
+
+
+@pytest.mark.parametrize("model_id, outputs, message", [
+    ("", ["mesh"], "the first MarkerFrame of a stream must name a model_id"),
+    (MODEL_ID, ["mesh", "wrinkles"], "unknown outputs ['wrinkles']; choose from"),
+])
+def test_an_invalid_first_message_is_invalid_argument(channel, heldout_markers, model_id, outputs, message):
+    e = _status(stream_synthesize(channel, model_id, heldout_markers[:1], outputs))
+    assert e.code() == grpc.StatusCode.INVALID_ARGUMENT and e.details().startswith(message)
+
+
+def test_a_reply_over_the_message_limit_is_resource_exhausted(load_model, heldout_markers):
+    with running(load_model, max_message_bytes=32 * 1024) as small:         # a 128² map is 64 KiB
+        e = _status(stream_synthesize(small, MODEL_ID, heldout_markers[:1], ["displacement"]))
+    assert e.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+def test_tokens_are_required_when_configured(load_model, heldout_markers):
+    with running(load_model, tokens=["s3cret", "other"]) as secured:
+        for token in (None, "wrong", "s3cret2"):
+            e = _status(stream_synthesize(secured, MODEL_ID, heldout_markers[:1], token=token))
+            assert e.code() == grpc.StatusCode.UNAUTHENTICATED, token
+        assert len(list(stream_synthesize(secured, MODEL_ID, heldout_markers[:2], token="other"))) == 2
+
+
+def test_serve_listens_beyond_loopback_only_with_tokens(load_model):
+    with pytest.raises(ValueError, match="without tokens"):
+        serve(load_model, host="0.0.0.0", port=0)
+
+
+def test_streams_beyond_max_workers_are_refused_not_queued(load_model, heldout_markers):
+    release = threading.Event()
+
+    def held_open():                                       # a live source that pauses
+        yield heldout_markers[0]
+        release.wait(10)
+
+    with running(load_model) as channel:                   # max_workers=2
+        open_streams = [stream_synthesize(channel, MODEL_ID, held_open()) for _ in range(2)]
+        try:
+            assert [next(s)["frame"] for s in open_streams] == [0, 0]
+            e = _status(stream_synthesize(channel, MODEL_ID, heldout_markers[:1]))
+            assert e.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        finally:
+            release.set()
+        assert [list(s) for s in open_streams] == [[], []]
