@@ -184,11 +184,14 @@ class FrameField:
     faces : (m,3) int64
     incidence : (n,m) sparse    vertex–triangle incidence (sums triangle normals)
     du : (n,n) sparse           vertices ↦ accumulated dP/du at the vertices
+    edges : (2m,n) sparse       vertices ↦ the edges e1 = P1 − P0 (rows :m), e2 = P2 − P0
+                                (a sparse product is several times faster than gathering)
     """
 
     faces: np.ndarray
     incidence: sp.csr_matrix
     du: sp.csr_matrix
+    edges: sp.csr_matrix
 
     @classmethod
     def build(cls, V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray) -> "FrameField":
@@ -210,7 +213,10 @@ class FrameField:
         du = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
         incidence = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))),
                                   shape=(n, m))
-        return cls(F, incidence, du)
+        rows = np.repeat(np.arange(2 * m), 2)
+        cols = np.stack([np.column_stack([F[:, 1], F[:, 0]]), np.column_stack([F[:, 2], F[:, 0]])]).ravel()
+        edges = sp.csr_matrix((np.tile([1.0, -1.0], 2 * m), (rows, cols)), shape=(2 * m, n))
+        return cls(F, incidence, du, edges)
 
     def frames(self, V: np.ndarray) -> np.ndarray:
         """Frames (n,3,3) or (frames,n,3,3), rows (T, B, N), of poses V (n,3) or (frames,n,3)."""
@@ -236,20 +242,22 @@ class FrameField:
         """T, B, N (b,n,3), has_n (b,n) and the leading shape of poses V."""
         Vb, lead = _flatten_frames(V)
         nb, n = Vb.shape[:2]
-        F = self.faces
-        fn = _cross(Vb[:, F[:, 1]] - Vb[:, F[:, 0]], Vb[:, F[:, 2]] - Vb[:, F[:, 0]])   # (B,m,3)
-        m = len(F)
-        N = (self.incidence @ fn.transpose(1, 0, 2).reshape(m, 3 * nb)).reshape(n, nb, 3)
-        T = (self.du @ Vb.transpose(1, 0, 2).reshape(n, 3 * nb)).reshape(n, nb, 3)
-        N = _normalize(N.transpose(1, 0, 2))
-        T = T.transpose(1, 0, 2)
-        T = T - np.einsum("bnd,bnd->bn", T, N)[..., None] * N
-        has_n = np.einsum("bnd,bnd->bn", N, N) > 0.25
-        tn = np.sqrt(np.einsum("bnd,bnd->bn", T, T))
+        m = len(self.faces)
+        # vertex-major (n, 3·b) throughout: sparse products instead of gathers, no copies for b = 1
+        Vn = Vb.transpose(1, 0, 2).reshape(n, 3 * nb)
+        e = (self.edges @ Vn).reshape(2, m, nb, 3)
+        fn = _cross(e[0], e[1])                                                    # (m,b,3)
+        N = _normalize((self.incidence @ fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
+        T = (self.du @ Vn).reshape(n, nb, 3)
+        T -= np.einsum("nbd,nbd->nb", T, N)[..., None] * N
+        has_n = np.einsum("nbd,nbd->nb", N, N) > 0.25
+        tn = np.sqrt(np.einsum("nbd,nbd->nb", T, T))
         weak = has_n & ~(tn > CANCEL_RTOL * np.maximum(np.abs(T).max(), 1e-300))
         if weak.any():
             Nw = N[weak]
             axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
             T[weak] = axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw
         T = _normalize(T)
-        return T, _cross(N, T), N, has_n, lead
+        B = _cross(N, T)
+        return (T.transpose(1, 0, 2), B.transpose(1, 0, 2), N.transpose(1, 0, 2),
+                has_n.T, lead)

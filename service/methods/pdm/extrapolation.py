@@ -47,10 +47,22 @@ def training_limit(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]]
 
 def limit_parameters(d1: np.ndarray, d2: np.ndarray, limit: np.ndarray,
                      margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """d1, d2 (…,P) scaled onto ``(1 + margin) R`` where they exceed it, and the mask (…,P)."""
+    """d1, d2 (…,P) scaled onto ``(1 + margin) R`` where they exceed it, and the mask (…,P).
+
+    The inputs are returned as they are when no point exceeds the limit (the common case
+    in synthesis: one pass over the points, in place on one temporary).
+    """
     i11, i12, i22, R = limit
-    m2 = d1 * d1 * i11 + 2 * d1 * d2 * i12 + d2 * d2 * i22                # Mahalanobis²
+    m2 = d2 * i12                                  # Mahalanobis² = d1 (i11 d1 + 2 i12 d2) + i22 d2²
+    m2 *= 2
+    m2 += d1 * i11
+    m2 *= d1
+    tmp = d2 * i22
+    tmp *= d2
+    m2 += tmp
     L = np.asarray(1 + margin, dtype=R.dtype) * R
     over = m2 > L * L
+    if not over.any():
+        return d1, d2, over
     scale = np.where(over, L / np.sqrt(np.maximum(m2, 1e-30)), np.asarray(1, dtype=m2.dtype))
     return d1 * scale, d2 * scale, over
