@@ -264,7 +264,7 @@ class DetailTexels:
 
     index (P,) covered texels (row-major) of the H×H map; interp (P,n) vertex → texel;
     corner (P,) first vertex of each texel's triangle; regions: actor region → (P,) bool
-    (the texel's triangle's first vertex in the region); sigma, mask_blur: training's band split.
+    (the texel's triangle's first vertex in the region); split: training's band split.
     """
 
     H: int
@@ -272,8 +272,7 @@ class DetailTexels:
     interp: object
     corner: np.ndarray
     regions: dict
-    sigma: float
-    mask_blur: np.ndarray
+    split: object                      # service.methods.pdm.model.BandFilter
 
     @property
     def face(self) -> np.ndarray:
@@ -281,19 +280,15 @@ class DetailTexels:
 
     @classmethod
     def build(cls, actor, H: int, sigma: float) -> "DetailTexels":
-        from scipy.ndimage import gaussian_filter
-
         from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
+        from service.methods.pdm.model import BandFilter
 
         raster = rasterize_uv(actor.uv, actor.uv_faces, H, H)
         index = np.flatnonzero(raster.mask.ravel())
         interp = interpolation_matrix(raster, actor.faces, actor.n_vertices)[index].tocsr()
         corner = actor.faces[raster.triangle.ravel()[index], 0]
         regions = {k: np.asarray(v, bool)[corner] for k, v in actor.regions.items()}
-        mask = np.zeros(H * H)
-        mask[index] = 1.0
-        blur = gaussian_filter(mask.reshape(H, H), sigma, mode="constant").ravel()[index]
-        return cls(H, index, interp, corner, regions, sigma, blur)
+        return cls(H, index, interp, corner, regions, BandFilter.build(H, index, sigma))
 
     def normals(self, medium: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """Unit normals (k,P,3) float32 of the medium surfaces (k,n,3) at the texels."""
@@ -307,9 +302,7 @@ class DetailTexels:
 
     def highpass(self, values: np.ndarray) -> np.ndarray:
         """The fine band ``h − G_σ∗h`` (P,) of heights at the covered texels (training's split)."""
-        from service.methods.pdm.model import _highpass
-
-        return _highpass(np.asarray(values, np.float64), self.index, self.H, self.sigma, self.mask_blur)
+        return self.split.highpass(np.asarray(values, np.float64))
 
     def heights(self, V: np.ndarray, medium: np.ndarray, normals: np.ndarray,
                 d: np.ndarray | None) -> np.ndarray:
