@@ -3,6 +3,9 @@
     facesynth sample-actor --out DIR --seed N --level 0|1|2   build the sample actor
     facesynth sample-gallery --actor DIR --out DIR             render a built actor to PNGs
     facesynth demo [--out DIR]                                 build a level-1 actor, summarise it
+    facesynth worker [--data-dir DIR] [--workers N]            run jobs (training, synthesis) from the queue
+    facesynth serve [--host H] [--port P] [--grpc-port G] [--data-dir DIR] [--workers N]
+                                                               HTTP API + gRPC + embedded job workers
 """
 
 from __future__ import annotations
@@ -115,6 +118,58 @@ def cmd_pdm_synthesize(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_worker(args: argparse.Namespace) -> int:
+    import logging
+
+    from service.config import Settings
+    from service.jobs.worker import run_worker
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    overrides = {name: getattr(args, name) for name in ("data_dir", "database_url", "queue_url",
+                                                        "queue_name", "workers")
+                 if getattr(args, name) is not None}
+    run_worker(Settings(**overrides))
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """The HTTP API (uvicorn), the gRPC streaming server (same host) and embedded job
+    workers, sharing one database, blob store and model cache, until SIGINT/SIGTERM."""
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.api.logs import configure_logging
+    from service.api.services import Services
+    from service.config import Settings
+    from service.grpc.server import is_loopback, serve
+    from service.jobs.worker import start_embedded
+
+    overrides = {name: getattr(args, name) for name in ("host", "port", "grpc_port", "data_dir",
+                                                        "workers")
+                 if getattr(args, name) is not None}
+    settings = Settings(**overrides)
+    if not settings.tokens and not is_loopback(settings.host):
+        print(f"facesynth serve: refusing to listen on {settings.host} without tokens; set "
+              "FACESYNTH_TOKENS, or listen on loopback (127.0.0.1)", file=sys.stderr)
+        return 2
+    configure_logging()
+    services = Services.open(settings)
+    workers = grpc_server = None
+    try:
+        workers = start_embedded(settings, settings.workers)
+        grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
+                            tokens=settings.tokens)
+        uvicorn.run(create_app(settings, services=services), host=settings.host,
+                    port=settings.port, log_config=None, access_log=False)
+    finally:
+        if grpc_server is not None:
+            grpc_server.stop(grace=5).wait()
+        if workers is not None:
+            workers.stop(timeout=60)
+        services.close()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from service.methods.pdm.model import PdmParams
 
@@ -155,6 +210,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated: mesh, mesh_detailed, displacement, albedo, normal_map")
     p.add_argument("--no-clamp", action="store_true", help="let the polynomials extrapolate")
     p.set_defaults(func=cmd_pdm_synthesize)
+
+    p = sub.add_parser("worker", help="run jobs from the queue until SIGINT/SIGTERM",
+                       description="Run training and synthesis jobs. Every option defaults to its "
+                                   "FACESYNTH_* environment variable (then to the built-in default).")
+    p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
+    p.add_argument("--database-url", help="metadata database URL (FACESYNTH_DATABASE_URL)")
+    p.add_argument("--queue-url", help="queue storage, e.g. redis://host:6379/0 (FACESYNTH_QUEUE_URL)")
+    p.add_argument("--queue-name", help="queue name (FACESYNTH_QUEUE_NAME)")
+    p.add_argument("--workers", type=int, help="job threads (FACESYNTH_WORKERS, default 1)")
+    p.set_defaults(func=cmd_worker)
+
+    p = sub.add_parser("serve", help="run the HTTP API, the gRPC server and embedded job workers",
+                       description="Serve the HTTP API (API.md), the gRPC synthesis stream and "
+                                   "job workers in one process. Every option defaults to its "
+                                   "FACESYNTH_* environment variable (then to the built-in "
+                                   "default). Without FACESYNTH_TOKENS it only listens on "
+                                   "loopback.")
+    p.add_argument("--host", help="HTTP address (FACESYNTH_HOST, default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="HTTP port (FACESYNTH_PORT, default 8000)")
+    p.add_argument("--grpc-port", type=int, help="gRPC port (FACESYNTH_GRPC_PORT, default 50051)")
+    p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
+    p.add_argument("--workers", type=int, help="embedded job threads (FACESYNTH_WORKERS, default 1)")
+    p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("demo", help="build the level-1 sample actor and summarise it")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")

@@ -50,7 +50,12 @@ class Settings(BaseSettings):
     queue_url: str | None = Field(
         default=None,
         description="URL of the task queue's storage, e.g. 'redis://queue:6379/0'. None: the "
-                    "embedded queue in the data directory (one machine).")
+                    "embedded queue in the data directory (one machine); 'memory://': run "
+                    "every job at once in the submitting thread (tests).")
+    queue_name: str = Field(
+        default="facesynth", min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_]+$",
+        description="Name of the task queue; its Redis keys are 'huey.*.<queue_name>'. "
+                    "Deployments (or test runs) sharing one Redis use different names.")
 
     # -- network -----------------------------------------------------------------------------
     host: str = Field(default="127.0.0.1", description="Address the HTTP API listens on.")

@@ -1,0 +1,323 @@
+"""The canonical stored forms of an actor's neutral, marker layout and clips, and their loaders.
+
+The API parses whatever a user uploads (OBJ, NPZ, marker files, per-frame OBJs), validates
+it and stores one canonical blob per resource, written by the functions here; the jobs read
+those blobs back into the method inputs :class:`~service.methods.inputs.ActorData` and
+:class:`~service.methods.inputs.Clip`. The formats:
+
+neutral (NPZ)
+    ``vertices`` (n,3) float64 · ``faces`` (m,3) int64 · ``uv`` (K,2) float64 ·
+    ``uv_faces`` (m,3) int64 (per-corner UV indices; ``faces`` when the UVs are per vertex) ·
+    optional ``region_<name>`` (n,) bool named vertex sets (per-region training metrics)
+marker layout (JSON)
+    ``{"names": [M str], "triangle": [M int], "barycentric": [[b0, b1, b2], ...]}``: every
+    marker already resolved to a surface point of the neutral (the API snaps vertex and
+    position placements before storing)
+clip (NPZ)
+    ``vertices`` (F,n,3) float32 · ``markers`` (F,M,3) float32, NaN where occluded ·
+    optional ``displacement`` (F,H,H) float32 · optional ``albedo`` (F,Ha,Ha,3) float32
+    linear RGB · ``fps`` () float64
+
+The clip's ``displacement`` is the fine detail along the normal **relative to the clip's
+own** ``vertices`` (a scan delivered as mesh + displacement map, :class:`Clip`'s meaning),
+so the loader passes it through. The sample actor's files hold it relative to their medium
+surface instead; :func:`sample_actor_uploads` converts them with
+:func:`service.samples.dataset.load_clip`, the one place that conversion lives.
+
+Writers validate what they are given and raise :class:`InvalidInput` naming the problem;
+loaders raise :class:`InvalidInput` for a missing neutral or layout, a blob that is not in
+the canonical form, or a clip that does not match the actor.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+from sqlalchemy.orm import Session
+
+from models_store import registry
+from models_store.blobs import BlobStore
+from models_store.errors import NotFound
+from service.methods.inputs import ActorData, Clip, InvalidInput, check_clips
+
+#: prefix of the neutral NPZ's region keys (``region_<name>``)
+REGION_PREFIX = "region_"
+#: allowed region names
+_REGION_NAME = re.compile(r"[A-Za-z0-9_]{1,64}")
+#: barycentric coordinates must be >= -this and sum to 1 within it
+BARYCENTRIC_TOLERANCE = 1e-6
+#: media types of the canonical blobs
+NPZ_MEDIA_TYPE = "application/x-npz"
+LAYOUT_MEDIA_TYPE = "application/json"
+
+
+# ---------------------------------------------------------------------------- helpers
+def _npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """Uncompressed NPZ of ``arrays``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
+    """The arrays of an NPZ blob (no pickles), or InvalidInput."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            return {key: npz[key] for key in npz.files}
+    except (ValueError, OSError, EOFError) as error:
+        raise InvalidInput(f"{what} is not a readable .npz: {error}") from None
+
+
+def _floats(value, what: str, shape: tuple[int | None, ...], dtype=np.float64) -> np.ndarray:
+    """``value`` as a finite float array whose shape matches ``shape`` (None: any length)."""
+    array = np.asarray(value)
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InvalidInput(f"{what} must be numeric, got dtype {array.dtype}")
+    _check_shape(array, what, shape)
+    return array.astype(dtype, copy=False)
+
+
+def _indices(value, what: str, shape: tuple[int | None, ...], bound: int, plural: str) -> np.ndarray:
+    """``value`` as an int64 array of indices in [0, bound)."""
+    array = np.asarray(value)
+    if not np.issubdtype(array.dtype, np.integer):
+        raise InvalidInput(f"{what} must be integer indices, got dtype {array.dtype}")
+    _check_shape(array, what, shape)
+    if array.size and (array.min() < 0 or array.max() >= bound):
+        raise InvalidInput(f"{what} index {int(array.max() if array.max() >= bound else array.min())} "
+                           f"is out of range: there are {bound} {plural}")
+    return array.astype(np.int64, copy=False)
+
+
+def _check_shape(array: np.ndarray, what: str, shape: tuple[int | None, ...]) -> None:
+    if array.ndim != len(shape) or any(s is not None and a != s for a, s in zip(array.shape, shape)):
+        expected = ",".join("*" if s is None else str(s) for s in shape)
+        raise InvalidInput(f"{what} must have shape ({expected}), got {array.shape}")
+
+
+def _check_finite(array: np.ndarray, what: str, allow_nan: bool = False) -> None:
+    bad = np.isinf(array) if allow_nan else ~np.isfinite(array)
+    if bad.any():
+        raise InvalidInput(f"{what} has non-finite values (first at index "
+                           f"{np.unravel_index(np.argmax(bad), array.shape)})")
+
+
+# ---------------------------------------------------------------------------- writers
+def neutral_npz(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
+                uv_faces: np.ndarray | None = None,
+                regions: Mapping[str, np.ndarray] | None = None) -> bytes:
+    """The canonical neutral blob.
+
+    Parameters
+    ----------
+    vertices : (n,3) float      the high-resolution neutral, actor's unit
+    faces : (m,3) int           triangles
+    uv : (K,2) float            UVs in the unit tile (per vertex, K = n, if uv_faces is None)
+    uv_faces : (m,3) int        per-corner UV indices (default: ``faces``)
+    regions : name → (n,) bool  optional named vertex sets
+
+    Returns
+    -------
+    bytes   NPZ (see the module docstring)
+    """
+    V = _floats(vertices, "neutral vertices", (None, 3))
+    _check_finite(V, "neutral vertices")
+    n = len(V)
+    F = _indices(faces, "neutral faces", (None, 3), n, "vertices")
+    UV = _floats(uv, "neutral uv", (None, 2))
+    _check_finite(UV, "neutral uv")
+    if uv_faces is None:
+        if len(UV) != n:
+            raise InvalidInput(f"per-vertex uv must have one row per vertex ({n}), got {len(UV)}; "
+                               "give uv_faces for per-corner UVs")
+        uv_faces = F
+    UVF = _indices(uv_faces, "neutral uv_faces", (len(F), 3), len(UV), "uv coordinates")
+    arrays = {"vertices": V, "faces": F, "uv": UV, "uv_faces": UVF}
+    for name, mask in (regions or {}).items():
+        if not _REGION_NAME.fullmatch(name):
+            raise InvalidInput(f"region name {name!r} must be 1-64 characters of [A-Za-z0-9_]")
+        mask = np.asarray(mask)
+        _check_shape(mask, f"region '{name}'", (n,))
+        arrays[REGION_PREFIX + name] = mask.astype(bool)
+    return _npz_bytes(arrays)
+
+
+def layout_json(names: Sequence[str], triangle: np.ndarray, barycentric: np.ndarray) -> bytes:
+    """The canonical marker-layout blob: markers as surface points of the neutral.
+
+    Parameters
+    ----------
+    names : M str               unique marker names, in layout (and clip column) order
+    triangle : (M,) int         triangle of the neutral each marker lies in
+    barycentric : (M,3) float   barycentric coordinates (non-negative, summing to 1)
+    """
+    names = [str(name) for name in names]
+    M = len(names)
+    if M == 0:
+        raise InvalidInput("a marker layout needs at least one marker")
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise InvalidInput(f"marker name '{name}' appears more than once")
+        seen.add(name)
+    tri = np.asarray(triangle)
+    if not np.issubdtype(tri.dtype, np.integer):
+        raise InvalidInput(f"marker triangles must be integers, got dtype {tri.dtype}")
+    _check_shape(tri, "marker triangles", (M,))
+    bary = _floats(barycentric, "marker barycentric coordinates", (M, 3))
+    _check_finite(bary, "marker barycentric coordinates")
+    bad = np.flatnonzero((bary < -BARYCENTRIC_TOLERANCE).any(axis=1)
+                         | (np.abs(bary.sum(axis=1) - 1) > BARYCENTRIC_TOLERANCE))
+    if len(bad):
+        raise InvalidInput(f"marker '{names[bad[0]]}' has barycentric {bary[bad[0]].tolist()}; "
+                           "they must be non-negative and sum to 1")
+    return json.dumps({"names": names, "triangle": tri.astype(np.int64).tolist(),
+                       "barycentric": bary.tolist()}).encode()
+
+
+def clip_npz(vertices: np.ndarray, markers: np.ndarray, *, displacement: np.ndarray | None = None,
+             albedo: np.ndarray | None = None, fps: float = 30.0) -> bytes:
+    """The canonical clip blob.
+
+    Parameters
+    ----------
+    vertices : (F,n,3) float        high-resolution frames, in vertex correspondence with
+                                    the neutral
+    markers : (F,M,3) float         markers in layout order, NaN where occluded
+    displacement : (F,H,H) float    fine detail along the normal relative to ``vertices``
+    albedo : (F,Ha,Ha,3) float      linear RGB
+    fps : float                     frame rate (> 0)
+    """
+    V = _floats(vertices, "clip vertices", (None, None, 3), np.float32)
+    frames = len(V)
+    if frames == 0:
+        raise InvalidInput("a clip needs at least one frame")
+    _check_finite(V, "clip vertices")
+    P = _floats(markers, "clip markers", (frames, None, 3), np.float32)
+    _check_finite(P, "clip markers", allow_nan=True)
+    if not np.isfinite(fps) or fps <= 0:
+        raise InvalidInput(f"fps must be a positive number, got {fps}")
+    arrays = {"vertices": V, "markers": P, "fps": np.float64(fps)}
+    if displacement is not None:
+        D = _floats(displacement, "clip displacement", (frames, None, None), np.float32)
+        _check_finite(D, "clip displacement")
+        arrays["displacement"] = D
+    if albedo is not None:
+        A = _floats(albedo, "clip albedo", (frames, None, None, 3), np.float32)
+        _check_finite(A, "clip albedo")
+        arrays["albedo"] = A
+    return _npz_bytes(arrays)
+
+
+# ---------------------------------------------------------------------------- readers
+def actor_from_blobs(neutral: bytes, layout: bytes) -> ActorData:
+    """:class:`ActorData` from a canonical neutral and marker-layout blob."""
+    arrays = _open_npz(neutral, "the stored neutral")
+    missing = {"vertices", "faces", "uv", "uv_faces"} - set(arrays)
+    if missing:
+        raise InvalidInput(f"the stored neutral lacks {sorted(missing)}")
+    try:
+        body = json.loads(layout)
+        names, triangle, barycentric = body["names"], body["triangle"], body["barycentric"]
+    except (ValueError, TypeError, KeyError) as error:
+        raise InvalidInput(f"the stored marker layout is not in the canonical form: {error!r}") from None
+    n_faces = len(arrays["faces"])
+    tri = _indices(np.asarray(triangle, dtype=np.int64), "marker triangle", (len(names),),
+                   n_faces, "triangles of the neutral")
+    regions = {key[len(REGION_PREFIX):]: value.astype(bool) for key, value in arrays.items()
+               if key.startswith(REGION_PREFIX)}
+    return ActorData(arrays["vertices"].astype(np.float64), arrays["faces"].astype(np.int64),
+                     arrays["uv"].astype(np.float64), arrays["uv_faces"].astype(np.int64),
+                     tri, np.asarray(barycentric, np.float64).reshape(len(names), 3),
+                     tuple(names), regions)
+
+
+def clip_from_blob(data: bytes, name: str) -> Clip:
+    """A :class:`Clip` called ``name`` from a canonical clip blob (vertices and markers
+    in float64, maps in float32)."""
+    arrays = _open_npz(data, f"clip '{name}'")
+    missing = {"vertices", "markers"} - set(arrays)
+    if missing:
+        raise InvalidInput(f"clip '{name}' lacks {sorted(missing)}")
+    fps = float(arrays["fps"]) if "fps" in arrays else 30.0
+    maps = {key: arrays[key].astype(np.float32) if key in arrays else None
+            for key in ("displacement", "albedo")}
+    return Clip(name, arrays["vertices"].astype(np.float64), arrays["markers"].astype(np.float64),
+                maps["displacement"], maps["albedo"], fps)
+
+
+# ---------------------------------------------------------------------------- the store
+def load_actor_data(session: Session, blobs: BlobStore, actor_id: str) -> ActorData:
+    """The stored actor as :class:`ActorData`.
+
+    Raises
+    ------
+    NotFound       unknown actor
+    InvalidInput   the actor has no neutral or no marker layout yet
+    """
+    try:
+        neutral = registry.read_neutral(session, blobs, actor_id)
+        layout = registry.read_markers(session, blobs, actor_id)
+    except NotFound as error:
+        if error.kind == "actor":
+            raise
+        raise InvalidInput(f"actor {actor_id!r} has no {error.kind} yet; upload it first") from None
+    return actor_from_blobs(neutral, layout)
+
+
+def load_clips(session: Session, blobs: BlobStore, clip_ids: Sequence[str],
+               actor: ActorData) -> list[Clip]:
+    """The stored clips, in the given order, checked against ``actor``.
+
+    A clip is named by its ``name`` (its id when it has none), so error messages and
+    training metrics say which clip they mean.
+
+    Raises
+    ------
+    NotFound       unknown clip
+    InvalidInput   a clip that does not match the actor or the others
+                   (:func:`~service.methods.inputs.check_clips`)
+    """
+    clips = []
+    for clip_id in clip_ids:
+        row = registry.get_clip(session, clip_id)
+        data = registry.read_clip(session, blobs, clip_id)
+        clips.append(clip_from_blob(data, row.name or row.id))
+    check_clips(actor, clips)
+    return clips
+
+
+# ---------------------------------------------------------------------------- sample actor
+def sample_actor_uploads(actor_dir: str | Path, names: Sequence[str] | None = None
+                         ) -> tuple[bytes, bytes, dict[str, bytes]]:
+    """A built sample actor directory (``facesynth sample-actor``) as canonical uploads.
+
+    Parameters
+    ----------
+    actor_dir : the sample actor's directory
+    names : performance names to include (default: every performance)
+
+    Returns
+    -------
+    neutral : bytes               :func:`neutral_npz` with the sample actor's regions
+    layout : bytes                :func:`layout_json`
+    clips : {name: bytes}         :func:`clip_npz` per performance, the displacement made
+                                  relative to the clip's vertices (maps only where every
+                                  frame has them, as :func:`~service.samples.dataset.load_clip`)
+    """
+    from service.samples import dataset
+
+    actor = dataset.load_actor(actor_dir)
+    neutral = neutral_npz(actor.vertices, actor.faces, actor.uv, actor.uv_faces, actor.regions)
+    layout = layout_json(actor.marker_names, actor.marker_triangle, actor.marker_barycentric)
+    clips = {}
+    for name in (dataset.performance_names(actor_dir) if names is None else names):
+        clip = dataset.load_clip(actor_dir, name, actor)
+        clips[name] = clip_npz(clip.vertices, clip.markers, displacement=clip.displacement,
+                               albedo=clip.albedo, fps=clip.fps)
+    return neutral, layout, clips

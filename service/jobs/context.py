@@ -1,0 +1,58 @@
+"""The store a job works on: database sessions and the blob store named by the settings.
+
+Engines are expensive and pool connections, so one :class:`Store` is kept per database URL
+and blob directory for the life of the process (:func:`get_store`); tests that make many
+data directories call :func:`close_stores` at the end.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from models_store.blobs import BlobStore
+from models_store.db import make_engine, make_session_factory
+from service.config import Settings
+
+
+@dataclass(frozen=True)
+class Store:
+    """Database sessions and blobs of one deployment.
+
+    Attributes
+    ----------
+    sessions : sessionmaker   ``with store.sessions() as session: ...``
+    blobs : BlobStore
+    """
+
+    sessions: sessionmaker[Session]
+    blobs: BlobStore
+
+    def dispose(self) -> None:
+        """Close the engine's pooled connections."""
+        self.sessions.kw["bind"].dispose()
+
+
+_stores: dict[tuple[str, str], Store] = {}
+_lock = threading.Lock()
+
+
+def get_store(settings: Settings) -> Store:
+    """The process-wide :class:`Store` for ``settings`` (made on first use)."""
+    key = (settings.database_url_resolved, str(settings.blob_dir.absolute()))
+    with _lock:
+        store = _stores.get(key)
+        if store is None:
+            store = Store(make_session_factory(make_engine(key[0])), BlobStore(key[1]))
+            _stores[key] = store
+        return store
+
+
+def close_stores() -> None:
+    """Dispose of every cached store (their engines' connections)."""
+    with _lock:
+        for store in _stores.values():
+            store.dispose()
+        _stores.clear()

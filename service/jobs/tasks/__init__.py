@@ -1,0 +1,19 @@
+"""One task function per job kind: ``task(job: RunningJob) -> result dict``.
+
+A task reads everything it needs from the store by the ids in ``job.payload``, reports
+through ``job.progress`` (where cancellation takes effect) and returns the job's
+``result`` (API.md: ``{model_id?, artifact_ids?}``). It raises
+:class:`~service.methods.inputs.InvalidInput` for input that cannot be used; the runner
+(:mod:`service.jobs.runner`) turns that into the job's error.
+"""
+
+from __future__ import annotations
+
+from service.jobs.runner import Task
+from service.jobs.tasks.synthesize import synthesize
+from service.jobs.tasks.train import train
+
+#: job kind → task function
+TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize}
+
+__all__ = ["TASKS", "train", "synthesize"]

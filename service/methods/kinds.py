@@ -1,0 +1,172 @@
+"""The model-kind registry: what the API and the jobs need to know about each method.
+
+A :class:`Kind` bundles a method's name, its OpenAPI text, its parameters as a pydantic
+model (bounds, defaults, ``extra="forbid"`` so a misspelt parameter is a 422), what it takes
+as input, and its ``train``/``load`` functions. Routers and job tasks look a kind up here
+and never import a method module themselves, so a new method is one entry in
+:data:`KINDS`.
+
+Examples
+--------
+>>> kind = get_kind("pdm")
+>>> params = kind.parse_params({"order": "linear", "medium_resolution": 64})
+>>> params.fine_resolution
+1024
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal, Mapping, Protocol, Sequence
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.methods.inputs import ActorData, Clip, InvalidInput, Progress
+from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
+
+
+class TrainedModel(Protocol):
+    """What ``Kind.train`` returns and ``Kind.load`` reads back."""
+
+    metrics: dict
+
+    def save(self, path: Path) -> dict: ...
+
+    def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
+                   clamp: bool = ...) -> dict[str, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One model kind.
+
+    Attributes
+    ----------
+    name : str            the API's ``kind`` value, e.g. ``"pdm"``
+    title : str           one line for listings and OpenAPI
+    description : str     OpenAPI text (paper, what it learns, licensing notes)
+    params : type         pydantic model of the training parameters (``extra="forbid"``)
+    input : str           ``"markers"`` (``/synthesize``) or ``"meshes"`` (``/enhance``)
+    train : callable      ``(ActorData, list[Clip], params, progress) -> model`` with
+                          ``.save(dir)`` and ``.metrics``
+    load : callable       ``(Path) -> model`` with ``.synthesize(markers, outputs, clamp)``
+    """
+
+    name: str
+    title: str
+    description: str
+    params: type[BaseModel]
+    input: Literal["markers", "meshes"]
+    train: Callable[[ActorData, Sequence[Clip], BaseModel, Progress], TrainedModel]
+    load: Callable[[Path], TrainedModel]
+
+    def parse_params(self, raw: Mapping[str, Any] | BaseModel | None) -> BaseModel:
+        """Validated parameters from a request's (or a stored model's) ``params``.
+
+        ``None`` gives the defaults. Raises :class:`pydantic.ValidationError` for unknown
+        names or values out of bounds (the API maps it to 422 with per-field errors).
+        """
+        if isinstance(raw, self.params):
+            return raw
+        if isinstance(raw, BaseModel):
+            raw = raw.model_dump()
+        return self.params.model_validate(dict(raw or {}))
+
+
+# ---------------------------------------------------------------------------- pdm
+PDM_PATENT_NOTICE = (
+    "The PDM method is covered by US patent 8,902,232 B2 (University of Southern California, "
+    "in force until about 2031); commercial users should check licensing.")
+
+
+_PDM = PdmParams()          # the method's defaults, the one source of truth
+
+
+class PdmParamsModel(BaseModel):
+    """Training parameters of a ``pdm`` model (mirrors :class:`service.methods.pdm.model.PdmParams`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    order: Literal["linear", "biquadratic", "bicubic"] = Field(
+        default=_PDM.order,
+        description="Polynomial order of the displacement maps in (d1, d2): linear (3 "
+                    "coefficients per channel), biquadratic (6, the paper's eq. 1) or bicubic (10).",
+        examples=[_PDM.order])
+    medium_resolution: int = Field(
+        default=_PDM.medium_resolution, ge=16, le=8192,
+        description="Texels per side of the 3D medium-band PDM (the paper uses 512).",
+        examples=[_PDM.medium_resolution])
+    fine_resolution: int = Field(
+        default=_PDM.fine_resolution, ge=16, le=8192,
+        description="Texels per side of the 1D fine-band PDM and of the synthesized "
+                    "displacement/normal maps (the paper uses 1024).",
+        examples=[_PDM.fine_resolution])
+    gamma: float = Field(
+        default=_PDM.gamma, ge=0,
+        description="Regularization constant γ of the per-texel least-squares fit (§4.2); "
+                    "larger values pull the coefficients towards zero.",
+        examples=[_PDM.gamma])
+    axis_threshold_deg: float = Field(
+        default=_PDM.axis_threshold_deg, ge=0, le=90,
+        description="Axis-smoothing threshold angle of §4.1, in degrees.",
+        examples=[_PDM.axis_threshold_deg])
+    extrapolation_margin: float | None = Field(
+        default=_PDM.extrapolation_margin, ge=0,
+        description="Limit the deformation parameters of each texel to (1 + margin) times "
+                    "the largest radius seen in training, so expressions beyond the training "
+                    "data keep the most extreme trained detail instead of growing "
+                    "polynomially; null disables the limit.",
+        examples=[_PDM.extrapolation_margin, None])
+    fine_highpass_mm: float = Field(
+        default=_PDM.fine_highpass_mm, ge=0,
+        description="σ on the surface, in the actor's unit, of the Gaussian whose complement "
+                    "splits the fine band off the medium residual (0: no filter).",
+        examples=[_PDM.fine_highpass_mm])
+    smoothing_lam_dt: float = Field(
+        default=_PDM.smoothing_lam_dt, gt=0,
+        description="Curvature-flow step (actor's unit squared) that makes the smooth "
+                    "neutral underlying the base surface.",
+        examples=[_PDM.smoothing_lam_dt])
+
+
+def _pdm_train(actor: ActorData, clips: Sequence[Clip], params: BaseModel,
+               progress: Progress) -> TrainedModel:
+    """Train a PDM (ma2008 §4) with the pydantic parameters converted to ``PdmParams``."""
+    return pdm_train(actor, list(clips), PdmParams(**PDM_KIND.parse_params(params).model_dump()),
+                 progress)
+
+
+def _pdm_load(path: Path) -> TrainedModel:
+    """Read a PDM model directory (checksums verified)."""
+    return PdmModel.load(path)
+
+
+PDM_KIND = Kind(
+    name="pdm",
+    title="Deformation-driven polynomial displacement maps (Ma et al. 2008)",
+    description=(
+        "Learns per-texel polynomial displacement maps driven by the local deformation of a "
+        "sparse marker mesh (Ma, Jones, Chiang, Hawkins, Frederiksen, Peers, Vukovic, "
+        "Ouhyoung, Debevec: 'Facial performance synthesis using deformation-driven polynomial "
+        "displacement maps', SIGGRAPH Asia 2008). Input: motion-capture markers; output: "
+        "medium-scale meshes, fine-scale displacement, normal and (if trained with albedo) "
+        "albedo maps. " + PDM_PATENT_NOTICE),
+    params=PdmParamsModel,
+    input="markers",
+    train=_pdm_train,
+    load=_pdm_load,
+)
+
+#: every model kind the service knows, by name
+KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND,)}
+
+
+def get_kind(name: str) -> Kind:
+    """The :class:`Kind` called ``name``; :class:`InvalidInput` naming the known kinds."""
+    try:
+        return KINDS[name]
+    except KeyError:
+        raise InvalidInput(f"unknown model kind '{name}'; known kinds: "
+                           f"{', '.join(sorted(KINDS))}") from None

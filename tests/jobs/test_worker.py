@@ -1,0 +1,199 @@
+"""End to end through real queues: worker threads consuming SqliteHuey and RedisHuey, jobs
+training and synthesizing with the sample actor, cancellation, dead workers, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import secrets
+import threading
+from datetime import timedelta
+
+import numpy as np
+import pytest
+
+from models_store import registry
+from models_store.schema import utcnow
+from service import actor_store
+from service.jobs.queue import get_queue, submit
+from service.jobs.worker import reap_and_resubmit, resubmit_stale
+from service.methods import kinds
+from service.samples import dataset
+
+
+def _markers(pdm_actor_dir, frames: int = 20) -> np.ndarray:
+    with np.load(pdm_actor_dir / "performances" / "heldout_in_range.npz") as d:
+        return d["markers"][:frames].astype(np.float64)
+
+
+def test_training_job_on_the_sqlite_queue_makes_a_ready_model(deployment, trained, pdm_actor_dir):
+    model_id, job = trained
+    assert (job.status, job.progress, job.error) == ("succeeded", 1.0, None)
+    assert job.result == {"model_id": model_id} and job.attempts == 1
+    assert job.started_at <= job.finished_at
+    model = deployment.model(model_id)
+    assert model.status == "ready" and model.size_bytes > 0
+    assert model.metrics["training_frames"] == 40 and model.metrics["clips"] == list(
+        dataset.performance_names(pdm_actor_dir, "train_smile")
+        + dataset.performance_names(pdm_actor_dir, "train_brow_raise"))
+    # the stored model loads and synthesizes
+    with deployment.session() as session:
+        path = registry.model_dir(session, deployment.store.blobs, model_id)
+    out = kinds.get_kind("pdm").load(path).synthesize(_markers(pdm_actor_dir, 3))
+    assert out["vertices"].shape == (3, 11248, 3) and np.isfinite(out["vertices"]).all()
+    assert out["displacement"].shape == (3, 64, 64)
+    assert (deployment.settings.data_dir / "queue.db").is_file()
+
+
+def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker, pdm_actor_dir):
+    model_id, _ = trained
+    markers = _markers(pdm_actor_dir, 20)
+    markers[5, 3] = np.nan  # an occluded marker
+    job_id = deployment.create_synthesis_job(model_id, markers,
+                                             outputs=["mesh", "displacement", "normal_map"])
+    start_worker(deployment.settings)
+    submit(deployment.settings, job_id)
+    job = deployment.wait(job_id)
+    assert job.status == "succeeded", job.error
+    (artifact_id,) = job.result["artifact_ids"]
+    with deployment.session() as session:
+        artifact, stream = registry.open_artifact(session, deployment.store.blobs, artifact_id)
+        with stream, np.load(io.BytesIO(stream.read())) as d:
+            result = {k: d[k] for k in d.files}
+        path = registry.model_dir(session, deployment.store.blobs, model_id)
+    assert artifact.media_type == "application/x-npz"
+    assert result["vertices"].shape == (20, 11248, 3) and result["normal_map"].shape == (20, 64, 64, 3)
+    expected = kinds.get_kind("pdm").load(path).synthesize(markers, ("mesh", "displacement"))
+    np.testing.assert_array_equal(result["vertices"], expected["vertices"])
+    np.testing.assert_array_equal(result["displacement"], expected["displacement"])
+    np.testing.assert_array_equal(result["faces"], expected["faces"])
+
+
+def test_training_job_on_the_redis_queue(deployment, redis_server, start_worker):
+    settings = deployment.settings.model_copy(update={
+        "queue_url": redis_server, "queue_name": f"facesynth_test_{secrets.token_hex(4)}"})
+    queue = get_queue(settings)
+    try:
+        model, job = deployment.create_model()
+        start_worker(settings)
+        submit(settings, job.id)
+        job = deployment.wait(job.id, timeout=120)
+        assert (job.status, job.progress, job.error) == ("succeeded", 1.0, None)
+        assert deployment.model(model.id).status == "ready"
+        # the message travelled as JSON, under this run's own keys
+        keys = queue.huey.storage.conn.keys(f"huey.*{settings.queue_name}*")
+        assert all(settings.queue_name in key.decode() for key in keys)
+    finally:
+        queue.huey.storage.flush_all()
+        conn = queue.huey.storage.conn
+        for key in conn.scan_iter(f"huey.*{settings.queue_name}*"):
+            conn.delete(key)
+        assert not list(conn.scan_iter(f"*{settings.queue_name}*"))
+
+
+@pytest.fixture
+def gated_training(monkeypatch):
+    """Make ``pdm`` training stop at its first progress point until ``proceed`` is set."""
+    kind = kinds.KINDS["pdm"]
+    started, proceed = threading.Event(), threading.Event()
+
+    def train(actor, clips, params, progress):
+        def gated(fraction, stage):
+            if not started.is_set():
+                started.set()
+                assert proceed.wait(30), "the test never let training proceed"
+            progress(fraction, stage)
+        return kind.train(actor, clips, params, gated)
+
+    monkeypatch.setitem(kinds.KINDS, "pdm", dataclasses.replace(kind, train=train))
+    yield started, proceed
+    proceed.set()
+
+
+def test_cancelling_a_running_training_job_stops_it_at_the_next_progress_point(
+        deployment, start_worker, gated_training):
+    started, proceed = gated_training
+    model, job = deployment.create_model()
+    start_worker(deployment.settings)
+    submit(deployment.settings, job.id)
+    assert started.wait(30)
+    with deployment.session() as session:
+        flagged = registry.request_cancel(session, job.id)
+    assert (flagged.status, flagged.cancel_requested) == ("running", True)
+    proceed.set()
+    job = deployment.wait(job.id)
+    assert job.status == "cancelled" and job.error["code"] == "cancelled"
+    assert job.progress < 0.1 and job.stage == "alignment"  # the method's first progress point
+    model = deployment.model(model.id)
+    assert model.status == "failed" and model.blob is None
+
+
+def test_a_stopping_worker_gives_a_running_job_back(deployment, start_worker, gated_training):
+    started, proceed = gated_training
+    model, job = deployment.create_model()
+    handle = start_worker(deployment.settings, grace_seconds=0.2)
+    submit(deployment.settings, job.id)
+    assert started.wait(30)
+    stopper = threading.Thread(target=handle.stop)
+    stopper.start()
+    get_queue(deployment.settings).abandon.wait(10)  # the grace period ran out
+    proceed.set()
+    stopper.join(30)
+    assert not handle.running
+    released = deployment.job(job.id)
+    assert released.status == "running" and released.lease_expires_at <= utcnow()
+    assert reap_and_resubmit(deployment.settings) == [job.id]
+    assert deployment.job(job.id).status == "queued" and deployment.model(model.id).status == "training"
+    with deployment.session() as session:  # not trained again here: cancel the requeued job
+        assert registry.request_cancel(session, job.id).status == "cancelled"
+    assert deployment.model(model.id).status == "failed"
+
+
+def test_a_job_whose_worker_died_is_reaped_and_completed_by_a_live_worker(
+        deployment, trained, start_worker, pdm_actor_dir):
+    model_id, _ = trained
+    job_id = deployment.create_synthesis_job(model_id, _markers(pdm_actor_dir, 4))
+    ghost = "ghost-host:4242:Worker-1"
+    with deployment.session() as session:  # a worker claimed it, then died a minute ago
+        claimed = registry.claim_job(session, ghost, lease_seconds=1.0, max_retries=2,
+                                     job_id=job_id, now=utcnow() - timedelta(seconds=60))
+    assert claimed.status == "running" and claimed.lease_expires_at < utcnow()
+    start_worker(deployment.settings)  # no message: the reaper finds it
+    job = deployment.wait(job_id)
+    assert job.status == "succeeded" and job.attempts == 2
+    assert job.worker != ghost and len(job.result["artifact_ids"]) == 1
+
+
+def test_training_on_a_clip_with_the_wrong_marker_count_fails_with_invalid_input(
+        deployment, uploads, start_worker):
+    _, _, clips = uploads
+    with np.load(io.BytesIO(clips["train_smile"])) as d:
+        short = actor_store.clip_npz(d["vertices"], d["markers"][:, :149], fps=float(d["fps"]))
+    clip_id = deployment.add_clip("short_markers", short)
+    model, job = deployment.create_model([deployment.clip_ids[0], clip_id])
+    start_worker(deployment.settings)
+    submit(deployment.settings, job.id)
+    job = deployment.wait(job.id)
+    assert job.status == "failed" and job.error["code"] == "invalid_input"
+    assert "clip 'short_markers': markers must be (F,150,3), got (20, 149, 3)" in job.error["message"]
+    model = deployment.model(model.id)
+    assert model.status == "failed" and model.error == job.error
+
+
+def test_synthesis_with_the_wrong_marker_count_fails_with_invalid_input(
+        deployment, trained, start_worker, pdm_actor_dir):
+    model_id, _ = trained
+    job_id = deployment.create_synthesis_job(model_id, _markers(pdm_actor_dir, 2)[:, :140])
+    start_worker(deployment.settings)
+    submit(deployment.settings, job_id)
+    job = deployment.wait(job_id)
+    assert job.status == "failed" and job.error == {
+        "code": "invalid_input", "message": "frames 0-1: model expects markers (F,150,3), got (2, 140, 3)"}
+
+
+def test_queued_jobs_whose_message_was_lost_are_resubmitted_when_a_worker_starts(deployment):
+    model, job = deployment.create_model()
+    with deployment.session() as session:
+        assert job.id not in resubmit_stale(deployment.settings)  # too young to be lost
+        assert job.id in resubmit_stale(deployment.settings, older_than=0.0)
+        registry.request_cancel(session, job.id)
