@@ -1,0 +1,50 @@
+"""FastAPI dependencies: the process's :class:`~service.api.services.Services`, a database
+session per request, the settings, and the job submitter.
+
+Nothing here reads the environment: ``create_app(settings)`` puts the services on
+``app.state`` and every route gets them through these functions, so a test builds an app on
+a temporary directory and overrides what it needs (``app.dependency_overrides``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Callable, Iterator
+
+from fastapi import Depends, Request
+from sqlalchemy.orm import Session
+
+from service.api.services import Services
+from service.config import Settings
+
+#: submits a queued job (by id) to the task queue
+Submit = Callable[[str], None]
+
+
+def get_services(request: Request) -> Services:
+    """The app's :class:`Services` (opened by the lifespan)."""
+    return request.app.state.services
+
+
+def get_settings(services: Annotated[Services, Depends(get_services)]) -> Settings:
+    """The app's settings."""
+    return services.settings
+
+
+def get_session(services: Annotated[Services, Depends(get_services)]) -> Iterator[Session]:
+    """A database session for one request, closed after the response."""
+    with services.session() as session:
+        yield session
+
+
+def get_submit(services: Annotated[Services, Depends(get_services)]) -> Submit:
+    """The job submitter: :func:`service.jobs.queue.submit` with the app's settings."""
+    from service.jobs import queue
+
+    settings = services.settings
+    return lambda job_id: queue.submit(settings, job_id)
+
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+SessionDep = Annotated[Session, Depends(get_session)]
+SubmitDep = Annotated[Submit, Depends(get_submit)]

@@ -1,0 +1,335 @@
+"""What each write route does, one function per operation, over the process's
+:class:`~service.api.services.Services`: check the state, parse and validate the upload
+(:mod:`service.api.uploads`), store it through :mod:`models_store.registry`, queue jobs.
+
+These are plain (blocking) functions; the routers run them in the thread pool. Each opens
+its own database sessions and raises errors by meaning (``NotFound``, ``Conflict``,
+``InvalidInput``, ...), which :mod:`service.api.errors` turns into problem responses.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import OpenEXR
+from pydantic import BaseModel
+from sqlalchemy.orm import Session
+
+from models_store import registry
+from models_store.errors import BlobCorrupt, Conflict, NotFound
+from models_store.ids import new_token
+from models_store.schema import Actor, Job
+from service.api import schemas, uploads
+from service.api.deps import Submit
+from service.api.errors import Overloaded
+from service.api.limits import RETRY_AFTER_SECONDS
+from service.api.services import Services
+from service.api.synthesis import (Expected, SynthesisInput, Synthesizer, check_response_request,
+                                   encode, negotiate, parse_job_input, parse_synthesis_request)
+from service.io.atomic import sha256_file
+from service.io.exr import read_exr, write_exr
+from service.jobs.tasks.synthesize import FORMATS as SYNTHESIS_FORMATS
+from service.methods.inputs import InvalidInput
+from service.methods.kinds import get_kind
+
+log = logging.getLogger("facesynth.api")
+
+#: job kinds the API creates (the training job kind is the registry's default, "train")
+TRAIN_JOB = "train"
+REGISTER_JOB = "register"
+SYNTHESIS_JOB = "synthesize"
+ACTIVE = ("queued", "running")
+
+
+# ---------------------------------------------------------------------------- jobs
+def submit(session: Session, submit_job: Submit, job: Job) -> Job:
+    """Hand a queued job to the task queue; if the queue cannot take it, cancel the job
+    (and fail its training model) and answer 503 so the client retries."""
+    try:
+        submit_job(job.id)
+    except Exception as error:  # noqa: BLE001 - any queue failure
+        log.exception("could not submit job %s", job.id)
+        registry.request_cancel(session, job.id)
+        raise Overloaded(f"the job queue did not accept job {job.id} ({type(error).__name__}: "
+                         f"{error}); it was cancelled, retry later",
+                         retry_after=RETRY_AFTER_SECONDS) from error
+    return job
+
+
+# ---------------------------------------------------------------------------- actors
+def _actor_with(session: Session, actor_id: str, *, neutral: bool = False,
+                markers: bool = False, doing: str = "") -> Actor:
+    """The actor, or Conflict if it lacks the neutral or marker layout ``doing`` needs."""
+    actor = registry.get_actor(session, actor_id)
+    if neutral and actor.neutral_blob is None:
+        raise Conflict(f"actor {actor_id!r} has no neutral mesh yet; PUT "
+                       f"/v1/actors/{actor_id}/neutral before {doing}")
+    if markers and actor.markers_blob is None:
+        raise Conflict(f"actor {actor_id!r} has no marker layout yet; PUT "
+                       f"/v1/actors/{actor_id}/markers before {doing}")
+    return actor
+
+
+def delete_actor(services: Services, actor_id: str, cascade: bool) -> None:
+    """Delete an actor (and with ``cascade`` its models, dropped from the cache too)."""
+    with services.session() as session:
+        models = [m.id for m in registry.list_models(session, actor_id)]
+        registry.delete_actor(session, services.blobs, actor_id, cascade=cascade)
+    for model_id in models:
+        services.forget_model(model_id)
+
+
+def put_neutral(services: Services, actor_id: str, kind: str, data: bytes) -> schemas.NeutralInfo:
+    """Validate and store an actor's neutral.
+
+    Replacing a neutral that clips or a marker layout already refer to must keep its vertex
+    and triangle counts (only positions may change); models forbid any replacement.
+    """
+    with services.session() as session:
+        registry.get_actor(session, actor_id)
+    upload, blob = uploads.parse_neutral(kind, data, services.settings)
+    V, T = len(upload.mesh.vertices), len(upload.mesh.faces)
+    with services.session() as session:
+        actor = registry.get_actor(session, actor_id)
+        has_clips = bool(registry.list_clips(session, actor_id))
+        if (has_clips or actor.markers_blob) and (V, T) != (actor.vertex_count, actor.triangle_count):
+            users = " and ".join(what for what, used in (("clips", has_clips),
+                                                          ("a marker layout", actor.markers_blob))
+                                 if used)
+            raise Conflict(f"actor {actor_id!r} has {users} made for a neutral of "
+                           f"{actor.vertex_count} vertices and {actor.triangle_count} triangles; "
+                           f"the new one has {V} and {T}. Only the positions of a neutral with "
+                           "clips or markers can change (create a new actor for a new topology)")
+        registry.set_neutral(session, services.blobs, actor_id, blob, vertex_count=V,
+                             triangle_count=T)
+    return schemas.NeutralInfo(vertex_count=V, triangle_count=T,
+                               uv_seams=upload.uv_seam_vertices,
+                               polygons_split=upload.polygons_split,
+                               regions=sorted(upload.regions))
+
+
+def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.MarkersInfo:
+    """Resolve a marker layout onto the actor's neutral and store it (clips recorded with
+    the current layout require the same marker count)."""
+    with services.session() as session:
+        actor = _actor_with(session, actor_id, neutral=True, doing="its marker layout")
+        neutral = registry.read_neutral(session, services.blobs, actor_id)
+    layout = uploads.parse_layout(data, neutral)
+    with services.session() as session:
+        actor = registry.get_actor(session, actor_id)
+        if registry.list_clips(session, actor_id) and layout.marker_count != actor.marker_count:
+            raise Conflict(f"actor {actor_id!r} has clips recorded with {actor.marker_count} "
+                           f"markers; the new layout has {layout.marker_count}. Delete the clips "
+                           "first, or keep the marker count")
+        registry.set_markers(session, services.blobs, actor_id, layout.blob,
+                             marker_count=layout.marker_count)
+    return schemas.MarkersInfo(marker_count=layout.marker_count, snapped=layout.snapped,
+                               max_snap_distance=layout.max_snap_distance)
+
+
+# ---------------------------------------------------------------------------- clips
+def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads.ClipForm,
+             name: str | None) -> schemas.Clip:
+    """Validate a clip (NPZ bytes or a multipart :class:`~service.api.uploads.ClipForm`)
+    against the actor's neutral and layout, and store it."""
+    with services.session() as session:
+        actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
+        names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor_id))
+                 if isinstance(data, uploads.ClipForm) else None)
+    if isinstance(data, uploads.ClipForm):
+        clip = uploads.parse_clip_form(data, services.settings, actor.vertex_count, names)
+    else:
+        clip = uploads.parse_clip_npz(data, services.settings, actor.vertex_count,
+                                      actor.marker_count)
+    with services.session() as session:
+        row = registry.add_clip(session, services.blobs, actor_id, clip.blob, frames=clip.frames,
+                                name=name)
+    return schemas.Clip.model_validate(row)
+
+
+# ---------------------------------------------------------------------------- input rigs
+def put_input_rig(services: Services, submit_job: Submit, actor_id: str, name: str, kind: str,
+                  data: bytes, landmarks: str | None) -> schemas.RigAccepted:
+    """Store an input rig's mesh and queue its registration to the actor's neutral (a
+    registration of the same rig still queued or running is cancelled first).
+
+    The ``register`` job's payload is ``{"rig_id", "rig", "landmarks": [[rig_vertex,
+    neutral_vertex], ...]}``.
+    """
+    with services.session() as session:
+        actor = _actor_with(session, actor_id, neutral=True, doing="registering input rigs")
+    upload, blob = uploads.parse_rig_mesh(kind, data, services.settings)
+    pairs = uploads.parse_landmarks(landmarks, len(upload.mesh.vertices), actor.vertex_count)
+    with services.session() as session:
+        rig = registry.put_input_rig(session, services.blobs, actor_id, name, blob)
+        for job in registry.list_jobs(session, actor_id=actor_id, kind=REGISTER_JOB):
+            if job.status in ACTIVE and job.payload.get("rig_id") == rig.id:
+                registry.request_cancel(session, job.id)
+        job = registry.create_job(session, REGISTER_JOB, actor_id,
+                                  payload={"rig_id": rig.id, "rig": name, "landmarks": pairs})
+        submit(session, submit_job, job)
+    return schemas.RigAccepted(rig_id=rig.id, name=name, job_id=job.id,
+                               vertex_count=len(upload.mesh.vertices),
+                               triangle_count=len(upload.mesh.faces), landmarks=len(pairs))
+
+
+# ---------------------------------------------------------------------------- models
+def create_model(services: Services, submit_job: Submit, actor_id: str, kind_name: str,
+                 clip_ids: Sequence[str], params: BaseModel | dict[str, Any] | None
+                 ) -> schemas.ModelAccepted:
+    """Create a model of ``kind_name`` (validated parameters) and queue its training."""
+    kind = get_kind(kind_name)
+    parsed = kind.parse_params(params)
+    with services.session() as session:
+        _actor_with(session, actor_id, neutral=True, markers=True, doing="training models")
+        model, job = registry.create_model(session, actor_id, kind.name,
+                                           parsed.model_dump(mode="json"), clip_ids=clip_ids,
+                                           job_kind=TRAIN_JOB)
+        submit(session, submit_job, job)
+    return schemas.ModelAccepted(model_id=model.id, job_id=job.id)
+
+
+def delete_model(services: Services, model_id: str) -> None:
+    """Delete a model (its running jobs are cancelled) and drop it from the cache."""
+    with services.session() as session:
+        registry.delete_model(session, services.blobs, model_id)
+    services.forget_model(model_id)
+
+
+def _ready_dir(services: Services, model_id: str) -> tuple[Path, dict]:
+    """A ready model's directory and manifest (Conflict if not ready)."""
+    with services.session() as session:
+        row = registry.get_model(session, model_id)
+    if row.status != "ready":
+        raise Conflict(f"model {model_id!r} is {row.status}, not ready; its maps exist once "
+                       "training succeeds")
+    path = services.blobs.path(row.blob)
+    try:
+        manifest = json.loads((path / "manifest.json").read_bytes())
+    except (OSError, ValueError):
+        manifest = {}
+    return path, manifest
+
+
+def list_maps(services: Services, model_id: str) -> list[schemas.MapInfo]:
+    """The UV-space maps (EXR files) of a ready model, read from their headers."""
+    path, _ = _ready_dir(services, model_id)
+    maps = []
+    for file in sorted(path.glob("*.exr")):
+        header = OpenEXR.File(str(file), header_only=True).header()
+        (x0, y0), (x1, y1) = (tuple(map(int, corner)) for corner in header["dataWindow"])
+        channels = sorted(channel.name for channel in header["channels"])
+        maps.append(schemas.MapInfo(name=file.stem, channels=channels,
+                                    width=x1 - x0 + 1, height=y1 - y0 + 1,
+                                    size_bytes=file.stat().st_size,
+                                    url=f"/v1/models/{model_id}/maps/{file.stem}.exr"))
+    return maps
+
+
+def map_file(services: Services, model_id: str, name: str) -> tuple[Path, str | None]:
+    """The verified EXR file of map ``name`` of a ready model and its sha256 (checked
+    against the model's manifest; None if the manifest does not list it)."""
+    path, manifest = _ready_dir(services, model_id)
+    file = path / f"{name}.exr" if uploads.is_safe_name(name) else None
+    if file is None or not file.is_file():
+        available = ", ".join(sorted(p.stem for p in path.glob("*.exr")))
+        raise NotFound("map", name, f"model {model_id!r} has the maps {available}")
+    digest = manifest.get("files", {}).get(file.name)
+    if digest is not None and str(file) not in services.verified_blobs:
+        actual = sha256_file(file)
+        if actual != digest:
+            raise BlobCorrupt(f"{model_id}/{file.name}", digest, actual)
+        services.verified_blobs.add(str(file))
+    return file, digest
+
+
+def half_exr(file: Path) -> bytes:
+    """An EXR file rewritten with 16-bit (half) float channels."""
+    buffer = io.BytesIO()
+    write_exr(buffer, read_exr(file), half=True)
+    return buffer.getvalue()
+
+
+# ---------------------------------------------------------------------------- synthesis
+@dataclass(frozen=True)
+class Synthesized:
+    """A synthesis response: media type, body, frame count."""
+
+    media_type: str
+    body: bytes
+    frames: int
+
+
+def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind: str,
+               data: bytes, *, accept: str | None, outputs: tuple[str, ...] | None,
+               clamp: bool, half: bool, route_input: str) -> Synthesized:
+    """Run a synchronous synthesis (``/synthesize`` for marker-driven, ``/enhance`` for
+    mesh-driven kinds: ``route_input``) and encode the response ``accept`` asks for."""
+    media = negotiate(accept)
+    loaded = services.loaded_model(model_id)
+    if loaded.kind.input != route_input:
+        other = "synthesize" if loaded.kind.input == "markers" else "enhance"
+        raise InvalidInput(f"a {loaded.kind.name} model takes {loaded.kind.input}: use "
+                           f"POST /v1/models/{model_id}/{other}")
+    request: SynthesisInput = parse_synthesis_request(kind, data, Expected.of(loaded),
+                                                      services.settings, outputs, clamp)
+    check_response_request(media, request)
+    result = synthesizer.run(loaded, request)
+    return Synthesized(media, encode(media, result, loaded, request, half), len(request.frames))
+
+
+def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, kind: str,
+                         data: bytes, filename: str | None, *, outputs: tuple[str, ...],
+                         result_format: str, clamp: bool) -> Job:
+    """Store a performance and queue a ``synthesize`` job for it.
+
+    The job's payload is ``{"model_id", "markers_blob", "markers_sha256", "frames",
+    "outputs", "format", "clamp"}`` (:mod:`service.jobs.tasks.synthesize`); the input blob
+    is a canonical NPZ (``markers`` (F,M,3) float32 or ``vertices`` (F,V,3) float32,
+    optional ``fps``) under the model's blob prefix, so deleting the model removes it.
+    """
+    if result_format not in SYNTHESIS_FORMATS:
+        raise InvalidInput(f"result format {result_format!r} is not supported by this server "
+                           f"yet; choose from {list(SYNTHESIS_FORMATS)}")
+    with services.session() as session:
+        model = registry.get_model(session, model_id)
+        if model.status != "ready":
+            raise Conflict(f"model {model_id!r} is {model.status}, not ready; submit synthesis "
+                           "jobs once its training succeeds")
+        actor = registry.get_actor(session, model.actor_id)
+        names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor.id))
+                 if actor.markers_blob else None)
+    kind_info = get_kind(model.kind)
+    key = "markers" if kind_info.input == "markers" else "vertices"
+    expected = Expected(model_id, model.kind, key,
+                        actor.marker_count if key == "markers" else None)
+    blob, frames = parse_job_input(kind, data, expected, services.settings, names, filename)
+    info = services.blobs.put_bytes(f"models/{model_id}/inputs/{new_token()}.npz", blob)
+    try:
+        with services.session() as session:
+            job = registry.create_job(
+                session, SYNTHESIS_JOB, model.actor_id, model_id=model_id,
+                payload={"model_id": model_id, f"{key}_blob": info.key,
+                         f"{key}_sha256": info.sha256, "frames": frames,
+                         "outputs": list(outputs), "format": result_format, "clamp": clamp})
+            return submit(session, submit_job, job)
+    except Exception:
+        services.blobs.delete(info.key)
+        raise
+
+
+# ---------------------------------------------------------------------------- artifacts
+def artifact_file(services: Services, artifact_id: str) -> tuple[Any, Path]:
+    """An artifact's row and its file, verified against its sha256 once per process."""
+    with services.session() as session:
+        artifact = registry.get_artifact(session, artifact_id)
+    if artifact.blob not in services.verified_blobs:
+        services.blobs.open(artifact.blob, artifact.sha256).close()
+        services.verified_blobs.add(artifact.blob)
+    return artifact, services.blobs.path(artifact.blob)
+

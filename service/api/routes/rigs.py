@@ -1,0 +1,61 @@
+"""An actor's low-resolution input rigs and their registration to the neutral."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
+
+from models_store import registry
+from service.api import operations, schemas, uploads
+from service.api.deps import ServicesDep, SessionDep, SubmitDep
+from service.api.routes import body, problems, set_job_location
+
+router = APIRouter(prefix="/v1/actors/{actor_id}/input-rigs", tags=["input-rigs"])
+
+RigName = Annotated[str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+                              description="Your name for the rig (letters, digits, `._-`).",
+                              examples=["game-lod2"])]
+
+
+@router.put(
+    "/{rig}", status_code=status.HTTP_202_ACCEPTED, response_model=schemas.RigAccepted,
+    summary="Upload an input rig and register it (a job)",
+    responses=problems(400, 404, 409, 413, 415, 422, 503),
+    openapi_extra=body(uploads.MESH_TYPES, multipart={
+        "mesh": {"type": "string", "format": "binary",
+                 "description": "The rig's neutral mesh (.npz or .obj)."},
+        "landmarks": {"type": "string", "description": "JSON [[rig_vertex, neutral_vertex], ...] "
+                                                       "correspondences to guide registration."}},
+        description="The rig's neutral mesh as `.npz` / `.obj`, or multipart with `mesh` and "
+                    "optional `landmarks`."))
+async def put_input_rig(actor_id: str, rig: RigName, request: Request, services: ServicesDep,
+                        submit: SubmitDep, response: Response) -> schemas.RigAccepted:
+    """Store (or replace) the input rig ``rig`` and queue its registration to the actor's
+    neutral; answers 202 with the job (``Location: /v1/jobs/{job_id}``)."""
+    kind = uploads.require_media_type(request, uploads.MESH_TYPES + (uploads.MULTIPART,))
+    landmarks = None
+    if kind == uploads.MULTIPART:
+        kind, data, landmarks = await uploads.read_rig_form(request)
+    else:
+        _, data = await uploads.read_body(request, uploads.MESH_TYPES)
+    accepted = await run_in_threadpool(operations.put_input_rig, services, submit, actor_id, rig,
+                                       kind, data, landmarks)
+    set_job_location(response, accepted.job_id)
+    return accepted
+
+
+@router.get("", response_model=schemas.RigList, summary="List an actor's input rigs",
+            responses=problems(404))
+def list_input_rigs(actor_id: str, session: SessionDep) -> schemas.RigList:
+    """The actor's input rigs by name, with their registration state."""
+    return schemas.RigList(items=[schemas.InputRig.model_validate(r)
+                                  for r in registry.list_input_rigs(session, actor_id)])
+
+
+@router.get("/{rig}", response_model=schemas.InputRig, summary="Get an input rig",
+            responses=problems(404))
+def get_input_rig(actor_id: str, rig: RigName, session: SessionDep) -> schemas.InputRig:
+    """One input rig and its registration state (``registering``, ``ready``, ``failed``)."""
+    return schemas.InputRig.model_validate(registry.get_input_rig(session, actor_id, rig))

@@ -1,0 +1,110 @@
+"""Synthesis: synchronous for a frame or a small batch, and synthesis jobs for whole
+performances."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
+
+from service.api import operations, schemas, uploads
+from service.api.deps import ServicesDep, SubmitDep
+from service.api.routes import binary_response, body, inline_schema, problems, set_job_location
+from service.api.synthesis import (EXR, JOB_INPUT_TYPES, NPZ, OBJ, RESPONSE_TYPES, parse_outputs)
+
+router = APIRouter(prefix="/v1/models/{model_id}", tags=["synthesis"])
+
+OutputsQuery = Annotated[list[str] | None, Query(
+    description="Subset of `mesh`, `mesh_detailed`, `displacement`, `albedo`, `normal_map` "
+                "(comma-separated or repeated; default `mesh,displacement`).",
+    examples=["mesh,displacement"])]
+_RESPONSES = {
+    **binary_response(*RESPONSE_TYPES, description=(
+        "`application/x-npz` (default): `vertices` (F,V,3) in the input's world pose, "
+        "`vertices_detailed` (F,V,3) for `mesh_detailed`, `faces` (T,3), the asked maps "
+        "(`displacement` (F,H,W), `albedo` (F,H,W,3), `normal_map` (F,H,W,3)) and `clamped` "
+        "(F,) the fraction of texels held at the extrapolation limit. `Accept: model/obj`: one "
+        "frame as OBJ with UVs; `Accept: image/x-exr` with one map output: that map as EXR.")),
+    **problems(400, 404, 406, 409, 413, 415, 422, 503)}
+
+
+async def _synthesize(model_id: str, request: Request, services: ServicesDep, outputs: list[str] | None,
+                      clamp: bool, half: bool, accept: str | None, route_input: str) -> Response:
+    kind, data = await uploads.read_body(
+        request, uploads.NPZ_TYPES + ((uploads.JSON_TYPE,) if route_input == "markers" else ()))
+    answer = await run_in_threadpool(
+        lambda: operations.synthesize(services, request.app.state.synthesizer, model_id, kind,
+                                      data, accept=accept, outputs=parse_outputs(outputs),
+                                      clamp=clamp, half=half, route_input=route_input))
+    suffix = {NPZ: "npz", OBJ: "obj", EXR: "exr"}[answer.media_type]
+    return Response(answer.body, media_type=answer.media_type, headers={
+        "Content-Disposition": f'attachment; filename="synthesis.{suffix}"',
+        "X-Frames": str(answer.frames)})
+
+
+@router.post(
+    "/synthesize", summary="Synthesize meshes and maps from markers", response_class=Response,
+    responses=_RESPONSES,
+    openapi_extra=body(uploads.NPZ_TYPES, json_schema=inline_schema(schemas.SynthesizeBody),
+                       description="`.npz` with `markers` (F,M,3) (NaN: occluded), or JSON."))
+async def synthesize(model_id: str, request: Request, services: ServicesDep,
+                     outputs: OutputsQuery = None, clamp: bool = True,
+                     half: Annotated[bool, Query(description="EXR with 16-bit floats")] = False,
+                     accept: Annotated[str | None, Header()] = None) -> Response:
+    """For marker-driven kinds (e.g. `pdm`): markers in, detailed meshes and maps out, for
+    at most `max_frames_per_request` frames (413 above: use a synthesis job). 409 while the
+    model is not ready; 422 for a wrong marker count ("model expects 150 markers, got 149")."""
+    return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "markers")
+
+
+@router.post(
+    "/enhance", summary="Enhance low-resolution meshes", response_class=Response,
+    responses=_RESPONSES,
+    openapi_extra=body(uploads.NPZ_TYPES, description="`.npz` with `vertices` (F,V,3) of the "
+                                                      "actor's topology."))
+async def enhance(model_id: str, request: Request, services: ServicesDep,
+                  outputs: OutputsQuery = None, clamp: bool = True,
+                  half: Annotated[bool, Query(description="EXR with 16-bit floats")] = False,
+                  accept: Annotated[str | None, Header()] = None) -> Response:
+    """For mesh-driven kinds (e.g. `shape_space`): meshes in, detailed meshes and maps out;
+    the response is as for `/synthesize`. A marker-driven model answers 422."""
+    return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "meshes")
+
+
+@router.post(
+    "/synthesis-jobs", status_code=status.HTTP_202_ACCEPTED, response_model=schemas.JobAccepted,
+    summary="Synthesize a whole performance (a job)",
+    responses=problems(400, 404, 409, 413, 415, 422, 503),
+    openapi_extra=body(tuple(t for t in JOB_INPUT_TYPES if t != uploads.JSON_TYPE), json_schema={
+        "type": "object", "required": ["markers"],
+        "properties": {"markers": {"type": "array", "description": "(F,M,3); null: occluded"},
+                       "names": {"type": "array", "items": {"type": "string"}},
+                       "fps": {"type": "number"}}}, multipart={
+        "file": {"type": "string", "format": "binary",
+                 "description": "The performance; its type from the filename (.npz, .json, "
+                                ".c3d, .trc, .csv)."}},
+        description="The performance: `.npz` with `markers` (F,M,3) (or `vertices` for "
+                    "mesh-driven kinds), marker JSON, or a `.c3d` / `.trc` / `.csv` file."))
+async def submit_synthesis_job(
+        model_id: str, request: Request, services: ServicesDep, submit: SubmitDep,
+        response: Response, outputs: OutputsQuery = None, clamp: bool = True,
+        result_format: Annotated[schemas.ResultFormat, Query(
+            alias="format", description="`npz`, or `obj-exr-zip` for per-frame OBJ + EXR files, "
+                                        "or `usd` where supported")] = "npz",
+) -> schemas.JobAccepted:
+    """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and
+    `Location`. The job's result is an artifact (`GET /v1/artifacts/{id}`)."""
+    kind = uploads.require_media_type(request, JOB_INPUT_TYPES + (uploads.MULTIPART,))
+    filename = None
+    if kind == uploads.MULTIPART:
+        filename, data = await uploads.read_file_part(request, "file")
+    else:
+        _, data = await uploads.read_body(request, JOB_INPUT_TYPES)
+    job = await run_in_threadpool(
+        lambda: operations.submit_synthesis_job(
+            services, submit, model_id, kind, data, filename,
+            outputs=parse_outputs(outputs) or schemas.DEFAULT_OUTPUTS,
+            result_format=result_format, clamp=clamp))
+    set_job_location(response, job.id)
+    return schemas.JobAccepted(job_id=job.id)

@@ -1,0 +1,155 @@
+"""What the API (and the gRPC server beside it) share for the life of a process.
+
+:class:`Services` opens the metadata database (migrating it to the current schema), the blob
+store and the byte-budgeted cache of loaded models; :meth:`Services.load_model` is the one
+way to get a ready model, used by the HTTP routes and, as ``load_model``, by the gRPC
+server (:func:`service.grpc.server.serve`), so both share one cache.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+from sqlalchemy import Engine, text
+from sqlalchemy.orm import Session, sessionmaker
+
+from models_store import registry
+from models_store.blobs import BlobStore
+from models_store.cache import ByteLRUCache
+from models_store.db import make_engine, make_session_factory, upgrade
+from models_store.errors import Conflict
+from service.config import Settings
+from service.methods.kinds import Kind, get_kind
+
+log = logging.getLogger("facesynth.api")
+
+
+@dataclass
+class LoadedModel:
+    """A ready model in memory with what the routes need to know about it.
+
+    Attributes
+    ----------
+    id : str          model id
+    kind : Kind       its kind (``kind.input`` says whether it takes markers or meshes)
+    model : object    the loaded model (``synthesize(frames, outputs, clamp) -> dict``)
+    """
+
+    id: str
+    kind: Kind
+    model: Any
+
+
+@dataclass
+class Services:
+    """The database, blob store and model cache of one process.
+
+    Build it with :meth:`open`; :meth:`close` disposes of the engine.
+
+    Attributes
+    ----------
+    settings : Settings
+    engine : Engine
+    sessions : sessionmaker     one session per request (:meth:`session`)
+    blobs : BlobStore
+    models : ByteLRUCache      loaded models by id, within ``settings.model_cache_bytes``
+    """
+
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    blobs: BlobStore
+    models: ByteLRUCache[LoadedModel] = field(repr=False)
+    #: write-once blobs (keys, or files of model directories) this process has verified
+    verified_blobs: set[str] = field(default_factory=set, repr=False)
+
+    @classmethod
+    def open(cls, settings: Settings) -> "Services":
+        """Connect to the database of ``settings`` (running the migrations), open the blob
+        store and make an empty model cache."""
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        engine = make_engine(settings.database_url_resolved)
+        upgrade(engine)
+        return cls(settings=settings, engine=engine, sessions=make_session_factory(engine),
+                   blobs=BlobStore(settings.blob_dir),
+                   models=ByteLRUCache(settings.model_cache_bytes))
+
+    def close(self) -> None:
+        """Drop the cached models and the database connections."""
+        self.models.clear()
+        self.engine.dispose()
+
+    @contextlib.contextmanager
+    def session(self) -> Iterator[Session]:
+        """A database session, closed (and any open transaction rolled back) on exit."""
+        session = self.sessions()
+        try:
+            yield session
+        finally:
+            session.close()
+
+    def load_model(self, model_id: str) -> Any:
+        """The loaded model ``model_id`` (for the gRPC server: the model object itself)."""
+        return self.loaded_model(model_id).model
+
+    def loaded_model(self, model_id: str) -> LoadedModel:
+        """A ready model from the cache, loading it (checksums verified) on a miss.
+
+        Raises
+        ------
+        NotFound   unknown (or malformed) model id
+        Conflict   the model is training or failed, so it cannot synthesize
+        """
+        with self.session() as session:
+            row = registry.get_model(session, model_id)
+            if row.status != "ready":
+                what = ("still training; it can synthesize once its training job succeeds"
+                        if row.status == "training" else
+                        f"{row.status}{': ' + row.error['message'] if row.error else ''}")
+                raise Conflict(f"model {model_id!r} is not ready: it is {what}")
+            kind = get_kind(row.kind)
+            size = int(row.size_bytes or 0)
+
+            def load() -> LoadedModel:
+                path = registry.model_dir(session, self.blobs, model_id)
+                log.info("loading model %s (%s, %d bytes)", model_id, kind.name, size)
+                return LoadedModel(model_id, kind, kind.load(path))
+
+            return self.models.get_or_load(model_id, load, size_of=lambda _: size)
+
+    def forget_model(self, model_id: str) -> None:
+        """Drop a (deleted) model from the cache."""
+        self.models.invalidate(model_id)
+
+    def check(self) -> dict[str, str]:
+        """Readiness of the database, the blob store and the job queue.
+
+        Returns
+        -------
+        dict   component → ``"ok"`` or the reason it is not
+        """
+        status: dict[str, str] = {}
+        try:
+            with self.session() as session:
+                session.execute(text("SELECT 1"))
+            status["database"] = "ok"
+        except Exception as error:  # noqa: BLE001 - any failure means "not ready"
+            status["database"] = f"unreachable: {type(error).__name__}: {error}"
+        root = self.blobs.root
+        status["blobs"] = "ok" if root.is_dir() else f"missing directory {root}"
+        status["queue"] = _queue_status(self.settings)
+        return status
+
+
+def _queue_status(settings: Settings) -> str:
+    """``"ok"`` if the job queue's storage answers, else why not."""
+    try:
+        from service.jobs.queue import get_queue
+
+        get_queue(settings).huey.storage.queue_size()
+    except Exception as error:  # noqa: BLE001 - any failure means "not ready"
+        return f"unreachable: {type(error).__name__}: {error}"
+    return "ok"

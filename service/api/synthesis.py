@@ -1,0 +1,344 @@
+"""Synchronous synthesis and synthesis-job inputs: parsing the frames, running a loaded
+model, and encoding its outputs as NPZ, OBJ or EXR (API.md "Synthesis").
+
+A request's frames are markers (F,M,3) for marker-driven kinds (``/synthesize``) or vertices
+(F,V,3) for mesh-driven kinds (``/enhance``); the model's ``synthesize(frames, outputs,
+clamp)`` returns the arrays of API.md (``vertices``, ``vertices_detailed``, ``faces``, maps).
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from pydantic import ValidationError
+from scipy.ndimage import zoom
+
+from service.api.errors import NotAcceptable, Overloaded, PayloadTooLarge, Unprocessable
+from service.api.limits import MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS
+from service.api.metrics import Metrics
+from service.api.schemas import DEFAULT_OUTPUTS, MAP_OUTPUTS, OUTPUTS, SynthesizeBody
+from service.api.services import LoadedModel
+from service.api.uploads import (JSON_TYPE, MARKER_FILE_TYPES, NPZ_TYPES, ArraySpec, NpzUpload,
+                                 npz_limit, markers_in_layout_order,
+                                 npz_bytes, parse_json, read_marker_file)
+from service.api.validation import check_finite_frames
+from service.config import Settings
+from service.io.exr import write_map
+from service.io.markers import read_markers_json
+from service.io.mesh import Mesh, write_obj
+from service.methods.inputs import InvalidInput
+
+NPZ = "application/x-npz"
+OBJ = "model/obj"
+EXR = "image/x-exr"
+#: response media types of /synthesize, the first the default
+RESPONSE_TYPES = (NPZ, OBJ, EXR)
+
+
+# ---------------------------------------------------------------------------- requests
+@dataclass(frozen=True)
+class SynthesisInput:
+    """What to synthesize.
+
+    Attributes
+    ----------
+    frames : (F,N,3) float64      markers (N = M, NaN occluded) or vertices (N = V)
+    outputs : tuple of str        a subset of :data:`~service.api.schemas.OUTPUTS`
+    map_resolution : int or None  resample maps to this side (None: the model's)
+    clamp : bool                  limit extrapolation beyond the training data
+    fps : float or None           frame rate of the input, when it has one
+    """
+
+    frames: np.ndarray
+    outputs: tuple[str, ...]
+    map_resolution: int | None = None
+    clamp: bool = True
+    fps: float | None = None
+
+
+def parse_outputs(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
+    """``outputs`` from a query (comma-separated and/or repeated), validated; None if absent."""
+    if value is None:
+        return None
+    items = [value] if isinstance(value, str) else list(value)
+    names = [part.strip() for item in items for part in item.split(",") if part.strip()]
+    if not names:
+        return None
+    unknown = [n for n in names if n not in OUTPUTS]
+    if unknown:
+        raise InvalidInput(f"unknown outputs {unknown}; choose from {list(OUTPUTS)}")
+    return tuple(dict.fromkeys(names))
+
+
+@dataclass(frozen=True)
+class Expected:
+    """What a model takes as frames, for checking a request before any work.
+
+    Attributes
+    ----------
+    model_id : str
+    kind : str           the model's kind
+    key : str            ``"markers"`` (marker-driven kinds) or ``"vertices"`` (mesh-driven)
+    count : int or None  markers (or vertices) per frame, None if unknown
+    """
+
+    model_id: str
+    kind: str
+    key: str
+    count: int | None
+
+    @classmethod
+    def of(cls, loaded: LoadedModel) -> "Expected":
+        """From a loaded model (its ``n_markers`` / ``n_vertices``)."""
+        key = "markers" if loaded.kind.input == "markers" else "vertices"
+        count = getattr(loaded.model, "n_markers" if key == "markers" else "n_vertices", None)
+        return cls(loaded.id, loaded.kind.name, key, count)
+
+    def check(self, frames: np.ndarray) -> None:
+        """422 ``"model expects 150 markers, got 149"`` unless frames is (F, count, 3)."""
+        if self.count is not None and frames.shape[1] != self.count:
+            raise InvalidInput(f"model expects {self.count} {self.key}, got {frames.shape[1]}")
+
+    def element(self) -> str:
+        """One of the frames' elements, for messages: "marker" or "vertex"."""
+        return "marker" if self.key == "markers" else "vertex"
+
+
+def check_frames(frames: int, settings: Settings, model_id: str) -> None:
+    """413 naming the limit when a synchronous request carries too many frames."""
+    limit = settings.max_frames_per_request
+    if frames > limit:
+        raise PayloadTooLarge(
+            f"{frames} frames in one request, more than the limit of {limit} frames "
+            f"(max_frames_per_request); submit a synthesis job for longer performances "
+            f"(POST /v1/models/{model_id}/synthesis-jobs)")
+
+
+def _frame_array(key: str) -> dict[str, ArraySpec]:
+    other = "vertices" if key == "markers" else "markers"
+    return {key: ArraySpec(("F", "N", 3), "fiu"), other: ArraySpec(("F", "O", 3), "fiu", False),
+            "fps": ArraySpec((), "fiu", False)}
+
+
+def _json_markers(markers: list) -> np.ndarray:
+    """(F,M,3) float64 from JSON frames of ``[x,y,z]`` or null (NaN: occluded)."""
+    count = len(markers[0])
+    for f, frame in enumerate(markers):
+        if len(frame) != count:
+            raise InvalidInput(f"frame {f} has {len(frame)} markers, frame 0 has {count}")
+        for m, marker in enumerate(frame):
+            if marker is not None and len(marker) != 3:
+                raise InvalidInput(f"frame {f} marker {m} has {len(marker)} coordinates, "
+                                   "expected [x, y, z] or null")
+    rows = [[(None, None, None) if m is None else m for m in frame] for frame in markers]
+    array = np.array(rows, dtype=np.float64).reshape(len(markers), count, 3)
+    return np.where(np.isnan(array).any(axis=2, keepdims=True), np.nan, array)
+
+
+def parse_synthesis_request(kind: str, data: bytes, expected: Expected, settings: Settings,
+                            query_outputs: tuple[str, ...] | None, clamp: bool) -> SynthesisInput:
+    """A synchronous request's frames and options (``kind`` is the body's media type).
+
+    NPZ: the frames under ``markers`` (or ``vertices`` for a mesh-driven model). JSON
+    (marker-driven models): :class:`~service.api.schemas.SynthesizeBody`. The frame count
+    is checked against ``max_frames_per_request`` before the arrays are read.
+    """
+    key = expected.key
+    map_resolution = None
+    outputs = query_outputs
+    if kind in NPZ_TYPES:
+        upload = NpzUpload(data, _frame_array(key), npz_limit(settings), what="request")
+        check_frames(upload.dims["F"], settings, expected.model_id)
+        arrays = upload.load()
+        frames, fps = arrays[key].astype(np.float64), arrays.get("fps")
+    else:
+        if key != "markers":
+            raise InvalidInput(f"a {expected.kind} model takes vertices: send an .npz "
+                               "with 'vertices' (F,V,3)")
+        body = parse_json(data)
+        try:
+            request = SynthesizeBody.model_validate(body)
+        except ValidationError as error:
+            raise Unprocessable.from_validation(error) from None
+        check_frames(len(request.markers), settings, expected.model_id)
+        frames, fps = _json_markers(request.markers), None
+        outputs = tuple(dict.fromkeys(request.outputs)) if request.outputs else outputs
+        map_resolution, clamp = request.map_resolution, request.clamp
+    if len(frames) == 0:
+        raise InvalidInput(f"the request has no frames ('{key}' is empty)")
+    if map_resolution is not None and map_resolution > settings.max_map_resolution:
+        raise PayloadTooLarge(f"map_resolution {map_resolution} is more than the limit of "
+                              f"{settings.max_map_resolution} (max_map_resolution)")
+    check_finite_frames(frames, "request", expected.element(), allow_nan=key == "markers")
+    expected.check(frames)
+    return SynthesisInput(frames, outputs or DEFAULT_OUTPUTS, map_resolution, clamp,
+                          None if fps is None else float(fps))
+
+
+# ---------------------------------------------------------------------------- running
+class Synthesizer:
+    """Runs synchronous syntheses, at most ``limit`` at once (more are a 503 with
+    ``Retry-After``), and records frames and rate in the metrics."""
+
+    def __init__(self, metrics: Metrics, limit: int = MAX_CONCURRENT_SYNTHESES):
+        self._slots = threading.BoundedSemaphore(limit)
+        self._metrics = metrics
+
+    def run(self, loaded: LoadedModel, request: SynthesisInput) -> dict[str, np.ndarray]:
+        """The model's outputs for ``request``, maps resampled to ``map_resolution``."""
+        if not self._slots.acquire(blocking=False):
+            raise Overloaded("every synthesis slot is busy; retry shortly, or submit a "
+                             "synthesis job", retry_after=RETRY_AFTER_SECONDS)
+        try:
+            start = time.perf_counter()
+            result = loaded.model.synthesize(request.frames, outputs=list(request.outputs),
+                                             clamp=request.clamp)
+            seconds = time.perf_counter() - start
+        finally:
+            self._slots.release()
+        self._metrics.observe_synthesis(loaded.kind.name, len(request.frames), seconds)
+        if request.map_resolution is not None:
+            result = resample_maps(result, request.map_resolution)
+        return result
+
+
+def resample_maps(result: dict[str, np.ndarray], side: int) -> dict[str, np.ndarray]:
+    """The maps of ``result`` bilinearly resampled to ``side``² texels.
+
+    Texel centres are kept aligned (``grid_mode``: texel c of W covers u = (c+0.5)/W at every
+    resolution); normal maps are renormalized to unit length.
+    """
+    out = dict(result)
+    for name in MAP_OUTPUTS:
+        maps = result.get(name)
+        if maps is None or maps.shape[1] == side:
+            continue
+        factor = (1.0, side / maps.shape[1], side / maps.shape[2]) + (1.0,) * (maps.ndim - 3)
+        resized = zoom(maps, factor, order=1, mode="nearest",
+                       grid_mode=True).astype(np.float32)
+        if name == "normal_map":
+            resized /= np.maximum(np.linalg.norm(resized, axis=-1, keepdims=True), 1e-12)
+        out[name] = resized
+    return out
+
+
+# ---------------------------------------------------------------------------- responses
+def negotiate(accept: str | None) -> str:
+    """The response media type for an ``Accept`` header: the acceptable type of highest
+    quality among :data:`RESPONSE_TYPES` (``*/*`` and ``application/*`` give NPZ)."""
+    if not accept or not accept.strip():
+        return NPZ
+    ranked = []
+    for order, item in enumerate(accept.split(",")):
+        kind, *params = [p.strip() for p in item.split(";")]
+        q = 1.0
+        for param in params:
+            name, _, value = param.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        ranked.append((-q, order, kind.lower()))
+    for negative_q, _, kind in sorted(ranked):
+        if negative_q >= 0:
+            continue
+        if kind in RESPONSE_TYPES:
+            return kind
+        if kind in ("*/*", "application/*", "application/octet-stream"):
+            return NPZ
+        if kind == "model/*":
+            return OBJ
+        if kind == "image/*":
+            return EXR
+    raise NotAcceptable(f"cannot answer with any of '{accept[:200]}'; this route returns "
+                        f"{', '.join(RESPONSE_TYPES)}")
+
+
+def check_response_request(media: str, request: SynthesisInput) -> None:
+    """422 unless the request can be answered as ``media`` (OBJ and EXR hold one frame; EXR
+    one map)."""
+    if media == NPZ:
+        return
+    if len(request.frames) != 1:
+        raise InvalidInput(f"Accept: {media} returns one frame; the request has "
+                           f"{len(request.frames)} (use application/x-npz for several)")
+    if media == OBJ and not {"mesh", "mesh_detailed"} & set(request.outputs):
+        raise InvalidInput("Accept: model/obj needs outputs 'mesh' or 'mesh_detailed'")
+    if media == EXR:
+        maps = [o for o in request.outputs if o in MAP_OUTPUTS]
+        if len(maps) != 1 or len(request.outputs) != 1:
+            raise InvalidInput(f"Accept: image/x-exr needs outputs=<one map of "
+                               f"{list(MAP_OUTPUTS)}>, got {list(request.outputs)}")
+
+
+def encode(media: str, result: dict[str, np.ndarray], loaded: LoadedModel,
+           request: SynthesisInput, half: bool = False) -> bytes:
+    """The response body: NPZ of the arrays, the frame's OBJ (detailed vertices if asked,
+    with the model's UVs), or the one map as EXR (``half``: 16-bit floats)."""
+    if media == NPZ:
+        return npz_bytes(result)
+    if media == OBJ:
+        key = "vertices_detailed" if "mesh_detailed" in request.outputs else "vertices"
+        model = loaded.model
+        uv, uv_faces = getattr(model, "uv", None), getattr(model, "uv_faces", None)
+        mesh = Mesh(result[key][0], result["faces"], uv, uv_faces if uv is not None else None)
+        buffer = io.BytesIO()
+        write_obj(buffer, mesh, dtype=np.float32)
+        return buffer.getvalue()
+    buffer = io.BytesIO()
+    write_map(buffer, result[request.outputs[0]][0], half=half)
+    return buffer.getvalue()
+
+
+# ---------------------------------------------------------------------------- job inputs
+#: media types a synthesis job takes as its performance
+JOB_INPUT_TYPES = NPZ_TYPES + (JSON_TYPE, *MARKER_FILE_TYPES)
+
+
+def parse_job_input(kind: str, data: bytes, expected: Expected, settings: Settings,
+                    names: Sequence[str] | None, filename: str | None = None
+                    ) -> tuple[bytes, int]:
+    """A synthesis job's performance as a canonical NPZ (``markers`` (F,M,3) float32 or
+    ``vertices`` (F,V,3) float32, optional ``fps``) and its frame count.
+
+    ``kind`` is the media type, or ``multipart/form-data`` with ``filename`` naming the
+    file's type by suffix (.npz, .json, .c3d, .trc, .csv). Marker files with names are
+    matched to the layout's ``names``.
+    """
+    key = expected.key
+    suffix = ("." + filename.rsplit(".", 1)[-1].lower()) if filename and "." in filename else ""
+    fps = None
+    if kind in NPZ_TYPES or suffix == ".npz":
+        upload = NpzUpload(data, _frame_array(key), npz_limit(settings), what="performance")
+        arrays = upload.load()
+        frames = arrays[key]
+        fps = arrays.get("fps")
+    elif key != "markers":
+        raise InvalidInput(f"a {expected.kind} model takes vertices: send an .npz with "
+                           "'vertices' (F,V,3)")
+    elif kind == JSON_TYPE or suffix == ".json":
+        parse_json(data)
+        sequence = read_markers_json(data)
+        frames = (sequence.positions if names is None else
+                  markers_in_layout_order(sequence, names, "the JSON markers"))
+        fps = sequence.fps
+    else:
+        suffix = MARKER_FILE_TYPES.get(kind, suffix)
+        if names is None:
+            raise InvalidInput("the actor has no marker layout to match the file's markers to")
+        frames, fps = read_marker_file(data, suffix, names)
+    frames = np.asarray(frames, dtype=np.float32)
+    if len(frames) == 0:
+        raise InvalidInput("the performance has no frames")
+    check_finite_frames(frames, "performance", expected.element(), allow_nan=key == "markers")
+    expected.check(frames)
+    arrays = {key: frames}
+    if fps is not None:
+        arrays["fps"] = np.float64(fps)
+    return npz_bytes(arrays), len(frames)

@@ -1,0 +1,633 @@
+"""Request bodies: media types, the body-size limit, bounded NPZ reading, and the parsing and
+validation of every upload into the canonical forms of :mod:`service.actor_store`.
+
+Routers call one function here per upload and get back what to store (canonical bytes and
+the counts to report), or an error by meaning: :class:`UnsupportedMediaType` (415),
+:class:`MalformedBody` (400), :class:`~service.io.errors.SizeLimitError` /
+:class:`PayloadTooLarge` (413), :class:`~service.methods.inputs.InvalidInput` and the
+readers' :class:`~service.io.errors.FormatError` (422), each naming the problem, e.g.
+``"clip frame 12 has 40000 vertices, the neutral has 40962"``.
+
+Accepted media types:
+
+- NPZ: ``application/x-npz`` (``application/zip`` too: an NPZ is a zip archive);
+- OBJ: ``model/obj`` or ``text/plain``;
+- JSON: ``application/json``;
+- marker files: ``application/x-c3d`` (.c3d), ``text/x-trc`` (.trc), ``text/csv`` (.csv);
+- ``multipart/form-data`` where a route says so (files named by their part's filename).
+
+NPZ archives are read without unpickling (object arrays are refused), and their array
+headers are checked (names, shapes, dtypes, total decompressed size at most
+``NPZ_EXPANSION`` × ``max_body_bytes``) before any array data is decompressed.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import re
+import struct
+import zipfile
+import zlib
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from fastapi import Request
+from starlette.datastructures import UploadFile
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service import actor_store
+from service.api.errors import MalformedBody, PayloadTooLarge, UnsupportedMediaType, problem
+from service.api.limits import (FACES_PER_VERTEX, MULTIPART_MAX_FIELD_BYTES, MULTIPART_MAX_FILES,
+                                NPZ_EXPANSION, NPZ_MAX_MEMBERS)
+from service.api.validation import check_finite_frames, check_triangles, check_uv_tile
+from service.config import Settings
+from service.geometry.closest_point import resolve_marker_layout, surface_points
+from service.io.errors import FormatError, MeshFormatError, SizeLimitError
+from service.io.markers import MarkerSequence, read_marker_layout, read_markers
+from service.io.mesh import Mesh, read_obj, write_npz
+from service.methods.inputs import InvalidInput
+
+NPZ_TYPES = ("application/x-npz", "application/zip")
+OBJ_TYPES = ("model/obj", "text/plain")
+JSON_TYPE = "application/json"
+MULTIPART = "multipart/form-data"
+#: media type of a marker file → the reader's suffix
+MARKER_FILE_TYPES = {"application/x-c3d": ".c3d", "application/vnd.c3d": ".c3d",
+                     "text/x-trc": ".trc", "application/x-trc": ".trc", "text/csv": ".csv"}
+MESH_TYPES = NPZ_TYPES + OBJ_TYPES
+_SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+_ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error,
+               zipfile.BadZipFile, zlib.error)
+
+
+# ---------------------------------------------------------------------------- bodies
+def media_type(request: Request) -> str:
+    """The request's media type, lower case, without parameters ("" if none)."""
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+def is_safe_name(name: str) -> bool:
+    """Whether ``name`` can be a file-name component (letters, digits, ``._-``, no leading
+    dot): what path names of maps and rigs must be."""
+    return _SAFE_NAME.fullmatch(name) is not None and ".." not in name
+
+
+def require_media_type(request: Request, allowed: Sequence[str]) -> str:
+    """The request's media type if it is one of ``allowed``, else 415 naming them."""
+    kind = media_type(request)
+    if kind not in allowed:
+        given = f"Content-Type '{kind}'" if kind else "a request without Content-Type"
+        raise UnsupportedMediaType(f"{given} is not accepted here; send one of: "
+                                   f"{', '.join(allowed)}")
+    return kind
+
+
+async def read_body(request: Request, allowed: Sequence[str]) -> tuple[str, bytes]:
+    """The media type (one of ``allowed``) and the whole, non-empty body.
+
+    The size limit is enforced while the body streams in (:class:`BodyLimitMiddleware`).
+    """
+    kind = require_media_type(request, allowed)
+    data = await request.body()
+    if not data:
+        raise MalformedBody(f"the request body is empty; send a {kind} body")
+    return kind, data
+
+
+async def read_form(request: Request) -> Any:
+    """The multipart form of the request (files spooled to disk by Starlette; the body limit
+    applies as it streams in; a broken stream is a 400)."""
+    return await request.form(max_files=MULTIPART_MAX_FILES, max_fields=64,
+                              max_part_size=MULTIPART_MAX_FIELD_BYTES)
+
+
+def parse_json(data: bytes) -> Any:
+    """``data`` parsed as JSON, or 400 naming the syntax error."""
+    try:
+        return json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        raise MalformedBody(f"the body is not valid JSON: {error}") from None
+
+
+def require_json(request: Request) -> None:
+    """Dependency of routes whose body is a JSON model: any other media type is a 415
+    (FastAPI alone would answer a 422 'field required')."""
+    if request.headers.get("content-length", "0") != "0" or "transfer-encoding" in request.headers:
+        require_media_type(request, (JSON_TYPE,))
+
+
+class BodyLimitMiddleware:
+    """Refuses request bodies over ``limit`` bytes with a 413 naming the limit: at once when
+    ``Content-Length`` declares more, else as soon as the streamed body passes it (before
+    it has all been read)."""
+
+    def __init__(self, app: ASGIApp, limit: int):
+        self.app = app
+        self.limit = limit
+
+    def _error(self, size: str) -> PayloadTooLarge:
+        return PayloadTooLarge(f"the request body is {size}, more than the limit of "
+                               f"{self.limit} bytes (max_body_bytes); send large work as a job "
+                               "or split it")
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers", ())).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.limit:
+            from starlette.requests import Request as StarletteRequest
+
+            error = self._error(f"{int(declared)} bytes")
+            response = problem(StarletteRequest(scope), 413, error.detail)
+            await response(scope, receive, send)
+            return
+        received = 0
+
+        async def counting_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.limit:
+                    raise self._error(f"over {received} bytes")
+            return message
+
+        await self.app(scope, counting_receive, send)
+
+
+# ---------------------------------------------------------------------------- NPZ
+#: names of the symbolic axes of :class:`ArraySpec`, for messages
+AXES = {"F": "frames", "V": "vertices", "M": "markers", "T": "triangles", "K": "uv coordinates",
+        "H": "texels per side", "A": "texels per side", "P": "pairs"}
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What one array of an uploaded NPZ must look like.
+
+    Attributes
+    ----------
+    dims : tuple        per axis an int (that exact length) or a symbol of :data:`AXES`;
+                        arrays sharing a symbol must agree on its length
+    kinds : str         allowed dtype kinds (``"f"`` float, ``"i"``/``"u"`` integer, ``"b"`` bool)
+    required : bool
+    """
+
+    dims: tuple[str | int, ...]
+    kinds: str = "fiu"
+    required: bool = True
+
+    def describe(self) -> str:
+        return "(" + ",".join(map(str, self.dims)) + ")"
+
+
+@dataclass
+class NpzUpload:
+    """An uploaded NPZ whose headers passed their :class:`ArraySpec` (nothing decompressed
+    yet): ``shapes`` and ``dims`` (symbol → length) are known, :meth:`load` reads the data.
+
+    Parameters
+    ----------
+    data : bytes                     the archive
+    specs : name → ArraySpec         the arrays it may hold
+    max_bytes : int                  bound on the summed decompressed size of its arrays
+    prefixes : prefix → ArraySpec    specs for families of names (``region_<name>``)
+    what : str                       the upload's name in messages, e.g. ``"clip"``
+    """
+
+    data: bytes
+    specs: Mapping[str, ArraySpec]
+    max_bytes: int
+    prefixes: Mapping[str, ArraySpec] = field(default_factory=dict)
+    what: str = "upload"
+    shapes: dict[str, tuple[int, ...]] = field(init=False)
+    dims: dict[str, int] = field(init=False)
+
+    def __post_init__(self) -> None:
+        try:
+            self._zip = zipfile.ZipFile(io.BytesIO(self.data))
+            members = self._zip.infolist()
+        except _ZIP_ERRORS as error:
+            raise FormatError(f"the {self.what} is not a readable .npz archive: {error}") from None
+        if len(members) > NPZ_MAX_MEMBERS:
+            raise SizeLimitError("arrays", len(members), NPZ_MAX_MEMBERS)
+        self.shapes, self.dims, self._members = {}, {}, {}
+        owner: dict[str, tuple[str, int]] = {}
+        total = 0
+        for info in members:
+            if not info.filename.endswith(".npy"):
+                raise FormatError(f"the {self.what} .npz holds '{info.filename}', which is not "
+                                  "an array (.npy)")
+            key = info.filename[:-4]
+            spec = self._spec(key)
+            shape, dtype = self._header(info)
+            if dtype.kind not in spec.kinds:
+                raise FormatError(f"'{key}' has dtype {dtype}; expected "
+                                  f"{_kinds_text(spec.kinds)}")
+            if len(shape) != len(spec.dims):
+                raise FormatError(f"'{key}' has shape {shape}, expected {spec.describe()}")
+            for axis, (size, dim) in enumerate(zip(shape, spec.dims)):
+                if isinstance(dim, int):
+                    if size != dim:
+                        raise FormatError(f"'{key}' has shape {shape}, expected {spec.describe()}")
+                elif dim in self.dims and self.dims[dim] != size:
+                    first, first_axis = owner[dim]
+                    raise InvalidInput(
+                        f"'{key}' has {size} {AXES.get(dim, dim)} (axis {axis}) but '{first}' "
+                        f"has {self.dims[dim]} (axis {first_axis})")
+                else:
+                    self.dims[dim], owner[dim] = size, (key, axis)
+            total += math.prod(shape) * dtype.itemsize
+            if total > self.max_bytes:
+                raise SizeLimitError("bytes of decompressed array data", total, self.max_bytes)
+            self.shapes[key], self._members[key] = shape, info
+        missing = [k for k, s in self.specs.items() if s.required and k not in self.shapes]
+        if missing:
+            raise FormatError(f"the {self.what} .npz lacks {', '.join(repr(k) for k in missing)}; "
+                              f"it holds {sorted(self.shapes) or 'nothing'}")
+
+    def _spec(self, key: str) -> ArraySpec:
+        if key in self.specs:
+            return self.specs[key]
+        for prefix, spec in self.prefixes.items():
+            if key.startswith(prefix):
+                return spec
+        allowed = [f"{k} {s.describe()}" for k, s in self.specs.items()]
+        allowed += [f"{p}<name> {s.describe()}" for p, s in self.prefixes.items()]
+        raise FormatError(f"unexpected array '{key}' in the {self.what} .npz; allowed: "
+                          f"{', '.join(allowed)}")
+
+    def _header(self, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
+        key = info.filename[:-4]
+        try:
+            with self._zip.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                elif version == (2, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+                else:
+                    raise FormatError(f"'{key}' uses .npy format {version}; expected 1.0 or 2.0")
+        except _ZIP_ERRORS as error:
+            raise FormatError(f"cannot read the header of '{key}' in the {self.what} .npz: "
+                              f"{error}") from None
+        if dtype.hasobject:
+            raise FormatError(f"'{key}' holds Python objects; only numeric arrays are accepted "
+                              "(pickles are never loaded)")
+        return tuple(int(s) for s in shape), dtype
+
+    def load(self) -> dict[str, np.ndarray]:
+        """Every array, read without unpickling."""
+        arrays = {}
+        for key, info in self._members.items():
+            try:
+                with self._zip.open(info) as member:
+                    arrays[key] = np.lib.format.read_array(member, allow_pickle=False)
+            except _ZIP_ERRORS as error:
+                raise FormatError(f"cannot read '{key}' in the {self.what} .npz: {error}") from None
+        return arrays
+
+
+def _kinds_text(kinds: str) -> str:
+    names = {"f": "float", "i": "integer", "u": "unsigned integer", "b": "bool"}
+    return " or ".join(names[k] for k in kinds)
+
+
+def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """An uncompressed NPZ of ``arrays``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def npz_limit(settings: Settings) -> int:
+    """Bound on the decompressed array bytes of an uploaded NPZ."""
+    return NPZ_EXPANSION * settings.max_body_bytes
+
+
+# ---------------------------------------------------------------------------- meshes
+MESH_SPECS = {
+    "vertices": ArraySpec(("V", 3), "fiu"), "faces": ArraySpec(("T", 3), "iu"),
+    "uv": ArraySpec(("K", 2), "fiu", False), "uv_faces": ArraySpec(("T", 3), "iu", False),
+    "quad_split": ArraySpec(("T",), "iu", False),
+}
+REGION_SPEC = ArraySpec(("V",), "biu", False)
+
+
+@dataclass(frozen=True)
+class MeshUpload:
+    """A parsed, validated mesh upload.
+
+    Attributes
+    ----------
+    mesh : Mesh                      as the file gave it (vertex order kept)
+    regions : name → (V,) bool       ``region_<name>`` arrays of an NPZ neutral
+    polygons_split : int             polygons with more than three corners, fan-split
+    """
+
+    mesh: Mesh
+    regions: dict[str, np.ndarray]
+    polygons_split: int
+
+    @property
+    def uv_seam_vertices(self) -> int:
+        """Vertices with more than one UV (on a seam)."""
+        return len(self.mesh.seam_vertices())
+
+
+def parse_mesh(kind: str, data: bytes, settings: Settings, what: str,
+               regions: bool = False) -> MeshUpload:
+    """Read an uploaded mesh (.npz or .obj, per ``kind``) and check its triangles.
+
+    Parameters
+    ----------
+    kind : str        the media type (one of :data:`MESH_TYPES`)
+    data : bytes      the body
+    settings : the limits (``max_vertices``; triangles up to ``FACES_PER_VERTEX`` × that)
+    what : str        the mesh's name in messages (``"neutral"``, ``"input rig"``)
+    regions : bool    accept ``region_<name>`` (V,) arrays in an NPZ
+
+    Raises
+    ------
+    FormatError, SizeLimitError, InvalidInput
+    """
+    max_faces = FACES_PER_VERTEX * settings.max_vertices
+    found: dict[str, np.ndarray] = {}
+    if kind in NPZ_TYPES:
+        upload = NpzUpload(data, MESH_SPECS, npz_limit(settings),
+                           {actor_store.REGION_PREFIX: REGION_SPEC} if regions else {}, what)
+        for symbol, limit, name in (("V", settings.max_vertices, "vertices"),
+                                    ("T", max_faces, "triangles")):
+            if upload.dims.get(symbol, 0) > limit:
+                raise SizeLimitError(name, upload.dims[symbol], limit)
+        arrays = upload.load()
+        found = {k[len(actor_store.REGION_PREFIX):]: v.astype(bool) for k, v in arrays.items()
+                 if k.startswith(actor_store.REGION_PREFIX)}
+        try:
+            mesh = Mesh(**{k: v for k, v in arrays.items() if k in MESH_SPECS})
+        except MeshFormatError as error:
+            raise MeshFormatError(f"the {what}: {error}") from None
+    else:
+        mesh = read_obj(data, max_vertices=settings.max_vertices, max_faces=max_faces)
+    check_triangles(mesh.vertices, mesh.faces, what)
+    split = 0 if mesh.quad_split is None else int(np.count_nonzero(np.bincount(mesh.quad_split) > 1))
+    return MeshUpload(mesh, found, split)
+
+
+def parse_neutral(kind: str, data: bytes, settings: Settings) -> tuple[MeshUpload, bytes]:
+    """The neutral upload and its canonical blob (:func:`service.actor_store.neutral_npz`);
+    the neutral needs UVs in the unit tile."""
+    upload = parse_mesh(kind, data, settings, "neutral", regions=True)
+    mesh = upload.mesh
+    check_uv_tile(mesh, "neutral")
+    return upload, actor_store.neutral_npz(mesh.vertices, mesh.faces, mesh.uv, mesh.uv_faces,
+                                           upload.regions)
+
+
+def parse_rig_mesh(kind: str, data: bytes, settings: Settings) -> tuple[MeshUpload, bytes]:
+    """An input rig's mesh and the NPZ to store (:func:`service.io.mesh.write_npz`, readable
+    by :func:`service.io.mesh.read_npz`)."""
+    upload = parse_mesh(kind, data, settings, "input rig")
+    buffer = io.BytesIO()
+    write_npz(buffer, upload.mesh)
+    return upload, buffer.getvalue()
+
+
+def neutral_arrays(neutral: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n,3) and faces (m,3) of a stored canonical neutral."""
+    with np.load(io.BytesIO(neutral), allow_pickle=False) as npz:
+        return npz["vertices"], npz["faces"]
+
+
+# ---------------------------------------------------------------------------- layouts
+@dataclass(frozen=True)
+class LayoutUpload:
+    """A marker layout resolved onto the neutral.
+
+    Attributes
+    ----------
+    blob : bytes             canonical layout (:func:`service.actor_store.layout_json`)
+    marker_count : int
+    snapped : int            markers given as free positions and snapped to the surface
+    max_snap_distance : float   the farthest of those snaps, actor's unit (0 if none)
+    """
+
+    blob: bytes
+    marker_count: int
+    snapped: int
+    max_snap_distance: float
+
+
+def parse_layout(data: bytes, neutral: bytes) -> LayoutUpload:
+    """Read API.md's layout JSON and resolve every marker to a surface point of the stored
+    neutral (vertex and position placements become triangle + barycentric)."""
+    parse_json(data)
+    V, F = neutral_arrays(neutral)
+    layout = read_marker_layout(data, vertex_count=len(V), triangle_count=len(F))
+    try:
+        triangle, barycentric = resolve_marker_layout(layout, V, F)
+    except ValueError as error:
+        raise InvalidInput(str(error)) from None
+    free = np.asarray(layout.kinds) == "position"
+    distance = 0.0
+    if free.any():
+        snapped = surface_points(V, F, triangle[free], barycentric[free])
+        distance = float(np.linalg.norm(snapped - layout.position[free], axis=1).max())
+    blob = actor_store.layout_json(layout.names, triangle, barycentric)
+    return LayoutUpload(blob, len(layout.names), int(free.sum()), distance)
+
+
+def layout_names(layout: bytes) -> list[str]:
+    """Marker names of a stored canonical layout, in layout order."""
+    return list(json.loads(layout)["names"])
+
+
+# ---------------------------------------------------------------------------- markers
+def markers_in_layout_order(sequence: MarkerSequence, names: Sequence[str],
+                            what: str = "the marker file") -> np.ndarray:
+    """Positions (F,M,3) of a marker file in layout order.
+
+    A file with marker names is matched by name (extra markers are ignored); one without
+    must have exactly the layout's markers, in its order.
+    """
+    positions = sequence.positions
+    if sequence.names is None:
+        if positions.shape[1] != len(names):
+            raise InvalidInput(f"{what} has {positions.shape[1]} markers per frame, the marker "
+                               f"layout has {len(names)} (unnamed markers must be in layout order)")
+        return positions
+    column = {name: k for k, name in enumerate(sequence.names)}
+    missing = [name for name in names if name not in column]
+    if missing:
+        shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
+        raise InvalidInput(f"{what} lacks {len(missing)} of the layout's {len(names)} markers: "
+                           f"{shown}")
+    return positions[:, [column[name] for name in names]]
+
+
+def read_marker_file(data: bytes, suffix: str, names: Sequence[str]) -> tuple[np.ndarray, float | None]:
+    """A .c3d/.trc/.csv/.json marker file as (F,M,3) in layout order, and its fps."""
+    sequence = read_markers(data, suffix)
+    return markers_in_layout_order(sequence, names), sequence.fps
+
+
+# ---------------------------------------------------------------------------- clips
+CLIP_SPECS = {
+    "vertices": ArraySpec(("F", "V", 3), "fiu"), "markers": ArraySpec(("F", "M", 3), "fiu"),
+    "displacement": ArraySpec(("F", "H", "H"), "fiu", False),
+    "albedo": ArraySpec(("F", "A", "A", 3), "fiu", False),
+    "fps": ArraySpec((), "fiu", False),
+}
+
+
+@dataclass(frozen=True)
+class ClipUpload:
+    """A validated clip: its canonical blob and frame count."""
+
+    blob: bytes
+    frames: int
+
+
+def _check_clip(vertices: np.ndarray, markers: np.ndarray, n_markers: int) -> None:
+    check_finite_frames(vertices, "clip", "vertex")
+    check_finite_frames(markers, "clip", "marker", allow_nan=True)
+    if markers.shape[1] != n_markers:
+        raise InvalidInput(f"the clip has {markers.shape[1]} markers per frame, the marker "
+                           f"layout has {n_markers}")
+    if len(markers) != len(vertices):
+        raise InvalidInput(f"the clip has {len(vertices)} mesh frames but {len(markers)} "
+                           "marker frames")
+
+
+def parse_clip_npz(data: bytes, settings: Settings, n_vertices: int, n_markers: int) -> ClipUpload:
+    """A clip NPZ (``vertices`` (F,V,3), ``markers`` (F,M,3), optional ``displacement``
+    (F,H,H), ``albedo`` (F,A,A,3), ``fps``) checked against the actor."""
+    upload = NpzUpload(data, CLIP_SPECS, npz_limit(settings), what="clip")
+    if upload.dims["F"] == 0:
+        raise InvalidInput("the clip has no frames")
+    if upload.dims["V"] != n_vertices:
+        raise InvalidInput(f"the clip's frames have {upload.dims['V']} vertices, the neutral "
+                           f"has {n_vertices} (frames must be in vertex correspondence with it)")
+    arrays = upload.load()
+    _check_clip(arrays["vertices"], arrays["markers"], n_markers)
+    fps = float(arrays["fps"]) if "fps" in arrays else 30.0
+    blob = actor_store.clip_npz(arrays["vertices"], arrays["markers"],
+                                displacement=arrays.get("displacement"),
+                                albedo=arrays.get("albedo"), fps=fps)
+    return ClipUpload(blob, upload.dims["F"])
+
+
+@dataclass
+class ClipForm:
+    """The parts of a multipart clip upload, read into memory.
+
+    Attributes
+    ----------
+    frames : list of (filename, bytes)   per-frame OBJ files, in the order sent
+    markers : (filename, bytes)          the marker file
+    fps : float or None
+    """
+
+    frames: list[tuple[str, bytes]]
+    markers: tuple[str, bytes]
+    fps: float | None
+
+
+async def read_clip_form(request: Request) -> ClipForm:
+    """Read a multipart clip: parts ``frames`` (one ``.obj`` file per frame, in order),
+    ``markers`` (a ``.c3d``, ``.trc``, ``.csv`` or ``.json`` file), optional ``fps``."""
+    form = await read_form(request)
+    frames = [part for part in form.getlist("frames") if isinstance(part, UploadFile)]
+    markers = form.get("markers")
+    if not frames:
+        raise InvalidInput("a multipart clip needs one or more 'frames' parts (.obj files, one "
+                           "per frame, in order)")
+    if not isinstance(markers, UploadFile):
+        raise InvalidInput("a multipart clip needs a 'markers' file part (.c3d, .trc, .csv "
+                           "or .json)")
+    fps = form.get("fps")
+    try:
+        fps_value = None if fps in (None, "") else float(fps)
+    except (TypeError, ValueError):
+        raise InvalidInput(f"'fps' must be a number, got {str(fps)[:40]!r}") from None
+    return ClipForm([(f.filename or f"frame {k}", await f.read()) for k, f in enumerate(frames)],
+                    (markers.filename or "", await markers.read()), fps_value)
+
+
+def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
+                    names: Sequence[str]) -> ClipUpload:
+    """A multipart clip (per-frame OBJ files and a marker file) checked against the actor."""
+    vertices = np.empty((len(form.frames), n_vertices, 3), np.float32)
+    for k, (filename, data) in enumerate(form.frames):
+        try:
+            mesh = read_obj(data, max_vertices=settings.max_vertices,
+                            max_faces=FACES_PER_VERTEX * settings.max_vertices)
+        except FormatError as error:
+            raise type(error)(f"clip frame {k} ('{filename}'): {error}") from None
+        if len(mesh.vertices) != n_vertices:
+            raise InvalidInput(f"clip frame {k} ('{filename}') has {len(mesh.vertices)} "
+                               f"vertices, the neutral has {n_vertices}")
+        vertices[k] = mesh.vertices
+    filename, data = form.markers
+    suffix = "." + filename.rsplit(".", 1)[-1].lower() if "." in filename else ""
+    markers, fps = read_marker_file(data, suffix, names)
+    _check_clip(vertices, markers, len(names))
+    blob = actor_store.clip_npz(vertices, markers, fps=form.fps or fps or 30.0)
+    return ClipUpload(blob, len(vertices))
+
+
+# ---------------------------------------------------------------------------- landmarks
+def parse_landmarks(text: str | None, rig_vertices: int, neutral_vertices: int) -> list[list[int]]:
+    """Landmark pairs ``[[rig_vertex, neutral_vertex], ...]`` (JSON), indices checked."""
+    if text in (None, ""):
+        return []
+    pairs = parse_json(text.encode() if isinstance(text, str) else text)
+    if not (isinstance(pairs, list) and all(
+            isinstance(p, list) and len(p) == 2 and all(type(i) is int for i in p) for p in pairs)):
+        raise InvalidInput("'landmarks' must be a JSON list of [rig_vertex, neutral_vertex] "
+                           "integer pairs")
+    for k, (rig, neutral) in enumerate(pairs):
+        if not 0 <= rig < rig_vertices:
+            raise InvalidInput(f"landmark {k}: rig vertex {rig} is out of range; the rig has "
+                               f"{rig_vertices} vertices")
+        if not 0 <= neutral < neutral_vertices:
+            raise InvalidInput(f"landmark {k}: neutral vertex {neutral} is out of range; the "
+                               f"neutral has {neutral_vertices} vertices")
+    return pairs
+
+
+async def read_rig_form(request: Request) -> tuple[str, bytes, str | None]:
+    """A multipart input rig: a ``mesh`` file part (``.npz`` or ``.obj``, by its filename or
+    its part's Content-Type) and an optional ``landmarks`` JSON field.
+
+    Returns
+    -------
+    (media type, mesh bytes, landmarks text or None)
+    """
+    form = await read_form(request)
+    mesh = form.get("mesh")
+    if not isinstance(mesh, UploadFile):
+        raise InvalidInput("a multipart input rig needs a 'mesh' file part (.npz or .obj)")
+    suffix = (mesh.filename or "").rsplit(".", 1)[-1].lower()
+    part_type = (mesh.content_type or "").split(";")[0].strip().lower()
+    kind = {"npz": NPZ_TYPES[0], "obj": OBJ_TYPES[0]}.get(suffix, part_type)
+    if kind not in MESH_TYPES:
+        raise UnsupportedMediaType(f"the 'mesh' part '{mesh.filename}' is neither .npz nor "
+                                   f".obj (Content-Type '{part_type}')")
+    landmarks = form.get("landmarks")
+    if isinstance(landmarks, UploadFile):
+        landmarks = (await landmarks.read()).decode("utf-8", "replace")
+    return kind, await mesh.read(), landmarks
+
+
+async def read_file_part(request: Request, name: str) -> tuple[str, bytes]:
+    """The filename and content of the file part ``name`` of a multipart body."""
+    form = await read_form(request)
+    part = form.get(name)
+    if not isinstance(part, UploadFile):
+        raise InvalidInput(f"the multipart body needs a file part '{name}'")
+    return part.filename or "", await part.read()

@@ -1,0 +1,92 @@
+"""Checks an uploaded surface must pass before the service stores it.
+
+:class:`service.io.mesh.Mesh` already refuses non-finite coordinates and out-of-range
+indices; these add what a mesh that drives training must also satisfy. Each raises
+:class:`~service.methods.inputs.InvalidInput` (422) naming how many elements fail and the
+first of them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.api.limits import DEGENERATE_AREA_RTOL
+from service.geometry.laplacian import triangle_areas
+from service.geometry.topology import edge_face_counts
+from service.io.mesh import Mesh
+from service.methods.inputs import InvalidInput
+
+#: UVs may lie this far outside the unit tile (rounding in exporters)
+UV_TOLERANCE = 1e-6
+
+
+def check_triangles(V: np.ndarray, F: np.ndarray, what: str = "mesh") -> None:
+    """Refuse degenerate triangles and non-manifold edges.
+
+    Parameters
+    ----------
+    V : (n,3) float   vertices
+    F : (m,3) int     triangles (indices already in range)
+    what : str        the mesh's name in messages, e.g. ``"neutral"``
+
+    Raises
+    ------
+    InvalidInput
+        - a triangle with a repeated corner or zero area (at most
+          :data:`~service.api.limits.DEGENERATE_AREA_RTOL` times its longest edge squared);
+        - an edge shared by more than two triangles.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
+    longest = np.max([np.einsum("ij,ij->i", d, d) for d in
+                      (V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 1]], V[F[:, 0]] - V[F[:, 2]])],
+                     axis=0)
+    degenerate = repeated | (triangle_areas(V, F) <= DEGENERATE_AREA_RTOL * longest)
+    bad = np.flatnonzero(degenerate)
+    if len(bad):
+        t = int(bad[0])
+        raise InvalidInput(
+            f"the {what} has {len(bad)} degenerate triangle(s) (zero area or a repeated "
+            f"vertex); the first is triangle {t} with vertices {F[t].tolist()}")
+    E, count = edge_face_counts(F)
+    over = np.flatnonzero(count > 2)
+    if len(over):
+        a, b = (int(x) for x in E[over[0]])
+        faces = np.flatnonzero(np.isin(F, (a, b)).sum(axis=1) == 2)
+        raise InvalidInput(
+            f"the {what} has {len(over)} non-manifold edge(s) shared by more than two "
+            f"triangles; the first is edge ({a}, {b}), shared by triangles {faces.tolist()}")
+
+
+def check_uv_tile(mesh: Mesh, what: str = "neutral") -> None:
+    """Refuse a mesh without UVs, or with UVs outside the unit tile [0,1]² (API.md's maps
+    cover exactly that tile; UDIM layouts must be repacked into it)."""
+    if mesh.uv is None:
+        raise InvalidInput(f"the {what} has no UV layout: send 'uv' (and 'uv_faces' for "
+                           "seams) in the .npz, or 'vt' coordinates in the .obj")
+    outside = np.flatnonzero(((mesh.uv < -UV_TOLERANCE) | (mesh.uv > 1 + UV_TOLERANCE)).any(axis=1))
+    if len(outside):
+        k = int(outside[0])
+        raise InvalidInput(f"the {what} has {len(outside)} uv coordinate(s) outside the unit "
+                           f"tile [0,1]²; the first is uv {k} = {mesh.uv[k].tolist()} "
+                           "(repack UDIM tiles into one tile)")
+
+
+def check_finite_frames(values: np.ndarray, what: str, element: str,
+                        allow_nan: bool = False) -> None:
+    """Refuse non-finite values in (F,N,3) frames, naming the first frame and element.
+
+    Parameters
+    ----------
+    values : (F,N,3) float   e.g. clip vertices or markers
+    what : str               e.g. ``"clip"``; messages read "clip frame 3 vertex 17 ..."
+    element : str            what the N axis holds, e.g. ``"vertex"``, ``"marker"``
+    allow_nan : bool         NaN is allowed (an occluded marker), infinity is not
+    """
+    bad = (np.isinf(values) if allow_nan else ~np.isfinite(values)).any(axis=-1)
+    if bad.any():
+        f, k = np.unravel_index(int(np.argmax(bad)), bad.shape)
+        note = "; NaN marks an occluded marker, infinity is not allowed" if allow_nan else ""
+        raise InvalidInput(f"{what} frame {f} {element} {k} has a non-finite coordinate "
+                           f"({int(bad.sum())} such entries in all{note})")

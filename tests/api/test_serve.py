@@ -1,0 +1,77 @@
+"""``facesynth serve``: the HTTP API, gRPC and embedded workers in one process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+
+from service.cli import main
+from service.grpc import codec
+from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_serve_refuses_a_public_host_without_tokens(capsys, monkeypatch):
+    monkeypatch.delenv("FACESYNTH_TOKENS", raising=False)
+    assert main(["serve", "--host", "0.0.0.0"]) == 2
+    assert "refusing to listen on 0.0.0.0 without tokens" in capsys.readouterr().err
+
+
+def test_serve_runs_http_grpc_and_workers(tmp_path):
+    port, grpc_port = free_port(), free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--grpc-port",
+         str(grpc_port), "--data-dir", str(tmp_path), "--workers", "1"],
+        stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        base = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert process.poll() is None, process.stderr.read()
+            assert time.monotonic() < deadline, "the server did not start"
+            time.sleep(0.2)
+        ready = httpx.get(f"{base}/readyz", headers={"X-Request-ID": "serve-test"})
+        assert ready.status_code == 200, ready.text
+        assert ready.headers["x-request-id"] == "serve-test"
+        actor = httpx.post(f"{base}/v1/actors", json={"name": "Ada"}).json()
+        assert actor["name"] == "Ada"
+        with grpc.insecure_channel(f"127.0.0.1:{grpc_port}") as channel:
+            stub = pb_grpc.SynthesisStub(channel)
+            first = codec.encode_markers(np.zeros((3, 3)), 0,
+                                         model_id="mdl_00000000000000000000000000")
+            with pytest.raises(grpc.RpcError) as error:
+                list(stub.StreamSynthesize(iter([first]), timeout=10))
+            assert error.value.code() == grpc.StatusCode.NOT_FOUND
+    finally:
+        process.send_signal(signal.SIGINT)
+        try:
+            _, stderr = process.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            _, stderr = process.communicate()
+    assert process.returncode == 0, stderr
+    access = [json.loads(line) for line in stderr.splitlines()
+              if line.startswith("{") and '"facesynth.access"' in line]
+    assert any(entry.get("request_id") == "serve-test" and entry["route"] == "/readyz"
+               for entry in access)

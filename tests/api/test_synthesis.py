@@ -1,0 +1,255 @@
+"""A ready PDM model in the store (the session's trained ``pdm_model``): synchronous
+synthesis in every encoding, its refusals, the model's maps, and synthesis jobs."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from models_store import registry
+from service import actor_store
+from service.config import Settings
+from service.io.exr import read_exr, read_map
+from service.io.markers import MarkerSequence, write_markers_csv, write_markers_trc
+from service.io.mesh import read_obj
+from tests.api.conftest import NPZ, Recorder, assert_problem, load_npz, make_client, npz
+from tests.conftest import PDM_TRAINING
+
+
+@pytest.fixture(scope="module")
+def ready(tmp_path_factory, pdm_actor_dir, pdm_model):
+    """(client, actor_id, model_id, heldout markers (F,M,3), submitted) with the sample
+    actor uploaded through the API and the trained model marked ready."""
+    tmp = tmp_path_factory.mktemp("api_ready")
+    settings = Settings(data_dir=tmp / "data", max_frames_per_request=4, max_map_resolution=256)
+    submitted = Recorder()
+    with make_client(settings, submitted) as client:
+        neutral, layout, clips = actor_store.sample_actor_uploads(pdm_actor_dir, PDM_TRAINING[:1])
+        actor_id = client.post("/v1/actors", json={"name": "sample"}).json()["id"]
+        assert client.put(f"/v1/actors/{actor_id}/neutral", content=neutral,
+                          headers=NPZ).status_code == 200
+        canonical = json.loads(layout)
+        markers = [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
+                   zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]
+        assert client.put(f"/v1/actors/{actor_id}/markers",
+                          json={"markers": markers}).status_code == 200
+        clip = client.post(f"/v1/actors/{actor_id}/clips", content=clips[PDM_TRAINING[0]],
+                           headers=NPZ)
+        assert clip.status_code == 201, clip.text
+        model_id = client.post(f"/v1/actors/{actor_id}/models", json={
+            "kind": "pdm", "clips": [clip.json()["clip_id"]]}).json()["model_id"]
+        pdm_model.save(tmp / "model")
+        services = client.app.state.services
+        with services.session() as session:
+            registry.mark_model_ready(session, services.blobs, model_id, tmp / "model",
+                                      metrics=pdm_model.metrics)
+        with np.load(pdm_actor_dir / "performances" / "heldout_in_range.npz") as d:
+            heldout = d["markers"][:2].astype(np.float64)
+        yield client, actor_id, model_id, heldout, submitted
+
+
+def synth(client, model_id, body, headers=NPZ, **params):
+    return client.post(f"/v1/models/{model_id}/synthesize", content=body, headers=headers,
+                       params=params)
+
+
+def test_ready_model_record(ready, pdm_model):
+    client, actor_id, model_id, _, _ = ready
+    model = client.get(f"/v1/models/{model_id}").json()
+    assert model["status"] == "ready" and model["size_bytes"] > 0
+    assert model["metrics"]["training_frames"] == pdm_model.metrics["training_frames"]
+
+
+def test_synthesize_npz_default_outputs(ready, pdm_model):
+    client, _, model_id, markers, _ = ready
+    response = synth(client, model_id, npz(markers=markers))
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/x-npz"
+    out = load_npz(response.content)
+    n = pdm_model.n_vertices
+    assert out["vertices"].shape == (2, n, 3) and out["faces"].shape[1] == 3
+    assert out["displacement"].shape == (2, 128, 128) and "vertices_detailed" not in out
+    expected = pdm_model.synthesize(markers, ("mesh", "displacement"))
+    np.testing.assert_allclose(out["vertices"], expected["vertices"], atol=1e-5)
+
+
+def test_synthesize_json_with_outputs_and_map_resolution(ready):
+    client, _, model_id, markers, _ = ready
+    frames = markers[:1].tolist()
+    frames[0][3] = None                                 # an occluded marker
+    response = client.post(f"/v1/models/{model_id}/synthesize", json={
+        "markers": frames, "outputs": ["mesh_detailed", "normal_map"], "map_resolution": 64})
+    assert response.status_code == 200, response.text
+    out = load_npz(response.content)
+    assert out["vertices_detailed"].shape[0] == 1 and out["normal_map"].shape == (1, 64, 64, 3)
+    lengths = np.linalg.norm(out["normal_map"], axis=-1)
+    assert np.allclose(lengths[lengths > 0], 1, atol=1e-4)
+
+
+def test_synthesize_obj_and_exr_for_one_frame(ready, pdm_model):
+    client, _, model_id, markers, _ = ready
+    obj = synth(client, model_id, npz(markers=markers[:1]), {**NPZ, "Accept": "model/obj"})
+    assert obj.status_code == 200 and obj.headers["content-type"] == "model/obj"
+    mesh = read_obj(obj.content)
+    assert len(mesh.vertices) == pdm_model.n_vertices and mesh.uv is not None
+    exr = synth(client, model_id, npz(markers=markers[:1]), {**NPZ, "Accept": "image/x-exr"},
+                outputs="displacement")
+    assert exr.status_code == 200 and exr.headers["content-type"] == "image/x-exr"
+    assert read_map(exr.content).shape == (128, 128)
+    half = synth(client, model_id, npz(markers=markers[:1]), {**NPZ, "Accept": "image/x-exr"},
+                 outputs="displacement", half="true")
+    assert len(half.content) < len(exr.content)
+
+
+def test_synthesize_refusals(ready, pdm_model):
+    client, _, model_id, markers, _ = ready
+    M = pdm_model.n_markers
+    assert_problem(synth(client, model_id, npz(markers=markers[:, :-1])), 422,
+                   f"model expects {M} markers, got {M - 1}")
+    assert_problem(synth(client, model_id, npz(markers=np.repeat(markers, 3, axis=0))), 413,
+                   "6 frames", "limit of 4 frames", "synthesis-jobs")
+    assert_problem(client.post(f"/v1/models/{model_id}/synthesize",
+                               json={"markers": np.repeat(markers, 3, axis=0).tolist()}), 413,
+                   "limit of 4")
+    bad = markers.copy()
+    bad[1, 2, 0] = np.inf
+    assert_problem(synth(client, model_id, npz(markers=bad)), 422, "frame 1 marker 2")
+    assert_problem(synth(client, model_id, npz(markers=markers), outputs="wrinkles"), 422,
+                   "unknown outputs ['wrinkles']")
+    assert_problem(synth(client, model_id, npz(markers=markers), {**NPZ, "Accept": "model/obj"}),
+                   422, "one frame")
+    assert_problem(synth(client, model_id, npz(markers=markers[:1]),
+                         {**NPZ, "Accept": "image/x-exr"}), 422, "one map")
+    assert_problem(synth(client, model_id, npz(markers=markers), {**NPZ, "Accept": "text/html"}),
+                   406, "text/html")
+    assert_problem(synth(client, model_id, npz(vertices=markers)), 422, "lacks 'markers'")
+    assert_problem(synth(client, model_id, b"{}", {"Content-Type": "application/json"}), 422,
+                   "markers")
+    assert_problem(synth(client, model_id, b"{", {"Content-Type": "application/json"}), 400)
+    assert_problem(synth(client, model_id, b"x", {"Content-Type": "text/csv"}), 415)
+    assert_problem(client.post(f"/v1/models/{model_id}/synthesize", json={
+        "markers": markers[:1].tolist(), "map_resolution": 512}), 413, "max_map_resolution")
+    assert_problem(client.post(f"/v1/models/{model_id}/enhance", content=npz(vertices=markers),
+                               headers=NPZ), 422, "takes markers", "/synthesize")
+
+
+def test_synthesis_is_counted_in_metrics(ready):
+    client, _, model_id, markers, _ = ready
+    synth(client, model_id, npz(markers=markers))
+    text = client.get("/metrics").text
+    line = next(l for l in text.splitlines() if l.startswith('facesynth_synthesis_frames_total{kind="pdm"}'))
+    assert float(line.split()[-1]) >= 2
+    assert 'facesynth_synthesis_fps{kind="pdm"}' in text
+
+
+def test_model_maps_list_and_download(ready):
+    client, _, model_id, _, _ = ready
+    maps = {m["name"]: m for m in client.get(f"/v1/models/{model_id}/maps").json()["items"]}
+    assert {"medium", "fine", "neutral"} <= set(maps)
+    assert maps["fine"]["channels"][:2] == ["n.a0", "n.a1"] and maps["fine"]["width"] == 128
+    response = client.get(maps["fine"]["url"])
+    assert response.status_code == 200 and response.headers["content-type"] == "image/x-exr"
+    channels = read_exr(response.content)
+    assert set(channels) == set(maps["fine"]["channels"])
+    half = client.get(maps["fine"]["url"], params={"half": "true"})
+    assert len(half.content) < len(response.content)
+    ranged = client.get(maps["fine"]["url"], headers={"Range": "bytes=0-3"})
+    assert ranged.status_code == 206 and ranged.content == response.content[:4]
+    assert_problem(client.get(f"/v1/models/{model_id}/maps/wrinkles.exr"), 404, "fine")
+    assert_problem(client.get(f"/v1/models/{model_id}/maps/..%2Fmanifest.exr"), 404)
+
+
+def _csv(markers, names):
+    buffer = io.BytesIO()
+    write_markers_csv(buffer, MarkerSequence(markers, names))
+    return buffer.getvalue()
+
+
+def test_synthesis_job_from_npz_and_marker_files(ready):
+    client, actor_id, model_id, markers, submitted = ready
+    url = f"/v1/models/{model_id}/synthesis-jobs"
+    response = client.post(url, content=npz(markers=np.repeat(markers, 5, axis=0)), headers=NPZ,
+                           params={"outputs": "mesh,normal_map"})
+    assert response.status_code == 202, response.text
+    job_id = response.json()["job_id"]
+    assert response.headers["location"] == f"/v1/jobs/{job_id}" and job_id in submitted
+    services = client.app.state.services
+    with services.session() as session:
+        job = registry.get_job(session, job_id)
+        data = services.blobs.read_bytes(job.payload["markers_blob"], job.payload["markers_sha256"])
+    assert (job.kind, job.model_id, job.payload["frames"]) == ("synthesize", model_id, 10)
+    assert job.payload["outputs"] == ["mesh", "normal_map"] and job.payload["format"] == "npz"
+    np.testing.assert_allclose(load_npz(data)["markers"], np.repeat(markers, 5, axis=0), rtol=1e-6)
+
+    names = json.loads(client.app.state.services.blobs.read_bytes(
+        *_layout_key(services, actor_id)))["names"]
+    reversed_csv = _csv(markers[:, ::-1], names[::-1])   # named columns in another order
+    response = client.post(url, content=reversed_csv, headers={"Content-Type": "text/csv"})
+    assert response.status_code == 202, response.text
+    trc = io.BytesIO()
+    write_markers_trc(trc, MarkerSequence(markers, names), fps=60)
+    response = client.post(url, files={"file": ("take.trc", trc.getvalue(), "text/plain")})
+    assert response.status_code == 202, response.text
+
+
+def _layout_key(services, actor_id):
+    with services.session() as session:
+        actor = registry.get_actor(session, actor_id)
+        return actor.markers_blob, actor.markers_sha256
+
+
+def test_synthesis_job_refusals(ready, pdm_model):
+    client, _, model_id, markers, _ = ready
+    url = f"/v1/models/{model_id}/synthesis-jobs"
+    M = pdm_model.n_markers
+    assert_problem(client.post(url, content=npz(markers=markers[:, :5]), headers=NPZ), 422,
+                   f"model expects {M} markers, got 5")
+    assert_problem(client.post(url, content=npz(markers=markers), headers=NPZ,
+                               params={"format": "usd"}), 422, "'usd' is not supported")
+    assert_problem(client.post(url, content=_csv(markers[:, :3], ["a", "b", "c"]),
+                               headers={"Content-Type": "text/csv"}), 422, "lacks")
+    assert_problem(client.post(url, content=b"x", headers={"Content-Type": "image/png"}), 415)
+    assert_problem(client.post("/v1/models/mdl_00000000000000000000000000/synthesis-jobs",
+                               content=npz(markers=markers), headers=NPZ), 404)
+
+
+def test_services_load_model_serves_the_grpc_path(ready):
+    client, _, model_id, markers, _ = ready
+    services = client.app.state.services
+    model = services.load_model(model_id)
+    assert model is services.load_model(model_id)        # cached
+    assert model.synthesize(markers[:1], ["mesh"])["vertices"].shape[0] == 1
+
+
+def test_accept_negotiation():
+    from service.api.synthesis import negotiate
+    from service.api.errors import NotAcceptable
+
+    assert negotiate(None) == negotiate("*/*") == "application/x-npz"
+    assert negotiate("model/obj") == "model/obj"
+    assert negotiate("image/x-exr;q=0.5, model/obj;q=0.9") == "model/obj"
+    assert negotiate("text/html, image/*") == "image/x-exr"
+    assert negotiate("model/obj;q=0, application/*") == "application/x-npz"
+    with pytest.raises(NotAcceptable):
+        negotiate("text/html")
+
+
+def test_synthesis_slots_answer_503_when_busy():
+    from types import SimpleNamespace
+
+    from service.api.errors import Overloaded
+    from service.api.metrics import Metrics
+    from service.api.synthesis import SynthesisInput, Synthesizer
+
+    synthesizer = Synthesizer(Metrics(), limit=1)
+    model = SimpleNamespace(synthesize=lambda frames, outputs, clamp: {"faces": np.zeros((1, 3))})
+    loaded = SimpleNamespace(model=model, kind=SimpleNamespace(name="fake"))
+    request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
+    assert "faces" in synthesizer.run(loaded, request)
+    synthesizer._slots.acquire()
+    with pytest.raises(Overloaded) as error:
+        synthesizer.run(loaded, request)
+    assert error.value.status_code == 503 and error.value.headers["Retry-After"] == "1"
