@@ -15,9 +15,10 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-## run: set up and run facesynth with embedded defaults (until the service lands: the demo)
+## run: set up and run the service with embedded defaults (SQLite, local blobs, an embedded
+## worker) on 127.0.0.1:8000 (HTTP) and :50051 (gRPC), data in ./facesynth-data
 run: $(STAMP)
-	$(BIN)/facesynth demo --out ./facesynth-demo
+	$(BIN)/facesynth serve
 
 ## test: set up and run the whole test suite (what .ci/run calls)
 test: $(STAMP)
