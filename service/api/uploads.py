@@ -27,9 +27,7 @@ import io
 import json
 import math
 import re
-import struct
 import zipfile
-import zlib
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
@@ -48,6 +46,7 @@ from service.geometry.closest_point import resolve_marker_layout, surface_points
 from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
+from service.io.npz import ZIP_ERRORS, npy_header
 from service.methods.inputs import InvalidInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
@@ -59,8 +58,6 @@ MARKER_FILE_TYPES = {"application/x-c3d": ".c3d", "application/vnd.c3d": ".c3d",
                      "text/x-trc": ".trc", "application/x-trc": ".trc", "text/csv": ".csv"}
 MESH_TYPES = NPZ_TYPES + OBJ_TYPES
 _SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
-_ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error,
-               zipfile.BadZipFile, zlib.error)
 
 
 # ---------------------------------------------------------------------------- bodies
@@ -211,7 +208,7 @@ class NpzUpload:
         try:
             self._zip = zipfile.ZipFile(io.BytesIO(self.data))
             members = self._zip.infolist()
-        except _ZIP_ERRORS as error:
+        except ZIP_ERRORS as error:
             raise FormatError(f"the {self.what} is not a readable .npz archive: {error}") from None
         if len(members) > NPZ_MAX_MEMBERS:
             raise SizeLimitError("arrays", len(members), NPZ_MAX_MEMBERS)
@@ -264,21 +261,14 @@ class NpzUpload:
     def _header(self, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
         key = info.filename[:-4]
         try:
-            with self._zip.open(info) as member:
-                version = np.lib.format.read_magic(member)
-                if version == (1, 0):
-                    shape, _, dtype = np.lib.format.read_array_header_1_0(member)
-                elif version == (2, 0):
-                    shape, _, dtype = np.lib.format.read_array_header_2_0(member)
-                else:
-                    raise FormatError(f"'{key}' uses .npy format {version}; expected 1.0 or 2.0")
-        except _ZIP_ERRORS as error:
+            shape, dtype = npy_header(self._zip, info)
+        except ZIP_ERRORS as error:
             raise FormatError(f"cannot read the header of '{key}' in the {self.what} .npz: "
                               f"{error}") from None
         if dtype.hasobject:
             raise FormatError(f"'{key}' holds Python objects; only numeric arrays are accepted "
                               "(pickles are never loaded)")
-        return tuple(int(s) for s in shape), dtype
+        return shape, dtype
 
     def load(self) -> dict[str, np.ndarray]:
         """Every array, read without unpickling."""
@@ -287,7 +277,7 @@ class NpzUpload:
             try:
                 with self._zip.open(info) as member:
                     arrays[key] = np.lib.format.read_array(member, allow_pickle=False)
-            except _ZIP_ERRORS as error:
+            except ZIP_ERRORS as error:
                 raise FormatError(f"cannot read '{key}' in the {self.what} .npz: {error}") from None
         return arrays
 

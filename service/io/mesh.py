@@ -22,7 +22,6 @@ import re
 import struct
 import warnings
 import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Union
@@ -30,6 +29,7 @@ from typing import BinaryIO, Union
 import numpy as np
 
 from service.io.errors import MeshFormatError, SizeLimitError
+from service.io.npz import ZIP_ERRORS, npy_header
 
 MAX_VERTICES = 5_000_000
 """Default bound on the vertex count a reader accepts."""
@@ -920,11 +920,7 @@ _NPZ_SHAPES = {
     "quad_split": ("T",),
 }  # fmt: skip
 _NPZ_KEYS = tuple(_NPZ_SHAPES)
-_ZIP_ERRORS = (
-    ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error, zipfile.BadZipFile,
-    zlib.error,
-)  # fmt: skip
-"""What numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)."""
+_ZIP_ERRORS = ZIP_ERRORS
 
 
 def read_npz(
@@ -992,17 +988,9 @@ def read_npz(
 
 def _npy_shape(archive: zipfile.ZipFile, key: str) -> tuple[int, ...]:
     try:
-        with archive.open(key + ".npy") as member:
-            version = np.lib.format.read_magic(member)
-            if version == (1, 0):
-                shape, _, _ = np.lib.format.read_array_header_1_0(member)
-            elif version == (2, 0):
-                shape, _, _ = np.lib.format.read_array_header_2_0(member)
-            else:
-                raise MeshFormatError(f"'{key}' uses unsupported .npy format version {version}")
-    except _ZIP_ERRORS as error:
+        return npy_header(archive, key + ".npy")[0]
+    except ZIP_ERRORS as error:
         raise MeshFormatError(f"cannot read the header of '{key}' in the .npz: {error}") from None
-    return shape
 
 
 def write_npz(target: Target, mesh: Mesh, *, dtype=np.float64, compress: bool = False) -> None:

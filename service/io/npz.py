@@ -1,0 +1,35 @@
+"""Reading ``.npz`` archives that came from outside: array headers before any data.
+
+Both the mesh reader and the API's upload parser decide from the headers (shape, dtype)
+whether to read an array at all, so nothing is allocated for a declared size that breaks a
+limit and no pickle is ever loaded.
+"""
+
+from __future__ import annotations
+
+import struct
+import zipfile
+import zlib
+
+import numpy as np
+
+#: what numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)
+ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error,
+              zipfile.BadZipFile, zlib.error)
+
+
+def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of one ``.npy`` member, from its header only.
+
+    Raises ``ValueError`` for a .npy format other than 1.0/2.0 and the :data:`ZIP_ERRORS`
+    of a corrupt member; callers turn them into their format's error.
+    """
+    with archive.open(member) as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
+    return tuple(int(s) for s in shape), dtype
