@@ -6,6 +6,7 @@
     facesynth worker [--data-dir DIR] [--workers N]            run jobs (training, synthesis) from the queue
     facesynth serve [--host H] [--port P] [--grpc-port G] [--data-dir DIR] [--workers N]
                                                                HTTP API + gRPC + embedded job workers
+                                                               (--workers 0: API + gRPC only)
 """
 
 from __future__ import annotations
@@ -119,12 +120,11 @@ def cmd_pdm_synthesize(args: argparse.Namespace) -> int:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    import logging
-
     from service.config import Settings
     from service.jobs.worker import run_worker
+    from service.logs import configure_logging
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging()
     overrides = {name: getattr(args, name) for name in ("data_dir", "database_url", "queue_url",
                                                         "queue_name", "workers")
                  if getattr(args, name) is not None}
@@ -138,7 +138,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.api.app import create_app
-    from service.api.logs import configure_logging
+    from service.logs import configure_logging
     from service.api.services import Services
     from service.config import Settings
     from service.grpc.server import is_loopback, serve
@@ -156,7 +156,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     services = Services.open(settings)
     workers = grpc_server = None
     try:
-        workers = start_embedded(settings, settings.workers)
+        if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
+            workers = start_embedded(settings, settings.workers)
         grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
                             tokens=settings.tokens)
         uvicorn.run(create_app(settings, services=services), host=settings.host,
@@ -231,7 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, help="HTTP port (FACESYNTH_PORT, default 8000)")
     p.add_argument("--grpc-port", type=int, help="gRPC port (FACESYNTH_GRPC_PORT, default 50051)")
     p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
-    p.add_argument("--workers", type=int, help="embedded job threads (FACESYNTH_WORKERS, default 1)")
+    p.add_argument("--workers", type=int, help="embedded job threads (FACESYNTH_WORKERS, default 1; "
+                                               "0: no embedded worker, API only)")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("demo", help="build the level-1 sample actor and summarise it")

@@ -1,5 +1,5 @@
-"""Structured logs (one JSON object per line) with the id of the request being served, and
-the ASGI middleware that assigns that id, logs each request and times it for the metrics.
+"""The ASGI middleware that gives every request an id, logs it and times it for the metrics
+(the JSON log format itself is :mod:`service.logs`).
 
 A request's id is its ``X-Request-ID`` header when that is a short token of safe characters,
 else a fresh one; it is echoed in the response's ``X-Request-ID``, put in problem bodies
@@ -8,65 +8,19 @@ else a fresh one; it is echoed in the response's ``X-Request-ID``, put in proble
 
 from __future__ import annotations
 
-import contextvars
-import json
 import logging
 import re
-import sys
 import time
 import uuid
-from datetime import datetime, timezone
-from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.limits import REQUEST_ID_MAX_LENGTH
 from service.api.metrics import Metrics
+from service.logs import request_id_var
 
-#: the id of the request being served (empty outside a request)
-request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="")
 _SAFE_ID = re.compile(rf"[A-Za-z0-9._:-]{{1,{REQUEST_ID_MAX_LENGTH}}}")
-_STANDARD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime", "color_message"}
-#: loggers too chatty at INFO (alembic announces every plugin on each migration check)
-_QUIET = ("alembic",)
 access_log = logging.getLogger("facesynth.access")
-
-
-class JsonFormatter(logging.Formatter):
-    """Formats a record as one JSON line: ``ts, level, logger, message, request_id``, the
-    record's ``extra`` fields, and ``exc`` with the traceback if any."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        entry: dict[str, Any] = {
-            "ts": datetime.fromtimestamp(record.created, timezone.utc).isoformat(timespec="milliseconds"),
-            "level": record.levelname.lower(),
-            "logger": record.name,
-            "message": record.getMessage(),
-        }
-        request_id = getattr(record, "request_id", None) or request_id_var.get()
-        if request_id:
-            entry["request_id"] = request_id
-        for key, value in vars(record).items():
-            if key not in _STANDARD and key not in entry:
-                entry[key] = value
-        if record.exc_info:
-            entry["exc"] = self.formatException(record.exc_info)
-        return json.dumps(entry, default=str)
-
-
-def configure_logging(level: int | str = logging.INFO) -> None:
-    """Send every log record (ours, uvicorn's, grpc's) to stderr as JSON lines."""
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonFormatter())
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(level)
-    for name in ("uvicorn", "uvicorn.error", "uvicorn.access"):
-        logger = logging.getLogger(name)
-        logger.handlers[:] = []
-        logger.propagate = True
-    for name in _QUIET:
-        logging.getLogger(name).setLevel(logging.WARNING)
 
 
 def request_id_from(scope: Scope) -> str:

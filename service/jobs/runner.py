@@ -38,6 +38,7 @@ from models_store.errors import Conflict, NotFound
 from service.config import Settings
 from service.jobs.context import Store, get_store
 from service.methods.inputs import InvalidInput, Progress
+from service.logs import job_id_var
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +230,15 @@ def execute(settings: Settings, job_id: str, worker: str, *,
     Exception    only when the database cannot be reached to claim the job (the queue
                  retries the message); every failure of the job itself ends the job
     """
+    token = job_id_var.set(job_id)                 # every log record of the job carries its id
+    try:
+        return _execute(settings, job_id, worker, abandon)
+    finally:
+        job_id_var.reset(token)
+
+
+def _execute(settings: Settings, job_id: str, worker: str,
+             abandon: threading.Event | None) -> str | None:
     from service.jobs.tasks import TASKS
 
     store = get_store(settings)

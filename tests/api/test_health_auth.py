@@ -50,7 +50,7 @@ def test_request_id_is_echoed_or_made(client, caplog):
 
 
 def test_json_log_lines_carry_the_request_id():
-    from service.api.logs import JsonFormatter, request_id_var
+    from service.logs import JsonFormatter, request_id_var
 
     token = request_id_var.set("rid-1")
     try:
