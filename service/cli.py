@@ -135,6 +135,8 @@ def cmd_worker(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     """The HTTP API (uvicorn), the gRPC streaming server (same host) and embedded job
     workers, sharing one database, blob store and model cache, until SIGINT/SIGTERM."""
+    import signal
+
     import uvicorn
 
     from service.api.app import create_app
@@ -153,6 +155,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
               "FACESYNTH_TOKENS, or listen on loopback (127.0.0.1)", file=sys.stderr)
         return 2
     configure_logging()
+
+    def stop(signum: int, frame: object) -> None:
+        # uvicorn handles SIGTERM itself and re-raises it once the HTTP server has shut down:
+        # with the default action the process died there, skipping the `finally` below (the
+        # embedded workers' grace period, the gRPC drain); exit through it instead
+        raise SystemExit(0)
+
+    previous_sigterm = signal.signal(signal.SIGTERM, stop)
     services = Services.open(settings)
     workers = grpc_server = None
     try:
@@ -168,6 +178,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         if workers is not None:
             workers.stop(timeout=60)
         services.close()
+        signal.signal(signal.SIGTERM, previous_sigterm)
     return 0
 
 

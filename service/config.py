@@ -62,8 +62,11 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=1, le=65535, description="Port of the HTTP API.")
     grpc_port: int = Field(default=50051, ge=1, le=65535,
                            description="Port of the gRPC streaming server.")
-    workers: int = Field(default=1, ge=1,
-                         description="Number of job worker threads/processes to run.")
+    workers: int = Field(default=1, ge=0,
+                         description="Number of job worker threads to run; 0 makes "
+                                     "`facesynth serve` an API-only process (jobs then run "
+                                     "on separate `facesynth worker` processes, which need "
+                                     "at least 1).")
     tokens: Annotated[list[str], NoDecode] = Field(
         default_factory=list, repr=False,
         description="Accepted bearer tokens; in the environment a comma-separated list (or a "
