@@ -62,8 +62,9 @@ class FrameNpzWriter:
             target[start:start + len(value)] = value
             self._written[key] += len(value)
 
-    def finish(self, target: Path) -> Path:
-        """Pack every array into the ``.npz`` file ``target`` and return it.
+    def finish(self, target: Path | None = None) -> Path:
+        """Pack every array into the ``.npz`` file ``target`` (default ``result.npz`` in the
+        scratch directory) and return it.
 
         Raises ``ValueError`` if a per-frame array did not get all its frames.
         """
@@ -71,6 +72,7 @@ class FrameNpzWriter:
             if self._written[key] != self.frames:
                 raise ValueError(f"'{key}' got {self._written[key]} of {self.frames} frames")
             target_map.flush()
+        target = self.directory / "result.npz" if target is None else target
         keys = list(self._written)
         self._maps.clear()  # close the memory maps before reading the files
         with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:

@@ -7,6 +7,7 @@ import dataclasses
 import io
 import secrets
 import threading
+import zipfile
 from datetime import timedelta
 
 import numpy as np
@@ -15,6 +16,8 @@ import pytest
 from models_store import registry
 from models_store.schema import utcnow
 from service import actor_store
+from service.io.exr import read_map
+from service.io.mesh import read_obj
 from service.jobs.queue import get_queue, submit
 from service.jobs.worker import reap_and_resubmit, resubmit_stale
 from service.methods import kinds
@@ -197,3 +200,31 @@ def test_queued_jobs_whose_message_was_lost_are_resubmitted_when_a_worker_starts
         assert job.id not in resubmit_stale(deployment.settings)  # too young to be lost
         assert job.id in resubmit_stale(deployment.settings, older_than=0.0)
         registry.request_cancel(session, job.id)
+
+
+def test_synthesis_job_writes_per_frame_obj_and_exr_into_a_zip(deployment, trained, start_worker,
+                                                               pdm_actor_dir):
+    model_id, _ = trained
+    markers = _markers(pdm_actor_dir, 3)
+    job_id = deployment.create_synthesis_job(model_id, markers, outputs=["mesh", "displacement"],
+                                             format="obj-exr-zip")
+    start_worker(deployment.settings)
+    submit(deployment.settings, job_id)
+    job = deployment.wait(job_id)
+    assert job.status == "succeeded", job.error
+    (artifact_id,) = job.result["artifact_ids"]
+    with deployment.session() as session:
+        artifact, stream = registry.open_artifact(session, deployment.store.blobs, artifact_id)
+        with stream:
+            data = stream.read()
+        path = registry.model_dir(session, deployment.store.blobs, model_id)
+    assert artifact.media_type == "application/zip" and artifact.filename.endswith(".zip")
+    expected = kinds.get_kind("pdm").load(path).synthesize(markers, ("mesh", "displacement"))
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        assert sorted(z.namelist()) == ["clamped.csv"] + [
+            f"frame_{i:04d}{s}" for i in range(3) for s in (".obj", "_displacement.exr")]
+        mesh = read_obj(io.BytesIO(z.read("frame_0002.obj")))
+        np.testing.assert_array_equal(mesh.vertices.astype(np.float32), expected["vertices"][2])
+        assert mesh.uv_faces is not None and len(mesh.uv_faces) == len(mesh.faces)
+        np.testing.assert_array_equal(read_map(z.read("frame_0001_displacement.exr")),
+                                      expected["displacement"][1])

@@ -7,11 +7,13 @@ Payload::
        | "markers_blob": "<key>", "markers_sha256": "<hex>",   # … or a blob of the store
      "outputs": ["mesh", "displacement"],          # optional (API.md's outputs)
      "clamp": true,                                # optional: the extrapolation limit
-     "format": "npz"}                              # optional; the only format so far
+     "format": "npz"}                              # optional: "npz" or "obj-exr-zip"
 
-Result ``{"model_id", "artifact_ids": [one .npz]}``: the arrays of API.md's synthesize
-response (``vertices`` (F,n,3), ``faces``, the asked maps, ``clamped`` (F,)), written chunk by
-chunk (:mod:`service.jobs.frame_npz`), so memory stays bounded for any length.
+Result ``{"model_id", "artifact_ids": [one artifact]}``: for ``npz`` the arrays of API.md's
+synthesize response (``vertices`` (F,n,3), ``faces``, the asked maps, ``clamped`` (F,)); for
+``obj-exr-zip`` one OBJ per frame and mesh output and one EXR per frame and map
+(:mod:`service.jobs.frame_zip`). Both are written chunk by chunk, so memory stays bounded
+for any length.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.blobs import BlobStore
 from service.jobs.frame_npz import FrameNpzWriter
+from service.jobs.frame_zip import FrameZipWriter
 from service.jobs.runner import RunningJob
 from service.methods.inputs import InvalidInput
 from service.methods.kinds import get_kind
@@ -34,8 +37,8 @@ from service.methods.kinds import get_kind
 #: frames synthesized (and progress points passed) per step
 CHUNK_FRAMES = 16
 DEFAULT_OUTPUTS = ("mesh", "displacement")
-FORMATS = ("npz",)
-NPZ_MEDIA_TYPE = "application/x-npz"
+#: result format → (media type, file suffix)
+FORMATS = {"npz": ("application/x-npz", "npz"), "obj-exr-zip": ("application/zip", "zip")}
 # the job's progress: loading, then the frames, then storing the artifact
 LOADED, SYNTHESIZED = 0.05, 0.95
 
@@ -62,8 +65,11 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
         markers = read_markers(session, store.blobs, payload)
     trained = kind.load(path)
     frames = len(markers)
+    media_type, suffix = FORMATS[fmt]
     with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".synthesize-") as tmp:
-        writer = FrameNpzWriter(Path(tmp), frames)
+        writer = (FrameNpzWriter(Path(tmp), frames) if fmt == "npz" else
+                  FrameZipWriter(Path(tmp) / "result.zip", frames,
+                                 getattr(trained, "uv", None), getattr(trained, "uv_faces", None)))
         for start in range(0, frames, CHUNK_FRAMES):
             job.progress(LOADED + (SYNTHESIZED - LOADED) * start / frames, "synthesizing")
             stop = min(start + CHUNK_FRAMES, frames)
@@ -72,11 +78,11 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
             except InvalidInput as error:
                 raise InvalidInput(f"frames {start}-{stop - 1}: {error}") from None
         job.progress(SYNTHESIZED, "storing the result")
-        result = writer.finish(Path(tmp) / "result.npz")
+        result = writer.finish()
         with store.sessions() as session:
             artifact = registry.add_artifact(session, store.blobs, job.id, result,
-                                             media_type=NPZ_MEDIA_TYPE,
-                                             filename=f"{job.id}.npz")
+                                             media_type=media_type,
+                                             filename=f"{job.id}.{suffix}")
     return {"model_id": model_id, "artifact_ids": [artifact.id]}
 
 
