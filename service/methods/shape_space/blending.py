@@ -1,0 +1,44 @@
+"""Region-weighted interpolation of database detail and colours (bermano2014 §5.4 eq. 4, §5.5).
+
+For triangle t and shape-space component i (eq. 4):
+
+    b_h[t,i] = Σ_r  ω̂_{r,t} · Σ_k w_{r,k} D_h[k,t,i],        ω̂_{r,t} = ω_{r,t} / Σ_ρ ω_{ρ,t}
+
+— within each region the database frames are blended with that region's matched convex
+weights w_r, and the regions are blended with their normalized soft weights. Per-vertex
+colours use the same scheme with per-vertex region weights (§5.5, last paragraph).
+
+Only frames with a non-zero weight in some region are read: the per-frame cost is
+O(m · K) for K active frames, not O(m · |D|).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.methods.shape_space.params import WEIGHT_EPS
+
+
+def active_frames(weights: np.ndarray, eps: float = WEIGHT_EPS) -> np.ndarray:
+    """Indices (K,) of the database frames with a weight above ``eps`` in any region."""
+    return np.flatnonzero(np.any(np.asarray(weights) > eps, axis=0))
+
+
+def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Region-weighted blend of per-frame, per-element values (bermano2014 eq. 4).
+
+    Parameters
+    ----------
+    values : (N,k,C) float      per database frame, per element (triangle or vertex), C
+                                components (9 shape-space coordinates, or colour channels)
+    omega_hat : (R,k) float     normalized region weights (columns sum to 1)
+    weights : (R,N) float       matched convex weights per region (rows sum to 1)
+
+    Returns
+    -------
+    b : (k,C) float64
+    """
+    weights = np.asarray(weights, dtype=np.float64)
+    K = active_frames(weights, 0.0)
+    coef = np.asarray(omega_hat, dtype=np.float64).T @ weights[:, K]     # (k,K)
+    return np.einsum("ek,kec->ec", coef, np.asarray(values)[K], dtype=np.float64)

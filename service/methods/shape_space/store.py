@@ -1,0 +1,114 @@
+"""A shape-space model on disk: ``manifest.json`` + ``model.npz`` + ``detail.npz`` (+ ``colors.npz``).
+
+Layout (DESIGN.md "Data and storage"):
+
+* ``model.npz``   the neutral and its smoothed version, faces, alignment weights, patches,
+  compressed shape vectors D̃ᵀ, regions (vertex sets, triangle and patch weights), the Gram
+  matrices of §5.3, the database frame index and the marker layout;
+* ``detail.npz``  ``detail`` (N,m,9) float32: the high-frequency detail of every database
+  frame (rotation log + stretch per triangle) — the bulk of the model;
+* ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
+* ``manifest.json`` kind, format version, params, metrics, region and clip names, and the
+  sha256 of every file.
+
+Every array is stored in the dtype the model holds in memory, so a load reproduces the
+model bit for bit; the prefactored solvers are rebuilt from the stored arrays. Every file
+is written atomically, the manifest last; a load verifies every checksum before it parses
+a byte.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from service.io.atomic import write_bytes, write_npz
+from service.methods.shape_space.model import ShapeSpaceModel
+from service.methods.shape_space.params import ShapeSpaceParams
+
+KIND = "shape_space"
+FORMAT_VERSION = 1
+#: arrays of model.npz (attribute names of ShapeSpaceModel)
+MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches", "tri_patch",
+                "shapes", "region_vertices", "region_weights", "patch_weights", "gram",
+                "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
+                "marker_weights")
+
+
+class ModelCorrupt(ValueError):
+    """A stored model is incomplete, altered, or of an unknown format."""
+
+
+def save_model(model: ShapeSpaceModel, path) -> dict:
+    """Write ``model`` into directory ``path`` (created); returns the manifest."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    files = {
+        "model.npz": write_npz(path / "model.npz", {k: getattr(model, k) for k in MODEL_ARRAYS}),
+        "detail.npz": write_npz(path / "detail.npz", {"detail": model.detail}),
+    }
+    if model.colors is not None:
+        files["colors.npz"] = write_npz(path / "colors.npz", {"colors": model.colors})
+    manifest = {
+        "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
+        "region_names": list(model.region_names), "clip_names": list(model.clip_names),
+        "clip_fps": list(model.clip_fps),
+        "metrics": model.metrics, "files": files,
+        "size_bytes": sum((path / f).stat().st_size for f in files),
+    }
+    write_bytes(path / "manifest.json", json.dumps(manifest, indent=1).encode())
+    return manifest
+
+
+def _read(path: Path) -> tuple[dict, dict[str, bytes]]:
+    try:
+        manifest = json.loads((path / "manifest.json").read_bytes())
+    except (OSError, ValueError) as e:
+        raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
+    if manifest.get("kind") != KIND or manifest.get("format_version") != FORMAT_VERSION:
+        raise ModelCorrupt(f"{path}: not a {KIND} model of format {FORMAT_VERSION} "
+                           f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
+    data = {}
+    for name, digest in manifest.get("files", {}).items():
+        try:
+            data[name] = (path / name).read_bytes()
+        except OSError:
+            raise ModelCorrupt(f"{path}: {name} is missing") from None
+        if hashlib.sha256(data[name]).hexdigest() != digest:
+            raise ModelCorrupt(f"{path}: {name} does not match its checksum")
+    for name in ("model.npz", "detail.npz"):
+        if name not in data:
+            raise ModelCorrupt(f"{path}: the manifest lists no {name}")
+    return manifest, data
+
+
+def _npz(data: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as d:
+        return {k: d[k] for k in d.files}
+
+
+def load_model(path) -> ShapeSpaceModel:
+    """Read a model written by :func:`save_model` (checksums verified first)."""
+    path = Path(path)
+    manifest, data = _read(path)
+    a = _npz(data["model.npz"])
+    missing = [k for k in MODEL_ARRAYS if k not in a]
+    if missing:
+        raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
+    detail = _npz(data["detail.npz"])["detail"]
+    colors = _npz(data["colors.npz"])["colors"] if "colors.npz" in data else None
+    model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
+                            detail=detail, colors=colors,
+                            region_names=tuple(manifest["region_names"]),
+                            clip_names=tuple(manifest["clip_names"]),
+                            clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
+                            metrics=manifest["metrics"], **{k: a[k] for k in MODEL_ARRAYS})
+    if detail.shape != (len(model.shapes), len(model.faces), 9):
+        raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
+                           f"({len(model.shapes)},{len(model.faces)},9)")
+    return model.prepare()

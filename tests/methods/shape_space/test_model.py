@@ -1,0 +1,160 @@
+"""Tests for service.methods.shape_space.model on the level-0 sample actor: a model trained on
+every 10th frame of the 630-frame database performance (fixture ``shape_space_model``)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from service.geometry.normals import vertex_normals
+
+from service.methods.inputs import InvalidInput
+from service.methods.shape_space.params import VOLUNTARY_REGIONS
+
+#: held-out in-range frames enhanced by the accuracy test
+HELDOUT_FRAMES = np.arange(10, 150, 20)
+#: ground-truth detail above this (mm) marks the vertices "where the detail is"
+DETAIL_MM = 0.05
+
+
+def _rms(e, sel):
+    return float(np.sqrt(np.mean(e[sel] ** 2)))
+
+
+def test_training_reports_progress_and_metrics(shape_space_model):
+    m = shape_space_model
+    fractions = [f for f, _ in m.stages]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions)
+    assert m.n_frames == 63 and m.metrics["database_frames"] == 63
+    assert m.detail.shape == (63, len(m.faces), 9) and m.detail.dtype == np.float32
+    assert m.gram.shape == (4, 63, 63)
+    assert m.metrics["patches"] == 112 and 40 <= m.metrics["patch_vertices"]["min"]
+    assert m.metrics["regions"]["source"] == "derived"
+    assert m.region_names == VOLUNTARY_REGIONS
+
+
+def test_derived_regions_are_mouth_and_brow_halves(shape_space_model):
+    m = shape_space_model
+    c = np.array([m.neutral[r].mean(axis=0) for r in m.region_vertices])   # x: actor's left, y: up
+    mouth_l, mouth_r, brow_l, brow_r = c
+    assert mouth_l[0] > 10 and brow_l[0] > 10 and mouth_r[0] < -10 and brow_r[0] < -10
+    assert max(mouth_l[1], mouth_r[1]) + 50 < min(brow_l[1], brow_r[1])
+    # soft weights: 1 inside, in (0, 1) around, tiny at the back of the head
+    w = m.region_weights[0]
+    inside = m.region_vertices[0][m.faces].all(axis=1)
+    assert np.all(w[inside] == 1.0) and 0.01 < np.median(w[~inside & (w > 1e-3)]) < 1.0
+
+
+def test_database_frame_gets_weight_one_and_its_detail_back(shape_space_model, shape_space_data):
+    m = shape_space_model
+    _, clip, _ = shape_space_data
+    k = 37                                                     # database frame 370, mid-expression
+    frame = clip.vertices[m.frame_index[k]]
+    out = m.enhance(frame[None], outputs=("mesh", "displacement"))
+    assert np.all(out["weights"][0, :, k] > 1 - 1e-6)
+    assert out["nonzero"][0].tolist() == [1, 1, 1, 1]
+    assert np.abs(out["vertices"][0] - frame).max() < 1e-3       # float32 detail store
+    assert np.abs(out["displacement"][0]).max() < 1e-3
+
+
+def test_heldout_frames_gain_the_detail_the_input_lacks(shape_space_model, shape_space_data):
+    """vertices_medium (the held-out surface without its wrinkles) → enhanced, against the
+    ground truth ``vertices``. Where the truth has detail (> 0.05 mm off the input) the error
+    falls by 38 % (RMS 0.146 → 0.090 mm; 6 of 7 frames better). Over the whole face it rises
+    (0.012 → 0.052 mm): at level 0 the input carries the *exact* medium-scale shape (lips,
+    eyelids, nostrils), and the method replaces everything above the λdt = 125 cut-off by
+    the blend of database detail, which matches the lips only approximately (the database
+    talks: its jaw is rarely closed)."""
+    actor, _, heldout = shape_space_data
+    X = heldout["vertices_medium"][HELDOUT_FRAMES]
+    truth = heldout["vertices"][HELDOUT_FRAMES]
+    out = shape_space_model.enhance(X, outputs=("mesh", "displacement"))
+    e_in = np.linalg.norm(X - truth, axis=-1)
+    e_out = np.linalg.norm(out["vertices"] - truth, axis=-1)
+    detail = e_in > DETAIL_MM
+    face = np.broadcast_to(actor.regions["face"], e_in.shape)
+    assert _rms(e_in, detail) == pytest.approx(0.146, abs=0.002)
+    assert _rms(e_out, detail) < 0.66 * _rms(e_in, detail)                # measured 0.090
+    better = [_rms(b, s) < _rms(a, s) for a, b, s in zip(e_in, e_out, detail) if s.any()]
+    assert sum(better) >= 6 and len(better) == 7
+    assert _rms(e_out, face) < 0.06                                        # measured 0.052 (input 0.012)
+    # the transferred detail points the right way: normal offsets correlate with the truth's
+    normals = np.stack([vertex_normals(x, actor.faces) for x in X])
+    true_disp = np.einsum("fnd,fnd->fn", truth - X, normals)
+    r = np.corrcoef(out["displacement"][detail], true_disp[detail])[0, 1]
+    assert r > 0.8                                                         # measured 0.88
+    assert np.all(out["nonzero"] >= 1) and np.all(out["nonzero"] <= 12)
+
+
+def test_marker_input_goes_through_the_thin_shell(shape_space_model, shape_space_data):
+    actor, _, heldout = shape_space_data
+    frames = HELDOUT_FRAMES[[1, 2]]
+    markers = heldout["markers"][frames].copy()
+    markers[0, :5] = np.nan                                       # occluded markers
+    out = shape_space_model.enhance(markers, outputs=("mesh", "displacement"))
+    assert out["vertices"].shape == (2, actor.n_vertices, 3) and "input_vertices" in out
+    truth = heldout["vertices"][frames]
+    e_shell = np.linalg.norm(out["input_vertices"] - truth, axis=-1)
+    e_out = np.linalg.norm(out["vertices"] - truth, axis=-1)
+    face = np.broadcast_to(actor.regions["narrow_face"], e_out.shape)
+    # 150 markers leave the thin shell 0.65 mm off the truth: that error dominates, and the
+    # enhancement neither fixes nor worsens it (measured 0.647 → 0.643 mm)
+    assert _rms(e_shell, face) == pytest.approx(0.65, abs=0.02)
+    assert _rms(e_out, face) < _rms(e_shell, face) + 0.01
+
+
+def test_colors_are_blended_with_the_matching_weights(shape_space_model, shape_space_data):
+    m = shape_space_model
+    _, clip, _ = shape_space_data
+    colors = np.broadcast_to(np.arange(m.n_frames, dtype=np.float32)[:, None, None],
+                             (m.n_frames, m.n_vertices, 2)).copy()
+    colored = dataclasses.replace(m, colors=colors)
+    k = 20
+    out = colored.enhance(clip.vertices[m.frame_index[k]], outputs=("colors",))
+    np.testing.assert_allclose(out["colors"][0], k, atol=1e-4)
+    with pytest.raises(InvalidInput, match="without colours"):
+        m.enhance(clip.vertices[0], outputs=("colors",))
+
+
+def test_retime_interpolates_the_keyframes_with_database_timing(shape_space_model, shape_space_data):
+    actor, _, heldout = shape_space_data
+    keys = heldout["vertices_medium"][[0, 12]]                     # neutral → a left smile
+    res = shape_space_model.retime(keys, length=9)
+    V = res["vertices"]
+    assert V.shape == (9, actor.n_vertices, 3)
+    np.testing.assert_allclose(V[0], keys[0], atol=1e-4)
+    np.testing.assert_allclose(V[-1], keys[1], atol=1e-4)
+    P = res["region_progress"]
+    assert P.shape == (4, 9) and np.all(np.diff(P, axis=1) >= 0)
+    assert np.all(P[:, 0] == 0) and np.all(P[:, -1] == 1)
+    assert res["timestamps"].shape == (9,) and res["timestamps"][-1] == 8
+    d = np.einsum("fnd,nd->fn", V - keys[0], keys[1] - keys[0])   # every vertex moves one way
+    assert np.all(np.diff(d, axis=0) >= -1e-3)
+
+
+def test_retime_of_a_database_transition_finds_it(shape_space_model, shape_space_data):
+    m = shape_space_model
+    _, clip, _ = shape_space_data
+    keys = clip.vertices[m.frame_index[[30, 33]]]                 # 1 s of the database
+    res = m.retime(keys, length=7)
+    seqs = m.sequences()
+    for r in range(4):
+        seq = seqs[res["region_sequences"][r]]
+        start, end = res["region_spans"][r]
+        assert seq[int(round(start))] == 30 and seq[int(round(end))] == 33
+        np.testing.assert_allclose([start % 1, end % 1], 0.0, atol=1e-6)
+    full = m.retime(keys, length=7, extend=True)
+    assert np.all(full["region_spans"][:, 1] - full["region_spans"][:, 0]
+                  >= res["region_spans"][:, 1] - res["region_spans"][:, 0] - 1e-9)
+
+
+def test_invalid_input_is_rejected(shape_space_model):
+    m = shape_space_model
+    with pytest.raises(InvalidInput, match="frames must be"):
+        m.enhance(np.zeros((1, 17, 3)))
+    with pytest.raises(InvalidInput, match="unknown outputs"):
+        m.enhance(m.neutral, outputs=("mesh", "albedo"))
+    with pytest.raises(InvalidInput, match="non-finite"):
+        m.enhance(np.full((1, m.n_vertices, 3), np.nan))
+    with pytest.raises(InvalidInput, match="two keyframes"):
+        m.retime(np.stack([m.neutral] * 3), length=5)

@@ -1,0 +1,58 @@
+"""Tests for service.methods.shape_space.store: the model directory round trip and its checks."""
+
+import json
+
+import numpy as np
+import pytest
+
+from service.methods.shape_space import ShapeSpaceModel
+from service.methods.shape_space.store import ModelCorrupt
+
+
+@pytest.fixture(scope="module")
+def saved(shape_space_model, tmp_path_factory):
+    path = tmp_path_factory.mktemp("shape_space_store") / "model"
+    return path, shape_space_model.save(path)
+
+
+def test_round_trip_is_bit_exact(shape_space_model, shape_space_data, saved):
+    path, manifest = saved
+    loaded = ShapeSpaceModel.load(path)
+    _, clip, heldout = shape_space_data
+    frames = np.stack([heldout["vertices_medium"][40], clip.vertices[123]])
+    a = shape_space_model.enhance(frames, outputs=("mesh", "displacement"))
+    b = loaded.enhance(frames, outputs=("mesh", "displacement"))
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    for key in ("shapes", "detail", "gram", "region_weights", "patches", "align_weights"):
+        np.testing.assert_array_equal(getattr(loaded, key), getattr(shape_space_model, key), err_msg=key)
+    assert loaded.params == shape_space_model.params
+    assert manifest["kind"] == "shape_space" and manifest["region_names"] == list(loaded.region_names)
+    assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir()
+                                         if p.name != "manifest.json")
+
+
+def test_altered_file_is_refused(saved, tmp_path):
+    path, _ = saved
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for f in path.iterdir():
+        (copy / f.name).write_bytes(f.read_bytes())
+    data = bytearray((copy / "detail.npz").read_bytes())
+    data[-100] ^= 0xFF
+    (copy / "detail.npz").write_bytes(bytes(data))
+    with pytest.raises(ModelCorrupt, match="checksum"):
+        ShapeSpaceModel.load(copy)
+    (copy / "detail.npz").unlink()
+    with pytest.raises(ModelCorrupt, match="missing"):
+        ShapeSpaceModel.load(copy)
+
+
+def test_other_kinds_are_refused(saved, tmp_path):
+    path, manifest = saved
+    (tmp_path / "manifest.json").write_text(json.dumps({**manifest, "kind": "pdm"}))
+    with pytest.raises(ModelCorrupt, match="not a shape_space model"):
+        ShapeSpaceModel.load(tmp_path)
+    with pytest.raises(ModelCorrupt, match="manifest"):
+        ShapeSpaceModel.load(tmp_path / "nowhere")
