@@ -26,8 +26,6 @@ last; a load verifies every checksum before it trusts a byte.
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -37,6 +35,7 @@ import numpy as np
 from service.geometry.uv_raster import dilate, rasterize_uv
 from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
+from service.methods.model_dir import ModelCorrupt, npz_arrays, read_model_files
 from service.methods.pdm import polynomial
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
@@ -49,10 +48,6 @@ PAD_TEXELS = 4
 COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b")}
 #: what load would otherwise recompute (thin-shell basis, extrapolation limits): seconds saved
 CACHE = "cache.npz"
-
-
-class ModelCorrupt(ValueError):
-    """A stored model is incomplete, altered, or of an unknown format."""
 
 
 def save_model(model: PdmModel, path) -> dict:
@@ -111,39 +106,12 @@ def _write_neutral(file: Path, model: PdmModel) -> str:
     return sha256_file(file)
 
 
-def read_model_files(path) -> tuple[dict, dict[str, bytes]]:
-    """The manifest of a stored model and the bytes of every file it lists, each read once
-    and checked against its sha256 before anything is parsed."""
-    path = Path(path)
-    try:
-        manifest = json.loads((path / "manifest.json").read_bytes())
-    except (OSError, ValueError) as e:
-        raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
-    if manifest.get("kind") != KIND or manifest.get("format_version") != FORMAT_VERSION:
-        raise ModelCorrupt(f"{path}: not a {KIND} model of format {FORMAT_VERSION} "
-                           f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
-    data = {}
-    for name, digest in {**manifest["files"], **manifest.get("derived", {})}.items():
-        try:
-            data[name] = (path / name).read_bytes()
-        except OSError:
-            raise ModelCorrupt(f"{path}: {name} is missing") from None
-        if hashlib.sha256(data[name]).hexdigest() != digest:
-            raise ModelCorrupt(f"{path}: {name} does not match its checksum")
-    return manifest, data
-
-
-def _npz(data: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}
-
-
 def load_model(path) -> PdmModel:
     """Read a model written by :func:`save_model` (checksums verified first)."""
     path = Path(path)
-    manifest, data = read_model_files(path)
+    manifest, data = read_model_files(path, KIND, FORMAT_VERSION)
     params = PdmParams(**manifest["params"])
-    a = _npz(data["model.npz"])
+    a = npz_arrays(data["model.npz"])
     F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
     K = polynomial.ORDERS[params.order]
     bands = {}
@@ -167,7 +135,7 @@ def load_model(path) -> PdmModel:
     sm = manifest["metrics"].get("axis_smoothing", {})
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
-    cache = _npz(data[CACHE]) if CACHE in data else {}
+    cache = npz_arrays(data[CACHE]) if CACHE in data else {}
     base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"],
                                    basis=cache.get("basis"), energy=cache.get("energy"))
     limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}

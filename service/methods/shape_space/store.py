@@ -19,15 +19,12 @@ a byte.
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
 from service.io.atomic import write_bytes, write_npz
+from service.methods.model_dir import ModelCorrupt, npz_arrays, read_model_files
 from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
@@ -38,10 +35,6 @@ MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches"
                 "shapes", "region_vertices", "region_weights", "patch_weights", "gram",
                 "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
                 "marker_weights")
-
-
-class ModelCorrupt(ValueError):
-    """A stored model is incomplete, altered, or of an unknown format."""
 
 
 def save_model(model: ShapeSpaceModel, path) -> dict:
@@ -65,43 +58,16 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
     return manifest
 
 
-def _read(path: Path) -> tuple[dict, dict[str, bytes]]:
-    try:
-        manifest = json.loads((path / "manifest.json").read_bytes())
-    except (OSError, ValueError) as e:
-        raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
-    if manifest.get("kind") != KIND or manifest.get("format_version") != FORMAT_VERSION:
-        raise ModelCorrupt(f"{path}: not a {KIND} model of format {FORMAT_VERSION} "
-                           f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
-    data = {}
-    for name, digest in manifest.get("files", {}).items():
-        try:
-            data[name] = (path / name).read_bytes()
-        except OSError:
-            raise ModelCorrupt(f"{path}: {name} is missing") from None
-        if hashlib.sha256(data[name]).hexdigest() != digest:
-            raise ModelCorrupt(f"{path}: {name} does not match its checksum")
-    for name in ("model.npz", "detail.npz"):
-        if name not in data:
-            raise ModelCorrupt(f"{path}: the manifest lists no {name}")
-    return manifest, data
-
-
-def _npz(data: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}
-
-
 def load_model(path) -> ShapeSpaceModel:
     """Read a model written by :func:`save_model` (checksums verified first)."""
     path = Path(path)
-    manifest, data = _read(path)
-    a = _npz(data["model.npz"])
+    manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"))
+    a = npz_arrays(data["model.npz"])
     missing = [k for k in MODEL_ARRAYS if k not in a]
     if missing:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
-    detail = _npz(data["detail.npz"])["detail"]
-    colors = _npz(data["colors.npz"])["colors"] if "colors.npz" in data else None
+    detail = npz_arrays(data["detail.npz"])["detail"]
+    colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
     model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
                             detail=detail, colors=colors,
                             region_names=tuple(manifest["region_names"]),

@@ -7,7 +7,7 @@ import pytest
 
 from service.io.exr import read_exr
 from service.methods.pdm.model import PdmModel
-from service.methods.pdm.store import ModelCorrupt
+from service.methods.model_dir import ModelCorrupt
 
 
 @pytest.fixture(scope="module")

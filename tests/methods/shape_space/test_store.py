@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.methods.shape_space import ShapeSpaceModel
-from service.methods.shape_space.store import ModelCorrupt
+from service.methods.model_dir import ModelCorrupt
 
 
 @pytest.fixture(scope="module")

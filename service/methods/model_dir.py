@@ -1,0 +1,56 @@
+"""Reading a stored model directory of any kind: manifest first, every file checksummed.
+
+A model directory (DESIGN.md "Data and storage") holds ``manifest.json`` with ``kind``,
+``format_version``, and the sha256 of every file under ``files`` (and, for optional derived
+data, ``derived``). Each kind's ``store`` module writes its own files; this module reads any
+of them back once, verifying each checksum before a byte is parsed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+class ModelCorrupt(ValueError):
+    """A stored model is incomplete, altered, or of an unknown format."""
+
+
+def read_model_files(path, kind: str, format_version: int,
+                     required: tuple[str, ...] = ()) -> tuple[dict, dict[str, bytes]]:
+    """The manifest of the model directory ``path`` and the bytes of every file it lists.
+
+    Raises :class:`ModelCorrupt` for a missing or unreadable manifest, another kind or
+    format, a listed file that is missing or does not match its checksum, or a ``required``
+    file the manifest does not list.
+    """
+    path = Path(path)
+    try:
+        manifest = json.loads((path / "manifest.json").read_bytes())
+    except (OSError, ValueError) as e:
+        raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
+    if manifest.get("kind") != kind or manifest.get("format_version") != format_version:
+        raise ModelCorrupt(f"{path}: not a {kind} model of format {format_version} "
+                           f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
+    data = {}
+    for name, digest in {**manifest.get("files", {}), **manifest.get("derived", {})}.items():
+        try:
+            data[name] = (path / name).read_bytes()
+        except OSError:
+            raise ModelCorrupt(f"{path}: {name} is missing") from None
+        if hashlib.sha256(data[name]).hexdigest() != digest:
+            raise ModelCorrupt(f"{path}: {name} does not match its checksum")
+    for name in required:
+        if name not in data:
+            raise ModelCorrupt(f"{path}: the manifest lists no {name}")
+    return manifest, data
+
+
+def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
+    """Every array of an in-memory ``.npz`` (never unpickled)."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as d:
+        return {k: d[k] for k in d.files}
