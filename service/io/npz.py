@@ -2,11 +2,13 @@
 
 Both the mesh reader and the API's upload parser decide from the headers (shape, dtype)
 whether to read an array at all, so nothing is allocated for a declared size that breaks a
-limit and no pickle is ever loaded.
+limit and no pickle is ever loaded. :func:`npz_arrays` and :func:`npz_bytes` are the plain
+in-memory round trip for trusted data (stored models, results).
 """
 
 from __future__ import annotations
 
+import io
 import struct
 import zipfile
 import zlib
@@ -33,3 +35,16 @@ def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple
         else:
             raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
     return tuple(int(s) for s in shape), dtype
+
+
+def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
+    """Every array of an in-memory ``.npz`` (never unpickled)."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as d:
+        return {k: d[k] for k in d.files}
+
+
+def npz_bytes(**arrays: np.ndarray) -> bytes:
+    """An uncompressed in-memory ``.npz`` of ``arrays``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()

@@ -9,11 +9,9 @@ of them back once, verifying each checksum before a byte is parsed.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 from pathlib import Path
 
-import numpy as np
 
 
 class ModelCorrupt(ValueError):
@@ -48,9 +46,3 @@ def read_model_files(path, kind: str, format_version: int,
         if name not in data:
             raise ModelCorrupt(f"{path}: the manifest lists no {name}")
     return manifest, data
-
-
-def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
-    """Every array of an in-memory ``.npz`` (never unpickled)."""
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}

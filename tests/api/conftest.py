@@ -7,7 +7,6 @@ job tests live in tests/jobs). A trained model is put into the store directly
 
 from __future__ import annotations
 
-import io
 import json
 
 import numpy as np
@@ -17,20 +16,9 @@ from fastapi.testclient import TestClient
 from service.api import create_app
 from service.api.deps import get_submit
 from service.config import Settings
+from service.io.npz import npz_arrays as load_npz, npz_bytes as npz  # noqa: F401 (used by the tests)
 
 NPZ = {"Content-Type": "application/x-npz"}
-
-
-def npz(**arrays) -> bytes:
-    """An uncompressed .npz of ``arrays``."""
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
-
-
-def load_npz(data: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}
 
 
 def grid(n: int = 6):

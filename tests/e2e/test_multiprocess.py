@@ -17,7 +17,6 @@ Later tests need the model of the first one and are skipped if it failed.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import signal
@@ -30,6 +29,7 @@ import pytest
 from models_store import registry
 from service import actor_store
 from service.samples import dataset, performances
+from service.io.npz import npz_arrays as load_npz, npz_bytes as npz  # noqa: F401 (used by the tests)
 from tests.e2e.conftest import HELDOUT, MAP_RESOLUTION, Deployment
 
 pytestmark = pytest.mark.e2e
@@ -55,15 +55,6 @@ ACTIVE = ("queued", "running")
 
 
 # ---------------------------------------------------------------------------- helpers
-def npz(**arrays) -> bytes:
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
-
-
-def load_npz(data: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}
 
 
 def ok(response: httpx.Response, status: int = 200) -> dict:

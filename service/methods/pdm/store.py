@@ -35,7 +35,8 @@ import numpy as np
 from service.geometry.uv_raster import dilate, rasterize_uv
 from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
-from service.methods.model_dir import ModelCorrupt, npz_arrays, read_model_files
+from service.io.npz import npz_arrays
+from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.pdm import polynomial
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh

@@ -24,7 +24,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 from service.io.atomic import write_bytes, write_npz
-from service.methods.model_dir import ModelCorrupt, npz_arrays, read_model_files
+from service.io.npz import npz_arrays
+from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
