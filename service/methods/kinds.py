@@ -21,10 +21,12 @@ from pathlib import Path
 from typing import Any, Callable, Literal, Mapping, Protocol, Sequence
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress
 from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
+from service.methods.shape_space.model import ShapeSpaceModel, train as shape_space_train
+from service.methods.shape_space.params import REGION_SOURCES, SMOOTHING, ShapeSpaceParams
 
 
 class TrainedModel(Protocol):
@@ -159,8 +161,132 @@ PDM_KIND = Kind(
     load=_pdm_load,
 )
 
+# ---------------------------------------------------------------------------- shape_space
+_SS = ShapeSpaceParams()    # the method's defaults, the one source of truth
+
+
+class ShapeSpaceParamsModel(BaseModel):
+    """Training parameters of a ``shape_space`` model (mirrors
+    :class:`service.methods.shape_space.params.ShapeSpaceParams`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lam_dt: float = Field(
+        default=_SS.lam_dt, gt=0,
+        description="λdt of the implicit curvature-flow step of the frequency separation "
+                    "(§4.2 eq. 1), actor's unit squared (the paper: 125 mm²).",
+        examples=[_SS.lam_dt])
+    smoothing: Literal[SMOOTHING] = Field(  # type: ignore[valid-type]
+        default=_SS.smoothing,
+        description="Build the curvature-flow operator on every frame (per_frame, the paper) "
+                    "or once on the neutral (rest: one factorization, an approximation).",
+        examples=[_SS.smoothing])
+    frame_stride: int = Field(
+        default=_SS.frame_stride, ge=1,
+        description="Keep every k-th frame of the database clips (the detail store holds "
+                    "frames × triangles × 9 float32).",
+        examples=[_SS.frame_stride])
+    patch_size: int = Field(
+        default=_SS.patch_size, ge=3,
+        description="Target vertices per compression patch (§4.2: 100).",
+        examples=[_SS.patch_size])
+    patch_seed: int = Field(
+        default=_SS.patch_seed,
+        description="Seed of the random patch seeds.", examples=[_SS.patch_seed])
+    patch_relax_iterations: int = Field(
+        default=_SS.patch_relax_iterations, ge=0,
+        description="Lloyd relaxations of the seed-and-grow patches (0: the paper's plain "
+                    "random seeds).",
+        examples=[_SS.patch_relax_iterations])
+    regions: Literal[REGION_SOURCES] = Field(  # type: ignore[valid-type]
+        default=_SS.regions,
+        description="Where the four voluntary regions of §4.3 come from: actor (the actor's "
+                    "region masks), derived (clustered from the database motion), auto "
+                    "(the actor's when all four are given, else derived), whole (the face "
+                    "matched as one region).",
+        examples=[_SS.regions])
+    region_falloff: float = Field(
+        default=_SS.region_falloff, gt=0,
+        description="σ of the Gaussian fall-off of the region weights with geodesic "
+                    "distance outside a region, actor's unit (§4.3).",
+        examples=[_SS.region_falloff])
+    region_motion_fraction: float = Field(
+        default=_SS.region_motion_fraction, gt=0, lt=1,
+        description="Region derivation: vertices whose RMS motion exceeds this fraction of "
+                    "the 99th percentile take part in the clustering.",
+        examples=[_SS.region_motion_fraction])
+    region_seed: int = Field(
+        default=_SS.region_seed,
+        description="Seed of the region clustering (k-means initialization).",
+        examples=[_SS.region_seed])
+    up_axis: tuple[float, float, float] = Field(
+        default=_SS.up_axis,
+        description="The actor's up direction (region derivation names the upper cluster "
+                    "'brow'); facesynth's convention is y up.",
+        examples=[list(_SS.up_axis)])
+    left_axis: tuple[float, float, float] = Field(
+        default=_SS.left_axis,
+        description="The actor's left direction (region derivation splits left/right at the "
+                    "mid-plane across it); nearly orthogonal to up_axis.",
+        examples=[list(_SS.left_axis)])
+    boundary_weight: float = Field(
+        default=_SS.boundary_weight, ge=0,
+        description="Weight of the boundary 1D-Laplacian term of the Poisson reconstruction "
+                    "(§5.5: 0.05).",
+        examples=[_SS.boundary_weight])
+    restore_low_frequencies: bool = Field(
+        default=_SS.restore_low_frequencies,
+        description="After reconstruction, replace the result's low band by the input's "
+                    "(a departure that lowers the drift of the Poisson solve; false: the paper).",
+        examples=[_SS.restore_low_frequencies])
+    sequence_seconds: float = Field(
+        default=_SS.sequence_seconds, ge=0,
+        description="Temporal projection (§6.1): database clips longer than this are cut "
+                    "into windows of this duration with 50% overlap (0: every clip is one "
+                    "sequence).",
+        examples=[_SS.sequence_seconds])
+
+    @model_validator(mode="after")
+    def _check_axes(self) -> "ShapeSpaceParamsModel":
+        """Cross-field checks of the method (axes finite, non-zero, nearly orthogonal)."""
+        try:
+            ShapeSpaceParams(**self.model_dump())
+        except InvalidInput as error:
+            raise ValueError(str(error)) from None
+        return self
+
+
+def _shape_space_train(actor: ActorData, clips: Sequence[Clip], params: BaseModel,
+                       progress: Progress) -> TrainedModel:
+    """Train a shape-space model (bermano2014 §4) with the pydantic parameters converted."""
+    parsed = SHAPE_SPACE_KIND.parse_params(params)
+    return shape_space_train(actor, list(clips), ShapeSpaceParams(**parsed.model_dump()), progress)
+
+
+def _shape_space_load(path: Path) -> TrainedModel:
+    """Read a shape-space model directory (checksums verified)."""
+    return ShapeSpaceModel.load(path)
+
+
+SHAPE_SPACE_KIND = Kind(
+    name="shape_space",
+    title="Shape-space performance enhancement (Bermano et al. 2014)",
+    description=(
+        "Adds the high-frequency detail of a high-resolution performance database to "
+        "low-resolution facial animation by convex matching in a deformation-gradient shape "
+        "space per voluntary region (Bermano, Bradley, Beeler, Zünd, Nowrouzezahrai, Baran, "
+        "Sorkine-Hornung, Pfister, Sumner, Bickel, Gross: 'Facial performance enhancement "
+        "using dynamic shape space analysis', ACM TOG 33(2), 2014). Input: meshes on the "
+        "actor's topology or on a registered input rig (/enhance), or markers; output: "
+        "enhanced high-resolution meshes."),
+    params=ShapeSpaceParamsModel,
+    input="meshes",
+    train=_shape_space_train,
+    load=_shape_space_load,
+)
+
 #: every model kind the service knows, by name
-KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND,)}
+KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND, SHAPE_SPACE_KIND)}
 
 
 def get_kind(name: str) -> Kind:

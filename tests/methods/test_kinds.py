@@ -10,6 +10,7 @@ from pydantic import ValidationError
 from service.methods import kinds
 from service.methods.inputs import InvalidInput
 from service.methods.pdm.model import PdmParams
+from service.methods.shape_space.params import ShapeSpaceParams
 
 
 def test_pdm_parameter_defaults_mirror_the_method():
@@ -47,5 +48,48 @@ def test_pdm_schema_documents_every_parameter_and_the_patent():
 
 
 def test_unknown_kind_names_the_known_ones():
-    with pytest.raises(InvalidInput, match="unknown model kind 'psd'; known kinds: pdm"):
+    with pytest.raises(InvalidInput, match="unknown model kind 'psd'; known kinds: pdm, shape_space"):
         kinds.get_kind("psd")
+
+
+def test_shape_space_parameter_defaults_mirror_the_method():
+    kind = kinds.get_kind("shape_space")
+    assert kind.input == "meshes"
+    assert kind.parse_params(None).model_dump() == asdict(ShapeSpaceParams())
+    parsed = kind.parse_params({"frame_stride": 5, "regions": "whole", "up_axis": [0, 0, 1]})
+    method = ShapeSpaceParams(**parsed.model_dump())
+    assert (method.frame_stride, method.regions, method.up_axis) == (5, "whole", (0.0, 0.0, 1.0))
+
+
+@pytest.mark.parametrize("params, field", [
+    ({"lam_dt": 0}, "lam_dt"),
+    ({"smoothing": "never"}, "smoothing"),
+    ({"frame_stride": 0}, "frame_stride"),
+    ({"patch_size": 2}, "patch_size"),
+    ({"regions": "cheeks"}, "regions"),
+    ({"region_motion_fraction": 1.0}, "region_motion_fraction"),
+    ({"boundary_weight": -0.1}, "boundary_weight"),
+    ({"sequence_seconds": -1}, "sequence_seconds"),
+    ({"up_axis": [0, 1]}, "up_axis"),
+    ({"patch_sise": 50}, "patch_sise"),  # misspelt: refused, not ignored
+])
+def test_shape_space_parameters_out_of_bounds_or_unknown_are_refused(params, field):
+    with pytest.raises(ValidationError) as info:
+        kinds.get_kind("shape_space").parse_params(params)
+    assert [e["loc"][0] for e in info.value.errors()] == [field]
+
+
+def test_shape_space_axes_must_be_orthogonal_and_non_zero():
+    kind = kinds.get_kind("shape_space")
+    for params in ({"up_axis": [1, 0, 0]}, {"left_axis": [0, 0, 0]}):
+        with pytest.raises(ValidationError, match="up_axis|left_axis"):
+            kind.parse_params(params)
+
+
+def test_shape_space_schema_documents_every_parameter():
+    schema = kinds.get_kind("shape_space").params.model_json_schema()
+    assert schema["additionalProperties"] is False
+    for name, prop in schema["properties"].items():
+        assert prop.get("description") and "examples" in prop, name
+    assert schema["properties"]["patch_size"]["minimum"] == 3
+    assert set(schema["properties"]) == set(asdict(ShapeSpaceParams()))

@@ -10,10 +10,11 @@ through ``job.progress`` (where cancellation takes effect) and returns the job's
 from __future__ import annotations
 
 from service.jobs.runner import Task
+from service.jobs.tasks.register import register
 from service.jobs.tasks.synthesize import synthesize
 from service.jobs.tasks.train import train
 
 #: job kind → task function
-TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize}
+TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize, "register": register}
 
-__all__ = ["TASKS", "train", "synthesize"]
+__all__ = ["TASKS", "train", "synthesize", "register"]
