@@ -25,12 +25,13 @@ from service.api.schemas import DEFAULT_OUTPUTS, MAP_OUTPUTS, OUTPUTS, Synthesiz
 from service.api.services import LoadedModel
 from service.api.uploads import (JSON_TYPE, MARKER_FILE_TYPES, NPZ_TYPES, ArraySpec, NpzUpload,
                                  npz_limit, markers_in_layout_order,
-                                 npz_bytes, parse_json, read_marker_file)
+                                 parse_json, read_marker_file)
 from service.api.validation import check_finite_frames
 from service.config import Settings
 from service.io.exr import write_map
 from service.io.markers import read_markers_json
 from service.io.mesh import Mesh, write_obj
+from service.io.npz import npz_bytes
 from service.methods.inputs import InvalidInput
 
 NPZ = "application/x-npz"
@@ -216,6 +217,8 @@ def resample_maps(result: dict[str, np.ndarray], side: int) -> dict[str, np.ndar
     out = dict(result)
     for name in MAP_OUTPUTS:
         maps = result.get(name)
+        if maps is not None and maps.ndim < 3:
+            raise InvalidInput(_per_vertex(name, maps, "map_resolution does not apply"))
         if maps is None or maps.shape[1] == side:
             continue
         factor = (1.0, side / maps.shape[1], side / maps.shape[2]) + (1.0,) * (maps.ndim - 3)
@@ -282,7 +285,7 @@ def encode(media: str, result: dict[str, np.ndarray], loaded: LoadedModel,
     """The response body: NPZ of the arrays, the frame's OBJ (detailed vertices if asked,
     with the model's UVs), or the one map as EXR (``half``: 16-bit floats)."""
     if media == NPZ:
-        return npz_bytes(result)
+        return npz_bytes(**result)
     if media == OBJ:
         key = "vertices_detailed" if "mesh_detailed" in request.outputs else "vertices"
         model = loaded.model
@@ -291,9 +294,18 @@ def encode(media: str, result: dict[str, np.ndarray], loaded: LoadedModel,
         buffer = io.BytesIO()
         write_obj(buffer, mesh, dtype=np.float32)
         return buffer.getvalue()
+    values = result[request.outputs[0]]
+    if values.ndim < 3:
+        raise InvalidInput(_per_vertex(request.outputs[0], values, "ask for application/x-npz"))
     buffer = io.BytesIO()
-    write_map(buffer, result[request.outputs[0]][0], half=half)
+    write_map(buffer, values[0], half=half)
     return buffer.getvalue()
+
+
+def _per_vertex(name: str, values: np.ndarray, advice: str) -> str:
+    """The message for a map output that a kind (e.g. shape_space) gives per vertex."""
+    return (f"this model gives '{name}' per vertex, shape {tuple(values.shape)}, not as a "
+            f"UV map (F,H,W); {advice}")
 
 
 # ---------------------------------------------------------------------------- job inputs
@@ -341,4 +353,4 @@ def parse_job_input(kind: str, data: bytes, expected: Expected, settings: Settin
     arrays = {key: frames}
     if fps is not None:
         arrays["fps"] = np.float64(fps)
-    return npz_bytes(arrays), len(frames)
+    return npz_bytes(**arrays), len(frames)

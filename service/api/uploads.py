@@ -287,13 +287,6 @@ def _kinds_text(kinds: str) -> str:
     return " or ".join(names[k] for k in kinds)
 
 
-def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
-    """An uncompressed NPZ of ``arrays``."""
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
-
-
 def npz_limit(settings: Settings) -> int:
     """Bound on the decompressed array bytes of an uploaded NPZ."""
     return NPZ_EXPANSION * settings.max_body_bytes

@@ -253,3 +253,13 @@ def test_synthesis_slots_answer_503_when_busy():
     with pytest.raises(Overloaded) as error:
         synthesizer.run(loaded, request)
     assert error.value.status_code == 503 and error.value.headers["Retry-After"] == "1"
+
+
+def test_per_vertex_displacement_is_refused_as_a_map_not_a_500():
+    """A kind that gives 'displacement' per vertex (shape_space: (F,n)) cannot be resampled
+    or sent as EXR: 422 naming the shape, never a crash."""
+    from service.api.synthesis import resample_maps
+    from service.methods.inputs import InvalidInput
+
+    with pytest.raises(InvalidInput, match=r"'displacement' per vertex, shape \(1, 10\)"):
+        resample_maps({"displacement": np.zeros((1, 10), np.float32)}, 64)
