@@ -31,7 +31,6 @@ the canonical form, or a clip that does not match the actor.
 
 from __future__ import annotations
 
-import io
 import json
 import re
 from pathlib import Path
@@ -43,6 +42,7 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
+from service.io.npz import npz_arrays, npz_bytes
 from service.methods.inputs import ActorData, Clip, InvalidInput, check_clips
 
 #: prefix of the neutral NPZ's region keys (``region_<name>``)
@@ -57,18 +57,10 @@ LAYOUT_MEDIA_TYPE = "application/json"
 
 
 # ---------------------------------------------------------------------------- helpers
-def _npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
-    """Uncompressed NPZ of ``arrays``."""
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
-
-
 def _open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
     """The arrays of an NPZ blob (no pickles), or InvalidInput."""
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            return {key: npz[key] for key in npz.files}
+        return npz_arrays(data)
     except (ValueError, OSError, EOFError) as error:
         raise InvalidInput(f"{what} is not a readable .npz: {error}") from None
 
@@ -144,7 +136,7 @@ def neutral_npz(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
         mask = np.asarray(mask)
         _check_shape(mask, f"region '{name}'", (n,))
         arrays[REGION_PREFIX + name] = mask.astype(bool)
-    return _npz_bytes(arrays)
+    return npz_bytes(**arrays)
 
 
 def layout_json(names: Sequence[str], triangle: np.ndarray, barycentric: np.ndarray) -> bytes:
@@ -211,7 +203,7 @@ def clip_npz(vertices: np.ndarray, markers: np.ndarray, *, displacement: np.ndar
         A = _floats(albedo, "clip albedo", (frames, None, None, 3), np.float32)
         _check_finite(A, "clip albedo")
         arrays["albedo"] = A
-    return _npz_bytes(arrays)
+    return npz_bytes(**arrays)
 
 
 # ---------------------------------------------------------------------------- readers

@@ -33,7 +33,7 @@ import tempfile
 import time
 import warnings
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import pytest
 
@@ -71,6 +71,20 @@ def _package_dir(name: str) -> Path:
     return Path(list(spec.submodule_search_locations)[0])
 
 
+@contextlib.contextmanager
+def _server_url(env: str, port: int, local_url: str,
+                embedded: Callable[[], contextlib.AbstractContextManager[str]]) -> Iterator[str]:
+    """``$env`` if set, else ``local_url`` if loopback ``port`` answers, else the URL of
+    ``embedded()``, a private server running for the duration of the block."""
+    if os.environ.get(env):
+        yield os.environ[env]
+    elif port_open(LOOPBACK, port):
+        yield local_url
+    else:
+        with embedded() as url:
+            yield url
+
+
 # -- PostgreSQL ------------------------------------------------------------------------------
 @contextlib.contextmanager
 def postgres_url() -> Iterator[str]:
@@ -79,13 +93,10 @@ def postgres_url() -> Iterator[str]:
     ``$FACESYNTH_TEST_POSTGRES_URL`` if set, else the server on 127.0.0.1:5432 if it
     answers, else a private server started for the duration of the block.
     """
-    if os.environ.get(POSTGRES_ENV):
-        yield os.environ[POSTGRES_ENV]
-    elif port_open(LOOPBACK, POSTGRES_PORT):
-        yield f"postgresql://postgres@{LOOPBACK}:{POSTGRES_PORT}/postgres"
-    else:
-        with embedded_postgres() as url:
-            yield url
+    with _server_url(POSTGRES_ENV, POSTGRES_PORT,
+                     f"postgresql://postgres@{LOOPBACK}:{POSTGRES_PORT}/postgres",
+                     embedded_postgres) as url:
+        yield url
 
 
 @contextlib.contextmanager
@@ -176,13 +187,9 @@ def redis_url() -> Iterator[str]:
     ``$FACESYNTH_TEST_REDIS_URL`` if set, else the server on 127.0.0.1:6379 if it answers,
     else a private server started for the duration of the block.
     """
-    if os.environ.get(REDIS_ENV):
-        yield os.environ[REDIS_ENV]
-    elif port_open(LOOPBACK, REDIS_PORT):
-        yield f"redis://{LOOPBACK}:{REDIS_PORT}/0"
-    else:
-        with embedded_redis() as url:
-            yield url
+    with _server_url(REDIS_ENV, REDIS_PORT, f"redis://{LOOPBACK}:{REDIS_PORT}/0",
+                     embedded_redis) as url:
+        yield url
 
 
 @contextlib.contextmanager

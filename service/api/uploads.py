@@ -46,7 +46,7 @@ from service.geometry.closest_point import resolve_marker_layout, surface_points
 from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
-from service.io.npz import ZIP_ERRORS, npy_header
+from service.io.npz import ZIP_ERRORS, npy_header, npz_arrays
 from service.methods.inputs import InvalidInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
@@ -382,8 +382,8 @@ def parse_rig_mesh(kind: str, data: bytes, settings: Settings) -> tuple[MeshUplo
 
 def neutral_arrays(neutral: bytes) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n,3) and faces (m,3) of a stored canonical neutral."""
-    with np.load(io.BytesIO(neutral), allow_pickle=False) as npz:
-        return npz["vertices"], npz["faces"]
+    arrays = npz_arrays(neutral)
+    return arrays["vertices"], arrays["faces"]
 
 
 # ---------------------------------------------------------------------------- layouts

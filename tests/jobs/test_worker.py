@@ -18,6 +18,7 @@ from models_store.schema import utcnow
 from service import actor_store
 from service.io.exr import read_map
 from service.io.mesh import read_obj
+from service.io.npz import npz_arrays
 from service.jobs.queue import get_queue, submit
 from service.jobs.worker import reap_and_resubmit, resubmit_stale
 from service.methods import kinds
@@ -48,12 +49,10 @@ def test_training_job_on_the_sqlite_queue_makes_a_ready_model(deployment, traine
     assert (deployment.settings.data_dir / "queue.db").is_file()
 
 
-def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker, pdm_actor_dir):
-    model_id, _ = trained
-    markers = _markers(pdm_actor_dir, 20)
-    markers[5, 3] = np.nan  # an occluded marker
-    job_id = deployment.create_synthesis_job(model_id, markers,
-                                             outputs=["mesh", "displacement", "normal_map"])
+def _run_synthesis_job(deployment, start_worker, model_id, markers, **payload):
+    """Run a synthesis job to success; its one artifact row, the artifact's bytes and the
+    model's directory."""
+    job_id = deployment.create_synthesis_job(model_id, markers, **payload)
     start_worker(deployment.settings)
     submit(deployment.settings, job_id)
     job = deployment.wait(job_id)
@@ -61,9 +60,18 @@ def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker,
     (artifact_id,) = job.result["artifact_ids"]
     with deployment.session() as session:
         artifact, stream = registry.open_artifact(session, deployment.store.blobs, artifact_id)
-        with stream, np.load(io.BytesIO(stream.read())) as d:
-            result = {k: d[k] for k in d.files}
-        path = registry.model_dir(session, deployment.store.blobs, model_id)
+        with stream:
+            data = stream.read()
+        return artifact, data, registry.model_dir(session, deployment.store.blobs, model_id)
+
+
+def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker, pdm_actor_dir):
+    model_id, _ = trained
+    markers = _markers(pdm_actor_dir, 20)
+    markers[5, 3] = np.nan  # an occluded marker
+    artifact, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
+                                              outputs=["mesh", "displacement", "normal_map"])
+    result = npz_arrays(data)
     assert artifact.media_type == "application/x-npz"
     assert result["vertices"].shape == (20, 11248, 3) and result["normal_map"].shape == (20, 64, 64, 3)
     expected = kinds.get_kind("pdm").load(path).synthesize(markers, ("mesh", "displacement"))
@@ -206,18 +214,8 @@ def test_synthesis_job_writes_per_frame_obj_and_exr_into_a_zip(deployment, train
                                                                pdm_actor_dir):
     model_id, _ = trained
     markers = _markers(pdm_actor_dir, 3)
-    job_id = deployment.create_synthesis_job(model_id, markers, outputs=["mesh", "displacement"],
-                                             format="obj-exr-zip")
-    start_worker(deployment.settings)
-    submit(deployment.settings, job_id)
-    job = deployment.wait(job_id)
-    assert job.status == "succeeded", job.error
-    (artifact_id,) = job.result["artifact_ids"]
-    with deployment.session() as session:
-        artifact, stream = registry.open_artifact(session, deployment.store.blobs, artifact_id)
-        with stream:
-            data = stream.read()
-        path = registry.model_dir(session, deployment.store.blobs, model_id)
+    artifact, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
+                                              outputs=["mesh", "displacement"], format="obj-exr-zip")
     assert artifact.media_type == "application/zip" and artifact.filename.endswith(".zip")
     expected = kinds.get_kind("pdm").load(path).synthesize(markers, ("mesh", "displacement"))
     with zipfile.ZipFile(io.BytesIO(data)) as z:

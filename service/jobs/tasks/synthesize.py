@@ -18,7 +18,6 @@ for any length.
 
 from __future__ import annotations
 
-import io
 import tempfile
 from pathlib import Path
 from typing import Any, Mapping
@@ -28,6 +27,7 @@ from sqlalchemy.orm import Session
 
 from models_store import registry
 from models_store.blobs import BlobStore
+from service.io.npz import npz_arrays
 from service.jobs.frame_npz import FrameNpzWriter
 from service.jobs.frame_zip import FrameZipWriter
 from service.jobs.runner import RunningJob
@@ -97,8 +97,7 @@ def read_markers(session: Session, blobs: BlobStore, payload: Mapping[str, Any])
     else:
         raise InvalidInput("the job names no input: give markers_artifact_id or markers_blob")
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            markers = np.asarray(npz["markers"], np.float64)
+        markers = np.asarray(npz_arrays(data)["markers"], np.float64)
     except KeyError:
         raise InvalidInput("the input .npz has no 'markers' array") from None
     except (ValueError, OSError, EOFError) as error:
