@@ -164,15 +164,21 @@ def uniform_laplacian_smoothing(V: np.ndarray, F: np.ndarray, iterations: int = 
     """
     X, batched = _frames(V)
     n = X.shape[1]
+    S = uniform_smoothing_operator(F, n, step)
+    Xs = np.moveaxis(X, 0, 1).reshape(n, -1)
+    for _ in range(iterations):
+        Xs = S @ Xs
+    X = np.moveaxis(Xs.reshape(n, X.shape[0], X.shape[2]), 1, 0)
+    return X if batched else X[0]
+
+
+def uniform_smoothing_operator(F: np.ndarray, n: int, step: float = 1.0) -> sp.csr_matrix:
+    """One step of :func:`uniform_laplacian_smoothing` as a sparse (n,n) matrix ``I + step D⁻¹ L_u``
+    (depends on connectivity only, so it can be built once for many frames)."""
     Lu = uniform_laplacian(np.asarray(F, dtype=np.int64), n)
     deg = -Lu.diagonal()
     Dinv = sp.diags(np.where(deg > 0, 1.0 / np.where(deg > 0, deg, 1.0), 0.0))
-    P = (Dinv @ Lu).tocsr()
-    Xs = np.moveaxis(X, 0, 1).reshape(n, -1)
-    for _ in range(iterations):
-        Xs = Xs + step * (P @ Xs)
-    X = np.moveaxis(Xs.reshape(n, X.shape[0], X.shape[2]), 1, 0)
-    return X if batched else X[0]
+    return (sp.identity(n, format="csr") + step * (Dinv @ Lu)).tocsr()
 
 
 def frequency_separation(V: np.ndarray, F: np.ndarray, lam_dt: float = LAMBDA_DT,

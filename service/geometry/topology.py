@@ -34,8 +34,11 @@ def edges(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     corner_edge : (m,3) int  ``E[corner_edge[f,k]]`` is the edge opposite corner k of face f
     """
     H = halfedges(F).reshape(-1, 2)
-    Hs = np.sort(H, axis=1)
-    E, inverse = np.unique(Hs, axis=0, return_inverse=True)
+    Hs = np.sort(H, axis=1).astype(np.int64)
+    # one int64 key per edge sorts like the (lo, hi) pairs and is far faster to unique
+    n = int(Hs.max()) + 1 if len(Hs) else 1
+    keys, inverse = np.unique(Hs[:, 0] * n + Hs[:, 1], return_inverse=True)
+    E = np.stack([keys // n, keys % n], axis=1)
     return E, inverse.reshape(-1, 3)
 
 

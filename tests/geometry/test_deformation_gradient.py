@@ -209,3 +209,30 @@ def test_boundary_laplacian_1d_of_a_square_loop():
     np.testing.assert_allclose(d[[1, 3, 4, 6]], 0.0, atol=1e-15)
     np.testing.assert_allclose(d[0], [-0.5, -0.5, 0.0])
     np.testing.assert_allclose(d[7], [0.5, 0.5, 0.0])
+
+
+def test_polar_newton_matches_the_svd_factors_including_ill_conditioned_and_mixed_signs():
+    from service.geometry.deformation_gradient import _polar_svd
+
+    rng = np.random.default_rng(12)
+    G = np.eye(3) + 0.4 * rng.standard_normal((400, 3, 3))
+    # ill-conditioned (singular values 1e-5 .. 10) and scaled stretches
+    U, _, Vt = np.linalg.svd(rng.standard_normal((100, 3, 3)))
+    U[np.linalg.det(U) < 0, :, 2] *= -1
+    Vt[np.linalg.det(Vt) < 0, 2] *= -1
+    sig = 10.0 ** rng.uniform(-5, 1, (100, 3))
+    G = np.concatenate([G, U @ (sig[..., None] * Vt)])
+    R, S = polar_decomposition(G.reshape(50, 10, 3, 3))          # any leading shape
+    R, S = R.reshape(-1, 3, 3), S.reshape(-1, 3, 3)
+    Rs, Ss = _polar_svd(G.copy())
+    np.testing.assert_allclose(R, Rs, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(S, 0.5 * (Ss + np.swapaxes(Ss, 1, 2)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, rtol=0, atol=1e-12)
+
+
+def test_inverse3_matches_lapack():
+    from service.geometry.deformation_gradient import inverse3
+
+    X = np.random.default_rng(13).standard_normal((2, 50, 3, 3))
+    np.testing.assert_allclose(inverse3(X) @ X, np.broadcast_to(np.eye(3), X.shape), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(inverse3(X), np.linalg.inv(X), rtol=1e-9, atol=1e-12)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.geometry.curvature_flow import (
-    CurvatureFlowOperator, implicit_curvature_flow, uniform_laplacian_smoothing,
+    CurvatureFlowOperator, implicit_curvature_flow, uniform_smoothing_operator,
 )
 from service.geometry.deformation_gradient import decode, deformation_gradients, encode
 
@@ -54,6 +54,7 @@ class FrequencySeparator:
         self.lam_dt = float(lam_dt)
         self.smoothing = smoothing
         self._op = None
+        self._uniform = None                   # built on first use, when n is known
         if smoothing == "rest":
             if rest is None:
                 raise ValueError("smoothing='rest' needs the neutral `rest` (n,3)")
@@ -65,7 +66,12 @@ class FrequencySeparator:
             low = implicit_curvature_flow(V, self.F, lam_dt=self.lam_dt, iterations=1)
         else:
             low = self._op.step(V)
-        return uniform_laplacian_smoothing(low, self.F, iterations=1, step=1.0)
+        n = low.shape[-2]
+        if self._uniform is None or self._uniform.shape[0] != n:
+            self._uniform = uniform_smoothing_operator(self.F, n)
+        if low.ndim == 2:
+            return self._uniform @ low
+        return np.stack([self._uniform @ x for x in low])
 
 
 def encode_gradients(G: np.ndarray) -> np.ndarray:
@@ -90,8 +96,8 @@ def decode_gradients(x: np.ndarray) -> np.ndarray:
     return decode(x[..., :3], x[..., 3:])
 
 
-def shape_encoding(smooth_neutral: np.ndarray, low: np.ndarray, F: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def shape_encoding(smooth_neutral: np.ndarray, low: np.ndarray, F: np.ndarray,
+                   rest_inverse: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Low-frequency shape of a frame relative to the smoothed neutral (bermano2014 §4.2, §5.2).
 
     Parameters
@@ -99,13 +105,14 @@ def shape_encoding(smooth_neutral: np.ndarray, low: np.ndarray, F: np.ndarray
     smooth_neutral : (n,3) float   f(d0), mm
     low : (n,3) float              f(d) of an aligned frame, mm
     F : (m,3) int
+    rest_inverse : (m,3,3) float | None   ``rest_frames_inverse(smooth_neutral, F)``, if at hand
 
     Returns
     -------
     G : (m,3,3) float64   deformation gradients f(d0) → f(d)
     x : (m,9) float64     their encoding (:func:`encode_gradients`)
     """
-    G = deformation_gradients(smooth_neutral, low, F)
+    G = deformation_gradients(smooth_neutral, low, F, rest_inverse)
     return G, encode_gradients(G)
 
 

@@ -55,7 +55,7 @@ from typing import Sequence
 
 import numpy as np
 
-from service.geometry.deformation_gradient import PoissonReconstruction
+from service.geometry.deformation_gradient import PoissonReconstruction, rest_frames_inverse
 from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normals import vertex_normals
@@ -142,6 +142,7 @@ class ShapeSpaceModel:
     _omega_hat: np.ndarray | None = field(default=None, repr=False)
     _vertex_omega_hat: np.ndarray | None = field(default=None, repr=False)
     _shell: tuple | None = field(default=None, repr=False)
+    _rest_inverse: np.ndarray | None = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -170,6 +171,7 @@ class ShapeSpaceModel:
                                               boundary_weight=p.boundary_weight)
         self._averager = PatchAverager(self.tri_patch, triangle_areas(self.smooth_neutral, self.faces),
                                        int(self.patches.max()) + 1)
+        self._rest_inverse = rest_frames_inverse(self.smooth_neutral, self.faces)
         self._omega_hat = normalize_region_weights(self.region_weights)
         self._vertex_omega_hat = normalize_region_weights(
             vertex_region_weights(self.faces, self.region_weights, self.n_vertices))
@@ -201,7 +203,7 @@ class ShapeSpaceModel:
         G_low = np.empty((len(frames), len(self.faces), 3, 3))
         shape = np.empty((len(frames), self.shapes.shape[1]))
         for f in range(len(frames)):
-            G_low[f], x = shape_encoding(self.smooth_neutral, low[f], self.faces)
+            G_low[f], x = shape_encoding(self.smooth_neutral, low[f], self.faces, self._rest_inverse)
             shape[f] = self._averager(x).ravel()
         return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
                 "shape": shape}
@@ -555,10 +557,11 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     shapes = np.empty((N, P * COMPONENTS))
     detail = np.empty((N, m, COMPONENTS), np.float32)
     chunk = 16 if p.smoothing == "rest" else 1
+    rest_inverse = rest_frames_inverse(smooth0, F)
     for s in range(0, N, chunk):
         low = separator(aligned[s:s + chunk])
         for k in range(len(low)):
-            _, x = shape_encoding(smooth0, low[k], F)
+            _, x = shape_encoding(smooth0, low[k], F, rest_inverse)
             shapes[s + k] = averager(x).ravel()
             detail[s + k] = detail_encoding(low[k], aligned[s + k], F)
         progress(0.15 + 0.65 * min(s + chunk, N) / N, "encoding")
