@@ -178,8 +178,10 @@ class ShapeSpaceParamsModel(BaseModel):
         examples=[_SS.lam_dt])
     smoothing: Literal[SMOOTHING] = Field(  # type: ignore[valid-type]
         default=_SS.smoothing,
-        description="Build the curvature-flow operator on every frame (per_frame, the paper) "
-                    "or once on the neutral (rest: one factorization, an approximation).",
+        description="Build the curvature-flow operator once on the neutral (rest, the default: "
+                    "one factorization shared by every frame, as §5.5 does for the "
+                    "reconstruction; ~0.4 s per level-1 frame) or on every frame (per_frame, "
+                    "eq. 1 literally: one factorization per frame, ~3x slower).",
         examples=[_SS.smoothing])
     frame_stride: int = Field(
         default=_SS.frame_stride, ge=1,

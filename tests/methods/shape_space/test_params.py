@@ -10,7 +10,7 @@ from service.methods.shape_space.params import ShapeSpaceParams
 
 def test_defaults_are_the_papers_numbers():
     p = ShapeSpaceParams()
-    assert (p.lam_dt, p.patch_size, p.boundary_weight, p.smoothing) == (125.0, 100, 0.05, "per_frame")
+    assert (p.lam_dt, p.patch_size, p.boundary_weight, p.smoothing) == (125.0, 100, 0.05, "rest")
     assert ShapeSpaceParams(**dataclasses.asdict(p)) == p
 
 
