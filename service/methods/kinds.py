@@ -236,6 +236,11 @@ class ShapeSpaceParamsModel(BaseModel):
         description="Weight of the boundary 1D-Laplacian term of the Poisson reconstruction "
                     "(§5.5: 0.05).",
         examples=[_SS.boundary_weight])
+    map_resolution: int = Field(
+        default=_SS.map_resolution, ge=8, le=8192,
+        description="Texels per side of the displacement map /enhance returns (the enhanced "
+                    "surface's normal offset from the input surface, over the neutral's UVs).",
+        examples=[_SS.map_resolution])
     restore_low_frequencies: bool = Field(
         default=_SS.restore_low_frequencies,
         description="After reconstruction, replace the result's low band by the input's "

@@ -60,7 +60,7 @@ from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normals import vertex_normals
 from service.geometry.rigid import rigid_align
-from service.geometry.uv_raster import map_to_vertices
+from service.geometry.uv_raster import interpolation_matrix, map_to_vertices, rasterize_uv
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.shape_space.alignment import align_frames, stability_weights
 from service.methods.shape_space.blending import blend
@@ -109,6 +109,7 @@ class ShapeSpaceModel:
     colors : (N,n,C) float32 | None   per-vertex colours of the database frames
     marker_triangle, marker_barycentric : (M,), (M,3)   the actor's markers (M may be 0)
     marker_weights : (M,) float64     head-alignment weights of the markers
+    uv : (K,2) float64;  uv_faces : (m,3) int64   the neutral's UV layout (displacement maps)
     metrics : dict
     """
 
@@ -134,6 +135,8 @@ class ShapeSpaceModel:
     marker_triangle: np.ndarray
     marker_barycentric: np.ndarray
     marker_weights: np.ndarray
+    uv: np.ndarray
+    uv_faces: np.ndarray
     metrics: dict = field(default_factory=dict)
     # derived (not stored), built by prepare()
     _separator: FrequencySeparator | None = field(default=None, repr=False)
@@ -143,6 +146,7 @@ class ShapeSpaceModel:
     _vertex_omega_hat: np.ndarray | None = field(default=None, repr=False)
     _shell: tuple | None = field(default=None, repr=False)
     _rest_inverse: np.ndarray | None = field(default=None, repr=False)
+    _map_operator: object = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -249,8 +253,12 @@ class ShapeSpaceModel:
         ``weights`` (F,R,N) float32    the convex weights per region (§5.3);
         ``nonzero`` (F,R) int32        weights above :data:`~.params.WEIGHT_EPS` per region;
         ``match_error`` (F,R) float32  weighted RMS shape-space distance of the projection;
-        ``displacement`` (F,n) float32  (if asked) ``(x − a) · n_a``, the enhanced surface's
-                                        offset along the input's vertex normals, mm;
+        ``displacement`` (F,H,H) float32  (if asked) the enhanced surface's offset from the
+                                        input along the input's vertex normals, mm, as a
+                                        map over the neutral's UVs (H = ``map_resolution``;
+                                        0 where no triangle covers a texel);
+        ``vertex_displacement`` (F,n) float32  (with ``displacement``) the same per vertex,
+                                        ``(x − a) · n_a``;
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
         ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface used
         ``region_names`` (R,) str
@@ -282,7 +290,7 @@ class ShapeSpaceModel:
             "region_names": np.array(self.region_names),
         })
         if "displacement" in outputs:
-            out["displacement"] = np.empty((nf, n), np.float32)
+            out["vertex_displacement"] = np.empty((nf, n), np.float32)
         if "colors" in outputs:
             out["colors"] = np.empty((nf, n, self.colors.shape[2]), np.float32)
         for f in range(nf):
@@ -303,10 +311,28 @@ class ShapeSpaceModel:
             out["match_error"][f] = m["error"]
             if "displacement" in outputs:
                 normals = vertex_normals(frames[f], self.faces)
-                out["displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
+                out["vertex_displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
             if "colors" in outputs:
                 out["colors"][f] = blend(self.colors, self._vertex_omega_hat, W)
+        if "displacement" in outputs:
+            out["displacement"] = self.vertex_map(out["vertex_displacement"])
         return out
+
+    def vertex_map(self, values: np.ndarray) -> np.ndarray:
+        """Per-vertex values (F,n) as UV maps (F,H,H) float32 over the neutral's layout.
+
+        Barycentric interpolation into every texel a triangle covers (0 elsewhere), at
+        ``params.map_resolution`` texels per side; the sparse (H², n) operator is built on
+        first use.
+        """
+        if self._map_operator is None:
+            H = self.params.map_resolution
+            raster = rasterize_uv(self.uv, self.uv_faces, H, H)
+            self._map_operator = interpolation_matrix(raster, self.faces, self.n_vertices)
+        H = self.params.map_resolution
+        values = np.asarray(values, dtype=np.float64)
+        maps = (self._map_operator @ values.T).T                            # (F,H²)
+        return maps.reshape(len(values), H, H).astype(np.float32)
 
     def synthesize(self, frames: np.ndarray, outputs: Sequence[str] = ("mesh",),
                    clamp: bool = True) -> dict[str, np.ndarray]:
@@ -603,6 +629,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
         marker_triangle=np.asarray(actor.marker_triangle, np.int64),
         marker_barycentric=np.asarray(actor.marker_barycentric, np.float64),
         marker_weights=marker_weights,
+        uv=np.asarray(actor.uv, np.float64), uv_faces=np.asarray(actor.uv_faces, np.int64),
         metrics={
             "database_frames": N, "clips": [c.name for c in clips],
             "patches": P, "patch_vertices": {"mean": float(sizes.mean()), "min": int(sizes.min()),

@@ -83,6 +83,10 @@ class ShapeSpaceParams:
     restore_low_frequencies : bool  after reconstruction, replace the result's low band by the
                                    input's: ``x ← x + f(ā) − f(x)`` (departure, see
                                    :mod:`~service.methods.shape_space.model`; False: the paper)
+    map_resolution : int           texels per side of the displacement map of
+                                   :meth:`~.model.ShapeSpaceModel.enhance` (the enhanced
+                                   surface's offset from the input, rasterized over the
+                                   neutral's UV layout)
     sequence_seconds : float       temporal projection (§6.1): database clips longer than this
                                    (seconds) are cut into windows of this duration with 50 %
                                    overlap, each one sequence (0: every clip is one sequence).
@@ -107,6 +111,7 @@ class ShapeSpaceParams:
     boundary_weight: float = BOUNDARY_WEIGHT
     restore_low_frequencies: bool = True
     sequence_seconds: float = 1.0
+    map_resolution: int = 1024
 
     def __post_init__(self):
         for name in ("up_axis", "left_axis"):
@@ -133,7 +138,8 @@ class ShapeSpaceParams:
             raise InvalidInput(f"smoothing must be one of {list(SMOOTHING)}, got {self.smoothing!r}")
         if self.regions not in REGION_SOURCES:
             raise InvalidInput(f"regions must be one of {list(REGION_SOURCES)}, got {self.regions!r}")
-        for name, lo in (("frame_stride", 1), ("patch_size", 3), ("patch_relax_iterations", 0)):
+        for name, lo in (("frame_stride", 1), ("patch_size", 3), ("patch_relax_iterations", 0),
+                         ("map_resolution", 8)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
                 raise InvalidInput(f"{name} must be an integer >= {lo}, got {value!r}")

@@ -2,7 +2,7 @@
 
 Layout (DESIGN.md "Data and storage"):
 
-* ``model.npz``   the neutral and its smoothed version, faces, alignment weights, patches,
+* ``model.npz``   the neutral and its smoothed version, faces, UV layout, alignment weights, patches,
   compressed shape vectors D̃ᵀ, regions (vertex sets, triangle and patch weights), the Gram
   matrices of §5.3, the database frame index and the marker layout;
 * ``detail.npz``  ``detail`` (N,m,9) float32: the high-frequency detail of every database
@@ -30,12 +30,12 @@ from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
 KIND = "shape_space"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: arrays of model.npz (attribute names of ShapeSpaceModel)
 MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches", "tri_patch",
                 "shapes", "region_vertices", "region_weights", "patch_weights", "gram",
                 "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
-                "marker_weights")
+                "marker_weights", "uv", "uv_faces")
 
 
 def save_model(model: ShapeSpaceModel, path) -> dict:

@@ -54,7 +54,25 @@ def test_database_frame_gets_weight_one_and_its_detail_back(shape_space_model, s
     assert np.all(out["weights"][0, :, k] > 1 - 1e-6)
     assert out["nonzero"][0].tolist() == [1, 1, 1, 1]
     assert np.abs(out["vertices"][0] - frame).max() < 1e-3       # float32 detail store
-    assert np.abs(out["displacement"][0]).max() < 1e-3
+    assert np.abs(out["vertex_displacement"][0]).max() < 1e-3
+    H = m.params.map_resolution
+    assert out["displacement"].shape == (1, H, H) and out["displacement"].dtype == np.float32
+    assert np.abs(out["displacement"][0]).max() <= np.abs(out["vertex_displacement"][0]).max() + 1e-6
+
+
+def test_vertex_map_interpolates_over_the_uv_layout(shape_space_model):
+    """A constant per-vertex value fills exactly the texels the UV triangles cover (the
+    barycentric weights sum to 1), and nothing else."""
+    from service.geometry.uv_raster import rasterize_uv
+
+    m = shape_space_model
+    maps = m.vertex_map(np.full((2, m.n_vertices), 0.25) * np.array([[1.0], [-2.0]]))
+    H = m.params.map_resolution
+    covered = rasterize_uv(m.uv, m.uv_faces, H, H).mask
+    assert 0.3 < covered.mean() < 1.0
+    np.testing.assert_allclose(maps[0][covered], 0.25, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(maps[1][covered], -0.5, rtol=0, atol=1e-6)
+    assert np.all(maps[:, ~covered] == 0)
 
 
 def test_heldout_frames_gain_the_detail_the_input_lacks(shape_space_model, shape_space_data):
@@ -81,7 +99,7 @@ def test_heldout_frames_gain_the_detail_the_input_lacks(shape_space_model, shape
     # the transferred detail points the right way: normal offsets correlate with the truth's
     normals = np.stack([vertex_normals(x, actor.faces) for x in X])
     true_disp = np.einsum("fnd,fnd->fn", truth - X, normals)
-    r = np.corrcoef(out["displacement"][detail], true_disp[detail])[0, 1]
+    r = np.corrcoef(out["vertex_displacement"][detail], true_disp[detail])[0, 1]
     assert r > 0.8                                                         # measured 0.88
     assert np.all(out["nonzero"] >= 1) and np.all(out["nonzero"] <= 12)
 
