@@ -176,3 +176,12 @@ def test_invalid_input_is_rejected(shape_space_model):
         m.enhance(np.full((1, m.n_vertices, 3), np.nan))
     with pytest.raises(InvalidInput, match="two keyframes"):
         m.retime(np.stack([m.neutral] * 3), length=5)
+
+
+def test_memory_footprint_counts_the_detail_store_and_the_prefactored_solve(shape_space_model):
+    from service.methods.footprint import FACTOR_ENTRY_BYTES, nbytes
+
+    m = shape_space_model
+    arrays = m.detail.nbytes + m.gram.nbytes + m.shapes.nbytes + m.neutral.nbytes
+    factor = FACTOR_ENTRY_BYTES * m._poisson._factor.fill
+    assert arrays + factor <= nbytes(m) < 3 * (arrays + factor)
