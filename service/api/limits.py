@@ -31,3 +31,5 @@ EVENTS_POLL_SECONDS = 0.5
 EVENTS_KEEPALIVE_SECONDS = 15.0
 #: the longest accepted ``X-Request-ID``; longer or unsafe ones are replaced
 REQUEST_ID_MAX_LENGTH = 128
+#: bytes of loaded input-rig registrations kept in memory (a level-1 actor's is ~5 MB)
+REGISTRATION_CACHE_BYTES = 256 << 20

@@ -12,7 +12,7 @@ from __future__ import annotations
 import io
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -25,14 +25,19 @@ from models_store.errors import BlobCorrupt, Conflict, NotFound
 from models_store.ids import new_token
 from models_store.schema import Actor, Job
 from service.api import schemas, uploads
+from service.api.input_rigs import REGISTER_JOB, LoadedRig, load_rig
+from service.api.retiming import (check_retime_kind, parse_retime_request, resolve_keyframes,
+                                  retime_keyframes)
 from service.api.deps import Submit
 from service.api.errors import Overloaded
 from service.api.limits import RETRY_AFTER_SECONDS
 from service.api.services import Services
-from service.api.synthesis import (Expected, SynthesisInput, Synthesizer, check_response_request,
-                                   encode, negotiate, parse_job_input, parse_synthesis_request)
+from service.api.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
+                                   check_response_request, encode, negotiate, parse_job_input,
+                                   parse_synthesis_request)
 from service.io.atomic import sha256_file
 from service.io.exr import read_exr, write_exr
+from service.io.npz import npz_bytes
 from service.jobs.tasks.synthesize import FORMATS as SYNTHESIS_FORMATS
 from service.methods.inputs import InvalidInput
 from service.methods.kinds import get_kind
@@ -41,7 +46,6 @@ log = logging.getLogger("facesynth.api")
 
 #: job kinds the API creates (the training job kind is the registry's default, "train")
 TRAIN_JOB = "train"
-REGISTER_JOB = "register"
 SYNTHESIS_JOB = "synthesize"
 ACTIVE = ("queued", "running")
 
@@ -267,17 +271,28 @@ class Synthesized:
 
 def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind: str,
                data: bytes, *, accept: str | None, outputs: tuple[str, ...] | None,
-               clamp: bool, half: bool, route_input: str) -> Synthesized:
+               clamp: bool, half: bool, route_input: str, rig: str | None = None) -> Synthesized:
     """Run a synchronous synthesis (``/synthesize`` for marker-driven, ``/enhance`` for
-    mesh-driven kinds: ``route_input``) and encode the response ``accept`` asks for."""
+    mesh-driven kinds: ``route_input``) and encode the response ``accept`` asks for.
+
+    With ``rig`` (``/enhance``), the frames are vertices (F,v,3) on that ready input rig of
+    the model's actor, carried to the actor's topology by its registration first.
+    """
     media = negotiate(accept)
     loaded = services.loaded_model(model_id)
     if loaded.kind.input != route_input:
         other = "synthesize" if loaded.kind.input == "markers" else "enhance"
         raise InvalidInput(f"a {loaded.kind.name} model takes {loaded.kind.input}: use "
                            f"POST /v1/models/{model_id}/{other}")
-    request: SynthesisInput = parse_synthesis_request(kind, data, Expected.of(loaded),
-                                                      services.settings, outputs, clamp)
+    expected = Expected.of(loaded)
+    loaded_rig = None
+    if rig is not None:
+        loaded_rig = load_rig(services, loaded.actor_id, rig, expected.count)
+        expected = loaded_rig.expected(expected)
+    request: SynthesisInput = parse_synthesis_request(kind, data, expected, services.settings,
+                                                      outputs, clamp)
+    if loaded_rig is not None:
+        request = replace(request, frames=loaded_rig.propagate(request.frames))
     check_response_request(media, request)
     result = synthesizer.run(loaded, request)
     return Synthesized(media, encode(media, result, loaded, request, half), len(request.frames))
@@ -285,13 +300,17 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
 
 def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, kind: str,
                          data: bytes, filename: str | None, *, outputs: tuple[str, ...],
-                         result_format: str, clamp: bool) -> Job:
+                         result_format: str, clamp: bool, rig: str | None = None) -> Job:
     """Store a performance and queue a ``synthesize`` job for it.
 
     The job's payload is ``{"model_id", "markers_blob", "markers_sha256", "frames",
-    "outputs", "format", "clamp"}`` (:mod:`service.jobs.tasks.synthesize`); the input blob
-    is a canonical NPZ (``markers`` (F,M,3) float32 or ``vertices`` (F,V,3) float32,
-    optional ``fps``) under the model's blob prefix, so deleting the model removes it.
+    "outputs", "format", "clamp"}`` (``vertices_blob``, ``vertices_sha256`` for mesh-driven
+    kinds; :mod:`service.jobs.tasks.synthesize`); the input blob is a canonical NPZ
+    (``markers`` (F,M,3) float32 or ``vertices`` (F,V,3) float32, optional ``fps``) under the
+    model's blob prefix, so deleting the model removes it. With ``rig`` (mesh-driven kinds)
+    the vertices are on that ready input rig's topology, stored as given; the payload adds
+    ``{"rig_id", "rig", "registration_blob", "registration_sha256"}`` and the job
+    propagates the frames with exactly that registration.
     """
     if result_format not in SYNTHESIS_FORMATS:
         raise InvalidInput(f"result format {result_format!r} is not supported by this server "
@@ -307,7 +326,14 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     kind_info = get_kind(model.kind)
     key = "markers" if kind_info.input == "markers" else "vertices"
     expected = Expected(model_id, model.kind, key,
-                        actor.marker_count if key == "markers" else None)
+                        actor.marker_count if key == "markers" else actor.vertex_count)
+    loaded_rig: LoadedRig | None = None
+    if rig is not None:
+        if key != "vertices":
+            raise InvalidInput(f"rig applies to mesh-driven kinds; a {model.kind} model takes "
+                               "markers")
+        loaded_rig = load_rig(services, model.actor_id, rig, actor.vertex_count)
+        expected = loaded_rig.expected(expected)
     blob, frames = parse_job_input(kind, data, expected, services.settings, names, filename)
     info = services.blobs.put_bytes(f"models/{model_id}/inputs/{new_token()}.npz", blob)
     try:
@@ -316,11 +342,31 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
                 session, SYNTHESIS_JOB, model.actor_id, model_id=model_id,
                 payload={"model_id": model_id, f"{key}_blob": info.key,
                          f"{key}_sha256": info.sha256, "frames": frames,
-                         "outputs": list(outputs), "format": result_format, "clamp": clamp})
+                         "outputs": list(outputs), "format": result_format, "clamp": clamp,
+                         **(loaded_rig.payload() if loaded_rig is not None else {})})
             return submit(session, submit_job, job)
     except Exception:
         services.blobs.delete(info.key)
         raise
+
+
+def retime(services: Services, synthesizer: Synthesizer, model_id: str, kind: str, data: bytes,
+           *, length: int | None, extend: bool | None, rig: str | None) -> Synthesized:
+    """Retime keyframes with a ready model of a retiming kind (``/retime``): the response
+    NPZ of :func:`service.api.retiming.retime_keyframes` (``vertices`` (m,n,3) float32,
+    ``timestamps`` (m,), ``faces``, per-segment diagnostics).
+
+    ``kind`` is the body's media type: JSON (:class:`~service.api.schemas.RetimeBody`) or
+    NPZ (``keyframes`` (K,v,3) with ``length``, ``extend``, ``rig`` from the query).
+    """
+    loaded = services.loaded_model(model_id)
+    check_retime_kind(loaded)
+    request = parse_retime_request(kind, data, services.settings, length=length, extend=extend,
+                                   rig=rig)
+    keyframes = resolve_keyframes(services, loaded, request)
+    with synthesizer.slot(loaded.kind.name, request.length):
+        result = retime_keyframes(loaded.model, keyframes, request.length, request.extend)
+    return Synthesized(NPZ, npz_bytes(**result), request.length)
 
 
 # ---------------------------------------------------------------------------- artifacts

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -22,6 +22,8 @@ DEFAULT_OUTPUTS: tuple[str, ...] = ("mesh", "displacement")
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 ModelStatus = Literal["training", "ready", "failed"]
 ResultFormat = Literal["npz", "obj-exr-zip", "usd"]
+#: an input rig's name (the ``{rig}`` of ``/input-rigs/{rig}``, the ``rig`` of synthesis)
+RIG_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 
 _ACTOR_ID = "act_01jb3k5q8m2v7c4x6b1n0r8tea"
 _MODEL_ID = "mdl_01jb3k9w2d5f7h3k6m8p0r2tvb"
@@ -259,6 +261,46 @@ class SynthesizeBody(BaseModel):
         None, ge=16, description="Side of the returned maps in texels (default: the model's); "
                                  "at most the server's `max_map_resolution`.")
     clamp: bool = Field(True, description="Limit extrapolation beyond the training data.")
+
+
+class ClipFrameRef(BaseModel):
+    """A keyframe given as a frame of one of the actor's clips (on the actor's topology)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"clip_id": _CLIP_ID, "frame": 12}]})
+
+    clip_id: str = Field(description="Id of a clip of the model's actor.")
+    frame: int = Field(ge=0, description="0-based frame index within the clip.")
+
+
+Vertex = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class RetimeBody(BaseModel):
+    """JSON body of `POST /retime` (an `.npz` with `keyframes` (K,v,3) and query parameters
+    is the compact alternative)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"keyframes": [{"clip_id": _CLIP_ID, "frame": 0}, {"clip_id": _CLIP_ID, "frame": 19}],
+         "length": 24, "extend_to_full_motion": False},
+        {"keyframes": [[[12.1, 80.3, 95.2], [12.9, 80.1, 95.6], [13.4, 79.8, 95.9]],
+                       [[12.0, 79.1, 95.2], [12.8, 79.0, 95.7], [13.5, 78.7, 96.0]]],
+         "length": 30, "extend_to_full_motion": True, "rig": "game-lod2"}]})
+
+    keyframes: list[list[Vertex] | ClipFrameRef] = Field(
+        min_length=2,
+        description="Two or more keyframes, in order: each the vertices [[x,y,z], ...] of a "
+                    "frame (on the actor's topology, or on the input rig's with `rig`), or "
+                    "a clip frame `{clip_id, frame}` of the model's actor. With K keyframes, "
+                    "keyframe k is output frame round(k (length-1)/(K-1)).")
+    length: int = Field(ge=2, description="Output frames m, keyframes included (m >= K; at "
+                                          "most the server's `max_frames_per_request`).")
+    extend_to_full_motion: bool = Field(
+        False, description="Extend each matched database subsequence to the full motion "
+                           "(bermano2014 §6.2) instead of only the keyframes' span.")
+    rig: str | None = Field(None, pattern=RIG_NAME_PATTERN,
+                            description="The registered input rig the vertex keyframes are "
+                                        "on (also accepted as a query parameter).")
 
 
 # ---------------------------------------------------------------------------- jobs

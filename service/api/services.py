@@ -21,6 +21,7 @@ from models_store.blobs import BlobStore
 from models_store.cache import ByteLRUCache
 from models_store.db import make_engine, make_session_factory, upgrade
 from models_store.errors import Conflict
+from service.api.limits import REGISTRATION_CACHE_BYTES
 from service.config import Settings
 from service.methods.kinds import Kind, get_kind
 
@@ -36,11 +37,13 @@ class LoadedModel:
     id : str          model id
     kind : Kind       its kind (``kind.input`` says whether it takes markers or meshes)
     model : object    the loaded model (``synthesize(frames, outputs, clamp) -> dict``)
+    actor_id : str    the actor it was trained for (whose input rigs and clips it can use)
     """
 
     id: str
     kind: Kind
     model: Any
+    actor_id: str | None = None
 
 
 @dataclass
@@ -56,6 +59,7 @@ class Services:
     sessions : sessionmaker     one session per request (:meth:`session`)
     blobs : BlobStore
     models : ByteLRUCache      loaded models by id, within ``settings.model_cache_bytes``
+    registrations : ByteLRUCache   loaded input-rig registrations by (rig id, sha256)
     """
 
     settings: Settings
@@ -63,6 +67,8 @@ class Services:
     sessions: sessionmaker[Session]
     blobs: BlobStore
     models: ByteLRUCache[LoadedModel] = field(repr=False)
+    registrations: ByteLRUCache[Any] = field(
+        default_factory=lambda: ByteLRUCache(REGISTRATION_CACHE_BYTES), repr=False)
     #: write-once blobs (keys, or files of model directories) this process has verified
     verified_blobs: set[str] = field(default_factory=set, repr=False)
 
@@ -80,6 +86,7 @@ class Services:
     def close(self) -> None:
         """Drop the cached models and the database connections."""
         self.models.clear()
+        self.registrations.clear()
         self.engine.dispose()
 
     @contextlib.contextmanager
@@ -112,11 +119,12 @@ class Services:
                 raise Conflict(f"model {model_id!r} is not ready: it is {what}")
             kind = get_kind(row.kind)
             size = int(row.size_bytes or 0)
+            actor_id = row.actor_id
 
             def load() -> LoadedModel:
                 path = registry.model_dir(session, self.blobs, model_id)
                 log.info("loading model %s (%s, %d bytes)", model_id, kind.name, size)
-                return LoadedModel(model_id, kind, kind.load(path))
+                return LoadedModel(model_id, kind, kind.load(path), actor_id)
 
             return self.models.get_or_load(model_id, load, size_of=lambda _: size)
 

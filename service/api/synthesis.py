@@ -8,11 +8,12 @@ clamp)`` returns the arrays of API.md (``vertices``, ``vertices_detailed``, ``fa
 
 from __future__ import annotations
 
+import contextlib
 import io
 import threading
 import time
-from dataclasses import dataclass
-from typing import Sequence
+from dataclasses import dataclass, replace
+from typing import Iterator, Sequence
 
 import numpy as np
 from pydantic import ValidationError
@@ -86,24 +87,39 @@ class Expected:
     kind : str           the model's kind
     key : str            ``"markers"`` (marker-driven kinds) or ``"vertices"`` (mesh-driven)
     count : int or None  markers (or vertices) per frame, None if unknown
+    owner : str or None  whose topology the frames are on when it is not the model's, for
+                         messages (e.g. ``"input rig 'lod2'"``)
     """
 
     model_id: str
     kind: str
     key: str
     count: int | None
+    owner: str | None = None
+    markers: int | None = None
 
     @classmethod
     def of(cls, loaded: LoadedModel) -> "Expected":
         """From a loaded model (its ``n_markers`` / ``n_vertices``)."""
         key = "markers" if loaded.kind.input == "markers" else "vertices"
         count = getattr(loaded.model, "n_markers" if key == "markers" else "n_vertices", None)
-        return cls(loaded.id, loaded.kind.name, key, count)
+        markers = getattr(loaded.model, "n_markers", 0) if key == "vertices" else 0
+        return cls(loaded.id, loaded.kind.name, key, count, markers=markers or None)
+
+    def as_markers(self) -> "Expected":
+        """What a mesh-driven model that also takes markers expects of marker frames."""
+        return replace(self, key="markers", count=self.markers, owner=None)
 
     def check(self, frames: np.ndarray) -> None:
-        """422 ``"model expects 150 markers, got 149"`` unless frames is (F, count, 3)."""
-        if self.count is not None and frames.shape[1] != self.count:
+        """422 ``"model expects 150 markers, got 149"`` (or ``"input rig 'lod2' has 4012
+        vertices, the frames have 4000"``) unless frames is (F, count, 3)."""
+        if self.count is None or frames.shape[1] == self.count:
+            return
+        if self.owner is None:
             raise InvalidInput(f"model expects {self.count} {self.key}, got {frames.shape[1]}")
+        raise InvalidInput(f"{self.owner} has {self.count} {self.key}, the frames have "
+                           f"{frames.shape[1]} (send {self.key} (F,{self.count},3) on its "
+                           "topology)")
 
     def element(self) -> str:
         """One of the frames' elements, for messages: "marker" or "vertex"."""
@@ -153,9 +169,17 @@ def parse_synthesis_request(kind: str, data: bytes, expected: Expected, settings
     map_resolution = None
     outputs = query_outputs
     if kind in NPZ_TYPES:
-        upload = NpzUpload(data, _frame_array(key), npz_limit(settings), what="request")
+        spec = _frame_array(key)
+        if key == "vertices" and expected.markers:          # /enhance: vertices, or markers instead
+            spec["vertices"] = replace(spec["vertices"], required=False)
+        upload = NpzUpload(data, spec, npz_limit(settings), what="request")
+        if "F" not in upload.dims:
+            raise InvalidInput(f"the request has neither 'vertices' (F,{expected.count},3) nor "
+                               f"'markers' (F,{expected.markers},3)")
         check_frames(upload.dims["F"], settings, expected.model_id)
         arrays = upload.load()
+        if key not in arrays:
+            expected, key = expected.as_markers(), "markers"
         frames, fps = arrays[key].astype(np.float64), arrays.get("fps")
     else:
         if key != "markers":
@@ -190,19 +214,26 @@ class Synthesizer:
         self._slots = threading.BoundedSemaphore(limit)
         self._metrics = metrics
 
-    def run(self, loaded: LoadedModel, request: SynthesisInput) -> dict[str, np.ndarray]:
-        """The model's outputs for ``request``, maps resampled to ``map_resolution``."""
+    @contextlib.contextmanager
+    def slot(self, kind: str, frames: int) -> Iterator[None]:
+        """Hold one synthesis slot while the block runs (503 with ``Retry-After`` if none is
+        free) and record ``frames`` output frames of a ``kind`` model and the time taken."""
         if not self._slots.acquire(blocking=False):
             raise Overloaded("every synthesis slot is busy; retry shortly, or submit a "
                              "synthesis job", retry_after=RETRY_AFTER_SECONDS)
         try:
             start = time.perf_counter()
-            result = loaded.model.synthesize(request.frames, outputs=list(request.outputs),
-                                             clamp=request.clamp)
+            yield
             seconds = time.perf_counter() - start
         finally:
             self._slots.release()
-        self._metrics.observe_synthesis(loaded.kind.name, len(request.frames), seconds)
+        self._metrics.observe_synthesis(kind, frames, seconds)
+
+    def run(self, loaded: LoadedModel, request: SynthesisInput) -> dict[str, np.ndarray]:
+        """The model's outputs for ``request``, maps resampled to ``map_resolution``."""
+        with self.slot(loaded.kind.name, len(request.frames)):
+            result = loaded.model.synthesize(request.frames, outputs=list(request.outputs),
+                                             clamp=request.clamp)
         if request.map_resolution is not None:
             result = resample_maps(result, request.map_resolution)
         return result

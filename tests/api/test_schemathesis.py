@@ -20,7 +20,8 @@ from service.api import create_app
 from service.api.uploads import MARKER_FILE_TYPES, MESH_TYPES
 from service.api.deps import get_submit
 from service.config import Settings
-from tests.api.conftest import NPZ, Recorder, grid, layout_body, npz
+from tests.api.conftest import (NPZ, Recorder, grid, layout_body, npz, ready_sheet_model,
+                                ready_sheet_rig, upload_sheet_actor)
 
 #: examples per operation; keeps the whole run well under a minute
 MAX_EXAMPLES = 12
@@ -36,6 +37,10 @@ atexit.register(shutil.rmtree, _DATA, ignore_errors=True)    # also when the tes
 _APP = create_app(Settings(data_dir=_DATA, max_body_bytes=1 << 20, max_frames_per_request=2))
 _APP.dependency_overrides[get_submit] = lambda: Recorder()
 schema = schemathesis.openapi.from_asgi("/openapi.json", _APP)
+#: routes that read a body for a ready model: fuzzed against a real shape_space model (with
+#: an input rig "lod") instead of stopping at a 404 for a generated id
+_MODEL_BODY_ROUTES = ("/enhance", "/retime", "/synthesize", "/synthesis-jobs")
+_READY: dict[str, str] = {}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -49,6 +54,10 @@ def actor_id():
                    headers=NPZ)
         client.put(f"/v1/actors/{actor}/markers", content=layout_body(),
                    headers={"Content-Type": "application/json"})
+        sheet_actor, clip_ids = upload_sheet_actor(client, "fuzz sheet")
+        _READY["model_id"], _ = ready_sheet_model(client, sheet_actor, list(clip_ids.values()),
+                                                  _DATA / "sheet-model")
+        ready_sheet_rig(client, sheet_actor, "lod")
     yield actor
     shutdown_lifespans()
     shutil.rmtree(_DATA, ignore_errors=True)
@@ -60,4 +69,7 @@ def actor_id():
 def test_no_server_errors(case, actor_id):
     if case.path_parameters and "actor_id" in case.path_parameters:
         case.path_parameters["actor_id"] = actor_id
+    if (case.method.upper() == "POST" and case.path_parameters and "model_id" in case.path_parameters
+            and case.path.endswith(_MODEL_BODY_ROUTES)):
+        case.path_parameters["model_id"] = _READY["model_id"]
     case.call_and_validate(checks=[not_a_server_error])

@@ -263,3 +263,12 @@ def test_per_vertex_displacement_is_refused_as_a_map_not_a_500():
 
     with pytest.raises(InvalidInput, match=r"'displacement' per vertex, shape \(1, 10\)"):
         resample_maps({"displacement": np.zeros((1, 10), np.float32)}, 64)
+
+
+def test_retime_is_refused_for_a_pdm_model(ready):
+    client, _, model_id, _, _ = ready
+    response = client.post(f"/v1/models/{model_id}/retime",
+                           json={"keyframes": [[[0.0, 0.0, 0.0]], [[1.0, 0.0, 0.0]]], "length": 3})
+    assert_problem(response, 422, "a pdm model cannot retime", "supported by the kinds shape_space")
+    assert_problem(client.post(f"/v1/models/{model_id}/enhance", content=npz(vertices=np.zeros((1, 4, 3))),
+                               headers=NPZ, params={"rig": "lod"}), 422, "takes markers")

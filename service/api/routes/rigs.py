@@ -14,7 +14,7 @@ from service.api.routes import body, problems, set_job_location
 
 router = APIRouter(prefix="/v1/actors/{actor_id}/input-rigs", tags=["input-rigs"])
 
-RigName = Annotated[str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+RigName = Annotated[str, Path(pattern=schemas.RIG_NAME_PATTERN,
                               description="Your name for the rig (letters, digits, `._-`).",
                               examples=["game-lod2"])]
 

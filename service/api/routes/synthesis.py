@@ -19,6 +19,14 @@ OutputsQuery = Annotated[list[str] | None, Query(
     description="Subset of `mesh`, `mesh_detailed`, `displacement`, `albedo`, `normal_map` "
                 "(comma-separated or repeated; default `mesh,displacement`).",
     examples=["mesh,displacement"])]
+RigQuery = Annotated[str | None, Query(
+    pattern=schemas.RIG_NAME_PATTERN,
+    description="Name of a registered input rig of the model's actor "
+                "(`PUT /v1/actors/{actor_id}/input-rigs/{rig}`): the frames' `vertices` are "
+                "(F,v,3) on that rig's topology and are carried to the actor's by its "
+                "registration. 404 for an unknown rig, 409 while it is registering or if its "
+                "registration failed.",
+    examples=["game-lod2"])]
 _RESPONSES = {
     **binary_response(*RESPONSE_TYPES, description=(
         "`application/x-npz` (default): `vertices` (F,V,3) in the input's world pose, "
@@ -30,16 +38,21 @@ _RESPONSES = {
 
 
 async def _synthesize(model_id: str, request: Request, services: ServicesDep, outputs: list[str] | None,
-                      clamp: bool, half: bool, accept: str | None, route_input: str) -> Response:
+                      clamp: bool, half: bool, accept: str | None, route_input: str,
+                      rig: str | None = None) -> Response:
     kind, data = await uploads.read_body(
         request, uploads.NPZ_TYPES + ((uploads.JSON_TYPE,) if route_input == "markers" else ()))
     answer = await run_in_threadpool(
         lambda: operations.synthesize(services, request.app.state.synthesizer, model_id, kind,
                                       data, accept=accept, outputs=parse_outputs(outputs),
-                                      clamp=clamp, half=half, route_input=route_input))
+                                      clamp=clamp, half=half, route_input=route_input, rig=rig))
+    return _answer(answer, "synthesis")
+
+
+def _answer(answer: operations.Synthesized, name: str) -> Response:
     suffix = {NPZ: "npz", OBJ: "obj", EXR: "exr"}[answer.media_type]
     return Response(answer.body, media_type=answer.media_type, headers={
-        "Content-Disposition": f'attachment; filename="synthesis.{suffix}"',
+        "Content-Disposition": f'attachment; filename="{name}.{suffix}"',
         "X-Frames": str(answer.frames)})
 
 
@@ -62,14 +75,52 @@ async def synthesize(model_id: str, request: Request, services: ServicesDep,
     "/enhance", summary="Enhance low-resolution meshes", response_class=Response,
     responses=_RESPONSES,
     openapi_extra=body(uploads.NPZ_TYPES, description="`.npz` with `vertices` (F,V,3) of the "
-                                                      "actor's topology."))
+                                                      "actor's topology, or (F,v,3) of the input "
+                                                      "rig named by `rig`."))
 async def enhance(model_id: str, request: Request, services: ServicesDep,
                   outputs: OutputsQuery = None, clamp: bool = True,
                   half: Annotated[bool, Query(description="EXR with 16-bit floats")] = False,
+                  rig: RigQuery = None,
                   accept: Annotated[str | None, Header()] = None) -> Response:
     """For mesh-driven kinds (e.g. `shape_space`): meshes in, detailed meshes and maps out;
-    the response is as for `/synthesize`. A marker-driven model answers 422."""
-    return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "meshes")
+    the response is as for `/synthesize` (a `shape_space` model gives `displacement` per
+    vertex, (F,V), and adds its matching `weights` (F,R,N)). With `rig`, the vertices are on
+    that registered input rig (422 naming its vertex count if they are not). A
+    marker-driven model answers 422."""
+    return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "meshes",
+                             rig)
+
+
+@router.post(
+    "/retime", summary="Retime keyframes (shape_space)", response_class=Response,
+    responses={**binary_response(NPZ, description=(
+        "`application/x-npz`: `vertices` (m,V,3) float32 on the actor's topology (keyframe k "
+        "exactly at output frame `keyframe_indices[k]`), `timestamps` (m,) in output frame "
+        "units, `progress` (m,) in keyframe units (k + the blend fraction within segment k), "
+        "`region_progress` (R,m), `keyframe_indices` (K,), per segment `segment_sequences` "
+        "(K-1,R) and `segment_spans` (K-1,R,2) (the matched database motion), "
+        "`region_names` (R,) and `faces` (T,3).")),
+        **problems(400, 404, 409, 413, 415, 422, 503)},
+    openapi_extra=body(uploads.NPZ_TYPES, json_schema=inline_schema(schemas.RetimeBody),
+                       description="JSON, or `.npz` with `keyframes` (K,v,3) and the query "
+                                   "parameters `length`, `extend_to_full_motion`, `rig`."))
+async def retime(model_id: str, request: Request, services: ServicesDep,
+                 length: Annotated[int | None, Query(
+                     ge=2, description="Output frames m (`.npz` bodies; JSON bodies carry "
+                                       "`length`).")] = None,
+                 extend_to_full_motion: Annotated[bool | None, Query(
+                     description="Extend the matched database motion (`.npz` bodies).")] = None,
+                 rig: RigQuery = None) -> Response:
+    """Temporal enhancement of `shape_space` models (bermano2014 §6.2): two or more keyframes
+    (vertices, or frames of the actor's clips) in, `length` frames out whose timing follows
+    the database's dynamics. With K keyframes, keyframe k is output frame
+    round(k (length-1)/(K-1)) and each consecutive pair is retimed over its segment. Other
+    kinds answer 422; K or `length` above `max_frames_per_request` answer 413."""
+    kind, data = await uploads.read_body(request, uploads.NPZ_TYPES + (uploads.JSON_TYPE,))
+    answer = await run_in_threadpool(
+        lambda: operations.retime(services, request.app.state.synthesizer, model_id, kind, data,
+                                  length=length, extend=extend_to_full_motion, rig=rig))
+    return _answer(answer, "retime")
 
 
 @router.post(
@@ -92,6 +143,7 @@ async def submit_synthesis_job(
         result_format: Annotated[schemas.ResultFormat, Query(
             alias="format", description="`npz`, or `obj-exr-zip` for per-frame OBJ + EXR files, "
                                         "or `usd` where supported")] = "npz",
+        rig: RigQuery = None,
 ) -> schemas.JobAccepted:
     """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and
     `Location`. The job's result is an artifact (`GET /v1/artifacts/{id}`)."""
@@ -105,6 +157,6 @@ async def submit_synthesis_job(
         lambda: operations.submit_synthesis_job(
             services, submit, model_id, kind, data, filename,
             outputs=parse_outputs(outputs) or schemas.DEFAULT_OUTPUTS,
-            result_format=result_format, clamp=clamp))
+            result_format=result_format, clamp=clamp, rig=rig))
     set_job_location(response, job.id)
     return schemas.JobAccepted(job_id=job.id)

@@ -9,6 +9,13 @@ Payload::
      "clamp": true,                                # optional: the extrapolation limit
      "format": "npz"}                              # optional: "npz" or "obj-exr-zip"
 
+A mesh-driven model (``shape_space``) takes ``vertices`` instead of ``markers``
+(``vertices_artifact_id`` | ``vertices_blob`` + ``vertices_sha256``: (F,n,3) on the actor's
+topology), or vertices (F,v,3) on a registered input rig with ``"rig_id"``, ``"rig"``,
+``"registration_blob"``, ``"registration_sha256"``: the frames are propagated to the actor's
+topology with exactly that registration (:meth:`RigRegistration.propagate`, verified
+against its sha256) before they are enhanced.
+
 Result ``{"model_id", "artifact_ids": [one artifact]}``: for ``npz`` the arrays of API.md's
 synthesize response (``vertices`` (F,n,3), ``faces``, the asked maps, ``clamped`` (F,)); for
 ``obj-exr-zip`` one OBJ per frame and mesh output and one EXR per frame and map
@@ -27,12 +34,14 @@ from sqlalchemy.orm import Session
 
 from models_store import registry
 from models_store.blobs import BlobStore
+from models_store.errors import NotFound
 from service.io.npz import npz_arrays
-from service.jobs.frame_npz import FrameNpzWriter
+from service.jobs.frame_npz import STATIC_KEYS, FrameNpzWriter
 from service.jobs.frame_zip import FrameZipWriter
 from service.jobs.runner import RunningJob
 from service.methods.inputs import InvalidInput
 from service.methods.kinds import get_kind
+from service.methods.shape_space.registration import RigRegistration
 
 #: frames synthesized (and progress points passed) per step
 CHUNK_FRAMES = 16
@@ -41,10 +50,13 @@ DEFAULT_OUTPUTS = ("mesh", "displacement")
 FORMATS = {"npz": ("application/x-npz", "npz"), "obj-exr-zip": ("application/zip", "zip")}
 # the job's progress: loading, then the frames, then storing the artifact
 LOADED, SYNTHESIZED = 0.05, 0.95
+#: per-model (not per-frame) arrays of the outputs, stored once in an NPZ result
+STATIC_OUTPUTS = STATIC_KEYS | {"region_names"}
 
 
 def synthesize(job: RunningJob) -> dict[str, Any]:
-    """Synthesize the payload's markers with the payload's model into one artifact."""
+    """Synthesize the payload's markers (or vertices) with the payload's model into one
+    artifact."""
     payload = job.payload
     model_id = payload["model_id"]
     fmt = payload.get("format", "npz")
@@ -57,24 +69,29 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     with store.sessions() as session:
         model = registry.get_model(session, model_id)
         kind = get_kind(model.kind)
-        if kind.input != "markers":
-            raise InvalidInput(f"a {kind.name} model is driven by {kind.input}, not markers")
+        key = "markers" if kind.input == "markers" else "vertices"
         if model.status != "ready":
             raise InvalidInput(f"model {model_id!r} is {model.status}, not ready")
         path = registry.model_dir(session, store.blobs, model_id)
-        markers = read_markers(session, store.blobs, payload)
+        inputs = read_frames(session, store.blobs, payload, key)
+    registration = read_registration(store.blobs, payload) if payload.get("rig_id") else None
+    if registration is not None and key != "vertices":
+        raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)
-    frames = len(markers)
+    frames = len(inputs)
     media_type, suffix = FORMATS[fmt]
     with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".synthesize-") as tmp:
-        writer = (FrameNpzWriter(Path(tmp), frames) if fmt == "npz" else
+        writer = (FrameNpzWriter(Path(tmp), frames, STATIC_OUTPUTS) if fmt == "npz" else
                   FrameZipWriter(Path(tmp) / "result.zip", frames,
                                  getattr(trained, "uv", None), getattr(trained, "uv_faces", None)))
         for start in range(0, frames, CHUNK_FRAMES):
             job.progress(LOADED + (SYNTHESIZED - LOADED) * start / frames, "synthesizing")
             stop = min(start + CHUNK_FRAMES, frames)
             try:
-                writer.write(start, trained.synthesize(markers[start:stop], outputs, clamp))
+                chunk = inputs[start:stop]
+                if registration is not None:
+                    chunk = registration.propagate(chunk)
+                writer.write(start, trained.synthesize(chunk, outputs, clamp))
             except InvalidInput as error:
                 raise InvalidInput(f"frames {start}-{stop - 1}: {error}") from None
         job.progress(SYNTHESIZED, "storing the result")
@@ -86,22 +103,39 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     return {"model_id": model_id, "artifact_ids": [artifact.id]}
 
 
-def read_markers(session: Session, blobs: BlobStore, payload: Mapping[str, Any]) -> np.ndarray:
-    """The payload's input markers (F,M,3) float64 (InvalidInput if absent or malformed)."""
-    if payload.get("markers_artifact_id"):
-        artifact, stream = registry.open_artifact(session, blobs, payload["markers_artifact_id"])
+def read_frames(session: Session, blobs: BlobStore, payload: Mapping[str, Any],
+                key: str = "markers") -> np.ndarray:
+    """The payload's input frames under ``key``: markers (F,M,3) or vertices (F,V,3)
+    float64 (InvalidInput if absent or malformed)."""
+    if payload.get(f"{key}_artifact_id"):
+        artifact, stream = registry.open_artifact(session, blobs, payload[f"{key}_artifact_id"])
         with stream:
             data = stream.read()
-    elif payload.get("markers_blob"):
-        data = blobs.read_bytes(payload["markers_blob"], payload["markers_sha256"])
+    elif payload.get(f"{key}_blob"):
+        data = blobs.read_bytes(payload[f"{key}_blob"], payload[f"{key}_sha256"])
     else:
-        raise InvalidInput("the job names no input: give markers_artifact_id or markers_blob")
+        raise InvalidInput(f"the job names no input: give {key}_artifact_id or {key}_blob")
     try:
-        markers = np.asarray(npz_arrays(data)["markers"], np.float64)
+        frames = np.asarray(npz_arrays(data)[key], np.float64)
     except KeyError:
-        raise InvalidInput("the input .npz has no 'markers' array") from None
+        raise InvalidInput(f"the input .npz has no '{key}' array") from None
     except (ValueError, OSError, EOFError) as error:
         raise InvalidInput(f"the input is not a readable .npz: {error}") from None
-    if markers.ndim != 3 or markers.shape[-1] != 3 or len(markers) == 0:
-        raise InvalidInput(f"markers must be (F,M,3) with F >= 1, got {markers.shape}")
-    return markers
+    if frames.ndim != 3 or frames.shape[-1] != 3 or len(frames) == 0:
+        raise InvalidInput(f"{key} must be (F,N,3) with F >= 1, got {frames.shape}")
+    return frames
+
+
+def read_registration(blobs: BlobStore, payload: Mapping[str, Any]) -> RigRegistration:
+    """The input-rig registration the job was submitted with (its blob verified against
+    ``registration_sha256``); InvalidInput if it is gone (the rig was uploaded again)."""
+    try:
+        data = blobs.read_bytes(payload["registration_blob"], payload["registration_sha256"])
+    except KeyError as error:
+        raise InvalidInput(f"the job names input rig {payload.get('rig')!r} but not its "
+                           f"registration ({error.args[0]})") from None
+    except NotFound:
+        raise InvalidInput(f"the registration of input rig {payload.get('rig')!r} this job was "
+                           "submitted with is gone (the rig was uploaded again); submit the "
+                           "job again") from None
+    return RigRegistration.load(data)
