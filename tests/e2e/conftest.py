@@ -34,6 +34,7 @@ from typing import Iterator
 import httpx
 import pytest
 
+from tests.e2e.commands import API_COMMAND, WORKER_COMMAND
 from tests.servers import free_port, postgres_server, redis_server, temporary_database  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -138,7 +139,7 @@ class Deployment:
     def start_api(self) -> Process:
         """``facesynth serve --workers 0`` on the deployment's ports; returns once /readyz
         answers 200 (database, blobs and queue reachable)."""
-        self.api = self._start("api", "serve", "--workers", "0")
+        self.api = self._start("api", *API_COMMAND)
         deadline = time.monotonic() + START_TIMEOUT
         while True:
             try:
@@ -152,7 +153,7 @@ class Deployment:
 
     def start_worker(self) -> Process:
         """``facesynth worker`` with one job thread; returns once it logged that it started."""
-        worker = self._start("worker", "worker", "--workers", "1")
+        worker = self._start("worker", *WORKER_COMMAND)
         self.workers.append(worker)
         deadline = time.monotonic() + START_TIMEOUT
         while "worker started" not in worker.stderr.read_text(errors="replace"):
