@@ -23,6 +23,7 @@ from models_store.db import make_engine, make_session_factory, upgrade
 from models_store.errors import Conflict
 from service.api.limits import REGISTRATION_CACHE_BYTES
 from service.config import Settings
+from service.methods.footprint import nbytes
 from service.methods.kinds import Kind, get_kind
 
 log = logging.getLogger("facesynth.api")
@@ -126,7 +127,10 @@ class Services:
                 log.info("loading model %s (%s, %d bytes)", model_id, kind.name, size)
                 return LoadedModel(model_id, kind, kind.load(path), actor_id)
 
-            return self.models.get_or_load(model_id, load, size_of=lambda _: size)
+            # weighed by what the model holds in memory (arrays, operators, factorizations),
+            # which can be several times its files (a shape-space model's prefactored solves)
+            return self.models.get_or_load(model_id, load,
+                                           size_of=lambda loaded: max(nbytes(loaded.model), size))
 
     def forget_model(self, model_id: str) -> None:
         """Drop a (deleted) model from the cache."""

@@ -15,6 +15,7 @@ from service.config import Settings
 from service.io.exr import read_exr, read_map
 from service.io.markers import MarkerSequence, write_markers_csv, write_markers_trc
 from service.io.mesh import read_obj
+from service.methods.footprint import nbytes
 from tests.api.conftest import NPZ, Recorder, assert_problem, load_npz, make_client, npz
 from tests.conftest import PDM_TRAINING
 
@@ -221,6 +222,10 @@ def test_services_load_model_serves_the_grpc_path(ready):
     services = client.app.state.services
     model = services.load_model(model_id)
     assert model is services.load_model(model_id)        # cached
+    # weighed by the memory it holds, at least its files
+    with services.session() as session:
+        size = registry.get_model(session, model_id).size_bytes
+    assert services.models.total_bytes == nbytes(model) >= size
     assert model.synthesize(markers[:1], ["mesh"])["vertices"].shape[0] == 1
 
 
