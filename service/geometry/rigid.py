@@ -124,3 +124,41 @@ def rigid_align(
         s = float(D @ S) / var_p
     t = q_mean - s * (R @ p_mean)
     return RigidTransform(R=R, t=t, s=s)
+
+
+def rigid_align_frames(P: np.ndarray, Q: np.ndarray, weights: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`rigid_align` of many frames onto one target at once (no NaN rows, no scale).
+
+    The weighted means and cross-covariances of all frames come from two contractions
+    over the frames, so nothing of size (F,n,3) is allocated besides the input.
+
+    Parameters
+    ----------
+    P : (F,n,3) float     source frames (all finite), mm
+    Q : (n,3) float       the common target, mm
+    weights : (n,) float  non-negative per-point weights (default all 1), not all 0
+
+    Returns
+    -------
+    R : (F,3,3) float64   rotations, det +1
+    t : (F,3) float64     translations: ``P[f] @ R[f].T + t[f] ≈ Q``
+    """
+    P = np.asarray(P, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    if P.ndim != 3 or P.shape[1:] != Q.shape or Q.shape[1:] != (3,):
+        raise ValueError(f"P must be (F,n,3) and Q (n,3), got {P.shape} and {Q.shape}")
+    w = np.ones(len(Q)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(Q),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError(f"weights must be ({len(Q)},), finite, non-negative, not all 0")
+    w = w / w.sum()
+    p_mean = np.matmul(w, P)                                           # (F,3)
+    q_mean = w @ Q
+    # Σ_f = Σ_i w_i (q_i − q̄)(p_fi − p̄_f)ᵀ = Σ_i w_i (q_i − q̄) p_fiᵀ  (batched GEMM)
+    sigma = np.matmul(((Q - q_mean) * w[:, None]).T, P)               # (F,3,3)
+    U, _, Vt = np.linalg.svd(sigma)
+    S = np.ones((len(P), 3))
+    S[np.linalg.det(U) * np.linalg.det(Vt) < 0, 2] = -1.0
+    R = (U * S[:, None, :]) @ Vt
+    t = q_mean - np.einsum("fde,fe->fd", R, p_mean)
+    return R, t

@@ -114,3 +114,25 @@ def test_rigid_align_rejects_bad_input(pose):
         rigid_align(P, Q[:-1])
     with pytest.raises(ValueError, match="coincide"):
         rigid_align(np.zeros((4, 3)), Q[:4], scale=True)
+
+
+def test_rigid_align_frames_is_rigid_align_per_frame():
+    from scipy.spatial.transform import Rotation
+
+    from service.geometry.rigid import rigid_align_frames
+
+    rng = np.random.default_rng(3)
+    Q = rng.normal(scale=50.0, size=(300, 3)) + [0.0, 0.0, 900.0]        # far from the origin
+    R0 = Rotation.random(6, random_state=4).as_matrix()
+    P = np.einsum("fde,ne->fnd", R0, Q) + rng.normal(scale=10.0, size=(6, 1, 3))
+    P += rng.normal(scale=0.3, size=P.shape)
+    P[5] = Q @ np.diag([1.0, 1.0, -1.0])                                    # a mirror image
+    w = rng.uniform(0.0, 2.0, size=300)
+    R, t = rigid_align_frames(P, Q, w)
+    for f in range(6):
+        T = rigid_align(P[f], Q, w)
+        np.testing.assert_allclose(R[f], T.R, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(t[f], T.t, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError):
+        rigid_align_frames(P, Q, np.zeros(300))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.geometry.rigid import RigidTransform, rigid_align
+from service.geometry.rigid import RigidTransform, rigid_align_frames
 
 
 def align_frames(frames: np.ndarray, neutral: np.ndarray, weights: np.ndarray | None = None
@@ -41,9 +41,11 @@ def align_frames(frames: np.ndarray, neutral: np.ndarray, weights: np.ndarray | 
                                ``T.inverse()`` restores the frame's pose
     """
     frames = np.asarray(frames, dtype=np.float64)
-    transforms = [rigid_align(X, neutral, weights) for X in frames]
-    aligned = np.stack([T.apply(X) for T, X in zip(transforms, frames)]) if len(frames) else frames.copy()
-    return aligned, transforms
+    if not len(frames):
+        return frames.copy(), []
+    R, t = rigid_align_frames(frames, neutral, weights)
+    aligned = frames @ np.swapaxes(R, 1, 2) + t[:, None, :]
+    return aligned, [RigidTransform(R=r, t=x) for r, x in zip(R, t)]
 
 
 def stability_weights(frames: np.ndarray, neutral: np.ndarray, refinements: int = 10,
@@ -65,12 +67,25 @@ def stability_weights(frames: np.ndarray, neutral: np.ndarray, refinements: int 
     w : (n,) float64   mean 1; a vertex that never moves gets about 2× the weight of a
                        typical one, one moving 3× the median about a fifth
     """
+    frames = np.asarray(frames, dtype=np.float64)
     neutral = np.asarray(neutral, dtype=np.float64)
+    F = max(len(frames), 1)
+    p2 = np.einsum("fnd,fnd->n", frames, frames)            # Σ_f |p_fi|², fixed
     w = None
     for _ in range(refinements + 1):
-        aligned, _ = align_frames(frames, neutral, w)
-        d = aligned - neutral
-        m = np.sqrt(np.einsum("fnd,fnd->n", d, d) / max(len(frames), 1))
+        R, t = rigid_align_frames(frames, neutral, w)
+        # m_i² = (1/F) Σ_f |R_f p_fi + t_f − q_i|², expanded so that no aligned copy of
+        # the frames is made: |Rp|² = |p|², and the cross terms contract over f (the
+        # cancellation costs ~|p|²·1e-16 mm², far below the motions that set the weights)
+        Rp, tp = np.zeros_like(neutral), np.zeros(len(neutral))
+        for X, Rf, tf in zip(frames, R, t):
+            Y = X @ Rf.T                                      # R_f p_fi
+            Rp += Y                                           # Σ_f R_f p_fi
+            tp += Y @ tf                                      # Σ_f t_f · R_f p_fi
+        m2 = (p2 + 2 * tp - 2 * np.einsum("nd,nd->n", neutral, Rp)
+              + F * np.einsum("nd,nd->n", neutral, neutral)
+              - 2 * neutral @ t.sum(axis=0) + np.einsum("fd,fd->", t, t)) / F
+        m = np.sqrt(np.maximum(m2, 0.0))
         med = max(float(np.median(m)), 1e-9)
         new = 1.0 / (m ** 2 + med ** 2)
         new /= new.mean()

@@ -36,3 +36,21 @@ def test_transforms_restore_the_pose():
     aligned, T = align_frames(X[None], V)
     np.testing.assert_allclose(aligned[0], V, atol=1e-10)
     np.testing.assert_allclose(T[0].inverse().apply(aligned[0]), X, atol=1e-10)
+
+
+def test_stability_weights_equal_the_explicit_aligned_offsets():
+    """The weights' motion term, contracted over the frames without aligned copies, equals
+    the RMS offset of explicitly aligned frames (the definition)."""
+    rng = np.random.default_rng(5)
+    V, _ = grid_mesh(8, 7)
+    V = V + [0.0, 0.0, 700.0]
+    frames = np.repeat(V[None], 9, axis=0)
+    frames[:, :20, 2] += rng.normal(scale=2.0, size=(9, 1))              # a moving "jaw"
+    frames = np.einsum("fde,fne->fnd", Rotation.random(9, random_state=6).as_matrix(), frames)
+    frames += rng.normal(scale=0.05, size=frames.shape)
+    w = stability_weights(frames, V, refinements=0)                       # one unweighted fit
+    aligned, _ = align_frames(frames, V)
+    m = np.sqrt(((aligned - V) ** 2).sum(axis=2).mean(axis=0))
+    expected = 1.0 / (m ** 2 + np.median(m) ** 2)
+    # the expansion cancels |p|² (~5e5 mm² here) against m² (~1e-3 mm²): ~1e-8 relative
+    np.testing.assert_allclose(w, expected / expected.mean(), rtol=1e-6)
