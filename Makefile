@@ -4,13 +4,14 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test bench demo clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml clients/python/pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (Python 3.11+)"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -e ./clients/python
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -24,10 +25,17 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+## demo: set up and run the whole story against an embedded server (README quickstart):
+## sample actor, upload, train a PDM, synthesize a held-out performance; results in
+## ./facesynth-demo (meshes, EXR maps, side_by_side.png)
+demo: $(STAMP)
+	$(BIN)/facesynth demo --out facesynth-demo
+
 ## bench: speed and accuracy benchmarks (slow; not part of CI)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/thin_shell.py
 	$(BIN)/python benchmarks/pdm_report.py
+	$(BIN)/python benchmarks/shape_space_report.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -2,8 +2,11 @@
 
     facesynth sample-actor --out DIR --seed N --level 0|1|2   build the sample actor
     facesynth sample-gallery --actor DIR --out DIR             render a built actor to PNGs
-    facesynth demo [--out DIR]                                 build a level-1 actor, summarise it
+    facesynth demo [--out DIR] [--server URL]                  sample actor → upload → train → synthesize → PNG
     facesynth worker [--data-dir DIR] [--workers N]            run jobs (training, synthesis) from the queue
+    facesynth actors|upload|train|jobs|synthesize|enhance|models ...
+                                                               talk to a server through the SDK
+                                                               (see service.client_cli)
     facesynth serve [--host H] [--port P] [--grpc-port G] [--data-dir DIR] [--workers N]
                                                                HTTP API + gRPC + embedded job workers
                                                                (--workers 0: API + gRPC only)
@@ -68,9 +71,13 @@ def cmd_sample_gallery(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    args.no_tracking = False
-    args.out = Path(args.out) / "actor"
-    return cmd_sample_actor(args)
+    import os
+
+    from service.demo import run_demo
+
+    run_demo(args.out, server=args.server or os.environ.get("FACESYNTH_URL"),
+             token=args.token, seed=args.seed, level=args.level)
+    return 0
 
 
 def cmd_pdm_train(args: argparse.Namespace) -> int:
@@ -247,8 +254,18 @@ def build_parser() -> argparse.ArgumentParser:
                                                "0: no embedded worker, API only)")
     p.set_defaults(func=cmd_serve)
 
-    p = sub.add_parser("demo", help="build the level-1 sample actor and summarise it")
+    from service.client_cli import add_client_commands
+
+    add_client_commands(sub)
+
+    p = sub.add_parser("demo", help="the whole story against a server: sample actor, upload, train a "
+                                    "PDM, synthesize a held-out performance, meshes + EXR maps + PNG",
+                       description="Builds (or reuses) the sample actor in OUT/actor, starts an "
+                                   "embedded server unless --server is given, and writes OUT/result "
+                                   "(per-frame OBJ and EXR) and OUT/side_by_side.png.")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")
+    p.add_argument("--server", help="URL of a running server (FACESYNTH_URL); default: start one")
+    p.add_argument("--token", help="bearer token (FACESYNTH_TOKEN)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--level", type=int, choices=(0, 1, 2), default=1)
     p.set_defaults(func=cmd_demo)

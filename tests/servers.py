@@ -32,6 +32,7 @@ import subprocess
 import tempfile
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -258,3 +259,51 @@ def redis_server() -> Iterator[str]:
     """URL of a Redis server for the whole test session (see :func:`redis_url`)."""
     with redis_url() as url:
         yield url
+
+
+# -- the facesynth app itself ------------------------------------------------------------------
+@dataclass
+class AppServer:
+    """The real app served by uvicorn in a thread on a loopback port (see :func:`serve_app`)."""
+
+    url: str
+    settings: object
+    worker: object = None
+    thread: object = None
+    uvicorn: object = None
+
+    def stop(self) -> None:
+        if self.worker is not None:
+            self.worker.stop(timeout=30)
+        self.uvicorn.should_exit = True
+        self.thread.join(timeout=30)
+
+
+def serve_app(data_dir: Path, *, worker: bool, **settings) -> AppServer:
+    """``service.api.create_app`` on a free loopback port, with an embedded worker thread
+    when ``worker`` (else submitted jobs stay queued); ``settings`` override the test
+    defaults (small request limits, short job leases, no tokens)."""
+    import threading
+
+    import uvicorn
+
+    from service.api import create_app
+    from service.config import Settings
+    from service.jobs import worker as worker_module
+
+    config = Settings(**{"data_dir": data_dir, "tokens": [], "max_frames_per_request": 8,
+                         "max_body_bytes": 16 << 20, "job_lease_seconds": 3.0, **settings})
+    sock = socket.socket()
+    sock.bind((LOOPBACK, 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True,
+                              name=f"uvicorn-{port}")
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("the test server did not start")
+        time.sleep(0.01)
+    handle = worker_module.start_embedded(config, 1) if worker else None
+    return AppServer(f"http://{LOOPBACK}:{port}", config, handle, thread, server)

@@ -39,7 +39,7 @@ def _frame(actor: Path, performance: str, which: str) -> dict[str, np.ndarray]:
                 "albedo": data["albedo"][slot].astype(np.float32)}
 
 
-def _front_camera(V: np.ndarray, size: int) -> Camera:
+def front_camera(V: np.ndarray, size: int) -> Camera:
     """A camera 600 mm in front of the face (V (n,3), mm), framing its upper 80 %."""
     centre = np.array([np.median(V[:, 0]), np.percentile(V[:, 1], 70), V[:, 2].max()])
     return face_cameras(centre, distance=600.0, size=size, yaws_deg=(0.0,), field_mm=190.0)[0]
@@ -62,7 +62,7 @@ def _resize(image: np.ndarray, size: int) -> np.ndarray:
     return out[..., 0] if image.ndim == 2 else out
 
 
-def _label(image: np.ndarray, text: str) -> np.ndarray:
+def caption(image: np.ndarray, text: str) -> np.ndarray:
     from PIL import Image, ImageDraw
 
     img = Image.fromarray(image)
@@ -76,14 +76,14 @@ def write_gallery(actor_dir: str | Path, out_dir: str | Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     neutral = np.load(actor / "neutral.npz")
     faces, uv, uv_faces = neutral["faces"], neutral["uv"], neutral["uv_faces"]
-    cam = _front_camera(neutral["vertices"], SIZE)
+    cam = front_camera(neutral["vertices"], SIZE)
     grey = np.full((len(neutral["vertices"]), 3), 0.6)
 
     frames = [(label, _frame(actor, perf, which)) for label, perf, which in FRAMES]
     rows = []
     for key in ("vertices", "vertices_medium"):
         rows.append(np.concatenate([
-            _label(to_srgb8(shade(cam, data[key], faces, grey, light_dir=GRAZING_LIGHT,
+            caption(to_srgb8(shade(cam, data[key], faces, grey, light_dir=GRAZING_LIGHT,
                                   ambient=0.05)), f"{label} ({'detail' if key == 'vertices' else 'no detail'})")
             for label, data in frames], axis=1))
     paths = [out / "shaded.png"]
@@ -111,14 +111,14 @@ def write_gallery(actor_dir: str | Path, out_dir: str | Path) -> list[Path]:
 
     face_tile = lambda image: _resize(image[: int(0.8 * image.shape[0]), : int(0.8 * image.shape[1])], PANEL)
     maps = [np.concatenate([
-        _label(to_srgb8(_diverging(face_tile(d), 1.0)), f"{label}: displacement (face tile), ±1 mm"),
-        _label(to_srgb8(_diverging(crop(d, forehead, 4), 0.4)), "forehead ×4, ±0.4 mm")], axis=0)
+        caption(to_srgb8(_diverging(face_tile(d), 1.0)), f"{label}: displacement (face tile), ±1 mm"),
+        caption(to_srgb8(_diverging(crop(d, forehead, 4), 0.4)), "forehead ×4, ±0.4 mm")], axis=0)
         for label, data in frames for d in [data["displacement"]]]
     paths.append(out / "maps.png")
     write_png(paths[-1], np.concatenate(maps, axis=1))
 
-    albedo = [np.concatenate([_label(to_srgb8(face_tile(a)), f"{label}: albedo (face tile)"),
-                              _label(to_srgb8(crop(a, left_eye, 4)), "left eye and cheek ×4")], axis=0)
+    albedo = [np.concatenate([caption(to_srgb8(face_tile(a)), f"{label}: albedo (face tile)"),
+                              caption(to_srgb8(crop(a, left_eye, 4)), "left eye and cheek ×4")], axis=0)
               for label, data in (frames[0], frames[3], frames[4]) for a in [data["albedo"]]]
     paths.append(out / "albedo.png")
     write_png(paths[-1], np.concatenate(albedo, axis=1))

@@ -1,0 +1,65 @@
+"""A progress display for :meth:`Client.wait`: tqdm when it is importable, else a tiny
+text bar on stderr (tqdm is not a dependency)."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, Callable, TextIO
+
+
+class TextBar:
+    """``job_01… [#########-----------]  42% fine band`` redrawn in place on ``stream``."""
+
+    def __init__(self, label: str, stream: TextIO | None = None, width: int = 30):
+        self.label, self.width = label, width
+        self.stream = stream if stream is not None else sys.stderr
+        self._last: str | None = None
+
+    def update(self, fraction: float, stage: str) -> None:
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        filled = int(round(fraction * self.width))
+        line = (f"{self.label} [{'#' * filled}{'-' * (self.width - filled)}] "
+                f"{fraction * 100:3.0f}% {stage}")[:120]
+        if line != self._last:
+            self.stream.write("\r" + line.ljust(len(self._last or "")))
+            self.stream.flush()
+            self._last = line
+
+    def close(self) -> None:
+        if self._last is not None:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+class TqdmBar:
+    """The same interface on a ``tqdm`` bar (total 100)."""
+
+    def __init__(self, label: str, tqdm: Any):
+        self.bar = tqdm(total=100, desc=label, unit="%", leave=True,
+                        bar_format="{desc} {bar} {n:.0f}% {postfix}")
+        self.n = 0.0
+
+    def update(self, fraction: float, stage: str) -> None:
+        value = min(max(float(fraction), 0.0), 1.0) * 100
+        if value > self.n:
+            self.bar.update(value - self.n)
+            self.n = value
+        self.bar.set_postfix_str(stage, refresh=True)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def make_reporter(progress: Any, label: str) -> tuple[Callable[[Any], None], Callable[[], None]]:
+    """``(report(job), close())`` for ``progress``: True (a bar on stderr), False/None
+    (nothing) or a callable ``(job) -> None``."""
+    if callable(progress):
+        return progress, lambda: None
+    if not progress:
+        return (lambda job: None), (lambda: None)
+    try:
+        from tqdm import tqdm  # optional: used only if already installed
+        bar: Any = TqdmBar(label, tqdm)
+    except Exception:
+        bar = TextBar(label)
+    return (lambda job: bar.update(job.progress, job.stage or job.status)), bar.close
