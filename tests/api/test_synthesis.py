@@ -222,10 +222,11 @@ def test_services_load_model_serves_the_grpc_path(ready):
     services = client.app.state.services
     model = services.load_model(model_id)
     assert model is services.load_model(model_id)        # cached
-    # weighed by the memory it holds, at least its files
+    # weighed by the memory it held when loaded (at least its files); what it builds lazily
+    # while synthesizing can only add to that
     with services.session() as session:
         size = registry.get_model(session, model_id).size_bytes
-    assert services.models.total_bytes == nbytes(model) >= size
+    assert size <= services.models.total_bytes <= nbytes(model)
     assert model.synthesize(markers[:1], ["mesh"])["vertices"].shape[0] == 1
 
 
