@@ -296,7 +296,10 @@ def serve_app(data_dir: Path, *, worker: bool, **settings) -> AppServer:
     sock = socket.socket()
     sock.bind((LOOPBACK, 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning", lifespan="on"))
+    # log_config=None: uvicorn installs no handlers of its own, which would hold on to the
+    # stdout pytest captures while the fixture starts and flush it at interpreter exit
+    server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning", lifespan="on",
+                                           log_config=None, access_log=False))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True,
                               name=f"uvicorn-{port}")
     thread.start()
