@@ -60,6 +60,7 @@ from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normals import vertex_normals
 from service.geometry.rigid import rigid_align
+from service.geometry.tangent_frames import FrameField
 from service.geometry.uv_raster import interpolation_matrix, map_to_vertices, rasterize_uv
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.shape_space.alignment import align_frames, stability_weights
@@ -67,6 +68,7 @@ from service.methods.shape_space.blending import blend
 from service.methods.shape_space.encoding import (
     FrequencySeparator, compose, detail_encoding, shape_encoding,
 )
+from service.methods.shape_space.markers import MarkerShell, corrected_input, pose_space_corrections
 from service.methods.shape_space.params import (
     COMPONENTS, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE, ShapeSpaceParams,
 )
@@ -109,6 +111,9 @@ class ShapeSpaceModel:
     colors : (N,n,C) float32 | None   per-vertex colours of the database frames
     marker_triangle, marker_barycentric : (M,), (M,3)   the actor's markers (M may be 0)
     marker_weights : (M,) float64     head-alignment weights of the markers
+    marker_corrections : (N,n,3) float32 | None   what the thin shell of each database frame's
+                                      markers misses, in the shell's tangent frames
+                                      (:mod:`.markers`; None: marker input is not corrected)
     uv : (K,2) float64;  uv_faces : (m,3) int64   the neutral's UV layout (displacement maps)
     metrics : dict
     """
@@ -138,13 +143,15 @@ class ShapeSpaceModel:
     uv: np.ndarray
     uv_faces: np.ndarray
     metrics: dict = field(default_factory=dict)
+    marker_corrections: np.ndarray | None = None   # (N,n,3) float32, :mod:`.markers`
     # derived (not stored), built by prepare()
     _separator: FrequencySeparator | None = field(default=None, repr=False)
     _poisson: PoissonReconstruction | None = field(default=None, repr=False)
     _averager: PatchAverager | None = field(default=None, repr=False)
     _omega_hat: np.ndarray | None = field(default=None, repr=False)
     _vertex_omega_hat: np.ndarray | None = field(default=None, repr=False)
-    _shell: tuple | None = field(default=None, repr=False)
+    _shell: MarkerShell | None = field(default=None, repr=False)
+    _frame_field: FrameField | None = field(default=None, repr=False)
     _rest_inverse: np.ndarray | None = field(default=None, repr=False)
     _map_operator: object = field(default=None, repr=False)
 
@@ -260,7 +267,11 @@ class ShapeSpaceModel:
         ``vertex_displacement`` (F,n) float32  (with ``displacement``) the same per vertex,
                                         ``(x − a) · n_a``;
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
-        ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface used
+        ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface;
+        ``corrected_input`` (F,n,3) float32  for marker input to a model with
+                                        ``marker_corrections``: the shell plus its blended
+                                        pose-space correction (:mod:`.markers`), the
+                                        surface that was enhanced;
         ``region_names`` (R,) str
 
         Raises
@@ -277,9 +288,12 @@ class ShapeSpaceModel:
             frames = frames[None]
         kind = self._input_kind(frames, input_kind)
         out: dict[str, np.ndarray] = {}
+        correct = kind == "markers" and self.marker_corrections is not None
         if kind == "markers":
             frames = self.markers_to_vertices(frames)
             out["input_vertices"] = frames.astype(np.float32)
+            if correct:
+                out["corrected_input"] = np.empty(frames.shape, np.float32)
         nf, n, R, N = len(frames), self.n_vertices, len(self.region_names), self.n_frames
         out.update({
             "vertices": np.empty((nf, n, 3), np.float32),
@@ -296,6 +310,9 @@ class ShapeSpaceModel:
         for f in range(nf):
             enc = self.encode(frames[f:f + 1])
             m = self.match(enc["shape"][0])
+            if correct:
+                enc, m = self._pose_space_correction(enc, m)
+                out["corrected_input"][f] = enc["transforms"][0].inverse().apply(enc["aligned"][0])
             W = m["weights"]
             bh = blend(self.detail, self._omega_hat, W)                     # (m,9)
             G = compose(bh, enc["G_low"][0])
@@ -371,47 +388,23 @@ class ShapeSpaceModel:
 
     # ------------------------------------------------------------------ markers
     def markers_to_vertices(self, markers: np.ndarray) -> np.ndarray:
-        """The neutral deformed to markers by the linear thin shell (bickel2008 §4; §5.1 "marker" input).
-
-        Per frame: head pose by weighted Kabsch of the visible markers onto the neutral
-        markers, handle displacements (missing markers completed at minimum shell energy),
-        ``d0 + B u_H``, and the pose put back.
-
-        Parameters
-        ----------
-        markers : (F,M,3) float   world-space markers in the actor's layout order, NaN if occluded
-
-        Returns
-        -------
-        vertices : (F,n,3) float64, world pose, mm
-        """
-        from service.geometry.thin_shell import (
-            apply_basis, complete_handles, handle_energy_matrix, thin_shell_basis,
-        )
-        from service.methods.pdm.base_surface import MIN_VISIBLE_MARKERS, handle_vertices
-
-        markers = np.asarray(markers, dtype=np.float64)
-        M = self.n_markers
-        if M == 0:
+        """The neutral deformed to markers (F,M,3) by the linear thin shell, (F,n,3) world
+        vertices (bickel2008 §4; bermano2014 §5.1 "marker" input; :class:`.markers.MarkerShell`)."""
+        if self.n_markers == 0:
             raise InvalidInput("this model has no marker layout; give vertices")
-        if markers.ndim != 3 or markers.shape[1:] != (M, 3):
-            raise InvalidInput(f"markers must be (F,{M},3), got {markers.shape}")
         if self._shell is None:
-            handles = handle_vertices(self.faces, self.marker_triangle, self.marker_barycentric)
-            B = thin_shell_basis(self.neutral, self.faces, handles)
-            self._shell = (B, handle_energy_matrix(self.neutral, self.faces, B), self.rest_markers())
-        B, E, rest = self._shell
-        out = np.empty((len(markers), self.n_vertices, 3))
-        for f, P in enumerate(markers):
-            visible = np.isfinite(P).all(axis=1)
-            if visible.sum() < MIN_VISIBLE_MARKERS:
-                raise InvalidInput(f"frame {f} has {int(visible.sum())} visible markers, at least "
-                                   f"{MIN_VISIBLE_MARKERS} are needed")
-            T = rigid_align(P, rest, self.marker_weights)
-            u = T.apply(P) - rest
-            u = complete_handles(E, np.where(visible[:, None], u, np.nan))
-            out[f] = T.inverse().apply(self.neutral + apply_basis(B, u))
-        return out
+            self._shell = MarkerShell.build(self.neutral, self.faces, self.marker_triangle,
+                                            self.marker_barycentric, self.marker_weights)
+        return self._shell(markers)
+
+    def _pose_space_correction(self, enc: dict, m: dict) -> tuple[dict, dict]:
+        """Encoding and match of a shell input plus its blended correction (:mod:`.markers`)."""
+        if self._frame_field is None:
+            self._frame_field = FrameField.build(self.neutral, self.faces, self.uv, self.uv_faces)
+        c = blend(self.marker_corrections, self._vertex_omega_hat, m["weights"])     # (n,3)
+        aligned = corrected_input(self._frame_field, enc["aligned"][0], c)
+        enc = self.encode(enc["transforms"][0].inverse().apply(aligned)[None])
+        return enc, self.match(enc["shape"][0])
 
     def rest_markers(self) -> np.ndarray:
         """Marker positions (M,3) on the neutral, mm."""
@@ -568,7 +561,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
 
     progress(0.0, "alignment")
     align_w = stability_weights(frames, d0)
-    aligned, _ = align_frames(frames, d0, align_w)
+    aligned, transforms = align_frames(frames, d0, align_w)
     del frames
 
     progress(0.1, "patches")
@@ -605,6 +598,14 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
                                                np.array(p.left_axis), p.region_motion_fraction,
                                                p.region_seed)
         region_info.update(source="derived", **info)
+    marker_weights = _marker_weights(actor, clips, frame_clip, frame_index)
+    shell = corrections = None
+    if p.marker_correction and actor.n_markers:
+        progress(0.85, "marker corrections")
+        shell = MarkerShell.build(d0, F, actor.marker_triangle, actor.marker_barycentric, marker_weights)
+        markers = np.stack([clips[c].markers[f] for c, f in zip(frame_clip, frame_index)])
+        corrections = pose_space_corrections(shell, FrameField.build(d0, F, actor.uv, actor.uv_faces),
+                                             markers, aligned, transforms)
     del aligned
     if len(names) == 1:
         omega = np.ones((1, m))
@@ -617,7 +618,6 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     gram = 0.5 * (gram + gram.transpose(0, 2, 1))
 
     colors = _vertex_colors(actor, clips, p.frame_stride, vertex_colors)
-    marker_weights = _marker_weights(actor, clips, frame_clip, frame_index)
     sizes = np.bincount(labels, minlength=P)
     model = ShapeSpaceModel(
         params=p, faces=F, neutral=d0, smooth_neutral=smooth0, align_weights=align_w,
@@ -638,9 +638,12 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
                         "vertices": [int(x) for x in region_vertices.sum(axis=1)]},
             "detail_bytes": int(detail.nbytes),
             "colors": colors is not None,
+            "marker_corrections": corrections is not None,
             "params": asdict(p),
         },
+        marker_corrections=corrections,
     )
+    model._shell = shell
     progress(0.95, "prepare")
     model.prepare()
     progress(1.0, "done")

@@ -83,6 +83,12 @@ class ShapeSpaceParams:
     restore_low_frequencies : bool  after reconstruction, replace the result's low band by the
                                    input's: ``x ← x + f(ā) − f(x)`` (departure, see
                                    :mod:`~service.methods.shape_space.model`; False: the paper)
+    marker_correction : bool       for marker input, correct the thin shell of the markers by
+                                   the database's pose-space corrections blended with the
+                                   matched weights before enhancing it (departure, see
+                                   :mod:`~service.methods.shape_space.markers`; False: the
+                                   paper, the shell is enhanced as it is). Stores (N,n,3)
+                                   float32 more in the model
     map_resolution : int           texels per side of the displacement map of
                                    :meth:`~.model.ShapeSpaceModel.enhance` (the enhanced
                                    surface's offset from the input, rasterized over the
@@ -110,6 +116,7 @@ class ShapeSpaceParams:
     left_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     boundary_weight: float = BOUNDARY_WEIGHT
     restore_low_frequencies: bool = True
+    marker_correction: bool = True
     sequence_seconds: float = 1.0
     map_resolution: int = 1024
 
@@ -153,8 +160,8 @@ class ShapeSpaceParams:
             raise InvalidInput(f"region_falloff must be > 0, got {self.region_falloff}")
         if not 0 < self.region_motion_fraction < 1:
             raise InvalidInput(f"region_motion_fraction must be in (0, 1), got {self.region_motion_fraction}")
-        if not isinstance(self.restore_low_frequencies, (bool, np.bool_)):
-            raise InvalidInput(f"restore_low_frequencies must be true or false, "
-                               f"got {self.restore_low_frequencies!r}")
+        for name in ("restore_low_frequencies", "marker_correction"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InvalidInput(f"{name} must be true or false, got {getattr(self, name)!r}")
         if not (self.boundary_weight >= 0 and np.isfinite(self.boundary_weight)):
             raise InvalidInput(f"boundary_weight must be >= 0, got {self.boundary_weight}")

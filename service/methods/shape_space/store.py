@@ -8,6 +8,8 @@ Layout (DESIGN.md "Data and storage"):
 * ``detail.npz``  ``detail`` (N,m,9) float32: the high-frequency detail of every database
   frame (rotation log + stretch per triangle) — the bulk of the model;
 * ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
+* ``markers.npz`` ``corrections`` (N,n,3) float32, the pose-space corrections of marker
+  input (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
 * ``manifest.json`` kind, format version, params, metrics, region and clip names, and the
   sha256 of every file.
 
@@ -48,6 +50,8 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
     }
     if model.colors is not None:
         files["colors.npz"] = write_npz(path / "colors.npz", {"colors": model.colors})
+    if model.marker_corrections is not None:
+        files["markers.npz"] = write_npz(path / "markers.npz", {"corrections": model.marker_corrections})
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
         "region_names": list(model.region_names), "clip_names": list(model.clip_names),
@@ -69,8 +73,9 @@ def load_model(path) -> ShapeSpaceModel:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
     detail = npz_arrays(data["detail.npz"])["detail"]
     colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
+    corrections = npz_arrays(data["markers.npz"])["corrections"] if "markers.npz" in data else None
     model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
-                            detail=detail, colors=colors,
+                            detail=detail, colors=colors, marker_corrections=corrections,
                             region_names=tuple(manifest["region_names"]),
                             clip_names=tuple(manifest["clip_names"]),
                             clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
@@ -78,4 +83,7 @@ def load_model(path) -> ShapeSpaceModel:
     if detail.shape != (len(model.shapes), len(model.faces), 9):
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
                            f"({len(model.shapes)},{len(model.faces)},9)")
+    if corrections is not None and corrections.shape != (len(model.shapes), model.n_vertices, 3):
+        raise ModelCorrupt(f"{path}: markers.npz has shape {corrections.shape}, expected "
+                           f"({len(model.shapes)},{model.n_vertices},3)")
     return model.prepare()

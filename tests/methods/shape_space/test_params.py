@@ -23,7 +23,7 @@ def test_axes_from_json_lists_become_tuples():
     {"lam_dt": 0}, {"smoothing": "once"}, {"regions": "mine"}, {"frame_stride": 0},
     {"patch_size": 2}, {"patch_size": 10.5}, {"region_falloff": -1}, {"region_motion_fraction": 1.0},
     {"up_axis": (0, 0, 0)}, {"up_axis": (1, 0, 0)}, {"left_axis": "x"}, {"boundary_weight": -0.1},
-    {"sequence_seconds": -1}, {"restore_low_frequencies": "yes"}, {"patch_seed": True},
+    {"sequence_seconds": -1}, {"restore_low_frequencies": "yes"}, {"marker_correction": 1}, {"patch_seed": True},
     {"lam_dt": "125"}, {"region_falloff": None},
 ])
 def test_bad_values_are_refused(bad):

@@ -25,7 +25,12 @@ def test_round_trip_is_bit_exact(shape_space_model, shape_space_data, saved):
     assert a.keys() == b.keys()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-    for key in ("shapes", "detail", "gram", "region_weights", "patches", "align_weights"):
+    markers = heldout["markers"][[40]]
+    a, b = shape_space_model.enhance(markers), loaded.enhance(markers)
+    for key in ("vertices", "corrected_input"):
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    for key in ("shapes", "detail", "gram", "region_weights", "patches", "align_weights",
+                "marker_corrections"):
         np.testing.assert_array_equal(getattr(loaded, key), getattr(shape_space_model, key), err_msg=key)
     assert loaded.params == shape_space_model.params
     assert manifest["kind"] == "shape_space" and manifest["region_names"] == list(loaded.region_names)
