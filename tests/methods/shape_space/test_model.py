@@ -124,6 +124,11 @@ def test_marker_input_goes_through_the_thin_shell_and_its_pose_space_correction(
     assert rms["input_vertices"] == pytest.approx(RMS_SHELL, abs=0.02)
     assert rms["corrected_input"] < 0.7 * rms["input_vertices"]            # measured 0.358 / 0.633
     assert rms["vertices"] < rms["corrected_input"] + 0.01
+    # without the low-band restore step the corrected shell is encoded again instead
+    params = dataclasses.replace(shape_space_model.params, restore_low_frequencies=False)
+    raw = dataclasses.replace(shape_space_model, params=params).enhance(markers[1:2])
+    np.testing.assert_allclose(raw["corrected_input"][0], out["corrected_input"][1], atol=1e-5)
+    assert _rms(np.linalg.norm(raw["vertices"][0] - truth[1], axis=-1), face[1]) < rms["input_vertices"]
     # without corrections the shell itself is enhanced (the paper), and nothing is corrected
     plain = dataclasses.replace(shape_space_model, marker_corrections=None).enhance(markers[1:])
     assert "corrected_input" not in plain
