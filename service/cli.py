@@ -57,7 +57,8 @@ def cmd_sample_actor(args: argparse.Namespace) -> int:
 
     manifest = build_sample_actor(args.out, seed=args.seed, level=args.level,
                                   progress=_progress_bar("sample actor"),
-                                  with_tracking=not args.no_tracking)
+                                  with_tracking=not args.no_tracking,
+                                  database_maps=False if args.no_database_maps else None)
     print(_summary(Path(args.out), manifest))
     return 0
 
@@ -201,6 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--level", type=int, choices=(0, 1, 2), default=1,
                    help="resolution: 0 rig (11k vertices), 1 (~45k), 2 (~179k); default 1")
     p.add_argument("--no-tracking", action="store_true", help="skip the camera renders")
+    p.add_argument("--no-database-maps", action="store_true",
+                   help="no maps for the 630-frame database performance (they are built at levels "
+                        "0 and 1, about 3.6 GB at level 1)")
     p.set_defaults(func=cmd_sample_actor)
 
     p = sub.add_parser("sample-gallery", help="render a built sample actor to PNGs (shaded meshes, maps)")

@@ -14,8 +14,8 @@
                                map_frames: displacement (f,H,W) (normal displacement over
                                vertices_medium, mm, float32) and albedo (f,H/2,W/2,3)
                                (linear RGB, float16 as in a half EXR); map_frames (f,)
-                               (the database performance has no maps and no
-                               vertices_medium)
+                               (the database performance has maps at every frame up to
+                               level 1; at level 2 it has no maps and no vertices_medium)
     tracking/...               cameras and rendered images (see service.samples.render)
 
 Deterministic per seed: every random choice draws from ``np.random.default_rng([seed, …])``.
@@ -47,6 +47,7 @@ from service.samples.skin import Skin, build_skin, identity_coefficients
 MARKER_COUNT = 150
 FRAME_CHUNK = 48                    # frames processed at once (bounds peak memory)
 HELDOUT_MAP_STRIDE = 5              # held-out performances get maps every 5th frame
+DATABASE_MAPS_MAX_LEVEL = 1         # the database performance has maps up to this level
 TRACKING_STATIC = ("train_brow_raise", "train_smile", "train_brow_furrow")  # + neutral
 TRACKING_FRAMES = 30                # frames (1 s) of the held-out performance rendered per camera
 MAP_RESOLUTION = {0: 512, 1: 1024, 2: 2048}
@@ -239,7 +240,8 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
                        progress: Progress | None = None,
                        with_tracking: bool = True,
                        map_resolution: int | None = None,
-                       performance_names: tuple[str, ...] | None = None) -> dict:
+                       performance_names: tuple[str, ...] | None = None,
+                       database_maps: bool | None = None) -> dict:
     """Build the sample actor into directory ``out`` and return its manifest.
 
     Parameters
@@ -250,6 +252,10 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
     with_tracking : also render camera images for the tracking method
     map_resolution : displacement map size (default 512/1024/2048 by level; albedo is half)
     performance_names : build only these performances (default: all)
+    database_maps : give the database performance maps at every frame (and keep its
+                    ``vertices_medium``, which makes them relative to its meshes), for
+                    methods that transfer map detail (shape space). Default: at levels 0
+                    and 1; at level 2 they would hold 14 GB (630 frames of 2048² maps)
     """
     from service.io.mesh import Mesh, write_obj
 
@@ -296,12 +302,14 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
                              f"known: {[p.name for p in perfs]}")
         perfs = [p for p in perfs if p.name in performance_names]
         with_tracking = with_tracking and {"heldout_in_range", *TRACKING_STATIC} <= set(performance_names)
+    if database_maps is None:
+        database_maps = level <= DATABASE_MAPS_MAX_LEVEL
     total = sum(p.frames for p in perfs)
     done = 0
     static, tracked = {}, None
     for perf in perfs:
         report(0.05 + 0.85 * done / total, f"performance {perf.name}")
-        if perf.kind == "training":
+        if perf.kind == "training" or (perf.kind == "database" and database_maps):
             map_frames = np.arange(perf.frames)
         elif perf.kind.startswith("heldout"):
             map_frames = np.arange(0, perf.frames, HELDOUT_MAP_STRIDE)
@@ -319,7 +327,7 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
             static[perf.name] = (arrays["vertices"][peak], albedo[1])
         if perf.kind == "heldout_in_range" and with_tracking:
             tracked = (arrays["vertices"][:TRACKING_FRAMES], albedo)
-        if perf.kind == "database":
+        if perf.kind == "database" and not database_maps:
             del arrays["vertices_medium"]
         name = f"performances/{perf.name}.npz"
         record(name, write_npz(out / name, arrays), kind=perf.kind, frames=perf.frames,

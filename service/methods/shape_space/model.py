@@ -68,6 +68,7 @@ from service.methods.shape_space.blending import blend
 from service.methods.shape_space.encoding import (
     FrequencySeparator, compose, detail_encoding, shape_encoding,
 )
+from service.methods.shape_space.fine_maps import FineMaps
 from service.methods.shape_space.markers import MarkerShell, corrected_input, pose_space_corrections
 from service.methods.shape_space.params import (
     COMPONENTS, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE, ShapeSpaceParams,
@@ -114,6 +115,8 @@ class ShapeSpaceModel:
     marker_corrections : (N,n,3) float32 | None   what the thin shell of each database frame's
                                       markers misses, in the shell's tangent frames
                                       (:mod:`.markers`; None: marker input is not corrected)
+    fine_maps : FineMaps | None       the database frames' fine displacement maps (None: the
+                                      database had none; :mod:`.fine_maps`)
     uv : (K,2) float64;  uv_faces : (m,3) int64   the neutral's UV layout (displacement maps)
     metrics : dict
     """
@@ -144,6 +147,7 @@ class ShapeSpaceModel:
     uv_faces: np.ndarray
     metrics: dict = field(default_factory=dict)
     marker_corrections: np.ndarray | None = None   # (N,n,3) float32, :mod:`.markers`
+    fine_maps: FineMaps | None = None              # the database's fine maps, :mod:`.fine_maps`
     # derived (not stored), built by prepare()
     _separator: FrequencySeparator | None = field(default=None, repr=False)
     _poisson: PoissonReconstruction | None = field(default=None, repr=False)
@@ -186,6 +190,8 @@ class ShapeSpaceModel:
         self._omega_hat = normalize_region_weights(self.region_weights)
         self._vertex_omega_hat = normalize_region_weights(
             vertex_region_weights(self.faces, self.region_weights, self.n_vertices))
+        if self.fine_maps is not None:
+            self.fine_maps.prepare(self.uv, self.uv_faces, self.faces, self._vertex_omega_hat)
         return self
 
     def component_weights(self, region: int | None) -> np.ndarray:
@@ -260,10 +266,16 @@ class ShapeSpaceModel:
         ``weights`` (F,R,N) float32    the convex weights per region (§5.3);
         ``nonzero`` (F,R) int32        weights above :data:`~.params.WEIGHT_EPS` per region;
         ``match_error`` (F,R) float32  weighted RMS shape-space distance of the projection;
-        ``displacement`` (F,H,H) float32  (if asked) the enhanced surface's offset from the
-                                        input along the input's vertex normals, mm, as a
-                                        map over the neutral's UVs (H = ``map_resolution``;
-                                        0 where no triangle covers a texel);
+        ``displacement`` (F,H,H) float32  (if asked) the detail over the input surface, mm,
+                                        as a map over the neutral's UVs (H =
+                                        ``map_resolution``; 0 where no triangle covers a
+                                        texel): the enhanced surface's offset from the input
+                                        along the input's vertex normals, plus the blended
+                                        ``fine_displacement`` if the model has maps;
+        ``fine_displacement`` (F,Hf,Wf) float32  (with ``displacement``, for a model with
+                                        ``fine_maps``) the database's fine maps blended with
+                                        the same weights, relative to ``vertices``, at the
+                                        database maps' resolution (:mod:`.fine_maps`);
         ``vertex_displacement`` (F,n) float32  (with ``displacement``) the same per vertex,
                                         ``(x − a) · n_a``;
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
@@ -303,8 +315,11 @@ class ShapeSpaceModel:
             "match_error": np.empty((nf, R), np.float32),
             "region_names": np.array(self.region_names),
         })
+        fine = "displacement" in outputs and self.fine_maps is not None
         if "displacement" in outputs:
             out["vertex_displacement"] = np.empty((nf, n), np.float32)
+        if fine:
+            fine_texels = np.empty((nf, len(self.fine_maps.texels)), np.float32)
         if "colors" in outputs:
             out["colors"] = np.empty((nf, n, self.colors.shape[2]), np.float32)
         for f in range(nf):
@@ -332,10 +347,15 @@ class ShapeSpaceModel:
             if "displacement" in outputs:
                 normals = vertex_normals(frames[f], self.faces)
                 out["vertex_displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
+            if fine:
+                fine_texels[f] = self.fine_maps.blend(W)
             if "colors" in outputs:
                 out["colors"][f] = blend(self.colors, self._vertex_omega_hat, W)
         if "displacement" in outputs:
             out["displacement"] = self.vertex_map(out["vertex_displacement"])
+        if fine:
+            out["fine_displacement"] = self.fine_maps.image(fine_texels)
+            out["displacement"] += self.fine_maps.image(fine_texels, self.params.map_resolution)
         return out
 
     def vertex_map(self, values: np.ndarray) -> np.ndarray:
@@ -649,6 +669,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     gram = 0.5 * (gram + gram.transpose(0, 2, 1))
 
     colors = _vertex_colors(actor, clips, p.frame_stride, vertex_colors)
+    fine_maps = FineMaps.from_clips(actor, clips, p.frame_stride)
     sizes = np.bincount(labels, minlength=P)
     model = ShapeSpaceModel(
         params=p, faces=F, neutral=d0, smooth_neutral=smooth0, align_weights=align_w,
@@ -670,9 +691,10 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             "detail_bytes": int(detail.nbytes),
             "colors": colors is not None,
             "marker_corrections": corrections is not None,
+            "fine_maps": None if fine_maps is None else list(fine_maps.shape),
             "params": asdict(p),
         },
-        marker_corrections=corrections,
+        marker_corrections=corrections, fine_maps=fine_maps,
     )
     model._shell = shell
     progress(0.95, "prepare")

@@ -8,6 +8,8 @@ Layout (DESIGN.md "Data and storage"):
 * ``detail.npz``  ``detail`` (N,m,9) float32: the high-frequency detail of every database
   frame (rotation log + stretch per triangle) — the bulk of the model;
 * ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
+* ``maps.npz``    ``maps`` (N,P) float16, ``texels`` (P,), ``shape`` (2,): the database's fine
+  displacement maps at the covered texels (:mod:`.fine_maps`), only if the database had maps;
 * ``markers.npz`` ``corrections`` (N,n,3) float32, the pose-space corrections of marker
   input (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
 * ``manifest.json`` kind, format version, params, metrics, region and clip names, and the
@@ -25,9 +27,12 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.methods.shape_space.fine_maps import FineMaps
 from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
@@ -52,6 +57,10 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
         files["colors.npz"] = write_npz(path / "colors.npz", {"colors": model.colors})
     if model.marker_corrections is not None:
         files["markers.npz"] = write_npz(path / "markers.npz", {"corrections": model.marker_corrections})
+    if model.fine_maps is not None:
+        fm = model.fine_maps
+        files["maps.npz"] = write_npz(path / "maps.npz", {"maps": fm.maps, "texels": fm.texels,
+                                                          "shape": np.array(fm.shape, np.int64)})
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
         "region_names": list(model.region_names), "clip_names": list(model.clip_names),
@@ -74,8 +83,13 @@ def load_model(path) -> ShapeSpaceModel:
     detail = npz_arrays(data["detail.npz"])["detail"]
     colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
     corrections = npz_arrays(data["markers.npz"])["corrections"] if "markers.npz" in data else None
+    fine_maps = None
+    if "maps.npz" in data:
+        m = npz_arrays(data["maps.npz"])
+        fine_maps = FineMaps(m["maps"], m["texels"], tuple(int(x) for x in m["shape"]))
     model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
                             detail=detail, colors=colors, marker_corrections=corrections,
+                            fine_maps=fine_maps,
                             region_names=tuple(manifest["region_names"]),
                             clip_names=tuple(manifest["clip_names"]),
                             clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
@@ -83,6 +97,9 @@ def load_model(path) -> ShapeSpaceModel:
     if detail.shape != (len(model.shapes), len(model.faces), 9):
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
                            f"({len(model.shapes)},{len(model.faces)},9)")
+    if fine_maps is not None and fine_maps.maps.shape != (len(model.shapes), len(fine_maps.texels)):
+        raise ModelCorrupt(f"{path}: maps.npz has maps {fine_maps.maps.shape} for "
+                           f"{len(model.shapes)} frames and {len(fine_maps.texels)} texels")
     if corrections is not None and corrections.shape != (len(model.shapes), model.n_vertices, 3):
         raise ModelCorrupt(f"{path}: markers.npz has shape {corrections.shape}, expected "
                            f"({len(model.shapes)},{model.n_vertices},3)")

@@ -42,15 +42,12 @@ def shape_space_actor_dir(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def shape_space_data(shape_space_actor_dir):
-    """(actor, database clip, held-out arrays: vertices_medium, vertices, markers)."""
-    from service.methods.inputs import Clip
+    """(actor, database clip with its maps, held-out arrays: vertices_medium, vertices, markers)."""
     from service.samples import dataset
 
     actor = dataset.load_actor(shape_space_actor_dir)
     perf = shape_space_actor_dir / "performances"
-    with np.load(perf / "database.npz") as d:
-        clip = Clip("database", d["vertices"].astype(np.float64), d["markers"].astype(np.float64),
-                    fps=float(d["fps"]))
+    clip = dataset.load_clip(shape_space_actor_dir, "database", actor)     # with 64² maps
     with np.load(perf / "heldout_in_range.npz") as d:
         heldout = {k: d[k].astype(np.float64) for k in ("vertices_medium", "vertices", "markers")}
     return actor, clip, heldout

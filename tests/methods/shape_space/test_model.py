@@ -57,9 +57,15 @@ def test_database_frame_gets_weight_one_and_its_detail_back(shape_space_model, s
     assert out["nonzero"][0].tolist() == [1, 1, 1, 1]
     assert np.abs(out["vertices"][0] - frame).max() < 1e-3       # float32 detail store
     assert np.abs(out["vertex_displacement"][0]).max() < 1e-3
+    # the database's fine map comes back (float16 store), and is all the detail over the input
+    own = clip.displacement[m.frame_index[k]]
+    assert out["fine_displacement"].shape == (1,) + own.shape
+    covered = m.fine_maps.image(np.ones((1, len(m.fine_maps.texels))))[0] > 0
+    np.testing.assert_allclose(out["fine_displacement"][0][covered], own[covered], atol=2e-4)
     H = m.params.map_resolution
     assert out["displacement"].shape == (1, H, H) and out["displacement"].dtype == np.float32
-    assert np.abs(out["displacement"][0]).max() <= np.abs(out["vertex_displacement"][0]).max() + 1e-6
+    resampled = m.fine_maps.image(m.fine_maps.blend(out["weights"][0])[None], H)
+    assert np.abs(out["displacement"][0] - resampled).max() <= np.abs(out["vertex_displacement"][0]).max() + 1e-6
 
 
 def test_vertex_map_interpolates_over_the_uv_layout(shape_space_model):
@@ -159,8 +165,9 @@ def test_colors_are_blended_with_the_matching_weights(shape_space_model, shape_s
     k = 20
     out = colored.enhance(clip.vertices[m.frame_index[k]], outputs=("colors",))
     np.testing.assert_allclose(out["colors"][0], k, atol=1e-4)
+    assert m.colors.shape == (m.n_frames, m.n_vertices, 3)             # sampled from the albedo maps
     with pytest.raises(InvalidInput, match="without colours"):
-        m.enhance(clip.vertices[0], outputs=("colors",))
+        dataclasses.replace(m, colors=None).enhance(clip.vertices[0], outputs=("colors",))
 
 
 def test_retime_interpolates_the_keyframes_with_database_timing(shape_space_model, shape_space_data):
@@ -211,6 +218,10 @@ def test_memory_footprint_counts_the_detail_store_and_the_prefactored_solve(shap
     from service.methods.footprint import FACTOR_ENTRY_BYTES, nbytes
 
     m = shape_space_model
-    arrays = m.detail.nbytes + m.gram.nbytes + m.shapes.nbytes + m.neutral.nbytes
+    arrays = (m.detail.nbytes + m.gram.nbytes + m.shapes.nbytes + m.neutral.nbytes
+              + m.colors.nbytes + m.marker_corrections.nbytes + m.fine_maps.maps.nbytes)
     factor = FACTOR_ENTRY_BYTES * m._poisson._factor.fill
-    assert arrays + factor <= nbytes(m) < 3 * (arrays + factor)
+    # operators built on first use by the other tests: the (H², n) vertex → map operator and
+    # the fine maps' resampling to map_resolution (sparse, ~12 bytes per entry)
+    lazy = sum(nbytes(x) for x in (m._map_operator, m.fine_maps._resample, m._shell))
+    assert arrays + factor + lazy <= nbytes(m) < 2 * (arrays + factor) + lazy
