@@ -2,7 +2,8 @@
 convex weights, retiming, speed and memory, figures.
 
 The shape-space model is trained on the sample actor's long ``database`` performance (630
-frames, ground-truth meshes, no maps). It enhances map frames (every 5th frame has maps;
+frames, ground-truth meshes and, at level 1, fine displacement and albedo maps, which the
+model blends with its matched weights: :mod:`service.methods.shape_space.maps`). It enhances map frames (every 5th frame has maps;
 ``--frames`` of them, default ``DEFAULT_FRAMES``, evenly spaced but not at the ends, which
 are near the neutral) of ``heldout_in_range`` (expressions mixed from the trained ones) and
 ``heldout_out_of_range`` (beyond them), given two ways:
@@ -34,7 +35,8 @@ Metrics (pooled over frames and vertices / texels):
   the whole-face mean is dominated by detail-free skin);
 * **fine detail (mesh + map)**: the metric of ``pdm_report.py`` — detail heights
   ``h = n·(P V − P V_gt,medium) + d`` at the fine texels of the face (d the method's fine
-  map; shape-space and the input have none), high-passed with the PDM's band split,
+  map: the PDM's fine band, shape-space's blended database maps ``fine_displacement``;
+  the input has none), high-passed with the PDM's band split,
   against the ground truth's ``displacement`` map (all its detail, pores included):
   Pearson r and RMS error, mm;
 * **fine detail (mesh)**: the same with d = 0 for every method and the ground truth's
@@ -115,6 +117,7 @@ HEAD = "head"                          # rigid back of the head: alignment for t
 DEFAULT_FRAMES = 10                    # held-out map frames per performance (evenly spaced)
 DETAIL_THRESHOLD_MM = 0.01             # ground truth "has detail": |vertices − vertices_medium| above
 PDM_ORDER = "biquadratic"
+SS_OUTPUTS = ("mesh", "displacement")  # displacement: the blended fine maps (database with maps)
 INPUT_ROW, PDM_ROW, PDM_FREE_ROW, SS_ROW = ("input alone", "PDM biquadratic",
                                             "PDM biquadratic, no clamp", "shape-space")
 # (the evaluated shape-space model is SS_ROW; a cached model with the other smoothing is scored
@@ -163,11 +166,15 @@ def params_json(params) -> str:
 # workers (fresh processes)
 
 def load_database(actor_dir: Path, actor):
-    """The ``database`` performance as a Clip (float32 vertices: the library converts them;
+    """The ``database`` performance as a Clip: with its maps (relative to its meshes) where
+    the actor has them (levels 0–1), else float32 vertices only (the library converts them;
     at level 2 a float64 copy would cost 2.7 GB)."""
     from service.methods.inputs import Clip
+    from service.samples.dataset import load_clip
 
     with np.load(actor_dir / "performances" / f"{DATABASE}.npz") as d:
+        if "displacement" in d.files:
+            return load_clip(actor_dir, DATABASE, actor)
         return Clip(DATABASE, d["vertices"], d["markers"].astype(np.float64), fps=float(d["fps"]))
 
 
@@ -409,17 +416,19 @@ def evaluate(actor, actor_dir: Path, model, bq, reg, tex, limit: int | None, ext
             t0 = time.perf_counter()
             if inp == "rig":
                 V_in = reg.propagate(lowres)
-                ss = model.enhance(V_in, ("mesh",), input_kind="vertices")
+                ss = model.enhance(V_in, SS_OUTPUTS, input_kind="vertices")
                 markers = actor.marker_positions(V_in)
             else:
-                ss = model.enhance(gt.markers, ("mesh",), input_kind="markers")
+                ss = model.enhance(gt.markers, SS_OUTPUTS, input_kind="markers")
                 V_in = ss["input_vertices"].astype(np.float64)
                 markers = gt.markers
+            D_ss = (np.stack([tex.texels(m) for m in ss["fine_displacement"]])
+                    if "fine_displacement" in ss else None)
             t_ss = time.perf_counter() - t0
             V_pdm, D_pdm, clamped = pdm.pdm_prediction(bq, markers, tex, clamp=True)
             V_free, D_free, _ = pdm.pdm_prediction(bq, markers, tex, clamp=False)
             rows = {INPUT_ROW: (V_in, None), PDM_ROW: (V_pdm, D_pdm), PDM_FREE_ROW: (V_free, D_free),
-                    SS_ROW: (ss["vertices"].astype(np.float64), None)}
+                    SS_ROW: (ss["vertices"].astype(np.float64), D_ss)}
             for name, other in extra.items():
                 rows[name] = (other.enhance(V_in, ("mesh",), input_kind="vertices")["vertices"].astype(np.float64),
                               None)
@@ -690,7 +699,8 @@ def report(acc: dict, rt: dict, speed: dict, builds: dict, meta: dict, figures: 
         f"truth has detail (|vertices − vertices_medium| > {DETAIL_THRESHOLD_MM} mm). Fine detail: "
         f"high-passed heights at the face texels (σ = {meta['sigma_texels']:.1f} texels = "
         f"{meta['sigma_mm']:.1f} mm, the PDM's band split), Pearson r and RMS error: *mesh + map* "
-        "against the ground-truth displacement map (pores included; only the PDM has a map), *mesh* "
+        "against the ground-truth displacement map (pores included; the PDM's map is its fine band, "
+        "shape-space's the blended database maps, the input has none), *mesh* "
         "against the ground-truth mesh's own detail (wrinkles at vertex resolution). Definitions in "
         "the script's docstring. The rig input's own fine error is mostly faceting: the ICT rig's "
         "flat triangles, interpolated onto the actor's vertices, differ from the smooth ground truth "

@@ -68,7 +68,7 @@ from service.methods.shape_space.blending import blend
 from service.methods.shape_space.encoding import (
     FrequencySeparator, compose, detail_encoding, shape_encoding,
 )
-from service.methods.shape_space.fine_maps import FineMaps
+from service.methods.shape_space.maps import DatabaseMaps
 from service.methods.shape_space.markers import MarkerShell, corrected_input, pose_space_corrections
 from service.methods.shape_space.params import (
     COMPONENTS, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE, ShapeSpaceParams,
@@ -82,7 +82,7 @@ from service.methods.shape_space.simplex_qp import solve_simplex_qp
 from service.methods.shape_space.temporal import retime as retime_sequence
 
 #: outputs of :meth:`ShapeSpaceModel.enhance`
-OUTPUTS = ("mesh", "displacement", "colors")
+OUTPUTS = ("mesh", "displacement", "albedo", "colors")
 
 
 @dataclass
@@ -115,8 +115,8 @@ class ShapeSpaceModel:
     marker_corrections : (N,n,3) float32 | None   what the thin shell of each database frame's
                                       markers misses, in the shell's tangent frames
                                       (:mod:`.markers`; None: marker input is not corrected)
-    fine_maps : FineMaps | None       the database frames' fine displacement maps (None: the
-                                      database had none; :mod:`.fine_maps`)
+    fine_maps, albedo_maps : DatabaseMaps | None   the database frames' fine displacement and
+                                      albedo maps (None: the database had none; :mod:`.maps`)
     uv : (K,2) float64;  uv_faces : (m,3) int64   the neutral's UV layout (displacement maps)
     metrics : dict
     """
@@ -147,7 +147,8 @@ class ShapeSpaceModel:
     uv_faces: np.ndarray
     metrics: dict = field(default_factory=dict)
     marker_corrections: np.ndarray | None = None   # (N,n,3) float32, :mod:`.markers`
-    fine_maps: FineMaps | None = None              # the database's fine maps, :mod:`.fine_maps`
+    fine_maps: DatabaseMaps | None = None          # the database's maps, :mod:`.maps`
+    albedo_maps: DatabaseMaps | None = None
     # derived (not stored), built by prepare()
     _separator: FrequencySeparator | None = field(default=None, repr=False)
     _poisson: PoissonReconstruction | None = field(default=None, repr=False)
@@ -190,8 +191,9 @@ class ShapeSpaceModel:
         self._omega_hat = normalize_region_weights(self.region_weights)
         self._vertex_omega_hat = normalize_region_weights(
             vertex_region_weights(self.faces, self.region_weights, self.n_vertices))
-        if self.fine_maps is not None:
-            self.fine_maps.prepare(self.uv, self.uv_faces, self.faces, self._vertex_omega_hat)
+        for maps in (self.fine_maps, self.albedo_maps):
+            if maps is not None:
+                maps.prepare(self.uv, self.uv_faces, self.faces, self._vertex_omega_hat)
         return self
 
     def component_weights(self, region: int | None) -> np.ndarray:
@@ -255,7 +257,7 @@ class ShapeSpaceModel:
         frames : (F,n,3) float   vertices on the neutral's topology (e.g. a rig propagated to
                  it, or a medium-resolution surface), world pose, mm; or (F,M,3) markers
                  (NaN when occluded), carried to the neutral by the linear thin shell
-        outputs : subset of ``mesh`` (always computed), ``displacement``, ``colors``
+        outputs : subset of ``mesh`` (always computed), ``displacement``, ``albedo``, ``colors``
         input_kind : "auto" | "vertices" | "markers"   how to read ``frames`` (auto: by count)
 
         Returns
@@ -275,9 +277,11 @@ class ShapeSpaceModel:
         ``fine_displacement`` (F,Hf,Wf) float32  (with ``displacement``, for a model with
                                         ``fine_maps``) the database's fine maps blended with
                                         the same weights, relative to ``vertices``, at the
-                                        database maps' resolution (:mod:`.fine_maps`);
+                                        database maps' resolution (:mod:`.maps`);
         ``vertex_displacement`` (F,n) float32  (with ``displacement``) the same per vertex,
                                         ``(x − a) · n_a``;
+        ``albedo`` (F,Ha,Wa,3) float32  (if asked; the model needs albedo maps) the
+                                        database's albedo maps blended with the same weights;
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
         ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface;
         ``corrected_input`` (F,n,3) float32  for marker input to a model with
@@ -295,6 +299,8 @@ class ShapeSpaceModel:
             raise InvalidInput(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
         if "colors" in outputs and self.colors is None:
             raise InvalidInput("this model was trained without colours; 'colors' is not available")
+        if "albedo" in outputs and self.albedo_maps is None:
+            raise InvalidInput("this model's database had no albedo maps; 'albedo' is not available")
         frames = np.asarray(frames, dtype=np.float64)
         if frames.ndim == 2:
             frames = frames[None]
@@ -318,8 +324,10 @@ class ShapeSpaceModel:
         fine = "displacement" in outputs and self.fine_maps is not None
         if "displacement" in outputs:
             out["vertex_displacement"] = np.empty((nf, n), np.float32)
-        if fine:
-            fine_texels = np.empty((nf, len(self.fine_maps.texels)), np.float32)
+        texel_maps = {"fine_displacement": self.fine_maps if fine else None,
+                      "albedo": self.albedo_maps if "albedo" in outputs else None}
+        texel_maps = {k: (m, np.empty((nf,) + m.maps.shape[1:], np.float32))
+                      for k, m in texel_maps.items() if m is not None}
         if "colors" in outputs:
             out["colors"] = np.empty((nf, n, self.colors.shape[2]), np.float32)
         for f in range(nf):
@@ -347,15 +355,17 @@ class ShapeSpaceModel:
             if "displacement" in outputs:
                 normals = vertex_normals(frames[f], self.faces)
                 out["vertex_displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
-            if fine:
-                fine_texels[f] = self.fine_maps.blend(W)
+            for maps, values in texel_maps.values():
+                values[f] = maps.blend(W)
             if "colors" in outputs:
                 out["colors"][f] = blend(self.colors, self._vertex_omega_hat, W)
         if "displacement" in outputs:
             out["displacement"] = self.vertex_map(out["vertex_displacement"])
+        for key, (maps, values) in texel_maps.items():
+            out[key] = maps.image(values)
         if fine:
-            out["fine_displacement"] = self.fine_maps.image(fine_texels)
-            out["displacement"] += self.fine_maps.image(fine_texels, self.params.map_resolution)
+            out["displacement"] += self.fine_maps.image(texel_maps["fine_displacement"][1],
+                                                        self.params.map_resolution)
         return out
 
     def vertex_map(self, values: np.ndarray) -> np.ndarray:
@@ -669,7 +679,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     gram = 0.5 * (gram + gram.transpose(0, 2, 1))
 
     colors = _vertex_colors(actor, clips, p.frame_stride, vertex_colors)
-    fine_maps = FineMaps.from_clips(actor, clips, p.frame_stride)
+    fine_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "displacement")
+    albedo_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "albedo")
     sizes = np.bincount(labels, minlength=P)
     model = ShapeSpaceModel(
         params=p, faces=F, neutral=d0, smooth_neutral=smooth0, align_weights=align_w,
@@ -691,10 +702,11 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             "detail_bytes": int(detail.nbytes),
             "colors": colors is not None,
             "marker_corrections": corrections is not None,
-            "fine_maps": None if fine_maps is None else list(fine_maps.shape),
+            "maps": {k: list(m.shape) for k, m in (("displacement", fine_maps), ("albedo", albedo_maps))
+                     if m is not None},
             "params": asdict(p),
         },
-        marker_corrections=corrections, fine_maps=fine_maps,
+        marker_corrections=corrections, fine_maps=fine_maps, albedo_maps=albedo_maps,
     )
     model._shell = shell
     progress(0.95, "prepare")

@@ -8,8 +8,9 @@ Layout (DESIGN.md "Data and storage"):
 * ``detail.npz``  ``detail`` (N,m,9) float32: the high-frequency detail of every database
   frame (rotation log + stretch per triangle) — the bulk of the model;
 * ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
-* ``maps.npz``    ``maps`` (N,P) float16, ``texels`` (P,), ``shape`` (2,): the database's fine
-  displacement maps at the covered texels (:mod:`.fine_maps`), only if the database had maps;
+* ``maps.npz``    per map kind (``displacement``, ``albedo``) the maps (N,P,C) float16 at the
+  covered texels with ``<kind>_texels`` (P,) and ``<kind>_shape`` (2,) (:mod:`.maps`), only
+  if the database had maps;
 * ``markers.npz`` ``corrections`` (N,n,3) float32, the pose-space corrections of marker
   input (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
 * ``manifest.json`` kind, format version, params, metrics, region and clip names, and the
@@ -32,13 +33,15 @@ import numpy as np
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
-from service.methods.shape_space.fine_maps import FineMaps
+from service.methods.shape_space.maps import DatabaseMaps
 from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
 KIND = "shape_space"
 FORMAT_VERSION = 2
 #: arrays of model.npz (attribute names of ShapeSpaceModel)
+#: maps.npz names → ShapeSpaceModel attributes (:mod:`.maps`)
+MAP_FIELDS = {"displacement": "fine_maps", "albedo": "albedo_maps"}
 MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches", "tri_patch",
                 "shapes", "region_vertices", "region_weights", "patch_weights", "gram",
                 "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
@@ -57,10 +60,13 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
         files["colors.npz"] = write_npz(path / "colors.npz", {"colors": model.colors})
     if model.marker_corrections is not None:
         files["markers.npz"] = write_npz(path / "markers.npz", {"corrections": model.marker_corrections})
-    if model.fine_maps is not None:
-        fm = model.fine_maps
-        files["maps.npz"] = write_npz(path / "maps.npz", {"maps": fm.maps, "texels": fm.texels,
-                                                          "shape": np.array(fm.shape, np.int64)})
+    maps = {}
+    for name, dm in ((n, getattr(model, a)) for n, a in MAP_FIELDS.items()):
+        if dm is not None:
+            maps.update({name: dm.maps, f"{name}_texels": dm.texels,
+                         f"{name}_shape": np.array(dm.shape, np.int64)})
+    if maps:
+        files["maps.npz"] = write_npz(path / "maps.npz", maps)
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
         "region_names": list(model.region_names), "clip_names": list(model.clip_names),
@@ -83,13 +89,12 @@ def load_model(path) -> ShapeSpaceModel:
     detail = npz_arrays(data["detail.npz"])["detail"]
     colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
     corrections = npz_arrays(data["markers.npz"])["corrections"] if "markers.npz" in data else None
-    fine_maps = None
-    if "maps.npz" in data:
-        m = npz_arrays(data["maps.npz"])
-        fine_maps = FineMaps(m["maps"], m["texels"], tuple(int(x) for x in m["shape"]))
+    m = npz_arrays(data["maps.npz"]) if "maps.npz" in data else {}
+    maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]))
+            for name, attr in MAP_FIELDS.items() if name in m}
     model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
                             detail=detail, colors=colors, marker_corrections=corrections,
-                            fine_maps=fine_maps,
+                            **maps,
                             region_names=tuple(manifest["region_names"]),
                             clip_names=tuple(manifest["clip_names"]),
                             clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
@@ -97,9 +102,10 @@ def load_model(path) -> ShapeSpaceModel:
     if detail.shape != (len(model.shapes), len(model.faces), 9):
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
                            f"({len(model.shapes)},{len(model.faces)},9)")
-    if fine_maps is not None and fine_maps.maps.shape != (len(model.shapes), len(fine_maps.texels)):
-        raise ModelCorrupt(f"{path}: maps.npz has maps {fine_maps.maps.shape} for "
-                           f"{len(model.shapes)} frames and {len(fine_maps.texels)} texels")
+    for attr, dm in maps.items():
+        if dm.maps.shape[:2] != (len(model.shapes), len(dm.texels)):
+            raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.shape} for "
+                               f"{len(model.shapes)} frames and {len(dm.texels)} texels")
     if corrections is not None and corrections.shape != (len(model.shapes), model.n_vertices, 3):
         raise ModelCorrupt(f"{path}: markers.npz has shape {corrections.shape}, expected "
                            f"({len(model.shapes)},{model.n_vertices},3)")

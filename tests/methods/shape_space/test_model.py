@@ -57,10 +57,16 @@ def test_database_frame_gets_weight_one_and_its_detail_back(shape_space_model, s
     assert out["nonzero"][0].tolist() == [1, 1, 1, 1]
     assert np.abs(out["vertices"][0] - frame).max() < 1e-3       # float32 detail store
     assert np.abs(out["vertex_displacement"][0]).max() < 1e-3
-    # the database's fine map comes back (float16 store), and is all the detail over the input
+    # the database's fine and albedo maps come back (float16 store); the fine map is all the
+    # detail over the input
+    rgb = m.enhance(frame[None], outputs=("albedo",))["albedo"][0]
+    own_rgb = clip.albedo[m.frame_index[k]]
+    assert rgb.shape == own_rgb.shape
+    lit = m.albedo_maps.image(np.ones((1, len(m.albedo_maps.texels), 3)))[0] > 0
+    np.testing.assert_allclose(rgb[lit], own_rgb[lit], atol=2e-3)
     own = clip.displacement[m.frame_index[k]]
     assert out["fine_displacement"].shape == (1,) + own.shape
-    covered = m.fine_maps.image(np.ones((1, len(m.fine_maps.texels))))[0] > 0
+    covered = m.fine_maps.image(np.ones((1, len(m.fine_maps.texels), 1)))[0] > 0
     np.testing.assert_allclose(out["fine_displacement"][0][covered], own[covered], atol=2e-4)
     H = m.params.map_resolution
     assert out["displacement"].shape == (1, H, H) and out["displacement"].dtype == np.float32
@@ -207,7 +213,9 @@ def test_invalid_input_is_rejected(shape_space_model):
     with pytest.raises(InvalidInput, match="frames must be"):
         m.enhance(np.zeros((1, 17, 3)))
     with pytest.raises(InvalidInput, match="unknown outputs"):
-        m.enhance(m.neutral, outputs=("mesh", "albedo"))
+        m.enhance(m.neutral, outputs=("mesh", "normal_map"))
+    with pytest.raises(InvalidInput, match="no albedo maps"):
+        dataclasses.replace(m, albedo_maps=None).enhance(m.neutral, outputs=("mesh", "albedo"))
     with pytest.raises(InvalidInput, match="non-finite"):
         m.enhance(np.full((1, m.n_vertices, 3), np.nan))
     with pytest.raises(InvalidInput, match="two keyframes"):
@@ -219,9 +227,10 @@ def test_memory_footprint_counts_the_detail_store_and_the_prefactored_solve(shap
 
     m = shape_space_model
     arrays = (m.detail.nbytes + m.gram.nbytes + m.shapes.nbytes + m.neutral.nbytes
-              + m.colors.nbytes + m.marker_corrections.nbytes + m.fine_maps.maps.nbytes)
+              + m.colors.nbytes + m.marker_corrections.nbytes + m.fine_maps.maps.nbytes
+              + m.albedo_maps.maps.nbytes)
     factor = FACTOR_ENTRY_BYTES * m._poisson._factor.fill
     # operators built on first use by the other tests: the (H², n) vertex → map operator and
     # the fine maps' resampling to map_resolution (sparse, ~12 bytes per entry)
-    lazy = sum(nbytes(x) for x in (m._map_operator, m.fine_maps._resample, m._shell))
+    lazy = sum(nbytes(x) for x in (m._map_operator, m.fine_maps._resample, m.albedo_maps._resample, m._shell))
     assert arrays + factor + lazy <= nbytes(m) < 2 * (arrays + factor) + lazy

@@ -20,8 +20,9 @@ def test_round_trip_is_bit_exact(shape_space_model, shape_space_data, saved):
     loaded = ShapeSpaceModel.load(path)
     _, clip, heldout = shape_space_data
     frames = np.stack([heldout["vertices_medium"][40], clip.vertices[123]])
-    a = shape_space_model.enhance(frames, outputs=("mesh", "displacement"))
-    b = loaded.enhance(frames, outputs=("mesh", "displacement"))
+    a = shape_space_model.enhance(frames, outputs=("mesh", "displacement", "albedo"))
+    b = loaded.enhance(frames, outputs=("mesh", "displacement", "albedo"))
+    assert {"fine_displacement", "albedo"} <= a.keys()
     assert a.keys() == b.keys()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
