@@ -83,8 +83,10 @@ async def enhance(model_id: str, request: Request, services: ServicesDep,
                   rig: RigQuery = None,
                   accept: Annotated[str | None, Header()] = None) -> Response:
     """For mesh-driven kinds (e.g. `shape_space`): meshes in, detailed meshes and maps out;
-    the response is as for `/synthesize` (a `shape_space` model gives `displacement` per
-    vertex, (F,V), and adds its matching `weights` (F,R,N)). With `rig`, the vertices are on
+    the response is as for `/synthesize` (a `shape_space` model's `displacement` is the
+    detail over the input surface: the enhanced mesh's offset plus the database's blended
+    fine maps; `albedo` is the database's blended albedo maps where it had them; it adds its
+    matching `weights` (F,R,N)). With `rig`, the vertices are on
     that registered input rig (422 naming its vertex count if they are not). A
     marker-driven model answers 422."""
     return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "meshes",
