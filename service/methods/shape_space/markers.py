@@ -1,30 +1,34 @@
-"""Marker input of shape-space enhancement: the linear thin shell and its pose-space correction.
+"""Marker input of shape-space enhancement: the linear thin shell, matched and corrected.
 
 bermano2014 §5.1 carries an input that is "possibly just marker positions" to the database
 neutral with "a linear deformation model [Bickel et al. 2008]", and §8 assumes that "the
 low-frequency component of the input animation is correct". For markers it is not: the
 thin shell of a neutral between ~150 markers misses the captured shape by 0.25–0.45 mm on
-the sample actor, mostly in the band the shape space keeps from the input, so enhancement
-alone cannot remove that error.
+the sample actor, mostly in the band the shape space keeps from the input, and its shape
+differs systematically from the captured frames it is matched against.
 
-The same bickel2008 pipeline the paper cites has the remedy, its second half: the
-weighted pose-space deformation of bickel2008 §5.2–5.3. Per database frame k we store the
-correction the linear shell misses,
+Two departures, both switched by ``ShapeSpaceParams.marker_correction``, make marker input
+a first-class input; the database needs the markers of its frames, which every
+:class:`~service.methods.inputs.Clip` carries:
 
-    c_k = Frame(â_k) · (d_k − â_k),       â_k = shell(markers of d_k)  (aligned, §5.2),
+1. **like with like** — the input shell is matched (§5.3) against the database frames' own
+   shells, ``shell(markers of d_k)``, encoded and compressed exactly as an input is, rather
+   than against the captured frames: both sides then carry the same interpolation error;
+2. **pose-space correction** — the second half of the bickel2008 pipeline the paper cites,
+   its weighted pose-space deformation (§5.2–5.3). Per database frame k we store what the
+   linear shell misses,
 
-in the per-vertex tangent frames of the shell surface (bickel2008 §5.2: "stored in per-
-vertex local frames", so it is invariant to the local rotation of the skin), and for an
-input frame we blend the corrections with the shape space's own matched convex weights,
-per vertex through the normalized region weights (the WPSD of §5.3 with bermano2014's
-region weights in place of the RBF weights):
+       c_k = Frame(â_k) · (T_k d_k − â_k),       â_k = T_k shell(markers of d_k),
 
-    a' = â + Frameᵀ(â) · Σ_r ω̂_r Σ_k w_{r,k} c_k.
+   in the per-vertex tangent frames of the aligned shell (bickel2008 §5.2: corrections
+   "stored in per-vertex local frames", invariant to the local rotation of the skin), T_k
+   the shell's own alignment (as an input's). For an input frame the corrections are
+   blended with the matched convex weights, per vertex through the normalized region
+   weights (the WPSD of §5.3 with bermano2014's region weights in place of its RBF weights):
 
-The corrected surface is then encoded and matched again and enhanced as any other input.
-This departs from bermano2014 (which enhances the shell directly) and is switched by
-``ShapeSpaceParams.marker_correction``; the database needs the markers of its frames,
-which every :class:`~service.methods.inputs.Clip` carries.
+       ā' = ā + Frameᵀ(ā) · Σ_r ω̂_r Σ_k w_{r,k} c_k,
+
+   and ā' is what is enhanced (see ``ShapeSpaceModel._pose_space_correction``).
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.geometry.closest_point import surface_points
-from service.geometry.rigid import RigidTransform, rigid_align
+from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
     apply_basis, complete_handles, handle_energy_matrix, thin_shell_basis,
@@ -103,30 +107,20 @@ class MarkerShell:
         return out
 
 
-def pose_space_corrections(shell: MarkerShell, frames: FrameField, markers: np.ndarray,
-                           aligned: np.ndarray, transforms: list[RigidTransform]) -> np.ndarray:
-    """What the shell misses on every database frame, in its tangent frames (bickel2008 §5.2).
+@dataclass(frozen=True)
+class MarkerDatabase:
+    """What marker input is matched against and corrected by (N database frames, P patches).
 
-    Parameters
+    Attributes
     ----------
-    shell : MarkerShell
-    frames : FrameField          tangent frames of the neutral's layout
-    markers : (N,M,3) float      world markers of the database frames (NaN when occluded)
-    aligned : (N,n,3) float      the database frames aligned to the neutral, ``T_k(d_k)``
-    transforms : N RigidTransform   the alignments T_k (world → database frame)
-
-    Returns
-    -------
-    c : (N,n,3) float32   ``Frame(â_k) · (T_k d_k − â_k)`` with ``â_k = T_k(shell(markers_k))``;
-                          zero for a frame with too few visible markers (it corrects nothing)
+    shapes : (N,9P) float64        compressed low-frequency shapes of the frames' shells (§5.2)
+    gram : (R,N,N) float64         their Gram matrices per region (§5.3)
+    corrections : (N,n,3) float32  c_k, in the aligned shells' tangent frames, mm
     """
-    c = np.zeros(aligned.shape, np.float32)
-    for k, (P, T) in enumerate(zip(markers, transforms)):
-        if np.isfinite(P).all(axis=1).sum() < MIN_VISIBLE_MARKERS:
-            continue
-        a = T.apply(shell(P[None])[0])
-        c[k] = np.einsum("nij,nj->ni", frames.frames(a), aligned[k] - a)
-    return c
+
+    shapes: np.ndarray
+    gram: np.ndarray
+    corrections: np.ndarray
 
 
 def corrected_input(frames: FrameField, aligned_shell: np.ndarray, correction: np.ndarray) -> np.ndarray:
@@ -134,4 +128,4 @@ def corrected_input(frames: FrameField, aligned_shell: np.ndarray, correction: n
     return aligned_shell + frames.to_world(aligned_shell, correction)
 
 
-__all__ = ["MarkerShell", "corrected_input", "pose_space_corrections"]
+__all__ = ["MarkerDatabase", "MarkerShell", "corrected_input"]

@@ -51,7 +51,7 @@ Departures and choices (beyond those of the modules):
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -69,7 +69,7 @@ from service.methods.shape_space.encoding import (
     FrequencySeparator, compose, detail_encoding, shape_encoding,
 )
 from service.methods.shape_space.maps import DatabaseMaps
-from service.methods.shape_space.markers import MarkerShell, corrected_input, pose_space_corrections
+from service.methods.shape_space.markers import MarkerDatabase, MarkerShell, corrected_input
 from service.methods.shape_space.params import (
     COMPONENTS, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE, ShapeSpaceParams,
 )
@@ -112,9 +112,9 @@ class ShapeSpaceModel:
     colors : (N,n,C) float32 | None   per-vertex colours of the database frames
     marker_triangle, marker_barycentric : (M,), (M,3)   the actor's markers (M may be 0)
     marker_weights : (M,) float64     head-alignment weights of the markers
-    marker_corrections : (N,n,3) float32 | None   what the thin shell of each database frame's
-                                      markers misses, in the shell's tangent frames
-                                      (:mod:`.markers`; None: marker input is not corrected)
+    marker_database : MarkerDatabase | None   the database frames' marker shells, compressed,
+                                      and what they miss (:mod:`.markers`; None: marker input
+                                      is matched against the frames and not corrected)
     fine_maps, albedo_maps : DatabaseMaps | None   the database frames' fine displacement and
                                       albedo maps (None: the database had none; :mod:`.maps`)
     uv : (K,2) float64;  uv_faces : (m,3) int64   the neutral's UV layout (displacement maps)
@@ -146,7 +146,7 @@ class ShapeSpaceModel:
     uv: np.ndarray
     uv_faces: np.ndarray
     metrics: dict = field(default_factory=dict)
-    marker_corrections: np.ndarray | None = None   # (N,n,3) float32, :mod:`.markers`
+    marker_database: MarkerDatabase | None = None  # :mod:`.markers`
     fine_maps: DatabaseMaps | None = None          # the database's maps, :mod:`.maps`
     albedo_maps: DatabaseMaps | None = None
     # derived (not stored), built by prepare()
@@ -227,8 +227,11 @@ class ShapeSpaceModel:
         return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
                 "shape": shape}
 
-    def match(self, shape: np.ndarray) -> dict[str, np.ndarray]:
+    def match(self, shape: np.ndarray, markers: bool = False) -> dict[str, np.ndarray]:
         """Convex weights per region for one compressed vector ã (9P,) (§5.3 eq. 3).
+
+        ``markers``: ã is a marker shell's, matched against the database frames' shells
+        (``marker_database``, :mod:`.markers`) where the model has them.
 
         Returns
         -------
@@ -237,11 +240,12 @@ class ShapeSpaceModel:
         Ω_r-weighted RMS of ``D̃ w_r − ã`` per component (rad / dimensionless)
         """
         R, N = len(self.region_names), self.n_frames
+        space = self.marker_database if markers and self.marker_database is not None else self
         W = np.empty((R, N))
         err = np.empty(R)
         for r in range(R):
             Om = self.component_weights(r)
-            res = solve_simplex_qp(self.gram[r], self.shapes @ (Om * shape))
+            res = solve_simplex_qp(space.gram[r], space.shapes @ (Om * shape))
             W[r] = res.w
             sq = res.objective + float(shape @ (Om * shape))
             err[r] = np.sqrt(max(sq, 0.0) / max(Om.sum(), 1e-300))
@@ -285,7 +289,7 @@ class ShapeSpaceModel:
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
         ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface;
         ``corrected_input`` (F,n,3) float32  for marker input to a model with
-                                        ``marker_corrections``: the shell plus its blended
+                                        ``marker_database``: the shell plus its blended
                                         pose-space correction (:mod:`.markers`), the
                                         surface that was enhanced;
         ``region_names`` (R,) str
@@ -306,7 +310,7 @@ class ShapeSpaceModel:
             frames = frames[None]
         kind = self._input_kind(frames, input_kind)
         out: dict[str, np.ndarray] = {}
-        correct = kind == "markers" and self.marker_corrections is not None
+        correct = kind == "markers" and self.marker_database is not None
         if kind == "markers":
             frames = self.markers_to_vertices(frames)
             out["input_vertices"] = frames.astype(np.float32)
@@ -332,21 +336,18 @@ class ShapeSpaceModel:
             out["colors"] = np.empty((nf, n, self.colors.shape[2]), np.float32)
         for f in range(nf):
             enc = self.encode(frames[f:f + 1])
-            m = self.match(enc["shape"][0])
+            m = self.match(enc["shape"][0], markers=kind == "markers")
             W = m["weights"]
-            aligned, low, G_low = enc["aligned"][0], enc["low"][0], enc["G_low"][0]
-            shift = None
             if correct:
-                aligned, low, G_low, shift = self._pose_space_correction(aligned, low, G_low, W)
-                out["corrected_input"][f] = enc["transforms"][0].inverse().apply(aligned)
+                enc = self._pose_space_correction(enc, W)
+                out["corrected_input"][f] = enc["transforms"][0].inverse().apply(enc["aligned"][0])
+            aligned = enc["aligned"][0]
             bh = blend(self.detail, self._omega_hat, W)                     # (m,9)
-            G = compose(bh, G_low)
+            G = compose(bh, enc["G_low"][0])
             X = self._poisson.solve(G, boundary_reference=aligned)
             X = rigid_align(X, aligned).apply(X)
             if self.params.restore_low_frequencies:
-                X = X + low - self._separator(X)
-                if shift is not None:
-                    X += shift - self._separator(shift)
+                X = X + enc["low"][0] - self._separator(X)
             world = enc["transforms"][0].inverse().apply(X)
             out["vertices"][f] = world
             out["weights"][f] = W
@@ -430,42 +431,26 @@ class ShapeSpaceModel:
                                             self.marker_barycentric, self.marker_weights)
         return self._shell(markers)
 
-    def _pose_space_correction(self, aligned: np.ndarray, low: np.ndarray, G_low: np.ndarray,
-                               weights: np.ndarray):
-        """A shell input corrected by the database corrections blended with ``weights`` (R,N).
+    def _pose_space_correction(self, enc: dict, weights: np.ndarray) -> dict:
+        """The encoding (:meth:`encode`) of a shell input's corrected surface
+        ā' = ā + Frameᵀ(ā) · c, c the database corrections blended with ``weights`` (R,N)
+        (:mod:`.markers`), in the shell's world pose.
 
-        Parameters
-        ----------
-        aligned, low : (n,3) float     the aligned shell surface ā and its low band f(ā)
-        G_low : (m,3,3) float          the gradients f(d0) → f(ā)
-        weights : (R,N) float          the convex weights matched on the shell
-
-        Returns
-        -------
-        corrected : (n,3)   ā' = ā + Frameᵀ(ā) · c (:func:`.markers.corrected_input`)
-        low : (n,3)         f(ā')
-        G_low : (m,3,3)     the gradients to compose the detail with
-        shift : (n,3) | None   f(ā') − f(ā), with ``restore_low_frequencies``
-
-        With ``restore_low_frequencies`` (the default) the result's low band is restored to
-        f(ā'), and the shell's own gradients are kept: they only orient the blended detail
-        (the correction is smooth and sub-millimetre), and encoding ā' again would double the
-        per-frame cost. What their reconstruction lacks is the part of the shift
-        s = f(ā') − f(ā) that f itself does not pass (f is not idempotent): the caller adds
-        ``s − f(s)``. On the level-0 sample actor this leaves the face RMS error within
-        0.003 mm of encoding ā' again (0.335 against 0.332 mm in range, 0.583 against
-        0.582 mm out of range; without the ``s − f(s)`` term 0.357 and 0.626). Without the
-        restore step the correction can only enter through the gradients, so ā' is encoded.
+        The weights stay those of the shell's match against the database's shells (like
+        with like); ā' is encoded again because its low-frequency gradients orient the
+        blended detail. (Keeping the shell's gradients and adding the correction to the
+        restored low band instead saves that encoding, but leaves a database frame's own
+        markers 0.028 mm RMS, 0.36 mm at worst, off the frame on the level-0 actor.)
         """
+        c = blend(self.marker_database.corrections, self._vertex_omega_hat, weights)  # (n,3)
+        corrected = corrected_input(self.frame_field(), enc["aligned"][0], c)
+        return self.encode(enc["transforms"][0].inverse().apply(corrected)[None])
+
+    def frame_field(self) -> FrameField:
+        """Per-vertex tangent frames of deformed poses (built on first use; :mod:`.markers`)."""
         if self._frame_field is None:
             self._frame_field = FrameField.build(self.neutral, self.faces, self.uv, self.uv_faces)
-        c = blend(self.marker_corrections, self._vertex_omega_hat, weights)     # (n,3)
-        corrected = corrected_input(self._frame_field, aligned, c)
-        low_c = self._separator(corrected)
-        if not self.params.restore_low_frequencies:
-            G_low, _ = shape_encoding(self.smooth_neutral, low_c, self.faces, self._rest_inverse)
-            return corrected, low_c, G_low, None
-        return corrected, low_c, G_low, low_c - low
+        return self._frame_field
 
     def rest_markers(self) -> np.ndarray:
         """Marker positions (M,3) on the neutral, mm."""
@@ -622,7 +607,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
 
     progress(0.0, "alignment")
     align_w = stability_weights(frames, d0)
-    aligned, transforms = align_frames(frames, d0, align_w)
+    aligned, _ = align_frames(frames, d0, align_w)
     del frames
 
     progress(0.1, "patches")
@@ -659,14 +644,6 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
                                                np.array(p.left_axis), p.region_motion_fraction,
                                                p.region_seed)
         region_info.update(source="derived", **info)
-    marker_weights = _marker_weights(actor, clips, frame_clip, frame_index)
-    shell = corrections = None
-    if p.marker_correction and actor.n_markers:
-        progress(0.85, "marker corrections")
-        shell = MarkerShell.build(d0, F, actor.marker_triangle, actor.marker_barycentric, marker_weights)
-        markers = np.stack([clips[c].markers[f] for c, f in zip(frame_clip, frame_index)])
-        corrections = pose_space_corrections(shell, FrameField.build(d0, F, actor.uv, actor.uv_faces),
-                                             markers, aligned, transforms)
     del aligned
     if len(names) == 1:
         omega = np.ones((1, m))
@@ -674,11 +651,11 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
         omega = region_triangle_weights(d0, F, region_vertices, p.region_falloff, HeatGeodesics(d0, F))
     patch_w = averager(omega[..., None])[..., 0]                          # (R,P)
 
-    progress(0.9, "gram matrices")
-    gram = np.stack([(shapes * np.repeat(w, COMPONENTS)) @ shapes.T for w in patch_w])
-    gram = 0.5 * (gram + gram.transpose(0, 2, 1))
+    progress(0.85, "gram matrices")
+    gram = _gram_matrices(shapes, patch_w)
 
     colors = _vertex_colors(actor, clips, p.frame_stride, vertex_colors)
+    marker_weights = _marker_weights(actor, clips, frame_clip, frame_index)
     fine_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "displacement")
     albedo_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "albedo")
     sizes = np.bincount(labels, minlength=P)
@@ -701,18 +678,58 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
                         "vertices": [int(x) for x in region_vertices.sum(axis=1)]},
             "detail_bytes": int(detail.nbytes),
             "colors": colors is not None,
-            "marker_corrections": corrections is not None,
+            "marker_database": bool(p.marker_correction and actor.n_markers),
             "maps": {k: list(m.shape) for k, m in (("displacement", fine_maps), ("albedo", albedo_maps))
                      if m is not None},
             "params": asdict(p),
         },
-        marker_corrections=corrections, fine_maps=fine_maps, albedo_maps=albedo_maps,
+        fine_maps=fine_maps, albedo_maps=albedo_maps,
     )
-    model._shell = shell
-    progress(0.95, "prepare")
+    progress(0.9, "prepare")
     model.prepare()
+    if p.marker_correction and actor.n_markers:
+        model.marker_database = _marker_database(
+            model, clips, frame_clip, frame_index,
+            lambda x: progress(0.9 + 0.1 * x, "marker shells and corrections"))
     progress(1.0, "done")
     return model
+
+
+def _gram_matrices(shapes: np.ndarray, patch_weights: np.ndarray) -> np.ndarray:
+    """``D̃ᵀ Ω_r D̃`` (R,N,N), symmetric, for shapes (N,9P) and patch weights (R,P) (§5.3)."""
+    gram = np.stack([(shapes * np.repeat(w, COMPONENTS)) @ shapes.T for w in patch_weights])
+    return 0.5 * (gram + gram.transpose(0, 2, 1))
+
+
+def _marker_database(model: ShapeSpaceModel, clips: Sequence[Clip], frame_clip: np.ndarray,
+                     frame_index: np.ndarray, progress: Callable[[float], None],
+                     chunk: int = 16) -> MarkerDatabase:
+    """The database frames' marker shells encoded as inputs are, and what they miss (:mod:`.markers`).
+
+    A frame with too few visible markers stands in for its own shell (its shape is its
+    captured one, its correction zero).
+    """
+    from service.methods.pdm.base_surface import MIN_VISIBLE_MARKERS
+
+    frames = model.frame_field()
+    N = model.n_frames
+    shapes = np.empty((N, model.shapes.shape[1]))
+    corrections = np.empty((N, model.n_vertices, 3), np.float32)
+    for s in range(0, N, chunk):
+        ks = range(s, min(s + chunk, N))
+        truth = np.stack([clips[frame_clip[k]].vertices[frame_index[k]] for k in ks]).astype(np.float64)
+        markers = np.stack([clips[frame_clip[k]].markers[frame_index[k]] for k in ks]).astype(np.float64)
+        usable = np.isfinite(markers).all(axis=2).sum(axis=1) >= MIN_VISIBLE_MARKERS
+        shells = truth.copy()
+        if usable.any():
+            shells[usable] = model.markers_to_vertices(markers[usable])
+        enc = model.encode(shells)
+        shapes[s:s + len(ks)] = enc["shape"]
+        for j, T in enumerate(enc["transforms"]):
+            a = enc["aligned"][j]
+            corrections[s + j] = np.einsum("nij,nj->ni", frames.frames(a), T.apply(truth[j]) - a)
+        progress(min(s + chunk, N) / N)
+    return MarkerDatabase(shapes, _gram_matrices(shapes, model.patch_weights), corrections)
 
 
 def _marker_weights(actor: ActorData, clips: Sequence[Clip], frame_clip: np.ndarray,

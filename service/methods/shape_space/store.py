@@ -11,8 +11,9 @@ Layout (DESIGN.md "Data and storage"):
 * ``maps.npz``    per map kind (``displacement``, ``albedo``) the maps (N,P,C) float16 at the
   covered texels with ``<kind>_texels`` (P,) and ``<kind>_shape`` (2,) (:mod:`.maps`), only
   if the database had maps;
-* ``markers.npz`` ``corrections`` (N,n,3) float32, the pose-space corrections of marker
-  input (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
+* ``markers.npz`` the :class:`~.markers.MarkerDatabase`: ``shapes`` (N,9P) and ``gram``
+  (R,N,N) of the database frames' marker shells, ``corrections`` (N,n,3) float32
+  (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
 * ``manifest.json`` kind, format version, params, metrics, region and clip names, and the
   sha256 of every file.
 
@@ -34,6 +35,7 @@ from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.shape_space.maps import DatabaseMaps
+from service.methods.shape_space.markers import MarkerDatabase
 from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
@@ -58,8 +60,10 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
     }
     if model.colors is not None:
         files["colors.npz"] = write_npz(path / "colors.npz", {"colors": model.colors})
-    if model.marker_corrections is not None:
-        files["markers.npz"] = write_npz(path / "markers.npz", {"corrections": model.marker_corrections})
+    if model.marker_database is not None:
+        md = model.marker_database
+        files["markers.npz"] = write_npz(path / "markers.npz", {"shapes": md.shapes, "gram": md.gram,
+                                                                "corrections": md.corrections})
     maps = {}
     for name, dm in ((n, getattr(model, a)) for n, a in MAP_FIELDS.items()):
         if dm is not None:
@@ -88,12 +92,12 @@ def load_model(path) -> ShapeSpaceModel:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
     detail = npz_arrays(data["detail.npz"])["detail"]
     colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
-    corrections = npz_arrays(data["markers.npz"])["corrections"] if "markers.npz" in data else None
+    marker_database = MarkerDatabase(**npz_arrays(data["markers.npz"])) if "markers.npz" in data else None
     m = npz_arrays(data["maps.npz"]) if "maps.npz" in data else {}
     maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]))
             for name, attr in MAP_FIELDS.items() if name in m}
     model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
-                            detail=detail, colors=colors, marker_corrections=corrections,
+                            detail=detail, colors=colors, marker_database=marker_database,
                             **maps,
                             region_names=tuple(manifest["region_names"]),
                             clip_names=tuple(manifest["clip_names"]),
@@ -106,7 +110,10 @@ def load_model(path) -> ShapeSpaceModel:
         if dm.maps.shape[:2] != (len(model.shapes), len(dm.texels)):
             raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.shape} for "
                                f"{len(model.shapes)} frames and {len(dm.texels)} texels")
-    if corrections is not None and corrections.shape != (len(model.shapes), model.n_vertices, 3):
-        raise ModelCorrupt(f"{path}: markers.npz has shape {corrections.shape}, expected "
-                           f"({len(model.shapes)},{model.n_vertices},3)")
+    md = marker_database
+    if md is not None and (md.corrections.shape != (len(model.shapes), model.n_vertices, 3)
+                           or md.shapes.shape != model.shapes.shape or md.gram.shape != model.gram.shape):
+        raise ModelCorrupt(f"{path}: markers.npz has shapes {md.shapes.shape}, gram {md.gram.shape}, "
+                           f"corrections {md.corrections.shape} for a model of shapes "
+                           f"{model.shapes.shape} and {model.n_vertices} vertices")
     return model.prepare()
