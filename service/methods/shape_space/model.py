@@ -607,7 +607,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
 
     progress(0.0, "alignment")
     align_w = stability_weights(frames, d0)
-    aligned, _ = align_frames(frames, d0, align_w)
+    aligned, _ = align_frames(frames, d0, align_w, inplace=True)     # frames: our own copy
     del frames
 
     progress(0.1, "patches")
@@ -640,7 +640,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
         region_info["source"] = "actor"
     else:
         names = VOLUNTARY_REGIONS
-        region_vertices, info = derive_regions(d0, F, aligned - d0, np.array(p.up_axis),
+        aligned -= d0                                                 # the motion, in place
+        region_vertices, info = derive_regions(d0, F, aligned, np.array(p.up_axis),
                                                np.array(p.left_axis), p.region_motion_fraction,
                                                p.region_seed)
         region_info.update(source="derived", **info)

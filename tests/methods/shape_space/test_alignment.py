@@ -36,6 +36,11 @@ def test_transforms_restore_the_pose():
     aligned, T = align_frames(X[None], V)
     np.testing.assert_allclose(aligned[0], V, atol=1e-10)
     np.testing.assert_allclose(T[0].inverse().apply(aligned[0]), X, atol=1e-10)
+    frames = np.stack([X, X[::-1][::-1] + 1.0])
+    expected, _ = align_frames(frames, V)
+    same, _ = align_frames(frames, V, inplace=True)
+    assert same is frames
+    np.testing.assert_allclose(same, expected, rtol=0, atol=1e-12)
 
 
 def test_stability_weights_equal_the_explicit_aligned_offsets():
