@@ -713,7 +713,7 @@ def _marker_database(model: ShapeSpaceModel, clips: Sequence[Clip], frame_clip: 
     from service.methods.pdm.base_surface import MIN_VISIBLE_MARKERS
 
     frames = model.frame_field()
-    N = model.n_frames
+    N = len(frame_clip)
     shapes = np.empty((N, model.shapes.shape[1]))
     corrections = np.empty((N, model.n_vertices, 3), np.float32)
     for s in range(0, N, chunk):

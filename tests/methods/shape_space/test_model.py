@@ -232,3 +232,21 @@ def test_memory_footprint_counts_the_detail_store_and_the_prefactored_solve(shap
     # the fine maps' resampling to map_resolution (sparse, ~12 bytes per entry)
     lazy = sum(nbytes(x) for x in (m._map_operator, m.fine_maps._resample, m.albedo_maps._resample, m._shell))
     assert arrays + factor + lazy <= nbytes(m) < 2 * (arrays + factor) + lazy
+
+
+def test_a_database_frame_without_enough_markers_stands_in_for_its_shell(shape_space_model, shape_space_data):
+    from service.methods.inputs import Clip
+    from service.methods.shape_space.model import _marker_database
+
+    m = shape_space_model
+    _, clip, _ = shape_space_data
+    frames = m.frame_index[[5, 37]]
+    markers = clip.markers[frames].copy()
+    markers[0, 3:] = np.nan                                       # 3 visible markers: too few
+    small = Clip("two", clip.vertices[frames], markers)
+    md = _marker_database(m, [small], np.zeros(2, np.int64), np.arange(2), lambda x: None)
+    assert np.all(md.corrections[0] == 0) and np.abs(md.corrections[1]).max() > 0.1
+    np.testing.assert_allclose(md.shapes[0], m.shapes[5], atol=1e-9)   # its captured shape
+    np.testing.assert_allclose(md.shapes[1], m.marker_database.shapes[37], atol=1e-9)
+    np.testing.assert_allclose(md.corrections[1], m.marker_database.corrections[37], atol=1e-6)
+    assert md.gram.shape == (len(m.region_names), 2, 2)
