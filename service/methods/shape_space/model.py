@@ -55,7 +55,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from service.geometry.deformation_gradient import PoissonReconstruction, rest_frames_inverse
+from service.geometry.deformation_gradient import (
+    PoissonReconstruction, deformation_gradients, rest_frames_inverse,
+)
 from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normals import vertex_normals
@@ -203,29 +205,36 @@ class ShapeSpaceModel:
         return np.repeat(self.patch_weights[region], COMPONENTS)
 
     # ------------------------------------------------------------------ encoding
-    def encode(self, frames: np.ndarray) -> dict[str, np.ndarray | list]:
+    def encode(self, frames: np.ndarray, shape: bool = True) -> dict[str, np.ndarray | list]:
         """Align, separate, encode and compress frames on the neutral's topology (§5.1–5.2).
 
         Parameters
         ----------
         frames : (F,n,3) float   world-space vertices, mm
+        shape : bool             also the compressed shape vectors (the polar decomposition
+                                 and logarithm of every gradient: most of the cost); not
+                                 needed to compose detail with the gradients
 
         Returns
         -------
         dict with ``aligned`` (F,n,3) float64, ``transforms`` (list of F RigidTransform,
         world → database frame), ``low`` (F,n,3) f(aligned), ``G_low`` (F,m,3,3) gradients
-        f(d0) → f(ā) and ``shape`` (F,9P) the compressed vectors ã
+        f(d0) → f(ā) and ``shape`` (F,9P) the compressed vectors ã (None without ``shape``)
         """
         frames = self._check_vertices(frames)
         aligned, transforms = align_frames(frames, self.neutral, self.align_weights)
         low = self._separator(aligned)
+        if not shape:
+            G_low = deformation_gradients(self.smooth_neutral, low, self.faces, self._rest_inverse)
+            return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
+                    "shape": None}
         G_low = np.empty((len(frames), len(self.faces), 3, 3))
-        shape = np.empty((len(frames), self.shapes.shape[1]))
+        vectors = np.empty((len(frames), self.shapes.shape[1]))
         for f in range(len(frames)):
             G_low[f], x = shape_encoding(self.smooth_neutral, low[f], self.faces, self._rest_inverse)
-            shape[f] = self._averager(x).ravel()
+            vectors[f] = self._averager(x).ravel()
         return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
-                "shape": shape}
+                "shape": vectors}
 
     def match(self, shape: np.ndarray, markers: bool = False) -> dict[str, np.ndarray]:
         """Convex weights per region for one compressed vector ã (9P,) (§5.3 eq. 3).
@@ -438,13 +447,13 @@ class ShapeSpaceModel:
 
         The weights stay those of the shell's match against the database's shells (like
         with like); ā' is encoded again because its low-frequency gradients orient the
-        blended detail. (Keeping the shell's gradients and adding the correction to the
+        blended detail (its shape vector is not needed). (Keeping the shell's gradients and adding the correction to the
         restored low band instead saves that encoding, but leaves a database frame's own
         markers 0.028 mm RMS, 0.36 mm at worst, off the frame on the level-0 actor.)
         """
         c = blend(self.marker_database.corrections, self._vertex_omega_hat, weights)  # (n,3)
         corrected = corrected_input(self.frame_field(), enc["aligned"][0], c)
-        return self.encode(enc["transforms"][0].inverse().apply(corrected)[None])
+        return self.encode(enc["transforms"][0].inverse().apply(corrected)[None], shape=False)
 
     def frame_field(self) -> FrameField:
         """Per-vertex tangent frames of deformed poses (built on first use; :mod:`.markers`)."""
