@@ -64,7 +64,7 @@ class CurvatureFlowOperator:
         four_a = 4.0 * one_ring_areas(V, F)
         self._lhs_diag = np.where(four_a > 0, four_a, 1.0)
         A = sp.diags(self._lhs_diag) - self.lam_dt * 2.0 * cotangent_laplacian(V, F)
-        self._factor = factorize(A, spd=True)
+        self._factor = factorize(A, spd=True, backend="cholmod")  # per-frame solves
 
     def step(self, X: np.ndarray) -> np.ndarray:
         """Apply one step to X (n,3) or a batch (B,n,3) (one solve with 3B right-hand sides)."""

@@ -449,7 +449,7 @@ class PoissonReconstruction:
         self.free = np.flatnonzero(free)
         A = A.tocsr()
         self._A_fp = A[self.free][:, self.pinned]
-        self._factor = factorize(A[self.free][:, self.free], spd=True)
+        self._factor = factorize(A[self.free][:, self.free], spd=True, backend="cholmod")
 
     def solve(self, G: np.ndarray, pinned_positions: np.ndarray | None = None,
               boundary_reference: np.ndarray | None = None) -> np.ndarray:

@@ -30,6 +30,13 @@ mesh         ordering                factorization       fill nnz(L+U)
 
 and the triangular solves are 2–3× faster with the smaller factor. General (unsymmetric
 or indefinite) matrices use ``spd=False``: COLAMD with SuperLU's default partial pivoting.
+
+For the per-frame solves of a hot loop, ``backend="cholmod"`` factors an SPD matrix with
+CHOLMOD's supernodal Cholesky (the ``cholespy`` wheel, which bundles SuiteSparse). On the
+179k-vertex curvature-flow matrix of the level-2 sample actor it factors in 2.3 s (SuperLU
+~20 s) and solves three right-hand sides in 0.031 s against SuperLU's 0.127 s, equal to
+5e-15. CHOLMOD accepts a singular positive semi-definite matrix without complaint, so the
+factorization is checked by the residual of one seeded solve (:data:`CHOLMOD_RTOL`).
 """
 
 from __future__ import annotations
@@ -45,6 +52,13 @@ import scipy.sparse.linalg as spla
 #: 6e-7 (11 k vertices), 2e-8 (45 k), 4e-10 (179 k); a singular PSD matrix (the same
 #: operator without handles) gives 1e-16.
 PIVOT_RTOL = 1e3 * np.finfo(np.float64).eps
+#: a CHOLMOD factor whose seeded check solve leaves a relative residual above this is
+#: treated as singular (a singular PSD Laplacian gives ~1; the SPD systems here ~1e-15)
+CHOLMOD_RTOL = 1e-8
+#: factor entries (of FACTOR_ENTRY_BYTES) per nonzero of A that a CHOLMOD factor of a
+#: triangle-mesh Laplacian holds: CHOLMOD does not report its fill; measured 110 and 103
+#: bytes per nonzero on the level-1 and level-2 sample actors' curvature-flow matrices
+CHOLMOD_FILL_PER_NNZ = 9
 
 
 @dataclass(frozen=True)
@@ -55,15 +69,18 @@ class Factor:
     ----------
     n : int              order of the factored matrix
     spd : bool           factored as symmetric positive-definite (no pivoting)
-    fill : int           nnz(L) + nnz(U), a proxy for the factor's memory (12 bytes each)
-    pivot_ratio : float  min |pivot| / max |pivot|, a cheap singularity indicator
+    fill : int           nnz(L) + nnz(U), a proxy for the factor's memory (12 bytes each);
+                         for the CHOLMOD backend estimated (:data:`CHOLMOD_FILL_PER_NNZ`)
+    pivot_ratio : float  min |pivot| / max |pivot|, a cheap singularity indicator (NaN for
+                         the CHOLMOD backend, whose check is a residual)
     """
 
     n: int
     spd: bool
     fill: int
     pivot_ratio: float
-    _lu: spla.SuperLU = field(repr=False)
+    _lu: spla.SuperLU | None = field(repr=False)
+    _chol: object = field(default=None, repr=False)       # cholespy.CholeskySolverD
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b``.
@@ -81,12 +98,17 @@ class Factor:
             raise ValueError(f"right-hand side must be ({self.n},) or ({self.n},k), got {b.shape}")
         if b.ndim == 2 and b.shape[1] == 0:
             return np.zeros_like(b)
+        if self._chol is not None:
+            b = np.ascontiguousarray(b)
+            x = np.zeros_like(b)
+            self._chol.solve(b, x)
+            return x
         return self._lu.solve(np.asfortranarray(b))
 
     __call__ = solve
 
 
-def factorize(A: sp.spmatrix | sp.sparray, spd: bool = True) -> Factor:
+def factorize(A: sp.spmatrix | sp.sparray, spd: bool = True, backend: str = "superlu") -> Factor:
     """Factor a square sparse matrix once for repeated solves.
 
     Parameters
@@ -96,6 +118,8 @@ def factorize(A: sp.spmatrix | sp.sparray, spd: bool = True) -> Factor:
                          systems with constraints, mass + t·stiffness, the thin shell):
                          symmetric minimum-degree ordering, diagonal pivots. ``False`` for
                          general matrices: COLAMD with partial pivoting.
+    backend : "superlu" | "cholmod"   "cholmod" (SPD only): CHOLMOD's supernodal Cholesky,
+                         ~4× faster solves for the per-frame loops (see the module docstring)
 
     Returns
     -------
@@ -121,6 +145,12 @@ def factorize(A: sp.spmatrix | sp.sparray, spd: bool = True) -> Factor:
         raise ValueError("matrix has non-finite entries")
     A.sum_duplicates()
     A.sort_indices()
+    if backend not in ("superlu", "cholmod"):
+        raise ValueError(f"backend must be 'superlu' or 'cholmod', got {backend!r}")
+    if backend == "cholmod":
+        if not spd:
+            raise ValueError("the cholmod backend factors symmetric positive-definite matrices only")
+        return _cholmod(A)
     if spd:
         kwargs = dict(permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options=dict(SymmetricMode=True))
@@ -138,3 +168,24 @@ def factorize(A: sp.spmatrix | sp.sparray, spd: bool = True) -> Factor:
             f"(pivot ratio {ratio:.1e} < {PIVOT_RTOL:.1e})"
         )
     return Factor(n=A.shape[0], spd=spd, fill=int(lu.L.nnz + lu.U.nnz), pivot_ratio=ratio, _lu=lu)
+
+
+def _cholmod(A: sp.csc_matrix) -> Factor:
+    """CHOLMOD factor of an SPD matrix, checked by one seeded solve (see :func:`factorize`)."""
+    from cholespy import CholeskySolverD, MatrixType
+
+    n = A.shape[0]
+    coo = A.tocoo()
+    try:
+        chol = CholeskySolverD(n, coo.row.astype(np.int32), coo.col.astype(np.int32),
+                               coo.data.astype(np.float64), MatrixType.COO)
+    except ValueError as exc:                  # "Matrix is not positive definite!"
+        raise np.linalg.LinAlgError(f"sparse matrix of order {n} is not positive definite: {exc}") from None
+    factor = Factor(n=n, spd=True, fill=CHOLMOD_FILL_PER_NNZ * int(A.nnz), pivot_ratio=float("nan"),
+                    _lu=None, _chol=chol)
+    b = np.random.default_rng(0).standard_normal(n)
+    residual = float(np.linalg.norm(A @ factor.solve(b) - b) / np.linalg.norm(b))
+    if not residual <= CHOLMOD_RTOL:
+        raise np.linalg.LinAlgError(f"sparse matrix of order {n} is numerically singular "
+                                    f"(check residual {residual:.1e} > {CHOLMOD_RTOL:.1e})")
+    return factor

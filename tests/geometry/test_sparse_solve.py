@@ -75,3 +75,23 @@ def test_factorize_rejects_exactly_singular_and_bad_input():
     with pytest.raises(ValueError, match="right-hand side"):
         f(np.ones(4))
     assert f.pivot_ratio == 1.0 > PIVOT_RTOL
+
+
+def test_cholmod_backend_matches_superlu_and_rejects_singular_and_indefinite():
+    from service.geometry.laplacian import cotangent_laplacian
+    from tests.methods.shape_space.conftest import grid_mesh
+
+    V, F = grid_mesh()
+    L = -cotangent_laplacian(V, F)                                   # PSD, singular
+    A = sp.identity(len(V)) + 3.0 * L
+    b = np.random.default_rng(1).normal(size=(len(V), 3))
+    chol = factorize(A, backend="cholmod")
+    assert chol.spd and np.isnan(chol.pivot_ratio) and chol.fill > A.nnz
+    np.testing.assert_allclose(chol(b), factorize(A)(b), atol=1e-12)
+    np.testing.assert_allclose(chol(b[:, 0]), factorize(A)(b[:, 0]), atol=1e-12)
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        factorize(L, backend="cholmod")
+    with pytest.raises(np.linalg.LinAlgError, match="positive definite"):
+        factorize(-A, backend="cholmod")
+    with pytest.raises(ValueError, match="symmetric positive-definite"):
+        factorize(A, spd=False, backend="cholmod")
