@@ -248,11 +248,12 @@ class ShapeSpaceParamsModel(BaseModel):
         examples=[_SS.restore_low_frequencies])
     marker_correction: bool = Field(
         default=_SS.marker_correction,
-        description="For marker input, correct the thin shell of the markers by the "
-                    "database's pose-space corrections (what the shell missed on each "
-                    "database frame, bickel2008 §5) blended with the matched weights, "
-                    "before enhancing it (a departure; false: the paper enhances the shell "
-                    "as it is). The model stores frames x vertices x 3 float32 more.",
+        description="For marker input, match the markers' thin shell against the database "
+                    "frames' own shells and correct it by the database's pose-space "
+                    "corrections (what the shell missed on each database frame, bickel2008 "
+                    "§5) blended with the matched weights, before enhancing it (a departure; "
+                    "false: the paper enhances the shell as it is). The model stores "
+                    "frames x vertices x 3 float32 more.",
         examples=[_SS.marker_correction])
     sequence_seconds: float = Field(
         default=_SS.sequence_seconds, ge=0,

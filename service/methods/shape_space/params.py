@@ -83,12 +83,14 @@ class ShapeSpaceParams:
     restore_low_frequencies : bool  after reconstruction, replace the result's low band by the
                                    input's: ``x ← x + f(ā) − f(x)`` (departure, see
                                    :mod:`~service.methods.shape_space.model`; False: the paper)
-    marker_correction : bool       for marker input, correct the thin shell of the markers by
-                                   the database's pose-space corrections blended with the
-                                   matched weights before enhancing it (departure, see
+    marker_correction : bool       for marker input, match the markers' thin shell against the
+                                   database frames' own shells and correct it by their
+                                   pose-space corrections blended with the matched weights
+                                   before enhancing it (departure, see
                                    :mod:`~service.methods.shape_space.markers`; False: the
-                                   paper, the shell is enhanced as it is). Stores (N,n,3)
-                                   float32 more in the model
+                                   paper, the shell is matched against the frames and
+                                   enhanced as it is). Stores (N,n,3) float32 and the shells'
+                                   shape vectors and Gram matrices more in the model
     map_resolution : int           texels per side of the displacement map of
                                    :meth:`~.model.ShapeSpaceModel.enhance` (the enhanced
                                    surface's offset from the input, rasterized over the
