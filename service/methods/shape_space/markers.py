@@ -128,4 +128,4 @@ def corrected_input(frames: FrameField, aligned_shell: np.ndarray, correction: n
     return aligned_shell + frames.to_world(aligned_shell, correction)
 
 
-__all__ = ["MarkerDatabase", "MarkerShell", "corrected_input"]
+__all__ = ["MIN_VISIBLE_MARKERS", "MarkerDatabase", "MarkerShell", "corrected_input"]

@@ -71,7 +71,9 @@ from service.methods.shape_space.encoding import (
     FrequencySeparator, compose, detail_encoding, shape_encoding,
 )
 from service.methods.shape_space.maps import DatabaseMaps
-from service.methods.shape_space.markers import MarkerDatabase, MarkerShell, corrected_input
+from service.methods.shape_space.markers import (
+    MIN_VISIBLE_MARKERS, MarkerDatabase, MarkerShell, corrected_input,
+)
 from service.methods.shape_space.params import (
     COMPONENTS, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE, ShapeSpaceParams,
 )
@@ -446,10 +448,11 @@ class ShapeSpaceModel:
         (:mod:`.markers`), in the shell's world pose.
 
         The weights stay those of the shell's match against the database's shells (like
-        with like); ā' is encoded again because its low-frequency gradients orient the
-        blended detail (its shape vector is not needed). (Keeping the shell's gradients and adding the correction to the
-        restored low band instead saves that encoding, but leaves a database frame's own
-        markers 0.028 mm RMS, 0.36 mm at worst, off the frame on the level-0 actor.)
+        with like); ā' is encoded again (gradients only, no shape vector) because its
+        low-frequency gradients orient the blended detail. (Keeping the shell's gradients
+        and adding the correction to the restored low band instead saves that encoding, but
+        leaves a database frame's own markers 0.028 mm RMS, 0.36 mm at worst, off the frame
+        on the level-0 actor.)
         """
         c = blend(self.marker_database.corrections, self._vertex_omega_hat, weights)  # (n,3)
         corrected = corrected_input(self.frame_field(), enc["aligned"][0], c)
@@ -460,11 +463,6 @@ class ShapeSpaceModel:
         if self._frame_field is None:
             self._frame_field = FrameField.build(self.neutral, self.faces, self.uv, self.uv_faces)
         return self._frame_field
-
-    def rest_markers(self) -> np.ndarray:
-        """Marker positions (M,3) on the neutral, mm."""
-        from service.geometry.closest_point import surface_points
-        return surface_points(self.neutral, self.faces, self.marker_triangle, self.marker_barycentric)
 
     # ------------------------------------------------------------------ temporal
     def sequences(self) -> list[np.ndarray]:
@@ -719,8 +717,6 @@ def _marker_database(model: ShapeSpaceModel, clips: Sequence[Clip], frame_clip: 
     A frame with too few visible markers stands in for its own shell (its shape is its
     captured one, its correction zero).
     """
-    from service.methods.pdm.base_surface import MIN_VISIBLE_MARKERS
-
     frames = model.frame_field()
     N = len(frame_clip)
     shapes = np.empty((N, model.shapes.shape[1]))
