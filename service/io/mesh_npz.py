@@ -21,6 +21,7 @@ _NPZ_SHAPES = {
     "quad_split": ("T",),
 }  # fmt: skip
 _NPZ_KEYS = tuple(_NPZ_SHAPES)
+_NPZ_COORDINATES = ("vertices", "uv")
 
 
 def read_npz(
@@ -30,7 +31,9 @@ def read_npz(
 
     Keys: ``vertices`` (V,3) float, ``faces`` (T,3) int, optional ``uv`` (V,2) per vertex or
     (K,2) with ``uv_faces`` (T,3) int, optional ``quad_split`` (T,) int (see :class:`Mesh`).
-    Array shapes are read from the ``.npy`` headers and bounded before any data is loaded.
+    Array shapes and dtypes are read from the ``.npy`` headers and checked before any data is
+    loaded: ``vertices`` and ``uv`` must be floating point (integer coordinates, e.g. int8, are
+    refused rather than cast); the index arrays are checked by :class:`Mesh`.
 
     Parameters
     ----------
@@ -70,7 +73,12 @@ def read_npz(
             "quad_split": ("faces", max_faces),
         }
         for key in archive.files:
-            shape = _npy_shape(archive.zip, key)
+            shape, dtype = _npy_header(archive.zip, key)
+            if key in _NPZ_COORDINATES and dtype.kind in "iub":
+                raise MeshFormatError(
+                    f"'{key}' has dtype {dtype}, expected floating point (float32 or float64); "
+                    "integer coordinates are refused, not cast"
+                )
             expected = _NPZ_SHAPES[key]
             if len(shape) != len(expected) or shape[1:] != expected[1:]:
                 raise MeshFormatError(
@@ -86,9 +94,9 @@ def read_npz(
     return Mesh(**arrays)
 
 
-def _npy_shape(archive: zipfile.ZipFile, key: str) -> tuple[int, ...]:
+def _npy_header(archive: zipfile.ZipFile, key: str) -> tuple[tuple[int, ...], np.dtype]:
     try:
-        return npy_header(archive, key + ".npy")[0]
+        return npy_header(archive, key + ".npy")
     except ZIP_ERRORS as error:
         raise MeshFormatError(f"cannot read the header of '{key}' in the .npz: {error}") from None
 

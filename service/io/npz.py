@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import struct
+import tokenize
 import zipfile
 import zlib
 
@@ -23,17 +24,21 @@ ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.erro
 def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of one ``.npy`` member, from its header only.
 
-    Raises ``ValueError`` for a .npy format other than 1.0/2.0 and the :data:`ZIP_ERRORS`
-    of a corrupt member; callers turn them into their format's error.
+    Raises ``ValueError`` for a .npy format other than 1.0/2.0 or a header that is not the
+    dictionary literal numpy writes (e.g. one that cannot even be tokenized), and the
+    :data:`ZIP_ERRORS` of a corrupt member; callers turn them into their format's error.
     """
     with archive.open(member) as f:
         version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-        elif version == (2, 0):
-            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-        else:
+        if version not in ((1, 0), (2, 0)):
             raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        try:
+            shape, _, dtype = read(f)
+        except (tokenize.TokenError, SyntaxError, RecursionError, MemoryError) as error:
+            # numpy tokenizes the header (a Python literal) before its own checks
+            raise ValueError(f"malformed .npy header: {error}") from None
     return tuple(int(s) for s in shape), dtype
 
 

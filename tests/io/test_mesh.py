@@ -155,7 +155,7 @@ _TRIANGLE = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n"
         (_TRIANGLE + b"f 0 1 2\n", "references vertex 0 but OBJ indices start at 1"),
         (_TRIANGLE + b"f 1 2\n", "face 0 (line 4) has 2 corners; a face needs at least 3"),
         (_TRIANGLE + b"vt 0 0\nf 1/1 2/1 3/2\n", "references texture coordinate 2 but the file has 1 texture coordinates"),
-        (_TRIANGLE + b"vt 0 0\nf 1/1 2/1 3\n", "has corner '3' but the first corner of the file is '1/1'"),
+        (_TRIANGLE + b"vt 0 0\nf 1/1 2/1 3\n", "has corner '3' but the first corner of the face is '1/1'"),
         (_TRIANGLE + b"vt 0 0\nf 1/1/1 2//1 3/1/1\n", "either every corner has a texture index or none does"),
         (_TRIANGLE + b"f 1 2 3.5\n", "face 0 (line 4) has vertex index '3.5', expected an integer"),
         (b"v 0 0 0\nv inf 0 0\nv 0 1 0\nf 1 2 3\n", "vertex 1 (line 2) has a non-finite coordinate"),
