@@ -18,21 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-
-def _progress_bar(description: str):
-    """A tqdm bar driven by ``progress(fraction, stage)`` callbacks."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=100, desc=description, unit="%", bar_format="{l_bar}{bar}| {n:.0f}% {postfix}")
-
-    def update(fraction: float, stage: str) -> None:
-        bar.n = round(100 * fraction, 1)
-        bar.set_postfix_str(stage)
-        bar.refresh()
-        if fraction >= 1.0:
-            bar.close()
-
-    return update
+from service.progress_bar import progress_bar as _progress_bar
 
 
 def _summary(out: Path, manifest: dict) -> str:
@@ -193,8 +179,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from service.methods.pdm.model import PdmParams
 
-    parser = argparse.ArgumentParser(prog="facesynth", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    from service.client_cli import add_global_options
+
+    parser = argparse.ArgumentParser(
+        prog="facesynth", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="The facesynth command line: one entry point, a subcommand per task.",
+        epilog="Run 'facesynth COMMAND --help' for a command's options. The server commands "
+               "(actors, upload, train,\njobs, models, clips, synthesize, enhance) take --server "
+               "and --token before or after the command.")
+    add_global_options(parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("sample-actor", help="build the synthetic sample actor (ICT rig based)")
     p.add_argument("--out", required=True, type=Path, help="output directory")
@@ -268,8 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "embedded server unless --server is given, and writes OUT/result "
                                    "(per-frame OBJ and EXR) and OUT/side_by_side.png.")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")
-    p.add_argument("--server", help="URL of a running server (FACESYNTH_URL); default: start one")
-    p.add_argument("--token", help="bearer token (FACESYNTH_TOKEN)")
+    p.add_argument("--server", default=argparse.SUPPRESS,
+                   help="URL of a running server (FACESYNTH_URL); default: start one")
+    p.add_argument("--token", default=argparse.SUPPRESS, help="bearer token (FACESYNTH_TOKEN)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--level", type=int, choices=(0, 1, 2), default=1)
     p.set_defaults(func=cmd_demo)
