@@ -74,9 +74,11 @@ def cmd_pdm_train(args: argparse.Namespace) -> int:
     actor = dataset.load_actor(args.actor)
     names = args.clips or dataset.performance_names(args.actor, "train_")
     clips = [dataset.load_clip(args.actor, name, actor) for name in names]
+    given = {"gamma": args.gamma} if args.gamma is not None else {}   # else the method's default
+    if args.margin is not None:
+        given["extrapolation_margin"] = None if args.margin < 0 else args.margin
     params = PdmParams(order=args.order, medium_resolution=args.medium_resolution,
-                       fine_resolution=args.fine_resolution, gamma=args.gamma,
-                       extrapolation_margin=None if args.margin < 0 else args.margin)
+                       fine_resolution=args.fine_resolution, **given)
     model = train(actor, clips, params, progress=_progress_bar("pdm train"))
     manifest = model.save(args.out)
     m = model.metrics
@@ -177,8 +179,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from service.methods.pdm.model import PdmParams
-
     from service.client_cli import add_global_options
 
     parser = argparse.ArgumentParser(
@@ -213,9 +213,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
     p.add_argument("--medium-resolution", type=int, default=512)
     p.add_argument("--fine-resolution", type=int, default=1024)
-    p.add_argument("--gamma", type=float, default=PdmParams.gamma, help="regularization γ of ma2008 §4.2")
-    p.add_argument("--margin", type=float, default=PdmParams.extrapolation_margin,
-                   help="extrapolation limit: fraction of the training range (negative: none)")
+    # defaults: PdmParams' own (not imported here: the method's import would slow every command)
+    p.add_argument("--gamma", type=float, help="regularization γ of ma2008 §4.2 (default: PdmParams')")
+    p.add_argument("--margin", type=float,
+                   help="extrapolation limit: fraction of the training range (negative: none; "
+                        "default: PdmParams')")
     p.set_defaults(func=cmd_pdm_train)
 
     p = sub.add_parser("pdm-synthesize", help="meshes and maps from markers with a trained pdm model")

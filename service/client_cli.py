@@ -454,6 +454,7 @@ def upload_actor(client, args) -> int:
             info = client.actors.upload_neutral(actor.id, arrays)
         else:
             info = client.actors.upload_neutral(actor.id, found["neutral"])
+        summary["neutral"] = _json_of(info)
         _say(f"actor {actor.id}: neutral {info.vertex_count} vertices, "
              f"{info.triangle_count} triangles")
         markers = client.actors.set_markers(actor.id, found["layout"])
