@@ -9,7 +9,7 @@ awaitable of it. So each resource is written once for both clients.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from .. import arrays as A
 from .._core import Core, Op
@@ -17,7 +17,7 @@ from .._core import Core, Op
 if TYPE_CHECKING:  # pragma: no cover
     from ..client import _Api
 
-__all__ = ["Resource", "items", "outputs_param", "file_part"]
+__all__ = ["Resource", "outputs_param", "file_part"]
 
 
 class Resource:
@@ -32,11 +32,6 @@ class Resource:
 
     def _run(self, op: Op) -> Any:
         return self._client._run(op)
-
-
-def items(parse: Callable[[Any], Any]) -> Callable[[Any], list]:
-    """A parser of a listing body ``{"items": [...]}``: each item parsed by ``parse``."""
-    return lambda body: [parse(item) for item in body["items"]]
 
 
 def outputs_param(outputs: str | Sequence[str] | None) -> str | None:

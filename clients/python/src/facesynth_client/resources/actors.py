@@ -11,7 +11,7 @@ import numpy as np
 from .. import arrays as A
 from .._core import Call
 from ..types import Actor, MarkersInfo, NeutralInfo
-from ._base import Resource, items
+from ._base import Resource
 
 __all__ = ["Actors"]
 
@@ -61,7 +61,7 @@ class Actors(Resource):
 
     def list(self) -> list[Actor]:
         """Every actor, oldest first."""
-        return self._run(self._core.call_json(Call("GET", "/v1/actors"), items(Actor.from_json)))
+        return self._run(self._core.call_items(Call("GET", "/v1/actors"), Actor.from_json))
 
     def get(self, actor_id: str) -> Actor:
         """One actor with the counts of what was uploaded (404: :class:`NotFound`)."""

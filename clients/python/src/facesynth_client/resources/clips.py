@@ -11,7 +11,7 @@ import numpy as np
 from .. import arrays as A
 from .._core import Call
 from ..types import Clip
-from ._base import Resource, file_part, items
+from ._base import Resource, file_part
 
 __all__ = ["Clips"]
 
@@ -97,8 +97,8 @@ class Clips(Resource):
 
     def list(self, actor_id: str) -> list[Clip]:
         """The actor's clips, oldest first."""
-        return self._run(self._core.call_json(Call("GET", f"/v1/actors/{actor_id}/clips"),
-                                              items(Clip.from_json)))
+        return self._run(self._core.call_items(
+            Call("GET", f"/v1/actors/{actor_id}/clips"), Clip.from_json))
 
     def get(self, actor_id: str, clip_id: str) -> Clip:
         """One clip of the actor."""

@@ -6,7 +6,7 @@ from typing import Any
 
 from .._core import Call, job_id_of
 from ..types import Artifact, Job
-from ._base import Resource, items
+from ._base import Resource
 
 __all__ = ["Jobs"]
 
@@ -22,9 +22,9 @@ class Jobs(Resource):
              kind: str | None = None, model_id: str | None = None) -> list[Job]:
         """Jobs, oldest first, filtered by any of ``status``, ``actor_id``, ``kind``,
         ``model_id``."""
-        return self._run(self._core.call_json(Call("GET", "/v1/jobs", params={
-            "status": status, "actor_id": actor_id, "kind": kind, "model_id": model_id}),
-            items(Job.from_json)))
+        params = {"status": status, "actor_id": actor_id, "kind": kind, "model_id": model_id}
+        return self._run(self._core.call_items(Call("GET", "/v1/jobs", params=params),
+                                               Job.from_json))
 
     def cancel(self, job: Any) -> Job:
         """Cancel a job: a queued one is ``cancelled`` at once, a running one stops at its
@@ -35,8 +35,8 @@ class Jobs(Resource):
 
     def artifacts(self, job: Any) -> list[Artifact]:
         """The downloadable results of a job."""
-        return self._run(self._core.call_json(
-            Call("GET", f"/v1/jobs/{job_id_of(job)}/artifacts"), items(Artifact.from_json)))
+        return self._run(self._core.call_items(
+            Call("GET", f"/v1/jobs/{job_id_of(job)}/artifacts"), Artifact.from_json))
 
     def events(self, job: Any) -> Any:
         """The job's states from its event stream (``GET /v1/jobs/{id}/events``) until it

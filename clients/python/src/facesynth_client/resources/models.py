@@ -9,7 +9,7 @@ from typing import Any, Mapping, Sequence
 
 from .._core import Call
 from ..types import KindInfo, MapInfo, Model, ModelAccepted
-from ._base import Resource, items
+from ._base import Resource
 
 __all__ = ["Models"]
 
@@ -52,9 +52,9 @@ class Models(Resource):
 
     def list(self, actor_id: str, *, status: str | None = None) -> list[Model]:
         """The actor's models, oldest first, optionally of one status."""
-        return self._run(self._core.call_json(
+        return self._run(self._core.call_items(
             Call("GET", f"/v1/actors/{actor_id}/models", params={"status": status}),
-            items(Model.from_json)))
+            Model.from_json))
 
     def delete(self, model_id: str) -> None:
         """Delete a model and its files (its queued or running jobs are cancelled)."""
@@ -62,8 +62,8 @@ class Models(Resource):
 
     def maps(self, model_id: str) -> list[MapInfo]:
         """The model's UV-space maps (EXR files; e.g. a PDM's coefficient maps)."""
-        return self._run(self._core.call_json(Call("GET", f"/v1/models/{model_id}/maps"),
-                                              items(MapInfo.from_json)))
+        return self._run(self._core.call_items(
+            Call("GET", f"/v1/models/{model_id}/maps"), MapInfo.from_json))
 
     def download_map(self, model_id: str, name: str, path: str | os.PathLike, *,
                      half: bool = False) -> Path:
@@ -75,7 +75,7 @@ class Models(Resource):
 
     def kinds(self) -> list[KindInfo]:
         """The model kinds the server trains, with their parameters' JSON Schema."""
-        return self._run(self._core.call_json(Call("GET", "/v1/kinds"), items(KindInfo.from_json)))
+        return self._run(self._core.call_items(Call("GET", "/v1/kinds"), KindInfo.from_json))
 
     def kind(self, name: str) -> KindInfo:
         """One model kind (404 for an unknown one)."""

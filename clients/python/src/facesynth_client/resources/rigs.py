@@ -10,7 +10,7 @@ import numpy as np
 from .. import arrays as A
 from .._core import Call
 from ..types import InputRig, RigAccepted
-from ._base import Resource, items
+from ._base import Resource
 
 __all__ = ["Rigs"]
 
@@ -54,8 +54,8 @@ class Rigs(Resource):
 
     def list(self, actor_id: str) -> list[InputRig]:
         """The actor's input rigs with their registration state."""
-        return self._run(self._core.call_json(Call("GET", f"/v1/actors/{actor_id}/input-rigs"),
-                                              items(InputRig.from_json)))
+        return self._run(self._core.call_items(
+            Call("GET", f"/v1/actors/{actor_id}/input-rigs"), InputRig.from_json))
 
     def get(self, actor_id: str, rig: str) -> InputRig:
         """One input rig (``registering``, ``ready`` or ``failed``)."""
