@@ -61,6 +61,8 @@ DEFAULT_PATTERN = "frame_{frame:04d}"
 _ZIP_MEMBER = re.compile(r"^frame_(\d+)((?:_[a-z_]+)?)\.(obj|exr)$")
 #: the clips ``upload actor`` sends by default (performance file stems)
 DEFAULT_ACTOR_CLIPS = ("train_*", "database")
+#: the server's default request body limit (Settings.max_body_bytes), bytes
+DEFAULT_MAX_CLIP_BYTES = 256 * 2**20
 #: the sample actor's manifest kind (``facesynth sample-actor``)
 SAMPLE_ACTOR_KIND = "facesynth.sample_actor"
 
@@ -394,7 +396,8 @@ def _actor_files(folder: Path, patterns: list[str], rigs: bool) -> dict:
         raise UsageError(f"{folder}: no neutral.npz or neutral.obj")
     layout = _file(folder / "markers.json", "marker layout")
     performances = sorted((folder / "performances").glob("*.npz"))
-    clips = [p for p in performances if any(fnmatch.fnmatch(p.stem, g) for g in patterns)]
+    clips = [p for g in patterns for p in performances if fnmatch.fnmatch(p.stem, g)]
+    clips = list(dict.fromkeys(clips))                 # in the patterns' order, once each
     if not clips:
         raise UsageError(f"{folder}: no clip matches {', '.join(patterns)} in performances/")
     rig_files = []
@@ -407,6 +410,53 @@ def _actor_files(folder: Path, patterns: list[str], rigs: bool) -> dict:
     kind = json.loads(manifest.read_text()).get("kind") if manifest.is_file() else None
     return {"neutral": neutral, "layout": layout, "clips": clips, "rigs": rig_files,
             "sample": kind == SAMPLE_ACTOR_KIND}
+
+
+def _npz_shapes(path: Path) -> dict[str, tuple[tuple[int, ...], int]]:
+    """Every array's (shape, item size) of an .npz, read from the headers, not the data."""
+    import numpy as np
+
+    shapes = {}
+    with zipfile.ZipFile(path) as z:
+        for info in z.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            with z.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(member)
+            shapes[info.filename[:-4]] = (tuple(shape), dtype.itemsize)
+    return shapes
+
+
+def _clip_plan(path: Path, limit: int) -> bool:
+    """Whether the clip at ``path`` goes with its maps (``displacement``, ``albedo``): only
+    if they cover every frame and the clip's body (float32) stays within ``limit`` bytes.
+    Raises :class:`UsageError` if even its vertices and markers exceed ``limit``."""
+    import math
+
+    shapes = _npz_shapes(path)
+    frames = shapes.get("markers", shapes.get("vertices", ((0,), 4)))[0][0]
+
+    def size(keys: tuple[str, ...]) -> int:
+        return sum(4 * math.prod(shapes[k][0]) for k in keys if k in shapes)
+
+    plain = size(("vertices", "markers"))
+    if plain > limit:
+        raise UsageError(f"{path}: {plain / 2**20:.0f} MiB even without maps, over "
+                         f"--max-clip-bytes ({limit / 2**20:.0f} MiB); leave it out (--clips "
+                         "'train_*') or raise the server's max_body_bytes and --max-clip-bytes")
+    maps = ("displacement", "albedo")
+    covered = all(k in shapes and shapes[k][0][0] == frames for k in maps if k in shapes)
+    if not any(k in shapes for k in maps) or not covered:
+        return False
+    with_maps = plain + size(maps)
+    if with_maps > limit:
+        _say(f"{path.name}: its maps left out ({with_maps / 2**20:.0f} MiB with them, over "
+             f"--max-clip-bytes {limit / 2**20:.0f} MiB)")
+        return False
+    return True
 
 
 def _sample_neutral(folder: Path) -> dict:
@@ -425,9 +475,9 @@ def _sample_neutral(folder: Path) -> dict:
 
 
 def _sample_clip(folder: Path, name: str, actor) -> dict:
-    """A sample actor performance as the API's clip: its displacement made relative to the
-    clip's vertices (:func:`service.samples.dataset.load_clip`, the one place that
-    conversion lives), float32."""
+    """A sample actor performance with its maps as the API's clip: the displacement made
+    relative to the clip's vertices (:func:`service.samples.dataset.load_clip`, the one place
+    that conversion lives), float32."""
     import numpy as np
 
     from service.samples.dataset import load_clip
@@ -437,11 +487,23 @@ def _sample_clip(folder: Path, name: str, actor) -> dict:
             "fps": clip.fps, "displacement": clip.displacement, "albedo": clip.albedo}
 
 
+def _plain_clip(path: Path) -> dict:
+    """A clip's vertices, markers and fps (float32), without maps, read array by array."""
+    import numpy as np
+
+    with np.load(path, allow_pickle=False) as data:
+        out = {k: data[k].astype(np.float32) for k in ("vertices", "markers")}
+        if "fps" in data.files:
+            out["fps"] = float(data["fps"])
+    return out
+
+
 def upload_actor(client, args) -> int:
     """A whole actor folder (``facesynth sample-actor``'s layout): a new actor with the
     neutral, the marker layout, the clips and the input rigs."""
     folder = Path(args.dir)
     found = _actor_files(folder, args.clips or list(DEFAULT_ACTOR_CLIPS), not args.no_rigs)
+    with_maps = {path: _clip_plan(path, args.max_clip_bytes) for path in found["clips"]}
     actor = client.actors.create(args.name or folder.resolve().name,
                                  metadata={"source": folder.resolve().name})
     summary: dict[str, Any] = {"actor_id": actor.id, "clips": {}, "rigs": {}, "rig_jobs": {}}
@@ -465,7 +527,9 @@ def upload_actor(client, args) -> int:
 
             sample_actor = load_actor(folder)
         for path in found["clips"]:
-            if sample_actor is not None:
+            if not with_maps[path]:
+                arrays = _plain_clip(path)
+            elif sample_actor is not None:
                 arrays = _sample_clip(folder, path.stem, sample_actor)
             else:
                 arrays = _clip_arrays(path)
@@ -544,19 +608,11 @@ def jobs_cancel(client, args) -> int:
 
 def _npz_frames(path: Path) -> int:
     """F of a synthesis result .npz, read from an array header (not the data)."""
-    import numpy as np
-
-    with zipfile.ZipFile(path) as z:
-        names = [n for n in ("clamped.npy", "vertices.npy", "vertices_detailed.npy",
-                             "displacement.npy") if n in z.namelist()]
-        if not names:
-            return 0
-        with z.open(names[0]) as member:
-            version = np.lib.format.read_magic(member)
-            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                           else np.lib.format.read_array_header_2_0)
-            shape = read_header(member)[0]
-    return int(shape[0]) if shape else 0
+    shapes = _npz_shapes(path)
+    for key in ("clamped", "vertices", "vertices_detailed", "displacement"):
+        if key in shapes and shapes[key][0]:
+            return int(shapes[key][0][0])
+    return 0
 
 
 def _unpack_frames(archive: Path, stage: Path, pattern: str, start: int) -> dict[int, list[str]]:
@@ -752,6 +808,10 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                    help="performances to send as clips, by file stem (repeatable; default: "
                         + ", ".join(DEFAULT_ACTOR_CLIPS) + ")")
     p.add_argument("--no-rigs", action="store_true", help="do not send the input rigs")
+    p.add_argument("--max-clip-bytes", type=int, default=DEFAULT_MAX_CLIP_BYTES, metavar="N",
+                   help="a clip's maps are left out above this many bytes, and a clip bigger "
+                        "without them is refused before anything is sent (default 256 MiB, "
+                        "the server's default max_body_bytes)")
     p = command(upload, "neutral", upload_neutral,
                 "the high-resolution neutral (.obj or .npz with UVs)")
     p.add_argument("actor", help="actor id")
