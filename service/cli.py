@@ -18,21 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-
-def _progress_bar(description: str):
-    """A tqdm bar driven by ``progress(fraction, stage)`` callbacks."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=100, desc=description, unit="%", bar_format="{l_bar}{bar}| {n:.0f}% {postfix}")
-
-    def update(fraction: float, stage: str) -> None:
-        bar.n = round(100 * fraction, 1)
-        bar.set_postfix_str(stage)
-        bar.refresh()
-        if fraction >= 1.0:
-            bar.close()
-
-    return update
+from service.progress_bar import progress_bar as _progress_bar
 
 
 def _summary(out: Path, manifest: dict) -> str:
@@ -88,9 +74,11 @@ def cmd_pdm_train(args: argparse.Namespace) -> int:
     actor = dataset.load_actor(args.actor)
     names = args.clips or dataset.performance_names(args.actor, "train_")
     clips = [dataset.load_clip(args.actor, name, actor) for name in names]
+    given = {"gamma": args.gamma} if args.gamma is not None else {}   # else the method's default
+    if args.margin is not None:
+        given["extrapolation_margin"] = None if args.margin < 0 else args.margin
     params = PdmParams(order=args.order, medium_resolution=args.medium_resolution,
-                       fine_resolution=args.fine_resolution, gamma=args.gamma,
-                       extrapolation_margin=None if args.margin < 0 else args.margin)
+                       fine_resolution=args.fine_resolution, **given)
     model = train(actor, clips, params, progress=_progress_bar("pdm train"))
     manifest = model.save(args.out)
     m = model.metrics
@@ -149,7 +137,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from service.api.app import create_app
     from service.logs import configure_logging
-    from service.api.services import Services
+    from service.app.services import Services
     from service.config import Settings
     from service.grpc.server import is_loopback, serve
     from service.jobs.worker import start_embedded
@@ -191,10 +179,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from service.methods.pdm.model import PdmParams
+    from service.client_cli import add_global_options
 
-    parser = argparse.ArgumentParser(prog="facesynth", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="facesynth", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="The facesynth command line: one entry point, a subcommand per task.",
+        epilog="Run 'facesynth COMMAND --help' for a command's options. The server commands "
+               "(actors, upload, train,\njobs, models, clips, synthesize, enhance) take --server "
+               "and --token before or after the command.")
+    add_global_options(parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("sample-actor", help="build the synthetic sample actor (ICT rig based)")
     p.add_argument("--out", required=True, type=Path, help="output directory")
@@ -219,9 +213,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
     p.add_argument("--medium-resolution", type=int, default=512)
     p.add_argument("--fine-resolution", type=int, default=1024)
-    p.add_argument("--gamma", type=float, default=PdmParams.gamma, help="regularization γ of ma2008 §4.2")
-    p.add_argument("--margin", type=float, default=PdmParams.extrapolation_margin,
-                   help="extrapolation limit: fraction of the training range (negative: none)")
+    # defaults: PdmParams' own (not imported here: the method's import would slow every command)
+    p.add_argument("--gamma", type=float, help="regularization γ of ma2008 §4.2 (default: PdmParams')")
+    p.add_argument("--margin", type=float,
+                   help="extrapolation limit: fraction of the training range (negative: none; "
+                        "default: PdmParams')")
     p.set_defaults(func=cmd_pdm_train)
 
     p = sub.add_parser("pdm-synthesize", help="meshes and maps from markers with a trained pdm model")
@@ -268,8 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "embedded server unless --server is given, and writes OUT/result "
                                    "(per-frame OBJ and EXR) and OUT/side_by_side.png.")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")
-    p.add_argument("--server", help="URL of a running server (FACESYNTH_URL); default: start one")
-    p.add_argument("--token", help="bearer token (FACESYNTH_TOKEN)")
+    p.add_argument("--server", default=argparse.SUPPRESS,
+                   help="URL of a running server (FACESYNTH_URL); default: start one")
+    p.add_argument("--token", default=argparse.SUPPRESS, help="bearer token (FACESYNTH_TOKEN)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--level", type=int, choices=(0, 1, 2), default=1)
     p.set_defaults(func=cmd_demo)

@@ -40,6 +40,11 @@ def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
     return rig
 
 
+def get_input_rig_by_id(session: Session, rig_id: str) -> InputRig:
+    """The input rig with id ``rig_id`` (its row refreshed), or :class:`NotFound`."""
+    return get_row(session, InputRig, "rig", rig_id)
+
+
 def get_input_rig(session: Session, actor_id: str, name: str) -> InputRig:
     """The input rig ``name`` of an actor."""
     rig = _find(session, actor_id, name)
