@@ -49,7 +49,9 @@ def solve_weights(Phi: np.ndarray, D: np.ndarray, smoothing: float = 0.0,
     D : (B,T,C) float     targets at the T poses (C = 3 per vertex, 1 per texel, 3n for PSD)
     smoothing : float     relative ridge λ (module docstring), ≥ 0
     exact : bool          T == P and the basis poses are interpolated: with λ = 0 the
-                          square system is solved as it is (no normal equations)
+                          square system is solved as it is (no normal equations); a
+                          singular one (a single pose: φ(0) = 0 makes it [0]) falls back
+                          to the ridge floor
 
     Returns
     -------
@@ -59,10 +61,13 @@ def solve_weights(Phi: np.ndarray, D: np.ndarray, smoothing: float = 0.0,
     D = np.asarray(D, dtype=np.float64)
     P = Phi.shape[2]
     if exact and smoothing == 0:
-        return np.linalg.solve(Phi, D)
+        try:
+            return np.linalg.solve(Phi, D)
+        except np.linalg.LinAlgError:       # one pose (φ(0) = 0) or duplicated poses
+            pass
     PhiT = Phi.transpose(0, 2, 1)
     G = PhiT @ Phi                                          # batched GEMM (BLAS per system)
-    lam = max(smoothing, 0.0 if exact else RIDGE_FLOOR) * np.trace(G, axis1=1, axis2=2) / P
+    lam = max(smoothing, RIDGE_FLOOR) * np.trace(G, axis1=1, axis2=2) / P
     G[:, np.arange(P), np.arange(P)] += np.maximum(lam, np.finfo(float).tiny)[:, None]
     return np.linalg.solve(G, PhiT @ D)
 
