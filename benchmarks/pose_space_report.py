@@ -22,7 +22,7 @@ Per actor:
   markers, noisy markers (Gaussian σ = 0.3 mm per coordinate, seeded) and occluded markers
   (10 % of the markers of every frame set to NaN, seeded). Methods: *thin shell* (no
   detail: the detailed neutral deformed to the markers), *nearest training frame* (its
-  correction and fine map on the held-out shell), *PDM* (biquadratic, defaults), *PSD* and
+  correction and fine map on the held-out shell), *PDM* (biquadratic, defaults; fine band at the training maps' size), *PSD* and
   *WPSD* (defaults: least squares, P = 12, smoothing by validation). Metrics exactly as
   ``benchmarks/pdm_report.py`` (its ``DetailTexels``, ``Scores``): vertex error |V − V_gt|
   over the face region (mean and max here), and the fine detail as high-passed detail
@@ -345,6 +345,24 @@ def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     return np.array(idx)
 
 
+def run_speed(actor_dir: Path) -> dict:
+    """Only the speed section, with the models a previous run saved (``--speed-only``)."""
+    from service.methods.pose_space import PoseSpaceModel
+
+    models = OUT / "models" / actor_dir.name
+    with np.load(actor_dir / "performances" / f"{heldout_names(actor_dir)[0]}.npz") as d:
+        mk = d["markers"][: SPEED_WARMUP + SPEED_FRAMES].astype(np.float64)
+    out = {}
+    for label in ("PSD", "WPSD", "WPSD P=6", "WPSD P=20"):
+        path = models / label.replace(" ", "_").replace("=", "")
+        if (path / "manifest.json").is_file():
+            model = PoseSpaceModel.load(path)
+            out[label] = speed(model, mk)
+            out[label].update(storage(model), basis_size=model.data.basis_size,
+                              train_s=json.loads(path.with_suffix(".train.json").read_text())["train_s"])
+    return out
+
+
 def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool) -> dict:
     from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
     from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
@@ -374,7 +392,8 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
 
     log("training")
     train_s = {}
-    pdm, train_s["PDM biquadratic"] = cached_model(models / "pdm", reuse, lambda: pdm_train(actor, clips, PdmParams()),
+    pdm, train_s["PDM biquadratic"] = cached_model(models / "pdm", reuse, lambda: pdm_train(actor, clips, PdmParams(
+        fine_resolution=clips[0].displacement.shape[1])),
                                                    PdmModel.load)
     variants = {"PSD": PsdParams(), "WPSD": WpsdParams(), "WPSD P=6": WpsdParams(basis_size=6),
                 "WPSD P=20": WpsdParams(basis_size=20)}
@@ -550,8 +569,27 @@ def main() -> None:
     parser.add_argument("--target", type=Path, help="second identity for the transfer (sample-actor layout)")
     parser.add_argument("--quick", action="store_true", help="6 held-out frames, P ≤ 8, two models")
     parser.add_argument("--reuse", action="store_true", help="reuse models saved under benchmarks/out/pose_space/models")
+    parser.add_argument("--speed-only", action="store_true",
+                        help="only the speed section, with the models of a previous run (report_speed.md)")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
+    if args.speed_only:
+        res = {a.name: run_speed(a.resolve()) for a in args.actors}
+        lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})", ""]
+        for name, sp_ in res.items():
+            lines += [f"## {name}", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "
+                      "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
+                      "|---|---|---|---|---|---|---|---|---|---|"]
+            for k, s_ in sp_.items():
+                lines.append(f"| {k} | {s_['basis_size']} | {s_['mesh']:.1f} | {s_['mesh+displacement']:.1f} | "
+                             f"{s_['ours_fine_ms']:.2f} | {s_['scipy_fine_ms']:.1f} | {s_['ratio_scipy_over_ours']:.1f}× | "
+                             f"{s_['scipy_max_diff_mm']:.1e} | {s_['train_s']:.0f} | {s_['floats_per_vertex']:.0f} / "
+                             f"{s_['ints_per_vertex']:.0f} |")
+            lines.append("")
+        (OUT / "report_speed.md").write_text("\n".join(lines))
+        (OUT / "report_speed.json").write_text(json.dumps(res, indent=1))
+        print("\n".join(lines))
+        return
     t0 = time.perf_counter()
     git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     meta = {"cpus": os.cpu_count(), "load_before": f"{os.getloadavg()[0]:.1f}", "git": f"commit {git}",

@@ -192,6 +192,8 @@ class PoseSpaceEvaluator:
         self.graph = data.graph
         self.alpha = None if data.alpha is None else data.alpha.astype(np.float64).tocsr()
         self.weights = np.ascontiguousarray(data.weights)
+        if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
+            self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
         self.map_interp = self.map_sampler = None
         self.normal_mapper: NormalMapper | None = None
         if data.map_resolution:
@@ -249,7 +251,7 @@ class PoseSpaceEvaluator:
         """Corrections c (F,n,3) in the tangent frames, from :meth:`sq_distances` (eq. 2, 5)."""
         phi = rbf.kernel(np.sqrt(D2))
         if self.alpha is None:
-            return np.einsum("fp,npc->fnc", phi[0], self.weights, optimize=True)
+            return (phi[0].astype(np.float32) @ self.weights).reshape(len(phi[0]), -1, 3)
         return np.einsum("nfp,npc->fnc", phi, self.weights, optimize=True)
 
     def fine_map(self, D2: np.ndarray) -> np.ndarray:
