@@ -38,7 +38,7 @@ from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import ThinShellSolver
 from service.geometry.uv_raster import dilate, interpolation_matrix, rasterize_uv, sample_map
-from service.methods.inputs import ActorData, InvalidInput
+from service.methods.inputs import ActorData, InvalidInput, Progress, no_progress
 from service.methods.pose_space.corrections import large_scale_surface
 from service.methods.pose_space.model import PoseSpaceData, PoseSpaceEvaluator, PoseSpaceModel, node_operator
 
@@ -84,7 +84,7 @@ def _texel_source_uv(raster, index, Ft, Vt, fitted, Fs, uv_s, uvf_s, cp, H) -> n
 
 
 def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
-             pose_weights: np.ndarray | None = None) -> PoseSpaceModel:
+             pose_weights: np.ndarray | None = None, progress: Progress = no_progress) -> PoseSpaceModel:
     """A pose-space model of the same kind for ``target``, from ``model``'s details (§5.4).
 
     Parameters
@@ -95,6 +95,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
                               poses (~40)
     pose_weights : (M_t,) float, optional   head-alignment weights of the target's markers
                               (default 1)
+    progress : Progress       stage reports (the projection dominates: ~1 min at 45k vertices)
 
     Returns
     -------
@@ -107,12 +108,14 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     Vs, Fs = s.neutral, s.faces
     Vt, Ft = np.asarray(target.vertices, np.float64), np.asarray(target.faces, np.int64)
     L = _check_landmarks(landmarks, len(Vs), len(Vt))
+    progress(0.0, "rigid pre-alignment and shell fit")
     # 1-2: rigid pre-alignment, then the shell fit of the source to the target landmarks
     rigid = rigid_align(Vs[L[:, 0]], Vt[L[:, 1]])
     Va = rigid.apply(Vs)
     shell = ThinShellSolver(Va, Fs, L[:, 0])
     fitted = Va + shell.deform(Vt[L[:, 1]] - Va[L[:, 0]])
     # 3: dense correspondence
+    progress(0.1, "projection")
     cp = closest_points(fitted, Fs, Vt)
     C = node_operator(Fs, cp.triangle, cp.barycentric, len(Vs))                 # (n_t,n_s)
     # frames: source frames at the corresponding points vs the target's own
@@ -122,6 +125,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     tgt_frames = FrameField.build(Vt, Ft, target.uv, target.uv_faces).frames(Vt)
     rot = np.einsum("tij,tkj->tik", tgt_frames, at)                            # target ← source
     # 4: weights, α, nodes
+    progress(0.6, "weights and feature graph")
     n_t, P = len(Vt), s.basis_size
     W = (C @ s.weights.reshape(len(Vs), -1).astype(np.float64)).reshape(n_t, P, 3)
     W = np.einsum("tij,tpj->tpi", rot, W).astype(np.float32)
@@ -146,6 +150,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
         map_index = np.flatnonzero(raster.mask.ravel())
         texel_uv = _texel_source_uv(raster, map_index, Ft, Vt, fitted, Fs, s.uv, s.uv_faces, cp, H)
         map_weights = sample_map(img, texel_uv).reshape(len(map_index), P).astype(np.float32)
+    progress(0.8, "target thin shell")
     base = large_scale_surface(target)
     M = target.n_markers
     w = np.ones(M) if pose_weights is None else np.asarray(pose_weights, np.float64)
@@ -169,4 +174,6 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
         map_index=map_index, map_weights=map_weights, feature_low=s.feature_low,
         feature_high=s.feature_high, confidence_scale=s.confidence_scale,
         basis_names=s.basis_names, metrics=metrics)
-    return PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
+    model = PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
+    progress(1.0, "done")
+    return model
