@@ -188,6 +188,13 @@ def test_script_errors_are_one_line_with_their_exit_codes(server, actor_dir, tmp
                      check=EXIT_USAGE)
     assert "no such folder" in one_line(done.stderr)
 
+    # a clip over --max-clip-bytes even without its maps: refused before anything is sent
+    before = len(json.loads(facesynth("--server", url, "actors", "list", "--json").stdout))
+    done = facesynth("--server", url, "upload", "actor", str(actor_dir), "--max-clip-bytes",
+                     "1000", check=EXIT_USAGE)
+    assert "train_rise.npz" in one_line(done.stderr) and "--max-clip-bytes" in done.stderr
+    assert len(json.loads(facesynth("--server", url, "actors", "list", "--json").stdout)) == before
+
     # bad --params JSON: exit 2, one line
     done = facesynth("--server", url, "train", actor, "--kind", "pdm", "--clips", "clip_x",
                      "--params", "{medium_resolution: 32", check=EXIT_USAGE)
