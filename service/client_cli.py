@@ -691,6 +691,17 @@ def synthesize(client, args) -> int:
     if path.suffix.lower() not in (".c3d", ".trc", ".csv", ".npz", ".json"):
         raise UsageError(f"{path}: give markers as .c3d, .trc, .csv, .json or .npz "
                          "(markers (F,M,3))")
+    if path.suffix.lower() == ".npz":              # e.g. a sample actor performance as it is
+        import numpy as np
+
+        with np.load(path, allow_pickle=False) as data:
+            if "markers" not in data.files:
+                raise UsageError(f"{path} has no 'markers' (F,M,3) (it has {sorted(data.files)})")
+            markers = data["markers"]
+            fps = float(data["fps"]) if "fps" in data.files else None
+            _note_dropped(path, [k for k in data.files if k not in ("markers", "fps")],
+                          "synthesize sends the markers")
+        return _run_performance(client, args, markers=markers, fps=fps)
     return _run_performance(client, args, performance=path)
 
 

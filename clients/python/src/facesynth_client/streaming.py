@@ -54,8 +54,12 @@ OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
 DEFAULT_OUTPUTS = ("mesh",)
 #: the server's address when neither ``target`` nor ``$FACESYNTH_GRPC`` is given
 DEFAULT_TARGET = "127.0.0.1:50051"
-#: frames sent and not yet answered, at most (the pipeline's depth)
-DEFAULT_IN_FLIGHT = 4
+#: frames sent and not yet answered, at most (the pipeline's depth). A stream's frames are
+#: synthesized one after another, so depth beyond the frame in work and the next one adds
+#: latency, not throughput: level-0 PDM, mesh + displacement, loopback (benchmarks/
+#: grpc_stream.py), depth 1: 4.5 frames/s, 200 ms round trip; 2: 5.0 frames/s, 370 ms;
+#: 4: 3.1 frames/s, 1263 ms (on a loaded 2-core machine, server ~170 ms per frame)
+DEFAULT_IN_FLIGHT = 2
 #: message size limit, both directions: a reply with 1024² displacement, albedo and normal
 #: maps is 28 MiB plus the meshes (gRPC's default of 4 MiB is too small); the server's too
 MAX_MESSAGE_BYTES = 64 * 2**20
