@@ -56,9 +56,10 @@ DEFAULT_OUTPUTS = ("mesh",)
 DEFAULT_TARGET = "127.0.0.1:50051"
 #: frames sent and not yet answered, at most (the pipeline's depth). A stream's frames are
 #: synthesized one after another, so depth beyond the frame in work and the next one adds
-#: latency, not throughput: level-0 PDM, mesh + displacement, loopback (benchmarks/
-#: grpc_stream.py), depth 1: 4.5 frames/s, 200 ms round trip; 2: 5.0 frames/s, 370 ms;
-#: 4: 3.1 frames/s, 1263 ms (on a loaded 2-core machine, server ~170 ms per frame)
+#: latency, not throughput. Level-0 PDM, mesh + displacement, loopback, a loaded 2-core
+#: machine (benchmarks/grpc_stream.py, two runs): depth 1 4.4-4.5 frames/s, 190-200 ms round
+#: trip; 2: 4.4-5.0 frames/s, 370-420 ms; 4: 3.1-5.0, 780-1260 ms; 8: 3.6-5.1, 1510-1980 ms
+#: (server 150-250 ms per frame). 2 hides one frame's transfer on a real network.
 DEFAULT_IN_FLIGHT = 2
 #: message size limit, both directions: a reply with 1024² displacement, albedo and normal
 #: maps is 28 MiB plus the meshes (gRPC's default of 4 MiB is too small); the server's too
