@@ -136,3 +136,15 @@ def test_the_unit_option_scales_every_length_exactly(b_dir, tmp_path, units):
         build_family_b(tmp_path / "x", units="inch", **SMALL)
     with pytest.raises(ValueError, match="mm cameras"):
         build_family_b(tmp_path / "y", units=units, with_tracking=True, **SMALL)
+
+
+def test_cli_sample_actor_family_option_refuses_what_a_family_does_not_have(tmp_path, capsys):
+    from service.cli import build_parser, main
+
+    args = build_parser().parse_args(["sample-actor", "--out", str(tmp_path)])
+    assert (args.family, args.units) == ("a", "mm")                 # the default stays family a, mm
+    assert main(["sample-actor", "--out", str(tmp_path), "--family", "b", "--level", "2"]) == 2
+    assert main(["sample-actor", "--out", str(tmp_path), "--units", "cm"]) == 2
+    err = capsys.readouterr().err
+    assert "family b has levels 0 and 1" in err and "family a is written in mm only" in err
+    assert not any(tmp_path.iterdir())
