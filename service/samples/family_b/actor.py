@@ -96,8 +96,7 @@ def make_actor(seed: int = 1, level: int = 1, map_resolution: int | None = None,
     centre = V[skin.region < 2].mean(axis=0)
     axis = np.array([0.0, 0.0, centre[2] - 60.0])
     lm = detail.Landmarks(L, axis, float(np.median(np.linalg.norm((V - axis)[skin.region == 0][:, [0, 2]], axis=1))))
-    eyes = np.concatenate([L[36:48]])
-    layout = markers.place_markers(V, F, skin.region <= 1, eyes, L[48:60], seed)
+    layout = markers.place_markers(V, F, skin.region <= 1, L[36:48], L[48:60], seed)
     actor = FamilyBActor(seed, level, rig, skin, layout, lm, detail.StrainOperator.build(V, F),
                          detail.bank_patterns(V, lm, seed) * (skin.region <= 1),
                          detail.looseness(V, lm, seed) * (skin.region <= 1),

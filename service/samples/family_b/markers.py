@@ -9,7 +9,8 @@ clearances around the eye openings (EYE_CLEARANCE_MM) and the lips (LIP_CLEARANC
 Each marker sits inside a triangle of the projected point (its barycentric coordinates),
 so markers do not sit near vertices. The spacing is found by bisection so that exactly
 MARKER_COUNT lattice points land on allowed skin (extra points are dropped farthest from
-the face centre first).
+the face centre first). Measured (seed 1, level 0): median nearest-marker distance 17.4 mm
+within 35 mm of the mouth, 20.4 mm beyond 60 mm (family a: 15.1 and 15.9 mm).
 """
 
 from __future__ import annotations
