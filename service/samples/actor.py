@@ -16,6 +16,12 @@
                                (linear RGB, float16 as in a half EXR); map_frames (f,)
                                (the database performance has maps at every frame up to
                                level 1; at level 2 it has no maps and no vertices_medium)
+    performances/<base>_noisy.npz, performances/<base>_occluded.npz
+                               for every base in VARIANT_BASES: the base performance's
+                               arrays with noisy (σ 0.3 mm) or occluded (NaN bursts)
+                               markers, the clean ones beside them as markers_clean
+                               (service.samples.capture_noise); the manifest's entry names
+                               its base and variant
     tracking/...               cameras and rendered images (see service.samples.render)
 
 Deterministic per seed: every random choice draws from ``np.random.default_rng([seed, …])``.
