@@ -55,7 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import pdm_report as pdm  # noqa: E402  (data loading, baselines, detail metric, workers)
+import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers)
 import shape_space_report as ss  # noqa: E402  (cached shape-space model, rig registration)
 
 OUT = ROOT / "benchmarks" / "out" / "generalization"
@@ -97,8 +97,7 @@ def pdm_models(actor_dir: Path, retrain: bool) -> dict:
         model_dir = MODELS / f"pdm_{order}-{key}"
         if retrain or not (model_dir / "manifest.json").is_file():
             print(f"  training PDM {order} (fresh process) ...", file=sys.stderr)
-            pdm.run_worker("--worker", "train", "--actor", str(actor_dir), "--order", order,
-                           "--model", str(model_dir))
+            pdm.pdm_in_fresh_process(actor_dir, order, model_dir)
         models[order] = PdmModel.load(model_dir)
     return models
 

@@ -1,7 +1,8 @@
 """What the benchmark reports share: the sample actor's data, fresh-process workers with
 peak-memory measurement, the fine-detail metric at the map texels, the PDM baseline, and
-figure helpers. Each report imports this module (``import harness``); no report imports
-another.
+figure helpers. Each report imports this module (``import harness``) rather than another
+report (one exception left: ``generalization_report`` reuses ``shape_space_report``'s cached
+shape-space builds, whose worker lives in that script).
 
 Peak memory: a worker resets the resident-set high-water mark (``echo 5 >
 /proc/self/clear_refs``) and reports ``VmHWM − VmRSS`` at the reset, the peak resident
@@ -374,3 +375,15 @@ def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, k
         print(f"    {gt.name} / {name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return {"scores": scores, "clamped": clamped_mean, "signal_rms_mm": signal, "figure": figure,
             "extra": extra}
+
+
+def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path) -> dict:
+    """:func:`train_pdm` run in a fresh process (its own peak memory); the training record."""
+    return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "train-pdm":
+        print(json.dumps(train_pdm(Path(sys.argv[2]), sys.argv[3], Path(sys.argv[4]))))
+    else:
+        sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR (the reports' worker)")

@@ -4,7 +4,7 @@
 :func:`service.samples.actor.build_sample_actor` (``manifest.json``, ``neutral.npz`` /
 ``.obj``, ``markers.json``, ``input_rig.npz``, ``performances/<name>.npz`` with the same
 keys, dtypes and map conventions, ``tracking/``), so :mod:`service.samples.dataset`,
-:func:`service.actor_store.sample_actor_uploads`, the methods, tests and benchmarks read
+:func:`service.samples.uploads.sample_actor_uploads`, the methods, tests and benchmarks read
 it unchanged. What differs, and where:
 
 =====================  ====================================================================

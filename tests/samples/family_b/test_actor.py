@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from service import actor_store
+from service.samples.uploads import sample_actor_uploads
 from service.io.markers import read_marker_layout
 from service.samples import dataset
 from service.samples.actor import build_sample_actor
@@ -74,7 +74,7 @@ def test_layout_and_manifest_follow_family_a_schema(a_dir, b_dir):
         clip = dataset.load_clip(d, "train_smile", actor)
         assert clip.markers.shape == (clip.vertices.shape[0], actor.n_markers, 3)
         assert set(actor.regions) == {"narrow_face", "face", "head"}
-        neutral, layout, clips = actor_store.sample_actor_uploads(d, ["train_smile"])
+        neutral, layout, clips = sample_actor_uploads(d, ["train_smile"])
         assert neutral and layout and set(clips) == {"train_smile"}
 
 
