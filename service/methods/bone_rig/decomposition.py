@@ -29,7 +29,7 @@ from service.methods.bone_rig.params import BoneRigParams
 from service.methods.bone_rig.rig import BoneRig
 from service.methods.bone_rig.skinning import skin
 from service.methods.bone_rig.transforms import update_transforms
-from service.methods.bone_rig.weights import update_weights
+from service.methods.bone_rig.weights import update_weights, vertex_major
 from service.methods.inputs import InvalidInput, Progress, no_progress
 
 #: stop when an alternation lowers the RMS error by less than this fraction
@@ -103,23 +103,25 @@ def decompose(frames: np.ndarray, rest: np.ndarray | None = None, faces: np.ndar
         raise InvalidInput(f"fps must be positive, got {fps}")
     t0 = time.perf_counter()
     progress(0.0, "initialization")
+    A_vm = vertex_major(A)
     labels, R, t = initial_rig(P, A, params.bones, params.cluster_frames, params.init_iterations,
-                               params.seed)
+                               params.seed, A_vm)
     index = labels[:, None].astype(np.int64)
     weight = np.ones((len(P), 1))
-    recon = skin(P, index, weight, R, t)
-    history = [rms(recon, A)]
+    A_v = A_vm.reshape(len(P), -1, 3)                                  # (V,F,3) view
+    recon = skin(P, index, weight, R, t).transpose(1, 0, 2)            # (V,F,3) contiguous
+    history = [rms(recon, A_v)]
     progress(0.1, "alternation")
     for it in range(params.iterations):
-        R, t = update_transforms(P, A, index, weight, R, t, recon)
-        index, weight = update_weights(P, A, R, t, index, weight, params.max_influences,
+        R, t = update_transforms(P, A_v, index, weight, R, t, recon)
+        index, weight = update_weights(P, A_vm, R, t, index, weight, params.max_influences,
                                        params.candidates, params.qp_iterations)
-        recon = skin(P, index, weight, R, t)
-        history.append(rms(recon, A))
+        recon = skin(P, index, weight, R, t).transpose(1, 0, 2)
+        history.append(rms(recon, A_v))
         progress(0.1 + 0.9 * (it + 1) / params.iterations, "alternation")
         if history[-2] - history[-1] <= RELATIVE_TOLERANCE * history[-2]:
             break
-    err = np.linalg.norm(recon - A, axis=-1)
+    err = np.linalg.norm(recon - A_v, axis=-1)
     K = params.max_influences
     if index.shape[1] < K:                       # pad to K slots (iterations = 0)
         pad = K - index.shape[1]

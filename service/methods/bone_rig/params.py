@@ -35,7 +35,7 @@ class BoneRigParams(BaseModel):
         description="Bones considered per vertex in the weight update: the vertex's current "
                     "bones and those that predict it best alone (at least max_influences).")
     qp_iterations: int = Field(
-        default=150, ge=1, le=5000,
+        default=60, ge=1, le=5000,
         description="Accelerated projected-gradient steps of the per-vertex simplex QP of "
                     "the weight update (then polished exactly on the active set).")
     cluster_frames: int = Field(

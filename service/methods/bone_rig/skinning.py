@@ -8,6 +8,7 @@ transforms (R_j^t, T_j^t) that map rest space to frame t, and weights stored spa
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 
 def skin(rest: np.ndarray, index: np.ndarray, weight: np.ndarray, R: np.ndarray,
@@ -27,15 +28,17 @@ def skin(rest: np.ndarray, index: np.ndarray, weight: np.ndarray, R: np.ndarray,
     (F,V,3) float64
     """
     rest = np.asarray(rest, np.float64)
-    out = np.zeros((len(R), len(rest), 3))
-    for k in range(index.shape[1]):                     # K ≤ 8 slots, vectorized over V and F
-        w = weight[:, k]
-        used = w != 0
-        if not used.any():
-            continue
-        b, p = index[used, k], rest[used]
-        out[:, used] += w[used, None] * (np.einsum("fvij,vj->fvi", R[:, b], p) + t[:, b])
-    return out
+    F, B = R.shape[:2]
+    V, K = index.shape
+    # v^t = Z @ M^t with Z (V,4B) sparse: row i holds w_ij (p_i, 1) in the 4 columns of bone j
+    ph = np.column_stack([rest, np.ones(V)])
+    rows = np.repeat(np.arange(V), 4 * K)
+    cols = (4 * index[:, :, None] + np.arange(4)).ravel()
+    vals = (weight[:, :, None] * ph[:, None, :]).ravel()
+    Z = sp.csr_matrix((vals, (rows, cols)), shape=(V, 4 * B))
+    M = np.concatenate([R, t[..., None]], axis=-1)                      # (F,B,3,4)
+    Ms = M.transpose(1, 3, 0, 2).reshape(4 * B, 3 * F)                  # rows (j,a), cols (t,d)
+    return (Z @ Ms).reshape(V, F, 3).transpose(1, 0, 2)
 
 
 def dense_weights(index: np.ndarray, weight: np.ndarray, bones: int) -> np.ndarray:

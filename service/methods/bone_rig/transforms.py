@@ -23,18 +23,18 @@ from service.geometry.rigid import rigid_align_frames
 MIN_BONE_VERTICES = 3
 
 
-def update_transforms(rest: np.ndarray, frames: np.ndarray, index: np.ndarray,
+def update_transforms(rest: np.ndarray, frames_vm: np.ndarray, index: np.ndarray,
                       weight: np.ndarray, R: np.ndarray, t: np.ndarray,
-                      recon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Refit every bone's transforms (module docstring); ``recon`` is updated in place.
+                      recon_vm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Refit every bone's transforms (module docstring); ``recon_vm`` is updated in place.
 
     Parameters
     ----------
-    rest : (V,3);  frames : (F,V,3) the animation, mm
+    rest : (V,3);  frames_vm : (V,F,3) the animation, vertex-major (rows gather fast), mm
     index, weight : (V,K) the influences
     R : (F,B,3,3), t : (F,B,3)   current transforms (not modified)
-    recon : (F,V,3)   the current skinned result :func:`~.skinning.skin`; on return it
-                      holds the skinned result of the new transforms
+    recon_vm : (V,F,3)   the current skinned result (:func:`~.skinning.skin`, vertex-major);
+                         on return it holds the skinned result of the new transforms
 
     Returns
     -------
@@ -51,10 +51,10 @@ def update_transforms(rest: np.ndarray, frames: np.ndarray, index: np.ndarray,
             continue
         w = (weight * sel)[v].sum(axis=1)                              # (n,)
         p = rest[v]
-        own = w[:, None] * (np.einsum("fij,vj->fvi", R[:, j], p) + t[:, j, None])
-        q = frames[:, v] - recon[:, v] + own                            # (F,n,3)
+        own = w[:, None, None] * (np.matmul(R[:, j], p.T).transpose(2, 0, 1) + t[None, :, j])
+        q = frames_vm[v] - recon_vm[v] + own                            # (n,F,3)
         try:
-            Ri, ti = rigid_align_frames(q / w[:, None], p, w * w)      # targets → rest
+            Ri, ti = rigid_align_frames((q / w[:, None, None]).transpose(1, 0, 2), p, w * w)   # targets → rest
         except ValueError:
             continue
         Rn = np.swapaxes(Ri, 1, 2)                                      # rest → targets
@@ -62,5 +62,5 @@ def update_transforms(rest: np.ndarray, frames: np.ndarray, index: np.ndarray,
         if not (np.isfinite(Rn).all() and np.isfinite(tn).all()):
             continue
         R[:, j], t[:, j] = Rn, tn
-        recon[:, v] += w[:, None] * (np.einsum("fij,vj->fvi", Rn, p) + tn[:, None]) - own
+        recon_vm[v] += w[:, None, None] * (np.matmul(Rn, p.T).transpose(2, 0, 1) + tn[None]) - own
     return R, t

@@ -52,12 +52,18 @@ def frame_sums(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return M, G
 
 
-def right_hand_sides(frames: np.ndarray, M: np.ndarray, sl: slice) -> np.ndarray:
-    """``H_ij = Σ_t M_j^tᵀ v_i^t`` (N,B,4) for the vertices ``sl`` (one matrix product)."""
+def vertex_major(frames: np.ndarray) -> np.ndarray:
+    """Frames (F,V,3) as one contiguous (V, F·3) array, columns (t, d)."""
+    F, V = frames.shape[:2]
+    return np.ascontiguousarray(frames.transpose(1, 0, 2)).reshape(V, F * 3)
+
+
+def right_hand_sides(frames_vm: np.ndarray, M: np.ndarray, sl: slice) -> np.ndarray:
+    """``H_ij = Σ_t M_j^tᵀ v_i^t`` (N,B,4) for the vertices ``sl`` of the vertex-major
+    frames (V, F·3) (:func:`vertex_major`): one matrix product."""
     F, B = M.shape[:2]
     Mf = M.transpose(0, 2, 1, 3).reshape(F * 3, B * 4)
-    Vf = frames[:, sl].transpose(1, 0, 2).reshape(-1, F * 3)         # (N, F·3) rows (t,d)
-    return (Vf @ Mf).reshape(-1, B, 4)
+    return (frames_vm[sl] @ Mf).reshape(-1, B, 4)
 
 
 def single_bone_errors(ph: np.ndarray, G: np.ndarray, H: np.ndarray) -> np.ndarray:
@@ -101,19 +107,17 @@ def simplex_qp(Q: np.ndarray, c: np.ndarray, w0: np.ndarray, iterations: int) ->
     y, s = x.copy(), np.ones(len(x))
 
     def f(w):
-        return 0.5 * np.einsum("nc,ncd,nd->n", w, Q, w) - np.einsum("nc,nc->n", c, w)
+        return 0.5 * np.einsum("nc,nc->n", w, (Q @ w[..., None])[..., 0]) - np.einsum("nc,nc->n", c, w)
 
-    fx = f(x)
     for _ in range(iterations):
-        g = np.einsum("ncd,nd->nc", Q, y) - c
+        g = (Q @ y[..., None])[..., 0] - c
         xn = project_simplex(y - step[:, None] * g)
-        fn = f(xn)
-        worse = fn > fx                                               # restart (O'Donoghue & Candès 2015)
-        s_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * s * s))
-        y = xn + ((s - 1.0) / s_next)[:, None] * (xn - x)
-        y[worse], s_next[worse] = x[worse], 1.0
-        xn[worse], fn[worse] = x[worse], fx[worse]
-        x, fx, s = xn, fn, s_next
+        # gradient restart (O'Donoghue & Candès 2015): momentum off where it points uphill
+        restart = np.einsum("nc,nc->n", g, xn - x) > 0
+        s_next = np.where(restart, 1.0, 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * s * s)))
+        beta = np.where(restart, 0.0, (s - 1.0) / s_next)
+        y = xn + beta[:, None] * (xn - x)
+        x, s = xn, s_next
     return _polish(Q, c, x, f)
 
 
@@ -138,14 +142,15 @@ def _polish(Q, c, x, f) -> np.ndarray:
     return x
 
 
-def update_weights(rest: np.ndarray, frames: np.ndarray, R: np.ndarray, t: np.ndarray,
+def update_weights(rest: np.ndarray, frames_vm: np.ndarray, R: np.ndarray, t: np.ndarray,
                    index: np.ndarray, weight: np.ndarray, max_influences: int,
                    candidates: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """New sparse weights with the bones fixed (module docstring).
 
     Parameters
     ----------
-    rest : (V,3);  frames : (F,V,3);  R : (F,B,3,3);  t : (F,B,3)
+    rest : (V,3);  frames_vm : (V,F·3) the frames vertex-major (:func:`vertex_major`);
+    R : (F,B,3,3);  t : (F,B,3)
     index, weight : (V,K0)   the current influences (their bones are always candidates)
     max_influences : K;  candidates : C (clipped to [K, B]);  iterations : FISTA steps
 
@@ -164,7 +169,7 @@ def update_weights(rest: np.ndarray, frames: np.ndarray, R: np.ndarray, t: np.nd
     for s in range(0, V, CHUNK):
         sl = slice(s, min(s + CHUNK, V))
         p = ph[sl]
-        H = right_hand_sides(frames, M, sl)                            # (N,B,4)
+        H = right_hand_sides(frames_vm, M, sl)                         # (N,B,4)
         err = single_bone_errors(p, G, H)
         rows = np.arange(len(p))[:, None]
         current = weight[sl] > 0
