@@ -23,7 +23,7 @@ class BoneRigParams(BaseModel):
         description="Largest number of non-zero weights per vertex |w_i|_0 <= K (SSDR eq. 4; "
                     "glTF's JOINTS_0/WEIGHTS_0 hold 4, JOINTS_1/WEIGHTS_1 the next 4).")
     iterations: int = Field(
-        default=20, ge=0, le=500,
+        default=30, ge=0, le=500,
         description="Alternations of the bone-transform update (§3.2) and the weight update "
                     "(§3.3) after the initialization.")
     init_iterations: int = Field(
