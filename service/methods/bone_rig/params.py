@@ -35,9 +35,9 @@ class BoneRigParams(BaseModel):
         description="Bones considered per vertex in the weight update: the vertex's current "
                     "bones and those that predict it best alone (at least max_influences).")
     qp_iterations: int = Field(
-        default=60, ge=1, le=5000,
-        description="Accelerated projected-gradient steps of the per-vertex simplex QP of "
-                    "the weight update (then polished exactly on the active set).")
+        default=20, ge=1, le=5000,
+        description="Accelerated projected-gradient steps that start the per-vertex simplex "
+                    "QP of the weight update (an active-set method then solves it exactly).")
     cluster_frames: int = Field(
         default=24, ge=1, le=1000,
         description="Frames (evenly spaced) whose positions form the trajectory features of "

@@ -15,11 +15,14 @@ Departures (stated; the paper solves each vertex by an active-set NNLS with the 
 constraint as a heavily weighted extra row and then keeps the K largest weights):
 
 * the affinity constraint is exact: each vertex solves the simplex-constrained QP
-  ``min ½ wᵀQw − cᵀw`` over the probability simplex by accelerated projected gradient
-  (FISTA, Beck & Teboulle 2009, with the sort-based simplex projection of Duchi et al.
-  2008), batched over all vertices at once, then *polished*: the equality-constrained
-  optimum on the found support, accepted where it is feasible. This is
-  vectorized NumPy (no per-vertex Python call of ``scipy.optimize.nnls``);
+  ``min ½ wᵀQw − cᵀw`` over the probability simplex, batched over all vertices at once:
+  a few accelerated projected-gradient steps (FISTA, Beck & Teboulle 2009, with the
+  sort-based simplex projection of Duchi et al. 2008) find a feasible start near the
+  optimum, and a primal active-set method (batched KKT solves) finishes it exactly. This
+  is vectorized NumPy (no per-vertex Python call of ``scipy.optimize.nnls``). Measured on
+  the level-0 sample actor (70 bones): projected gradient alone with 60 steps left the
+  RMS at 0.229 mm after 8 iterations with 12 candidates (0.162 mm with 150 steps and 8);
+  the exact solve is what makes more candidates pay;
 * only C candidate bones per vertex enter the QP: its current bones (so the previous
   weights are feasible and the objective cannot rise) and those that alone predict it
   best (smallest single-bone error); after the solve the K largest weights are kept and
@@ -118,28 +121,63 @@ def simplex_qp(Q: np.ndarray, c: np.ndarray, w0: np.ndarray, iterations: int) ->
         beta = np.where(restart, 0.0, (s - 1.0) / s_next)
         y = xn + beta[:, None] * (xn - x)
         x, s = xn, s_next
-    return _polish(Q, c, x, f)
+    return _active_set(Q, c, x, f)
 
 
-def _polish(Q, c, x, f) -> np.ndarray:
-    """The equality-constrained optimum on each row's support, where it is feasible."""
-    N, C = x.shape
-    S = x > WEIGHT_EPS
+def _face_optimum(Q, c, S) -> tuple[np.ndarray, np.ndarray]:
+    """Minimizer z (N,C) of ½ wᵀQw − cᵀw on the affine hull {Σ w = 1, w = 0 off S} and its
+    multiplier ν (N,) (batched KKT solves; the pseudo-inverse keeps coincident bones regular)."""
+    N, C = S.shape
     K = np.zeros((N, C + 1, C + 1))
     both = S[:, :, None] & S[:, None, :]
     K[:, :C, :C] = np.where(both, Q, 0.0) + np.eye(C) * (~S)[:, None, :]
     K[:, :C, C] = S
     K[:, C, :C] = S
     rhs = np.concatenate([np.where(S, c, 0.0), np.ones((N, 1))], axis=1)
-    # the pseudo-inverse keeps coincident bones (a singular Q on S) regular
     sol = np.einsum("nij,nj->ni", np.linalg.pinv(K, rcond=POLISH_RCOND), rhs)
-    w = np.where(S, sol[:, :C], 0.0)
-    # x lies on the face of its support S, so a feasible optimum of the affine hull of S is
-    # the optimum of that face and never worse than x (up to rounding): feasibility suffices
-    ok = np.isfinite(w).all(axis=1) & (w >= 0).all(axis=1)
-    x = x.copy()
-    x[ok] = w[ok] / w[ok].sum(axis=1, keepdims=True)
-    return x
+    return np.where(S, sol[:, :C], 0.0), sol[:, C]
+
+
+def _active_set(Q, c, x, f) -> np.ndarray:
+    """Exact optimum by a primal active-set method (Nocedal & Wright 2006, Alg. 16.3) started
+    at the feasible x, batched: solve on the support S; if the face optimum is infeasible,
+    step to the boundary and drop the blocking bone; if it is feasible, add the bone whose
+    KKT multiplier μ_j = (Qw − c)_j + ν is most negative, or stop when none is."""
+    N, C = x.shape
+    w = x.copy()
+    S = w > WEIGHT_EPS
+    w[~S] = 0.0
+    w /= w.sum(axis=1, keepdims=True)
+    active = np.ones(N, bool)
+    for _ in range(4 * C):
+        if not active.any():
+            break
+        a = np.flatnonzero(active)
+        z, nu = _face_optimum(Q[a], c[a], S[a])
+        wa, Sa = w[a], S[a]
+        bad = Sa & (z < 0)
+        infeasible = bad.any(axis=1)
+        # infeasible: move towards z until a weight hits 0, drop it
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(bad, wa / (wa - z), np.inf)
+        alpha = np.clip(ratio.min(axis=1), 0.0, 1.0)
+        j = np.argmin(ratio, axis=1)
+        step = np.where(infeasible[:, None], wa + alpha[:, None] * (z - wa), z)
+        step = np.maximum(step, 0.0)
+        Sa = Sa.copy()
+        Sa[infeasible, j[infeasible]] = False
+        step[~Sa] = 0.0
+        # feasible: KKT check of the bones outside the support
+        g = (Q[a] @ z[..., None])[..., 0] - c[a]
+        mu = np.where(Sa, np.inf, g + nu[:, None])
+        k = np.argmin(mu, axis=1)
+        enter = ~infeasible & (mu[np.arange(len(a)), k] < -1e-12 * (np.abs(g).max(axis=1) + 1e-300))
+        Sa[enter, k[enter]] = True
+        w[a] = step / step.sum(axis=1, keepdims=True)
+        S[a] = Sa
+        done = ~infeasible & ~enter
+        active[a[done]] = False
+    return w
 
 
 def update_weights(rest: np.ndarray, frames_vm: np.ndarray, R: np.ndarray, t: np.ndarray,

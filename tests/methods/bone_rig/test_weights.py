@@ -29,3 +29,22 @@ def test_simplex_qp_interior_and_vertex_optima():
     w = simplex_qp(Q, c, np.full((50, 4), 0.25), iterations=50)
     np.testing.assert_allclose(w, w_true, atol=1e-8)                      # the polish makes it exact
     assert np.all(w >= 0) and np.allclose(w.sum(axis=1), 1.0)
+
+
+def test_active_set_finishes_exactly_from_a_poor_start():
+    # one projected-gradient step is far from the optimum; the active-set phase must reach it
+    rng = np.random.default_rng(7)
+    c = rng.normal(size=(200, 8))
+    Q = np.broadcast_to(np.eye(8), (200, 8, 8)).copy()
+    w = simplex_qp(Q, c, np.full((200, 8), 1 / 8), iterations=1)
+    np.testing.assert_allclose(w, project_simplex(c), atol=1e-12)
+    # a general convex QP: the KKT conditions hold (μ ≥ 0 off the support, equal gradients on it)
+    A = rng.normal(size=(200, 12, 8))
+    Q = np.einsum("nrc,nrd->ncd", A, A)
+    c = rng.normal(size=(200, 8)) * 3
+    w = simplex_qp(Q, c, np.full((200, 8), 1 / 8), iterations=2)
+    g = np.einsum("ncd,nd->nc", Q, w) - c
+    on = w > 1e-12
+    nu = -np.where(on, g, 0).sum(axis=1) / on.sum(axis=1)
+    assert np.abs(np.where(on, g + nu[:, None], 0)).max() < 1e-9
+    assert (np.where(on, 0, g + nu[:, None]) > -1e-9).all()
