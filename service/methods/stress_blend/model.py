@@ -285,11 +285,11 @@ def train(actor: ActorData, clips: Sequence[Clip], params: StressBlendParams = S
     alb = (np.stack([clips[c].albedo[f] for c, f in picks]).astype(np.float32)
            if clips[0].albedo is not None else None)
     progress(0.75, "regions")
-    masks = region_masks(actor.vertices, F, scan_stress[1:], params.regions,
-                         params.region_stress_scale_mm, params.mask_smoothing, params.seed)
     imp = _importance(actor, disp)
     if alb is not None:
         imp = imp + _importance(actor, alb)
+    masks = region_masks(actor.vertices, F, scan_stress[1:], params.regions,
+                         params.region_stress_scale_mm, params.mask_smoothing, params.seed, imp)
     model = StressBlendModel(params, np.asarray(actor.vertices, np.float64), F,
                              np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64),
                              names, scan_stress, disp, alb, masks, imp)

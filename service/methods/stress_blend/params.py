@@ -32,9 +32,10 @@ class StressBlendParams(BaseModel):
         description="Wrinkle-map regions (masks) for real-time engines: per frame the engine "
                     "gets regions × expressions weights.")
     region_stress_scale_mm: float = Field(
-        default=300.0, gt=0,
-        description="Region clustering: mm of rest position that one unit of scan strain "
-                    "counts for (balances spatial compactness against similar stress).")
+        default=30.0, gt=0,
+        description="Region clustering: mm of rest position that a saturated scan strain "
+                    "(tanh(s / 0.05)) counts for (balances spatial compactness against "
+                    "similar stress).")
     mask_smoothing: int = Field(
         default=6, ge=0, le=500,
         description="Iterations of uniform Laplacian smoothing that soften the region masks "

@@ -5,9 +5,14 @@ map with ``mask_r(uv) · ω_rk(t)`` for a handful of static masks (Jimenez et al
 "Practical and realistic facial wrinkles animation"; MetaHuman's animated maps). This
 module turns the per-vertex blend weights of :mod:`.weights` into that form:
 
-* **masks** (training): k-means (k-means++, seeded) of the vertices on the feature
-  ``(p_i, α · (s_1,i … s_K,i))``, rest position and the scans' local stresses (α =
-  ``region_stress_scale_mm``), so a region is compact and moves one way in every scan;
+* **masks** (training): k-means (k-means++, seeded) on the feature
+  ``(p_i, α · tanh(s_k,i / s₀) for every expression k)``, rest position and the scans'
+  saturated local stresses (α = ``region_stress_scale_mm``, s₀ = :data:`STRESS_SATURATION`;
+  without the saturation the few vertices of extreme strain, at the mouth corners, take
+  the clusters), run on the *active* vertices (where some expression changes the maps:
+  importance above :data:`ACTIVE_IMPORTANCE`) so the regions are spent where the wrinkles
+  are; every vertex then joins its nearest cluster centre. A region is compact and moves
+  one way in every scan;
   the one-hot labels are softened by ``mask_smoothing`` uniform Laplacian steps (each step
   averages rows of a partition of unity, so the masks stay one);
 * **region weights** (per frame): for each expression k the weights ω_·k minimize the
@@ -35,21 +40,35 @@ from service.geometry.curvature_flow import uniform_smoothing_operator
 
 #: relative ridge of the region normal equations (regions an expression never reaches)
 RIDGE = 1e-9
+#: strain at which the clustering feature saturates (tanh(s / s₀)); wrinkles buckle at ~0.05
+STRESS_SATURATION = 0.05
+#: a vertex takes part in the clustering when some expression's normalized importance exceeds this
+ACTIVE_IMPORTANCE = 0.1
 
 
 def region_masks(neutral: np.ndarray, faces: np.ndarray, scan_stress: np.ndarray, regions: int,
-                 stress_scale_mm: float, smoothing: int, seed: int) -> np.ndarray:
+                 stress_scale_mm: float, smoothing: int, seed: int,
+                 importance: np.ndarray | None = None) -> np.ndarray:
     """Soft region masks (n,R) float64, rows summing to 1 (module docstring).
 
     scan_stress : (K,n,3) the expressions' local stresses (neutral excluded)
+    importance : (K,n) normalized map change per expression (None: every vertex is active)
     """
     n = len(neutral)
-    R = min(regions, n)
-    feats = np.concatenate([neutral, stress_scale_mm * scan_stress.transpose(1, 0, 2).reshape(n, -1)], axis=1)
+    feats = np.concatenate([neutral, stress_scale_mm * np.tanh(
+        scan_stress.transpose(1, 0, 2).reshape(n, -1) / STRESS_SATURATION)], axis=1)
+    active = (np.ones(n, bool) if importance is None
+              else np.asarray(importance).max(axis=0) > ACTIVE_IMPORTANCE)
+    if active.sum() < regions:
+        active = np.ones(n, bool)
+    R = min(regions, int(active.sum()))
     if R == 1:
         labels = np.zeros(n, np.int64)
     else:
-        _, labels = kmeans2(feats, R, minit="++", rng=np.random.default_rng(seed), missing="warn")
+        centres, _ = kmeans2(feats[active], R, minit="++", rng=np.random.default_rng(seed), missing="warn")
+        d2 = (np.sum(feats ** 2, axis=1)[:, None] - 2 * feats @ centres.T
+              + np.sum(centres ** 2, axis=1)[None])
+        labels = np.argmin(d2, axis=1)
     used = np.unique(labels)
     labels = np.searchsorted(used, labels)
     m = np.zeros((n, len(used)))
