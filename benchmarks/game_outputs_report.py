@@ -485,6 +485,13 @@ def report(res: dict, meta: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def _save_part(path: Path, key: str, value) -> None:
+    """Update one part of the results file (the other part may have been written meanwhile)."""
+    res = json.loads(path.read_text()) if path.is_file() else {}
+    res[key] = value
+    path.write_text(json.dumps(res, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reuse", action="store_true", help="reuse models and rig results in benchmarks/out")
@@ -519,7 +526,7 @@ def main() -> None:
                                for w in ("dem", "facesynth")}
                         for case in CRASH_CASES}
         res["rig"] = rig
-        results_path.write_text(json.dumps(res, indent=1))
+        _save_part(results_path, "rig", rig)
         if (FIGURES / "rig" / "rig.npz").is_file():
             plot_bone_weights(ACTOR_L0, FIGURES / "rig" / "rig.npz", FIGURES / "c_bone_weights.png")
 
@@ -577,7 +584,8 @@ def main() -> None:
                             FIGURES / "b_blended_albedo.png")
         plot_masks_weights(model, FIGURES / "d_wrinkle_masks.png")
         res["stress"] = sb
-        results_path.write_text(json.dumps(res, indent=1))
+        _save_part(results_path, "stress", sb)
+    res = json.loads(results_path.read_text()) if results_path.is_file() else res
 
     meta["total_s"] = time.perf_counter() - t_start
     text = report(res, meta)
