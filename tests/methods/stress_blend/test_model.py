@@ -87,3 +87,14 @@ def test_bad_input_is_refused(trained):
     import dataclasses
     with pytest.raises(InvalidInput, match="displacement maps"):
         train(actor, [dataclasses.replace(c, displacement=None, albedo=None) for c in cl], PARAMS)
+
+
+def test_region_masks_separate_the_two_expressions():
+    actor, cl = clips()
+    model = train(actor, cl, StressBlendParams(regions=2, stress_smoothing=2, mask_smoothing=0))
+    V = actor.vertices
+    left_bottom = np.flatnonzero((V[:, 0] < 8) & (V[:, 1] < 8))
+    right_top = np.flatnonzero((V[:, 0] > 22) & (V[:, 1] > 22))
+    a = np.argmax(model.masks[left_bottom], axis=1)
+    b = np.argmax(model.masks[right_top], axis=1)
+    assert len(set(a)) == 1 and len(set(b)) == 1 and a[0] != b[0]
