@@ -12,7 +12,6 @@ truth's high band), next to the biquadratic PDM trained by that report's own wor
   delivers; the PDM only sees markers, so this row has more input), output its blended map;
 * *stress blend (PDM mesh)*: input the PDM's medium mesh synthesized from the markers, so
   the same information as the PDM row; the map is blended from that mesh's stress;
-* *stress blend (bone-rig mesh)*: not run (the bone rig is measured at level 0, below);
 * *engine: masks × weights*: the tracked-mesh row's per-region wrinkle weights replayed as
   an engine would (``M_0 + Σ_k (Σ_r mask_r ω_rk)(M_k − M_0)``);
 * *static neutral map*: the neutral scan's map on the tracked mesh (no blending).
@@ -23,8 +22,8 @@ displacement and albedo maps over covered texels), after a save/load round trip.
 Part 2, bone rig (Le & Deng 2012 SSDR, the course's "Game Rig") against ``py-dem-bones``
 (its ``solve_skinning``, the Dem Bones SSDR solver) on the same animation and bone count:
 the level-0 sample actor's ``heldout_in_range`` performance (154 frames × 11,248 vertices,
-rest pose frame 0; level 0 because py-dem-bones needs ~8 min for 10 iterations of it on
-this shared 2-core machine, level 1 would take hours), 70 bones (the course's rig), 4
+rest pose frame 0; level 0 because py-dem-bones needed 5–8 min for 10 iterations of it on
+this shared 2-core machine, level 1 would take about 4× as long), 70 bones (the course's rig), 4
 influences, 10 iterations each (py-dem-bones' default is 30: its 30 took longer than this
 run could wait on the shared machine; facesynth's default is 30). Each solve runs in a fresh
 process: wall time and peak RSS added by the solve (``VmHWM``, as pdm_report). Then the
