@@ -85,7 +85,10 @@ class MapBand:
 
     def blend(self, texel_weights: np.ndarray) -> np.ndarray:
         """Σ_k w_k M_k (P,C) for texel weights (P,S)."""
-        return np.einsum("ps,spc->pc", texel_weights, self.values)
+        out = texel_weights[:, :1] * self.values[0]
+        for k in range(1, len(self.values)):
+            out += texel_weights[:, k:k + 1] * self.values[k]
+        return out
 
     def image(self, values: np.ndarray) -> np.ndarray:
         """(P,C) → (H,H[,C]) float32, 0 off the charts (channel axis dropped when C = 1)."""

@@ -78,8 +78,10 @@ class StressField:
             C = np.einsum("mki,mkj->mij", G, G).reshape(len(G), 9)
             Cv = (self.average @ C).reshape(-1, 3, 3)
             T, B = self.tangent[:, 0], self.tangent[:, 1]
-            ett = 0.5 * (np.einsum("ni,nij,nj->n", T, Cv, T) - 1.0)
-            ebb = 0.5 * (np.einsum("ni,nij,nj->n", B, Cv, B) - 1.0)
-            etb = 0.5 * np.einsum("ni,nij,nj->n", T, Cv, B)
+            CT = (Cv @ T[..., None])[..., 0]
+            CB = (Cv @ B[..., None])[..., 0]
+            ett = 0.5 * (np.sum(T * CT, axis=1) - 1.0)
+            ebb = 0.5 * (np.sum(B * CB, axis=1) - 1.0)
+            etb = 0.5 * np.sum(T * CB, axis=1)
             out[f] = self.smoothing @ np.column_stack([ett, ebb, np.sqrt(2.0) * etb])
         return out[0] if single else out
