@@ -1,8 +1,9 @@
 """What the benchmark reports share: the sample actor's data, fresh-process workers with
 peak-memory measurement, the fine-detail metric at the map texels, the PDM baseline, and
-figure helpers. Each report imports this module (``import harness``) rather than another
-report (one exception left: ``generalization_report`` reuses ``shape_space_report``'s cached
-shape-space builds, whose worker lives in that script).
+figure helpers. Each report imports this module (``import harness``). Two reports still
+reuse another report's cached model builds, whose workers live in that script:
+``generalization_report`` (``shape_space_report``'s shape-space models) and
+``game_outputs_report`` (``pdm_report``'s PDM models and figure layout).
 
 Peak memory: a worker resets the resident-set high-water mark (``echo 5 >
 /proc/self/clear_refs``) and reports ``VmHWM − VmRSS`` at the reset, the peak resident

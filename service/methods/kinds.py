@@ -33,6 +33,9 @@ from service.methods.pose_space.model import PoseSpaceModel, train as pose_space
 from service.methods.pose_space.params import PsdParams, WpsdParams
 from service.methods.shape_space.model import ShapeSpaceModel, train as shape_space_train
 from service.methods.shape_space.params import ShapeSpaceParams
+from service.methods.stress_blend.model import OUTPUTS as STRESS_BLEND_OUTPUTS
+from service.methods.stress_blend.model import StressBlendModel, train as stress_blend_train
+from service.methods.stress_blend.params import StressBlendParams
 
 
 class TrainedModel(Protocol):
@@ -155,8 +158,27 @@ WPSD_KIND = Kind(
     load=PoseSpaceModel.load,
 )
 
+STRESS_BLEND_KIND = Kind(
+    name="stress_blend",
+    title="Stress-driven blending of expression maps (Digital Ira, real-time rendering)",
+    description=(
+        "Blends the maps of the actor's expression scans per texel with weights from the "
+        "similarity of each vertex's surface stress (Green strain of the deformation "
+        "gradients) to each scan's, as the real-time renderer of Digital Ira blends its "
+        "scans' maps by surface stress ('Digital Ira and Beyond: Creating Photoreal Real-Time "
+        "Digital Characters', SIGGRAPH 2014 course, 'Real-Time Rendering'). Input: meshes on the "
+        "actor's topology (/enhance); output: blended displacement, albedo and normal maps "
+        "and the per-region wrinkle-map weights an engine plays back."),
+    params=StressBlendParams,
+    input="meshes",
+    outputs=tuple(o for o in STRESS_BLEND_OUTPUTS if o in OUTPUTS),
+    train=stress_blend_train,
+    load=StressBlendModel.load,
+)
+
 #: every model kind the service knows, by name
-KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND, PSD_KIND, WPSD_KIND, SHAPE_SPACE_KIND)}
+KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND, PSD_KIND, WPSD_KIND, SHAPE_SPACE_KIND,
+                                              STRESS_BLEND_KIND)}
 
 
 def get_kind(name: str) -> Kind:

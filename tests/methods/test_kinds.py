@@ -47,7 +47,7 @@ def test_pdm_schema_documents_every_parameter_and_the_patent():
 
 
 def test_unknown_kind_names_the_known_ones():
-    with pytest.raises(InvalidInput, match="unknown model kind 'tracking'; known kinds: pdm, psd, shape_space, wpsd"):
+    with pytest.raises(InvalidInput, match="unknown model kind 'tracking'; known kinds: pdm, psd, shape_space, stress_blend, wpsd"):
         kinds.get_kind("tracking")
 
 
