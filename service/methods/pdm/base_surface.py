@@ -28,6 +28,7 @@ Choices where the paper is silent:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -112,6 +113,24 @@ def stability_weights(aligned: np.ndarray, rest: np.ndarray) -> np.ndarray:
     m = np.sqrt(np.nanmean(np.einsum("fmd,fmd->fm", d, d), axis=0))
     m = np.nan_to_num(m, nan=np.nanmax(m) if np.isfinite(m).any() else 1.0)
     return stability_weights_from_rms(m)
+
+
+def training_head_pose(markers: np.ndarray, rest: np.ndarray,
+                       names: Sequence[str]) -> tuple[HeadPose, np.ndarray]:
+    """Head pose of training frames (F,M,3) and the marker stability weights (M,) it used.
+
+    An unweighted alignment first, then :func:`stability_weights` from its residuals, then
+    the weighted alignment (ma2008 §4.1), so expressive markers do not drag the head.
+    ``names`` (F,) name the frames in the :class:`InvalidInput` of a frame with too few
+    visible markers.
+    """
+    try:
+        pose = head_alignment(markers, rest)
+        weights = stability_weights(pose.remove(markers), rest)
+        return head_alignment(markers, rest, weights), weights
+    except TooFewMarkers as e:
+        raise InvalidInput(f"{names[e.frame]} has {e.visible} visible markers, at least "
+                           f"{e.required} are needed") from None
 
 
 def handle_vertices(F: np.ndarray, triangle: np.ndarray, barycentric: np.ndarray,

@@ -61,7 +61,7 @@ from service.geometry.uv_raster import (
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.pdm import polynomial, store
 from service.methods.pdm.base_surface import (
-    BaseSurface, HeadPose, TooFewMarkers, handle_vertices, head_alignment, stability_weights,
+    BaseSurface, HeadPose, TooFewMarkers, handle_vertices, head_alignment, training_head_pose,
 )
 from service.methods.pdm.deformation import (
     DeformationAxes, MarkerMesh, ParameterField, barycentric_operator, deformation_axes,
@@ -381,13 +381,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     markers = np.concatenate([c.markers for c in clips]).astype(np.float64)
     names = [f"clip '{c.name}' frame {f}" for c in clips for f in range(c.frames)]
     rest = actor.marker_positions()
-    try:
-        pose = head_alignment(markers, rest)
-        weights = stability_weights(pose.remove(markers), rest)
-        pose = head_alignment(markers, rest, weights)
-    except TooFewMarkers as e:
-        raise InvalidInput(f"{names[e.frame]} has {e.visible} visible markers, at least "
-                           f"{e.required} are needed") from None
+    pose, weights = training_head_pose(markers, rest, names)
     aligned = pose.remove(markers)
     try:
         handles = handle_vertices(F, actor.marker_triangle, actor.marker_barycentric, actor.marker_names)

@@ -67,7 +67,7 @@ from service.geometry.uv_raster import (
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
-    BaseSurface, HeadPose, TooFewMarkers, head_alignment, stability_weights,
+    BaseSurface, HeadPose, TooFewMarkers, head_alignment, training_head_pose,
 )
 from service.methods.pose_space import rbf, store
 from service.methods.pose_space.data import PoseSpaceData
@@ -401,13 +401,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
     if T < 2:
         raise InvalidInput(f"training needs at least 2 frames, got {T}")
     rest = actor.marker_positions()
-    try:
-        pose = head_alignment(markers, rest)
-        pose_weights = stability_weights(pose.remove(markers), rest)
-        pose = head_alignment(markers, rest, pose_weights)
-    except TooFewMarkers as e:
-        raise InvalidInput(f"{names[e.frame]} has {e.visible} visible markers, at least "
-                           f"{e.required} are needed") from None
+    pose, pose_weights = training_head_pose(markers, rest, names)
 
     progress(0.05, "large-scale shell")
     base = large_scale_surface(actor)
