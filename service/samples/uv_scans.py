@@ -8,7 +8,7 @@ directory (``neutral.npz`` + ``performances/*.npz``, the format of
 ``service.samples.actor``) is made as a light stage would make it:
 
 * **geometry**: the frame's high-resolution vertices with the head pose removed (rigid
-  alignment of the head region to the neutral, :func:`~service.geometry.rigid.rigid_align`);
+  alignment of the head region to the neutral, :func:`~service.geometry.rigid.rigid_align_frames`);
 * **layout**: a cylindrical (ear-to-ear) unwrap of the scanned face — the actor's
   ``narrow_face`` region — around a vertical axis, ``u ∝ R·atan2(x − x₀, z − z₀)``,
   ``v ∝ y``, in mm so texels are square; the unwrap sees the scan in a *perturbed* head
@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from service.geometry.rigid import rigid_align
+from service.geometry.rigid import rigid_align_frames
 from service.geometry.normals import vertex_normals
 from service.geometry.uv_raster import (UVRaster, dilate, interpolate, rasterize_uv, sample_map,
                                         uv_to_texel)
@@ -193,7 +193,8 @@ def build_uv_scans(actor_dir: str | Path, resolution: int = 1024,
         position = interpolate(raster, X, faces).astype(np.float32)
         Q = detail.surface_strain(V0, X, F)
         maps = {"position": position,
-                "albedo": _albedo(raster, rows, actor, static, albedo, Q, Q_rest)}
+                "albedo": _albedo(raster, rows, actor, static, albedo, Q, Q_rest,
+                                  1.0 / (scale[0] * resolution))}
         scans.append(UVScan(name, frame, X, layout, maps, raster))
 
     lm = _farthest_points(V0, np.unique(faces), landmarks, rng)
@@ -209,17 +210,17 @@ def _load_frames(actor_dir: Path, name: str, V0: np.ndarray, rigid: np.ndarray,
                  frame: int | None):
     """(frame, head-frame vertices (n,3), albedo map (h,w,3) | None) of one performance."""
     with np.load(actor_dir / "performances" / f"{name}.npz") as d:
-        Vs = d["vertices"]
+        Vs = d["vertices"].astype(np.float64)
+        maps = d["map_frames"] if "albedo" in d.files and "map_frames" in d.files else None
+        R, t = rigid_align_frames(Vs[:, rigid], V0[rigid])
+        Vs = np.einsum("fnd,fed->fne", Vs, R) + t[:, None]          # head pose removed
         if frame is None:
-            moved = np.linalg.norm(Vs - Vs[:1], axis=2).mean(axis=1)
-            frame = int(np.argmax(moved))
-        X = Vs[frame].astype(np.float64)
+            # the expression's peak: the frame farthest from the first (after the head pose)
+            frame = int(np.argmax(np.linalg.norm(Vs - Vs[:1], axis=2).mean(axis=1)))
+        X = Vs[frame]
         albedo = None
-        if "albedo" in d.files and "map_frames" in d.files:
-            slot = np.flatnonzero(d["map_frames"] == frame)
-            if len(slot):
-                albedo = d["albedo"][int(slot[0])].astype(np.float32)
-    X = rigid_align(X[rigid], V0[rigid]).apply(X)
+        if maps is not None and np.any(maps == frame):
+            albedo = d["albedo"][int(np.flatnonzero(maps == frame)[0])].astype(np.float32)
     return frame, X, albedo
 
 
@@ -277,8 +278,17 @@ def _static_texture(actor, seed: int) -> _Static:
 
 
 def _albedo(raster: UVRaster, rows: np.ndarray, actor, static: _Static,
-            stored: np.ndarray | None, Q: np.ndarray, Q_rest: np.ndarray) -> np.ndarray:
-    """Albedo (H,W,3) float32 of one scan: stored base × strain-dependent pores × speckle."""
+            stored: np.ndarray | None, Q: np.ndarray, Q_rest: np.ndarray,
+            texel_mm: float) -> np.ndarray:
+    """Albedo (H,W,3) float32 of one scan: stored base × strain-dependent pores × speckle.
+
+    Band-limited to the texel (a camera's optics do this for a real scan; point samples of
+    sub-texel pores would alias into noise that differs from scan to scan): each pore's
+    Gaussian profile is convolved with a Gaussian of σ = ``texel_mm``/2 (radius
+    ``√(r² + 2σ²)``, depth × ``r²/(r² + 2σ²)``), and each speckle octave is attenuated by
+    its Gaussian-blur gain ``exp(−2(πσ/cell)²)`` at the texel's footprint in the actor's UV.
+    """
+    sigma = 0.5 * texel_mm
     H, W = raster.shape
     out = np.zeros((H * W, 3), np.float32)
     idx = np.flatnonzero(raster.mask.ravel())
@@ -297,7 +307,15 @@ def _albedo(raster: UVRaster, rows: np.ndarray, actor, static: _Static,
         N = np.einsum("kc,kcd->kd", b, static.N0[Fv])
         N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
         gain = 1.0 + 0.6 * np.exp(-np.sum((P - static.gain_centre) ** 2, axis=1) / (2 * 18.0 ** 2))
-        pores = detail.pore_field(m, static.J0[mt], N, static.seed, gain)
+        J = static.J0[mt]
+        pores = detail.pore_field(m, J, N, static.seed, gain)
+        r2 = pores.radius.astype(np.float64) ** 2
+        pores = detail.PoreField(pores.offset, pores.depth * r2 / (r2 + 2 * sigma ** 2),
+                                 np.sqrt(r2 + 2 * sigma ** 2), pores.normal)
+        # the texel's σ in actor-UV units: mm / (mm per uv unit, the Jacobian's area scale)
+        JtJ = np.einsum("kia,kib->kab", J, J)
+        mm_per_uv = np.sqrt(np.sqrt(np.maximum(JtJ[:, 0, 0] * JtJ[:, 1, 1] - JtJ[:, 0, 1] ** 2, 1e-12)))
+        sigma_uv = sigma / mm_per_uv
         Qt = np.einsum("kc,kcq->qk", b, Q[Fv])
         Qr = np.einsum("kc,kcq->qk", b, Q_rest[Fv])
         pore, _ = detail.pore_height(pores, Qt, Qr)
@@ -305,7 +323,8 @@ def _albedo(raster: UVRaster, rows: np.ndarray, actor, static: _Static,
                 else np.broadcast_to(detail.SKIN_BASE, (len(sel), 3)))
         speck = np.ones(len(sel))
         for cell, amp in zip(SPECKLE_CELLS_UV, SPECKLE_AMPLITUDE):
-            speck *= 1.0 - amp * _value_noise(m / cell, static.seed + int(1 / cell))
+            gain_blur = np.exp(-2 * (np.pi * sigma_uv / cell) ** 2)
+            speck *= 1.0 - amp * gain_blur * _value_noise(m / cell, static.seed + int(1 / cell))
         a = base * (1.0 + PORE_DARKENING * np.clip(pore, -0.2, 0.0))[:, None] * speck[:, None]
         out[sel] = np.clip(a, 0.0, 1.0)
     return out.reshape(H, W, 3)
