@@ -162,15 +162,19 @@ def variational_refinement(reference: np.ndarray, moving: np.ndarray, flow: np.n
 
 
 def refined_flow(reference: np.ndarray, moving: np.ndarray, passes: int = 2,
-                 preset: str = "medium", patch_size: int = 8, patch_stride: int = 3,
-                 refinement_iterations: int = 20, smoothness: float = 10.0) -> np.ndarray:
+                 preset: str = "medium", patch_size: int = 8, patch_stride: int = 2,
+                 refinement_iterations: int = 0, smoothness: float = 10.0) -> np.ndarray:
     """DIS, residual DIS passes on the re-warped image, then variational refinement.
 
     Pass 1 is :func:`dis_flow`. Each further pass warps the *original* moving image by the
     current flow, computes the residual DIS flow of that warp against the reference, and
     composes: ``f ← f∘(id + r) + r``, i.e. ``f_new(x) = r(x) + f(x + r(x))``. The composed
-    field is polished by :func:`variational_refinement`. Measured on the sample actor's
-    scans (benchmarks/correspondence_report.py): lower median error than one DIS pass.
+    field can be polished by :func:`variational_refinement` (off by default). Measured on
+    the level-1 sample actor's scans at 1024² after the pre-warp
+    (:class:`~service.methods.correspondence.correspond.CorrespondenceParams` lists the
+    sweep): finest scale 0 instead of the preset's 1 is what makes it sub-texel, the second
+    pass lowers the 95th percentile by ~10 %, the variational refinement (α = 10) raised the
+    median by ~30 %.
 
     Parameters
     ----------
