@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 #: DIS presets by name (OpenCV's DISOpticalFlow presets)
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -326,24 +325,32 @@ def ncc_confidence(reference: np.ndarray, warped: np.ndarray, window_sigma: floa
     if a.shape != b.shape or a.ndim != 2:
         raise ValueError(f"ncc_confidence needs two (H,W) images of one size, got "
                          f"{a.shape} and {b.shape}")
-    m = np.ones(a.shape) if mask is None else np.asarray(mask, dtype=np.float64)
-    a = np.where(m > 0, np.nan_to_num(a), 0.0)
-    b = np.where(m > 0, np.nan_to_num(b), 0.0)
+    m = np.ones(a.shape, np.float32) if mask is None else np.asarray(mask, dtype=np.float32)
+    on = m > 0
+    # centred on their masked means, the local moments are well conditioned in float32
+    a = np.where(on, np.nan_to_num(a) - (a[on].mean() if on.any() else 0.0), 0.0).astype(np.float32)
+    b = np.where(on, np.nan_to_num(b) - (b[on].mean() if on.any() else 0.0), 0.0).astype(np.float32)
 
-    def g(x):
-        return ndimage.gaussian_filter(x, window_sigma, mode="nearest")
-
-    wsum = np.maximum(g(m), 1e-12)
-    ma, mb = g(a * m) / wsum, g(b * m) / wsum
-    va = np.maximum(g(a * a * m) / wsum - ma ** 2, 0.0)
-    vb = np.maximum(g(b * b * m) / wsum - mb ** 2, 0.0)
-    cov = g(a * b * m) / wsum - ma * mb
-    ncc = np.clip(cov / np.sqrt(va * vb + eps ** 2), 0.0, 1.0) * (m > 0)
+    wsum = np.maximum(gaussian_blur(m, window_sigma), 1e-12)
+    ma, mb = gaussian_blur(a, window_sigma) / wsum, gaussian_blur(b, window_sigma) / wsum
+    va = np.maximum(gaussian_blur(a * a, window_sigma) / wsum - ma ** 2, 0.0)
+    vb = np.maximum(gaussian_blur(b * b, window_sigma) / wsum - mb ** 2, 0.0)
+    cov = gaussian_blur(a * b, window_sigma) / wsum - ma * mb
+    ncc = np.clip(cov / np.sqrt(va * vb + np.float32(eps) ** 2), 0.0, 1.0) * on
     if smooth_sigma > 0:
-        num = ndimage.gaussian_filter(ncc * m, smooth_sigma, mode="nearest")
-        den = ndimage.gaussian_filter(m, smooth_sigma, mode="nearest")
-        ncc = np.where(m > 0, num / np.maximum(den, 1e-12), 0.0)
+        num = gaussian_blur(ncc * m, smooth_sigma)
+        den = gaussian_blur(m, smooth_sigma)
+        ncc = np.where(on, num / np.maximum(den, 1e-12), 0.0)
     return ncc.astype(np.float32)
+
+
+def gaussian_blur(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian filter (H,W) float32 of σ texels, edges replicated (OpenCV, ±4σ kernel)."""
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    if sigma <= 0:
+        return img.copy()
+    k = 2 * int(np.ceil(4 * sigma)) + 1
+    return cv2.GaussianBlur(img, (k, k), sigma, sigma, borderType=cv2.BORDER_REPLICATE)
 
 
 def _u8(image: np.ndarray) -> np.ndarray:

@@ -14,10 +14,13 @@ are ``A(x + f(x))``, evaluated by bilinear lookup of the dense map A (A is conti
 piecewise affine, so the lookup is exact inside triangles and off by < 1e-3 texel at its
 kinks); every map is then resampled once from the original source, never twice.
 
-Departures from the paper: the flow is OpenCV's DIS with residual passes and variational
-refinement (:func:`~service.geometry.optical_flow.refined_flow`) on the CPU, not the GPU
-flow of the course; the confidence of the result is the NCC of fyffe §4.1 (same course),
-which the paper does not compute.
+Departures from the paper: the flow is OpenCV's DIS run to the finest scale with a residual
+pass on the re-warped source (:func:`~service.geometry.optical_flow.refined_flow`) on the
+CPU, not the GPU flow of the course (FlowLib, which the tracking paper of the same course
+names); the confidence of the result is the NCC of fyffe §4.1 (same course), which the
+Vuvuzela paper does not compute; pinned points are drawn at the *target* landmark position
+in both the target and the pre-warped source texture (the pre-warp carries a source
+landmark exactly there, so this is the same dot without a second resampling).
 """
 
 from __future__ import annotations

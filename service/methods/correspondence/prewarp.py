@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
+from service.geometry.scan_convert import scan_convert
 from service.methods.inputs import InvalidInput
 
 MIN_LANDMARKS = 3
@@ -83,13 +84,9 @@ def piecewise_affine_coords(source_xy: np.ndarray, target_xy: np.ndarray, shape:
         tri = Delaunay(tgt)
     except QhullError as e:
         raise InvalidInput(f"the target landmarks are degenerate (collinear?): {e}") from None
-    xs, ys = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    P = np.column_stack([xs.ravel(), ys.ravel()])
-    simplex = tri.find_simplex(P)
-    inside = simplex >= 0
-    T = tri.transform[simplex[inside]]                      # (k,3,2): affine to barycentric
-    b2 = np.einsum("kij,kj->ki", T[:, :2], P[inside] - T[:, 2])
-    bary = np.column_stack([b2, 1.0 - b2.sum(axis=1)])
+    # every texel centre's triangle and barycentrics by vectorized scan conversion (texels on
+    # a shared edge get either triangle: the warp is continuous there)
+    cover = scan_convert(tgt[tri.simplices], H, W)
     out = np.full((H * W, 2), np.nan)
-    out[inside] = np.einsum("kc,kcd->kd", bary, src[tri.simplices[simplex[inside]]])
+    out[cover.pixel] = np.einsum("kc,kcd->kd", cover.barycentric, src[tri.simplices[cover.triangle]])
     return out.reshape(H, W, 2)

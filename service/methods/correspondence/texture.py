@@ -13,7 +13,7 @@ is a normalized convolution over the covered texels, so the chart border does no
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+from service.geometry.optical_flow import gaussian_blur
 
 #: Rec. 709 luminance weights of linear RGB
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -48,8 +48,8 @@ def oversharpen(image: np.ndarray, mask: np.ndarray, sigma: float, amount: float
     L = np.where(mask, np.nan_to_num(np.asarray(image, dtype=np.float64)), 0.0)
     if sigma <= 0 or amount == 0:
         return L
-    m = mask.astype(np.float64)
-    blur = ndimage.gaussian_filter(L, sigma) / np.maximum(ndimage.gaussian_filter(m, sigma), 1e-12)
+    m = mask.astype(np.float32)
+    blur = gaussian_blur(L, sigma) / np.maximum(gaussian_blur(m, sigma), 1e-12)
     return np.where(mask, L + amount * (L - blur), 0.0)
 
 

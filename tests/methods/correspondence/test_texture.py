@@ -9,7 +9,7 @@ def test_oversharpen_keeps_constants_up_to_the_mask_border_and_amplifies_detail(
     mask = np.zeros((40, 40), bool)
     mask[5:35, 8:30] = True
     const = np.full((40, 40), 0.4)
-    np.testing.assert_allclose(oversharpen(const, mask, 3.0, 2.0)[mask], 0.4, atol=1e-12)
+    np.testing.assert_allclose(oversharpen(const, mask, 3.0, 2.0)[mask], 0.4, atol=1e-6)
     dot = const.copy()
     dot[20, 20] = 0.5
     sharp = oversharpen(dot, mask, 3.0, 2.0)
