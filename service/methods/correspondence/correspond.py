@@ -171,8 +171,8 @@ def correspond(source_maps: Mapping[str, np.ndarray], target_maps: Mapping[str, 
         A = piecewise_affine_coords(src_xy, tgt_xy, (H, W)).astype(np.float32)
     else:
         A = of.flow_to_coords(np.zeros((H, W, 2), np.float32))
-        if (h, w) != (H, W):
-            A *= np.array([w / W, h / H], np.float32)
+        if (h, w) != (H, W):                               # same UV, another resolution
+            A = (A + 0.5) * np.array([w / W, h / H], np.float32) - 0.5
     seconds["prewarp"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -182,7 +182,10 @@ def correspond(source_maps: Mapping[str, np.ndarray], target_maps: Mapping[str, 
     tgt_tex = flow_texture(target_maps[DIFFUSE], tgt_mask, params.sharpen_sigma,
                            params.sharpen_amount, target_occlusion,
                            tgt_xy[pins] if len(pins) else None, params.pin_radius)
-    pre_tex = of.remap(src_tex, A, border=0.0)
+    # bicubic: a bilinear pre-warp blurs the source's pores and biases the flow (measured on
+    # the level-1 scans at 1024²: median 0.070 -> 0.066 texel on the smile, p95 on the pucker
+    # 0.34 -> 0.30)
+    pre_tex = of.remap(src_tex, A, border=0.0, cubic=True)
     if len(pins):
         pre_tex[pin_dots(tgt_xy[pins], (H, W), params.pin_radius)] = 0.0
     tgt8, pre8 = of.to_uint8(tgt_tex, pre_tex, tgt_mask)
