@@ -67,7 +67,7 @@ def _limit_threads(cores: int) -> None:
 
 _limit_threads(CORES)                  # before NumPy loads its BLAS
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 OUT = ROOT / "benchmarks" / "out"
 FIGURES = OUT / "correspondence"
@@ -124,7 +124,11 @@ def second_round_landmarks(S, i, result, truth, valid, rng):
 
 def run_pairs(S, params_by_name, log):
     """Every method on every pair: pooled errors, confidences, times, blendshape errors."""
-    from service.methods.correspondence import CorrespondenceParams, blendshape_vertices, correspond
+    from service.methods.correspondence import (
+        CorrespondenceParams,
+        blendshape_vertices,
+        correspond,
+    )
     from service.methods.correspondence.accuracy import warp_errors
 
     rows = {name: {"tex": [], "mm": [], "cover": [], "conf": [], "seconds": []}
@@ -298,7 +302,6 @@ def main(argv=None):
     from service.samples import dataset
     from service.samples.uv_scans import build_uv_scans, mm_per_texel
 
-    out = []
 
     def log(s=""):
         print(s, flush=True)

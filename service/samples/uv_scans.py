@@ -42,10 +42,16 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from service.geometry.rigid import rigid_align_frames
 from service.geometry.normals import vertex_normals
-from service.geometry.uv_raster import (UVRaster, dilate, interpolate, rasterize_uv, sample_map,
-                                        uv_to_texel)
+from service.geometry.rigid import rigid_align_frames
+from service.geometry.uv_raster import (
+    UVRaster,
+    dilate,
+    interpolate,
+    rasterize_uv,
+    sample_map,
+    uv_to_texel,
+)
 from service.samples import dataset, detail
 
 JITTER_DEG = 1.5          # per-scan rotation of the head frame before the unwrap (std. dev.)
@@ -151,7 +157,9 @@ def build_uv_scans(actor_dir: str | Path, resolution: int = 1024,
     actor_dir : a sample actor directory (``neutral.npz``, ``performances/*.npz``)
     resolution : texels per side of every map
     expressions : performance names (default: every ``train_*`` one); each gives the frame
-                  farthest from its first frame (the expression's peak)
+                  farthest from its first frame after the head pose (the expression's
+                  peak). The neutral (target) scan is the first frame of the first of them
+                  (the sample actor's clips start at the neutral).
     landmarks : number of clicked landmark points
     click_noise_mm : std. dev. of each click's error on the surface, mm
     seed : seeds the layout jitter and the clicks

@@ -8,8 +8,11 @@ blendshapes and artist-UV maps), :mod:`.accuracy` (error against a known corresp
 """
 
 from service.methods.correspondence.blendshapes import blendshape_vertices, to_artist_uv
-from service.methods.correspondence.correspond import (CorrespondenceParams,
-                                                       CorrespondenceResult, correspond)
+from service.methods.correspondence.correspond import (
+                                                       CorrespondenceParams,
+                                                       CorrespondenceResult,
+                                                       correspond,
+)
 
 __all__ = ["CorrespondenceParams", "CorrespondenceResult", "blendshape_vertices", "correspond",
            "to_artist_uv"]

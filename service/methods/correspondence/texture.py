@@ -13,6 +13,7 @@ is a normalized convolution over the covered texels, so the chart border does no
 from __future__ import annotations
 
 import numpy as np
+
 from service.geometry.optical_flow import gaussian_blur
 
 #: Rec. 709 luminance weights of linear RGB

@@ -2,7 +2,12 @@
 
 import numpy as np
 
-from service.methods.correspondence import CorrespondenceParams, blendshape_vertices, correspond, to_artist_uv
+from service.methods.correspondence import (
+    CorrespondenceParams,
+    blendshape_vertices,
+    correspond,
+    to_artist_uv,
+)
 
 
 def test_lookup_is_exact_for_an_affine_position_map_and_ignores_uncovered_texels():

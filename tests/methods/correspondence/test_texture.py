@@ -2,7 +2,12 @@
 
 import numpy as np
 
-from service.methods.correspondence.texture import flow_texture, luminance, oversharpen, pin_dots
+from service.methods.correspondence.texture import (
+    flow_texture,
+    luminance,
+    oversharpen,
+    pin_dots,
+)
 
 
 def test_oversharpen_keeps_constants_up_to_the_mask_border_and_amplifies_detail():
