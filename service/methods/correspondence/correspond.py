@@ -183,9 +183,9 @@ def correspond(source_maps: Mapping[str, np.ndarray], target_maps: Mapping[str, 
     tgt_tex = flow_texture(target_maps[DIFFUSE], tgt_mask, params.sharpen_sigma,
                            params.sharpen_amount, target_occlusion,
                            tgt_xy[pins] if len(pins) else None, params.pin_radius)
-    # bicubic: a bilinear pre-warp blurs the source's pores and biases the flow (measured on
-    # the level-1 scans at 1024²: median 0.070 -> 0.066 texel on the smile, p95 on the pucker
-    # 0.34 -> 0.30)
+    # bicubic: a bilinear pre-warp blurs the source's pores and biases the flow (the 8
+    # level-1 sample pairs at 1024², benchmarks/correspondence_report.py: pooled median
+    # 0.058 -> 0.050 texel; the 95th percentile 0.35 -> 0.38)
     pre_tex = of.remap(src_tex, A, border=0.0, cubic=True)
     if len(pins):
         pre_tex[pin_dots(tgt_xy[pins], (H, W), params.pin_radius)] = 0.0
