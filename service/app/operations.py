@@ -35,7 +35,7 @@ from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
 from service.io.atomic import sha256_file
 from service.io.exr import read_exr, write_exr
 from service.io.npz import npz_bytes
-from service.jobs.formats import RESULT_FORMATS
+from service.jobs.formats import check_result_format
 from service.errors import BlobCorrupt, Conflict, InvalidInput, NotFound, Unavailable
 from service.methods.kinds import get_kind
 from service.methods.shape_space.temporal import retime_keyframes
@@ -310,9 +310,7 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     ``{"rig_id", "rig", "registration_blob", "registration_sha256"}`` and the job
     propagates the frames with exactly that registration.
     """
-    if result_format not in RESULT_FORMATS:
-        raise InvalidInput(f"result format {result_format!r} is not supported by this server "
-                           f"yet; choose from {list(RESULT_FORMATS)}")
+    check_result_format(result_format, outputs)
     with services.session() as session:
         model = registry.get_model(session, model_id)
         if model.status != "ready":
