@@ -136,9 +136,10 @@ def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.Marke
 
 # ---------------------------------------------------------------------------- clips
 def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads.ClipForm,
-             name: str | None) -> schemas.Clip:
+             name: str | None) -> schemas.ClipAdded:
     """Validate a clip (NPZ bytes or a multipart :class:`~service.app.uploads.ClipForm`)
-    against the actor's neutral and layout, and store it."""
+    against the actor's neutral and layout, and store it; the stored clip and the marker
+    reader's notes."""
     with services.session() as session:
         actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
         names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor_id))
@@ -151,7 +152,8 @@ def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads
     with services.session() as session:
         row = registry.add_clip(session, services.blobs, actor_id, clip.blob, frames=clip.frames,
                                 name=name)
-    return schemas.Clip.model_validate(row)
+        added = schemas.ClipAdded.model_validate(row)
+    return added.model_copy(update={"notes": list(clip.notes)})
 
 
 # ---------------------------------------------------------------------------- input rigs
