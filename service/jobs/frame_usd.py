@@ -24,7 +24,15 @@ Memory: the points of each chunk go to a float32 ``.npy`` memory map on disk (as
 synthesis holds one chunk at a time. :meth:`FrameUsdWriter.finish` then builds the stage from
 the memory map: the stage (``usd-core`` builds a layer in memory before it exports it) is the
 one in-memory copy of the points; the map's pages are file-backed and reclaimable. With two
-caches the stages are built one after the other.
+caches the stages are built one after the other. Measured (``benchmarks/usd_cache.py``,
+11 248 vertices, resident memory added by the time the built stage is exported):
+
+    frames  points MiB  heap added MiB  file-backed added MiB  finish s
+    600     77          81              83                     6.6
+    1800    232         148             232                    11.7
+
+(heap at most one copy of the points; the writer also makes a transient (F,V,3) bool
+``isfinite`` mask, a quarter of the points' size.)
 """
 
 from __future__ import annotations
