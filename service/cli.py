@@ -1,6 +1,7 @@
 """The ``facesynth`` command line: one entry point, a subcommand per task.
 
     facesynth sample-actor --out DIR --seed N --level 0|1|2   build the sample actor
+              [--family a|b] [--units mm|cm|m]              (family b: levels 0|1, any unit)
     facesynth sample-gallery --actor DIR --out DIR             render a built actor to PNGs
     facesynth demo [--out DIR] [--server URL]                  sample actor → upload → train → synthesize → PNG
     facesynth worker [--data-dir DIR] [--workers N]            run jobs (training, synthesis) from the queue
@@ -26,7 +27,8 @@ def _summary(out: Path, manifest: dict) -> str:
     lines = [
         f"sample actor (seed {manifest['seed']}, level {manifest['level']}) in {out}/ "
         f"built in {manifest['build_seconds']} s",
-        f"  neutral: {manifest['vertices']} vertices, {manifest['triangles']} triangles, UVs in [0,1]², mm",
+        f"  neutral: {manifest['vertices']} vertices, {manifest['triangles']} triangles, UVs in [0,1]², "
+        f"{manifest['units']}",
         f"  markers: {manifest['markers']} (markers.json)",
         f"  maps: displacement {manifest['map_resolution']}², albedo {manifest['albedo_resolution']}²",
         f"  wrinkle sites: {', '.join(manifest['wrinkle_sites'])}",
@@ -41,6 +43,23 @@ def _summary(out: Path, manifest: dict) -> str:
 def cmd_sample_actor(args: argparse.Namespace) -> int:
     from service.samples.actor import build_sample_actor
 
+    if args.family == "b":
+        from service.samples.family_b.actor import build_family_b
+
+        if args.level not in (0, 1):
+            print("family b has levels 0 and 1", file=sys.stderr)
+            return 2
+        if args.no_database_maps:
+            print("family b always gives its database performance maps", file=sys.stderr)
+            return 2
+        manifest = build_family_b(args.out, seed=args.seed, level=args.level, units=args.units,
+                                  progress=_progress_bar("sample actor (family b)"),
+                                  with_tracking=False if args.no_tracking else None)
+        print(_summary(Path(args.out), manifest))
+        return 0
+    if args.units != "mm":
+        print("family a is written in mm only (--family b for other units)", file=sys.stderr)
+        return 2
     manifest = build_sample_actor(args.out, seed=args.seed, level=args.level,
                                   progress=_progress_bar("sample actor"),
                                   with_tracking=not args.no_tracking,
@@ -199,6 +218,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-database-maps", action="store_true",
                    help="no maps for the 630-frame database performance (they are built at levels "
                         "0 and 1, about 3.6 GB at level 1)")
+    p.add_argument("--family", choices=("a", "b"), default="a",
+                   help="a: the sample actor (default); b: the independent evaluation family "
+                        "(service/samples/family_b: other identity, mesh, detail, markers)")
+    p.add_argument("--units", choices=("mm", "cm", "m"), default="mm",
+                   help="unit of every length written (family b only; default mm)")
     p.set_defaults(func=cmd_sample_actor)
 
     p = sub.add_parser("sample-gallery", help="render a built sample actor to PNGs (shaded meshes, maps)")

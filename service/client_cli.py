@@ -430,6 +430,15 @@ def _npz_shapes(path: Path) -> dict[str, tuple[tuple[int, ...], int]]:
     return shapes
 
 
+def _size_text(size: float) -> str:
+    """Bytes for a person: ``812 B``, ``29.3 KiB``, ``1185 MiB``, ``1.2 GiB``."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if size >= scale:
+            value = size / scale
+            return f"{value:.1f} {unit}" if value < 10 else f"{value:.0f} {unit}"
+    return f"{int(size)} B"
+
+
 def _clip_plan(path: Path, limit: int) -> bool:
     """Whether the clip at ``path`` goes with its maps (``displacement``, ``albedo``): only
     if they cover every frame and the clip's body (float32) stays within ``limit`` bytes.
@@ -444,8 +453,8 @@ def _clip_plan(path: Path, limit: int) -> bool:
 
     plain = size(("vertices", "markers"))
     if plain > limit:
-        raise UsageError(f"{path}: {plain / 2**20:.0f} MiB even without maps, over "
-                         f"--max-clip-bytes ({limit / 2**20:.0f} MiB); leave it out (--clips "
+        raise UsageError(f"{path}: {_size_text(plain)} even without maps, over "
+                         f"--max-clip-bytes ({_size_text(limit)}); leave it out (--clips "
                          "'train_*') or raise the server's max_body_bytes and --max-clip-bytes")
     maps = ("displacement", "albedo")
     covered = all(k in shapes and shapes[k][0][0] == frames for k in maps if k in shapes)
@@ -453,8 +462,8 @@ def _clip_plan(path: Path, limit: int) -> bool:
         return False
     with_maps = plain + size(maps)
     if with_maps > limit:
-        _say(f"{path.name}: its maps left out ({with_maps / 2**20:.0f} MiB with them, over "
-             f"--max-clip-bytes {limit / 2**20:.0f} MiB)")
+        _say(f"{path.name}: its maps left out ({_size_text(with_maps)} with them, over "
+             f"--max-clip-bytes {_size_text(limit)})")
         return False
     return True
 
@@ -719,6 +728,17 @@ def synthesize(client, args) -> int:
     if path.suffix.lower() not in (".c3d", ".trc", ".csv", ".npz", ".json"):
         raise UsageError(f"{path}: give markers as .c3d, .trc, .csv, .json or .npz "
                          "(markers (F,M,3))")
+    if path.suffix.lower() == ".npz":              # e.g. a sample actor performance as it is
+        import numpy as np
+
+        with np.load(path, allow_pickle=False) as data:
+            if "markers" not in data.files:
+                raise UsageError(f"{path} has no 'markers' (F,M,3) (it has {sorted(data.files)})")
+            markers = data["markers"]
+            fps = float(data["fps"]) if "fps" in data.files else None
+            _note_dropped(path, [k for k in data.files if k not in ("markers", "fps")],
+                          "synthesize sends the markers")
+        return _run_performance(client, args, markers=markers, fps=fps)
     return _run_performance(client, args, performance=path)
 
 

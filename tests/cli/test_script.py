@@ -161,6 +161,16 @@ def test_a_script_uploads_the_actor_folder_trains_and_synthesizes(server, actor_
     assert sorted(p.name for p in out.glob("*.obj")) == [f"shot_{k}.obj" for k in range(101, 106)]
     assert all((out / name).is_file() for name in frame_map["files"])
 
+    # a sample performance file as it is (with 'lowres', 'vertices', maps): its markers go
+    done = facesynth("--server", url, "synthesize", model,
+                     str(actor_dir / "performances" / "heldout_in_range.npz"), "-o",
+                     str(tmp_path / "npz"), "--format", "npz", check=EXIT_OK)
+    assert "'lowres'" in done.stderr and one_line(done.stdout) == str(tmp_path / "npz")
+    with np.load(tmp_path / "npz" / "heldout_in_range.npz") as result:
+        assert result["vertices"].shape == (5, 16 * 13, 3)
+    frame_map = json.loads((tmp_path / "npz" / "frames.json").read_text())
+    assert [row["source_frame"] for row in frame_map["frames"]] == [0, 1, 2, 3, 4]
+
     # --format usd: one point cache (time code k = input frame k); with maps, the cache
     # beside the EXR maps it references, under the names it references them by
     from pxr import Usd, UsdGeom
@@ -209,6 +219,16 @@ def test_script_errors_are_one_line_with_their_exit_codes(server, actor_dir, tmp
     done = facesynth("--server", url, "upload", "actor", str(tmp_path / "no-folder"),
                      check=EXIT_USAGE)
     assert "no such folder" in one_line(done.stderr)
+
+    # a clip over --max-clip-bytes even without its maps: refused before anything is sent
+    before = len(json.loads(facesynth("--server", url, "actors", "list", "--json").stdout))
+    done = facesynth("--server", url, "upload", "actor", str(actor_dir), "--max-clip-bytes",
+                     "1000", check=EXIT_USAGE)
+    assert one_line(done.stderr).endswith(("train_fall.npz: 30 KiB even without maps, over "
+                                           "--max-clip-bytes (1000 B); leave it out (--clips "
+                                           "'train_*') or raise the server's max_body_bytes "
+                                           "and --max-clip-bytes"))
+    assert len(json.loads(facesynth("--server", url, "actors", "list", "--json").stdout)) == before
 
     # bad --params JSON: exit 2, one line
     done = facesynth("--server", url, "train", actor, "--kind", "pdm", "--clips", "clip_x",

@@ -54,8 +54,13 @@ OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
 DEFAULT_OUTPUTS = ("mesh",)
 #: the server's address when neither ``target`` nor ``$FACESYNTH_GRPC`` is given
 DEFAULT_TARGET = "127.0.0.1:50051"
-#: frames sent and not yet answered, at most (the pipeline's depth)
-DEFAULT_IN_FLIGHT = 4
+#: frames sent and not yet answered, at most (the pipeline's depth). A stream's frames are
+#: synthesized one after another, so depth beyond the frame in work and the next one adds
+#: latency, not throughput. Level-0 PDM, mesh + displacement, loopback, a loaded 2-core
+#: machine (benchmarks/grpc_stream.py, two runs): depth 1 4.4-4.5 frames/s, 190-200 ms round
+#: trip; 2: 4.4-5.0 frames/s, 370-420 ms; 4: 3.1-5.0, 780-1260 ms; 8: 3.6-5.1, 1510-1980 ms
+#: (server 150-250 ms per frame). 2 hides one frame's transfer on a real network.
+DEFAULT_IN_FLIGHT = 2
 #: message size limit, both directions: a reply with 1024² displacement, albedo and normal
 #: maps is 28 MiB plus the meshes (gRPC's default of 4 MiB is too small); the server's too
 MAX_MESSAGE_BYTES = 64 * 2**20
