@@ -9,9 +9,9 @@
     facesynth clips list ACTOR
     facesynth train ACTOR --kind pdm --clips ID ... [--params JSON] [--set k=v ...] [--no-wait]
     facesynth jobs list [--status S] [--actor ID] [--kind K] | show JOB | watch JOB | cancel JOB
-    facesynth synthesize MODEL take.c3d|take.trc|take.csv|take.npz -o OUT [--format obj-exr|npz]
+    facesynth synthesize MODEL take.c3d|take.trc|take.csv|take.npz -o OUT [--format obj-exr|npz|usd]
                          [--pattern 'shot_{frame:04d}'] [--start-frame N]
-    facesynth enhance MODEL frames.npz -o OUT [--rig NAME] [--format obj-exr|npz] [...]
+    facesynth enhance MODEL frames.npz -o OUT [--rig NAME] [--format obj-exr|npz|usd] [...]
     facesynth models list ACTOR | show MODEL | delete MODEL | export MODEL -o DIR
 
 Every command takes --server URL (FACESYNTH_URL, default http://127.0.0.1:8000) and
@@ -50,7 +50,7 @@ from typing import Any, Callable, Iterator
 
 EXIT_OK, EXIT_JOB_FAILED, EXIT_USAGE, EXIT_REJECTED, EXIT_SERVER = 0, 1, 2, 3, 4
 #: result formats of ``synthesize``/``enhance`` → the synthesis job's format
-FORMATS = {"obj-exr": "obj-exr-zip", "npz": "npz"}
+FORMATS = {"obj-exr": "obj-exr-zip", "npz": "npz", "usd": "usd"}
 #: the arrays the API takes in a neutral .npz (plus ``region_<name>``) and in a clip .npz
 NEUTRAL_ARRAYS = ("vertices", "faces", "uv", "uv_faces", "quad_split")
 REGION_PREFIX = "region_"
@@ -644,6 +644,37 @@ def _unpack_frames(archive: Path, stage: Path, pattern: str, start: int) -> dict
     return frames
 
 
+def _usd_frames(path: Path) -> int:
+    """F of a USD point cache, from its stage's start and end time codes (metadata only)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    return int(round(stage.GetEndTimeCode() - stage.GetStartTimeCode())) + 1
+
+
+def _unpack_usd(artifact: Path, stage: Path, stem: str) -> dict[int, list[str]]:
+    """A ``usd`` artifact into ``stage``: the cache as ``<stem>.usd``, or the zip's cache(s)
+    and maps under their own names (the cache references the maps by them); returns frame
+    index → the files holding that frame (the cache(s) and that frame's maps)."""
+    if not zipfile.is_zipfile(artifact):
+        artifact.rename(stage / f"{stem}.usd")
+        caches, maps = [f"{stem}.usd"], {}
+    else:
+        with zipfile.ZipFile(artifact) as z:
+            names = [Path(name).name for name in z.namelist()]
+            for info, name in zip(z.infolist(), names):
+                with z.open(info) as source, open(stage / name, "wb") as target:
+                    shutil.copyfileobj(source, target, 1 << 20)
+        artifact.unlink()
+        caches = sorted(name for name in names if name.endswith(".usd"))
+        maps = {}
+        for name in names:
+            match = _ZIP_MEMBER.match(name)
+            if match is not None:
+                maps.setdefault(int(match.group(1)), []).append(name)
+    return {k: caches + sorted(maps.get(k, [])) for k in range(_usd_frames(stage / caches[0]))}
+
+
 def _run_performance(client, args, **source: Any) -> int:
     """A synthesis job for a whole performance, waited for and written into ``args.out``
     with its frame map ``frames.json``."""
@@ -668,6 +699,12 @@ def _run_performance(client, args, **source: Any) -> int:
                 frame_map["frames"] = [
                     {"frame": args.start_frame + k, "source_frame": k, "files": [path.name]}
                     for k in range(_npz_frames(path))]
+            elif args.format == "usd":                 # time code k is the input's frame k
+                download = client.download_artifact(artifact_id, stage / f".{stem}.artifact")
+                frame_map["frames"] = [
+                    {"frame": args.start_frame + k, "source_frame": k, "time_code": k,
+                     "files": names}
+                    for k, names in sorted(_unpack_usd(download, stage, stem).items())]
             else:
                 archive = client.download_artifact(artifact_id, stage / f".{stem}.zip")
                 frames = _unpack_frames(archive, stage, args.pattern, args.start_frame)
@@ -675,7 +712,7 @@ def _run_performance(client, args, **source: Any) -> int:
                 frame_map["frames"] = [
                     {"frame": args.start_frame + k, "source_frame": k, "files": sorted(names)}
                     for k, names in sorted(frames.items())]
-        if args.format != "npz":            # per-frame files: file → source frame index
+        if args.format == "obj-exr":        # per-frame files: file → source frame index
             frame_map["files"] = {name: row["source_frame"] for row in frame_map["frames"]
                                   for name in row["files"]}
         (stage / "frames.json").write_text(json.dumps(frame_map, indent=1))
@@ -889,7 +926,9 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
         p.add_argument("-o", "--out", required=True, help="output folder (made once the "
                                                           "results are in)")
         p.add_argument("--format", choices=tuple(FORMATS), default="obj-exr",
-                       help="per-frame OBJ and EXR files (default), or one NPZ")
+                       help="per-frame OBJ and EXR files (default), one NPZ, or one USD "
+                            "point cache (time code k = input frame k; with maps, the cache "
+                            "and the EXR maps it references, named as the cache expects)")
         p.add_argument("--outputs", help="comma-separated outputs (default: the model kind's)")
         p.add_argument("--pattern", type=_frame_pattern, default=DEFAULT_PATTERN,
                        help="name of a frame's files, a Python format of {frame} (default "

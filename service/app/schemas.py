@@ -143,6 +143,21 @@ class Clip(BaseModel):
     created_at: datetime
 
 
+class ClipAdded(Clip):
+    """A clip just stored, with what its files' readers accepted that you should know."""
+
+    model_config = ConfigDict(from_attributes=True, json_schema_extra={"examples": [{
+        "clip_id": _CLIP_ID, "actor_id": _ACTOR_ID, "name": "smile", "frames": 120,
+        "size_bytes": 59000000, "created_at": _CREATED,
+        "notes": ["the TRC header says NumFrames 121 but the file has 120 frame rows; the "
+                  "120 rows were read"]}]})
+
+    notes: list[str] = Field(default_factory=list, description=(
+        "What the marker file's reader accepted but did not read as the file declares it "
+        "(e.g. a TRC whose `NumFrames` disagrees with its frame rows: the rows are read); "
+        "empty when every file read exactly as declared."))
+
+
 # ---------------------------------------------------------------------------- rigs
 class InputRig(BaseModel):
     """An input rig and its registration state."""

@@ -384,10 +384,13 @@ CLIP_SPECS = {
 
 @dataclass(frozen=True)
 class ClipUpload:
-    """A validated clip: its canonical blob and frame count."""
+    """A validated clip: its canonical blob, frame count, and the marker reader's notes
+    (:attr:`~service.io.marker_sequence.MarkerSequence.notes`: what it accepted that the
+    user should hear of, e.g. a TRC ``NumFrames`` that disagrees with its rows)."""
 
     blob: bytes
     frames: int
+    notes: tuple[str, ...] = ()
 
 
 def _check_clip(vertices: np.ndarray, markers: np.ndarray, n_markers: int) -> None:
@@ -451,10 +454,11 @@ def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
         vertices[k] = mesh.vertices
     filename, data = form.markers
     suffix = "." + filename.rsplit(".", 1)[-1].lower() if "." in filename else ""
-    markers, fps = read_marker_file(data, suffix, names)
+    sequence = read_markers(data, suffix)
+    markers, fps = markers_in_layout_order(sequence, names), sequence.fps
     _check_clip(vertices, markers, len(names))
     blob = actor_store.clip_npz(vertices, markers, fps=form.fps or fps or 30.0)
-    return ClipUpload(blob, len(vertices))
+    return ClipUpload(blob, len(vertices), sequence.notes)
 
 
 # ---------------------------------------------------------------------------- landmarks

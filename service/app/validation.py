@@ -14,6 +14,7 @@ from service.app.limits import DEGENERATE_AREA_RTOL
 from service.geometry.laplacian import triangle_areas
 from service.geometry.topology import edge_face_counts
 from service.io.mesh import Mesh
+from service.io.triangle_mesh import NO_UV
 from service.methods.inputs import InvalidInput
 
 #: UVs may lie this far outside the unit tile (rounding in exporters)
@@ -60,11 +61,23 @@ def check_triangles(V: np.ndarray, F: np.ndarray, what: str = "mesh") -> None:
 
 
 def check_uv_tile(mesh: Mesh, what: str = "neutral") -> None:
-    """Refuse a mesh without UVs, or with UVs outside the unit tile [0,1]² (API.md's maps
-    cover exactly that tile; UDIM layouts must be repacked into it)."""
+    """Refuse a mesh without UVs, with triangles that have none (``uv_faces`` rows of
+    :data:`~service.io.triangle_mesh.NO_UV`: an OBJ mixing ``v/vt`` corners with bare ``v``
+    or ``v//vn`` ones), or with UVs outside the unit tile [0,1]² (API.md's maps cover
+    exactly that tile, through the UVs of every triangle; UDIM layouts must be repacked into
+    it)."""
     if mesh.uv is None:
         raise InvalidInput(f"the {what} has no UV layout: send 'uv' (and 'uv_faces' for "
                            "seams) in the .npz, or 'vt' coordinates in the .obj")
+    if mesh.uv_faces is not None:
+        missing = np.flatnonzero(mesh.uv_faces[:, 0] == NO_UV)
+        if len(missing):
+            raise InvalidInput(
+                f"{len(missing)} of the {what}'s {len(mesh.faces)} triangles have no UVs (the "
+                f"first is triangle {int(missing[0])}; in an OBJ, faces written with bare 'v' "
+                f"or 'v//vn' corners); every triangle of a {what} needs UVs, as its maps cover "
+                "the surface through them: export the mesh with texture coordinates ('v/vt') "
+                "on every face")
     outside = np.flatnonzero(((mesh.uv < -UV_TOLERANCE) | (mesh.uv > 1 + UV_TOLERANCE)).any(axis=1))
     if len(outside):
         k = int(outside[0])

@@ -107,6 +107,27 @@ def test_put_neutral_rejects_missing_or_out_of_tile_uv(client, actor_id):
                    "outside the unit tile")
 
 
+def test_put_neutral_obj_with_faces_lacking_uvs_says_how_many_and_why(client, actor_id):
+    """Two objects, one with v/vt corners and one with v//vn (it reads: NO_UV rows); the
+    neutral is refused naming the 3 untextured triangles of 4, not an index -1."""
+    obj = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\n"
+           "vt 0 0\nvt 0.5 0\nvt 0.5 1\nvn 0 0 1\n"
+           "o textured\nf 1/1 2/2 3/3\n"
+           "o bare\nf 1//1 3//1 4//1\nf 2//1 5//1 6//1\nf 2//1 6//1 3//1\n")
+    body = assert_problem(put_neutral(client, actor_id, obj.encode(),
+                                      {"Content-Type": "model/obj"}), 422,
+                          "3 of the neutral's 4 triangles have no UVs", "first is triangle 1",
+                          "every triangle of a neutral needs UVs")
+    assert "-1" not in body["detail"] and "out of range" not in body["detail"]
+    # the same mesh as an NPZ with NO_UV rows: the same answer
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
+    F = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+    uv_faces = np.array([[0, 1, 2], [-1, -1, -1], [-1, -1, -1], [0, 1, 2]])
+    assert_problem(put_neutral(client, actor_id, npz(vertices=V, faces=F, uv=V[:3, :2] / 2,
+                                                     uv_faces=uv_faces)), 422,
+                   "2 of the neutral's 4 triangles have no UVs", "first is triangle 1")
+
+
 def test_put_neutral_rejects_bad_archives(client, actor_id):
     V, F, uv = grid()
     assert_problem(put_neutral(client, actor_id, npz(vertices=V, faces=F, uv=uv, colour=V)),
