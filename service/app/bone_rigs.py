@@ -46,7 +46,7 @@ class BoneRigBody(BaseModel):
                                           "the clip's, else the artifact's `fps`, else 30).")
 
     @model_validator(mode="after")
-    def _one_source(self) -> "BoneRigBody":
+    def _one_source(self) -> BoneRigBody:
         if (self.clip_id is None) == (self.artifact_id is None):
             raise ValueError("give exactly one of clip_id and artifact_id")
         return self

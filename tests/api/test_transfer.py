@@ -89,7 +89,7 @@ def synthesize(client, model_id: str, markers: np.ndarray) -> np.ndarray:
 
 
 def test_transfer_runs_as_a_job_and_the_new_model_takes_the_targets_markers(app_client, source):
-    source_actor, model_id = source
+    _, model_id = source
     Vs = sheet(16, 13)[0]
     Vt, Ft, uvt = target_sheet()
     target_id, _ = upload_actor(app_client, "target", Vt, Ft, uvt, TARGET_MARKERS)

@@ -25,7 +25,6 @@ from pydantic import ValidationError
 
 from models_store import registry
 from models_store.errors import NotFound
-from service.io.npz import npz_arrays
 from service.jobs.running import RunningJob
 from service.jobs.tasks.train import jsonable
 from service.methods.bone_rig.decomposition import decompose
