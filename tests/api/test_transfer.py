@@ -92,7 +92,8 @@ def test_transfer_runs_as_a_job_and_the_new_model_takes_the_targets_markers(app_
     _, model_id = source
     Vs = sheet(16, 13)[0]
     Vt, Ft, uvt = target_sheet()
-    target_id, _ = upload_actor(app_client, "target", Vt, Ft, uvt, TARGET_MARKERS)
+    target_id, _ = upload_actor(app_client, "target", Vt, Ft, uvt, TARGET_MARKERS,
+                                [sheet_motion(Vt, 6, 0.0)])
     pairs = landmarks_between(Vs, Vt)
     assert len(pairs) >= 30
     response = app_client.post(f"/v1/models/{model_id}/transfer",
@@ -110,6 +111,7 @@ def test_transfer_runs_as_a_job_and_the_new_model_takes_the_targets_markers(app_
     assert (model["actor_id"], model["kind"], model["status"]) == (target_id, "wpsd", "ready")
     quality = model["metrics"]["transfer"]
     assert quality["source_model_id"] == model_id and quality["landmarks"] == len(pairs)
+    assert quality["pose_weights"] == "target clips"     # stability weights of its clip
     # the fitted source lies on the target sheet: projections within a fraction of a mm
     assert quality["projection_max_mm"] < 1.0
     # the new model is driven by the target's own 14 markers
@@ -131,8 +133,8 @@ def test_transfer_to_the_source_actor_reproduces_the_source_model(app_client, so
         "target_actor_id": actor_id, "landmarks": np.stack([lm, lm], 1).tolist()})
     assert response.status_code == 202, response.text
     moved = response.json()["model_id"]
-    assert app_client.get(f"/v1/models/{moved}").json()["metrics"]["transfer"][
-        "projection_max_mm"] < 1e-9
+    quality = app_client.get(f"/v1/models/{moved}").json()["metrics"]["transfer"]
+    assert quality["projection_max_mm"] < 1e-9 and quality["pose_weights"] == "source model"
     markers = sheet_motion(V, 6, 0.15)[:, list(SOURCE_MARKERS)]
     a, b = synthesize(app_client, model_id, markers), synthesize(app_client, moved, markers)
     # measured: 7e-18 mm (an identity interpolation of the same weights; the default pose

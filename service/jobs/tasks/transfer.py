@@ -97,17 +97,19 @@ def transfer(job: RunningJob) -> dict[str, Any]:
     if not isinstance(loaded, PoseSpaceModel):
         raise InvalidInput(f"model {source_id!r} did not load as a pose-space model")
     if params.pose_weights is not None:
-        weights = np.asarray(params.pose_weights, np.float64)
+        weights, origin = np.asarray(params.pose_weights, np.float64), "given"
     elif model.actor_id == source.actor_id and loaded.n_markers == target.n_markers:
-        weights = loaded.data.pose_weights
+        weights, origin = loaded.data.pose_weights, "source model"
     else:
         with store.sessions() as session:
             weights = clip_pose_weights(session, store.blobs, model.actor_id, target)
+        origin = "uniform" if weights is None else "target clips"
     moved = transfer_details(loaded, target, np.asarray(payload["landmarks"], np.int64),
                              weights, job.sub_progress(LOADED, TRANSFERRED))
     del loaded, target
     job.progress(TRANSFERRED, "storing the model")
-    moved.metrics["transfer"].update(source_model_id=source_id, source_actor_id=source.actor_id)
+    moved.metrics["transfer"].update(source_model_id=source_id, source_actor_id=source.actor_id,
+                                     pose_weights=origin)
     with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".transfer-") as tmp:
         out = Path(tmp) / "model"
         moved.save(out)
