@@ -13,6 +13,10 @@
                          [--pattern 'shot_{frame:04d}'] [--start-frame N]
     facesynth enhance MODEL frames.npz -o OUT [--rig NAME] [--format obj-exr|npz|usd] [...]
     facesynth models list ACTOR | show MODEL | delete MODEL | export MODEL -o DIR
+    facesynth transfer MODEL --target ACTOR --landmarks FILE [--params JSON] [--set k=v ...]
+                       [--no-wait]
+    facesynth bone-rig ACTOR --clip ID | --artifact ID --out DIR [--params JSON]
+                       [--set k=v ...] [--fps F] [--no-wait]
 
 Every command takes --server URL (FACESYNTH_URL, default http://127.0.0.1:8000) and
 --token T (FACESYNTH_TOKEN), before or after the command's name; every listing and show takes
@@ -794,6 +798,85 @@ def models_export(client, args) -> int:
     return EXIT_OK
 
 
+# ---------------------------------------------------------------------------- transfer, bone rigs
+
+def read_landmarks(path: Path) -> list[list[int]]:
+    """Landmark pairs (source vertex, target vertex) from a file: JSON (``[[s, t], ...]`` or
+    ``{"landmarks": [...]}``), ``.npz`` with ``landmarks`` (L,2), or text/CSV with two
+    integer columns per line (``#`` comments, an optional header line of names).
+
+    Raises UsageError for a file that holds no (L,2) integer pairs.
+    """
+    import numpy as np
+
+    path = _file(path, "landmark file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".json":
+            value = json.loads(path.read_text())
+            pairs = value.get("landmarks") if isinstance(value, dict) else value
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                if "landmarks" not in data.files:
+                    raise UsageError(f"{path} has no 'landmarks' (L,2) (it has {sorted(data.files)})")
+                pairs = data["landmarks"].tolist()
+        else:
+            rows = [line.split("#")[0].replace(",", " ").split()
+                    for line in path.read_text().splitlines()]
+            rows = [row for row in rows if row]
+            if rows and not rows[0][0].lstrip("-").isdigit():
+                rows = rows[1:]                                 # a header line
+            pairs = [[int(v) for v in row] for row in rows]
+    except (ValueError, TypeError) as error:
+        raise UsageError(f"{path}: not landmark pairs ({error})") from None
+    ok = (isinstance(pairs, list) and pairs
+          and all(isinstance(row, list) and len(row) == 2
+                  and all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+                  for row in pairs))
+    if not ok:
+        raise UsageError(f"{path}: expected pairs of integer vertex indices [source, target], "
+                         "one per landmark")
+    return [[int(a), int(b)] for a, b in pairs]
+
+
+def transfer(client, args) -> int:
+    landmarks = read_landmarks(args.landmarks)
+    params = {**_json_arg(args.params, "--params"), **_assignments(args.set)}
+    accepted = client.models.transfer(args.model, args.target, landmarks, params or None)
+    if args.no_wait:
+        print(accepted.job_id)
+        _say(f"model {accepted.model_id} of actor {args.target} (job {accepted.job_id})")
+        return EXIT_OK
+    print(accepted.model_id, flush=True)
+    return _wait(client, args, accepted, f"transfer {accepted.model_id}")
+
+
+def bone_rig(client, args) -> int:
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: exists and is not a folder")
+    params = {**_json_arg(args.params, "--params"), **_assignments(args.set)}
+    accepted = client.bone_rigs.submit(args.actor, clip=args.clip, artifact=args.artifact,
+                                       params=params or None, fps=args.fps)
+    code = _wait(client, args, accepted, f"bone-rig {accepted.job_id}")
+    if code != EXIT_OK or args.no_wait:
+        return code
+    job = client.jobs.get(accepted)
+    metrics = (job.raw.get("result") or {}).get("metrics") or {}
+    with _output_dir(out) as stage:
+        for artifact_id, name in zip(job.artifact_ids, ("rig.npz", "rig.glb")):
+            client.download_artifact(artifact_id, stage / name)
+        (stage / "rig.json").write_text(json.dumps(
+            {"actor_id": args.actor, "job_id": job.id, "clip_id": args.clip,
+             "artifact_id": args.artifact, "metrics": metrics}, indent=1))
+    if metrics:
+        _say(f"{metrics.get('bones')} bones, reconstruction RMS {metrics.get('rms_mm', 0):.4g}, "
+             f"max {metrics.get('max_mm', 0):.4g} (actor units)")
+    _say(f"rig.npz, rig.glb and rig.json in {out}")
+    print(out)
+    return EXIT_OK
+
+
 # ---------------------------------------------------------------------------- parser
 
 def add_global_options(parser: argparse.ArgumentParser) -> None:
@@ -951,6 +1034,30 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                 "write a model's description and UV maps to a folder")
     p.add_argument("model", help="model id")
     p.add_argument("-o", "--out", required=True, help="output folder")
+
+    p = command(sub, "transfer", transfer,
+                "transfer a psd/wpsd model's details to another actor (a job); prints the new "
+                "model's id, or with --no-wait only the job id", [waiting])
+    p.add_argument("model", help="id of the source model (psd or wpsd, ready)")
+    p.add_argument("--target", required=True, metavar="ACTOR", help="the target actor's id")
+    p.add_argument("--landmarks", required=True, metavar="FILE",
+                   help="corresponding vertex pairs (source, target): .json [[s, t], ...], "
+                        ".npz with 'landmarks' (L,2), or .csv/.txt with two columns")
+    p.add_argument("--params", help="transfer parameters as a JSON object (pose_weights)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
+
+    p = command(sub, "bone-rig", bone_rig,
+                "compress a performance to a bone rig (a job) and write rig.npz, rig.glb "
+                "and rig.json to a folder", [waiting])
+    p.add_argument("actor", help="actor id")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--clip", metavar="ID", help="one of the actor's clips")
+    source.add_argument("--artifact", metavar="ID", help="a synthesis job's .npz result")
+    p.add_argument("-o", "--out", required=True, help="output folder (made once the rig is in)")
+    p.add_argument("--params", help="decomposition parameters as a JSON object (bones, "
+                                    "max_influences, iterations, ...)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
+    p.add_argument("--fps", type=float, help="frame rate of the exported animation")
 
 
 def run(func: Callable) -> Callable[[argparse.Namespace], int]:

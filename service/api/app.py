@@ -20,7 +20,8 @@ from service.api.auth import check_bearer
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
-from service.api.routes import actors, artifacts, clips, health, jobs, models, rigs, synthesis
+from service.api.routes import (actors, artifacts, bone_rigs, clips, health, jobs, models, rigs,
+                                synthesis, transfer)
 from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
@@ -49,6 +50,8 @@ TAGS = [
                                       "maps; the model kinds."},
     {"name": "synthesis", "description": "Meshes and maps from markers or meshes: "
                                          "synchronous for a few frames, jobs for performances."},
+    {"name": "bone-rigs", "description": "Performances compressed to linear-blend-skinned bone "
+                                         "rigs (NPZ and glTF 2.0), as jobs."},
     {"name": "jobs", "description": "Long work: state, progress events, cancellation."},
     {"name": "artifacts", "description": "Downloadable job results."},
 ]
@@ -89,7 +92,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)
-    for module in (actors, clips, rigs, models, synthesis, jobs, artifacts):
+    for module in (actors, clips, rigs, models, transfer, synthesis, bone_rigs, jobs, artifacts):
         app.include_router(module.router, dependencies=[Depends(check_bearer)])
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
