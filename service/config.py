@@ -97,6 +97,31 @@ class Settings(BaseSettings):
         description="A running job's lease; a worker renews it by heartbeats, and a job whose "
                     "lease expired is requeued or failed.")
 
+    job_resubmit_seconds: float = Field(
+        default=30.0, gt=0, le=3600,
+        description="A queued job with no message waiting in the queue this long after it "
+                    "was created (the message was lost) is resubmitted; every API and worker "
+                    "process checks each maintenance round.")
+    maintenance_interval_seconds: float = Field(
+        default=5.0, gt=0, le=300,
+        description="Pause between maintenance rounds (reaping expired leases, resubmitting "
+                    "lost queued jobs), run by every worker and API process; shorter for "
+                    "short leases (a quarter lease).")
+
+    # -- storage hygiene and readiness -----------------------------------------------------
+    stale_temporary_seconds: float = Field(
+        default=900.0, gt=0,
+        description="A temporary in the blob store (a half-written blob, a job's scratch "
+                    "directory) left by a crash is removed once nothing in it changed for "
+                    "this long; a scratch directory in use is never removed.")
+    temporary_sweep_seconds: float = Field(
+        default=300.0, gt=0,
+        description="Pause between sweeps of stale temporaries (also swept at start-up).")
+    min_free_bytes: int = Field(
+        default=256 * MiB, ge=0,
+        description="/readyz answers 503 when the blob store has less free space than this, "
+                    "in bytes (or cannot be written).")
+
     @field_validator("tokens", mode="before")
     @classmethod
     def _split_tokens(cls, value: Any) -> Any:

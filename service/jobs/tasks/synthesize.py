@@ -25,7 +25,6 @@ for any length.
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -80,7 +79,7 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     trained = kind.load(path)
     frames = len(inputs)
     media_type, suffix = FORMATS[fmt]
-    with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".synthesize-") as tmp:
+    with store.blobs.scratch_dir("synthesize") as tmp:  # locked: never swept while in use
         writer = (FrameNpzWriter(Path(tmp), frames, STATIC_OUTPUTS) if fmt == "npz" else
                   FrameZipWriter(Path(tmp) / "result.zip", frames,
                                  getattr(trained, "uv", None), getattr(trained, "uv_faces", None)))
