@@ -152,7 +152,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.api.services import Services
     from service.config import Settings
     from service.grpc.server import is_loopback, serve
-    from service.jobs.worker import start_embedded
+    from service.jobs.worker import start_embedded, start_maintenance
 
     overrides = {name: getattr(args, name) for name in ("host", "port", "grpc_port", "data_dir",
                                                         "workers")
@@ -176,6 +176,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
             workers = start_embedded(settings, settings.workers)
+        else:  # reap expired leases and resubmit lost messages even with no worker alive
+            workers = start_maintenance(settings)
         grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
                             tokens=settings.tokens)
         uvicorn.run(create_app(settings, services=services), host=settings.host,
