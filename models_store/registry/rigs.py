@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
 from models_store.errors import Conflict, NotFound
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, error_record,
-                                           put_blob)
+                                           put_blob, refetch)
+from models_store.registry.actors import MAX_SWAP_ROUNDS
 from models_store.registry.actors import get_actor
 from models_store.schema import InputRig, utcnow
 
@@ -24,20 +25,46 @@ def _find(session: Session, actor_id: str, name: str) -> InputRig | None:
 def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
                   data: Data) -> InputRig:
     """Create or replace the input rig ``name`` of an actor; its status becomes
-    ``registering`` (a registration job then calls :func:`mark_rig_ready`)."""
+    ``registering`` (a registration job then calls :func:`mark_rig_ready`).
+
+    A replacement is a compare-and-swap on the rig's mesh key (as
+    :func:`models_store.registry.actors._swap_blob`): concurrent puts of one rig each delete
+    exactly the mesh and registration they replaced, and leave no blob unreferenced.
+    """
     rig = _find(session, actor_id, name)
     rig_id = rig.id if rig is not None else new_id("rig")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/rigs/{rig_id}/mesh-{new_token()}", data)
     if rig is None:
-        rig = InputRig(id=rig_id, actor_id=actor_id, name=name, created_at=utcnow())
+        rig = InputRig(id=rig_id, actor_id=actor_id, name=name, created_at=utcnow(),
+                       mesh_blob=info.key, mesh_sha256=info.sha256, status="registering")
         session.add(rig)
-        old: list[str | None] = []
-    else:
+        try:
+            commit(session, blobs, new_keys=[info.key])
+            return rig
+        except Conflict:   # created concurrently under the same name (its blob is gone
+            rig = _find(session, actor_id, name)    # with the failed commit): replace that rig
+            if rig is None:
+                raise
+            info = put_blob(blobs, f"{actor_prefix(actor_id)}/rigs/{rig.id}/mesh-{new_token()}",
+                            data)
+    values = {"mesh_blob": info.key, "mesh_sha256": info.sha256, "status": "registering",
+              "registration_blob": None, "registration_sha256": None, "error": None}
+    for _ in range(MAX_SWAP_ROUNDS):
         old = [rig.mesh_blob, rig.registration_blob]
-    rig.mesh_blob, rig.mesh_sha256, rig.status = info.key, info.sha256, "registering"
-    rig.registration_blob = rig.registration_sha256 = rig.error = None
-    commit(session, blobs, new_keys=[info.key], old_keys=old)
-    return rig
+        changed = session.execute(
+            update(InputRig).where(InputRig.id == rig.id, InputRig.mesh_blob == rig.mesh_blob)
+            .values(**values).execution_options(synchronize_session=False)).rowcount
+        if changed == 1:
+            commit(session, blobs, new_keys=[info.key], old_keys=old)
+            return refetch(session, InputRig, rig.id)
+        session.rollback()
+        rig = session.get(InputRig, rig.id, populate_existing=True)
+        if rig is None:
+            blobs.delete(info.key)
+            raise NotFound("input rig", name, "it was deleted meanwhile")
+    blobs.delete(info.key)
+    raise Conflict(f"input rig {name!r} was changed concurrently {MAX_SWAP_ROUNDS} times; "
+                   "try again")
 
 
 def get_input_rig(session: Session, actor_id: str, name: str) -> InputRig:

@@ -486,3 +486,68 @@ def test_artifact_round_trip_and_corruption(session, blobs, actor):
     blobs.path(artifact.blob).write_bytes(b"npz bytez")
     with pytest.raises(BlobCorrupt):
         reg.open_artifact(session, blobs, artifact.id)
+
+
+# -- concurrent replacement leaves no orphan blobs (issue 16, defect 6) ----------------------
+def _concurrently(n, target):
+    start = threading.Barrier(n)
+    errors = []
+
+    def run(i):
+        start.wait()
+        try:
+            target(i)
+        except Exception as error:  # noqa: BLE001 - collected and asserted below
+            errors.append(error)
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    return errors
+
+
+@pytest.mark.parametrize("what", ["neutral", "markers"])
+def test_concurrent_replacements_leave_exactly_the_referenced_blob(sessions, session, blobs,
+                                                                   actor, what):
+    def put(i):
+        with sessions() as own:
+            if what == "neutral":
+                reg.set_neutral(own, blobs, actor.id, b"neutral %d" % i, vertex_count=i + 3,
+                                triangle_count=1)
+            else:
+                reg.set_markers(own, blobs, actor.id, b"markers %d" % i, marker_count=i + 1)
+
+    assert _concurrently(16, put) == []
+    row = reg.get_actor(session, actor.id)
+    key = row.neutral_blob if what == "neutral" else row.markers_blob
+    assert stored_files(blobs) == [key]                          # no orphans
+    data = (reg.read_neutral if what == "neutral" else reg.read_markers)(session, blobs, actor.id)
+    i = int(data.split()[1])                                     # the row and blob agree
+    assert (row.vertex_count if what == "neutral" else row.marker_count) == (
+        i + 3 if what == "neutral" else i + 1)
+
+
+def test_concurrent_rig_replacements_leave_exactly_the_referenced_blob(sessions, session, blobs,
+                                                                       actor):
+    reg.put_input_rig(session, blobs, actor.id, "lowres", b"first")
+
+    def put(i):
+        with sessions() as own:
+            reg.put_input_rig(own, blobs, actor.id, "lowres", b"mesh %d" % i)
+
+    assert _concurrently(12, put) == []
+    rig = reg.get_input_rig(session, actor.id, "lowres")
+    assert stored_files(blobs) == [rig.mesh_blob]
+
+
+def test_concurrent_first_puts_of_one_rig_make_one_rig_and_no_orphans(sessions, session, blobs,
+                                                                      actor):
+    def put(i):
+        with sessions() as own:
+            reg.put_input_rig(own, blobs, actor.id, "fresh", b"mesh %d" % i)
+
+    assert _concurrently(8, put) == []
+    (rig,) = reg.list_input_rigs(session, actor.id)
+    assert stored_files(blobs) == [rig.mesh_blob]
