@@ -29,6 +29,14 @@ def get_row(session: Session, row_type: type[Row], kind: str, row_id: str) -> Ro
     return row
 
 
+def in_tenant(row: Row, kind: str, tenant: str | None) -> Row:
+    """``row`` if it belongs to ``tenant`` (or no tenant was named), else NotFound — the
+    same NotFound as for an unknown id, so ids of other tenants reveal nothing."""
+    if tenant is not None and row.tenant != tenant:  # type: ignore[attr-defined]
+        raise NotFound(kind, row.id)  # type: ignore[attr-defined]
+    return row
+
+
 def owned(row: Row, kind: str, actor_id: str | None) -> Row:
     """``row`` if it belongs to ``actor_id`` (or no actor was named), else NotFound."""
     if actor_id is not None and row.actor_id != actor_id:  # type: ignore[attr-defined]

@@ -9,51 +9,57 @@ from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
 from models_store.errors import Conflict, NotFound
-from models_store.ids import new_id, new_token
-from models_store.registry._common import (Data, actor_prefix, commit, get_row, model_prefix,
-                                           put_blob, refetch)
+from models_store.ids import new_id, new_token, validate_tenant
+from models_store.registry._common import (Data, actor_prefix, commit, get_row, in_tenant,
+                                           model_prefix, put_blob, refetch)
 from models_store.registry.jobs import cancel_active_jobs
-from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
+from models_store.schema import DEFAULT_TENANT, Actor, Clip, InputRig, Job, Model, utcnow
 
 #: compare-and-swap attempts of one replacement before giving up with a Conflict
 MAX_SWAP_ROUNDS = 100
 
 
-def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None = None) -> Actor:
+def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None = None, *,
+                 tenant: str = DEFAULT_TENANT) -> Actor:
     """Create an actor.
 
     Parameters
     ----------
     name : str              display name (1-200 characters)
     metadata : mapping      free-form JSON-serializable metadata
+    tenant : str            the tenant it belongs to (:func:`models_store.ids.validate_tenant`)
     """
     if not name or len(name) > 200:
         raise ValueError(f"actor name must have 1 to 200 characters, got {len(name or '')}")
-    actor = Actor(id=new_id("actor"), name=name, meta=dict(metadata or {}), created_at=utcnow())
+    actor = Actor(id=new_id("actor"), tenant=validate_tenant(tenant), name=name,
+                  meta=dict(metadata or {}), created_at=utcnow())
     session.add(actor)
     commit(session)
     return actor
 
 
-def get_actor(session: Session, actor_id: str) -> Actor:
-    """The actor ``actor_id`` (NotFound if unknown)."""
-    return get_row(session, Actor, "actor", actor_id)
+def get_actor(session: Session, actor_id: str, *, tenant: str | None = None) -> Actor:
+    """The actor ``actor_id`` (NotFound if unknown, or not of ``tenant`` when one is named)."""
+    return in_tenant(get_row(session, Actor, "actor", actor_id), "actor", tenant)
 
 
-def list_actors(session: Session) -> list[Actor]:
-    """All actors, oldest first."""
-    return list(session.scalars(select(Actor).order_by(Actor.created_at, Actor.id)))
+def list_actors(session: Session, *, tenant: str | None = None) -> list[Actor]:
+    """All actors (of ``tenant``, if named), oldest first."""
+    query = select(Actor).order_by(Actor.created_at, Actor.id)
+    if tenant is not None:
+        query = query.where(Actor.tenant == tenant)
+    return list(session.scalars(query))
 
 
 def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,
-                 cascade: bool = False) -> None:
+                 cascade: bool = False, tenant: str | None = None) -> None:
     """Delete an actor with its clips, input rigs and their blobs.
 
     Its models are deleted too with ``cascade=True``; without it an actor that has models
     is a :class:`Conflict`. Queued or running jobs of the actor are cancelled (see
     :func:`request_cancel`); job records themselves are kept.
     """
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     models = list(session.scalars(select(Model).where(Model.actor_id == actor_id)))
     if models and not cascade:
         raise Conflict(f"actor {actor_id!r} has {len(models)} model(s) "
@@ -79,7 +85,7 @@ def _refuse_if_models(session: Session, actor: Actor, what: str) -> None:
 
 
 def set_neutral(session: Session, blobs: BlobStore, actor_id: str, data: Data, *,
-                vertex_count: int, triangle_count: int) -> Actor:
+                vertex_count: int, triangle_count: int, tenant: str | None = None) -> Actor:
     """Store the actor's high-resolution neutral mesh (the caller validated and counted it).
 
     Concurrent replacements are safe: see :func:`_swap_blob` (the last commit wins, every
@@ -90,7 +96,7 @@ def set_neutral(session: Session, blobs: BlobStore, actor_id: str, data: Data, *
     NotFound   unknown actor
     Conflict   the actor has models (they were trained on the current neutral)
     """
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     _refuse_if_models(session, actor, "neutral")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/neutral-{new_token()}", data)
     return _swap_blob(session, blobs, actor_id, Actor.neutral_blob, info.key,
@@ -99,9 +105,9 @@ def set_neutral(session: Session, blobs: BlobStore, actor_id: str, data: Data, *
 
 
 def set_markers(session: Session, blobs: BlobStore, actor_id: str, data: Data, *,
-                marker_count: int) -> Actor:
+                marker_count: int, tenant: str | None = None) -> Actor:
     """Store the actor's marker layout (JSON); raises as :func:`set_neutral`."""
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     _refuse_if_models(session, actor, "marker layout")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/markers-{new_token()}", data)
     return _swap_blob(session, blobs, actor_id, Actor.markers_blob, info.key,
@@ -140,17 +146,19 @@ def _swap_blob(session: Session, blobs: BlobStore, actor_id: str, column: Any, n
                    "try again")
 
 
-def read_neutral(session: Session, blobs: BlobStore, actor_id: str) -> bytes:
+def read_neutral(session: Session, blobs: BlobStore, actor_id: str, *,
+                 tenant: str | None = None) -> bytes:
     """The stored neutral mesh's bytes, verified (NotFound if none was set)."""
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     if actor.neutral_blob is None:
         raise NotFound("neutral", actor_id, "the actor has no neutral mesh yet")
     return blobs.read_bytes(actor.neutral_blob, actor.neutral_sha256)  # type: ignore[arg-type]
 
 
-def read_markers(session: Session, blobs: BlobStore, actor_id: str) -> bytes:
+def read_markers(session: Session, blobs: BlobStore, actor_id: str, *,
+                 tenant: str | None = None) -> bytes:
     """The stored marker layout's bytes, verified (NotFound if none was set)."""
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     if actor.markers_blob is None:
         raise NotFound("marker layout", actor_id, "the actor has no marker layout yet")
     return blobs.read_bytes(actor.markers_blob, actor.markers_sha256)  # type: ignore[arg-type]

@@ -15,15 +15,16 @@ from models_store.registry.actors import get_actor
 from models_store.schema import InputRig, utcnow
 
 
-def _find(session: Session, actor_id: str, name: str) -> InputRig | None:
+def _find(session: Session, actor_id: str, name: str,
+          tenant: str | None = None) -> InputRig | None:
     """The actor's rig called ``name``, or None (NotFound for an unknown actor)."""
-    get_actor(session, actor_id)
+    get_actor(session, actor_id, tenant=tenant)
     return session.scalars(select(InputRig).where(InputRig.actor_id == actor_id,
                                                   InputRig.name == name)).one_or_none()
 
 
 def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
-                  data: Data) -> InputRig:
+                  data: Data, *, tenant: str | None = None) -> InputRig:
     """Create or replace the input rig ``name`` of an actor; its status becomes
     ``registering`` (a registration job then calls :func:`mark_rig_ready`).
 
@@ -31,7 +32,7 @@ def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
     :func:`models_store.registry.actors._swap_blob`): concurrent puts of one rig each delete
     exactly the mesh and registration they replaced, and leave no blob unreferenced.
     """
-    rig = _find(session, actor_id, name)
+    rig = _find(session, actor_id, name, tenant)
     rig_id = rig.id if rig is not None else new_id("rig")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/rigs/{rig_id}/mesh-{new_token()}", data)
     if rig is None:
@@ -67,17 +68,19 @@ def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
                    "try again")
 
 
-def get_input_rig(session: Session, actor_id: str, name: str) -> InputRig:
+def get_input_rig(session: Session, actor_id: str, name: str, *,
+                  tenant: str | None = None) -> InputRig:
     """The input rig ``name`` of an actor."""
-    rig = _find(session, actor_id, name)
+    rig = _find(session, actor_id, name, tenant)
     if rig is None:
         raise NotFound("input rig", name, f"actor {actor_id!r} has no input rig of that name")
     return rig
 
 
-def list_input_rigs(session: Session, actor_id: str) -> list[InputRig]:
+def list_input_rigs(session: Session, actor_id: str, *,
+                    tenant: str | None = None) -> list[InputRig]:
     """The actor's input rigs, by name."""
-    get_actor(session, actor_id)
+    get_actor(session, actor_id, tenant=tenant)
     return list(session.scalars(select(InputRig).where(InputRig.actor_id == actor_id)
                                 .order_by(InputRig.name)))
 

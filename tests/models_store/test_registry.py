@@ -551,3 +551,62 @@ def test_concurrent_first_puts_of_one_rig_make_one_rig_and_no_orphans(sessions, 
     assert _concurrently(8, put) == []
     (rig,) = reg.list_input_rigs(session, actor.id)
     assert stored_files(blobs) == [rig.mesh_blob]
+
+
+# -- tenants (issue 16, defect 13) -----------------------------------------------------------
+def test_every_lookup_is_scoped_to_the_tenant_and_others_ids_are_plain_not_found(
+        session, blobs, model_dir):
+    a = reg.create_actor(session, "Ada", tenant="studio-a")
+    b = reg.create_actor(session, "Bob", tenant="studio-b")
+    reg.set_neutral(session, blobs, a.id, b"n", vertex_count=3, triangle_count=1)
+    clip = reg.add_clip(session, blobs, a.id, b"clip", frames=1)
+    reg.put_input_rig(session, blobs, a.id, "low", b"mesh")
+    model, job = reg.create_model(session, a.id, "pdm", {}, clip_ids=[clip.id])
+    artifact = reg.add_artifact(session, blobs, job.id, b"r", media_type="x/y")
+    assert (model.tenant, job.tenant) == ("studio-a", "studio-a")      # inherited from the actor
+    assert [x.id for x in reg.list_actors(session, tenant="studio-a")] == [a.id]
+    assert [x.id for x in reg.list_actors(session, tenant="studio-b")] == [b.id]
+    assert len(reg.list_actors(session)) == 2                            # admin: every tenant
+    assert reg.list_models(session, tenant="studio-b") == []
+    assert reg.list_jobs(session, tenant="studio-b") == []
+    assert [j.id for j in reg.list_jobs(session, tenant="studio-a")] == [job.id]
+    other = "studio-b"
+    calls = {
+        "actor": lambda: reg.get_actor(session, a.id, tenant=other),
+        "neutral": lambda: reg.read_neutral(session, blobs, a.id, tenant=other),
+        "set neutral": lambda: reg.set_neutral(session, blobs, a.id, b"x", vertex_count=3,
+                                               triangle_count=1, tenant=other),
+        "clips": lambda: reg.list_clips(session, a.id, tenant=other),
+        "clip": lambda: reg.get_clip(session, clip.id, tenant=other),
+        "add clip": lambda: reg.add_clip(session, blobs, a.id, b"c", frames=1, tenant=other),
+        "delete clip": lambda: reg.delete_clip(session, blobs, clip.id, tenant=other),
+        "rig": lambda: reg.get_input_rig(session, a.id, "low", tenant=other),
+        "put rig": lambda: reg.put_input_rig(session, blobs, a.id, "low", b"m", tenant=other),
+        "model": lambda: reg.get_model(session, model.id, tenant=other),
+        "models": lambda: reg.list_models(session, a.id, tenant=other),
+        "train": lambda: reg.create_model(session, a.id, "pdm", {}, tenant=other),
+        "delete model": lambda: reg.delete_model(session, blobs, model.id, tenant=other),
+        "job": lambda: reg.get_job(session, job.id, tenant=other),
+        "create job": lambda: reg.create_job(session, "synthesize", a.id, tenant=other),
+        "cancel": lambda: reg.request_cancel(session, job.id, tenant=other),
+        "artifact": lambda: reg.get_artifact(session, artifact.id, tenant=other),
+        "artifacts": lambda: reg.list_artifacts(session, job.id, tenant=other),
+        "open artifact": lambda: reg.open_artifact(session, blobs, artifact.id, tenant=other),
+        "delete actor": lambda: reg.delete_actor(session, blobs, a.id, cascade=True,
+                                                 tenant=other),
+    }
+    for what, call in calls.items():
+        with pytest.raises(NotFound) as raised:
+            call()
+        assert "another" not in str(raised.value) and "studio" not in str(raised.value), what
+    # nothing changed
+    assert reg.get_job(session, job.id, tenant="studio-a").status == "queued"
+    assert reg.read_clip(session, blobs, clip.id, tenant="studio-a") == b"clip"
+    assert len(reg.list_clips(session, a.id)) == 1
+    assert reg.get_model(session, model.id, tenant="studio-a").id == model.id
+
+
+def test_malformed_tenants_are_refused(session):
+    for bad in ("", "../x", "a b", "x" * 65):
+        with pytest.raises(ValueError, match="tenant"):
+            reg.create_actor(session, "Ada", tenant=bad)
