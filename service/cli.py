@@ -181,8 +181,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
             workers = start_maintenance(settings)
         grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
                             tokens=settings.tokens)
+        from service.api.connections import protocol_class
+
+        http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
+                              settings.body_rate_grace_seconds,
+                              settings.max_connections_per_client)
         uvicorn.run(create_app(settings, services=services), host=settings.host,
-                    port=settings.port, log_config=None, access_log=False)
+                    port=settings.port, log_config=None, access_log=False, http=http)
     finally:
         if grpc_server is not None:
             grpc_server.stop(grace=5).wait()

@@ -88,6 +88,24 @@ class Settings(BaseSettings):
         default=2 * GiB, ge=0,
         description="Memory budget of the in-process cache of loaded models, in bytes.")
 
+    header_timeout_seconds: float = Field(
+        default=10.0, gt=0,
+        description="A request's headers must arrive within this many seconds of its first "
+                    "byte (408 and the connection closed otherwise); also the longest stall "
+                    "allowed inside a body.")
+    min_body_rate_bytes: float = Field(
+        default=1024.0, ge=0,
+        description="After body_rate_grace_seconds, a request body must arrive at an average "
+                    "of at least this many bytes per second, or the connection is closed.")
+    body_rate_grace_seconds: float = Field(
+        default=10.0, gt=0,
+        description="How long a request body may arrive at any rate before "
+                    "min_body_rate_bytes applies.")
+    max_connections_per_client: int = Field(
+        default=32, ge=1,
+        description="Most simultaneous HTTP connections from one client address; one more is "
+                    "answered 503 and closed.")
+
     # -- jobs --------------------------------------------------------------------------------
     job_max_retries: int = Field(
         default=2, ge=0,
