@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/thin_shell.py
 	$(BIN)/python benchmarks/pdm_report.py
 	$(BIN)/python benchmarks/shape_space_report.py
+	$(BIN)/python benchmarks/load.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
