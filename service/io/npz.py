@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import struct
+import tokenize
 import zipfile
 import zlib
 
@@ -20,27 +21,44 @@ ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.erro
               zipfile.BadZipFile, zlib.error)
 
 
+#: what NumPy's header parser (``ast.literal_eval`` after ``tokenize``) raises on a
+#: malformed header besides ValueError: a truncated literal, deep nesting, a wrong type
+_HEADER_ERRORS = (SyntaxError, tokenize.TokenError, TypeError, RecursionError, MemoryError)
+
+
 def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of one ``.npy`` member, from its header only.
 
-    Raises ``ValueError`` for a .npy format other than 1.0/2.0 and the :data:`ZIP_ERRORS`
-    of a corrupt member; callers turn them into their format's error.
+    Raises ``ValueError`` for a .npy format other than 1.0/2.0 or a malformed header
+    (anything NumPy's header parser raises, ``tokenize.TokenError`` included, becomes a
+    ``ValueError`` naming the header), and the :data:`ZIP_ERRORS` of a corrupt member;
+    callers turn them into their format's error.
     """
     with archive.open(member) as f:
         version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-        elif version == (2, 0):
-            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-        else:
-            raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
+        try:
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+            else:
+                raise ValueError(f"unsupported .npy format version {version}; expected 1.0 "
+                                 "or 2.0")
+        except _HEADER_ERRORS as error:
+            raise ValueError(f"malformed .npy header: {type(error).__name__}") from None
+    if any(int(n) < 0 for n in shape):
+        raise ValueError(f"malformed .npy header: negative dimension in shape {shape}")
     return tuple(int(s) for s in shape), dtype
 
 
 def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
-    """Every array of an in-memory ``.npz`` (never unpickled)."""
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}
+    """Every array of an in-memory ``.npz`` (never unpickled); a malformed member header
+    raises ``ValueError`` (see :func:`npy_header`)."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as d:
+            return {k: d[k] for k in d.files}
+    except _HEADER_ERRORS as error:
+        raise ValueError(f"malformed .npy header: {type(error).__name__}") from None
 
 
 def npz_bytes(**arrays: np.ndarray) -> bytes:
