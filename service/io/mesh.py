@@ -920,6 +920,8 @@ _NPZ_SHAPES = {
     "quad_split": ("T",),
 }  # fmt: skip
 _NPZ_KEYS = tuple(_NPZ_SHAPES)
+#: keys holding coordinates: floating point only (an int8 neutral was once accepted)
+_NPZ_FLOAT_KEYS = ("vertices", "uv")
 _ZIP_ERRORS = ZIP_ERRORS
 
 
@@ -928,7 +930,8 @@ def read_npz(
 ) -> Mesh:
     """Read a mesh from an ``.npz`` archive with API.md's keys, never unpickling.
 
-    Keys: ``vertices`` (V,3) float, ``faces`` (T,3) int, optional ``uv`` (V,2) per vertex or
+    Keys: ``vertices`` (V,3) float (float16/32/64; integer and boolean coordinates are
+    refused, not cast), ``faces`` (T,3) int, optional ``uv`` (V,2) per vertex or
     (K,2) with ``uv_faces`` (T,3) int, optional ``quad_split`` (T,) int (see :class:`Mesh`).
     Array shapes are read from the ``.npy`` headers and bounded before any data is loaded.
 
@@ -970,7 +973,12 @@ def read_npz(
             "quad_split": ("faces", max_faces),
         }
         for key in archive.files:
-            shape = _npy_shape(archive.zip, key)
+            shape, dtype = _npy_header(archive.zip, key)
+            if key in _NPZ_FLOAT_KEYS and dtype.kind != "f":
+                raise MeshFormatError(
+                    f"'{key}' must be floating point (float32 or float64), got {dtype}; "
+                    "integer or boolean coordinates are refused rather than cast"
+                )
             expected = _NPZ_SHAPES[key]
             if len(shape) != len(expected) or shape[1:] != expected[1:]:
                 raise MeshFormatError(
@@ -986,9 +994,9 @@ def read_npz(
     return Mesh(**arrays)
 
 
-def _npy_shape(archive: zipfile.ZipFile, key: str) -> tuple[int, ...]:
+def _npy_header(archive: zipfile.ZipFile, key: str) -> tuple[tuple[int, ...], np.dtype]:
     try:
-        return npy_header(archive, key + ".npy")[0]
+        return npy_header(archive, key + ".npy")
     except ZIP_ERRORS as error:
         raise MeshFormatError(f"cannot read the header of '{key}' in the .npz: {error}") from None
 

@@ -354,7 +354,7 @@ _F = np.array([[0, 1, 2], [0, 2, 3]])
         (_npz(vertices=_V, faces=_F, normals=_V), r"unexpected keys \['normals'\]"),
         (_npz(vertices=_V, faces=_F, quad_split=np.array([0, 2])), "quad_split must number polygons"),
         (_npz(vertices=_V, faces=_F[:, ::-1], quad_split=np.array([0, 0])), "do not form a fan"),
-        (_npz(vertices=np.empty((4, 3), dtype=object), faces=_F), "cannot read the mesh .npz"),
+        (_npz(vertices=np.empty((4, 3), dtype=object), faces=_F), "'vertices' must be floating point"),
         (b"PK\x03\x04 not a zip", "not a readable .npz archive"),
     ],
 )
@@ -413,3 +413,16 @@ def test_corrupted_mesh_files_raise_only_format_errors():
                 read(corrupt(buffer.getvalue(), rng, trial, b"0123456789-/ .\nnan"))
             except FormatError:
                 pass
+
+
+@pytest.mark.parametrize("key, dtype", [("vertices", np.int8), ("vertices", np.int64),
+                                        ("vertices", np.bool_), ("uv", np.int32)])
+def test_npz_meshes_with_non_float_coordinates_are_refused(key, dtype):
+    """issue 16, defect 9: int8 vertices used to be accepted (and replaced a neutral)."""
+    from service.io.npz import npz_bytes
+
+    arrays = {"vertices": np.zeros((3, 3), np.float32), "faces": np.array([[0, 1, 2]], np.int32),
+              "uv": np.zeros((3, 2), np.float32)}
+    arrays[key] = arrays[key].astype(dtype)
+    with pytest.raises(MeshFormatError, match=f"'{key}' must be floating point"):
+        read_npz(npz_bytes(**arrays))
