@@ -70,8 +70,22 @@ class Settings(BaseSettings):
     tokens: Annotated[list[str], NoDecode] = Field(
         default_factory=list, repr=False,
         description="Accepted bearer tokens; in the environment a comma-separated list (or a "
-                    "JSON list). Empty: no authentication, and the API only listens on "
-                    "loopback.")
+                    "JSON list). Each entry is TOKEN (tenant 'default'), TENANT:TOKEN or "
+                    "TENANT:TOKEN:admin (sees every tenant); TOKEN may be "
+                    "'sha256:<hex digest of the token>' so the token itself is not stored "
+                    "(service.tenancy). Empty: no authentication, and the API only listens "
+                    "on loopback.")
+    public_health: bool = Field(
+        default=True,
+        description="/healthz and /readyz answer without a token (for probes); false: they "
+                    "need one like /v1.")
+    public_metrics: bool = Field(
+        default=True,
+        description="/metrics answers without a token (for scrapers); false: it needs one.")
+    public_docs: bool = Field(
+        default=True,
+        description="The OpenAPI schema and its pages (/openapi.json, /docs, /redoc) answer "
+                    "without a token; false: they need one.")
 
     # -- limits ------------------------------------------------------------------------------
     max_body_bytes: int = Field(default=256 * MiB, ge=1,
@@ -149,6 +163,19 @@ class Settings(BaseSettings):
             value = json.loads(text) if text.startswith("[") else text.split(",")
         if isinstance(value, (list, tuple)):
             return [str(t).strip() for t in value if str(t).strip()]
+        return value
+
+    @field_validator("tokens")
+    @classmethod
+    def _check_tokens(cls, value: list[str]) -> list[str]:
+        """Every entry parses (service.tenancy.parse_entry); the error never shows a token."""
+        from service.tenancy import parse_entry
+
+        for number, entry in enumerate(value, 1):
+            try:
+                parse_entry(entry)
+            except ValueError as error:
+                raise ValueError(f"token entry {number}: {error}") from None
         return value
 
     @property
