@@ -35,7 +35,8 @@ class Settings(BaseSettings):
     """
 
     model_config = SettingsConfigDict(env_prefix="FACESYNTH_", extra="ignore",
-                                      validate_default=True)
+                                      validate_default=True,
+                                      hide_input_in_errors=True)  # never echo a token
 
     # -- storage -----------------------------------------------------------------------------
     data_dir: Path = Field(

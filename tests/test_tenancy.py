@@ -40,3 +40,12 @@ def test_malformed_entries_are_refused_without_showing_the_token(entry):
         parse_entry(entry)
     secret = entry.rsplit(":", 1)[-1]
     assert len(secret) < 4 or secret not in str(raised.value)
+
+
+def test_a_bad_token_setting_does_not_echo_the_tokens():
+    from service.config import Settings
+
+    with pytest.raises(ValueError) as raised:
+        Settings(tokens=["studio-a:good-secret", "bad tenant:supersecret"])
+    assert "token entry 2" in str(raised.value)
+    assert "supersecret" not in str(raised.value) and "good-secret" not in str(raised.value)
