@@ -91,7 +91,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -100,19 +99,18 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import pdm_report as pdm  # noqa: E402  (the PDM report's data loading, detail metric, workers)
+import harness  # noqa: E402  (the reports' shared data loading, detail metric, workers, PDM baseline)
 
 OUT = ROOT / "benchmarks" / "out" / "shape_space"
 MODELS = OUT / "models"
 LIBRARY = ROOT / "service" / "methods" / "shape_space"
 
-HELDOUT = pdm.HELDOUT
+HELDOUT = harness.HELDOUT
 DATABASE = "database"
 INPUTS = ("rig", "markers")
-FACE = pdm.FACE
+FACE = harness.FACE
 HEAD = "head"                          # rigid back of the head: alignment for the retiming
 DEFAULT_FRAMES = 10                    # held-out map frames per performance (evenly spaced)
 DETAIL_THRESHOLD_MM = 0.01             # ground truth "has detail": |vertices − vertices_medium| above
@@ -188,7 +186,7 @@ def worker_train(actor_dir: Path, params: str, model_dir: Path) -> dict:
     p = ShapeSpaceParams(**json.loads(params))
     stages = {}
     load0 = os.getloadavg()[0]
-    rss0 = pdm._reset_peak()
+    rss0 = harness.reset_peak()
     t0 = time.perf_counter()
 
     def progress(fraction, stage):
@@ -197,7 +195,7 @@ def worker_train(actor_dir: Path, params: str, model_dir: Path) -> dict:
               file=sys.stderr)
 
     model = train(actor, [clip], p, progress)
-    res = {"train_s": time.perf_counter() - t0, "peak_rss_mb": pdm._peak_mb(rss0),
+    res = {"train_s": time.perf_counter() - t0, "peak_rss_mb": harness.peak_mb(rss0),
            "load_average": [load0, os.getloadavg()[0]],
            "stages_s": stages, "frames": clip.frames, "vertices": actor.n_vertices,
            "metrics": {k: model.metrics[k] for k in ("database_frames", "patches", "regions", "detail_bytes")
@@ -214,10 +212,10 @@ def worker_register(actor_dir: Path, out: Path) -> dict:
     with np.load(actor_dir / "input_rig.npz") as r, np.load(actor_dir / "neutral.npz") as n:
         rig_v, rig_f = r["vertices"].astype(np.float64), r["faces"].astype(np.int64)
         V, F = n["vertices"].astype(np.float64), n["faces"].astype(np.int64)
-    rss0 = pdm._reset_peak()
+    rss0 = harness.reset_peak()
     t0 = time.perf_counter()
     reg = register_rig(rig_v, rig_f, V, F)
-    res = {"register_s": time.perf_counter() - t0, "peak_rss_mb": pdm._peak_mb(rss0),
+    res = {"register_s": time.perf_counter() - t0, "peak_rss_mb": harness.peak_mb(rss0),
            "stats": {k: float(v) for k, v in reg.stats.items()}, "rig_vertices": len(rig_v),
            "library": library_fingerprint()}
     out.write_bytes(reg.save())
@@ -234,38 +232,22 @@ def worker_speed(actor_dir: Path, model_dir: Path) -> dict:
         inputs = {"vertices": d["vertices_medium"][frames].astype(np.float64),
                   "markers": d["markers"][frames].astype(np.float64)}
     res = {"cores": sorted(os.sched_getaffinity(0)), "threads": os.environ.get("OMP_NUM_THREADS")}
-    rss0 = pdm._reset_peak()
+    rss0 = harness.reset_peak()
     t0 = time.perf_counter()
     model = ShapeSpaceModel.load(model_dir)
-    res.update(load_s=time.perf_counter() - t0, load_rss_mb=pdm._peak_mb(rss0),
+    res.update(load_s=time.perf_counter() - t0, load_rss_mb=harness.peak_mb(rss0),
                n_vertices=model.n_vertices, database_frames=model.n_frames)
     for kind, X in inputs.items():
-        rss0 = pdm._reset_peak()
+        rss0 = harness.reset_peak()
         times = []
         for f in range(k):
             t0 = time.perf_counter()
             model.enhance(X[f:f + 1], ("mesh",), input_kind=kind)
             times.append(time.perf_counter() - t0)
         res[kind] = {"first_s": times[0], "s_frame": float(np.median(times[WARMUP_FRAMES:])),
-                     "s_frame_max": float(np.max(times[WARMUP_FRAMES:])), "rss_mb": pdm._peak_mb(rss0)}
+                     "s_frame_max": float(np.max(times[WARMUP_FRAMES:])), "rss_mb": harness.peak_mb(rss0)}
         print(f"    enhance {kind}: {res[kind]['s_frame']:.2f} s/frame", file=sys.stderr)
     return res
-
-
-def run_worker(*args: str, cores: int | None = None) -> dict:
-    """Run this script as a worker in a fresh process (``cores``: pinned to that many CPUs,
-    thread pools to match); its JSON result (last stdout line)."""
-    env, preexec = dict(os.environ), None
-    if cores:
-        cpus = sorted(os.sched_getaffinity(0))[:cores]
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-            env[var] = str(len(cpus))
-        preexec = lambda: os.sched_setaffinity(0, cpus)       # noqa: E731
-    proc = subprocess.run([sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True,
-                          check=False, env=env, preexec_fn=preexec)
-    if proc.returncode != 0:
-        sys.exit(f"worker {' '.join(args)} failed (exit {proc.returncode})")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 # --------------------------------------------------------------------------------------
@@ -311,7 +293,7 @@ def shape_space_model(actor_dir: Path, params, retrain: bool) -> tuple[Path, dic
 
     def build():
         print(f"  building shape-space model {model_dir.name} (fresh process) ...", file=sys.stderr)
-        return run_worker("--worker", "train", "--actor", str(actor_dir), "--model", str(model_dir),
+        return harness.run_worker(__file__, "--worker", "train", "--actor", str(actor_dir), "--model", str(model_dir),
                           "--params", params_json(params))
 
     rec = _cached(record, _loadable(model_dir), retrain, build)
@@ -329,7 +311,7 @@ def pdm_model(actor_dir: Path, retrain: bool) -> tuple[Path, dict]:
 
     def build():
         print(f"  training the PDM ({PDM_ORDER}, fresh process) ...", file=sys.stderr)
-        return run_worker("--worker", "pdm-train", "--actor", str(actor_dir), "--model", str(model_dir))
+        return harness.run_worker(__file__, "--worker", "pdm-train", "--actor", str(actor_dir), "--model", str(model_dir))
 
     rec = _cached(record, (model_dir / "manifest.json").is_file(), retrain, build)
     return model_dir, rec
@@ -343,7 +325,7 @@ def rig_registration(actor_dir: Path, retrain: bool):
 
     def build():
         print("  registering input_rig.npz to the neutral (fresh process) ...", file=sys.stderr)
-        return run_worker("--worker", "register", "--actor", str(actor_dir), "--model", str(path))
+        return harness.run_worker(__file__, "--worker", "register", "--actor", str(actor_dir), "--model", str(path))
 
     rec = _cached(record, path.is_file(), retrain, build)
     return RigRegistration.load(path.read_bytes()), rec
@@ -386,11 +368,11 @@ class Accumulator:
 def heldout_frames(actor_dir: Path, name: str, limit: int | None):
     """``limit`` map frames of a held-out performance, evenly spaced between (not at) its ends
     (the performances start and end near the neutral), as :class:`pdm_report.Heldout`."""
-    gt = pdm.load_heldout(actor_dir, name, None)
+    gt = harness.load_heldout(actor_dir, name, None)
     if limit is None or limit >= len(gt.frames):
         return gt
     keep = np.unique(np.round(np.linspace(0, len(gt.frames) - 1, limit + 2)[1:-1]).astype(np.int64))
-    return pdm.Heldout(name, *(getattr(gt, f.name)[keep] for f in dataclasses.fields(gt)[1:]))
+    return harness.Heldout(name, *(getattr(gt, f.name)[keep] for f in dataclasses.fields(gt)[1:]))
 
 
 def evaluate(actor, actor_dir: Path, model, bq, reg, tex, limit: int | None, extra: dict | None = None) -> dict:
@@ -425,8 +407,8 @@ def evaluate(actor, actor_dir: Path, model, bq, reg, tex, limit: int | None, ext
             D_ss = (np.stack([tex.texels(m) for m in ss["fine_displacement"]])
                     if "fine_displacement" in ss else None)
             t_ss = time.perf_counter() - t0
-            V_pdm, D_pdm, clamped = pdm.pdm_prediction(bq, markers, tex, clamp=True)
-            V_free, D_free, _ = pdm.pdm_prediction(bq, markers, tex, clamp=False)
+            V_pdm, D_pdm, clamped = harness.pdm_prediction(bq, markers, tex, clamp=True)
+            V_free, D_free, _ = harness.pdm_prediction(bq, markers, tex, clamp=False)
             rows = {INPUT_ROW: (V_in, None), PDM_ROW: (V_pdm, D_pdm), PDM_FREE_ROW: (V_free, D_free),
                     SS_ROW: (ss["vertices"].astype(np.float64), D_ss)}
             for name, other in extra.items():
@@ -635,7 +617,7 @@ def plot_matching(actor, perf_res: dict, database: np.ndarray, stride: int, path
     inp = perf_res["inputs"]["rig"]
     ss = inp["_ss"]
     W = ss["weights"][i]                                      # (R,N)
-    cam = pdm.camera(actor, zoom=1.4, size=TILE)
+    cam = harness.camera(actor, zoom=1.4, size=TILE)
     show = lambda V: head_aligned(actor, V[None].astype(np.float64))[0]       # noqa: E731
     items = [(f"input: rig, propagated\n{gt.name} frame {gt.frames[i]}", show(inp["_input"][i])),
              ("shape-space result", show(ss["vertices"][i])),
@@ -668,7 +650,7 @@ def plot_out_of_range(actor, perf_res: dict, path: Path) -> dict:
     meshes = [("input alone (markers, thin shell)", show(inp["_input"][i])),
               (f"{PDM_FREE_ROW} (mesh)", show(inp["_pdm_free"][i])),
               (SS_ROW, show(inp["_ss"]["vertices"][i])), ("ground truth", V_gt)]
-    pdm.plot_grazing(meshes, actor, V_gt[int(np.argmax(detail[i]))], f"{gt.name} frame {gt.frames[i]}", path)
+    harness.plot_grazing(meshes, actor, V_gt[int(np.argmax(detail[i]))], f"{gt.name} frame {gt.frames[i]}", path)
     return {"performance": gt.name, "frame": int(gt.frames[i])}
 
 
@@ -853,12 +835,12 @@ def speed_section(actor_dir: Path, params, other, retrain: bool, compare: bool) 
     out = {"variant": params.smoothing, "builds": {params.smoothing: main_rec}, "model_dir": main_dir,
            "other_speed": {}}
     print(f"  level {level}: enhancement speed ({SPEED_CORES} cores, fresh process) ...", file=sys.stderr)
-    s = run_worker("--worker", "speed", "--actor", str(actor_dir), "--model", str(main_dir), cores=SPEED_CORES)
+    s = harness.run_worker(__file__, "--worker", "speed", "--actor", str(actor_dir), "--model", str(main_dir), cores=SPEED_CORES)
     s["vertices_s_frame"] = s["vertices"]["s_frame"]
     out["speed"] = s
     if compare or shape_space_cached(actor_dir, other):
         other_dir, out["builds"][other.smoothing] = shape_space_model(actor_dir, other, retrain)
-        out["other_speed"][other.smoothing] = run_worker("--worker", "speed", "--actor", str(actor_dir),
+        out["other_speed"][other.smoothing] = harness.run_worker(__file__, "--worker", "speed", "--actor", str(actor_dir),
                                                          "--model", str(other_dir), cores=SPEED_CORES)
     return out
 
@@ -889,7 +871,7 @@ def main() -> None:
         print(json.dumps(worker_train(actor_dir, args.params, args.model)))
         return
     if args.worker == "pdm-train":
-        res = pdm.worker_train(actor_dir, PDM_ORDER, args.model)
+        res = harness.train_pdm(actor_dir, PDM_ORDER, args.model)
         print(json.dumps(res))
         return
     if args.worker == "register":
@@ -912,7 +894,7 @@ def main() -> None:
     except (TypeError, ValueError) as error:
         sys.exit(f"--params: {error}")
     other = dataclasses.replace(params, smoothing="rest" if params.smoothing == "per_frame" else "per_frame")
-    pdm.ensure_actor(actor_dir)
+    harness.ensure_actor(actor_dir)
     actor = load_actor(actor_dir)
     meta = {"actor": str(args.actor), "level": actor_level(actor_dir), "vertices": actor.n_vertices,
             "markers": actor.n_markers, "cpus": os.cpu_count(), "load_before": f"{os.getloadavg()[0]:.1f}",
@@ -944,7 +926,7 @@ def main() -> None:
     model = ShapeSpaceModel.load(speed[meta["level"]]["model_dir"])
     bq = PdmModel.load(pdm_dir)
     sigma = bq.metrics["highpass_sigma_texels"]
-    tex = pdm.DetailTexels.build(actor, bq.fine.resolution, sigma)
+    tex = harness.DetailTexels.build(actor, bq.fine.resolution, sigma)
     meta.update(database_frames=model.n_frames, sigma_texels=sigma, sigma_mm=sigma * mean_texel_size(actor, tex.H))
     extra = {}
     if shape_space_cached(actor_dir, other):

@@ -7,6 +7,6 @@
 - :mod:`models_store.blobs`       the atomic, checksummed blob store on a local directory
 - :mod:`models_store.cache`       a byte-budgeted LRU cache of loaded models
 - :mod:`models_store.registry`    the operations the API and the jobs call
-- :mod:`models_store.errors`      ``StoreError`` → ``NotFound``, ``Conflict``, ``BlobCorrupt``,
+- :mod:`models_store.errors`      ``FacesynthError`` (the server's error root) → ``NotFound``, ``Conflict``, ``BlobCorrupt``,
   ``InvalidId``
 """

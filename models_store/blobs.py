@@ -7,7 +7,7 @@ key and sha256; reading a blob back verifies it and raises
 :class:`~models_store.errors.BlobCorrupt` on a mismatch.
 
 Writes are atomic: a file is written to a temporary sibling, fsynced, chmodded, renamed into
-place (:func:`service.io.atomic.atomic_open`), and its directory fsynced; a directory is
+place (:func:`models_store.atomic.atomic_open`), and its directory fsynced; a directory is
 copied under a temporary sibling name, every file and directory in it fsynced, then renamed
 into place in one step. Readers in other processes therefore see a whole blob or none.
 Blobs are write-once: putting to an existing key raises
@@ -47,7 +47,7 @@ from typing import BinaryIO, Iterator
 
 from models_store.errors import BlobCorrupt, Conflict, InvalidId, NotFound
 from models_store.ids import new_token
-from service.io.atomic import atomic_open, sha256_file
+from models_store.atomic import atomic_open, sha256_file
 
 FILE_MODE = 0o644
 DIR_MODE = 0o755

@@ -150,7 +150,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from service.api.app import create_app
     from service.logs import configure_logging
-    from service.api.services import Services
+    from service.app.services import Services
     from service.config import Settings
     from service.grpc.server import is_loopback, serve
     from service.jobs.worker import start_embedded, start_maintenance
@@ -255,8 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
     p.add_argument("--medium-resolution", type=int, default=512)
     p.add_argument("--fine-resolution", type=int, default=1024)
-    p.add_argument("--gamma", type=float, default=PdmParams.gamma, help="regularization γ of ma2008 §4.2")
-    p.add_argument("--margin", type=float, default=PdmParams.extrapolation_margin,
+    p.add_argument("--gamma", type=float, default=PdmParams.model_fields["gamma"].default, help="regularization γ of ma2008 §4.2")
+    p.add_argument("--margin", type=float, default=PdmParams.model_fields["extrapolation_margin"].default,
                    help="extrapolation limit: fraction of the training range (negative: none)")
     p.set_defaults(func=cmd_pdm_train)
 

@@ -47,7 +47,7 @@ from models_store.registry.jobs import (MAX_CLAIM_ROUNDS, Reaped, claim_job, cre
                                         request_cancel, update_job_progress)
 from models_store.registry.models import (create_model, delete_model, get_model, list_models,
                                           mark_model_failed, mark_model_ready, model_dir)
-from models_store.registry.rigs import (get_input_rig, list_input_rigs, mark_rig_failed,
+from models_store.registry.rigs import (get_input_rig, get_input_rig_by_id, list_input_rigs, mark_rig_failed,
                                         mark_rig_ready, put_input_rig)
 
 __all__ = [
@@ -57,7 +57,7 @@ __all__ = [
     # clips
     "add_clip", "get_clip", "list_clips", "read_clip", "delete_clip",
     # input rigs
-    "put_input_rig", "get_input_rig", "list_input_rigs", "mark_rig_ready", "mark_rig_failed",
+    "put_input_rig", "get_input_rig", "get_input_rig_by_id", "list_input_rigs", "mark_rig_ready", "mark_rig_failed",
     # models
     "create_model", "get_model", "list_models", "mark_model_ready", "mark_model_failed",
     "model_dir", "delete_model",

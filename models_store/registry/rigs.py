@@ -68,6 +68,11 @@ def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
                    "try again")
 
 
+def get_input_rig_by_id(session: Session, rig_id: str) -> InputRig:
+    """The input rig with id ``rig_id`` (its row refreshed), or :class:`NotFound`."""
+    return get_row(session, InputRig, "rig", rig_id)
+
+
 def get_input_rig(session: Session, actor_id: str, name: str, *,
                   tenant: str | None = None) -> InputRig:
     """The input rig ``name`` of an actor."""

@@ -1,11 +1,9 @@
 """The HTTP API (API.md): ``create_app(settings) -> FastAPI``.
 
-Modules: :mod:`.app` (the app factory), :mod:`.routes` (thin routers, one per resource),
-:mod:`.operations` (what each write does), :mod:`.uploads` (reading and validating bodies),
-:mod:`.synthesis` (synchronous synthesis and its encodings), :mod:`.schemas` (pydantic
-models), :mod:`.errors` (problem+json), :mod:`.auth`, :mod:`.deps`, :mod:`.services`
-(database, blobs, model cache), :mod:`.metrics`, :mod:`.logs`, :mod:`.validation`,
-:mod:`.limits`.
+HTTP only: :mod:`.app` (the app factory), :mod:`.routes` (thin routers, one per resource,
+each calling one function of :mod:`service.app`), :mod:`.bodies` (media types, body reading
+and its size limit), :mod:`.schemas` (the problem body), :mod:`.errors` (problem+json, the
+one mapping of :mod:`service.errors` to statuses), :mod:`.auth`, :mod:`.deps`, :mod:`.logs`.
 """
 
 from service.api.app import create_app

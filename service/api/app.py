@@ -3,7 +3,7 @@
 Settings are injected, never read at import time: ``create_app(Settings(data_dir=tmp))``
 makes an independent app (its own database, blobs, cache and metrics), which is what the
 tests do; ``create_app()`` uses :func:`service.config.get_settings`. The lifespan opens the
-:class:`~service.api.services.Services` (migrating the database) unless they are given, as
+:class:`~service.app.services.Services` (migrating the database) unless they are given, as
 ``facesynth serve`` does to share them with the gRPC server.
 """
 
@@ -19,12 +19,12 @@ from service.api import errors
 from service.api.auth import check_bearer
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
-from service.api.metrics import Metrics
+from service.app.metrics import Metrics
 from service.api.routes import actors, artifacts, clips, health, jobs, models, rigs, synthesis
 from service.api.schemas import Problem
-from service.api.services import Services
-from service.api.synthesis import Synthesizer
-from service.api.uploads import BodyLimitMiddleware
+from service.app.services import Services
+from service.app.synthesis import Synthesizer
+from service.api.bodies import BodyLimitMiddleware
 from service.config import Settings, get_settings
 
 API_VERSION = "1"

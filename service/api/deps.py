@@ -1,4 +1,4 @@
-"""FastAPI dependencies: the process's :class:`~service.api.services.Services`, a database
+"""FastAPI dependencies: the process's :class:`~service.app.services.Services`, a database
 session per request, the settings, and the job submitter.
 
 Nothing here reads the environment: ``create_app(settings)`` puts the services on
@@ -8,16 +8,13 @@ a temporary directory and overrides what it needs (``app.dependency_overrides``)
 
 from __future__ import annotations
 
-from typing import Annotated, Callable, Iterator
+from typing import Annotated, Iterator
 
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
-from service.api.services import Services
+from service.app.services import Services, Submit
 from service.config import Settings
-
-#: submits a queued job (by id) to the task queue
-Submit = Callable[[str], None]
 
 
 def get_services(request: Request) -> Services:

@@ -1,26 +1,26 @@
 """Every error the API answers, as RFC 9457 ``application/problem+json``, from one handler.
 
-The service raises errors by meaning, never by status code: the store's
-:class:`~models_store.errors.NotFound` and :class:`~models_store.errors.Conflict`, the
-methods' :class:`~service.methods.inputs.InvalidInput`, the readers'
-:class:`~service.io.errors.FormatError` and :class:`~service.io.errors.SizeLimitError`, and
-the few errors only HTTP has (:class:`ApiProblem` below: a malformed body, an unsupported
-media type, a missing token, an overloaded server). :func:`install` maps them all:
+The service raises errors by meaning (:mod:`service.errors`, one root
+:class:`~service.errors.FacesynthError`); :data:`STATUS` maps each meaning to its status
+once, the most specific class in an error's MRO winning. The few errors only HTTP has
+(:class:`ApiProblem` below: a missing token, a body over the limit while FastAPI reads it)
+carry their status themselves.
 
 ======================================  ======  ======================
 error                                   status  ``type``
 ======================================  ======  ======================
-malformed JSON / multipart body         400     ``…:malformed-body``
+``MalformedInput``, broken JSON         400     ``…:malformed-body``
 missing or invalid bearer token         401     ``…:unauthorized``
-``NotFound``, ``InvalidId``             404     ``…:not-found``
-no acceptable response media type       406     ``…:not-acceptable``
+``NotFound`` (``InvalidId``)            404     ``…:not-found``
+``NotAcceptable``                       406     ``…:not-acceptable``
 ``Conflict`` (e.g. model not ready)     409     ``…:conflict``
-``SizeLimitError``, body over the limit 413     ``…:too-large``
-unsupported request media type          415     ``…:unsupported-media-type``
-``InvalidInput``, ``FormatError``,      422     ``…:invalid-input``
+``PayloadTooLarge`` (``SizeLimitError``) 413    ``…:too-large``
+``UnsupportedFormat``                   415     ``…:unsupported-media-type``
+``InvalidInput`` (``FormatError``),     422     ``…:invalid-input``
 request validation (with ``errors``)
-overloaded (with ``Retry-After``)       503     ``…:overloaded``
-``BlobCorrupt``, anything unexpected    500     ``…:internal``
+``Unavailable`` (with ``Retry-After``)  503     ``…:overloaded``
+``InsufficientStorage``                 507     ``…:insufficient-storage``
+``Corrupt``, anything unexpected        500     ``…:internal``
 ======================================  ======  ======================
 
 A problem body is ``{type, title, status, detail, errors?, instance, request_id}``; ``errors``
@@ -31,17 +31,17 @@ from __future__ import annotations
 
 import logging
 from http import HTTPStatus
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from models_store.errors import BlobCorrupt, Conflict, InvalidId, NotFound
-from service.io.errors import FormatError, SizeLimitError
-from service.methods.inputs import InvalidInput
+from service.errors import (
+    Conflict, Corrupt, FacesynthError, InsufficientStorage, InvalidInput, MalformedInput,
+    NotAcceptable, NotFound, PayloadTooLarge, Unavailable, UnsupportedFormat, field_errors, summary,
+)
 
 log = logging.getLogger("facesynth.api")
 
@@ -53,7 +53,22 @@ TYPE_PREFIX = "urn:facesynth:problem:"
 _SLUGS = {400: "malformed-body", 401: "unauthorized", 403: "forbidden", 404: "not-found",
           405: "method-not-allowed", 406: "not-acceptable", 409: "conflict", 413: "too-large",
           415: "unsupported-media-type", 416: "range-not-satisfiable", 422: "invalid-input",
-          503: "overloaded"}
+          503: "overloaded", 507: "insufficient-storage"}
+
+#: each meaning of :mod:`service.errors` → its HTTP status (the most specific class wins)
+STATUS: dict[type[FacesynthError], int] = {
+    InvalidInput: 422, MalformedInput: 400, UnsupportedFormat: 415, NotAcceptable: 406,
+    NotFound: 404, Conflict: 409, PayloadTooLarge: 413, Corrupt: 500, Unavailable: 503,
+    InsufficientStorage: 507,
+}
+
+
+def status_of(error: FacesynthError) -> tuple[int, dict[str, str]]:
+    """The HTTP status of ``error`` by meaning (500 for the bare root) and its extra headers
+    (``Retry-After`` for :class:`~service.errors.Unavailable`)."""
+    status = next((STATUS[c] for c in type(error).__mro__ if c in STATUS), 500)
+    headers = ({"Retry-After": str(error.retry_after)} if isinstance(error, Unavailable) else {})
+    return status, headers
 
 
 class ApiProblem(HTTPException):
@@ -77,12 +92,6 @@ class ApiProblem(HTTPException):
         self.errors = errors
 
 
-class MalformedBody(ApiProblem):
-    """The body cannot be parsed at all (broken JSON, a broken multipart stream)."""
-
-    status = 400
-
-
 class Unauthorized(ApiProblem):
     """No valid ``Authorization: Bearer`` token."""
 
@@ -92,44 +101,10 @@ class Unauthorized(ApiProblem):
         super().__init__(detail, headers={"WWW-Authenticate": 'Bearer realm="facesynth"'})
 
 
-class NotAcceptable(ApiProblem):
-    """None of the media types in ``Accept`` can be produced."""
-
-    status = 406
-
-
-class PayloadTooLarge(ApiProblem):
+class BodyTooLarge(ApiProblem):
     """The request body, or what it declares, is over a configured limit."""
 
     status = 413
-
-
-class UnsupportedMediaType(ApiProblem):
-    """The request's ``Content-Type`` is not one the route reads."""
-
-    status = 415
-
-
-class Unprocessable(ApiProblem):
-    """A body that fails its schema, with per-field ``errors`` (as FastAPI's own request
-    validation, for bodies a route parses itself)."""
-
-    status = 422
-
-    @classmethod
-    def from_validation(cls, error: ValidationError, prefix: tuple = ("body",)) -> "Unprocessable":
-        """The 422 for a pydantic :class:`ValidationError` of a request body."""
-        errors = validation_errors(error.errors(include_url=False, include_input=False), prefix)
-        return cls(_summary(errors), errors=errors)
-
-
-class Overloaded(ApiProblem):
-    """The server cannot take the request now; retry after ``retry_after`` seconds."""
-
-    status = 503
-
-    def __init__(self, detail: str, retry_after: int = 1):
-        super().__init__(detail, headers={"Retry-After": str(retry_after)})
 
 
 def problem(request: Request | None, status: int, detail: str, *, slug: str | None = None,
@@ -176,30 +151,16 @@ def _title(status: int) -> str:
         return "Error"
 
 
-def validation_errors(errors: Iterable[Mapping[str, Any]], prefix: tuple = ()) -> list[dict]:
-    """Pydantic errors as ``{loc, msg, type}`` (JSON-safe: no inputs, no exception objects)."""
-    return [{"loc": [*prefix, *(e.get("loc") or ())], "msg": str(e.get("msg", "")),
-             "type": str(e.get("type", ""))} for e in errors]
-
-
-def _summary(errors: list[dict]) -> str:
-    """One line naming the first error and how many there are."""
-    first = errors[0]
-    where = ".".join(str(part) for part in first["loc"])
-    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-    return f"{where}: {first['msg']}{more}" if where else first["msg"] + more
-
-
 # ---------------------------------------------------------------------------- handlers
 async def _request_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
     raw = list(exc.errors())
-    errors = validation_errors(raw)
+    errors = field_errors(raw)
     if any(e["type"] == "json_invalid" for e in errors):
         ctx = next((e.get("ctx") or {} for e in raw if e.get("type") == "json_invalid"), {})
         reason = ctx.get("error", "")
         return problem(request, 400, f"the body is not valid JSON{': ' + reason if reason else ''}",
                        errors=errors)
-    return problem(request, 422, _summary(errors), errors=errors)
+    return problem(request, 422, summary(errors), errors=errors)
 
 
 async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -208,17 +169,19 @@ async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     return problem(request, exc.status_code, detail, errors=errors, headers=exc.headers)
 
 
-def _mapped(status: int, slug: str):
-    async def handler(request: Request, exc: Exception) -> JSONResponse:
-        return problem(request, status, str(exc), slug=slug)
-    return handler
+async def _meaning(request: Request, exc: FacesynthError) -> JSONResponse:
+    status, headers = status_of(exc)
+    if status >= 500 and not isinstance(exc, Unavailable):
+        return await _internal(request, exc)
+    return problem(request, status, str(exc), errors=getattr(exc, "errors", None),
+                   headers=headers)
 
 
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path,
                   exc_info=exc)
     detail = ("stored data failed its checksum; the operator has been told (see the server log)"
-              if isinstance(exc, BlobCorrupt) else
+              if isinstance(exc, Corrupt) else
               "internal error (see the server log for this request id)")
     return problem(request, 500, detail, slug="internal")
 
@@ -227,11 +190,5 @@ def install(app: FastAPI) -> None:
     """Register the problem+json handlers of the module docstring on ``app``."""
     app.add_exception_handler(RequestValidationError, _request_validation)
     app.add_exception_handler(StarletteHTTPException, _http)
-    app.add_exception_handler(NotFound, _mapped(404, "not-found"))
-    app.add_exception_handler(InvalidId, _mapped(404, "not-found"))
-    app.add_exception_handler(Conflict, _mapped(409, "conflict"))
-    app.add_exception_handler(SizeLimitError, _mapped(413, "too-large"))
-    app.add_exception_handler(FormatError, _mapped(422, "invalid-input"))
-    app.add_exception_handler(InvalidInput, _mapped(422, "invalid-input"))
-    app.add_exception_handler(BlobCorrupt, _internal)
+    app.add_exception_handler(FacesynthError, _meaning)
     app.add_exception_handler(Exception, _internal)

@@ -15,8 +15,8 @@ import uuid
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.limits import REQUEST_ID_MAX_LENGTH
-from service.api.metrics import Metrics
+from service.app.limits import REQUEST_ID_MAX_LENGTH
+from service.app.metrics import Metrics
 from service.logs import request_id_var
 
 _SAFE_ID = re.compile(rf"[A-Za-z0-9._:-]{{1,{REQUEST_ID_MAX_LENGTH}}}")

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.io.markers import BARYCENTRIC_TOLERANCE, MarkerLayout
+from service.geometry.marker_layout import BARYCENTRIC_TOLERANCE, MarkerLayout
 
 #: A triangle whose height is below ``SLIVER_RTOL`` times its longest edge (zero-area ones
 #: included) also has its three edges searched: the face-region formula loses accuracy as
@@ -149,7 +149,7 @@ def resolve_marker_layout(
 
     Parameters
     ----------
-    layout : service.io.markers.MarkerLayout    M markers
+    layout : service.geometry.marker_layout.MarkerLayout    M markers
     V : (n,3) float                             the actor's neutral vertices
     F : (m,3) int                               its triangles
 
@@ -165,7 +165,7 @@ def resolve_marker_layout(
         Naming the first offending marker, e.g. ``"marker 'FH2': triangle 99999 out of range
         [0, 89152)"``: a triangle or vertex index out of range, a vertex no triangle uses,
         barycentrics that are not finite, negative, or do not sum to 1 within
-        :data:`service.io.markers.BARYCENTRIC_TOLERANCE`, a non-finite position, or an unknown
+        :data:`service.geometry.marker_layout.BARYCENTRIC_TOLERANCE`, a non-finite position, or an unknown
         kind. Also for a malformed mesh (see :func:`closest_points`).
     """
     V, F = _check_mesh(V, F)

@@ -162,3 +162,16 @@ def rigid_align_frames(P: np.ndarray, Q: np.ndarray, weights: np.ndarray | None 
     R = (U * S[:, None, :]) @ Vt
     t = q_mean - np.einsum("fde,fe->fd", R, p_mean)
     return R, t
+
+
+def stability_weights_from_rms(m: np.ndarray) -> np.ndarray:
+    """Weights ``1 / (m_i² + m̄²)`` (n,) float64, normalized to mean 1, from the RMS offsets
+    m (n,) of points from their rest positions after alignment; m̄ is the median of m.
+
+    A point that never moves gets about 2× the weight of a typical one, one moving 3× the
+    median about a fifth, so the moving parts of a face do not drag its head pose
+    (ma2008 §4.1's stable markers; bermano2014 §5.2's stable vertices).
+    """
+    med = max(float(np.median(m)), 1e-9)
+    w = 1.0 / (m ** 2 + med ** 2)
+    return w / w.mean()

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import zoom
 import scipy.sparse as sp
 
 from service.geometry.scan_convert import BARY_TOL, barycentric_2d, scan_convert
@@ -79,6 +80,14 @@ def texel_centers_uv(H: int, W: int) -> np.ndarray:
     u = (np.arange(W) + 0.5) / W
     v = 1.0 - (np.arange(H) + 0.5) / H
     return np.stack(np.broadcast_arrays(u[None, :], v[:, None]), axis=-1)
+
+
+def texel_uv(index: np.ndarray, H: int) -> np.ndarray:
+    """UV coordinates (P,2) of the centres of the texels at flat indices ``index`` (P,) of an
+    H×H map (row-major, row 0 at the top)."""
+    index = np.asarray(index)
+    r, c = np.divmod(index, H)
+    return np.stack([(c + 0.5) / H, 1.0 - (r + 0.5) / H], axis=-1)
 
 
 def rasterize_uv(uv: np.ndarray, uv_faces: np.ndarray, H: int, W: int) -> UVRaster:
@@ -424,3 +433,17 @@ def dilate(image: np.ndarray, mask: np.ndarray, pixels: int,
         m = m | grow
     out = img[..., 0] if squeeze else img
     return (out, m) if return_mask else out
+
+
+def resample_map(maps: np.ndarray, side: int, unit: bool = False) -> np.ndarray:
+    """Maps (F,H,W[,C]) bilinearly resampled to (F,side,side[,C]) float32.
+
+    Texel centres stay aligned (``grid_mode``: texel c of W covers u = (c+0.5)/W at every
+    resolution, as API.md's texel convention); with ``unit`` the vectors of the last axis
+    are renormalized to unit length (normal maps).
+    """
+    factor = (1.0, side / maps.shape[1], side / maps.shape[2]) + (1.0,) * (maps.ndim - 3)
+    resized = zoom(maps, factor, order=1, mode="nearest", grid_mode=True).astype(np.float32)
+    if unit:
+        resized /= np.maximum(np.linalg.norm(resized, axis=-1, keepdims=True), 1e-12)
+    return resized

@@ -16,6 +16,7 @@ import numpy as np
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
+from service.methods.outputs import STREAM_DEFAULT_OUTPUTS
 
 
 def channel_options(max_message_bytes: int = codec.MAX_MESSAGE_BYTES) -> list[tuple[str, int]]:
@@ -34,7 +35,7 @@ def _requests(model_id: str, frames: Iterable[np.ndarray], outputs: Sequence[str
 
 
 def stream_synthesize(channel: grpc.Channel, model_id: str, frames_iter: Iterable[np.ndarray],
-                      outputs: Sequence[str] = codec.DEFAULT_OUTPUTS, *, clamp: bool | None = None,
+                      outputs: Sequence[str] = STREAM_DEFAULT_OUTPUTS, *, clamp: bool | None = None,
                       token: str | None = None, timeout: float | None = None,
                       ) -> Iterator[dict[str, np.ndarray | int | float]]:
     """Stream marker frames to the server and yield its results, one per frame, in order.

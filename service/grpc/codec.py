@@ -12,16 +12,12 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
-from service.methods.inputs import InvalidInput
+from service.errors import InvalidInput
+from service.methods import outputs as vocabulary
+from service.methods.outputs import MAP_OUTPUTS, STREAM_DEFAULT_OUTPUTS
 
-#: the ``outputs`` a stream may ask for (API.md), each named like a MeshFrame field or group
-OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
-#: outputs when the first MarkerFrame asks for none
-DEFAULT_OUTPUTS = ("mesh",)
 #: mesh outputs → their MeshFrame ``bytes`` field (and synthesize's result key)
 MESH_FIELDS = {"mesh": "vertices", "mesh_detailed": "vertices_detailed"}
-#: map outputs: MeshFrame ``Map`` field = synthesize's result key = output name
-MAP_FIELDS = ("displacement", "albedo", "normal_map")
 #: default gRPC message size limit, bytes, both directions: a reply with 1024² displacement,
 #: albedo and normal maps is 28 MiB, plus the meshes
 MAX_MESSAGE_BYTES = 64 * 2**20
@@ -31,14 +27,10 @@ I32 = np.dtype("<i4")
 
 
 def check_outputs(outputs: Sequence[str]) -> tuple[str, ...]:
-    """Validated outputs without repeats, in the given order; :data:`DEFAULT_OUTPUTS` for none.
-
-    Raises :class:`InvalidInput` naming unknown outputs.
-    """
-    unknown = sorted(set(outputs) - set(OUTPUTS))
-    if unknown:
-        raise InvalidInput(f"unknown outputs {unknown}; choose from {list(OUTPUTS)}")
-    return tuple(dict.fromkeys(outputs)) or DEFAULT_OUTPUTS
+    """Validated outputs without repeats, in the given order;
+    :data:`~service.methods.outputs.STREAM_DEFAULT_OUTPUTS` for none (MeshFrame fields and
+    groups are named like the outputs; the map outputs are its ``Map`` fields)."""
+    return vocabulary.check_outputs(outputs) or STREAM_DEFAULT_OUTPUTS
 
 
 # ---------------------------------------------------------------------- MarkerFrame
@@ -88,7 +80,7 @@ def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame
     result : dict       ``synthesize``'s arrays: vertices (F,V,3), vertices_detailed (F,V,3),
                         faces (T,3), displacement (F,H,W), albedo / normal_map (F,H,W,3),
                         clamped (F,)
-    outputs : names of :data:`OUTPUTS` to put in the reply (others in ``result`` are left out)
+    outputs : names of :data:`~service.methods.outputs.OUTPUTS` to put in the reply (others in ``result`` are left out)
     frame : the client's frame number to echo;  faces : include the triangles
     """
     reply = pb.MeshFrame(frame=frame, clamped=float(result["clamped"][index]))
@@ -99,7 +91,7 @@ def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame
             setattr(reply, key, V.tobytes())
     if faces:
         reply.faces = np.asarray(result["faces"], dtype=I32).tobytes()
-    for key in MAP_FIELDS:
+    for key in MAP_OUTPUTS:
         if key in outputs:
             getattr(reply, key).CopyFrom(encode_map(result[key][index]))
     return reply
@@ -122,7 +114,7 @@ def decode_reply(reply: pb.MeshFrame) -> dict[str, np.ndarray | int | float]:
             out[key] = np.frombuffer(data, F32).reshape(reply.vertex_count, 3)
     if reply.faces:
         out["faces"] = np.frombuffer(reply.faces, I32).reshape(-1, 3)
-    for key in MAP_FIELDS:
+    for key in MAP_OUTPUTS:
         if reply.HasField(key):
             out[key] = decode_map(getattr(reply, key))
     return out

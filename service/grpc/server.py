@@ -5,12 +5,11 @@ order. :class:`SynthesisServicer` does the work, with the model store injected a
 ``load_model(model_id) -> model`` callable (any object with ``synthesize`` as
 :meth:`service.methods.pdm.model.PdmModel.synthesize`); :func:`serve` starts a server.
 
-Errors end the stream with a status (the full list is in ``synthesis.proto``):
+Errors end the stream with a status (the full list is in ``synthesis.proto``), mapped once
+by meaning (:data:`CODES`, the most specific class of :mod:`service.errors` winning):
 ``InvalidInput`` from the model → INVALID_ARGUMENT with its message, the frame named;
-``load_model`` raising ``LookupError`` (``KeyError``, ``models_store.errors.NotFound``) or
-an ``InvalidId`` → NOT_FOUND, a ``NotReady`` / ``Conflict`` → FAILED_PRECONDITION. The
-store's errors are recognized by class name (anywhere in their MRO), so this module does
-not depend on the store.
+``load_model`` raising ``NotFound`` (or any ``LookupError``) → NOT_FOUND, ``Conflict``
+(not ready) → FAILED_PRECONDITION, ``Unavailable`` → UNAVAILABLE, ``Corrupt`` → DATA_LOSS.
 
 Each open stream holds one worker thread for its whole life and frames are synthesized one
 at a time (the model's per-frame work is NumPy, which releases the GIL, so streams on
@@ -35,15 +34,33 @@ import numpy as np
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
-from service.methods.inputs import InvalidInput
+from service.errors import (
+    Conflict, Corrupt, FacesynthError, InsufficientStorage, InvalidInput, NotAcceptable, NotFound,
+    PayloadTooLarge, Unavailable,
+)
 
 log = logging.getLogger(__name__)
 
-#: exception class names (in the MRO) that ``load_model`` raises for an unknown model (as
-#: the HTTP API, a malformed id is a 404: ``models_store.errors.InvalidId``) …
-NOT_FOUND_ERRORS = frozenset({"NotFound", "ModelNotFound", "InvalidId"})
-#: … and for a model that exists but cannot synthesize yet (e.g. still training)
-NOT_READY_ERRORS = frozenset({"NotReady", "ModelNotReady", "Conflict"})
+#: each meaning of :mod:`service.errors` → the status a stream ends with
+CODES: dict[type[FacesynthError], grpc.StatusCode] = {
+    InvalidInput: grpc.StatusCode.INVALID_ARGUMENT,
+    NotAcceptable: grpc.StatusCode.INVALID_ARGUMENT,
+    NotFound: grpc.StatusCode.NOT_FOUND,
+    Conflict: grpc.StatusCode.FAILED_PRECONDITION,
+    PayloadTooLarge: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    Corrupt: grpc.StatusCode.DATA_LOSS,
+    Unavailable: grpc.StatusCode.UNAVAILABLE,
+    InsufficientStorage: grpc.StatusCode.RESOURCE_EXHAUSTED,
+}
+
+
+def code_of(error: BaseException) -> grpc.StatusCode:
+    """The status for ``error`` by meaning (a bare ``LookupError`` is NOT_FOUND; anything
+    else unknown is INTERNAL)."""
+    for cls in type(error).__mro__:
+        if cls in CODES:
+            return CODES[cls]
+    return grpc.StatusCode.NOT_FOUND if isinstance(error, LookupError) else grpc.StatusCode.INTERNAL
 DEFAULT_PORT = 50051
 
 
@@ -146,14 +163,15 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
     def _load(self, model_id: str) -> StreamModel:
         try:
             return self._load_model(model_id)
-        except Exception as e:
-            names = {cls.__name__ for cls in type(e).__mro__}
-            if isinstance(e, LookupError) or names & NOT_FOUND_ERRORS:
-                raise StreamError(grpc.StatusCode.NOT_FOUND, f"model '{model_id}' not found") from e
-            if names & NOT_READY_ERRORS:
-                raise StreamError(grpc.StatusCode.FAILED_PRECONDITION,
-                                  f"model '{model_id}' cannot synthesize yet: {e}") from e
-            raise
+        except (FacesynthError, LookupError) as e:
+            code = code_of(e)
+            if code == grpc.StatusCode.NOT_FOUND:
+                raise StreamError(code, f"model '{model_id}' not found") from e
+            if code == grpc.StatusCode.FAILED_PRECONDITION:
+                raise StreamError(code, f"model '{model_id}' cannot synthesize yet: {e}") from e
+            if code == grpc.StatusCode.INTERNAL:
+                raise
+            raise StreamError(code, f"model '{model_id}': {e}") from e
 
 
 def _invalid(details: str) -> StreamError:

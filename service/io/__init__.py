@@ -1,1 +1,13 @@
-"""File formats: meshes (OBJ/PLY/NPZ), UV-space maps (EXR), marker files (JSON/CSV/TRC/C3D)."""
+"""File formats, one module per format family.
+
+- meshes: :mod:`~service.io.mesh` (the public mesh API and :func:`read_mesh` by suffix) over
+  :mod:`~service.io.triangle_mesh` (the :class:`Mesh` type and its validation),
+  :mod:`~service.io.obj`, :mod:`~service.io.ply`, :mod:`~service.io.mesh_npz`;
+- markers: :mod:`~service.io.markers` (the public marker API and :func:`read_markers` by suffix)
+  over :mod:`~service.io.marker_sequence`, :mod:`~service.io.marker_json` (frames and the
+  layout), :mod:`~service.io.marker_csv`, :mod:`~service.io.trc`, :mod:`~service.io.c3d`;
+- UV-space maps: :mod:`~service.io.exr`;
+- shared: :mod:`~service.io.sources` (paths, bytes or streams in and out),
+  :mod:`~service.io.npz` (archive headers before data), :mod:`~service.io.errors`, and
+  :mod:`~service.io.atomic` (re-exports :mod:`models_store.atomic`).
+"""

@@ -1,13 +1,15 @@
 """Errors raised by the file-format readers and writers of :mod:`service.io`.
 
-Every reader raises a subclass of :class:`FormatError` (itself a ``ValueError``) for input it
+Every reader raises a subclass of :class:`FormatError` (an :class:`~service.errors.InvalidInput`, so a ``ValueError``) for input it
 cannot accept, with a message that names what is wrong and what was expected, e.g.
 ``"face 12 (line 40300) references vertex 40001 but the file has 40000 vertices"``. The API
 maps :class:`SizeLimitError` to 413 and every other :class:`FormatError` to 422.
 """
 
+from service.errors import InvalidInput, PayloadTooLarge
 
-class FormatError(ValueError):
+
+class FormatError(InvalidInput):
     """A file (or in-memory payload) is malformed or violates the format's contract."""
 
 
@@ -23,7 +25,7 @@ class MarkerFormatError(FormatError):
     """A marker file (JSON, CSV, TRC, C3D) or marker layout is malformed."""
 
 
-class SizeLimitError(FormatError):
+class SizeLimitError(PayloadTooLarge, FormatError):
     """A file declares more elements (vertices, faces, texels, frames...) than allowed.
 
     Raised before anything proportional to the declared size is allocated.

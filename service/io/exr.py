@@ -14,20 +14,18 @@ from __future__ import annotations
 
 import io
 import os
-from typing import BinaryIO, Mapping, Union
+from typing import Mapping
 
 import numpy as np
 import OpenEXR
 
 from service.io.errors import MapFormatError, SizeLimitError
+from service.io.sources import Source, Target, is_path, read_source
 
 MAX_TEXELS = 8192 * 8192
 """Default bound on H*W of a map a reader accepts."""
 MAX_CHANNELS = 64
 """Default bound on the channel count a reader accepts."""
-
-Source = Union[str, os.PathLike, bytes, bytearray, memoryview, BinaryIO]
-Target = Union[str, os.PathLike, BinaryIO]
 
 COMPRESSIONS = {
     "none": OpenEXR.NO_COMPRESSION,
@@ -91,7 +89,7 @@ def write_exr(
         with np.errstate(over="ignore"):  # beyond the half range is +-inf, as in OpenEXR
             pixels[name] = np.ascontiguousarray(values, dtype=dtype)
     header = {"compression": COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
-    OpenEXR.File(header, pixels).write(os.fspath(target) if _is_path(target) else target)
+    OpenEXR.File(header, pixels).write(os.fspath(target) if is_path(target) else target)
 
 
 def read_exr(
@@ -123,13 +121,7 @@ def read_exr(
         window differs from its display window.
     SizeLimitError
     """
-    if _is_path(source):
-        with open(source, "rb") as stream:
-            data = stream.read()
-    elif isinstance(source, (bytes, bytearray, memoryview)):
-        data = bytes(source)
-    else:
-        data = source.read()
+    data = read_source(source)
     header = _open(data, header_only=True).header()
     (x0, y0), (x1, y1) = (tuple(map(int, corner)) for corner in header["dataWindow"])
     display = tuple(tuple(map(int, corner)) for corner in header["displayWindow"])
@@ -153,10 +145,6 @@ def read_exr(
             )
         out[name] = np.asarray(channel.pixels, dtype=np.float32)
     return out
-
-
-def _is_path(value) -> bool:
-    return isinstance(value, (str, os.PathLike))
 
 
 def _open(data: bytes, header_only: bool) -> OpenEXR.File:

@@ -31,6 +31,7 @@ from huey.registry import Message
 from huey.serializer import Serializer
 
 from service.config import Settings
+from service.jobs.running import worker_name
 
 log = logging.getLogger(__name__)
 
@@ -140,8 +141,7 @@ def make_queue(settings: Settings) -> JobQueue:
     queue = JobQueue(huey, None)  # type: ignore[arg-type]  # the task needs the queue
 
     def run_job(job_id: str) -> None:
-        from service.jobs.runner import execute
-        from service.jobs.worker import worker_name
+        from service.jobs.runner import execute  # the runner imports the tasks and their deps
 
         execute(settings, job_id, worker_name(), abandon=queue.abandon)
 

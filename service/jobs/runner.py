@@ -33,14 +33,15 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 from models_store import registry
 from models_store.errors import Conflict, NotFound
 from service.config import Settings
-from service.jobs.context import Store, get_store
-from service.methods.inputs import InvalidInput, Progress
+from service.store.container import Store, get_store
+from service.methods.inputs import InvalidInput
+from service.jobs.running import JobCancelled, LeaseLost, RunningJob, Task, WorkerStopping
+from service.jobs.tasks import TASKS
 from service.logs import job_id_var
 
 log = logging.getLogger(__name__)
@@ -49,49 +50,6 @@ log = logging.getLogger(__name__)
 PROGRESS_INTERVAL = 0.5
 #: heartbeats per lease period
 HEARTBEATS_PER_LEASE = 3
-
-
-class JobCancelled(Exception):
-    """Raised at a progress point of a job whose cancellation was requested."""
-
-
-class LeaseLost(Exception):
-    """The job is no longer this worker's (requeued, reaped or ended elsewhere)."""
-
-
-class WorkerStopping(Exception):
-    """The worker is shutting down and gives the job back at this progress point."""
-
-
-@dataclass
-class RunningJob:
-    """What a task function gets: the claimed job's ids and payload, the store, progress.
-
-    Attributes
-    ----------
-    id, kind, actor_id, model_id : the job row's
-    payload : dict      the job's JSON payload (ids and parameters)
-    attempt : int       1 for the first run, 2 for the first retry, ...
-    store : Store       database sessions and blobs
-    progress : Progress ``progress(fraction, stage)``; raises :class:`JobCancelled`
-    """
-
-    id: str
-    kind: str
-    actor_id: str
-    model_id: str | None
-    payload: dict[str, Any]
-    attempt: int
-    store: Store
-    progress: Progress = field(repr=False)
-
-    def sub_progress(self, start: float, end: float) -> Progress:
-        """A :data:`Progress` mapping 0..1 onto ``start..end`` of this job's progress."""
-        return lambda fraction, stage: self.progress(start + (end - start) * fraction, stage)
-
-
-#: a task function: takes the running job, returns the job's ``result``
-Task = Callable[[RunningJob], Mapping[str, Any]]
 
 
 class _Reporter:
@@ -255,7 +213,6 @@ def execute(settings: Settings, job_id: str, worker: str, *,
 
 def _execute(settings: Settings, job_id: str, worker: str,
              abandon: threading.Event | None) -> str | None:
-    from service.jobs.tasks import TASKS
 
     store = get_store(settings)
     with store.sessions() as session:

@@ -28,9 +28,7 @@ signal skips the grace period.
 from __future__ import annotations
 
 import logging
-import os
 import signal
-import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -42,7 +40,7 @@ from huey.consumer import Consumer, ConsumerStopped
 from models_store import db, registry
 from models_store.schema import utcnow
 from service.config import Settings
-from service.jobs.context import get_store
+from service.store.container import get_store
 from service.jobs.queue import JobQueue, get_queue, submit
 
 log = logging.getLogger(__name__)
@@ -53,12 +51,6 @@ POLL_MAX_DELAY = 1.0
 GRACE_SECONDS = 10.0
 #: how long to wait, after the grace period, for jobs to give their job back, seconds
 ABANDON_WAIT_SECONDS = 30.0
-
-
-def worker_name() -> str:
-    """This thread's unique worker name, ``host:pid:thread``."""
-    thread = threading.current_thread()
-    return f"{socket.gethostname()}:{os.getpid()}:{thread.name}-{thread.ident}"
 
 
 class _Consumer(Consumer):

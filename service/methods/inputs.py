@@ -12,14 +12,11 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from service.errors import InvalidInput
 from service.geometry.closest_point import surface_points
 
 #: progress callback of long work: (fraction 0..1, stage name)
 Progress = Callable[[float, str], None]
-
-
-class InvalidInput(ValueError):
-    """Input that is well-formed but cannot be used (API: 422)."""
 
 
 def no_progress(fraction: float, stage: str) -> None:

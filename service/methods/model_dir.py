@@ -12,9 +12,10 @@ import hashlib
 import json
 from pathlib import Path
 
+from service.errors import Corrupt
 
 
-class ModelCorrupt(ValueError):
+class ModelCorrupt(Corrupt, ValueError):
     """A stored model is incomplete, altered, or of an unknown format."""
 
 

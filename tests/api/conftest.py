@@ -173,7 +173,7 @@ def ready_sheet_model(client: TestClient, actor_id: str, clip_ids: Sequence[str]
     """A ``shape_space`` model of an uploaded sheet actor, trained in-process (as its job
     would) with :data:`SHEET_PARAMS` and marked ready: (model id, the trained model)."""
     from models_store import registry
-    from service import actor_store
+    from service.store import actors as actor_store
     from service.jobs.tasks.train import jsonable
     from service.methods.inputs import no_progress
     from service.methods.kinds import get_kind

@@ -15,7 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from models_store import registry
-from service.api.retiming import keyframe_indices
+from service.methods.shape_space.temporal import keyframe_indices
 from service.config import Settings
 from service.methods.shape_space.registration import RigRegistration
 from tests.api.conftest import (NPZ, Recorder, assert_problem, load_npz, make_client, npz,

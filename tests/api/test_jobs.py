@@ -9,7 +9,7 @@ import time
 import pytest
 
 from models_store import registry
-from service.api import limits
+from service.app import limits
 from tests.api.conftest import assert_problem
 
 

@@ -17,7 +17,7 @@ from schemathesis.checks import not_a_server_error
 from schemathesis.python.asgi import shutdown_lifespans
 
 from service.api import create_app
-from service.api.uploads import MARKER_FILE_TYPES, MESH_TYPES
+from service.app.uploads import MARKER_FILE_TYPES, MESH_TYPES
 from service.api.deps import get_submit
 from service.config import Settings
 from tests.api.conftest import (NPZ, Recorder, grid, layout_body, npz, ready_sheet_model,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from models_store import registry
-from service import actor_store
+from service.samples.uploads import sample_actor_uploads
 from service.config import Settings
 from service.io.exr import read_exr, read_map
 from service.io.markers import MarkerSequence, write_markers_csv, write_markers_trc
@@ -28,7 +28,7 @@ def ready(tmp_path_factory, pdm_actor_dir, pdm_model):
     settings = Settings(data_dir=tmp / "data", max_frames_per_request=4, max_map_resolution=256)
     submitted = Recorder()
     with make_client(settings, submitted) as client:
-        neutral, layout, clips = actor_store.sample_actor_uploads(pdm_actor_dir, PDM_TRAINING[:1])
+        neutral, layout, clips = sample_actor_uploads(pdm_actor_dir, PDM_TRAINING[:1])
         actor_id = client.post("/v1/actors", json={"name": "sample"}).json()["id"]
         assert client.put(f"/v1/actors/{actor_id}/neutral", content=neutral,
                           headers=NPZ).status_code == 200
@@ -231,8 +231,8 @@ def test_services_load_model_serves_the_grpc_path(ready):
 
 
 def test_accept_negotiation():
-    from service.api.synthesis import negotiate
-    from service.api.errors import NotAcceptable
+    from service.app.synthesis import negotiate
+    from service.errors import NotAcceptable
 
     assert negotiate(None) == negotiate("*/*") == "application/x-npz"
     assert negotiate("model/obj") == "model/obj"
@@ -246,9 +246,10 @@ def test_accept_negotiation():
 def test_synthesis_slots_answer_503_when_busy():
     from types import SimpleNamespace
 
-    from service.api.errors import Overloaded
-    from service.api.metrics import Metrics
-    from service.api.synthesis import SynthesisInput, Synthesizer
+    from service.api.errors import status_of
+    from service.errors import Unavailable
+    from service.app.metrics import Metrics
+    from service.app.synthesis import SynthesisInput, Synthesizer
 
     synthesizer = Synthesizer(Metrics(), limit=1)
     model = SimpleNamespace(synthesize=lambda frames, outputs, clamp: {"faces": np.zeros((1, 3))})
@@ -256,15 +257,16 @@ def test_synthesis_slots_answer_503_when_busy():
     request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
     assert "faces" in synthesizer.run(loaded, request)
     synthesizer._slots.acquire()
-    with pytest.raises(Overloaded) as error:
+    with pytest.raises(Unavailable) as error:
         synthesizer.run(loaded, request)
-    assert error.value.status_code == 503 and error.value.headers["Retry-After"] == "1"
+    status, headers = status_of(error.value)
+    assert status == 503 and headers["Retry-After"] == "1"
 
 
 def test_per_vertex_displacement_is_refused_as_a_map_not_a_500():
     """A kind that gives 'displacement' per vertex (shape_space: (F,n)) cannot be resampled
     or sent as EXR: 422 naming the shape, never a crash."""
-    from service.api.synthesis import resample_maps
+    from service.app.synthesis import resample_maps
     from service.methods.inputs import InvalidInput
 
     with pytest.raises(InvalidInput, match=r"'displacement' per vertex, shape \(1, 10\)"):

@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from models_store import registry
-from service import actor_store
+from service.samples.uploads import sample_actor_uploads
 from service.samples import dataset, performances
 from service.io.npz import npz_arrays as load_npz, npz_bytes as npz  # noqa: F401 (used by the tests)
 from tests.e2e.conftest import HELDOUT, MAP_RESOLUTION, Deployment
@@ -255,7 +255,7 @@ def needs(state: dict, *keys: str) -> None:
 # ---------------------------------------------------------------------------- tests
 def test_train_through_the_api_and_synthesize_heldout_frames(deployment, e2e_actor_dir, state):
     actor = dataset.load_actor(e2e_actor_dir)
-    neutral, layout, clips = actor_store.sample_actor_uploads(e2e_actor_dir, TRAINING)
+    neutral, layout, clips = sample_actor_uploads(e2e_actor_dir, TRAINING)
     canonical = json.loads(layout)
     markers_body = {"markers": [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
                                 zip(canonical["names"], canonical["triangle"],

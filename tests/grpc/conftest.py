@@ -10,6 +10,7 @@ import grpc
 import numpy as np
 import pytest
 
+from service.errors import Conflict
 from service.grpc.client import channel_options
 from service.grpc.server import serve
 
@@ -17,8 +18,8 @@ MODEL_ID = "pdm-level0"
 TRAINING_ID = "pdm-still-training"
 
 
-class NotReady(Exception):
-    """Stands in for the model store's error for a model that is still training."""
+class NotReady(Conflict):
+    """What the model store raises for a model that is still training (a Conflict)."""
 
 
 def free_port() -> int:

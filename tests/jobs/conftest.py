@@ -1,5 +1,5 @@
 """Fixtures of the job tests: a deployment (SQLite database and blobs in a temporary
-directory) with the small sample actor uploaded through :mod:`service.actor_store`, worker
+directory) with the small sample actor uploaded through :mod:`service.store.actors`, worker
 threads running a real Huey consumer, and helpers to create and wait for jobs.
 
 Jobs train small PDMs (64² maps, two clips: ~10 s each); the trained model is shared by
@@ -18,10 +18,11 @@ import pytest
 
 from models_store import registry
 from models_store.db import upgrade
-from service import actor_store
+from service.store import actors as actor_store
+from service.samples.uploads import sample_actor_uploads
 from service.config import Settings
 from service.jobs import worker as worker_module
-from service.jobs.context import Store, close_stores, get_store
+from service.store.container import Store, close_stores, get_store
 from service.jobs.queue import close_queues, submit
 from tests.servers import redis_server  # noqa: F401
 
@@ -95,7 +96,7 @@ class Deployment:
 @pytest.fixture(scope="session")
 def uploads(pdm_actor_dir):
     """The sample actor's canonical uploads (two training clips)."""
-    return actor_store.sample_actor_uploads(pdm_actor_dir, CLIPS)
+    return sample_actor_uploads(pdm_actor_dir, CLIPS)
 
 
 @pytest.fixture(scope="session")

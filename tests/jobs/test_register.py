@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from models_store import registry
-from models_store.registry._common import get_row
 from models_store.schema import InputRig
-from service import actor_store
+from service.store import actors as actor_store
 from service.jobs import runner
 from service.methods.shape_space.registration import RigRegistration
 
@@ -36,7 +35,7 @@ def _queue(deployment, name: str, data: bytes, landmarks) -> tuple[str, str]:
 
 def _rig(deployment, rig_id: str) -> InputRig:
     with deployment.session() as session:
-        rig = get_row(session, InputRig, "rig", rig_id)
+        rig = registry.get_input_rig_by_id(session, rig_id)
         session.expunge(rig)
         return rig
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from models_store import registry
-from service import actor_store
-from service.api import operations
-from service.api.services import Services
+from service.store import actors as actor_store
+from service.app import operations
+from service.app.services import Services
 from service.io.npz import npz_arrays, npz_bytes
 from service.jobs import runner
 from service.methods.kinds import get_kind

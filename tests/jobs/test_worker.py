@@ -15,7 +15,7 @@ import pytest
 
 from models_store import registry
 from models_store.schema import utcnow
-from service import actor_store
+from service.store import actors as actor_store
 from service.io.exr import read_map
 from service.io.mesh import read_obj
 from service.io.npz import npz_arrays

@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import pytest
 from pydantic import ValidationError
 
 from service.methods import kinds
 from service.methods.inputs import InvalidInput
-from service.methods.pdm.model import PdmParams
+from service.methods.pdm.params import PdmParams
 from service.methods.shape_space.params import ShapeSpaceParams
 
 
 def test_pdm_parameter_defaults_mirror_the_method():
     kind = kinds.get_kind("pdm")
-    assert kind.parse_params(None).model_dump() == asdict(PdmParams())
+    assert kind.parse_params(None).model_dump() == PdmParams().model_dump()
     assert PdmParams(**kind.parse_params({"order": "bicubic"}).model_dump()).order == "bicubic"
 
 
@@ -55,7 +53,7 @@ def test_unknown_kind_names_the_known_ones():
 def test_shape_space_parameter_defaults_mirror_the_method():
     kind = kinds.get_kind("shape_space")
     assert kind.input == "meshes"
-    assert kind.parse_params(None).model_dump() == asdict(ShapeSpaceParams())
+    assert kind.parse_params(None).model_dump() == ShapeSpaceParams().model_dump()
     parsed = kind.parse_params({"frame_stride": 5, "regions": "whole", "up_axis": [0, 0, 1]})
     method = ShapeSpaceParams(**parsed.model_dump())
     assert (method.frame_stride, method.regions, method.up_axis) == (5, "whole", (0.0, 0.0, 1.0))
@@ -92,4 +90,4 @@ def test_shape_space_schema_documents_every_parameter():
     for name, prop in schema["properties"].items():
         assert prop.get("description") and "examples" in prop, name
     assert schema["properties"]["patch_size"]["minimum"] == 3
-    assert set(schema["properties"]) == set(asdict(ShapeSpaceParams()))
+    assert set(schema["properties"]) == set(ShapeSpaceParams().model_dump())

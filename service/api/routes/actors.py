@@ -6,7 +6,8 @@ from fastapi import APIRouter, Depends, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from models_store import registry
-from service.api import operations, schemas, uploads
+from service.api import bodies
+from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SessionDep
 from service.api.routes import body, inline_schema, problems
 
@@ -14,7 +15,7 @@ router = APIRouter(prefix="/v1/actors", tags=["actors"])
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=schemas.Actor,
-             summary="Create an actor", dependencies=[Depends(uploads.require_json)],
+             summary="Create an actor", dependencies=[Depends(bodies.require_json)],
              responses=problems(400, 415, 422))
 def create_actor(actor: schemas.ActorCreate, session: SessionDep, response: Response) -> schemas.Actor:
     """Create an actor; upload its neutral, marker layout and clips next."""
@@ -62,7 +63,7 @@ async def put_neutral(actor_id: str, request: Request, services: ServicesDep) ->
     range, degenerate (zero-area) triangles, edges shared by more than two triangles, no UVs
     or UVs outside [0,1]². With clips or a marker layout, only the positions may change (409).
     """
-    kind, data = await uploads.read_body(request, uploads.MESH_TYPES)
+    kind, data = await bodies.read_body(request, uploads.MESH_TYPES)
     return await run_in_threadpool(operations.put_neutral, services, actor_id, kind, data)
 
 
@@ -74,5 +75,5 @@ async def put_markers(actor_id: str, request: Request, services: ServicesDep) ->
     """Where the markers sit on the neutral, each on a vertex, at barycentric coordinates in a
     triangle, or at a free position snapped to the nearest surface point. The order of the
     markers is the column order of every clip's and request's markers."""
-    _, data = await uploads.read_body(request, (uploads.JSON_TYPE,))
+    _, data = await bodies.read_body(request, (uploads.JSON_TYPE,))
     return await run_in_threadpool(operations.put_markers, services, actor_id, data)

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from service.api import operations
+from service.app import operations
 from service.api.deps import ServicesDep
 from service.api.routes import binary_response, problems
 

@@ -8,7 +8,8 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from models_store import registry
-from service.api import operations, schemas, uploads
+from service.api import bodies
+from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SessionDep
 from service.api.routes import body, problems
 
@@ -36,11 +37,11 @@ async def add_clip(actor_id: str, request: Request, services: ServicesDep,
     """Store a captured clip. Every frame must have the neutral's vertex count (e.g. 422
     "clip frame 12 has 40000 vertices, the neutral has 40962") and the layout's marker
     count; vertices must be finite. Needs the neutral and the marker layout first (409)."""
-    kind = uploads.require_media_type(request, uploads.NPZ_TYPES + (uploads.MULTIPART,))
+    kind = bodies.require_media_type(request, uploads.NPZ_TYPES + (uploads.MULTIPART,))
     if kind == uploads.MULTIPART:
-        data = await uploads.read_clip_form(request)
+        data = await bodies.read_clip_form(request)
     else:
-        _, data = await uploads.read_body(request, uploads.NPZ_TYPES)
+        _, data = await bodies.read_body(request, uploads.NPZ_TYPES)
     return await run_in_threadpool(operations.add_clip, services, actor_id, kind, data, name)
 
 

@@ -7,7 +7,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from service.api.deps import ServicesDep
-from service.api.metrics import CONTENT_TYPE
+from service.app.metrics import CONTENT_TYPE
 
 router = APIRouter(tags=["health"])
 

@@ -13,10 +13,10 @@ from fastapi.responses import StreamingResponse
 
 from models_store import registry
 from models_store.schema import JOB_FINAL_STATUSES
-from service.api import limits, schemas
+from service.app import limits, schemas
 from service.api.deps import ServicesDep, SessionDep
 from service.api.routes import problems
-from service.api.services import Services
+from service.app.services import Services
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

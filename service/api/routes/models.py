@@ -11,7 +11,8 @@ from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from models_store import registry
 from models_store.errors import NotFound
-from service.api import operations, schemas, uploads
+from service.api import bodies
+from service.app import operations, schemas
 from service.api.deps import ServicesDep, SessionDep, SubmitDep
 from service.api.routes import binary_response, problems, set_job_location
 from service.methods.kinds import KINDS, Kind
@@ -46,7 +47,7 @@ _KIND_DOCS = "\n\n".join(
 @router.post(
     "/v1/actors/{actor_id}/models", status_code=status.HTTP_202_ACCEPTED,
     response_model=schemas.ModelAccepted, summary="Train a model (a job)",
-    dependencies=[Depends(uploads.require_json)],
+    dependencies=[Depends(bodies.require_json)],
     responses=problems(400, 404, 409, 415, 422, 503),
     description=("Create a model of the actor from its clips and queue its training. Answers "
                  "202 with `{model_id, job_id}` and `Location: /v1/jobs/{job_id}`; the model "

@@ -8,7 +8,8 @@ from fastapi import APIRouter, Path, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from models_store import registry
-from service.api import operations, schemas, uploads
+from service.api import bodies
+from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SessionDep, SubmitDep
 from service.api.routes import body, problems, set_job_location
 
@@ -34,12 +35,12 @@ async def put_input_rig(actor_id: str, rig: RigName, request: Request, services:
                         submit: SubmitDep, response: Response) -> schemas.RigAccepted:
     """Store (or replace) the input rig ``rig`` and queue its registration to the actor's
     neutral; answers 202 with the job (``Location: /v1/jobs/{job_id}``)."""
-    kind = uploads.require_media_type(request, uploads.MESH_TYPES + (uploads.MULTIPART,))
+    kind = bodies.require_media_type(request, uploads.MESH_TYPES + (uploads.MULTIPART,))
     landmarks = None
     if kind == uploads.MULTIPART:
-        kind, data, landmarks = await uploads.read_rig_form(request)
+        kind, data, landmarks = await bodies.read_rig_form(request)
     else:
-        _, data = await uploads.read_body(request, uploads.MESH_TYPES)
+        _, data = await bodies.read_body(request, uploads.MESH_TYPES)
     accepted = await run_in_threadpool(operations.put_input_rig, services, submit, actor_id, rig,
                                        kind, data, landmarks)
     set_job_location(response, accepted.job_id)

@@ -8,10 +8,12 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from service.api import operations, schemas, uploads
+from service.api import bodies
+from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SubmitDep
 from service.api.routes import binary_response, body, inline_schema, problems, set_job_location
-from service.api.synthesis import (EXR, JOB_INPUT_TYPES, NPZ, OBJ, RESPONSE_TYPES, parse_outputs)
+from service.app.synthesis import EXR, JOB_INPUT_TYPES, NPZ, OBJ, RESPONSE_TYPES, parse_outputs
+from service.methods.outputs import DEFAULT_OUTPUTS
 
 router = APIRouter(prefix="/v1/models/{model_id}", tags=["synthesis"])
 
@@ -40,7 +42,7 @@ _RESPONSES = {
 async def _synthesize(model_id: str, request: Request, services: ServicesDep, outputs: list[str] | None,
                       clamp: bool, half: bool, accept: str | None, route_input: str,
                       rig: str | None = None) -> Response:
-    kind, data = await uploads.read_body(
+    kind, data = await bodies.read_body(
         request, uploads.NPZ_TYPES + ((uploads.JSON_TYPE,) if route_input == "markers" else ()))
     answer = await run_in_threadpool(
         lambda: operations.synthesize(services, request.app.state.synthesizer, model_id, kind,
@@ -118,7 +120,7 @@ async def retime(model_id: str, request: Request, services: ServicesDep,
     the database's dynamics. With K keyframes, keyframe k is output frame
     round(k (length-1)/(K-1)) and each consecutive pair is retimed over its segment. Other
     kinds answer 422; K or `length` above `max_frames_per_request` answer 413."""
-    kind, data = await uploads.read_body(request, uploads.NPZ_TYPES + (uploads.JSON_TYPE,))
+    kind, data = await bodies.read_body(request, uploads.NPZ_TYPES + (uploads.JSON_TYPE,))
     answer = await run_in_threadpool(
         lambda: operations.retime(services, request.app.state.synthesizer, model_id, kind, data,
                                   length=length, extend=extend_to_full_motion, rig=rig))
@@ -149,16 +151,16 @@ async def submit_synthesis_job(
 ) -> schemas.JobAccepted:
     """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and
     `Location`. The job's result is an artifact (`GET /v1/artifacts/{id}`)."""
-    kind = uploads.require_media_type(request, JOB_INPUT_TYPES + (uploads.MULTIPART,))
+    kind = bodies.require_media_type(request, JOB_INPUT_TYPES + (uploads.MULTIPART,))
     filename = None
     if kind == uploads.MULTIPART:
-        filename, data = await uploads.read_file_part(request, "file")
+        filename, data = await bodies.read_file_part(request, "file")
     else:
-        _, data = await uploads.read_body(request, JOB_INPUT_TYPES)
+        _, data = await bodies.read_body(request, JOB_INPUT_TYPES)
     job = await run_in_threadpool(
         lambda: operations.submit_synthesis_job(
             services, submit, model_id, kind, data, filename,
-            outputs=parse_outputs(outputs) or schemas.DEFAULT_OUTPUTS,
+            outputs=parse_outputs(outputs) or DEFAULT_OUTPUTS,
             result_format=result_format, clamp=clamp, rig=rig))
     set_job_location(response, job.id)
     return schemas.JobAccepted(job_id=job.id)

@@ -9,7 +9,7 @@ through ``job.progress`` (where cancellation takes effect) and returns the job's
 
 from __future__ import annotations
 
-from service.jobs.runner import Task
+from service.jobs.running import Task
 from service.jobs.tasks.register import register
 from service.jobs.tasks.synthesize import synthesize
 from service.jobs.tasks.train import train

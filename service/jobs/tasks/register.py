@@ -1,7 +1,7 @@
 """The ``register`` job: register an input rig's neutral to the actor's neutral.
 
 Payload ``{"rig_id", "rig", "landmarks": [[rig_vertex, neutral_vertex], ...]}`` (as
-:func:`service.api.operations.put_input_rig` writes it). Reads the rig's mesh blob and the
+:func:`service.app.operations.put_input_rig` writes it). Reads the rig's mesh blob and the
 actor's neutral, runs :func:`service.methods.shape_space.registration.register_rig` and
 stores its NPZ bytes with :func:`models_store.registry.mark_rig_ready`. Result
 ``{"rig_id"}``.
@@ -19,11 +19,9 @@ from typing import Any
 
 from models_store import registry
 from models_store.errors import NotFound
-from models_store.registry._common import get_row
-from models_store.schema import InputRig
-from service.actor_store import _open_npz
+from service.store.actors import open_npz
 from service.io.mesh import read_npz
-from service.jobs.runner import RunningJob
+from service.jobs.running import RunningJob
 from service.methods.inputs import InvalidInput
 from service.methods.shape_space.registration import register_rig
 
@@ -36,17 +34,17 @@ def register(job: RunningJob) -> dict[str, Any]:
     rig_id = job.payload["rig_id"]
     store = job.store
     with store.sessions() as session:
-        rig = get_row(session, InputRig, "rig", rig_id)
+        rig = registry.get_input_rig_by_id(session, rig_id)
         if rig.status != "registering":
             return {"rig_id": rig_id}          # a retry after the result was stored
         mesh_blob = rig.mesh_blob
     try:
         job.progress(0.0, "loading inputs")
         with store.sessions() as session:
-            rig = get_row(session, InputRig, "rig", rig_id)
+            rig = registry.get_input_rig_by_id(session, rig_id)
             mesh = read_npz(store.blobs.read_bytes(rig.mesh_blob, rig.mesh_sha256))
             try:
-                neutral = _open_npz(registry.read_neutral(session, store.blobs, rig.actor_id),
+                neutral = open_npz(registry.read_neutral(session, store.blobs, rig.actor_id),
                                     "the stored neutral")
             except NotFound as error:
                 if error.kind == "actor":
@@ -67,7 +65,7 @@ def register(job: RunningJob) -> dict[str, Any]:
         _fail(job, rig_id, mesh_blob, "internal", f"{type(error).__name__}: {error}")
         raise
     with store.sessions() as session:
-        rig = get_row(session, InputRig, "rig", rig_id)
+        rig = registry.get_input_rig_by_id(session, rig_id)
         if rig.mesh_blob == mesh_blob and rig.status == "registering":
             registry.mark_rig_ready(session, store.blobs, rig_id, data)
     return {"rig_id": rig_id}
@@ -77,7 +75,7 @@ def _fail(job: RunningJob, rig_id: str, mesh_blob: str, code: str, message: str)
     """Mark the rig failed unless it was deleted, re-uploaded or no longer registering."""
     with job.store.sessions() as session:
         try:
-            rig = get_row(session, InputRig, "rig", rig_id)
+            rig = registry.get_input_rig_by_id(session, rig_id)
         except NotFound:
             return
         if rig.mesh_blob == mesh_blob and rig.status == "registering":

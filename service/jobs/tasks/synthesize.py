@@ -36,17 +36,16 @@ from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from service.io.npz import npz_arrays
 from service.jobs.frame_npz import STATIC_KEYS, FrameNpzWriter
+from service.jobs.formats import RESULT_FORMATS
 from service.jobs.frame_zip import FrameZipWriter
-from service.jobs.runner import RunningJob
+from service.jobs.running import RunningJob
 from service.methods.inputs import InvalidInput
 from service.methods.kinds import get_kind
+from service.methods.outputs import DEFAULT_OUTPUTS
 from service.methods.shape_space.registration import RigRegistration
 
 #: frames synthesized (and progress points passed) per step
 CHUNK_FRAMES = 16
-DEFAULT_OUTPUTS = ("mesh", "displacement")
-#: result format → (media type, file suffix)
-FORMATS = {"npz": ("application/x-npz", "npz"), "obj-exr-zip": ("application/zip", "zip")}
 # the job's progress: loading, then the frames, then storing the artifact
 LOADED, SYNTHESIZED = 0.05, 0.95
 #: per-model (not per-frame) arrays of the outputs, stored once in an NPZ result
@@ -59,8 +58,8 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     payload = job.payload
     model_id = payload["model_id"]
     fmt = payload.get("format", "npz")
-    if fmt not in FORMATS:
-        raise InvalidInput(f"result format {fmt!r} is not supported; choose from {list(FORMATS)}")
+    if fmt not in RESULT_FORMATS:
+        raise InvalidInput(f"result format {fmt!r} is not supported; choose from {list(RESULT_FORMATS)}")
     outputs = tuple(payload.get("outputs") or DEFAULT_OUTPUTS)
     clamp = bool(payload.get("clamp", True))
     store = job.store
@@ -78,7 +77,7 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)
     frames = len(inputs)
-    media_type, suffix = FORMATS[fmt]
+    media_type, suffix = RESULT_FORMATS[fmt]
     with store.blobs.scratch_dir("synthesize") as tmp:  # locked: never swept while in use
         writer = (FrameNpzWriter(Path(tmp), frames, STATIC_OUTPUTS) if fmt == "npz" else
                   FrameZipWriter(Path(tmp) / "result.zip", frames,

@@ -14,8 +14,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from models_store import registry
-from service.actor_store import load_actor_data, load_clips
-from service.jobs.runner import RunningJob
+from service.store.actors import load_actor_data, load_clips
+from service.jobs.running import RunningJob
 from service.methods.inputs import InvalidInput
 from service.methods.kinds import get_kind
 

@@ -31,8 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.errors import InvalidInput
 from service.geometry.curvature_flow import LAMBDA_DT, frequency_separation
-from service.geometry.rigid import MIN_POINTS, rigid_align
+from service.geometry.rigid import MIN_POINTS, rigid_align, stability_weights_from_rms
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
     KB, KS, apply_basis, complete_handles, handle_energy_matrix, thin_shell_basis,
@@ -42,7 +43,7 @@ from service.geometry.thin_shell import (
 MIN_VISIBLE_MARKERS = max(MIN_POINTS, 4)
 
 
-class TooFewMarkers(ValueError):
+class TooFewMarkers(InvalidInput):
     """A frame has too few visible markers to be aligned and deformed.
 
     Attributes: ``frame`` (int), ``visible`` (int), ``required`` (int).
@@ -105,17 +106,12 @@ def head_alignment(markers: np.ndarray, rest: np.ndarray,
 
 
 def stability_weights(aligned: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """Marker weights ``1 / (m_i² + m̄²)`` from RMS offsets m_i (M,) of aligned markers (F,M,3).
-
-    m̄ is the median of the m_i; a marker that never moves gets about 2× the weight of a
-    typical one, and one moving 3× the median about a fifth. Weights are normalized to mean 1.
-    """
+    """Marker weights (M,) from the RMS offsets of aligned markers (F,M,3) from ``rest``
+    (:func:`~service.geometry.rigid.stability_weights_from_rms`; occluded samples skipped)."""
     d = np.asarray(aligned, dtype=np.float64) - rest
     m = np.sqrt(np.nanmean(np.einsum("fmd,fmd->fm", d, d), axis=0))
     m = np.nan_to_num(m, nan=np.nanmax(m) if np.isfinite(m).any() else 1.0)
-    med = max(float(np.median(m)), 1e-9)
-    w = 1.0 / (m ** 2 + med ** 2)
-    return w / w.mean()
+    return stability_weights_from_rms(m)
 
 
 def handle_vertices(F: np.ndarray, triangle: np.ndarray, barycentric: np.ndarray,

@@ -43,25 +43,23 @@ Departures and choices (the paper is silent or differs):
 
 from __future__ import annotations
 
-import dataclasses
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.ndimage import gaussian_filter
 
-from service.geometry.curvature_flow import LAMBDA_DT
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normal_map import NormalMapper
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
-    texel_centers_uv, uv_sampling_matrix,
+    texel_uv, uv_sampling_matrix,
 )
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
-from service.methods.pdm import polynomial
+from service.methods.pdm import polynomial, store
 from service.methods.pdm.base_surface import (
     BaseSurface, HeadPose, TooFewMarkers, handle_vertices, head_alignment, stability_weights,
 )
@@ -69,121 +67,23 @@ from service.methods.pdm.deformation import (
     DeformationAxes, MarkerMesh, ParameterField, barycentric_operator, deformation_axes,
     deformation_vectors, marker_mesh,
 )
-from service.methods.pdm.extrapolation import limit_parameters, training_limit
+from service.methods.pdm.extrapolation import training_limit
+from service.methods.outputs import check_outputs
+from service.methods.pdm.params import PdmParams
+from service.methods.pdm.texel_band import TexelBand
 
-#: outputs of :meth:`PdmModel.synthesize` (API.md)
-OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
 #: threads for per-frame map filtering (NumPy and SciPy release the GIL)
 WORKERS = 2
 
 
-@dataclass(frozen=True)
-class PdmParams:
-    """Training parameters (API.md: ``POST /models`` with ``kind: pdm``).
-
-    order : "linear" | "biquadratic" | "bicubic"   polynomial order (§4.3; eq. 1 is biquadratic)
-    medium_resolution : int      texels per side of the 3D medium-band PDM (§4.2: 512)
-    fine_resolution : int        texels per side of the 1D fine-band PDM (§4.2: 1024)
-    gamma : float                regularization constant γ of §4.2. Its strength depends on
-                                 the units of d1, d2 (mm here, strains scaled by √|N2|): the
-                                 γ rows weigh γ/σ² against data of size σ², so the paper's
-                                 "low values" mean little. Chosen on the sample actor's held-out
-                                 in-range performance (level 1, biquadratic): γ = 1e-3, 30, 100
-                                 gave fine-detail r 0.706, 0.745, 0.745 and medium mean error
-                                 0.197, 0.194, 0.204 mm; at level 0, 30 was best of 1e-3…3000
-    axis_threshold_deg : float   axis-smoothing threshold angle of §4.1
-    extrapolation_margin : float | None   limit (d1, d2) to (1 + this) × the training radius
-                                 (None: no limit; see ``_limits``)
-    fine_highpass_mm : float     σ (on the surface) of the Gaussian whose complement splits
-                                 the fine band off the residual (0: no filter)
-    smoothing_lam_dt : float     curvature-flow step of the smooth neutral, mm²
-    """
-
-    order: str = "biquadratic"
-    medium_resolution: int = 512
-    fine_resolution: int = 1024
-    gamma: float = 30.0
-    axis_threshold_deg: float = 30.0
-    extrapolation_margin: float | None = 0.25
-    fine_highpass_mm: float = 2.0
-    smoothing_lam_dt: float = LAMBDA_DT
-
-    def __post_init__(self):
-        if self.order not in polynomial.ORDERS:
-            raise InvalidInput(f"order must be one of {sorted(polynomial.ORDERS)}, got '{self.order}'")
-        for name in ("medium_resolution", "fine_resolution"):
-            if not 16 <= getattr(self, name) <= 8192:
-                raise InvalidInput(f"{name} must be in [16, 8192], got {getattr(self, name)}")
-        if self.gamma < 0 or self.fine_highpass_mm < 0 or self.smoothing_lam_dt <= 0:
-            raise InvalidInput("gamma and fine_highpass_mm must be >= 0, smoothing_lam_dt > 0")
-        if self.extrapolation_margin is not None and self.extrapolation_margin < 0:
-            raise InvalidInput(f"extrapolation_margin must be >= 0 or None, got {self.extrapolation_margin}")
-
-
-@dataclass
-class TexelBand:
-    """One PDM over the covered texels of an H×H map.
-
-    resolution : int;  index : (P,) flat indices of the covered texels (0 and the vertex
-                       indices for the medium PDM sampled at the vertices)
-    coeffs : (P,C,K) float32   polynomial coefficients (§4.2)
-    field : ParameterField     d1, d2 at the texel centres
-    limit : (4,P) float32      extrapolation limit per texel (:func:`_limits`): the inverse
-                               second moment (i11, i12, i22) of the training (d1, d2) and the
-                               largest training Mahalanobis radius R
-    """
-
-    resolution: int
-    index: np.ndarray
-    coeffs: np.ndarray
-    field: ParameterField | None = None
-    limit: np.ndarray | None = None
-    _terms: np.ndarray | None = dataclasses.field(default=None, repr=False)   # (K,C,P) layout
-
-    def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """d1, d2 (F,P) for S (F,M,5), limited to ``(1 + margin)`` × the training radius
-        (None: unlimited; see :func:`_limits`), and the fraction (F,) of points limited."""
-        d1, d2 = self.field(S)
-        if margin is None:
-            return d1, d2, np.zeros(len(S))
-        d1, d2, over = limit_parameters(d1, d2, self.limit, margin)
-        return d1, d2, np.count_nonzero(over, axis=-1) / max(over.shape[-1], 1)
-
-    def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-        """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
-        if self._terms is None:                       # term-major (K,C,P): contiguous per term
-            self._terms = np.ascontiguousarray(self.coeffs.transpose(2, 1, 0))
-        return np.ascontiguousarray(polynomial.evaluate(self._terms.transpose(2, 1, 0), d1, d2))
-
-    def mask(self) -> np.ndarray:
-        """(H,W) bool: the covered texels."""
-        m = np.zeros(self.resolution ** 2, bool)
-        m[self.index] = True
-        return m.reshape(self.resolution, self.resolution)
-
-    def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
-        """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
-        values = np.asarray(values)
-        lead = values.shape[:-2] if channels else values.shape[:-1]
-        C = values.shape[-1] if channels else 1
-        H = self.resolution
-        out = np.zeros(lead + (H * H, C), np.float32)
-        out[..., self.index, :] = values.reshape(lead + (len(self.index), C))
-        return out.reshape(lead + (H, H) + ((C,) if channels else ()))
-
-
 def _element_field(mesh: MarkerMesh, axes: DeformationAxes, index: np.ndarray,
                    H: int) -> tuple[np.ndarray, ParameterField]:
     """The texels' order grouped by coarse element, and their parameter field in that order."""
-    W = barycentric_operator(mesh, _texel_uv(index, H))
+    W = barycentric_operator(mesh, texel_uv(index, H))
     order = ParameterField.element_order(W)
     return order, ParameterField.build(axes, W[order])
-
-
-def _texel_uv(index: np.ndarray, H: int) -> np.ndarray:
-    return texel_centers_uv(H, H).reshape(-1, 2)[index]
 
 
 def _parameters(pf: ParameterField, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -355,9 +255,7 @@ class PdmModel:
         M = self.n_markers
         if markers.ndim != 3 or markers.shape[1:] != (M, 3):
             raise InvalidInput(f"model expects markers (F,{M},3), got {markers.shape}")
-        unknown = set(outputs) - set(OUTPUTS)
-        if unknown:
-            raise InvalidInput(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+        check_outputs(outputs)
         if "albedo" in outputs and self.albedo is None:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
@@ -420,14 +318,13 @@ class PdmModel:
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
         """Write the model directory (manifest.json, model.npz, *.exr); see :mod:`.store`."""
-        from service.methods.pdm.store import save_model
-        return save_model(self, path)
+        return store.write_model(self, path)
 
     @classmethod
     def load(cls, path) -> "PdmModel":
         """Read a model directory written by :meth:`save`, verifying checksums."""
-        from service.methods.pdm.store import load_model
-        return load_model(path)
+        fields, limits = store.read_model(path)
+        return cls(**fields).prepare(limits)
 
 
 # ---------------------------------------------------------------------- training
@@ -520,7 +417,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     neutral_offset = np.einsum("nij,nj->ni", base.frames(base.smooth), actor.vertices - base.smooth).astype(np.float32)
     _, idx_m, interp_m = _band_raster(actor, Hm)
     # row-major texel order, as load reads the maps back (the vertex band sums in that order)
-    field_m = ParameterField.build(axes, barycentric_operator(mesh, _texel_uv(idx_m, Hm)))
+    field_m = ParameterField.build(axes, barycentric_operator(mesh, texel_uv(idx_m, Hm)))
     # all of the residual, as §4 fits the medium PDM to the scans (fitting it to the low
     # band of the split instead lowered held-out fine-detail r from 0.747 to 0.710)
     f_med = np.empty((T, len(idx_m), 3), np.float32)
@@ -554,7 +451,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     idx_f, interp_f = idx_f[order], interp_f[order]
     sigma = params.fine_highpass_mm / mean_texel_size(actor, Hf)
     split_f = BandFilter.build(Hf, idx_f, sigma)
-    uv_f = _texel_uv(idx_f, Hf)
+    uv_f = texel_uv(idx_f, Hf)
     f_fine = np.empty((T, len(idx_f)), np.float32)
     vert_sq = np.zeros(n)
     for t0 in range(0, T, FRAME_CHUNK):
@@ -613,7 +510,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         "axis_smoothing": {"replaced": int(axes.replaced), "worst_angle_deg": float(axes.worst_angle_deg),
                            "threshold_deg": params.axis_threshold_deg},
         "highpass_sigma_texels": float(sigma),
-        "params": asdict(params),
+        "params": params.model_dump(mode="json"),
     }
     progress(0.95, "prepare")
     model.prepare()

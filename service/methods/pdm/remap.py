@@ -30,7 +30,8 @@ from service.methods.pdm.base_surface import BaseSurface, handle_vertices
 from service.methods.pdm.deformation import (
     DeformationAxes, ParameterField, barycentric_operator, marker_mesh,
 )
-from service.methods.pdm.model import PdmModel, _texel_uv, marker_axes
+from service.geometry.uv_raster import texel_uv
+from service.methods.pdm.model import PdmModel, marker_axes
 
 #: ICP stops when the RMS distance changes by less than this (actor units)
 ICP_TOL = 1e-6
@@ -114,7 +115,7 @@ def remap_model(model: PdmModel, triangle: np.ndarray, barycentric: np.ndarray,
                   metrics={**model.metrics, "remapped_markers": len(triangle)})
     # same texels, same coefficients and limits; only the parameter fields change
     for name, band in model.evaluated_bands().items():
-        points = model.uv if band.resolution == 0 else _texel_uv(band.index, band.resolution)
+        points = model.uv if band.resolution == 0 else texel_uv(band.index, band.resolution)
         setattr(out, "vertex_band" if name == "vertex" else name,
                 replace(band, field=ParameterField.build(axes, barycentric_operator(mesh, points))))
     return out

@@ -27,7 +27,6 @@ last; a load verifies every checksum before it trusts a byte.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +39,8 @@ from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.pdm import polynomial
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
-from service.methods.pdm.model import PdmModel, PdmParams, TexelBand
+from service.methods.pdm.params import PdmParams
+from service.methods.pdm.texel_band import TexelBand
 
 KIND = "pdm"
 FORMAT_VERSION = 1
@@ -51,8 +51,9 @@ COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b
 CACHE = "cache.npz"
 
 
-def save_model(model: PdmModel, path) -> dict:
-    """Write ``model`` into directory ``path`` (created); returns the manifest."""
+def write_model(model, path) -> dict:
+    """Write a :class:`~service.methods.pdm.model.PdmModel` into directory ``path``
+    (created); returns the manifest."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {}
@@ -78,7 +79,7 @@ def save_model(model: PdmModel, path) -> dict:
         cache[f"{name}_limit"] = band.limit
     derived = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
-        "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
+        "kind": KIND, "format_version": FORMAT_VERSION, "params": model.params.model_dump(mode="json"),
         "metrics": model.metrics, "files": files, "derived": derived,
         "size_bytes": sum((path / f).stat().st_size for f in files),
         "derived_bytes": sum((path / f).stat().st_size for f in derived),
@@ -97,7 +98,7 @@ def _write_band(file: Path, band: TexelBand, components) -> str:
     return sha256_file(file)
 
 
-def _write_neutral(file: Path, model: PdmModel) -> str:
+def _write_neutral(file: Path, model) -> str:
     """The per-vertex neutral offset as an x, y, z map at the medium resolution (for renderers:
     the full constant term is ``x.a<K-1> + x``); not read back."""
     H = model.medium.resolution
@@ -107,8 +108,14 @@ def _write_neutral(file: Path, model: PdmModel) -> str:
     return sha256_file(file)
 
 
-def load_model(path) -> PdmModel:
-    """Read a model written by :func:`save_model` (checksums verified first)."""
+def read_model(path) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a model written by :func:`write_model` (checksums verified first).
+
+    Returns
+    -------
+    fields : dict   the :class:`~service.methods.pdm.model.PdmModel` fields it stores
+    limits : dict   the stored extrapolation limits (``PdmModel.prepare``'s argument)
+    """
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION)
     params = PdmParams(**manifest["params"])
@@ -140,7 +147,8 @@ def load_model(path) -> PdmModel:
     base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"],
                                    basis=cache.get("basis"), energy=cache.get("energy"))
     limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}
-    model = PdmModel(params, F, uv, uvf, base, mesh, axes, a["pose_weights"], a["S_train"],
-                     a["neutral_offset"],
-                     bands["medium"], bands["fine"], bands["albedo"], manifest["metrics"])
-    return model.prepare(limits)
+    fields = dict(params=params, faces=F, uv=uv, uv_faces=uvf, base=base, mesh=mesh, axes=axes,
+                  pose_weights=a["pose_weights"], S_train=a["S_train"],
+                  neutral_offset=a["neutral_offset"], medium=bands["medium"],
+                  fine=bands["fine"], albedo=bands["albedo"], metrics=manifest["metrics"])
+    return fields, limits

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.geometry.rigid import RigidTransform, rigid_align_frames
+from service.geometry.rigid import RigidTransform, rigid_align_frames, stability_weights_from_rms
 
 
 def align_frames(frames: np.ndarray, neutral: np.ndarray, weights: np.ndarray | None = None,
@@ -94,10 +94,7 @@ def stability_weights(frames: np.ndarray, neutral: np.ndarray, refinements: int 
         m2 = (p2 + 2 * tp - 2 * np.einsum("nd,nd->n", neutral, Rp)
               + F * np.einsum("nd,nd->n", neutral, neutral)
               - 2 * neutral @ t.sum(axis=0) + np.einsum("fd,fd->", t, t)) / F
-        m = np.sqrt(np.maximum(m2, 0.0))
-        med = max(float(np.median(m)), 1e-9)
-        new = 1.0 / (m ** 2 + med ** 2)
-        new /= new.mean()
+        new = stability_weights_from_rms(np.sqrt(np.maximum(m2, 0.0)))
         if w is not None and np.max(np.abs(new - w) / w) < rtol:
             return new
         w = new

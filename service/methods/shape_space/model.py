@@ -50,7 +50,7 @@ Departures and choices (beyond those of the modules):
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
@@ -82,6 +82,8 @@ from service.methods.shape_space.regions import (
     actor_regions, derive_regions, normalize_region_weights, region_triangle_weights,
     vertex_region_weights,
 )
+from service.methods.outputs import check_outputs
+from service.methods.shape_space import store
 from service.methods.shape_space.simplex_qp import solve_simplex_qp
 from service.methods.shape_space.temporal import retime as retime_sequence
 
@@ -309,9 +311,7 @@ class ShapeSpaceModel:
         ------
         InvalidInput   wrong shapes, unknown outputs, colours asked of a model without them
         """
-        unknown = set(outputs) - set(OUTPUTS)
-        if unknown:
-            raise InvalidInput(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+        check_outputs(outputs, OUTPUTS)
         if "colors" in outputs and self.colors is None:
             raise InvalidInput("this model was trained without colours; 'colors' is not available")
         if "albedo" in outputs and self.albedo_maps is None:
@@ -536,14 +536,12 @@ class ShapeSpaceModel:
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
         """Write the model directory (manifest.json + npz files); see :mod:`.store`."""
-        from service.methods.shape_space.store import save_model
-        return save_model(self, path)
+        return store.write_model(self, path)
 
     @classmethod
     def load(cls, path) -> "ShapeSpaceModel":
         """Read a model directory written by :meth:`save`, verifying checksums."""
-        from service.methods.shape_space.store import load_model
-        return load_model(path)
+        return cls(**store.read_model(path)).prepare()
 
 
 # ---------------------------------------------------------------------- training
@@ -689,7 +687,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             "marker_database": bool(p.marker_correction and actor.n_markers),
             "maps": {k: list(m.shape) for k, m in (("displacement", fine_maps), ("albedo", albedo_maps))
                      if m is not None},
-            "params": asdict(p),
+            "params": p.model_dump(mode="json"),
         },
         fine_maps=fine_maps, albedo_maps=albedo_maps,
     )

@@ -7,13 +7,14 @@ everything else the paper leaves open is a named, validated parameter here, so a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from service.geometry.curvature_flow import LAMBDA_DT
 from service.geometry.deformation_gradient import BOUNDARY_WEIGHT
-from service.methods.inputs import InvalidInput
+from service.methods.params import MethodParams
 
 #: the four voluntary regions of bermano2014 §4.3 (Figure 4), in this order everywhere
 VOLUNTARY_REGIONS = ("mouth_left", "mouth_right", "brow_left", "brow_right")
@@ -39,131 +40,121 @@ WEIGHT_EPS = 1e-9
 REGION_WEIGHT_FLOOR = 1e-12
 
 
-@dataclass(frozen=True)
-class ShapeSpaceParams:
+class ShapeSpaceParams(MethodParams):
     """Parameters of :func:`service.methods.shape_space.model.train` (bermano2014 §4).
 
-    Attributes
-    ----------
-    lam_dt : float                 λdt of the implicit curvature-flow step of the frequency
-                                   separation f(·), actor unit² (§4.2 eq. 1: 125 mm²)
-    smoothing : "rest" | "per_frame"   build the curvature-flow operator once on the neutral
-                                   (the default: one factorization for all frames, the
-                                   approximation §5.5 makes for the reconstruction "in the
-                                   interest of runtime performance") or on every frame (eq. 1
-                                   literally; one factorization per database and input frame,
-                                   which alone costs ~1 s per frame at 45k vertices, twice
-                                   the per-frame budget). On the level-0 sample actor the two
-                                   differ by < 0.004 mm in held-out error (see
-                                   :func:`~service.geometry.curvature_flow.implicit_curvature_flow`)
-    frame_stride : int             keep every k-th frame of the database clips (memory: the
-                                   detail store is frames × triangles × 9 float32)
-    patch_size : int               target vertices per compression patch (§4.2: 100)
-    patch_seed : int               seed of the random patch seeds
-    patch_relax_iterations : int   Lloyd relaxations of the seed-and-grow patches (0: the
-                                   plain random seeds of the paper)
-    regions : "auto" | "actor" | "derived" | "whole"   where the four voluntary regions of
-                                   §4.3 come from: ``actor`` reads ``ActorData.regions``
-                                   (keys :data:`VOLUNTARY_REGIONS`), ``derived`` clusters the
-                                   database motion (:func:`~.regions.derive_regions`),
-                                   ``auto`` takes the actor's when all four are given and
-                                   derives them otherwise, ``whole`` matches the face as one
-                                   region (no region split)
-    region_falloff : float         σ of the Gaussian fall-off of the region weights with
-                                   geodesic distance outside a region, actor unit (§4.3)
-    region_motion_fraction : float  region derivation: vertices whose RMS motion exceeds this
-                                   fraction of the 99th percentile take part in the clustering
-    region_seed : int              seed of the region clustering (k-means initialization)
-    up_axis, left_axis : (3,) float  the actor's up and left directions (region derivation
-                                   names the upper cluster "brow" and splits at the
-                                   mid-plane across ``left_axis``); facesynth's convention is
-                                   y up, x to the actor's left
-    boundary_weight : float        weight of the boundary 1D-Laplacian term of the Poisson
-                                   reconstruction (§5.5: 0.05)
-    restore_low_frequencies : bool  after reconstruction, replace the result's low band by the
-                                   input's: ``x ← x + f(ā) − f(x)`` (departure, see
-                                   :mod:`~service.methods.shape_space.model`; False: the paper)
-    marker_correction : bool       for marker input, match the markers' thin shell against the
-                                   database frames' own shells and correct it by their
-                                   pose-space corrections blended with the matched weights
-                                   before enhancing it (departure, see
-                                   :mod:`~service.methods.shape_space.markers`; False: the
-                                   paper, the shell is matched against the frames and
-                                   enhanced as it is). Stores (N,n,3) float32 and the shells'
-                                   shape vectors and Gram matrices more in the model
-    map_resolution : int           texels per side of the displacement map of
-                                   :meth:`~.model.ShapeSpaceModel.enhance` (the enhanced
-                                   surface's offset from the input, rasterized over the
-                                   neutral's UV layout)
-    sequence_seconds : float       temporal projection (§6.1): database clips longer than this
-                                   (seconds) are cut into windows of this duration with 50 %
-                                   overlap, each one sequence (0: every clip is one sequence).
-                                   The paper's database holds short single-expression
-                                   sequences; a long captured performance (the sample actor's
-                                   630-frame database) would otherwise match a keyframe pair
-                                   with a "subsequence" spanning several expressions
+    Notes
+    -----
+    ``smoothing="rest"`` is the approximation §5.5 makes for the reconstruction "in the
+    interest of runtime performance"; on the level-0 sample actor the two settings differ by
+    < 0.004 mm in held-out error (see
+    :func:`~service.geometry.curvature_flow.implicit_curvature_flow`), while ``per_frame``
+    costs ~1 s per frame at 45k vertices. ``restore_low_frequencies`` and
+    ``marker_correction`` are departures (see :mod:`~service.methods.shape_space.model` and
+    :mod:`~service.methods.shape_space.markers`). ``sequence_seconds`` exists because the
+    paper's database holds short single-expression sequences; a long captured performance
+    (the sample actor's 630-frame database) would otherwise match a keyframe pair with a
+    "subsequence" spanning several expressions.
     """
 
-    lam_dt: float = LAMBDA_DT
-    smoothing: str = "rest"
-    frame_stride: int = 1
-    patch_size: int = 100
-    patch_seed: int = 0
-    patch_relax_iterations: int = 10
-    regions: str = "auto"
-    region_falloff: float = 15.0
-    region_motion_fraction: float = 0.2
-    region_seed: int = 0
-    up_axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    left_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
-    boundary_weight: float = BOUNDARY_WEIGHT
-    restore_low_frequencies: bool = True
-    marker_correction: bool = True
-    sequence_seconds: float = 1.0
-    map_resolution: int = 1024
+    lam_dt: float = Field(
+        default=LAMBDA_DT, gt=0, allow_inf_nan=False, strict=True,
+        description="λdt of the implicit curvature-flow step of the frequency separation "
+                    "(§4.2 eq. 1), actor's unit squared (the paper: 125 mm²).",
+        examples=[LAMBDA_DT])
+    smoothing: Literal[SMOOTHING] = Field(  # type: ignore[valid-type]
+        default="rest",
+        description="Build the curvature-flow operator once on the neutral (rest, the default: "
+                    "one factorization shared by every frame, as §5.5 does for the "
+                    "reconstruction; ~0.4 s per level-1 frame) or on every frame (per_frame, "
+                    "eq. 1 literally: one factorization per frame, ~3x slower).",
+        examples=["rest"])
+    frame_stride: int = Field(
+        default=1, ge=1, strict=True,
+        description="Keep every k-th frame of the database clips (the detail store holds "
+                    "frames × triangles × 9 float32).",
+        examples=[1])
+    patch_size: int = Field(
+        default=100, ge=3, strict=True,
+        description="Target vertices per compression patch (§4.2: 100).", examples=[100])
+    patch_seed: int = Field(
+        default=0, strict=True, description="Seed of the random patch seeds.", examples=[0])
+    patch_relax_iterations: int = Field(
+        default=10, ge=0, strict=True,
+        description="Lloyd relaxations of the seed-and-grow patches (0: the paper's plain "
+                    "random seeds).",
+        examples=[10])
+    regions: Literal[REGION_SOURCES] = Field(  # type: ignore[valid-type]
+        default="auto",
+        description="Where the four voluntary regions of §4.3 come from: actor (the actor's "
+                    "region masks), derived (clustered from the database motion), auto "
+                    "(the actor's when all four are given, else derived), whole (the face "
+                    "matched as one region).",
+        examples=["auto"])
+    region_falloff: float = Field(
+        default=15.0, gt=0, allow_inf_nan=False, strict=True,
+        description="σ of the Gaussian fall-off of the region weights with geodesic "
+                    "distance outside a region, actor's unit (§4.3).",
+        examples=[15.0])
+    region_motion_fraction: float = Field(
+        default=0.2, gt=0, lt=1, strict=True,
+        description="Region derivation: vertices whose RMS motion exceeds this fraction of "
+                    "the 99th percentile take part in the clustering.",
+        examples=[0.2])
+    region_seed: int = Field(
+        default=0, strict=True,
+        description="Seed of the region clustering (k-means initialization).", examples=[0])
+    up_axis: tuple[float, float, float] = Field(
+        default=(0.0, 1.0, 0.0),
+        description="The actor's up direction (region derivation names the upper cluster "
+                    "'brow'); facesynth's convention is y up.",
+        examples=[[0.0, 1.0, 0.0]])
+    left_axis: tuple[float, float, float] = Field(
+        default=(1.0, 0.0, 0.0),
+        description="The actor's left direction (region derivation splits left/right at the "
+                    "mid-plane across it); nearly orthogonal to up_axis.",
+        examples=[[1.0, 0.0, 0.0]])
+    boundary_weight: float = Field(
+        default=BOUNDARY_WEIGHT, ge=0, allow_inf_nan=False, strict=True,
+        description="Weight of the boundary 1D-Laplacian term of the Poisson reconstruction "
+                    "(§5.5: 0.05).",
+        examples=[BOUNDARY_WEIGHT])
+    restore_low_frequencies: bool = Field(
+        default=True, strict=True,
+        description="After reconstruction, replace the result's low band by the input's "
+                    "(a departure that lowers the drift of the Poisson solve; false: the paper).",
+        examples=[True])
+    marker_correction: bool = Field(
+        default=True, strict=True,
+        description="For marker input, match the markers' thin shell against the database "
+                    "frames' own shells and correct it by the database's pose-space "
+                    "corrections (what the shell missed on each database frame, bickel2008 "
+                    "§5) blended with the matched weights, before enhancing it (a departure; "
+                    "false: the paper enhances the shell as it is). The model stores "
+                    "frames x vertices x 3 float32 more.",
+        examples=[True])
+    sequence_seconds: float = Field(
+        default=1.0, ge=0, allow_inf_nan=False, strict=True,
+        description="Temporal projection (§6.1): database clips longer than this are cut "
+                    "into windows of this duration with 50% overlap (0: every clip is one "
+                    "sequence).",
+        examples=[1.0])
+    map_resolution: int = Field(
+        default=1024, ge=8, le=8192, strict=True,
+        description="Texels per side of the displacement map /enhance returns (the enhanced "
+                    "surface's normal offset from the input surface, over the neutral's UVs).",
+        examples=[1024])
 
-    def __post_init__(self):
+    @model_validator(mode="after")
+    def _check_axes(self) -> "ShapeSpaceParams":
+        """The axes are finite, non-zero and (nearly) orthogonal."""
         for name in ("up_axis", "left_axis"):
-            value = getattr(self, name)
-            try:
-                axis = tuple(float(x) for x in value)
-            except (TypeError, ValueError):
-                raise InvalidInput(f"{name} must be three numbers, got {value!r}") from None
-            if len(axis) != 3 or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
-                raise InvalidInput(f"{name} must be a finite non-zero 3-vector, got {value!r}")
-            object.__setattr__(self, name, axis)
+            axis = np.asarray(getattr(self, name))
+            if not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+                raise ValueError(f"{name} must be a finite non-zero 3-vector, got "
+                                 f"{getattr(self, name)}")
         up, left = (np.array(a) / np.linalg.norm(a) for a in (self.up_axis, self.left_axis))
         if abs(float(up @ left)) > 0.1:
-            raise InvalidInput(f"up_axis and left_axis must be (nearly) orthogonal, got "
-                               f"{self.up_axis} and {self.left_axis}")
-        for name in ("lam_dt", "region_falloff", "region_motion_fraction", "boundary_weight",
-                     "sequence_seconds"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                raise InvalidInput(f"{name} must be a number, got {value!r}")
-        if not (self.lam_dt > 0 and np.isfinite(self.lam_dt)):
-            raise InvalidInput(f"lam_dt must be > 0, got {self.lam_dt}")
-        if self.smoothing not in SMOOTHING:
-            raise InvalidInput(f"smoothing must be one of {list(SMOOTHING)}, got {self.smoothing!r}")
-        if self.regions not in REGION_SOURCES:
-            raise InvalidInput(f"regions must be one of {list(REGION_SOURCES)}, got {self.regions!r}")
-        for name, lo in (("frame_stride", 1), ("patch_size", 3), ("patch_relax_iterations", 0),
-                         ("map_resolution", 8)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-                raise InvalidInput(f"{name} must be an integer >= {lo}, got {value!r}")
-        if not (self.sequence_seconds >= 0 and np.isfinite(self.sequence_seconds)):
-            raise InvalidInput(f"sequence_seconds must be >= 0, got {self.sequence_seconds}")
-        for name in ("patch_seed", "region_seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                raise InvalidInput(f"{name} must be an integer, got {getattr(self, name)!r}")
-        if not (self.region_falloff > 0 and np.isfinite(self.region_falloff)):
-            raise InvalidInput(f"region_falloff must be > 0, got {self.region_falloff}")
-        if not 0 < self.region_motion_fraction < 1:
-            raise InvalidInput(f"region_motion_fraction must be in (0, 1), got {self.region_motion_fraction}")
-        for name in ("restore_low_frequencies", "marker_correction"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise InvalidInput(f"{name} must be true or false, got {getattr(self, name)!r}")
-        if not (self.boundary_weight >= 0 and np.isfinite(self.boundary_weight)):
-            raise InvalidInput(f"boundary_weight must be >= 0, got {self.boundary_weight}")
+            raise ValueError(f"up_axis and left_axis must be (nearly) orthogonal, got "
+                             f"{self.up_axis} and {self.left_axis}")
+        return self

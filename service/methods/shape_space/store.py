@@ -26,7 +26,6 @@ a byte.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +35,6 @@ from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.shape_space.maps import DatabaseMaps
 from service.methods.shape_space.markers import MarkerDatabase
-from service.methods.shape_space.model import ShapeSpaceModel
 from service.methods.shape_space.params import ShapeSpaceParams
 
 KIND = "shape_space"
@@ -50,8 +48,9 @@ MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches"
                 "marker_weights", "uv", "uv_faces")
 
 
-def save_model(model: ShapeSpaceModel, path) -> dict:
-    """Write ``model`` into directory ``path`` (created); returns the manifest."""
+def write_model(model, path) -> dict:
+    """Write a :class:`~service.methods.shape_space.model.ShapeSpaceModel` into directory
+    ``path`` (created); returns the manifest."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {
@@ -72,7 +71,7 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
     if maps:
         files["maps.npz"] = write_npz(path / "maps.npz", maps)
     manifest = {
-        "kind": KIND, "format_version": FORMAT_VERSION, "params": asdict(model.params),
+        "kind": KIND, "format_version": FORMAT_VERSION, "params": model.params.model_dump(mode="json"),
         "region_names": list(model.region_names), "clip_names": list(model.clip_names),
         "clip_fps": list(model.clip_fps),
         "metrics": model.metrics, "files": files,
@@ -82,8 +81,9 @@ def save_model(model: ShapeSpaceModel, path) -> dict:
     return manifest
 
 
-def load_model(path) -> ShapeSpaceModel:
-    """Read a model written by :func:`save_model` (checksums verified first)."""
+def read_model(path) -> dict:
+    """The :class:`~service.methods.shape_space.model.ShapeSpaceModel` fields stored by
+    :func:`write_model` in ``path`` (checksums verified first, shapes checked)."""
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"))
     a = npz_arrays(data["model.npz"])
@@ -96,24 +96,24 @@ def load_model(path) -> ShapeSpaceModel:
     m = npz_arrays(data["maps.npz"]) if "maps.npz" in data else {}
     maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]))
             for name, attr in MAP_FIELDS.items() if name in m}
-    model = ShapeSpaceModel(params=ShapeSpaceParams(**manifest["params"]),
-                            detail=detail, colors=colors, marker_database=marker_database,
-                            **maps,
-                            region_names=tuple(manifest["region_names"]),
-                            clip_names=tuple(manifest["clip_names"]),
-                            clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
-                            metrics=manifest["metrics"], **{k: a[k] for k in MODEL_ARRAYS})
-    if detail.shape != (len(model.shapes), len(model.faces), 9):
+    fields = dict(params=ShapeSpaceParams(**manifest["params"]), detail=detail, colors=colors,
+                  marker_database=marker_database, **maps,
+                  region_names=tuple(manifest["region_names"]),
+                  clip_names=tuple(manifest["clip_names"]),
+                  clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
+                  metrics=manifest["metrics"], **{k: a[k] for k in MODEL_ARRAYS})
+    frames, triangles, vertices = len(a["shapes"]), len(a["faces"]), len(a["neutral"])
+    if detail.shape != (frames, triangles, 9):
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
-                           f"({len(model.shapes)},{len(model.faces)},9)")
+                           f"({frames},{triangles},9)")
     for attr, dm in maps.items():
-        if dm.maps.shape[:2] != (len(model.shapes), len(dm.texels)):
+        if dm.maps.shape[:2] != (frames, len(dm.texels)):
             raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.shape} for "
-                               f"{len(model.shapes)} frames and {len(dm.texels)} texels")
+                               f"{frames} frames and {len(dm.texels)} texels")
     md = marker_database
-    if md is not None and (md.corrections.shape != (len(model.shapes), model.n_vertices, 3)
-                           or md.shapes.shape != model.shapes.shape or md.gram.shape != model.gram.shape):
+    if md is not None and (md.corrections.shape != (frames, vertices, 3)
+                           or md.shapes.shape != a["shapes"].shape or md.gram.shape != a["gram"].shape):
         raise ModelCorrupt(f"{path}: markers.npz has shapes {md.shapes.shape}, gram {md.gram.shape}, "
                            f"corrections {md.corrections.shape} for a model of shapes "
-                           f"{model.shapes.shape} and {model.n_vertices} vertices")
-    return model.prepare()
+                           f"{a['shapes'].shape} and {vertices} vertices")
+    return fields

@@ -255,3 +255,68 @@ def retime(key0: np.ndarray, key1: np.ndarray, sequences: Sequence[np.ndarray], 
     progress = np.interp(linear, u_strict, linear)
     progress[0], progress[-1] = 0.0, 1.0
     return Retiming(progress, u * (length - 1), best, (s0, s1), projections[best].error)
+
+
+# ---------------------------------------------------------------------------- keyframe sequences
+def keyframe_indices(keyframes: int, length: int) -> np.ndarray:
+    """Output frame (K,) int64 of each of K keyframes in m = ``length`` frames:
+    ``⌊k (m−1)/(K−1) + ½⌋`` (see :func:`retime_keyframes`)."""
+    k = np.arange(keyframes)
+    return np.floor(k * (length - 1) / (keyframes - 1) + 0.5).astype(np.int64)
+
+
+def retime_keyframes(model, keyframes: np.ndarray, length: int,
+                     extend: bool = False) -> dict[str, np.ndarray]:
+    """Retime K ≥ 2 keyframes into ``length`` frames, segment by segment (bermano2014 §6.2
+    extended from a pair to a sequence of keyframes).
+
+    Keyframe k is placed at output frame ``i_k = ⌊k (m − 1) / (K − 1) + ½⌋`` (i_0 = 0,
+    i_{K−1} = m − 1, strictly increasing for m ≥ K), and each consecutive pair is retimed by
+    the model over its segment of ``i_{k+1} − i_k + 1`` frames; neighbouring segments share
+    their end frame, which is taken from the later segment (its first frame, exactly the
+    keyframe). Two keyframes are one segment: the result is the model's own.
+
+    Parameters
+    ----------
+    model : a model with ``retime(keyframes (2,n,3), length, extend) -> dict`` and ``faces``
+    keyframes : (K,n,3) float   on the model's topology, world pose, actor's unit
+    length : int                m ≥ K, output frames
+    extend : bool               extend each matched subsequence to the full database motion
+
+    Returns
+    -------
+    dict with ``vertices`` (m,n,3) float32 (keyframe k exactly at ``keyframe_indices[k]``);
+    ``timestamps`` (m,) float64, output frame units (segment times offset by the segment's
+    first frame); ``progress`` (m,) float64, keyframe units (k + the segment's blend
+    fraction: 0 … K−1); ``region_progress`` (R,m) likewise per region;
+    ``keyframe_indices`` (K,) int64; per segment ``segment_sequences`` (K−1,R) int64 (the
+    database sequence each region matched) and ``segment_spans`` (K−1,R,2) (the matched
+    span on it); ``region_names`` (R,); ``faces`` (T,3) int32
+    """
+    K = len(keyframes)
+    index = keyframe_indices(K, length)
+    parts: dict[str, list[np.ndarray]] = {"vertices": [], "timestamps": [], "progress": [],
+                                          "region_progress": []}
+    sequences, spans = [], []
+    result: dict[str, np.ndarray] = {}
+    for k in range(K - 1):
+        result = model.retime(keyframes[k:k + 2], int(index[k + 1] - index[k] + 1), extend)
+        # a shared end frame appears once: as the first frame of the next segment
+        keep = slice(None) if k == K - 2 else slice(None, -1)
+        parts["vertices"].append(result["vertices"][keep])
+        parts["timestamps"].append(index[k] + np.asarray(result["timestamps"])[keep])
+        parts["progress"].append(k + np.asarray(result["progress"])[keep])
+        parts["region_progress"].append(k + np.asarray(result["region_progress"])[:, keep])
+        sequences.append(result["region_sequences"])
+        spans.append(result["region_spans"])
+    return {
+        "vertices": np.concatenate(parts["vertices"]).astype(np.float32, copy=False),
+        "timestamps": np.concatenate(parts["timestamps"]),
+        "progress": np.concatenate(parts["progress"]),
+        "region_progress": np.concatenate(parts["region_progress"], axis=1),
+        "keyframe_indices": index,
+        "segment_sequences": np.stack(sequences).astype(np.int64),
+        "segment_spans": np.stack(spans),
+        "region_names": result["region_names"],
+        "faces": np.asarray(model.faces, dtype=np.int32),
+    }

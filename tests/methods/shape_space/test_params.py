@@ -1,7 +1,5 @@
 """Tests for service.methods.shape_space.params: validation of the training parameters."""
 
-import dataclasses
-
 import pytest
 
 from service.methods.inputs import InvalidInput
@@ -11,7 +9,7 @@ from service.methods.shape_space.params import ShapeSpaceParams
 def test_defaults_are_the_papers_numbers():
     p = ShapeSpaceParams()
     assert (p.lam_dt, p.patch_size, p.boundary_weight, p.smoothing) == (125.0, 100, 0.05, "rest")
-    assert ShapeSpaceParams(**dataclasses.asdict(p)) == p
+    assert ShapeSpaceParams(**p.model_dump()) == p
 
 
 def test_axes_from_json_lists_become_tuples():

@@ -1,4 +1,4 @@
-"""service.actor_store: the canonical neutral/layout/clip blobs, their loaders, the sample actor."""
+"""service.store.actors: the canonical neutral/layout/clip blobs, their loaders, the sample actor."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.db import make_session_factory, upgrade
 from models_store.errors import NotFound
-from service import actor_store
+from service.store import actors as actor_store
+from service.samples.uploads import sample_actor_uploads
 from service.methods.inputs import InvalidInput
 from service.samples import dataset
 
@@ -21,7 +22,7 @@ CLIPS = ("train_smile", "train_brow_raise")
 
 @pytest.fixture(scope="module")
 def uploads(pdm_actor_dir):
-    return actor_store.sample_actor_uploads(pdm_actor_dir, CLIPS)
+    return sample_actor_uploads(pdm_actor_dir, CLIPS)
 
 
 @pytest.fixture

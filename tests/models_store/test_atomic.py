@@ -1,4 +1,4 @@
-"""Tests for service.io.atomic: all-or-nothing writes with the usual file mode."""
+"""Tests for models_store.atomic: all-or-nothing writes with the usual file mode."""
 
 import os
 import stat
@@ -6,7 +6,7 @@ import stat
 import numpy as np
 import pytest
 
-from service.io.atomic import atomic_open, sha256_file, write_bytes, write_npz
+from models_store.atomic import atomic_open, sha256_file, write_bytes, write_npz
 
 
 def test_written_files_get_the_mode_open_would_give(tmp_path):

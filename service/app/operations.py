@@ -1,10 +1,10 @@
 """What each write route does, one function per operation, over the process's
-:class:`~service.api.services.Services`: check the state, parse and validate the upload
-(:mod:`service.api.uploads`), store it through :mod:`models_store.registry`, queue jobs.
+:class:`~service.app.services.Services`: check the state, parse and validate the upload
+(:mod:`service.app.uploads`), store it through :mod:`models_store.registry`, queue jobs.
 
 These are plain (blocking) functions; the routers run them in the thread pool. Each opens
 its own database sessions and raises errors by meaning (``NotFound``, ``Conflict``,
-``InvalidInput``, ...), which :mod:`service.api.errors` turns into problem responses.
+``InvalidInput``, ...), which each transport maps once (``service/api/errors.py``, ``service/grpc/server.py``).
 """
 
 from __future__ import annotations
@@ -21,26 +21,24 @@ from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
 from models_store import registry
-from models_store.errors import BlobCorrupt, Conflict, NotFound
 from models_store.ids import new_token
 from models_store.schema import Actor, Job
-from service.api import schemas, uploads
-from service.api.input_rigs import REGISTER_JOB, LoadedRig, load_rig
-from service.api.retiming import (check_retime_kind, parse_retime_request, resolve_keyframes,
-                                  retime_keyframes)
-from service.api.deps import Submit
-from service.api.errors import Overloaded
-from service.api.limits import RETRY_AFTER_SECONDS
-from service.api.services import Services
-from service.api.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
+from service.app import schemas
+from service.app import uploads
+from service.app.input_rigs import REGISTER_JOB, LoadedRig, load_rig
+from service.app.retiming import check_retime_kind, parse_retime_request, resolve_keyframes
+from service.app.limits import RETRY_AFTER_SECONDS
+from service.app.services import Services, Submit
+from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
                                    check_response_request, encode, negotiate, parse_job_input,
                                    parse_synthesis_request)
 from service.io.atomic import sha256_file
 from service.io.exr import read_exr, write_exr
 from service.io.npz import npz_bytes
-from service.jobs.tasks.synthesize import FORMATS as SYNTHESIS_FORMATS
-from service.methods.inputs import InvalidInput
+from service.jobs.formats import RESULT_FORMATS
+from service.errors import BlobCorrupt, Conflict, InvalidInput, NotFound, Unavailable
 from service.methods.kinds import get_kind
+from service.methods.shape_space.temporal import retime_keyframes
 
 log = logging.getLogger("facesynth.api")
 
@@ -59,7 +57,7 @@ def submit(session: Session, submit_job: Submit, job: Job) -> Job:
     except Exception as error:  # noqa: BLE001 - any queue failure
         log.exception("could not submit job %s", job.id)
         registry.request_cancel(session, job.id)
-        raise Overloaded(f"the job queue did not accept job {job.id} ({type(error).__name__}: "
+        raise Unavailable(f"the job queue did not accept job {job.id} ({type(error).__name__}: "
                          f"{error}); it was cancelled, retry later",
                          retry_after=RETRY_AFTER_SECONDS) from error
     return job
@@ -139,7 +137,7 @@ def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.Marke
 # ---------------------------------------------------------------------------- clips
 def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads.ClipForm,
              name: str | None) -> schemas.Clip:
-    """Validate a clip (NPZ bytes or a multipart :class:`~service.api.uploads.ClipForm`)
+    """Validate a clip (NPZ bytes or a multipart :class:`~service.app.uploads.ClipForm`)
     against the actor's neutral and layout, and store it."""
     with services.session() as session:
         actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
@@ -312,9 +310,9 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     ``{"rig_id", "rig", "registration_blob", "registration_sha256"}`` and the job
     propagates the frames with exactly that registration.
     """
-    if result_format not in SYNTHESIS_FORMATS:
+    if result_format not in RESULT_FORMATS:
         raise InvalidInput(f"result format {result_format!r} is not supported by this server "
-                           f"yet; choose from {list(SYNTHESIS_FORMATS)}")
+                           f"yet; choose from {list(RESULT_FORMATS)}")
     with services.session() as session:
         model = registry.get_model(session, model_id)
         if model.status != "ready":
@@ -353,10 +351,10 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
 def retime(services: Services, synthesizer: Synthesizer, model_id: str, kind: str, data: bytes,
            *, length: int | None, extend: bool | None, rig: str | None) -> Synthesized:
     """Retime keyframes with a ready model of a retiming kind (``/retime``): the response
-    NPZ of :func:`service.api.retiming.retime_keyframes` (``vertices`` (m,n,3) float32,
+    NPZ of :func:`service.methods.shape_space.temporal.retime_keyframes` (``vertices`` (m,n,3) float32,
     ``timestamps`` (m,), ``faces``, per-segment diagnostics).
 
-    ``kind`` is the body's media type: JSON (:class:`~service.api.schemas.RetimeBody`) or
+    ``kind`` is the body's media type: JSON (:class:`~service.app.schemas.RetimeBody`) or
     NPZ (``keyframes`` (K,v,3) with ``length``, ``extend``, ``rig`` from the query).
     """
     loaded = services.loaded_model(model_id)

@@ -17,8 +17,8 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.errors import Conflict, NotFound
 from models_store.schema import InputRig
-from service.api.services import Services
-from service.api.synthesis import Expected
+from service.app.services import Services
+from service.app.synthesis import Expected
 from service.methods.shape_space.registration import RigRegistration
 
 #: the job kind that registers an input rig (:mod:`service.jobs.tasks.register`)

@@ -11,22 +11,25 @@ from __future__ import annotations
 import contextlib
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Iterator
+from typing import Any, Callable
 
 from sqlalchemy import Engine, text
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.cache import ByteLRUCache
-from models_store.db import make_engine, make_session_factory, upgrade
-from models_store.errors import Conflict
-from service.api.limits import REGISTRATION_CACHE_BYTES
+from service.app.limits import REGISTRATION_CACHE_BYTES
 from service.config import Settings
 from service.methods.footprint import nbytes
+from service.errors import Conflict
 from service.methods.kinds import Kind, get_kind
+from service.store.container import Store, get_store
 
 log = logging.getLogger("facesynth.api")
+
+#: hands a queued job (by id) to the task queue
+Submit = Callable[[str], None]
 
 
 @dataclass
@@ -49,24 +52,20 @@ class LoadedModel:
 
 @dataclass
 class Services:
-    """The database, blob store and model cache of one process.
+    """The store and model cache of one process.
 
-    Build it with :meth:`open`; :meth:`close` disposes of the engine.
+    Build it with :meth:`open`; :meth:`close` disposes of the engine's connections.
 
     Attributes
     ----------
     settings : Settings
-    engine : Engine
-    sessions : sessionmaker     one session per request (:meth:`session`)
-    blobs : BlobStore
+    store : Store               the process's database + blob container (shared with jobs)
     models : ByteLRUCache      loaded models by id, within ``settings.model_cache_bytes``
     registrations : ByteLRUCache   loaded input-rig registrations by (rig id, sha256)
     """
 
     settings: Settings
-    engine: Engine
-    sessions: sessionmaker[Session]
-    blobs: BlobStore
+    store: Store
     models: ByteLRUCache[LoadedModel] = field(repr=False)
     registrations: ByteLRUCache[Any] = field(
         default_factory=lambda: ByteLRUCache(REGISTRATION_CACHE_BYTES), repr=False)
@@ -78,26 +77,26 @@ class Services:
         """Connect to the database of ``settings`` (running the migrations), open the blob
         store and make an empty model cache."""
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        engine = make_engine(settings.database_url_resolved)
-        upgrade(engine)
-        return cls(settings=settings, engine=engine, sessions=make_session_factory(engine),
-                   blobs=BlobStore(settings.blob_dir),
+        return cls(settings=settings, store=get_store(settings, migrate=True),
                    models=ByteLRUCache(settings.model_cache_bytes))
+
+    @property
+    def engine(self) -> Engine:
+        return self.store.engine
+
+    @property
+    def blobs(self) -> BlobStore:
+        return self.store.blobs
 
     def close(self) -> None:
         """Drop the cached models and the database connections."""
         self.models.clear()
         self.registrations.clear()
-        self.engine.dispose()
+        self.store.dispose()
 
-    @contextlib.contextmanager
-    def session(self) -> Iterator[Session]:
+    def session(self) -> contextlib.AbstractContextManager[Session]:
         """A database session, closed (and any open transaction rolled back) on exit."""
-        session = self.sessions()
-        try:
-            yield session
-        finally:
-            session.close()
+        return self.store.session()
 
     def load_model(self, model_id: str) -> Any:
         """The loaded model ``model_id`` (for the gRPC server: the model object itself)."""

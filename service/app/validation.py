@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.api.limits import DEGENERATE_AREA_RTOL
+from service.app.limits import DEGENERATE_AREA_RTOL
 from service.geometry.laplacian import triangle_areas
 from service.geometry.topology import edge_face_counts
 from service.io.mesh import Mesh
@@ -33,7 +33,7 @@ def check_triangles(V: np.ndarray, F: np.ndarray, what: str = "mesh") -> None:
     ------
     InvalidInput
         - a triangle with a repeated corner or zero area (at most
-          :data:`~service.api.limits.DEGENERATE_AREA_RTOL` times its longest edge squared);
+          :data:`~service.app.limits.DEGENERATE_AREA_RTOL` times its longest edge squared);
         - an edge shared by more than two triangles.
     """
     V = np.asarray(V, dtype=np.float64)

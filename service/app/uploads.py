@@ -1,10 +1,11 @@
-"""Request bodies: media types, the body-size limit, bounded NPZ reading, and the parsing and
-validation of every upload into the canonical forms of :mod:`service.actor_store`.
+"""Uploads: bounded NPZ reading, and the parsing and validation of every upload (bytes of a
+declared media type) into the canonical forms of :mod:`service.store.actors`.
 
-Routers call one function here per upload and get back what to store (canonical bytes and
-the counts to report), or an error by meaning: :class:`UnsupportedMediaType` (415),
-:class:`MalformedBody` (400), :class:`~service.io.errors.SizeLimitError` /
-:class:`PayloadTooLarge` (413), :class:`~service.methods.inputs.InvalidInput` and the
+Operations call one function here per upload and get back what to store (canonical bytes and
+the counts to report), or an error by meaning (:mod:`service.errors`):
+:class:`UnsupportedFormat` (415), :class:`MalformedInput` (400),
+:class:`~service.io.errors.SizeLimitError` / :class:`PayloadTooLarge` (413),
+:class:`InvalidInput` and the
 readers' :class:`~service.io.errors.FormatError` (422), each naming the problem, e.g.
 ``"clip frame 12 has 40000 vertices, the neutral has 40962"``.
 
@@ -32,22 +33,17 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from fastapi import Request
-from starlette.datastructures import UploadFile
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import actor_store
-from service.api.errors import MalformedBody, PayloadTooLarge, UnsupportedMediaType, problem
-from service.api.limits import (FACES_PER_VERTEX, MULTIPART_MAX_FIELD_BYTES, MULTIPART_MAX_FILES,
-                                NPZ_EXPANSION, NPZ_MAX_MEMBERS)
-from service.api.validation import check_finite_frames, check_triangles, check_uv_tile
+from service.store import actors as actor_store
+from service.app.limits import (FACES_PER_VERTEX, NPZ_EXPANSION, NPZ_MAX_MEMBERS)
+from service.app.validation import check_finite_frames, check_triangles, check_uv_tile
 from service.config import Settings
 from service.geometry.closest_point import resolve_marker_layout, surface_points
 from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
 from service.io.npz import ZIP_ERRORS, npy_header, npz_arrays
-from service.methods.inputs import InvalidInput
+from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
 OBJ_TYPES = ("model/obj", "text/plain")
@@ -61,44 +57,10 @@ _SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 # ---------------------------------------------------------------------------- bodies
-def media_type(request: Request) -> str:
-    """The request's media type, lower case, without parameters ("" if none)."""
-    return request.headers.get("content-type", "").split(";")[0].strip().lower()
-
-
 def is_safe_name(name: str) -> bool:
     """Whether ``name`` can be a file-name component (letters, digits, ``._-``, no leading
     dot): what path names of maps and rigs must be."""
     return _SAFE_NAME.fullmatch(name) is not None and ".." not in name
-
-
-def require_media_type(request: Request, allowed: Sequence[str]) -> str:
-    """The request's media type if it is one of ``allowed``, else 415 naming them."""
-    kind = media_type(request)
-    if kind not in allowed:
-        given = f"Content-Type '{kind}'" if kind else "a request without Content-Type"
-        raise UnsupportedMediaType(f"{given} is not accepted here; send one of: "
-                                   f"{', '.join(allowed)}")
-    return kind
-
-
-async def read_body(request: Request, allowed: Sequence[str]) -> tuple[str, bytes]:
-    """The media type (one of ``allowed``) and the whole, non-empty body.
-
-    The size limit is enforced while the body streams in (:class:`BodyLimitMiddleware`).
-    """
-    kind = require_media_type(request, allowed)
-    data = await request.body()
-    if not data:
-        raise MalformedBody(f"the request body is empty; send a {kind} body")
-    return kind, data
-
-
-async def read_form(request: Request) -> Any:
-    """The multipart form of the request (files spooled to disk by Starlette; the body limit
-    applies as it streams in; a broken stream is a 400)."""
-    return await request.form(max_files=MULTIPART_MAX_FILES, max_fields=64,
-                              max_part_size=MULTIPART_MAX_FIELD_BYTES)
 
 
 def parse_json(data: bytes) -> Any:
@@ -106,54 +68,7 @@ def parse_json(data: bytes) -> Any:
     try:
         return json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
-        raise MalformedBody(f"the body is not valid JSON: {error}") from None
-
-
-def require_json(request: Request) -> None:
-    """Dependency of routes whose body is a JSON model: any other media type is a 415
-    (FastAPI alone would answer a 422 'field required')."""
-    if request.headers.get("content-length", "0") != "0" or "transfer-encoding" in request.headers:
-        require_media_type(request, (JSON_TYPE,))
-
-
-class BodyLimitMiddleware:
-    """Refuses request bodies over ``limit`` bytes with a 413 naming the limit: at once when
-    ``Content-Length`` declares more, else as soon as the streamed body passes it (before
-    it has all been read)."""
-
-    def __init__(self, app: ASGIApp, limit: int):
-        self.app = app
-        self.limit = limit
-
-    def _error(self, size: str) -> PayloadTooLarge:
-        return PayloadTooLarge(f"the request body is {size}, more than the limit of "
-                               f"{self.limit} bytes (max_body_bytes); send large work as a job "
-                               "or split it")
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        declared = dict(scope.get("headers", ())).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            from starlette.requests import Request as StarletteRequest
-
-            error = self._error(f"{int(declared)} bytes")
-            response = problem(StarletteRequest(scope), 413, error.detail)
-            await response(scope, receive, send)
-            return
-        received = 0
-
-        async def counting_receive() -> Message:
-            nonlocal received
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.limit:
-                    raise self._error(f"over {received} bytes")
-            return message
-
-        await self.app(scope, counting_receive, send)
+        raise MalformedInput(f"the body is not valid JSON: {error}") from None
 
 
 # ---------------------------------------------------------------------------- NPZ
@@ -362,7 +277,7 @@ def parse_mesh(kind: str, data: bytes, settings: Settings, what: str,
 
 
 def parse_neutral(kind: str, data: bytes, settings: Settings) -> tuple[MeshUpload, bytes]:
-    """The neutral upload and its canonical blob (:func:`service.actor_store.neutral_npz`);
+    """The neutral upload and its canonical blob (:func:`service.store.actors.neutral_npz`);
     the neutral needs UVs in the unit tile."""
     upload = parse_mesh(kind, data, settings, "neutral", regions=True)
     mesh = upload.mesh
@@ -393,7 +308,7 @@ class LayoutUpload:
 
     Attributes
     ----------
-    blob : bytes             canonical layout (:func:`service.actor_store.layout_json`)
+    blob : bytes             canonical layout (:func:`service.store.actors.layout_json`)
     marker_count : int
     snapped : int            markers given as free positions and snapped to the surface
     max_snap_distance : float   the farthest of those snaps, actor's unit (0 if none)
@@ -520,27 +435,6 @@ class ClipForm:
     fps: float | None
 
 
-async def read_clip_form(request: Request) -> ClipForm:
-    """Read a multipart clip: parts ``frames`` (one ``.obj`` file per frame, in order),
-    ``markers`` (a ``.c3d``, ``.trc``, ``.csv`` or ``.json`` file), optional ``fps``."""
-    form = await read_form(request)
-    frames = [part for part in form.getlist("frames") if isinstance(part, UploadFile)]
-    markers = form.get("markers")
-    if not frames:
-        raise InvalidInput("a multipart clip needs one or more 'frames' parts (.obj files, one "
-                           "per frame, in order)")
-    if not isinstance(markers, UploadFile):
-        raise InvalidInput("a multipart clip needs a 'markers' file part (.c3d, .trc, .csv "
-                           "or .json)")
-    fps = form.get("fps")
-    try:
-        fps_value = None if fps in (None, "") else float(fps)
-    except (TypeError, ValueError):
-        raise InvalidInput(f"'fps' must be a number, got {str(fps)[:40]!r}") from None
-    return ClipForm([(f.filename or f"frame {k}", await f.read()) for k, f in enumerate(frames)],
-                    (markers.filename or "", await markers.read()), fps_value)
-
-
 def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
                     names: Sequence[str]) -> ClipUpload:
     """A multipart clip (per-frame OBJ files and a marker file) checked against the actor."""
@@ -583,34 +477,3 @@ def parse_landmarks(text: str | None, rig_vertices: int, neutral_vertices: int) 
     return pairs
 
 
-async def read_rig_form(request: Request) -> tuple[str, bytes, str | None]:
-    """A multipart input rig: a ``mesh`` file part (``.npz`` or ``.obj``, by its filename or
-    its part's Content-Type) and an optional ``landmarks`` JSON field.
-
-    Returns
-    -------
-    (media type, mesh bytes, landmarks text or None)
-    """
-    form = await read_form(request)
-    mesh = form.get("mesh")
-    if not isinstance(mesh, UploadFile):
-        raise InvalidInput("a multipart input rig needs a 'mesh' file part (.npz or .obj)")
-    suffix = (mesh.filename or "").rsplit(".", 1)[-1].lower()
-    part_type = (mesh.content_type or "").split(";")[0].strip().lower()
-    kind = {"npz": NPZ_TYPES[0], "obj": OBJ_TYPES[0]}.get(suffix, part_type)
-    if kind not in MESH_TYPES:
-        raise UnsupportedMediaType(f"the 'mesh' part '{mesh.filename}' is neither .npz nor "
-                                   f".obj (Content-Type '{part_type}')")
-    landmarks = form.get("landmarks")
-    if isinstance(landmarks, UploadFile):
-        landmarks = (await landmarks.read()).decode("utf-8", "replace")
-    return kind, await mesh.read(), landmarks
-
-
-async def read_file_part(request: Request, name: str) -> tuple[str, bytes]:
-    """The filename and content of the file part ``name`` of a multipart body."""
-    form = await read_form(request)
-    part = form.get(name)
-    if not isinstance(part, UploadFile):
-        raise InvalidInput(f"the multipart body needs a file part '{name}'")
-    return part.filename or "", await part.read()

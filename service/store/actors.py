@@ -21,7 +21,7 @@ clip (NPZ)
 The clip's ``displacement`` is the fine detail along the normal **relative to the clip's
 own** ``vertices`` (a scan delivered as mesh + displacement map, :class:`Clip`'s meaning),
 so the loader passes it through. The sample actor's files hold it relative to their medium
-surface instead; :func:`sample_actor_uploads` converts them with
+surface instead; :func:`service.samples.uploads.sample_actor_uploads` converts them with
 :func:`service.samples.dataset.load_clip`, the one place that conversion lives.
 
 Writers validate what they are given and raise :class:`InvalidInput` naming the problem;
@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -57,7 +56,7 @@ LAYOUT_MEDIA_TYPE = "application/json"
 
 
 # ---------------------------------------------------------------------------- helpers
-def _open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
+def open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
     """The arrays of an NPZ blob (no pickles), or InvalidInput."""
     try:
         return npz_arrays(data)
@@ -209,7 +208,7 @@ def clip_npz(vertices: np.ndarray, markers: np.ndarray, *, displacement: np.ndar
 # ---------------------------------------------------------------------------- readers
 def actor_from_blobs(neutral: bytes, layout: bytes) -> ActorData:
     """:class:`ActorData` from a canonical neutral and marker-layout blob."""
-    arrays = _open_npz(neutral, "the stored neutral")
+    arrays = open_npz(neutral, "the stored neutral")
     missing = {"vertices", "faces", "uv", "uv_faces"} - set(arrays)
     if missing:
         raise InvalidInput(f"the stored neutral lacks {sorted(missing)}")
@@ -232,7 +231,7 @@ def actor_from_blobs(neutral: bytes, layout: bytes) -> ActorData:
 def clip_from_blob(data: bytes, name: str) -> Clip:
     """A :class:`Clip` called ``name`` from a canonical clip blob (vertices and markers
     in float64, maps in float32)."""
-    arrays = _open_npz(data, f"clip '{name}'")
+    arrays = open_npz(data, f"clip '{name}'")
     missing = {"vertices", "markers"} - set(arrays)
     if missing:
         raise InvalidInput(f"clip '{name}' lacks {sorted(missing)}")
@@ -282,34 +281,3 @@ def load_clips(session: Session, blobs: BlobStore, clip_ids: Sequence[str],
         clips.append(clip_from_blob(data, row.name or row.id))
     check_clips(actor, clips)
     return clips
-
-
-# ---------------------------------------------------------------------------- sample actor
-def sample_actor_uploads(actor_dir: str | Path, names: Sequence[str] | None = None
-                         ) -> tuple[bytes, bytes, dict[str, bytes]]:
-    """A built sample actor directory (``facesynth sample-actor``) as canonical uploads.
-
-    Parameters
-    ----------
-    actor_dir : the sample actor's directory
-    names : performance names to include (default: every performance)
-
-    Returns
-    -------
-    neutral : bytes               :func:`neutral_npz` with the sample actor's regions
-    layout : bytes                :func:`layout_json`
-    clips : {name: bytes}         :func:`clip_npz` per performance, the displacement made
-                                  relative to the clip's vertices (maps only where every
-                                  frame has them, as :func:`~service.samples.dataset.load_clip`)
-    """
-    from service.samples import dataset
-
-    actor = dataset.load_actor(actor_dir)
-    neutral = neutral_npz(actor.vertices, actor.faces, actor.uv, actor.uv_faces, actor.regions)
-    layout = layout_json(actor.marker_names, actor.marker_triangle, actor.marker_barycentric)
-    clips = {}
-    for name in (dataset.performance_names(actor_dir) if names is None else names):
-        clip = dataset.load_clip(actor_dir, name, actor)
-        clips[name] = clip_npz(clip.vertices, clip.markers, displacement=clip.displacement,
-                               albedo=clip.albedo, fps=clip.fps)
-    return neutral, layout, clips

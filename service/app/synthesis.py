@@ -17,18 +17,19 @@ from typing import Iterator, Sequence
 
 import numpy as np
 from pydantic import ValidationError
-from scipy.ndimage import zoom
 
-from service.api.errors import NotAcceptable, Overloaded, PayloadTooLarge, Unprocessable
-from service.api.limits import MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS
-from service.api.metrics import Metrics
-from service.api.schemas import DEFAULT_OUTPUTS, MAP_OUTPUTS, OUTPUTS, SynthesizeBody
-from service.api.services import LoadedModel
-from service.api.uploads import (JSON_TYPE, MARKER_FILE_TYPES, NPZ_TYPES, ArraySpec, NpzUpload,
+from service.errors import NotAcceptable, PayloadTooLarge, Unavailable, invalid_fields
+from service.app.limits import MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS
+from service.app.metrics import Metrics
+from service.app.schemas import SynthesizeBody
+from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
+from service.app.services import LoadedModel
+from service.app.uploads import (JSON_TYPE, MARKER_FILE_TYPES, NPZ_TYPES, ArraySpec, NpzUpload,
                                  npz_limit, markers_in_layout_order,
                                  parse_json, read_marker_file)
-from service.api.validation import check_finite_frames
+from service.app.validation import check_finite_frames
 from service.config import Settings
+from service.geometry.uv_raster import resample_map
 from service.io.exr import write_map
 from service.io.markers import read_markers_json
 from service.io.mesh import Mesh, write_obj
@@ -50,7 +51,7 @@ class SynthesisInput:
     Attributes
     ----------
     frames : (F,N,3) float64      markers (N = M, NaN occluded) or vertices (N = V)
-    outputs : tuple of str        a subset of :data:`~service.api.schemas.OUTPUTS`
+    outputs : tuple of str        a subset of :data:`~service.methods.outputs.OUTPUTS`
     map_resolution : int or None  resample maps to this side (None: the model's)
     clamp : bool                  limit extrapolation beyond the training data
     fps : float or None           frame rate of the input, when it has one
@@ -71,10 +72,7 @@ def parse_outputs(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
     names = [part.strip() for item in items for part in item.split(",") if part.strip()]
     if not names:
         return None
-    unknown = [n for n in names if n not in OUTPUTS]
-    if unknown:
-        raise InvalidInput(f"unknown outputs {unknown}; choose from {list(OUTPUTS)}")
-    return tuple(dict.fromkeys(names))
+    return check_outputs(names)
 
 
 @dataclass(frozen=True)
@@ -162,7 +160,7 @@ def parse_synthesis_request(kind: str, data: bytes, expected: Expected, settings
     """A synchronous request's frames and options (``kind`` is the body's media type).
 
     NPZ: the frames under ``markers`` (or ``vertices`` for a mesh-driven model). JSON
-    (marker-driven models): :class:`~service.api.schemas.SynthesizeBody`. The frame count
+    (marker-driven models): :class:`~service.app.schemas.SynthesizeBody`. The frame count
     is checked against ``max_frames_per_request`` before the arrays are read.
     """
     key = expected.key
@@ -189,7 +187,7 @@ def parse_synthesis_request(kind: str, data: bytes, expected: Expected, settings
         try:
             request = SynthesizeBody.model_validate(body)
         except ValidationError as error:
-            raise Unprocessable.from_validation(error) from None
+            raise invalid_fields(error) from None
         check_frames(len(request.markers), settings, expected.model_id)
         frames, fps = _json_markers(request.markers), None
         outputs = tuple(dict.fromkeys(request.outputs)) if request.outputs else outputs
@@ -219,7 +217,7 @@ class Synthesizer:
         """Hold one synthesis slot while the block runs (503 with ``Retry-After`` if none is
         free) and record ``frames`` output frames of a ``kind`` model and the time taken."""
         if not self._slots.acquire(blocking=False):
-            raise Overloaded("every synthesis slot is busy; retry shortly, or submit a "
+            raise Unavailable("every synthesis slot is busy; retry shortly, or submit a "
                              "synthesis job", retry_after=RETRY_AFTER_SECONDS)
         try:
             start = time.perf_counter()
@@ -240,24 +238,15 @@ class Synthesizer:
 
 
 def resample_maps(result: dict[str, np.ndarray], side: int) -> dict[str, np.ndarray]:
-    """The maps of ``result`` bilinearly resampled to ``side``² texels.
-
-    Texel centres are kept aligned (``grid_mode``: texel c of W covers u = (c+0.5)/W at every
-    resolution); normal maps are renormalized to unit length.
-    """
+    """The maps of ``result`` resampled to ``side``² texels
+    (:func:`~service.geometry.uv_raster.resample_map`; normal maps kept unit length)."""
     out = dict(result)
     for name in MAP_OUTPUTS:
         maps = result.get(name)
         if maps is not None and maps.ndim < 3:
             raise InvalidInput(_per_vertex(name, maps, "map_resolution does not apply"))
-        if maps is None or maps.shape[1] == side:
-            continue
-        factor = (1.0, side / maps.shape[1], side / maps.shape[2]) + (1.0,) * (maps.ndim - 3)
-        resized = zoom(maps, factor, order=1, mode="nearest",
-                       grid_mode=True).astype(np.float32)
-        if name == "normal_map":
-            resized /= np.maximum(np.linalg.norm(resized, axis=-1, keepdims=True), 1e-12)
-        out[name] = resized
+        if maps is not None and maps.shape[1] != side:
+            out[name] = resample_map(maps, side, unit=name == "normal_map")
     return out
 
 

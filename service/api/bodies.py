@@ -1,0 +1,150 @@
+"""Reading request bodies: media types, the whole body, multipart forms (clips, rigs, files),
+and the body-size limit enforced while a body streams in (the parsing of what was read is
+:mod:`service.app.uploads`)."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+from fastapi import Request
+from starlette.datastructures import UploadFile
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api.errors import BodyTooLarge, problem
+from service.app.limits import MULTIPART_MAX_FIELD_BYTES, MULTIPART_MAX_FILES
+from service.app.uploads import JSON_TYPE, MESH_TYPES, NPZ_TYPES, OBJ_TYPES, ClipForm
+from service.errors import InvalidInput, MalformedInput, UnsupportedFormat
+
+
+def media_type(request: Request) -> str:
+    """The request's media type, lower case, without parameters ("" if none)."""
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+def require_media_type(request: Request, allowed: Sequence[str]) -> str:
+    """The request's media type if it is one of ``allowed``, else 415 naming them."""
+    kind = media_type(request)
+    if kind not in allowed:
+        given = f"Content-Type '{kind}'" if kind else "a request without Content-Type"
+        raise UnsupportedFormat(f"{given} is not accepted here; send one of: "
+                                   f"{', '.join(allowed)}")
+    return kind
+
+
+async def read_body(request: Request, allowed: Sequence[str]) -> tuple[str, bytes]:
+    """The media type (one of ``allowed``) and the whole, non-empty body.
+
+    The size limit is enforced while the body streams in (:class:`BodyLimitMiddleware`).
+    """
+    kind = require_media_type(request, allowed)
+    data = await request.body()
+    if not data:
+        raise MalformedInput(f"the request body is empty; send a {kind} body")
+    return kind, data
+
+
+async def read_form(request: Request) -> Any:
+    """The multipart form of the request (files spooled to disk by Starlette; the body limit
+    applies as it streams in; a broken stream is a 400)."""
+    return await request.form(max_files=MULTIPART_MAX_FILES, max_fields=64,
+                              max_part_size=MULTIPART_MAX_FIELD_BYTES)
+
+
+def require_json(request: Request) -> None:
+    """Dependency of routes whose body is a JSON model: any other media type is a 415
+    (FastAPI alone would answer a 422 'field required')."""
+    if request.headers.get("content-length", "0") != "0" or "transfer-encoding" in request.headers:
+        require_media_type(request, (JSON_TYPE,))
+
+
+class BodyLimitMiddleware:
+    """Refuses request bodies over ``limit`` bytes with a 413 naming the limit: at once when
+    ``Content-Length`` declares more, else as soon as the streamed body passes it (before
+    it has all been read)."""
+
+    def __init__(self, app: ASGIApp, limit: int):
+        self.app = app
+        self.limit = limit
+
+    def _error(self, size: str) -> BodyTooLarge:
+        return BodyTooLarge(f"the request body is {size}, more than the limit of "
+                               f"{self.limit} bytes (max_body_bytes); send large work as a job "
+                               "or split it")
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers", ())).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.limit:
+            from starlette.requests import Request as StarletteRequest
+
+            error = self._error(f"{int(declared)} bytes")
+            response = problem(StarletteRequest(scope), 413, error.detail)
+            await response(scope, receive, send)
+            return
+        received = 0
+
+        async def counting_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.limit:
+                    raise self._error(f"over {received} bytes")
+            return message
+
+        await self.app(scope, counting_receive, send)
+
+
+# ---------------------------------------------------------------------------- multipart
+async def read_clip_form(request: Request) -> ClipForm:
+    """Read a multipart clip: parts ``frames`` (one ``.obj`` file per frame, in order),
+    ``markers`` (a ``.c3d``, ``.trc``, ``.csv`` or ``.json`` file), optional ``fps``."""
+    form = await read_form(request)
+    frames = [part for part in form.getlist("frames") if isinstance(part, UploadFile)]
+    markers = form.get("markers")
+    if not frames:
+        raise InvalidInput("a multipart clip needs one or more 'frames' parts (.obj files, one "
+                           "per frame, in order)")
+    if not isinstance(markers, UploadFile):
+        raise InvalidInput("a multipart clip needs a 'markers' file part (.c3d, .trc, .csv "
+                           "or .json)")
+    fps = form.get("fps")
+    try:
+        fps_value = None if fps in (None, "") else float(fps)
+    except (TypeError, ValueError):
+        raise InvalidInput(f"'fps' must be a number, got {str(fps)[:40]!r}") from None
+    return ClipForm([(f.filename or f"frame {k}", await f.read()) for k, f in enumerate(frames)],
+                    (markers.filename or "", await markers.read()), fps_value)
+
+async def read_rig_form(request: Request) -> tuple[str, bytes, str | None]:
+    """A multipart input rig: a ``mesh`` file part (``.npz`` or ``.obj``, by its filename or
+    its part's Content-Type) and an optional ``landmarks`` JSON field.
+
+    Returns
+    -------
+    (media type, mesh bytes, landmarks text or None)
+    """
+    form = await read_form(request)
+    mesh = form.get("mesh")
+    if not isinstance(mesh, UploadFile):
+        raise InvalidInput("a multipart input rig needs a 'mesh' file part (.npz or .obj)")
+    suffix = (mesh.filename or "").rsplit(".", 1)[-1].lower()
+    part_type = (mesh.content_type or "").split(";")[0].strip().lower()
+    kind = {"npz": NPZ_TYPES[0], "obj": OBJ_TYPES[0]}.get(suffix, part_type)
+    if kind not in MESH_TYPES:
+        raise UnsupportedFormat(f"the 'mesh' part '{mesh.filename}' is neither .npz nor "
+                                   f".obj (Content-Type '{part_type}')")
+    landmarks = form.get("landmarks")
+    if isinstance(landmarks, UploadFile):
+        landmarks = (await landmarks.read()).decode("utf-8", "replace")
+    return kind, await mesh.read(), landmarks
+
+async def read_file_part(request: Request, name: str) -> tuple[str, bytes]:
+    """The filename and content of the file part ``name`` of a multipart body."""
+    form = await read_form(request)
+    part = form.get(name)
+    if not isinstance(part, UploadFile):
+        raise InvalidInput(f"the multipart body needs a file part '{name}'")
+    return part.filename or "", await part.read()

@@ -1,0 +1,56 @@
+"""The base of every method's training parameters: one pydantic model per method.
+
+A method declares its parameters once, as a subclass of :class:`MethodParams` with bounds,
+defaults and descriptions in ``Field(...)``. The library, the model registry
+(:mod:`service.methods.kinds`), job payloads, stored manifests and OpenAPI all use that one
+class, so a bound cannot exist in one copy and not in another.
+
+Two ways in, one set of rules:
+
+* ``Params(**values)`` (library code) raises :class:`~service.errors.InvalidInput`
+  (with per-field ``errors``) whose message names the field, what was expected
+  and what was given;
+* ``Params.model_validate(mapping)`` (the API, through ``Kind.parse_params``) raises
+  pydantic's ``ValidationError`` with per-field ``errors`` for the 422 body.
+
+Numeric and boolean fields are declared ``strict`` where a string or a bool must not pass
+for a number (``"125"`` is not 125, ``1`` is not ``true``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from service.errors import InvalidInput, field_errors
+
+
+def describe(error: dict[str, Any]) -> str:
+    """One readable line for a pydantic error: ``"order must be one of [...], got 'x'"``."""
+    where = ".".join(str(part) for part in error.get("loc", ())) or "parameters"
+    given = error.get("input")
+    if error.get("type") == "literal_error":
+        expected = error.get("ctx", {}).get("expected", "")
+        return f"{where} must be one of {expected}, got {given!r}"
+    if error.get("type") == "extra_forbidden":
+        return f"{where} is not a parameter of this method"
+    return f"{where}: {error.get('msg', 'invalid')}, got {given!r}"
+
+
+class MethodParams(BaseModel):
+    """Frozen, hashable parameters that refuse unknown names."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    def __init__(self, **values: Any):
+        try:
+            super().__init__(**values)
+        except ValidationError as error:
+            errors = error.errors(include_url=False)
+            raise InvalidInput("; ".join(describe(e) for e in errors),
+                               field_errors(errors)) from None
+
+    # pydantic calls a custom __init__ from model_validate too; marked as the base one, it is
+    # used for construction only, so model_validate keeps raising ValidationError per field
+    __init__.__pydantic_base_init__ = True  # type: ignore[attr-defined]

@@ -1,0 +1,65 @@
+"""Training parameters of a PDM (ma2008 §4), declared once for the library, the API and
+OpenAPI (:class:`~service.methods.params.MethodParams`)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from service.geometry.curvature_flow import LAMBDA_DT
+from service.methods.params import MethodParams
+
+
+class PdmParams(MethodParams):
+    """Training parameters of a ``pdm`` model (API.md: ``POST /models`` with ``kind: pdm``).
+
+    Notes
+    -----
+    ``gamma``'s strength depends on the units of d1, d2 (mm here, strains scaled by √|N2|):
+    the γ rows weigh γ/σ² against data of size σ², so the paper's "low values" mean little.
+    Chosen on the sample actor's held-out in-range performance (level 1, biquadratic):
+    γ = 1e-3, 30, 100 gave fine-detail r 0.706, 0.745, 0.745 and medium mean error 0.197,
+    0.194, 0.204 mm; at level 0, 30 was best of 1e-3…3000.
+    """
+
+    order: Literal["linear", "biquadratic", "bicubic"] = Field(
+        default="biquadratic",
+        description="Polynomial order of the displacement maps in (d1, d2): linear (3 "
+                    "coefficients per channel), biquadratic (6, the paper's eq. 1) or bicubic (10).",
+        examples=["biquadratic"])
+    medium_resolution: int = Field(
+        default=512, ge=16, le=8192, strict=True,
+        description="Texels per side of the 3D medium-band PDM (the paper uses 512).",
+        examples=[512])
+    fine_resolution: int = Field(
+        default=1024, ge=16, le=8192, strict=True,
+        description="Texels per side of the 1D fine-band PDM and of the synthesized "
+                    "displacement/normal maps (the paper uses 1024).",
+        examples=[1024])
+    gamma: float = Field(
+        default=30.0, ge=0, allow_inf_nan=False,
+        description="Regularization constant γ of the per-texel least-squares fit (§4.2); "
+                    "larger values pull the coefficients towards zero.",
+        examples=[30.0])
+    axis_threshold_deg: float = Field(
+        default=30.0, ge=0, le=90,
+        description="Axis-smoothing threshold angle of §4.1, in degrees.",
+        examples=[30.0])
+    extrapolation_margin: float | None = Field(
+        default=0.25, ge=0,
+        description="Limit the deformation parameters of each texel to (1 + margin) times "
+                    "the largest radius seen in training, so expressions beyond the training "
+                    "data keep the most extreme trained detail instead of growing "
+                    "polynomially; null disables the limit.",
+        examples=[0.25, None])
+    fine_highpass_mm: float = Field(
+        default=2.0, ge=0, allow_inf_nan=False,
+        description="σ on the surface, in the actor's unit, of the Gaussian whose complement "
+                    "splits the fine band off the medium residual (0: no filter).",
+        examples=[2.0])
+    smoothing_lam_dt: float = Field(
+        default=LAMBDA_DT, gt=0, allow_inf_nan=False,
+        description="Curvature-flow step (actor's unit squared) that makes the smooth "
+                    "neutral underlying the base surface.",
+        examples=[LAMBDA_DT])

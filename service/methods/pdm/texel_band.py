@@ -1,0 +1,64 @@
+"""One polynomial displacement map over the covered texels of an H×H map (ma2008 §4.2)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.methods.pdm import polynomial
+from service.methods.pdm.deformation import ParameterField
+from service.methods.pdm.extrapolation import limit_parameters
+
+
+@dataclass
+class TexelBand:
+    """One PDM over the covered texels of an H×H map.
+
+    resolution : int;  index : (P,) flat indices of the covered texels (0 and the vertex
+                       indices for the medium PDM sampled at the vertices)
+    coeffs : (P,C,K) float32   polynomial coefficients (§4.2)
+    field : ParameterField     d1, d2 at the texel centres
+    limit : (4,P) float32      extrapolation limit per texel (:func:`service.methods.pdm.model._limits`): the inverse
+                               second moment (i11, i12, i22) of the training (d1, d2) and the
+                               largest training Mahalanobis radius R
+    """
+
+    resolution: int
+    index: np.ndarray
+    coeffs: np.ndarray
+    field: ParameterField | None = None
+    limit: np.ndarray | None = None
+    _terms: np.ndarray | None = dataclasses.field(default=None, repr=False)   # (K,C,P) layout
+
+    def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """d1, d2 (F,P) for S (F,M,5), limited to ``(1 + margin)`` × the training radius
+        (None: unlimited; see :func:`service.methods.pdm.model._limits`), and the fraction (F,) of points limited."""
+        d1, d2 = self.field(S)
+        if margin is None:
+            return d1, d2, np.zeros(len(S))
+        d1, d2, over = limit_parameters(d1, d2, self.limit, margin)
+        return d1, d2, np.count_nonzero(over, axis=-1) / max(over.shape[-1], 1)
+
+    def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
+        if self._terms is None:                       # term-major (K,C,P): contiguous per term
+            self._terms = np.ascontiguousarray(self.coeffs.transpose(2, 1, 0))
+        return np.ascontiguousarray(polynomial.evaluate(self._terms.transpose(2, 1, 0), d1, d2))
+
+    def mask(self) -> np.ndarray:
+        """(H,W) bool: the covered texels."""
+        m = np.zeros(self.resolution ** 2, bool)
+        m[self.index] = True
+        return m.reshape(self.resolution, self.resolution)
+
+    def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
+        """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
+        values = np.asarray(values)
+        lead = values.shape[:-2] if channels else values.shape[:-1]
+        C = values.shape[-1] if channels else 1
+        H = self.resolution
+        out = np.zeros(lead + (H * H, C), np.float32)
+        out[..., self.index, :] = values.reshape(lead + (len(self.index), C))
+        return out.reshape(lead + (H, H) + ((C,) if channels else ()))
