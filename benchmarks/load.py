@@ -49,14 +49,6 @@ SLOW_EVERY = 5.0
 NPZ = {"Content-Type": "application/x-npz"}
 
 
-def actor_store():
-    try:
-        from service.app import actor_store as module  # the restructured layout
-    except ImportError:
-        from service import actor_store as module
-    return module
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -103,7 +95,9 @@ def prepare(work: Path, base: str) -> tuple[str, np.ndarray]:
             model_id = model_file.read_text().strip()
             if client.get(f"/v1/models/{model_id}").status_code == 200:
                 return model_id, markers
-        neutral, layout, clips = actor_store().sample_actor_uploads(actor_dir, CLIPS)
+        from service.samples.uploads import sample_actor_uploads
+
+        neutral, layout, clips = sample_actor_uploads(actor_dir, CLIPS)
         import json
 
         canonical = json.loads(layout)

@@ -26,7 +26,7 @@ import pytest
 
 from models_store import registry
 from models_store.fsck import fsck
-from service import actor_store
+from service.samples.uploads import sample_actor_uploads
 from service.io.npz import npz_arrays, npz_bytes
 from tests.e2e.conftest import LEASE_SECONDS, Deployment, running_deployment
 from tests.servers import postgres_server, redis_server  # noqa: F401
@@ -130,7 +130,7 @@ def markers_of(actor_dir: Path, repeat: int = 1) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- tests
 def test_setup_actor_and_an_uninterrupted_model(deployment, actor_dir, state):
-    neutral, layout, clips = actor_store.sample_actor_uploads(actor_dir, CLIPS)
+    neutral, layout, clips = sample_actor_uploads(actor_dir, CLIPS)
     canonical = json.loads(layout)
     body = {"markers": [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
                         zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]}
