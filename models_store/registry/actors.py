@@ -10,27 +10,29 @@ from sqlalchemy.orm import Session
 from models_store.blobs import BlobStore
 from models_store.errors import Conflict, NotFound
 from models_store.ids import new_id, new_token, validate_tenant
-from models_store.registry._common import (Data, actor_prefix, commit, get_row, in_tenant,
-                                           model_prefix, put_blob, refetch)
+from models_store.registry._common import (TENANT_OWNER, Data, actor_prefix, commit, get_row,
+                                           in_tenant, model_prefix, put_blob, refetch, scoped)
 from models_store.registry.jobs import cancel_active_jobs
-from models_store.schema import DEFAULT_TENANT, Actor, Clip, InputRig, Job, Model, utcnow
+from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
 
 #: compare-and-swap attempts of one replacement before giving up with a Conflict
 MAX_SWAP_ROUNDS = 100
 
 
 def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None = None, *,
-                 tenant: str = DEFAULT_TENANT) -> Actor:
+                 tenant: str | None = None) -> Actor:
     """Create an actor.
 
     Parameters
     ----------
     name : str              display name (1-200 characters)
     metadata : mapping      free-form JSON-serializable metadata
-    tenant : str            the tenant it belongs to (:func:`models_store.ids.validate_tenant`)
+    tenant : str            the tenant it belongs to (:func:`models_store.ids.validate_tenant`;
+                            default: the current request's, :data:`._common.TENANT_OWNER`)
     """
     if not name or len(name) > 200:
         raise ValueError(f"actor name must have 1 to 200 characters, got {len(name or '')}")
+    tenant = TENANT_OWNER.get() if tenant is None else tenant
     actor = Actor(id=new_id("actor"), tenant=validate_tenant(tenant), name=name,
                   meta=dict(metadata or {}), created_at=utcnow())
     session.add(actor)
@@ -46,6 +48,7 @@ def get_actor(session: Session, actor_id: str, *, tenant: str | None = None) -> 
 def list_actors(session: Session, *, tenant: str | None = None) -> list[Actor]:
     """All actors (of ``tenant``, if named), oldest first."""
     query = select(Actor).order_by(Actor.created_at, Actor.id)
+    tenant = scoped(tenant)
     if tenant is not None:
         query = query.where(Actor.tenant == tenant)
     return list(session.scalars(query))

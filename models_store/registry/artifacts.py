@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from models_store.ids import new_id
-from models_store.registry._common import Data, commit, get_row, put_blob
+from models_store.registry._common import Data, commit, get_row, put_blob, scoped
 from models_store.registry.jobs import get_job
 from models_store.schema import Artifact, Job, utcnow
 
@@ -32,6 +32,7 @@ def add_artifact(session: Session, blobs: BlobStore, job_id: str, data: Data, *,
 def get_artifact(session: Session, artifact_id: str, *, tenant: str | None = None) -> Artifact:
     """The artifact ``artifact_id`` (of a job of ``tenant``, if named)."""
     artifact = get_row(session, Artifact, "artifact", artifact_id)
+    tenant = scoped(tenant)
     if tenant is not None and session.scalar(select(Job.tenant)
                                              .where(Job.id == artifact.job_id)) != tenant:
         raise NotFound("artifact", artifact_id)

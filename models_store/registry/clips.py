@@ -8,7 +8,8 @@ from sqlalchemy.orm import Session
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from models_store.ids import new_id
-from models_store.registry._common import Data, actor_prefix, commit, get_row, owned, put_blob
+from models_store.registry._common import (Data, actor_prefix, commit, get_row, owned, put_blob,
+                                           scoped)
 from models_store.registry.actors import get_actor
 from models_store.schema import Actor, Clip, utcnow
 
@@ -32,6 +33,7 @@ def get_clip(session: Session, clip_id: str, actor_id: str | None = None, *,
              tenant: str | None = None) -> Clip:
     """The clip ``clip_id`` (of ``actor_id``, if given; of an actor of ``tenant``, if named)."""
     clip = owned(get_row(session, Clip, "clip", clip_id), "clip", actor_id)
+    tenant = scoped(tenant)
     if tenant is not None and session.scalar(select(Actor.tenant)
                                              .where(Actor.id == clip.actor_id)) != tenant:
         raise NotFound("clip", clip_id)

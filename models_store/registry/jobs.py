@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from models_store.errors import Conflict, NotFound
 from models_store.ids import is_valid_id, new_id
 from models_store.registry._common import (check_error, commit, fail_training_model, get_row,
-                                           error_record, in_tenant, owned, refetch)
+                                           error_record, in_tenant, owned, refetch, scoped)
 from models_store.schema import DEFAULT_TENANT, JOB_FINAL_STATUSES, Actor, Job, Model, utcnow
 
 #: how often :func:`claim_job` retries when another claimer wins the candidate it picked
@@ -55,6 +55,7 @@ def list_jobs(session: Session, *, status: str | None = None, actor_id: str | No
               tenant: str | None = None) -> list[Job]:
     """Jobs, oldest first, filtered by any of status, actor, kind, model and tenant."""
     query = select(Job).order_by(Job.created_at, Job.id)
+    tenant = scoped(tenant)
     for column, value in ((Job.status, status), (Job.actor_id, actor_id), (Job.kind, kind),
                           (Job.model_id, model_id), (Job.tenant, tenant)):
         if value is not None:

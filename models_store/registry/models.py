@@ -12,7 +12,7 @@ from models_store.blobs import BlobStore
 from models_store.errors import Conflict
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (commit, fail_training_model, get_row, error_record,
-                                           in_tenant, model_prefix, owned, refetch)
+                                           in_tenant, model_prefix, owned, refetch, scoped)
 from models_store.registry.actors import get_actor
 from models_store.registry.clips import get_clip
 from models_store.registry.jobs import cancel_active_jobs, new_job
@@ -57,6 +57,7 @@ def list_models(session: Session, actor_id: str | None = None,
                 status: str | None = None, *, tenant: str | None = None) -> list[Model]:
     """Models, oldest first, optionally of one actor (NotFound if unknown), status or tenant."""
     query = select(Model).order_by(Model.created_at, Model.id)
+    tenant = scoped(tenant)
     if tenant is not None:
         query = query.where(Model.tenant == tenant)
     if actor_id is not None:

@@ -610,3 +610,22 @@ def test_malformed_tenants_are_refused(session):
     for bad in ("", "../x", "a b", "x" * 65):
         with pytest.raises(ValueError, match="tenant"):
             reg.create_actor(session, "Ada", tenant=bad)
+
+
+def test_acting_for_scopes_every_call_without_arguments(session, blobs):
+    with reg.acting_for("studio-a", "studio-a"):
+        a = reg.create_actor(session, "Ada")
+        job = reg.create_job(session, "synthesize", a.id)
+    with reg.acting_for("studio-b", "studio-b"):
+        b = reg.create_actor(session, "Bob")
+        assert [x.id for x in reg.list_actors(session)] == [b.id]
+        assert reg.list_jobs(session) == []
+        for call in (lambda: reg.get_actor(session, a.id), lambda: reg.get_job(session, job.id),
+                     lambda: reg.list_clips(session, a.id)):
+            with pytest.raises(NotFound):
+                call()
+    with reg.acting_for("ops", None):                     # an admin
+        assert {x.id for x in reg.list_actors(session)} == {a.id, b.id}
+        assert reg.create_actor(session, "Op").tenant == "ops"
+    assert (a.tenant, b.tenant, job.tenant) == ("studio-a", "studio-b", "studio-a")
+    assert len(reg.list_actors(session)) == 3            # no scope outside a request
