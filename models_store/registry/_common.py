@@ -110,6 +110,27 @@ def refetch(session: Session, row_type: type[Row], row_id: str) -> Row:
     return row
 
 
+def storable(value: Any, what: str) -> Any:
+    """``value`` if every string in it (dict keys included) is encodable as UTF-8 and free of
+    NUL characters, else ValueError: a row holding one could be committed but never read
+    back through the API (callers validate user input first; this is the last guard)."""
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(f"{what} holds a lone surrogate; refused before writing") from None
+        if "\x00" in value:
+            raise ValueError(f"{what} holds a NUL character; refused before writing")
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            storable(str(key), what)
+            storable(item, what)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            storable(item, what)
+    return value
+
+
 def error_record(code: str, message: str) -> dict[str, str]:
     """A job or model error, ``{code, message}``."""
     return {"code": code, "message": message}

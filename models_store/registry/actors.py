@@ -11,7 +11,8 @@ from models_store.blobs import BlobStore
 from models_store.errors import Conflict, NotFound
 from models_store.ids import new_id, new_token, validate_tenant
 from models_store.registry._common import (TENANT_OWNER, Data, actor_prefix, commit, get_row,
-                                           in_tenant, model_prefix, put_blob, refetch, scoped)
+                                           in_tenant, model_prefix, put_blob, refetch, scoped,
+                                           storable)
 from models_store.registry.jobs import cancel_active_jobs
 from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
 
@@ -33,8 +34,9 @@ def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None
     if not name or len(name) > 200:
         raise ValueError(f"actor name must have 1 to 200 characters, got {len(name or '')}")
     tenant = TENANT_OWNER.get() if tenant is None else tenant
-    actor = Actor(id=new_id("actor"), tenant=validate_tenant(tenant), name=name,
-                  meta=dict(metadata or {}), created_at=utcnow())
+    actor = Actor(id=new_id("actor"), tenant=validate_tenant(tenant),
+                  name=storable(name, "the actor name"),
+                  meta=storable(dict(metadata or {}), "the actor metadata"), created_at=utcnow())
     session.add(actor)
     commit(session)
     return actor

@@ -9,7 +9,7 @@ from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from models_store.ids import new_id
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, owned, put_blob,
-                                           scoped)
+                                           scoped, storable)
 from models_store.registry.actors import get_actor
 from models_store.schema import Actor, Clip, utcnow
 
@@ -20,6 +20,7 @@ def add_clip(session: Session, blobs: BlobStore, actor_id: str, data: Data, *, f
     if frames < 1:
         raise ValueError(f"a clip has at least one frame, got {frames}")
     get_actor(session, actor_id, tenant=tenant)
+    storable(name, "the clip name")
     clip_id = new_id("clip")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/clips/{clip_id}", data)
     clip = Clip(id=clip_id, actor_id=actor_id, name=name, frames=frames, blob=info.key,

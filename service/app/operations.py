@@ -28,6 +28,7 @@ from service.app import uploads
 from service.app.input_rigs import REGISTER_JOB, LoadedRig, load_rig
 from service.app.retiming import check_retime_kind, parse_retime_request, resolve_keyframes
 from service.app.limits import RETRY_AFTER_SECONDS
+from service.app.validation import check_text
 from service.app.services import Services, Submit
 from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
                                    check_response_request, encode, negotiate, parse_job_input,
@@ -139,6 +140,8 @@ def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads
              name: str | None) -> schemas.Clip:
     """Validate a clip (NPZ bytes or a multipart :class:`~service.app.uploads.ClipForm`)
     against the actor's neutral and layout, and store it."""
+    if name is not None:
+        check_text(name, "the clip name")
     with services.session() as session:
         actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
         names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor_id))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.api.conftest import NPZ, assert_problem, grid, layout_body, npz
 
@@ -198,3 +199,19 @@ def test_delete_actor_with_models_needs_cascade(client, grid_actor, submitted):
 def test_actor_metadata_is_bounded(client):
     assert_problem(client.post("/v1/actors", json={"name": "A", "metadata": {"x": "y" * 70000}}),
                    422, "metadata")
+
+
+# -- poison strings never reach the database (issue 16, defect 1) ----------------------------
+@pytest.mark.parametrize("body", [
+    '{"name": "p", "metadata": {"k": "\\udfff"}}',             # a lone surrogate as a value
+    '{"name": "p", "metadata": {"\\ud800": 1}}',               # ... as a key
+    '{"name": "p", "metadata": {"a": [{"b": "x\\udc00y"}]}}',  # ... nested
+    '{"name": "p\\udfff"}',                                    # ... in the name
+    '{"name": "p", "metadata": {"k": "a\\u0000b"}}',           # a NUL character
+])
+def test_unencodable_strings_are_refused_before_anything_is_written(client, body):
+    response = client.post("/v1/actors", content=body.encode(),
+                           headers={"Content-Type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert client.get("/v1/actors").status_code == 200
+    assert client.get("/v1/actors").json()["items"] == []

@@ -128,3 +128,11 @@ def test_clip_multipart_marker_file_must_cover_the_layout(client, grid_actor):
                    "lacks 1 of the layout's 3 markers: M2")
     files = [("frames", ("a.obj", _obj(grid()[0]), "model/obj"))]
     assert_problem(client.post(f"/v1/actors/{grid_actor}/clips", files=files), 422, "'markers'")
+
+
+def test_a_clip_name_with_a_nul_is_refused_before_anything_is_stored(client, grid_actor):
+    """issue 16, defects 1 and 7: ``?name=a%00b`` used to reach PostgreSQL and fail there."""
+    actor_id = grid_actor
+    response = client.post(f"/v1/actors/{actor_id}/clips?name=a%00b", content=b"x", headers=NPZ)
+    assert_problem(response, 422, "NUL")
+    assert client.get(f"/v1/actors/{actor_id}/clips").json()["items"] == []

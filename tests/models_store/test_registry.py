@@ -629,3 +629,15 @@ def test_acting_for_scopes_every_call_without_arguments(session, blobs):
         assert reg.create_actor(session, "Op").tenant == "ops"
     assert (a.tenant, b.tenant, job.tenant) == ("studio-a", "studio-b", "studio-a")
     assert len(reg.list_actors(session)) == 3            # no scope outside a request
+
+
+@pytest.mark.parametrize("name, metadata", [("ok", {"k": "\udfff"}), ("ok", {"\ud800": 1}),
+                                            ("p\udfff", {}), ("ok", {"k": ["a\x00"]})])
+def test_unencodable_strings_are_never_committed(session, blobs, name, metadata):
+    with pytest.raises(ValueError, match="refused before writing"):
+        reg.create_actor(session, name, metadata)
+    assert reg.list_actors(session) == []
+    actor = reg.create_actor(session, "fine")
+    with pytest.raises(ValueError, match="refused before writing"):
+        reg.add_clip(session, blobs, actor.id, b"clip", frames=1, name="a\x00b")
+    assert reg.list_clips(session, actor.id) == [] and list(blobs.root.rglob("*")) == []
