@@ -17,6 +17,7 @@ from fastapi.openapi.utils import get_openapi
 
 from service.api import errors
 from service.api.auth import check_bearer
+from service.api.edge import UrlGuardMiddleware
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
@@ -89,6 +90,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app.state.synthesizer = Synthesizer(app.state.metrics)
     errors.install(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
+    app.add_middleware(UrlGuardMiddleware)
     app.add_middleware(RequestContextMiddleware, metrics=app.state.metrics)
     app.include_router(health.router, dependencies=[Depends(check_unless_public)])
     for module in (actors, clips, rigs, models, synthesis, jobs, artifacts):
