@@ -341,7 +341,10 @@ class BlobStore:
                 probe.unlink(missing_ok=True)
         except OSError as error:
             writable = False
-            reason = f"the blob store is not writable ({os.strerror(error.errno or errno.EIO)})"
+            text = os.strerror(error.errno or errno.EIO)
+            reason = (f"the blob store is full ({text})"
+                      if error.errno in (errno.ENOSPC, errno.EDQUOT) else
+                      f"the blob store is not writable ({text})")
         try:
             stat = os.statvfs(self.root)
             free, total = stat.f_bavail * stat.f_frsize, stat.f_blocks * stat.f_frsize
