@@ -132,7 +132,8 @@ def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.Marke
         registry.set_markers(session, services.blobs, actor_id, layout.blob,
                              marker_count=layout.marker_count)
     return schemas.MarkersInfo(marker_count=layout.marker_count, snapped=layout.snapped,
-                               max_snap_distance=layout.max_snap_distance)
+                               max_snap_distance=layout.max_snap_distance,
+                               renormalized=layout.renormalized)
 
 
 # ---------------------------------------------------------------------------- clips

@@ -135,6 +135,10 @@ class MarkersInfo(BaseModel):
     marker_count: int
     snapped: int = Field(description="Markers given as positions, snapped to the surface.")
     max_snap_distance: float = Field(description="Farthest snap, in the actor's unit.")
+    renormalized: int = Field(0, description=(
+        "Markers whose barycentric coordinates were within 1e-4 of summing to 1 (or of 0) but "
+        "not exactly, and were clipped at 0 and renormalized (e.g. a layout written with 6 "
+        "decimals)."))
 
 
 # ---------------------------------------------------------------------------- clips

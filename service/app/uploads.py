@@ -318,6 +318,7 @@ class LayoutUpload:
     marker_count: int
     snapped: int
     max_snap_distance: float
+    renormalized: int = 0
 
 
 def parse_layout(data: bytes, neutral: bytes) -> LayoutUpload:
@@ -335,8 +336,11 @@ def parse_layout(data: bytes, neutral: bytes) -> LayoutUpload:
     if free.any():
         snapped = surface_points(V, F, triangle[free], barycentric[free])
         distance = float(np.linalg.norm(snapped - layout.position[free], axis=1).max())
+    given = np.asarray(layout.kinds) == "triangle"
+    renormalized = int((given & ~np.all(barycentric == np.asarray(
+        layout.barycentric, np.float64).reshape(-1, 3), axis=1)).sum())
     blob = actor_store.layout_json(layout.names, triangle, barycentric)
-    return LayoutUpload(blob, len(layout.names), int(free.sum()), distance)
+    return LayoutUpload(blob, len(layout.names), int(free.sum()), distance, renormalized)
 
 
 def layout_names(layout: bytes) -> list[str]:

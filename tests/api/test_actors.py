@@ -215,3 +215,27 @@ def test_unencodable_strings_are_refused_before_anything_is_written(client, body
     assert response.status_code == 422, response.text
     assert client.get("/v1/actors").status_code == 200
     assert client.get("/v1/actors").json()["items"] == []
+
+
+# -- barycentrics written with 6 decimals (issue 16, defect 14) ------------------------------
+def _triangle_layout(barycentrics) -> bytes:
+    import json
+
+    return json.dumps({"markers": [{"name": f"M{k}", "triangle": k, "barycentric": list(b)}
+                                   for k, b in enumerate(barycentrics)]}).encode()
+
+
+def test_barycentrics_off_by_rounding_are_renormalized_and_reported(client, actor_id):
+    V, F, uv = grid()
+    assert client.put(f"/v1/actors/{actor_id}/neutral", content=npz(vertices=V, faces=F, uv=uv),
+                      headers=NPZ).status_code == 200
+    exported = [(0.2, 0.3, 0.499999), (0.333333, 0.333333, 0.333333), (0.5, 0.5, 0.0),
+                (1.00005, 0.0, 0.0), (-0.000001, 0.5, 0.500001)]
+    response = client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(exported),
+                          headers={"Content-Type": "application/json"})
+    assert response.status_code == 200, response.text
+    info = response.json()
+    assert (info["marker_count"], info["renormalized"]) == (5, 4)   # (0.5, 0.5, 0) was exact
+    off = [(0.2, 0.3, 0.4998)]                                       # 2e-4: a real error
+    assert_problem(client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(off),
+                              headers={"Content-Type": "application/json"}), 422, "M0")
