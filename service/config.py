@@ -95,6 +95,18 @@ class Settings(BaseSettings):
         default=64, ge=1,
         description="Most frames a synchronous synthesis request may carry (413 above; larger "
                     "work goes to a synthesis job).")
+    max_concurrent_syntheses: int | None = Field(
+        default=None, ge=1,
+        description="Synchronous syntheses (and enhancements) run at once; None: one per CPU "
+                    "core of the machine.")
+    synthesis_queue_seconds: float = Field(
+        default=30.0, ge=0,
+        description="How long a synchronous synthesis waits for a free slot before it is "
+                    "answered 503 with Retry-After.")
+    synthesis_queue_depth: int = Field(
+        default=64, ge=0,
+        description="Most synchronous syntheses waiting for a slot at once; more are "
+                    "answered 503 at once. /metrics: facesynth_synthesis_queue_depth.")
     max_map_resolution: int = Field(default=4096, ge=1,
                                     description="Largest UV-space map side, in texels.")
     max_vertices: int = Field(default=2_000_000, ge=1,

@@ -87,7 +87,9 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app = FastAPI(title="facesynth", version=API_VERSION, description=DESCRIPTION,
                   openapi_tags=TAGS, lifespan=lifespan, **docs)
     app.state.metrics = Metrics()
-    app.state.synthesizer = Synthesizer(app.state.metrics)
+    app.state.synthesizer = Synthesizer(app.state.metrics, settings.max_concurrent_syntheses,
+                                        settings.synthesis_queue_seconds,
+                                        settings.synthesis_queue_depth)
     errors.install(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(UrlGuardMiddleware)
