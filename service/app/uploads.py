@@ -12,7 +12,7 @@ readers' :class:`~service.io.errors.FormatError` (422), each naming the problem,
 Accepted media types:
 
 - NPZ: ``application/x-npz`` (``application/zip`` too: an NPZ is a zip archive);
-- OBJ: ``model/obj`` or ``text/plain``;
+- OBJ: ``model/obj`` (``text/plain`` is a 415: any text would otherwise be parsed as OBJ);
 - JSON: ``application/json``;
 - marker files: ``application/x-c3d`` (.c3d), ``text/x-trc`` (.trc), ``text/csv`` (.csv);
 - ``multipart/form-data`` where a route says so (files named by their part's filename).
@@ -46,7 +46,7 @@ from service.io.npz import ZIP_ERRORS, npy_header, npz_arrays
 from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
-OBJ_TYPES = ("model/obj", "text/plain")
+OBJ_TYPES = ("model/obj",)
 JSON_TYPE = "application/json"
 MULTIPART = "multipart/form-data"
 #: media type of a marker file → the reader's suffix

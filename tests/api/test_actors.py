@@ -239,3 +239,9 @@ def test_barycentrics_off_by_rounding_are_renormalized_and_reported(client, acto
     off = [(0.2, 0.3, 0.4998)]                                       # 2e-4: a real error
     assert_problem(client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(off),
                               headers={"Content-Type": "application/json"}), 422, "M0")
+
+
+def test_a_text_plain_neutral_is_415_not_422(client, actor_id):
+    """issue 16, defect 9: text/plain was parsed as OBJ and answered 422."""
+    assert_problem(client.put(f"/v1/actors/{actor_id}/neutral", content=b"v 0 0 0\n",
+                              headers={"Content-Type": "text/plain"}), 415, "model/obj")
