@@ -209,8 +209,8 @@ def npz_limit(settings: Settings) -> int:
 
 # ---------------------------------------------------------------------------- meshes
 MESH_SPECS = {
-    "vertices": ArraySpec(("V", 3), "fiu"), "faces": ArraySpec(("T", 3), "iu"),
-    "uv": ArraySpec(("K", 2), "fiu", False), "uv_faces": ArraySpec(("T", 3), "iu", False),
+    "vertices": ArraySpec(("V", 3), "f"), "faces": ArraySpec(("T", 3), "iu"),
+    "uv": ArraySpec(("K", 2), "f", False), "uv_faces": ArraySpec(("T", 3), "iu", False),
     "quad_split": ArraySpec(("T",), "iu", False),
 }
 REGION_SPEC = ArraySpec(("V",), "biu", False)
@@ -379,7 +379,7 @@ def read_marker_file(data: bytes, suffix: str, names: Sequence[str]) -> tuple[np
 
 # ---------------------------------------------------------------------------- clips
 CLIP_SPECS = {
-    "vertices": ArraySpec(("F", "V", 3), "fiu"), "markers": ArraySpec(("F", "M", 3), "fiu"),
+    "vertices": ArraySpec(("F", "V", 3), "f"), "markers": ArraySpec(("F", "M", 3), "fiu"),
     "displacement": ArraySpec(("F", "H", "H"), "fiu", False),
     "albedo": ArraySpec(("F", "A", "A", 3), "fiu", False),
     "fps": ArraySpec((), "fiu", False),

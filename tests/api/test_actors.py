@@ -245,3 +245,13 @@ def test_a_text_plain_neutral_is_415_not_422(client, actor_id):
     """issue 16, defect 9: text/plain was parsed as OBJ and answered 422."""
     assert_problem(client.put(f"/v1/actors/{actor_id}/neutral", content=b"v 0 0 0\n",
                               headers={"Content-Type": "text/plain"}), 415, "model/obj")
+
+
+def test_an_int8_neutral_is_refused_and_does_not_replace_the_stored_one(client, grid_actor):
+    """issue 16, defect 9: int8 vertices were accepted and replaced the actor's neutral."""
+    V, F, uv = grid()
+    before = client.get(f"/v1/actors/{grid_actor}").json()
+    response = client.put(f"/v1/actors/{grid_actor}/neutral",
+                          content=npz(vertices=V.astype(np.int8), faces=F, uv=uv), headers=NPZ)
+    assert_problem(response, 422, "'vertices'", "float")
+    assert client.get(f"/v1/actors/{grid_actor}").json() == before
