@@ -91,6 +91,17 @@ class Settings(BaseSettings):
     # -- limits ------------------------------------------------------------------------------
     max_body_bytes: int = Field(default=256 * MiB, ge=1,
                                 description="Largest accepted request body, in bytes (413 above).")
+    spool_body_bytes: int = Field(
+        default=8 * MiB, ge=0,
+        description="Request bodies larger than this are spooled to a hidden file in the "
+                    "blob store while they are hashed, not gathered in memory chunk by chunk.")
+    max_concurrent_uploads: int = Field(
+        default=4, ge=1,
+        description="Most requests with a body over spool_body_bytes received at once; more "
+                    "wait up to upload_queue_seconds, then get 503 with Retry-After.")
+    upload_queue_seconds: float = Field(
+        default=30.0, ge=0,
+        description="How long a large upload waits for its turn (max_concurrent_uploads).")
     max_frames_per_request: int = Field(
         default=64, ge=1,
         description="Most frames a synchronous synthesis request may carry (413 above; larger "

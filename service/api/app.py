@@ -25,7 +25,7 @@ from service.api.routes import actors, artifacts, clips, health, jobs, models, r
 from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
-from service.api.bodies import BodyLimitMiddleware
+from service.api.bodies import BodyLimitMiddleware, LargeUploadLimiter
 from service.config import Settings, get_settings
 
 API_VERSION = "1"
@@ -91,6 +91,9 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                                         settings.synthesis_queue_seconds,
                                         settings.synthesis_queue_depth)
     errors.install(app)
+    app.add_middleware(LargeUploadLimiter, limit=settings.max_concurrent_uploads,
+                       threshold=settings.spool_body_bytes,
+                       wait_seconds=settings.upload_queue_seconds)   # inside the size limit
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(UrlGuardMiddleware)
     app.add_middleware(RequestContextMiddleware, metrics=app.state.metrics)
