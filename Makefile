@@ -36,6 +36,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/thin_shell.py
 	$(BIN)/python benchmarks/pdm_report.py
 	$(BIN)/python benchmarks/shape_space_report.py
+	$(BIN)/python benchmarks/pose_space_report.py benchmarks/out/actor-l1
+	$(BIN)/python benchmarks/game_outputs_report.py
 	$(BIN)/python benchmarks/load.py
 
 clean:

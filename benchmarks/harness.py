@@ -1,7 +1,9 @@
 """What the benchmark reports share: the sample actor's data, fresh-process workers with
 peak-memory measurement, the fine-detail metric at the map texels, the PDM baseline, and
-figure helpers. Each report imports this module (``import harness``); no report imports
-another.
+figure helpers. Each report imports this module (``import harness``). Two reports still
+reuse another report's cached model builds, whose workers live in that script:
+``generalization_report`` (``shape_space_report``'s shape-space models) and
+``game_outputs_report`` (``pdm_report``'s PDM models and figure layout).
 
 Peak memory: a worker resets the resident-set high-water mark (``echo 5 >
 /proc/self/clear_refs``) and reports ``VmHWM − VmRSS`` at the reset, the peak resident
@@ -15,7 +17,7 @@ import os
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,9 @@ SEED, LEVEL = 1, 1                     # the default sample actor
 HELDOUT = ("heldout_in_range", "heldout_out_of_range")
 FACE = "face"                          # actor region of the main metrics
 BASIC_OUTPUTS = ("mesh", "displacement")
+NEUTRAL_CLIP = "train_brow_raise"      # its frame 0 gives the static neutral map
+SCORED_REGIONS = (FACE, "narrow_face") # ... and the marker-covered part of it (region 0)
+GT_ROW = "ground truth (mesh + relative map)"
 
 
 def ensure_actor(actor_dir: Path, seed: int = SEED, level: int = LEVEL) -> None:
@@ -255,3 +260,131 @@ def git_state() -> str:
     dirty = [line[3:] for line in git("status", "--porcelain", "--", "service").splitlines()]
     return f"commit {git('rev-parse', '--short', 'HEAD')}" + (
         f", uncommitted changes in {', '.join(dirty)}" if dirty else ", service/ clean")
+
+
+# methods: (world vertices (k,n,3), fine maps at the texels (k,P) or None, clamped (k,) or None)
+@dataclass
+class Baselines:
+    """What the baselines need from the training data and the biquadratic model."""
+
+    model: object                      # the PdmModel whose deformation drives everything
+    detailed: object                   # BaseSurface of the detailed neutral
+    neutral_map: np.ndarray            # (P,) fine map of a neutral training frame
+    train_aligned: np.ndarray          # (T,M,3) aligned training markers
+    train_c: np.ndarray                # (T,n,3) float32 medium detail in base frames
+    train_maps: np.ndarray             # (T,P) float32 relative fine maps
+
+    @classmethod
+    def build(cls, actor, clips, model, tex: DetailTexels) -> "Baselines":
+        from service.methods.pdm.base_surface import BaseSurface
+
+        base = model.base
+        detailed = BaseSurface.from_smooth(actor.vertices, actor.faces, actor.uv, actor.uv_faces,
+                                           base.handles, base.rest_markers)
+        markers = np.concatenate([c.markers for c in clips])
+        pose, u_H, _ = model.deformation(markers)
+        V = np.concatenate([c.vertices for c in clips])
+        c = np.empty(V.shape, np.float32)
+        for t in range(len(V)):
+            X = base.deform(u_H[t:t + 1])
+            c[t] = np.einsum("fnij,fnj->fni", base.frames(X), pose[t:t + 1].remove(V[t:t + 1]) - X)[0]
+        maps = np.concatenate([tex.texels(cl.displacement) for cl in clips]).astype(np.float32)
+        neutral = next(cl for cl in clips if cl.name == NEUTRAL_CLIP)
+        return cls(model, detailed, tex.texels(neutral.displacement[0]), pose.remove(markers), c, maps)
+
+    def no_detail(self, markers):
+        pose, u_H, _ = self.model.deformation(markers)
+        return pose.restore(self.detailed.deform(u_H)), None, None
+
+    def static_neutral_map(self, markers):
+        V, _, _ = self.no_detail(markers)
+        return V, np.broadcast_to(self.neutral_map, (len(markers), len(self.neutral_map))), None
+
+    def nearest(self, markers) -> tuple[np.ndarray, np.ndarray, None, np.ndarray]:
+        """Also returns the chosen training frame (k,) (global index)."""
+        base = self.model.base
+        pose, u_H, _ = self.model.deformation(markers)
+        a = pose.remove(markers)
+        d2 = np.nansum((a[:, None] - self.train_aligned[None]) ** 2, axis=(2, 3))    # (k,T)
+        t = np.argmin(d2, axis=1)
+        X = base.deform(u_H)
+        V = pose.restore(X + np.einsum("fnji,fnj->fni", base.frames(X), self.train_c[t]))
+        return V, self.train_maps[t], None, t
+
+
+@dataclass
+class Scores:
+    """Pooled accumulators of one method on one performance, over one vertex and texel set."""
+
+    vertices: np.ndarray                                   # (n,) bool scored vertices
+    texels: np.ndarray                                     # (P,) bool scored texels
+    vertex_errors: list = field(default_factory=list)     # (k_v,) per frame, mm
+    sums: np.ndarray = field(default_factory=lambda: np.zeros(6))   # n, Σx, Σy, Σxx, Σyy, Σxy
+
+    def add(self, err: np.ndarray, hp: np.ndarray, hp_gt: np.ndarray) -> None:
+        """One frame: vertex errors (n,), predicted and ground-truth high-passed heights (P,)."""
+        self.vertex_errors.append(err[self.vertices].astype(np.float32))
+        x, y = hp[self.texels], hp_gt[self.texels]
+        self.sums += [len(x), x.sum(), y.sum(), x @ x, y @ y, x @ y]
+
+    def result(self) -> dict:
+        e = np.concatenate(self.vertex_errors)
+        n, sx, sy, sxx, syy, sxy = self.sums
+        cov, vx, vy = sxy - sx * sy / n, sxx - sx * sx / n, syy - sy * sy / n
+        return {"medium_mean_mm": float(e.mean()), "medium_p95_mm": float(np.percentile(e, 95)),
+                "fine_r": float(cov / np.sqrt(vx * vy)) if vx > 0 else float("nan"),
+                "fine_rms_mm": float(np.sqrt(max(sxx - 2 * sxy + syy, 0.0) / n))}
+
+
+def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, keep_frames) -> dict:
+    """Scores of every method on one performance; the figure data of frames ``keep_frames``.
+
+    methods: name → callable(markers) → (V, d, clamped[, extra]).
+    Returns {"scores": region → name → metrics, "clamped": name → mean fraction,
+    "signal_rms_mm": region → GT high-passed RMS, "figure": {...}, "extra": name → extra}.
+    """
+    from service.samples.dataset import vertex_detail_map
+
+    normals = tex.normals(gt.medium, actor.faces)
+    gt_hp = np.stack([tex.highpass(tex.texels(d)) for d in gt.displacement])       # (k,P)
+    signal = {r: float(np.sqrt(np.mean(gt_hp[:, tex.regions[r]] ** 2))) for r in SCORED_REGIONS}
+    keep = [int(np.flatnonzero(gt.frames == f)[0]) for f in keep_frames]
+    figure = {"gt_hp": {gt.frames[i]: gt_hp[i] for i in keep}, "hp": {}, "vertex_error": {}}
+    scores = {r: {} for r in SCORED_REGIONS}
+    clamped_mean, extra = {}, {}
+
+    # the metric's floor: the ground truth's mesh and relative map through the same pipeline
+    relative = tex.texels(gt.displacement - vertex_detail_map(actor, gt.vertices, gt.medium, tex.H))
+    methods = {GT_ROW: lambda m: (gt.vertices, relative, None), **methods}
+    for name, method in methods.items():
+        t0 = time.perf_counter()
+        V, D, clamped, *more = method(gt.markers)
+        if more:
+            extra[name] = more[0]
+        acc = {r: Scores(np.asarray(actor.regions[r]), tex.regions[r]) for r in SCORED_REGIONS}
+        for f in range(len(gt.frames)):
+            err = np.linalg.norm(V[f] - gt.vertices[f], axis=-1)
+            hp = tex.highpass(tex.heights(V[f], gt.medium[f], normals[f], None if D is None else D[f]))
+            for a in acc.values():
+                a.add(err, hp, gt_hp[f])
+            if f in keep:
+                figure["hp"][(name, gt.frames[f])] = hp
+                figure["vertex_error"][(name, gt.frames[f])] = err
+        for r, a in acc.items():
+            scores[r][name] = a.result()
+        clamped_mean[name] = None if clamped is None else float(np.mean(clamped))
+        print(f"    {gt.name} / {name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return {"scores": scores, "clamped": clamped_mean, "signal_rms_mm": signal, "figure": figure,
+            "extra": extra}
+
+
+def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path) -> dict:
+    """:func:`train_pdm` run in a fresh process (its own peak memory); the training record."""
+    return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "train-pdm":
+        print(json.dumps(train_pdm(Path(sys.argv[2]), sys.argv[3], Path(sys.argv[4]))))
+    else:
+        sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR (the reports' worker)")

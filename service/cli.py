@@ -1,6 +1,7 @@
 """The ``facesynth`` command line: one entry point, a subcommand per task.
 
     facesynth sample-actor --out DIR --seed N --level 0|1|2   build the sample actor
+              [--family a|b] [--units mm|cm|m]              (family b: levels 0|1, any unit)
     facesynth sample-gallery --actor DIR --out DIR             render a built actor to PNGs
     facesynth demo [--out DIR] [--server URL]                  sample actor → upload → train → synthesize → PNG
     facesynth worker [--data-dir DIR] [--workers N]            run jobs (training, synthesis) from the queue
@@ -19,21 +20,7 @@ import argparse
 import sys
 from pathlib import Path
 
-
-def _progress_bar(description: str):
-    """A tqdm bar driven by ``progress(fraction, stage)`` callbacks."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=100, desc=description, unit="%", bar_format="{l_bar}{bar}| {n:.0f}% {postfix}")
-
-    def update(fraction: float, stage: str) -> None:
-        bar.n = round(100 * fraction, 1)
-        bar.set_postfix_str(stage)
-        bar.refresh()
-        if fraction >= 1.0:
-            bar.close()
-
-    return update
+from service.progress_bar import progress_bar as _progress_bar
 
 
 def _summary(out: Path, manifest: dict) -> str:
@@ -41,7 +28,8 @@ def _summary(out: Path, manifest: dict) -> str:
     lines = [
         f"sample actor (seed {manifest['seed']}, level {manifest['level']}) in {out}/ "
         f"built in {manifest['build_seconds']} s",
-        f"  neutral: {manifest['vertices']} vertices, {manifest['triangles']} triangles, UVs in [0,1]², mm",
+        f"  neutral: {manifest['vertices']} vertices, {manifest['triangles']} triangles, UVs in [0,1]², "
+        f"{manifest['units']}",
         f"  markers: {manifest['markers']} (markers.json)",
         f"  maps: displacement {manifest['map_resolution']}², albedo {manifest['albedo_resolution']}²",
         f"  wrinkle sites: {', '.join(manifest['wrinkle_sites'])}",
@@ -56,6 +44,23 @@ def _summary(out: Path, manifest: dict) -> str:
 def cmd_sample_actor(args: argparse.Namespace) -> int:
     from service.samples.actor import build_sample_actor
 
+    if args.family == "b":
+        from service.samples.family_b.actor import build_family_b
+
+        if args.level not in (0, 1):
+            print("family b has levels 0 and 1", file=sys.stderr)
+            return 2
+        if args.no_database_maps:
+            print("family b always gives its database performance maps", file=sys.stderr)
+            return 2
+        manifest = build_family_b(args.out, seed=args.seed, level=args.level, units=args.units,
+                                  progress=_progress_bar("sample actor (family b)"),
+                                  with_tracking=False if args.no_tracking else None)
+        print(_summary(Path(args.out), manifest))
+        return 0
+    if args.units != "mm":
+        print("family a is written in mm only (--family b for other units)", file=sys.stderr)
+        return 2
     manifest = build_sample_actor(args.out, seed=args.seed, level=args.level,
                                   progress=_progress_bar("sample actor"),
                                   with_tracking=not args.no_tracking,
@@ -89,9 +94,11 @@ def cmd_pdm_train(args: argparse.Namespace) -> int:
     actor = dataset.load_actor(args.actor)
     names = args.clips or dataset.performance_names(args.actor, "train_")
     clips = [dataset.load_clip(args.actor, name, actor) for name in names]
+    given = {"gamma": args.gamma} if args.gamma is not None else {}   # else the method's default
+    if args.margin is not None:
+        given["extrapolation_margin"] = None if args.margin < 0 else args.margin
     params = PdmParams(order=args.order, medium_resolution=args.medium_resolution,
-                       fine_resolution=args.fine_resolution, gamma=args.gamma,
-                       extrapolation_margin=None if args.margin < 0 else args.margin)
+                       fine_resolution=args.fine_resolution, **given)
     model = train(actor, clips, params, progress=_progress_bar("pdm train"))
     manifest = model.save(args.out)
     m = model.metrics
@@ -227,10 +234,16 @@ def cmd_store_fsck(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from service.methods.pdm.model import PdmParams
+    from service.client_cli import add_global_options
 
-    parser = argparse.ArgumentParser(prog="facesynth", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="facesynth", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="The facesynth command line: one entry point, a subcommand per task.",
+        epilog="Run 'facesynth COMMAND --help' for a command's options. The server commands "
+               "(actors, upload, train,\njobs, models, clips, synthesize, enhance) take --server "
+               "and --token before or after the command.")
+    add_global_options(parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("sample-actor", help="build the synthetic sample actor (ICT rig based)")
     p.add_argument("--out", required=True, type=Path, help="output directory")
@@ -241,6 +254,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-database-maps", action="store_true",
                    help="no maps for the 630-frame database performance (they are built at levels "
                         "0 and 1, about 3.6 GB at level 1)")
+    p.add_argument("--family", choices=("a", "b"), default="a",
+                   help="a: the sample actor (default); b: the independent evaluation family "
+                        "(service/samples/family_b: other identity, mesh, detail, markers)")
+    p.add_argument("--units", choices=("mm", "cm", "m"), default="mm",
+                   help="unit of every length written (family b only; default mm)")
     p.set_defaults(func=cmd_sample_actor)
 
     p = sub.add_parser("sample-gallery", help="render a built sample actor to PNGs (shaded meshes, maps)")
@@ -255,9 +273,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
     p.add_argument("--medium-resolution", type=int, default=512)
     p.add_argument("--fine-resolution", type=int, default=1024)
-    p.add_argument("--gamma", type=float, default=PdmParams.model_fields["gamma"].default, help="regularization γ of ma2008 §4.2")
-    p.add_argument("--margin", type=float, default=PdmParams.model_fields["extrapolation_margin"].default,
-                   help="extrapolation limit: fraction of the training range (negative: none)")
+    # defaults: PdmParams' own (not imported here: the method's import would slow every command)
+    p.add_argument("--gamma", type=float, help="regularization γ of ma2008 §4.2 (default: PdmParams')")
+    p.add_argument("--margin", type=float,
+                   help="extrapolation limit: fraction of the training range (negative: none; "
+                        "default: PdmParams')")
     p.set_defaults(func=cmd_pdm_train)
 
     p = sub.add_parser("pdm-synthesize", help="meshes and maps from markers with a trained pdm model")
@@ -315,8 +335,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "embedded server unless --server is given, and writes OUT/result "
                                    "(per-frame OBJ and EXR) and OUT/side_by_side.png.")
     p.add_argument("--out", type=Path, default=Path("facesynth-demo"), help="output directory")
-    p.add_argument("--server", help="URL of a running server (FACESYNTH_URL); default: start one")
-    p.add_argument("--token", help="bearer token (FACESYNTH_TOKEN)")
+    p.add_argument("--server", default=argparse.SUPPRESS,
+                   help="URL of a running server (FACESYNTH_URL); default: start one")
+    p.add_argument("--token", default=argparse.SUPPRESS, help="bearer token (FACESYNTH_TOKEN)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--level", type=int, choices=(0, 1, 2), default=1)
     p.set_defaults(func=cmd_demo)

@@ -38,6 +38,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from service.progress_bar import job_progress, progress_bar
+
 #: the held-out performance synthesized, and every how many of its frames
 HELDOUT = "heldout_in_range"
 FRAME_STEP = 8
@@ -114,7 +116,7 @@ def ensure_sample_actor(actor_dir: Path, seed: int, level: int, progress: bool =
         if (built.get("seed"), built.get("level")) == (seed, level) and set(names) <= set(built["performances"]):
             return actor_dir
     build_sample_actor(actor_dir, seed=seed, level=level, with_tracking=False, performance_names=names,
-                       progress=_bar("sample actor") if progress else (lambda fraction, stage: None))
+                       progress=progress_bar("sample actor") if progress else (lambda fraction, stage: None))
     return actor_dir
 
 
@@ -171,7 +173,7 @@ def run_demo(out: Path, server: str | None = None, seed: int = 1, level: int = 1
 
         accepted = client.models.train(remote.id, "pdm", clip_ids)
         say(f"training PDM {accepted.model_id} (job {accepted.job_id})")
-        client.wait(accepted, progress=progress)
+        client.wait(accepted, progress=job_progress(f"train {accepted.model_id}") if progress else False)
 
         with np.load(actor_dir / "performances" / f"{HELDOUT}.npz") as data:
             frames = np.arange(0, len(data["markers"]), FRAME_STEP)
@@ -181,7 +183,7 @@ def run_demo(out: Path, server: str | None = None, seed: int = 1, level: int = 1
         job = client.synthesis.submit_job(accepted.model_id, markers=markers, format="obj-exr-zip",
                                           outputs=["mesh", "mesh_detailed", "displacement", "normal_map"])
         say(f"synthesizing {len(frames)} held-out frames (job {job.job_id})")
-        done = client.wait(job, progress=progress)
+        done = client.wait(job, progress=job_progress(f"synthesize {job.job_id}") if progress else False)
         archive = out / "result.zip"
         client.download_artifact(done.artifact_ids[0], archive)
         result_dir = out / "result"
@@ -213,9 +215,3 @@ def run_demo(out: Path, server: str | None = None, seed: int = 1, level: int = 1
 def _markers_of(actor_dir: Path, frames: np.ndarray) -> np.ndarray:
     with np.load(actor_dir / "performances" / f"{HELDOUT}.npz") as data:
         return data["markers"][frames].astype(np.float64)
-
-
-def _bar(description: str) -> Callable[[float, str], None]:
-    from service.cli import _progress_bar
-
-    return _progress_bar(description)

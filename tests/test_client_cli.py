@@ -153,3 +153,41 @@ def test_exit_codes_are_documented():
 
     for code in (EXIT_OK, EXIT_JOB_FAILED, 2, EXIT_REJECTED, EXIT_SERVER):
         assert f"    {code}  " in cli.__doc__
+
+
+def _parsers(parser):
+    """The parser and every subcommand's parser, recursively."""
+    import argparse
+
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _parsers(sub)
+
+
+def test_every_positional_argument_has_help_and_no_help_has_rst_markup():
+    from service.cli import build_parser
+
+    parsers = list(_parsers(build_parser()))
+    assert len(parsers) > 30
+    for parser in parsers:
+        for action in parser._actions:
+            if not action.option_strings and action.nargs != 0 and action.dest != "help" and \
+                    action.__class__.__name__ != "_SubParsersAction":
+                assert action.help, f"{parser.prog} {action.dest} has no help"
+        assert "``" not in parser.format_help(), parser.prog
+
+
+def test_global_server_and_token_come_before_or_after_the_command():
+    from service.cli import build_parser
+
+    parser = build_parser()
+    before = parser.parse_args(["--server", "http://a:1", "--token", "t", "jobs", "list"])
+    after = parser.parse_args(["jobs", "list", "--server", "http://b:2"])
+    neither = parser.parse_args(["jobs", "list"])
+    assert (before.server, before.token) == ("http://a:1", "t")
+    assert (after.server, after.token) == ("http://b:2", None)
+    assert (neither.server, neither.token) == (None, None)
+    both = parser.parse_args(["--server", "http://a:1", "jobs", "list", "--server", "http://b:2"])
+    assert both.server == "http://b:2"                      # the nearer one wins

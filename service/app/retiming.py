@@ -85,7 +85,7 @@ def parse_retime_request(kind: str, data: bytes, settings: Settings, *, length: 
                          extend: bool | None, rig: str | None) -> RetimeRequest:
     """A retime request from its body (``kind`` is the media type) and query parameters.
 
-    JSON: :class:`~service.api.schemas.RetimeBody` (its ``length`` and
+    JSON: :class:`~service.app.schemas.RetimeBody` (its ``length`` and
     ``extend_to_full_motion`` are the body's; ``rig`` may be given in the body or the query,
     not differently in both). NPZ: ``keyframes`` (K,v,3) with ``length``,
     ``extend_to_full_motion`` and ``rig`` from the query; K and m are checked against the

@@ -12,8 +12,13 @@ size before any pixel data is decoded; malformed files raise
 
 from __future__ import annotations
 
+import ctypes
 import io
 import os
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager
 from typing import Mapping
 
 import numpy as np
@@ -117,14 +122,24 @@ def read_exr(
     Raises
     ------
     MapFormatError
-        If the file is not a readable EXR, has unsigned-int or subsampled channels, or its data
-        window differs from its display window.
+        If the file is not a readable EXR or is damaged (the library's own report quoted), is
+        a deep image ("deep EXR is not supported"), has unsigned-int or subsampled channels,
+        or its data window differs from its display window.
     SizeLimitError
     """
     data = read_source(source)
-    header = _open(data, header_only=True).header()
-    (x0, y0), (x1, y1) = (tuple(map(int, corner)) for corner in header["dataWindow"])
-    display = tuple(tuple(map(int, corner)) for corner in header["displayWindow"])
+    header, _ = _read(data, header_only=True)
+    if header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile):
+        raise MapFormatError(
+            "deep EXR is not supported: the file stores a varying number of samples per pixel; "
+            "a UV-space map needs one value per texel (a flat scanline or tiled EXR)"
+        )
+    try:
+        (x0, y0), (x1, y1) = (tuple(map(int, corner)) for corner in header["dataWindow"])
+        display = tuple(tuple(map(int, corner)) for corner in header["displayWindow"])
+        channel_count = len(header["channels"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise MapFormatError(f"not a readable EXR file: its header lacks {error}") from None
     if display != ((x0, y0), (x1, y1)):
         raise MapFormatError(
             f"EXR data window {((x0, y0), (x1, y1))} differs from its display window {display}; "
@@ -133,10 +148,10 @@ def read_exr(
     height, width = y1 - y0 + 1, x1 - x0 + 1
     if height * width > max_texels:
         raise SizeLimitError("texels", height * width, max_texels)
-    if len(header["channels"]) > max_channels:
-        raise SizeLimitError("channels", len(header["channels"]), max_channels)
+    if channel_count > max_channels:
+        raise SizeLimitError("channels", channel_count, max_channels)
     out = {}
-    for name, channel in _open(data, header_only=False).channels().items():
+    for name, channel in _read(data, header_only=False)[1].items():
         if channel.xSampling != 1 or channel.ySampling != 1:
             raise MapFormatError(f"EXR channel '{name}' is subsampled; maps need full resolution")
         if channel.pixels.dtype.kind != "f":
@@ -147,14 +162,100 @@ def read_exr(
     return out
 
 
-def _open(data: bytes, header_only: bool) -> OpenEXR.File:
-    try:
-        exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, header_only=header_only)
-        if not header_only:
-            exr.channels()
-    except (RuntimeError, ValueError) as error:
-        raise MapFormatError(f"not a readable EXR file: {error}") from None
-    return exr
+#: what the OpenEXR binding raises on malformed bytes (UnicodeDecodeError is a ValueError)
+_EXR_ERRORS = (RuntimeError, ValueError, TypeError, KeyError, IndexError, OverflowError, SystemError)
+#: how the library's own lines start or what they hold (the core library writes
+#: "<python_buffer>: (EXR_ERR_...) ..." to stderr, the binding "Warning: Exception raised
+#: reading pixel data ..." to stdout, and then returns what it could read)
+_LIBRARY_MARKS = ("<python_buffer>", "EXR_ERR", "Warning: Exception raised")
+_CAPTURE_LOCK = threading.Lock()
+
+
+def _flush_all() -> None:
+    """Flush Python's and the C library's buffered output (``fflush(NULL)``)."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    if _LIBC is not None:
+        _LIBC.fflush(None)
+
+
+try:
+    _LIBC = ctypes.CDLL(None)
+except OSError:  # no C library to flush (not on Linux/macOS): Python's streams only
+    _LIBC = None
+
+
+def _read(data: bytes, header_only: bool) -> tuple[dict, dict]:
+    """The header and (unless `header_only`) the channels of an EXR's first part.
+
+    The OpenEXR library reports damage by printing to standard output and standard error
+    and returning what it could read; its lines are captured here, never printed, and a
+    read that printed one raises MapFormatError quoting it.
+    """
+    failure = None
+    with _captured_output() as printed:
+        try:
+            exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, header_only=header_only)
+            header = dict(exr.header())
+            channels = {} if header_only else dict(exr.channels())
+            for channel in channels.values():
+                channel.pixels  # the binding decodes pixels on first access: inside the capture
+        except _EXR_ERRORS as error:
+            failure = error
+    if failure is not None:
+        detail = f" ({printed[0]})" if printed else ""
+        raise MapFormatError(f"not a readable EXR file: {failure}{detail}")
+    if printed:
+        raise MapFormatError(f"the EXR file is damaged: {printed[0]}")
+    return header, channels
+
+
+@contextmanager
+def _captured_output():
+    """Collect the OpenEXR library's lines printed meanwhile, to file descriptors 1 and 2 (the
+    core library, C++ streams) or to ``sys.stdout``/``sys.stderr`` (the Python binding).
+
+    One capture at a time (a lock). Lines that are not the library's (another thread's
+    output) are written back where they were going when the block ends. Without usable
+    descriptors only the Python streams are captured.
+    """
+    library: list[str] = []
+
+    def sort(text: str, put) -> None:
+        for line in text.splitlines(keepends=True):
+            if any(mark in line for mark in _LIBRARY_MARKS):
+                library.append(line.strip())
+            else:
+                put(line)
+
+    with _CAPTURE_LOCK:
+        _flush_all()
+        try:
+            saved = {fd: os.dup(fd) for fd in (1, 2)}
+        except OSError:
+            saved = {}
+        sinks = {fd: tempfile.TemporaryFile() for fd in saved}
+        python = {"stdout": sys.stdout, "stderr": sys.stderr}
+        texts = {name: io.StringIO() for name in python}
+        try:
+            for fd, sink in sinks.items():
+                os.dup2(sink.fileno(), fd)
+            sys.stdout, sys.stderr = texts["stdout"], texts["stderr"]
+            yield library
+        finally:
+            sys.stdout, sys.stderr = python["stdout"], python["stderr"]
+            _flush_all()  # C streams buffer what the core library prints: out before restoring
+            for fd, sink in sinks.items():
+                os.dup2(saved[fd], fd)
+                os.close(saved[fd])
+                sink.seek(0)
+                sort(sink.read().decode("utf-8", "replace"),
+                     lambda line, fd=fd: os.write(fd, line.encode("utf-8")))
+                sink.close()
+            for name, stream in python.items():
+                if stream is not None:
+                    sort(texts[name].getvalue(), stream.write)
 
 
 def write_map(

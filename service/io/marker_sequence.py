@@ -35,11 +35,16 @@ class MarkerSequence:
         Marker names in column order; None when the file has none (frames JSON without names).
     fps : float or None
         Frame rate in frames per second, when the file records one.
+    notes : tuple of str
+        What the reader accepted but the caller should tell the user, as the mesh readers
+        record polygon splits in ``Mesh.quad_split`` (e.g. a TRC ``NumFrames`` that disagrees
+        with the rows read). Empty for a file read exactly as it declares itself.
     """
 
     positions: np.ndarray
     names: tuple[str, ...] | None = None
     fps: float | None = None
+    notes: tuple[str, ...] = ()
 
     def __post_init__(self):
         positions = np.asarray(self.positions, dtype=np.float64)
@@ -62,6 +67,7 @@ class MarkerSequence:
         object.__setattr__(self, "positions", positions)
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "fps", fps)
+        object.__setattr__(self, "notes", tuple(str(note) for note in self.notes))
 
 
 def decode_text(data: bytes, what: str) -> str:

@@ -21,8 +21,7 @@ _NPZ_SHAPES = {
     "quad_split": ("T",),
 }  # fmt: skip
 _NPZ_KEYS = tuple(_NPZ_SHAPES)
-#: keys holding coordinates: floating point only (an int8 neutral was once accepted)
-_NPZ_FLOAT_KEYS = ("vertices", "uv")
+_NPZ_COORDINATES = ("vertices", "uv")
 
 
 def read_npz(
@@ -30,10 +29,11 @@ def read_npz(
 ) -> Mesh:
     """Read a mesh from an ``.npz`` archive with API.md's keys, never unpickling.
 
-    Keys: ``vertices`` (V,3) float (integer and boolean coordinates are refused, not
-    cast), ``faces`` (T,3) int, optional ``uv`` (V,2) per vertex or
+    Keys: ``vertices`` (V,3) float, ``faces`` (T,3) int, optional ``uv`` (V,2) per vertex or
     (K,2) with ``uv_faces`` (T,3) int, optional ``quad_split`` (T,) int (see :class:`Mesh`).
-    Array shapes are read from the ``.npy`` headers and bounded before any data is loaded.
+    Array shapes and dtypes are read from the ``.npy`` headers and checked before any data is
+    loaded: ``vertices`` and ``uv`` must be floating point (integer coordinates, e.g. int8, are
+    refused rather than cast); the index arrays are checked by :class:`Mesh`.
 
     Parameters
     ----------
@@ -74,10 +74,10 @@ def read_npz(
         }
         for key in archive.files:
             shape, dtype = _npy_header(archive.zip, key)
-            if key in _NPZ_FLOAT_KEYS and dtype.kind != "f":
+            if key in _NPZ_COORDINATES and dtype.kind in "iub":
                 raise MeshFormatError(
-                    f"'{key}' must be floating point (float32 or float64), got {dtype}; "
-                    "integer or boolean coordinates are refused rather than cast"
+                    f"'{key}' has dtype {dtype}, expected floating point (float32 or float64); "
+                    "integer coordinates are refused, not cast"
                 )
             expected = _NPZ_SHAPES[key]
             if len(shape) != len(expected) or shape[1:] != expected[1:]:

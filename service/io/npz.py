@@ -29,23 +29,21 @@ _HEADER_ERRORS = (SyntaxError, tokenize.TokenError, TypeError, RecursionError, M
 def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of one ``.npy`` member, from its header only.
 
-    Raises ``ValueError`` for a .npy format other than 1.0/2.0 or a malformed header
-    (anything NumPy's header parser raises, ``tokenize.TokenError`` included, becomes a
-    ``ValueError`` naming the header), and the :data:`ZIP_ERRORS` of a corrupt member;
-    callers turn them into their format's error.
+    Raises ``ValueError`` for a .npy format other than 1.0/2.0 or a header that is not the
+    dictionary literal numpy writes (e.g. one that cannot even be tokenized), and the
+    :data:`ZIP_ERRORS` of a corrupt member; callers turn them into their format's error.
     """
     with archive.open(member) as f:
         version = np.lib.format.read_magic(f)
+        if version not in ((1, 0), (2, 0)):
+            raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
         try:
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-            elif version == (2, 0):
-                shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-            else:
-                raise ValueError(f"unsupported .npy format version {version}; expected 1.0 "
-                                 "or 2.0")
+            shape, _, dtype = read(f)
         except _HEADER_ERRORS as error:
-            raise ValueError(f"malformed .npy header: {type(error).__name__}") from None
+            # numpy tokenizes the header (a Python literal) before its own checks
+            raise ValueError(f"malformed .npy header: {error}") from None
     if any(int(n) < 0 for n in shape):
         raise ValueError(f"malformed .npy header: negative dimension in shape {shape}")
     return tuple(int(s) for s in shape), dtype

@@ -87,7 +87,7 @@ def read_obj(
         raise SizeLimitError("triangles", int((sizes - 2).sum()), max_faces)
     corners = list(itertools.chain.from_iterable(split))
     corner_face = np.repeat(np.arange(len(sizes)), sizes)
-    v_written, vt_written = _obj_corners(corners, corner_face, f_lines)
+    v_written, vt_written, textured = _obj_corners(corners, corner_face, f_lines, sizes)
     v_seen = f_v_seen[corner_face]
     v_index = _obj_resolve(
         v_written, v_seen, len(vertices), corner_face, f_lines, "vertex", "vertices"
@@ -97,8 +97,9 @@ def read_obj(
         uv = _obj_floats(vt_rows, vt_lines, 2, "texture coordinate")
         _check_finite_rows(uv, vt_lines, "texture coordinate")
         vt_seen = f_vt_seen[corner_face]
-        uv_index = _obj_resolve(
-            vt_written, vt_seen, len(uv), corner_face, f_lines,
+        uv_index = np.full(len(corners), -1, np.int64)  # -1: a face written without vt
+        uv_index[textured] = _obj_resolve(
+            vt_written[textured], vt_seen[textured], len(uv), corner_face[textured], f_lines,
             "texture coordinate", "texture coordinates",
         )  # fmt: skip
     return mesh_from_polygons(vertices, sizes, v_index, uv, uv_index, max_faces)
@@ -146,30 +147,69 @@ def _check_finite_rows(values: np.ndarray, lines: list[int], what: str) -> None:
 
 
 def _obj_corners(
-    corners: list[str], corner_face: np.ndarray, f_lines: np.ndarray
-) -> tuple[np.ndarray, np.ndarray | None]:
+    corners: list[str], corner_face: np.ndarray, f_lines: np.ndarray, sizes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Read the written (1-based or negative) v and vt indices of corners ``v[/vt[/vn]]``.
+
+    Every corner of a face uses the same form (``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn``), as far
+    as having a texture index goes; different faces may use different forms (multi-object
+    exports mix ``v/vt`` objects with bare ``v`` or ``v//vn`` ones).
 
     Returns
     -------
     v : (C,) int64
-    vt : (C,) int64 or None when the corners have no texture index
+    vt : (C,) int64 or None
+        The written texture index of every corner (meaningful where `textured`), or None when
+        no corner has one.
+    textured : (C,) bool   the corner has a texture index
     """
     slashes = np.fromiter(map(str.count, corners, itertools.repeat("/")), np.int64, len(corners))
-    odd = np.flatnonzero(slashes != slashes[0])
-    if len(odd) or slashes[0] > 2:
-        corner = odd[0] if len(odd) else 0
+    if slashes.max() > 2:
+        corner = int(np.argmax(slashes > 2))
+        face = corner_face[corner]
+        raise MeshFormatError(
+            f"face {face} (line {f_lines[face]}) has corner '{corners[corner]}'; a corner is "
+            "one of v, v/vt, v/vt/vn, v//vn"
+        )
+    if (slashes == slashes[0]).all():
+        uniform = _obj_uniform_corners(corners, corner_face, f_lines, int(slashes[0]))
+        if uniform is not None:
+            v, vt = uniform
+            return v, vt, np.full(len(corners), vt is not None)
+    fields = [corner.split("/") for corner in corners]
+    v = _obj_integers([f[0] for f in fields], corner_face, f_lines, "vertex")
+    textured = np.fromiter((len(f) > 1 and f[1] != "" for f in fields), bool, len(fields))
+    starts = np.cumsum(sizes) - sizes
+    first = np.repeat(textured[starts], sizes)
+    odd = np.flatnonzero(textured != first)
+    if len(odd):
+        corner = odd[0]
         face = corner_face[corner]
         raise MeshFormatError(
             f"face {face} (line {f_lines[face]}) has corner '{corners[corner]}' but the first "
-            f"corner of the file is '{corners[0]}'; every corner must use the same one of the "
-            "forms v, v/vt, v/vt/vn, v//vn"
+            f"corner of the face is '{corners[starts[face]]}'; within a face either every "
+            "corner has a texture index or none does"
         )
+    if not textured.any():
+        return v, None, textured
+    vt = np.zeros(len(corners), np.int64)
+    vt[textured] = _obj_integers(
+        [f[1] for f, has in zip(fields, textured.tolist()) if has], corner_face[textured],
+        f_lines, "texture coordinate",
+    )  # fmt: skip
+    return v, vt, textured
+
+
+def _obj_uniform_corners(
+    corners: list[str], corner_face: np.ndarray, f_lines: np.ndarray, slashes: int
+) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(v, vt or None) of corners that all have `slashes` slashes, or None when some have a
+    texture index and some do not (``v//vn`` beside ``v/vt/vn``)."""
     text = " ".join(corners)
-    without_vt = slashes[0] == 2 and text.count("//") == len(corners)
+    without_vt = slashes == 2 and text.count("//") == len(corners)
     if without_vt:
         text = text.replace("//", "/")
-    width = int(slashes[0]) + 1 - without_vt
+    width = slashes + 1 - without_vt
     try:
         values = np.fromstring(text.replace("/", " "), dtype=np.int64, sep=" ")
     except ValueError:  # a malformed field: the general path below names it
@@ -186,15 +226,7 @@ def _obj_corners(
     if missing == len(vt_fields):
         return v, None
     if missing:
-        corner = vt_fields.index("") if vt_fields[0] else next(
-            k for k, field in enumerate(vt_fields) if field
-        )
-        face = corner_face[corner]
-        raise MeshFormatError(
-            f"face {face} (line {f_lines[face]}) has corner '{corners[corner]}' but the first "
-            f"corner of the file is '{corners[0]}'; either every corner has a texture index "
-            "or none does"
-        )
+        return None
     return v, _obj_integers(vt_fields, corner_face, f_lines, "texture coordinate")
 
 
@@ -271,9 +303,11 @@ def write_obj(target: Target, mesh: Mesh, *, dtype=np.float64) -> None:
         uv = mesh.uv.astype(dtype).ravel().tolist()
         parts.append((f"vt {number} {number}\n" * len(mesh.uv)) % tuple(uv))
     sizes, corners, uv_corners = mesh.polygons()
-    for start, end, first, size in size_runs(sizes):
+    starts = np.cumsum(sizes) - sizes
+    textured = np.zeros(len(sizes), bool) if uv_corners is None else uv_corners[starts] >= 0
+    for start, end, first, size in size_runs(sizes, textured):
         stop = first + (end - start) * size
-        if uv_corners is None:
+        if not textured[start]:
             values, corner = corners[first:stop] + 1, " %d"
         else:
             values = np.stack([corners[first:stop], uv_corners[first:stop]], axis=1) + 1

@@ -13,7 +13,14 @@ import numpy as np
 
 from service.io.errors import MeshFormatError, SizeLimitError
 from service.io.sources import Source, Target, read_source, write_target
-from service.io.triangle_mesh import MAX_FACES, MAX_VERTICES, Mesh, mesh_from_polygons, size_runs
+from service.io.triangle_mesh import (
+    MAX_FACES,
+    MAX_VERTICES,
+    NO_UV,
+    Mesh,
+    mesh_from_polygons,
+    size_runs,
+)
 
 
 _PLY_TYPES = {
@@ -24,6 +31,7 @@ _PLY_TYPES = {
 }  # fmt: skip
 _PLY_UV_NAMES = (("s", "t"), ("u", "v"), ("texture_u", "texture_v"))
 _PLY_FACE_LISTS = ("vertex_indices", "vertex_index")
+_PLY_FACE_UV = "texcoord"
 
 
 @dataclass(frozen=True)
@@ -230,8 +238,10 @@ def read_ply(
 
     The ``vertex`` element needs ``x, y, z``; per-vertex uv is read from ``s, t``, ``u, v`` or
     ``texture_u, texture_v``. The ``face`` element needs a list ``vertex_indices`` (or
-    ``vertex_index``) of 0-based indices; polygons are fan-split. Other elements and properties
-    are skipped.
+    ``vertex_index``) of 0-based indices; polygons are fan-split. Without per-vertex uv, a face
+    list ``texcoord`` (as MeshLab/VCG write: ``u, v`` of every corner in turn) is read as
+    per-corner uv, one `uv` row per file corner; a face with an empty list has no uv (its
+    `uv_faces` rows are -1). Other elements and properties are skipped.
 
     Parameters
     ----------
@@ -242,7 +252,8 @@ def read_ply(
     Returns
     -------
     Mesh
-        `uv` per vertex (no `uv_faces`) when present; `quad_split` when polygons were split.
+        `uv` per vertex (no `uv_faces`), or per corner with `uv_faces` from a face
+        ``texcoord`` list; `quad_split` when polygons were split.
 
     Raises
     ------
@@ -301,7 +312,21 @@ def _ply_mesh(vertex: dict, face: dict, vertex_count: int, max_faces: int) -> Me
             f"face {polygon} references vertex {corners[bad[0]]:g} but the file has "
             f"{vertex_count} vertices (indices are 0-based)"
         )
-    return mesh_from_polygons(vertices, sizes, corners.astype(np.int64), uv, None, max_faces)
+    uv_corners = None
+    if uv is None and isinstance(face.get(_PLY_FACE_UV), tuple):  # MeshLab/VCG per-corner uv
+        uv_counts, uv_values = face[_PLY_FACE_UV]
+        textured = uv_counts == 2 * sizes
+        wrong = np.flatnonzero(~textured & (uv_counts != 0))
+        if len(wrong):
+            raise MeshFormatError(
+                f"PLY face {wrong[0]} has {uv_counts[wrong[0]]} {_PLY_FACE_UV} values for its "
+                f"{sizes[wrong[0]]} corners; expected 2 per corner (u, v), or none"
+            )
+        if textured.any():
+            uv = uv_values.reshape(-1, 2).astype(np.float64)
+            uv_corners = np.full(len(corners), NO_UV, np.int64)  # faces without texcoord
+            uv_corners[np.repeat(textured, sizes)] = np.arange(len(uv))
+    return mesh_from_polygons(vertices, sizes, corners.astype(np.int64), uv, uv_corners, max_faces)
 
 
 def write_ply(target: Target, mesh: Mesh, *, dtype=np.float64) -> None:

@@ -32,21 +32,27 @@ def read_markers_trc(
     row per frame (blank lines skipped). Empty cells are occluded markers. Units ``mm``, ``cm``
     or ``m``.
 
+    As OpenSim's ``TRCFileAdapter`` does, header keys and values are separated by one or more
+    tabs (empty fields are dropped before keys and values are paired), and the frames are the
+    rows the file holds: a ``NumFrames`` that disagrees is reported in
+    :attr:`MarkerSequence.notes`, not refused (5 of OpenSim's own 22 example files disagree).
+
     Parameters
     ----------
     source : path, bytes or binary file
     max_frames, max_markers : int
+        Bounds on the rows and on ``NumMarkers``.
 
     Returns
     -------
     MarkerSequence
-        Positions in mm, fps from ``DataRate``.
+        Positions in mm, fps from ``DataRate``, a note when ``NumFrames`` is not the row count.
 
     Raises
     ------
     MarkerFormatError
-        For a malformed header, an unknown unit, or a frame or marker count that disagrees with
-        the header.
+        For a malformed header (naming the key and the value it quotes), an unknown unit, a
+        marker count that disagrees with the names, or a row longer than the markers need.
     SizeLimitError
     """
     lines = decode_text(read_source(source), "TRC file").splitlines()
@@ -54,26 +60,30 @@ def read_markers_trc(
         raise MarkerFormatError(
             "not a TRC file: it needs 5 header lines starting with 'PathFileType'"
         )
-    keys, values = lines[1].split("\t"), lines[2].split("\t")
-    settings = {k.strip(): v.strip() for k, v in zip(keys, values)}
-    try:
-        frames, count = int(settings["NumFrames"]), int(settings["NumMarkers"])
-        units = settings["Units"]
-        fps = float(settings["DataRate"]) if settings.get("DataRate") else None
-    except (KeyError, ValueError) as error:
+    keys = [cell.strip() for cell in lines[1].split("\t") if cell.strip()]
+    values = [cell.strip() for cell in lines[2].split("\t") if cell.strip()]
+    if len(keys) != len(values):
         raise MarkerFormatError(
-            f"TRC header lacks or garbles NumFrames, NumMarkers, Units or DataRate ({error})"
-        ) from None
+            f"TRC header has {len(keys)} keys {keys} but {len(values)} values {values}"
+        )
+    settings = dict(zip(keys, values))
+    frames = _setting(settings, "NumFrames", int, "a whole number")
+    count = _setting(settings, "NumMarkers", int, "a whole number")
+    units = _setting(settings, "Units", str, "a unit")
+    fps = _setting(settings, "DataRate", float, "a number") if "DataRate" in settings else None
     if units not in MM_PER_UNIT:
         raise MarkerFormatError(f"TRC unit '{units}' is not one of {sorted(MM_PER_UNIT)}")
-    check_counts(frames, count, max_frames, max_markers)
+    check_counts(0, count, max_frames, max_markers)
     names = [cell.strip() for cell in lines[3].split("\t")[2:] if cell.strip()]
     if len(names) != count:
         raise MarkerFormatError(f"TRC header says {count} markers but names {len(names)}")
     rows = [line.split("\t") for line in lines[5:] if line.strip()]
+    check_counts(len(rows), count, max_frames, max_markers)
+    notes = ()
     if len(rows) != frames:
-        raise MarkerFormatError(
-            f"TRC header says {frames} frames but the file has {len(rows)} rows"
+        notes = (
+            f"the TRC header says NumFrames {frames} but the file has {len(rows)} frame rows; "
+            f"the {len(rows)} rows were read",
         )
     width = 2 + 3 * count
     for r, row in enumerate(rows):
@@ -82,9 +92,21 @@ def read_markers_trc(
                 f"TRC frame row {r + 1} has {len(row)} cells, {count} markers need {width}"
             )
         rows[r] = row[:width] + [""] * (width - len(row))
-    cells = np.array(rows, dtype=str).reshape(frames, width)[:, 2:]
+    cells = np.array(rows, dtype=str).reshape(len(rows), width)[:, 2:]
     values = cells_to_float(cells, names, "TRC") * MM_PER_UNIT[units]
-    return MarkerSequence(values.reshape(frames, count, 3), names, fps)
+    return MarkerSequence(values.reshape(len(rows), count, 3), names, fps, notes)
+
+
+def _setting(settings: dict[str, str], key: str, parse, expected: str):
+    """One TRC header value, parsed, or a MarkerFormatError quoting it."""
+    if key not in settings:
+        raise MarkerFormatError(f"TRC header lacks the key {key} (it has {sorted(settings)})")
+    try:
+        return parse(settings[key])
+    except ValueError:
+        raise MarkerFormatError(
+            f"TRC header gives {key} '{settings[key]}', expected {expected}"
+        ) from None
 
 
 def write_markers_trc(target: Target, markers: MarkerSequence, *, fps: float | None = None) -> None:

@@ -21,6 +21,9 @@ MAX_VERTICES = 5_000_000
 """Default bound on the vertex count a reader accepts."""
 MAX_FACES = 10_000_000
 """Default bound on the triangle count (after splitting polygons) a reader accepts."""
+NO_UV = -1
+"""A `uv_faces` row of this value: the file gave that triangle no texture coordinates."""
+
 
 @dataclass(frozen=True, eq=False)
 class Mesh:
@@ -35,7 +38,9 @@ class Mesh:
     uv : (K,2) float64 or None
         Texture coordinates. Without `uv_faces` they are per vertex (K == V).
     uv_faces : (T,3) int64 or None
-        Per-corner 0-based indices into `uv` (UV seams give a vertex several uv).
+        Per-corner 0-based indices into `uv` (UV seams give a vertex several uv). A row of
+        :data:`NO_UV` (-1) is a triangle the file gave no texture coordinates (an OBJ object
+        written with ``v`` or ``v//vn`` corners beside ``v/vt`` ones); a row is all -1 or none.
     quad_split : (T,) int64 or None
         For every triangle, the 0-based index of the file polygon it was cut from; polygons
         are numbered 0, 1, 2, ... in file order and polygon ``(a,b,c,d,...)`` with n corners
@@ -76,7 +81,14 @@ class Mesh:
                 raise MeshFormatError(
                     f"uv_faces has shape {uv_faces.shape} but faces has shape {faces.shape}"
                 )
-            _check_range(uv_faces, len(uv), "uv", "uv coordinates")
+            untextured = uv_faces == NO_UV
+            partial = np.flatnonzero(untextured.any(axis=1) & ~untextured.all(axis=1))
+            if len(partial):
+                raise MeshFormatError(
+                    f"uv_faces row {partial[0]} is {uv_faces[partial[0]].tolist()}; a triangle "
+                    f"has uv at every corner or none ({NO_UV} at all three)"
+                )
+            _check_range(np.where(untextured, 0, uv_faces), len(uv), "uv", "uv coordinates")
         elif uv is not None and len(uv) != len(vertices):
             raise MeshFormatError(
                 f"uv has {len(uv)} rows but the mesh has {len(vertices)} vertices "
@@ -93,7 +105,7 @@ class Mesh:
 
     @property
     def corner_uv(self) -> np.ndarray | None:
-        """(T,3) int64 index into `uv` of every triangle corner, or None without uv."""
+        """(T,3) int64 index into `uv` of every triangle corner (-1 rows: no uv), or None."""
         if self.uv is None:
             return None
         return self.faces if self.uv_faces is None else self.uv_faces
@@ -107,7 +119,8 @@ class Mesh:
         """
         if self.uv_faces is None:
             return np.zeros(0, np.int64)
-        pairs = np.unique(np.stack([self.faces.ravel(), self.uv_faces.ravel()], axis=1), axis=0)
+        pairs = np.stack([self.faces.ravel(), self.uv_faces.ravel()], axis=1)
+        pairs = np.unique(pairs[pairs[:, 1] != NO_UV], axis=0)
         per_vertex = np.bincount(pairs[:, 0], minlength=len(self.vertices))
         return np.flatnonzero(per_vertex > 1)
 
@@ -270,9 +283,15 @@ def mesh_from_polygons(
     )
 
 
-def size_runs(sizes: np.ndarray):
-    """Yield (first polygon, end polygon, first corner, size) of runs of equal-size polygons."""
-    bounds = np.r_[0, np.flatnonzero(np.diff(sizes)) + 1, len(sizes)]
+def size_runs(sizes: np.ndarray, keys: np.ndarray | None = None):
+    """Yield (first polygon, end polygon, first corner, size) of runs of equal-size polygons.
+
+    With ``keys`` ((P,) values), a run also ends where the key changes (e.g. textured or not).
+    """
+    change = np.diff(sizes) != 0
+    if keys is not None:
+        change |= np.diff(keys) != 0
+    bounds = np.r_[0, np.flatnonzero(change) + 1, len(sizes)]
     offsets = np.cumsum(sizes) - sizes
     for start, end in zip(bounds[:-1], bounds[1:]):
         yield int(start), int(end), int(offsets[start]), int(sizes[start])

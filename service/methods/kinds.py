@@ -28,8 +28,14 @@ from service.methods.inputs import ActorData, Clip, Progress
 from service.methods.outputs import OUTPUTS
 from service.methods.pdm.model import PdmModel, train as pdm_train
 from service.methods.pdm.params import PdmParams
+from service.methods.pose_space.model import OUTPUTS as POSE_SPACE_OUTPUTS
+from service.methods.pose_space.model import PoseSpaceModel, train as pose_space_train
+from service.methods.pose_space.params import PsdParams, WpsdParams
 from service.methods.shape_space.model import ShapeSpaceModel, train as shape_space_train
 from service.methods.shape_space.params import ShapeSpaceParams
+from service.methods.stress_blend.model import OUTPUTS as STRESS_BLEND_OUTPUTS
+from service.methods.stress_blend.model import StressBlendModel, train as stress_blend_train
+from service.methods.stress_blend.params import StressBlendParams
 
 
 class TrainedModel(Protocol):
@@ -121,8 +127,58 @@ SHAPE_SPACE_KIND = Kind(
     load=ShapeSpaceModel.load,
 )
 
+_BICKEL2008 = ("(Bickel, Lang, Botsch, Otaduy, Gross: 'Pose-space animation and transfer of "
+               "facial details', SCA 2008). Input: motion-capture markers; a linear thin shell "
+               "gives the large scale and radial basis functions over marker-edge strains "
+               "add each example's fine-scale correction in local tangent frames; with "
+               "training maps the detail below the mesh is learned per texel the same way. "
+               "Output: meshes, displacement and normal maps, a per-frame confidence.")
+
+PSD_KIND = Kind(
+    name="psd",
+    title="Pose-space deformation of facial details (Bickel et al. 2008, §5.2)",
+    description="Global pose-space deformation: one feature distance per example pose "
+                + _BICKEL2008,
+    params=PsdParams,
+    input="markers",
+    outputs=POSE_SPACE_OUTPUTS,
+    train=pose_space_train,
+    load=PoseSpaceModel.load,
+)
+
+WPSD_KIND = Kind(
+    name="wpsd",
+    title="Weighted pose-space deformation of facial details (Bickel et al. 2008, §5.3)",
+    description="Weighted pose-space deformation: per-vertex weighted feature distances, "
+                "local control with the examples' full detail " + _BICKEL2008,
+    params=WpsdParams,
+    input="markers",
+    outputs=POSE_SPACE_OUTPUTS,
+    train=pose_space_train,
+    load=PoseSpaceModel.load,
+)
+
+STRESS_BLEND_KIND = Kind(
+    name="stress_blend",
+    title="Stress-driven blending of expression maps (Digital Ira, real-time rendering)",
+    description=(
+        "Blends the maps of the actor's expression scans per texel with weights from the "
+        "similarity of each vertex's surface stress (Green strain of the deformation "
+        "gradients) to each scan's, as the real-time renderer of Digital Ira blends its "
+        "scans' maps by surface stress ('Digital Ira and Beyond: Creating Photoreal Real-Time "
+        "Digital Characters', SIGGRAPH 2014 course, 'Real-Time Rendering'). Input: meshes on the "
+        "actor's topology (/enhance); output: blended displacement, albedo and normal maps "
+        "and the per-region wrinkle-map weights an engine plays back."),
+    params=StressBlendParams,
+    input="meshes",
+    outputs=tuple(o for o in STRESS_BLEND_OUTPUTS if o in OUTPUTS),
+    train=stress_blend_train,
+    load=StressBlendModel.load,
+)
+
 #: every model kind the service knows, by name
-KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND, SHAPE_SPACE_KIND)}
+KINDS: dict[str, Kind] = {k.name: k for k in (PDM_KIND, PSD_KIND, WPSD_KIND, SHAPE_SPACE_KIND,
+                                              STRESS_BLEND_KIND)}
 
 
 def get_kind(name: str) -> Kind:

@@ -16,6 +16,12 @@
                                (linear RGB, float16 as in a half EXR); map_frames (f,)
                                (the database performance has maps at every frame up to
                                level 1; at level 2 it has no maps and no vertices_medium)
+    performances/<base>_noisy.npz, performances/<base>_occluded.npz
+                               for every base in VARIANT_BASES: the base performance's
+                               arrays with noisy (σ 0.3 mm) or occluded (NaN bursts)
+                               markers, the clean ones beside them as markers_clean
+                               (service.samples.capture_noise); the manifest's entry names
+                               its base and variant
     tracking/...               cameras and rendered images (see service.samples.render)
 
 Deterministic per seed: every random choice draws from ``np.random.default_rng([seed, …])``.
@@ -38,7 +44,7 @@ from service.geometry.normals import vertex_normals
 from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
 from service.io.atomic import atomic_open, sha256_file, write_bytes, write_npz
 from service.io.markers import write_marker_layout
-from service.samples import detail, performances
+from service.samples import capture_noise, detail, performances
 from service.samples.markers import MarkerLayout, place_markers
 from service.samples.render import write_tracking_data
 from service.samples.rig import IctRig, load_ict_rig
@@ -51,6 +57,7 @@ DATABASE_MAPS_MAX_LEVEL = 1         # the database performance has maps up to th
 TRACKING_STATIC = ("train_brow_raise", "train_smile", "train_brow_furrow")  # + neutral
 TRACKING_FRAMES = 30                # frames (1 s) of the held-out performance rendered per camera
 MAP_RESOLUTION = {0: 512, 1: 1024, 2: 2048}
+VARIANT_BASES = ("heldout_in_range", "heldout_combinations", "heldout_amplified")
 WORKERS = min(4, os.cpu_count() or 1)   # threads for per-frame maps and camera images
 
 
@@ -294,19 +301,26 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
     perfs = (performances.training_clips(names, seed)
              + [performances.heldout_in_range(names, seed),
                 performances.heldout_out_of_range(names, seed),
+                performances.heldout_combinations(names, seed),
+                performances.heldout_amplified(names, seed),
                 performances.database_performance(names, seed)])
+    variants = {capture_noise.variant_name(b, v): (b, v)
+                for b in VARIANT_BASES for v in capture_noise.VARIANTS}
+    wanted = {p.name for p in perfs} | set(variants)
     if performance_names is not None:
-        unknown = set(performance_names) - {p.name for p in perfs}
+        unknown = set(performance_names) - wanted
         if unknown:
-            raise ValueError(f"unknown performances {sorted(unknown)}; "
-                             f"known: {[p.name for p in perfs]}")
-        perfs = [p for p in perfs if p.name in performance_names]
+            raise ValueError(f"unknown performances {sorted(unknown)}; known: {sorted(wanted)}")
+        wanted = set(performance_names)
+        perfs = [p for p in perfs if p.name in wanted
+                 or any(variants[v][0] == p.name for v in wanted & set(variants))]
         with_tracking = with_tracking and {"heldout_in_range", *TRACKING_STATIC} <= set(performance_names)
     if database_maps is None:
         database_maps = level <= DATABASE_MAPS_MAX_LEVEL
     total = sum(p.frames for p in perfs)
     done = 0
     static, tracked = {}, None
+    written: dict[str, dict] = {}
     for perf in perfs:
         report(0.05 + 0.85 * done / total, f"performance {perf.name}")
         if perf.kind == "training" or (perf.kind == "database" and database_maps):
@@ -329,9 +343,22 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
             tracked = (arrays["vertices"][:TRACKING_FRAMES], albedo)
         if perf.kind == "database" and not database_maps:
             del arrays["vertices_medium"]
-        name = f"performances/{perf.name}.npz"
-        record(name, write_npz(out / name, arrays), kind=perf.kind, frames=perf.frames,
-               map_frames=len(map_frames))
+        entries = []
+        if perf.name in wanted:
+            entries.append((perf.name, arrays, {}))
+        if perf.name in VARIANT_BASES:
+            made = capture_noise.marker_variants(arrays["markers"], perf.fps, 1.0, seed,
+                                                 capture_noise.variant_salt(perf.name))
+            entries += [(capture_noise.variant_name(perf.name, v),
+                         capture_noise.variant_arrays(arrays, made[v]["markers"]),
+                         {**made[v]["info"], "base": perf.name})
+                        for v in capture_noise.VARIANTS
+                        if capture_noise.variant_name(perf.name, v) in wanted]
+        for stem, data, info in entries:
+            name = f"performances/{stem}.npz"
+            record(name, write_npz(out / name, data), kind=perf.kind, frames=perf.frames,
+                   map_frames=len(map_frames), **info)
+            written[stem] = {"kind": perf.kind, "frames": perf.frames, **info}
         done += perf.frames
 
     if with_tracking:
@@ -356,7 +383,7 @@ def build_sample_actor(out: str | Path, seed: int = 1, level: int = 1,
         "identity": identity_coefficients(seed).round(6).tolist(),
         "wrinkle_sites": [s.name for s in actor.sites],
         "expression_names": list(names),
-        "performances": {p.name: {"kind": p.kind, "frames": p.frames} for p in perfs},
+        "performances": written,
         "files": files,
         "build_seconds": round(time.perf_counter() - t0, 1),
         "source": "ICT-FaceKit Face Model Light (MIT), service/samples/data/LICENSE",

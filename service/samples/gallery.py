@@ -14,6 +14,7 @@ wrote and writes three PNGs:
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -89,10 +90,12 @@ def write_gallery(actor_dir: str | Path, out_dir: str | Path) -> list[Path]:
     paths = [out / "shaded.png"]
     write_png(paths[-1], np.concatenate(rows, axis=0))
 
-    # close-up centres: UV of the vertex nearest a landmark-relative point (the rig's
-    # vertices come first in the subdivided mesh, so rig landmark ids index V too)
+    # close-up centres: UV of the vertex nearest a landmark-relative point (in family a the
+    # rig's vertices come first in the subdivided mesh, so rig landmark ids index V too;
+    # other families keep the rig's neutral in rig_vertices)
     V = neutral["vertices"]
-    lm = V[load_ict_rig().landmarks68]
+    manifest = json.loads((actor / "manifest.json").read_text()) if (actor / "manifest.json").is_file() else {}
+    lm = (V if manifest.get("family", "a") == "a" else neutral["rig_vertices"])[load_ict_rig().landmarks68]
     corner_uv = np.zeros((len(V), 2))
     corner_uv[faces.ravel()] = uv[uv_faces.ravel()]
 

@@ -5,6 +5,12 @@
 * a held-out in-range performance: new combinations and asymmetric expressions, every
   weight within the training amplitudes;
 * a held-out out-of-range performance: 20–40 % beyond the training amplitudes;
+* held-out performances that need generalization: combinations no training clip shows
+  (``heldout_combinations``: an asymmetric smile with one brow raised, pucker with the jaw
+  open, squint with sneer, …, every weight within the training amplitudes) and every
+  training expression amplified 25–40 % beyond its training amplitude
+  (``heldout_amplified``); their noisy and occluded marker variants are made by
+  :mod:`service.samples.capture_noise`;
 * a long database performance (600+ frames) for shape-space methods (bermano2014 §4.1).
 
 Every performance carries a small, smooth rigid head motion (rotation about a pivot in
@@ -70,6 +76,34 @@ OUT_OF_RANGE_KEYS: list[dict[str, float]] = [
     {"eyeSquint_L": 1.3, "eyeSquint_R": 1.3, "cheekSquint_L": 1.1, "cheekSquint_R": 1.1},
     {},
 ]
+
+
+# held-out combinations no training clip shows (each weight within the training amplitudes)
+COMBINATION_KEYS: list[dict[str, float]] = [
+    {},
+    # asymmetric smile with the opposite brow raised
+    {"mouthSmile_L": 0.9, "cheekSquint_L": 0.6, "browInnerUp_R": 0.8, "browOuterUp_R": 0.8},
+    # pucker with the jaw open
+    {"mouthPucker": 0.9, "mouthFunnel": 0.3, "jawOpen": 0.55},
+    {},
+    # squint with sneer
+    {"eyeSquint_L": 0.9, "eyeSquint_R": 0.9, "cheekSquint_L": 0.6, "cheekSquint_R": 0.6,
+     "noseSneer_L": 0.9, "noseSneer_R": 0.9, "mouthUpperUp_L": 0.5, "mouthUpperUp_R": 0.5},
+    # laugh: smile with the jaw open
+    {"mouthSmile_L": 0.85, "mouthSmile_R": 0.85, "cheekSquint_L": 0.5, "cheekSquint_R": 0.5,
+     "jawOpen": 0.6},
+    {},
+    # brow furrow with pucker
+    {"browDown_L": 0.9, "browDown_R": 0.9, "mouthPucker": 0.8},
+    # one-sided sneer with the other brow raised
+    {"noseSneer_R": 0.9, "mouthUpperUp_R": 0.5, "browInnerUp_L": 0.9, "browOuterUp_L": 0.8},
+    {},
+]
+
+# training expressions amplified beyond their training amplitudes (factor drawn per key)
+AMPLIFIED_EXPRESSIONS = ("brow_raise", "smile", "brow_furrow", "squint", "sneer", "surprise",
+                         "chin_raise")
+AMPLIFY_RANGE = (1.25, 1.40)
 
 
 @dataclass(frozen=True)
@@ -193,6 +227,29 @@ def heldout_out_of_range(names: tuple[str, ...], seed: int) -> Performance:
     """Expressions 20–40 % beyond the training amplitudes."""
     rng = np.random.default_rng([seed, 0x0A])
     return _keyed_performance(names, OUT_OF_RANGE_KEYS, "heldout_out_of_range",
+                              "heldout_out_of_range", rng, (12, 18))
+
+
+def heldout_combinations(names: tuple[str, ...], seed: int) -> Performance:
+    """Combinations no training clip shows (COMBINATION_KEYS), within the training amplitudes."""
+    rng = np.random.default_rng([seed, 0xC0])
+    return _keyed_performance(names, COMBINATION_KEYS, "heldout_combinations",
+                              "heldout_combinations", rng, (12, 18))
+
+
+def amplified_keys(seed: int) -> list[dict[str, float]]:
+    """Keyframes: each of AMPLIFIED_EXPRESSIONS × a seeded factor in AMPLIFY_RANGE, neutral at the ends."""
+    rng = np.random.default_rng([seed, 0xA3])
+    factor = rng.uniform(*AMPLIFY_RANGE, size=len(AMPLIFIED_EXPRESSIONS))
+    keys = [{k: v * f for k, v in TRAINING_EXPRESSIONS[name].items()}
+            for name, f in zip(AMPLIFIED_EXPRESSIONS, factor)]
+    return [{}, *keys, {}]
+
+
+def heldout_amplified(names: tuple[str, ...], seed: int) -> Performance:
+    """Every AMPLIFIED_EXPRESSIONS entry 25–40 % beyond its training amplitude, one after another."""
+    rng = np.random.default_rng([seed, 0xA4])
+    return _keyed_performance(names, amplified_keys(seed), "heldout_amplified",
                               "heldout_out_of_range", rng, (12, 18))
 
 

@@ -156,3 +156,39 @@ def test_corrupted_exr_files_raise_only_map_format_errors():
                 read_exr(bytes(corrupted))
             except (MapFormatError, SizeLimitError):
                 pass
+
+
+def test_deep_exr_is_refused_as_not_supported(tmp_path):
+    """A deep scanline image (a varying number of samples per pixel), written by OpenEXR."""
+    depth = np.empty((4, 5), dtype=object)
+    for i, j in np.ndindex(depth.shape):
+        depth[i, j] = np.arange(1 + (i + j) % 3, dtype=np.float32)
+    header = {"type": OpenEXR.deepscanline, "compression": OpenEXR.ZIPS_COMPRESSION}
+    OpenEXR.File(header, {"Z": depth}).write(str(tmp_path / "deep.exr"))
+    with pytest.raises(MapFormatError, match="deep EXR is not supported"):
+        read_exr(tmp_path / "deep.exr")
+
+
+def test_header_string_that_is_not_utf8_is_a_map_format_error():
+    buffer = io.BytesIO()
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "owner": "facesynth-owner"}
+    OpenEXR.File(header, {"Y": np.ones((3, 4), np.float32)}).write(buffer)
+    data = buffer.getvalue()
+    assert data.count(b"facesynth-owner") == 1
+    damaged = data.replace(b"facesynth-owner", b"\xff\xfe\xfd" * 5)
+    with pytest.raises(MapFormatError, match="not a readable EXR file"):
+        read_exr(damaged)
+
+
+def test_damage_the_library_reports_is_a_map_format_error_and_nothing_is_printed(capfd):
+    buffer = io.BytesIO()
+    write_exr(buffer, {"Y": _awkward_floats((32, 8), 3)}, compression="none")
+    data = buffer.getvalue()
+    damaged = data[:-40] + bytes(40)  # the last scanline chunk's leader and pixels zeroed
+    capfd.readouterr()
+    with pytest.raises(MapFormatError, match="EXR file is damaged|not a readable EXR file"):
+        read_exr(damaged)
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    assert read_exr(data)["Y"].shape == (32, 8)  # the intact file still reads, printing nothing
+    assert capfd.readouterr() == ("", "")

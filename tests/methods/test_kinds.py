@@ -7,6 +7,7 @@ from pydantic import ValidationError
 
 from service.methods import kinds
 from service.methods.inputs import InvalidInput
+from service.methods.outputs import OUTPUTS
 from service.methods.pdm.params import PdmParams
 from service.methods.shape_space.params import ShapeSpaceParams
 
@@ -46,8 +47,8 @@ def test_pdm_schema_documents_every_parameter_and_the_patent():
 
 
 def test_unknown_kind_names_the_known_ones():
-    with pytest.raises(InvalidInput, match="unknown model kind 'psd'; known kinds: pdm, shape_space"):
-        kinds.get_kind("psd")
+    with pytest.raises(InvalidInput, match="unknown model kind 'tracking'; known kinds: pdm, psd, shape_space, stress_blend, wpsd"):
+        kinds.get_kind("tracking")
 
 
 def test_shape_space_parameter_defaults_mirror_the_method():
@@ -91,3 +92,20 @@ def test_shape_space_schema_documents_every_parameter():
         assert prop.get("description") and "examples" in prop, name
     assert schema["properties"]["patch_size"]["minimum"] == 3
     assert set(schema["properties"]) == set(ShapeSpaceParams().model_dump())
+
+
+@pytest.mark.parametrize("name", sorted(kinds.KINDS))
+def test_every_kind_documents_its_parameters_and_outputs(name):
+    kind = kinds.get_kind(name)
+    schema = kind.params.model_json_schema()
+    assert schema["additionalProperties"] is False
+    assert all(prop.get("description") for prop in schema["properties"].values())
+    assert set(kind.outputs) <= set(OUTPUTS) and "mesh" in kind.outputs
+    assert kind.parse_params(None) == kind.params()
+
+
+def test_pose_space_kinds_train_their_own_method():
+    assert kinds.get_kind("psd").parse_params({"fit": "exact"}).method == "psd"
+    assert kinds.get_kind("wpsd").parse_params(None).method == "wpsd"
+    with pytest.raises(ValidationError):
+        kinds.get_kind("psd").parse_params({"alpha_threshold": 0.1})   # a WPSD parameter

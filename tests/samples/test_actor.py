@@ -125,3 +125,18 @@ def test_gallery_shows_detail_only_away_from_neutral(tmp_path):
     changed = [np.mean(np.abs(panel(detail, k) - panel(plain, k)).max(axis=-1) > 2) for k in range(1, 5)]
     assert min(changed) > 0.0008
     assert Image.open(maps).size == (5 * 512, 2 * 512) and Image.open(albedo).size == (3 * 512, 2 * 512)
+
+
+def test_marker_variants_keep_the_truth_and_are_written_only_when_asked(tmp_path):
+    m = build_sample_actor(tmp_path / "v", seed=1, level=0, with_tracking=False, map_resolution=64,
+                           performance_names=("heldout_amplified_occluded",))
+    assert list(m["performances"]) == ["heldout_amplified_occluded"]          # the base is not written
+    info = m["performances"]["heldout_amplified_occluded"]
+    assert info["base"] == "heldout_amplified" and info["kind"] == "heldout_out_of_range"
+    with np.load(tmp_path / "v" / "performances/heldout_amplified_occluded.npz") as d:
+        missing = np.isnan(d["markers"]).all(axis=-1)
+        assert np.array_equal(missing, np.isnan(d["markers"]).any(axis=-1))   # whole markers go missing
+        np.testing.assert_allclose(missing.mean(), info["occluded_fraction"], atol=1e-4)
+        assert not np.isnan(d["markers_clean"]).any()
+        np.testing.assert_array_equal(d["markers"][~missing], d["markers_clean"][~missing])
+        assert np.all(np.diff(d["map_frames"]) == 5) and d["weights"].max() > 1.25

@@ -30,13 +30,20 @@ def requirement_name(requirement: str) -> str:
     return normalize(re.split(r"[\s<>=!~;\[(]", requirement, maxsplit=1)[0])
 
 
+def base_requirements(requires: list[str]) -> list[str]:
+    """The requirements of a plain install: those of optional extras (``; extra == ...``,
+    e.g. ``facesynth-client[grpc]``) left out."""
+    return [r for r in requires if not re.search(r";.*\bextra\s*==", r)]
+
+
 def metadata_requires() -> list[str]:
-    """``Requires-Dist`` of the installed SDK's metadata (what pip wrote from its wheel), or
-    the static ``[project] dependencies`` they are made from if it is not installed."""
+    """``Requires-Dist`` of the installed SDK's metadata (what pip wrote from its wheel) for a
+    plain install (no extras), or the static ``[project] dependencies`` they are made from if
+    it is not installed."""
     from importlib import metadata
 
     try:
-        return list(metadata.requires("facesynth-client") or [])
+        return base_requirements(list(metadata.requires("facesynth-client") or []))
     except metadata.PackageNotFoundError:
         import tomllib
 
@@ -63,8 +70,8 @@ def test_pip_install_in_a_fresh_venv_pulls_no_server_dependencies(tmp_path):
     names = {normalize(item["metadata"]["name"]) for item in installs}
     sdk = next(item for item in installs
                if normalize(item["metadata"]["name"]) == "facesynth-client")
-    assert sorted(map(requirement_name, sdk["metadata"].get("requires_dist", []))) == [
-        "httpx", "numpy"]
+    assert sorted(map(requirement_name, base_requirements(
+        sdk["metadata"].get("requires_dist", [])))) == ["httpx", "numpy"]
     assert not names & SERVER, names & SERVER
     assert names <= ALLOWED, names - ALLOWED
 
@@ -82,3 +89,12 @@ def test_importing_the_sdk_imports_no_server_code():
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                          text=True, timeout=60).stdout.strip()
     assert out == ""
+
+
+def test_the_grpc_extra_is_grpcio_and_protobuf_only():
+    import tomllib
+
+    project = tomllib.loads((CLIENT_DIR / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"]
+    assert sorted(extras) == ["grpc"]
+    assert sorted(map(requirement_name, extras["grpc"])) == ["grpcio", "protobuf"]

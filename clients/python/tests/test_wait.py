@@ -225,3 +225,17 @@ def test_an_exception_in_the_progress_callback_propagates_and_is_not_a_stream_fa
     with pytest.raises(ValueError, match="my bug"):
         fake(handler).wait("job_1", progress=callback)
     assert calls == {"events": 1, "polls": 0}
+
+
+def test_off_a_terminal_wait_progress_is_plain_lines(capsys):
+    from types import SimpleNamespace
+
+    from facesynth_client._progress import make_reporter
+
+    report, close = make_reporter(True, "job_1")       # pytest's stderr is not a terminal
+    for k in range(21):
+        report(SimpleNamespace(progress=k / 20, stage="fit", status="running"))
+    close()
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    assert err.splitlines() == [f"job_1 {p:3d}% fit" for p in range(0, 101, 10)]

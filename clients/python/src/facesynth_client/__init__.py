@@ -6,6 +6,10 @@ asynchronous; both mirror the API's resources (``client.actors``, ``client.clips
 ``client.artifacts``, ``client.tracking``) and return small dataclasses
 (:class:`Actor`, :class:`Model`, :class:`Job`, ...) or dicts of NumPy arrays.
 
+The real-time gRPC stream (``facesynth.v1.Synthesis/StreamSynthesize``) is the optional
+extra ``facesynth-client[grpc]``: :class:`StreamingClient` and :class:`AsyncStreamingClient`
+of :mod:`facesynth_client.streaming`, imported (with grpcio) only when first used.
+
 Examples
 --------
 >>> from facesynth_client import Client
@@ -37,4 +41,16 @@ __all__ = [
     "MethodNotAllowed", "NotAcceptable", "Conflict", "PayloadTooLarge", "UnsupportedMediaType",
     "RangeNotSatisfiable", "Unprocessable", "ServerError", "Overloaded", "TransportError",
     "JobError", "JobFailed", "JobCancelled", "WaitTimeout", "IntegrityError",
+    "StreamingClient", "AsyncStreamingClient",
 ]
+
+#: names served by the optional gRPC extra (facesynth_client.streaming), imported on first use
+_STREAMING = ("StreamingClient", "AsyncStreamingClient")
+
+
+def __getattr__(name: str):
+    if name in _STREAMING:
+        from . import streaming
+
+        return getattr(streaming, name)
+    raise AttributeError(f"module 'facesynth_client' has no attribute {name!r}")

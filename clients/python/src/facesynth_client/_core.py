@@ -18,6 +18,7 @@ resumable downloads live here.
 
 from __future__ import annotations
 
+import dataclasses
 import email.utils
 import hashlib
 import json as jsonlib
@@ -301,6 +302,28 @@ class Core:
         response = yield from self.send(call)
         body = response.json() if response.content else None
         return parse(body) if parse is not None else body
+
+    def call_items(self, call: Call, parse: Callable[[Any], Any]) -> Op:
+        """A listing's items (``{"items": [...]}``), each parsed by ``parse``, from every page.
+
+        A server that pages a listing answers with a ``next_cursor``; it is sent back as
+        ``cursor`` until the server gives none. A listing without ``next_cursor`` is one
+        page, so servers that page and servers that do not are both read whole.
+        """
+        params = dict(call.params or {})
+        out: list = []
+        seen: set[str] = set()
+        while True:
+            body = yield from self.call_json(dataclasses.replace(call, params=params))
+            out.extend(parse(item) for item in body["items"])
+            cursor = body.get("next_cursor")
+            if not cursor:
+                return out
+            if cursor in seen:
+                raise errors.TransportError(f"{call.method} {call.path}: the server repeated "
+                                            f"the page cursor {cursor!r}")
+            seen.add(cursor)
+            params = {**params, "cursor": cursor}
 
     def call_bytes(self, call: Call) -> Op:
         response = yield from self.send(call)

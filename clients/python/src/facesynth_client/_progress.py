@@ -1,5 +1,6 @@
-"""A progress display for :meth:`Client.wait`: tqdm when it is importable, else a tiny
-text bar on stderr (tqdm is not a dependency)."""
+"""A progress display for :meth:`Client.wait`: on a terminal tqdm when it is importable,
+else a tiny text bar on stderr (tqdm is not a dependency); off a terminal (a log file, CI) a
+plain line every :data:`LINE_STEP` of progress and at each stage, never a redrawn bar."""
 
 from __future__ import annotations
 
@@ -31,6 +32,39 @@ class TextBar:
             self.stream.flush()
 
 
+#: progress between two plain lines off a terminal
+LINE_STEP = 0.1
+
+
+class LineBar:
+    """``job_01…  42% fine band`` as a new line when the stage changes or the progress has
+    advanced by :data:`LINE_STEP` (for logs: no carriage returns)."""
+
+    def __init__(self, label: str, stream: TextIO | None = None):
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self._last: tuple[float, str] | None = None
+
+    def update(self, fraction: float, stage: str) -> None:
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        last = self._last
+        if last is None or stage != last[1] or fraction - last[0] >= LINE_STEP - 1e-9 or (
+                fraction >= 1.0 > last[0]):
+            self.stream.write(f"{self.label} {fraction * 100:3.0f}% {stage}\n")
+            self.stream.flush()
+            self._last = (fraction, stage)
+
+    def close(self) -> None:
+        pass
+
+
+def _is_terminal(stream: TextIO) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
 class TqdmBar:
     """The same interface on a ``tqdm`` bar (total 100)."""
 
@@ -57,9 +91,12 @@ def make_reporter(progress: Any, label: str) -> tuple[Callable[[Any], None], Cal
         return progress, lambda: None
     if not progress:
         return (lambda job: None), (lambda: None)
+    if not _is_terminal(sys.stderr):
+        bar: Any = LineBar(label)
+        return (lambda job: bar.update(job.progress, job.stage or job.status)), bar.close
     try:
         from tqdm import tqdm  # optional: used only if already installed
-        bar: Any = TqdmBar(label, tqdm)
+        bar = TqdmBar(label, tqdm)
     except Exception:
         bar = TextBar(label)
     return (lambda job: bar.update(job.progress, job.stage or job.status)), bar.close

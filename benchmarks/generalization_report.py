@@ -1,0 +1,283 @@
+"""Generalization report (issue 17): every method on both actor families, beyond the training data.
+
+For each actor family (a: ``service.samples.actor``; b: ``service.samples.family_b``, an
+independent generator) × {in range, combinations, out of range} × {clean, noisy, occluded}
+markers, the held-out map frames (``--frames`` of them, evenly spaced between the ends) are
+synthesized by
+
+* *no detail*: the thin shell of the detailed neutral (``pdm_report.Baselines.no_detail``);
+* *static neutral map*: the same plus a neutral training frame's fine map (ma2008 Fig. 7);
+* *nearest training frame*: the training frame with the nearest aligned markers, its detail
+  moved onto the thin shell (the honest non-parametric reference row);
+* *PDM linear* and *PDM biquadratic* (ma2008 eq. 1), trained on the family's ``train_*``
+  clips, with their extrapolation limit;
+* *shape space (markers)* and, on clean rows, *shape space (rig)*: bermano2014 trained on the
+  family's ``database`` performance, given the markers, or the low-resolution rig meshes
+  carried to the neutral by the rig registration (the rig input has no markers to corrupt).
+
+Performances: ``heldout_in_range``, ``heldout_combinations`` (combinations no training clip
+shows) and ``heldout_amplified`` (every training expression 25–40 % beyond its peak), and
+their ``_noisy`` (σ = 0.3 mm per coordinate) and ``_occluded`` (NaN bursts) marker variants,
+scored against the same clean ground truth.
+
+Metrics are those of ``pdm_report.py`` (:func:`pdm_report.evaluate_performance`, face
+region): vertex error |V − V_gt| pooled over frames and face vertices — mean, p95 and max —
+and the high-passed detail height (mesh + map) against the ground truth's: Pearson r
+(*detail corr*) and *rel err* = RMS error / RMS of the ground truth's detail (0 perfect,
+1 no better than no detail).
+
+Also writes, per family, a heat map PNG of the vertex errors of every method on the worst
+frame (the largest PDM-biquadratic vertex error over all rows).
+
+Models are cached: the PDM under ``benchmarks/out/generalization/models/`` and the
+shape-space model and rig registration in shape_space_report's cache, all keyed by the
+actor's files. A method that fails on an input (e.g. occluded markers) gets a row saying so.
+
+Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
+[--frames K] [--retrain]``; default actors (built when missing, seed 1, level 0):
+``benchmarks/out/generalization/actor-{a,b}-l0``. Writes the table to stdout and
+``benchmarks/out/generalization/report.md``, figures beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers)
+import shape_space_report as ss  # noqa: E402  (cached shape-space model, rig registration)
+
+OUT = ROOT / "benchmarks" / "out" / "generalization"
+MODELS = OUT / "models"
+RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations",
+          "out of range": "heldout_amplified"}
+CONDITIONS = {"clean": "", "noisy": "_noisy", "occluded": "_occluded"}
+ORDERS = ("linear", "biquadratic")
+DEFAULT_FRAMES = 8
+SS_MARKERS, SS_RIG = "shape space (markers)", "shape space (rig)"
+WORST_OF = "PDM biquadratic"
+HEAT_MM = 2.0                     # heat-map colour range, mm
+
+
+def ensure_actor(family: str, actor_dir: Path) -> None:
+    """Build a level-0, seed-1 actor of ``family`` into ``actor_dir`` unless it is there."""
+    if (actor_dir / "manifest.json").is_file():
+        return
+    print(f"building family {family} (level 0) into {actor_dir}", file=sys.stderr)
+    if family == "a":
+        from service.samples.actor import build_sample_actor
+
+        build_sample_actor(actor_dir, seed=1, level=0, with_tracking=False)
+    else:
+        from service.samples.family_b.actor import build_family_b
+
+        build_family_b(actor_dir, seed=1, level=0, with_tracking=False)
+
+
+def pdm_models(actor_dir: Path, retrain: bool) -> dict:
+    """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached)."""
+    from service.methods.pdm.model import PdmModel
+    from service.samples.dataset import performance_names
+
+    files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
+    key = ss.actor_files_key(actor_dir, *files)
+    models = {}
+    for order in ORDERS:
+        model_dir = MODELS / f"pdm_{order}-{key}"
+        if retrain or not (model_dir / "manifest.json").is_file():
+            print(f"  training PDM {order} (fresh process) ...", file=sys.stderr)
+            pdm.pdm_in_fresh_process(actor_dir, order, model_dir)
+        models[order] = PdmModel.load(model_dir)
+    return models
+
+
+def _variant_markers(actor_dir: Path, name: str, frames: np.ndarray) -> np.ndarray:
+    with np.load(actor_dir / "performances" / f"{name}.npz") as d:
+        return d["markers"][frames].astype(np.float64)
+
+
+def _guard(method):
+    """A method whose failure on an input becomes a row (the message) instead of ending the run."""
+    def run(markers):
+        try:
+            return method(markers)
+        except Exception as e:          # noqa: BLE001  (any refusal is a finding to report)
+            raise MethodFailed(f"{type(e).__name__}: {str(e)[:120]}") from e
+    return run
+
+
+class MethodFailed(Exception):
+    pass
+
+
+def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool) -> dict:
+    """Rows {(range, condition, method): metrics} and the worst frame's data of one family."""
+    from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
+    from service.samples.dataset import load_actor
+
+    actor = load_actor(actor_dir)
+    models = pdm_models(actor_dir, retrain)
+    bq = models["biquadratic"]
+    tex = pdm.DetailTexels.build(actor, bq.fine.resolution, bq.metrics["highpass_sigma_texels"])
+    clips = pdm.training_clips(actor_dir, actor)
+    base = pdm.Baselines.build(actor, clips, bq, tex)
+    del clips
+    ss_dir, _ = ss.shape_space_model(actor_dir, ShapeSpaceParams(), retrain)
+    shape = ShapeSpaceModel.load(ss_dir)
+    reg, _ = ss.rig_registration(actor_dir, retrain)
+
+    def shape_space(V_or_markers, kind):
+        out = shape.enhance(V_or_markers, ss.SS_OUTPUTS, input_kind=kind)
+        D = (np.stack([tex.texels(m) for m in out["fine_displacement"]])
+             if "fine_displacement" in out else None)
+        return out["vertices"].astype(np.float64), D, None
+
+    rows, worst = {}, None
+    for rname, perf in RANGES.items():
+        gt_clean = ss.heldout_frames(actor_dir, perf, frames)
+        with np.load(actor_dir / "performances" / f"{perf}.npz") as d:
+            lowres = d["lowres"][gt_clean.frames].astype(np.float64)
+        for cname, suffix in CONDITIONS.items():
+            gt = dataclasses.replace(gt_clean, name=perf + suffix,
+                                     markers=_variant_markers(actor_dir, perf + suffix, gt_clean.frames))
+            methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
+                       "nearest training frame": lambda m: base.nearest(m)[:3]}
+            methods.update({f"PDM {o}": (lambda m, model=model: pdm.pdm_prediction(model, m, tex))
+                            for o, model in models.items()})
+            methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
+            if cname == "clean":
+                methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
+            for name, method in methods.items():
+                t0 = time.perf_counter()
+                try:
+                    r = pdm.evaluate_performance(gt, {name: _guard(method)}, tex, actor, gt.frames.tolist())
+                except MethodFailed as e:
+                    rows[(rname, cname, name)] = {"failed": str(e)}
+                    print(f"  {family} {rname} {cname} {name}: failed ({e})", file=sys.stderr)
+                    continue
+                s = r["scores"][pdm.FACE][name]
+                errs = np.stack([r["figure"]["vertex_error"][(name, f)] for f in gt.frames])   # (k,n)
+                face_err = errs[:, np.asarray(actor.regions[pdm.FACE])]
+                rows[(rname, cname, name)] = {
+                    "mean": s["medium_mean_mm"], "p95": s["medium_p95_mm"], "max": float(face_err.max()),
+                    "corr": s["fine_r"], "rel": s["fine_rms_mm"] / r["signal_rms_mm"][pdm.FACE],
+                    "frames": len(gt.frames), "seconds": time.perf_counter() - t0}
+                if name == WORST_OF:
+                    k = int(np.argmax(face_err.max(axis=1)))
+                    if worst is None or face_err[k].max() > worst["max"]:
+                        worst = {"max": float(face_err[k].max()), "range": rname, "condition": cname,
+                                 "performance": gt.name, "frame": int(gt.frames[k]), "slot": k,
+                                 "gt": gt_clean.vertices[k], "markers": gt.markers[k:k + 1],
+                                 "lowres": lowres[k:k + 1]}
+    # the worst frame, every method
+    errors = {}
+    for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic", SS_MARKERS):
+        fn = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
+              "PDM linear": lambda m: pdm.pdm_prediction(models["linear"], m, tex),
+              "PDM biquadratic": lambda m: pdm.pdm_prediction(bq, m, tex),
+              SS_MARKERS: lambda m: shape_space(m, "markers")}[name]
+        try:
+            V = fn(worst["markers"])[0][0]
+            errors[name] = np.linalg.norm(V - worst["gt"], axis=-1)
+        except Exception as e:          # noqa: BLE001
+            print(f"  worst frame, {name}: failed ({e})", file=sys.stderr)
+    worst["errors"] = errors
+    return {"rows": rows, "worst": worst, "actor": actor,
+            "meta": {"vertices": actor.n_vertices, "markers": actor.n_markers}}
+
+
+def plot_worst(result: dict, family: str, path: Path) -> None:
+    """Vertex-error heat maps (0 … HEAT_MM) of every method on the family's worst frame."""
+    from service.samples.gallery import caption, front_camera
+    from service.samples.render import shade, to_srgb8, write_png
+
+    actor, worst = result["actor"], result["worst"]
+    cam = front_camera(worst["gt"], 420)
+    tiles = [caption(to_srgb8(shade(cam, worst["gt"], actor.faces, np.full((actor.n_vertices, 3), 0.6),
+                                    light_dir=(0.15, 1.0, 0.45), ambient=0.05)),
+                     f"family {family}: ground truth, {worst['performance']} frame {worst['frame']}")]
+    for name, err in worst["errors"].items():
+        t = np.clip(err / HEAT_MM, 0, 1)[:, None]
+        colour = np.where(t < 0.5, (1 - 2 * t) * np.array([0.1, 0.2, 0.8]) + 2 * t * np.array([0.95, 0.9, 0.2]),
+                          (2 - 2 * t) * np.array([0.95, 0.9, 0.2]) + (2 * t - 1) * np.array([0.8, 0.05, 0.05]))
+        img = shade(cam, worst["gt"], actor.faces, colour, light_dir=(0.0, 0.3, 1.0), ambient=0.6)
+        tiles.append(caption(to_srgb8(img), f"{name}: max {err[np.asarray(actor.regions[pdm.FACE])].max():.2f} mm "
+                                            f"(0-{HEAT_MM:g} mm)"))
+    write_png(path, np.concatenate(tiles, axis=1))
+
+
+def _n(x, d=3):
+    return "—" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{d}f}"
+
+
+def report(results: dict, frames: int | None, seconds: float) -> str:
+    lines = ["# Generalization report (issue 17)", "",
+             f"Face region; {frames or 'all'} held-out map frames per performance; "
+             "rel err = detail RMS error / detail RMS of the ground truth.", ""]
+    for family, res in results.items():
+        m = res["meta"]
+        w = res["worst"]
+        lines += [f"## Family {family} ({m['vertices']} vertices, {m['markers']} markers)", "",
+                  "| input | markers | method | mean mm | p95 mm | max mm | detail corr | detail rel err |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for (rname, cname, name), r in res["rows"].items():
+            if "failed" in r:
+                lines.append(f"| {rname} | {cname} | {name} | failed: {r['failed']} | | | | |")
+                continue
+            lines.append(f"| {rname} | {cname} | {name} | {_n(r['mean'])} | {_n(r['p95'])} | {_n(r['max'], 2)} "
+                         f"| {_n(r['corr'], 2)} | {_n(r['rel'], 2)} |")
+        lines += ["", f"Worst {WORST_OF} frame: {w['performance']} frame {w['frame']} "
+                      f"({w['range']}, {w['condition']}), max {w['max']:.2f} mm: "
+                      f"`benchmarks/out/generalization/worst_family_{family}.png`", ""]
+    lines.append(f"Total run {seconds:.0f} s on {os.cpu_count()} CPUs (load {os.getloadavg()[0]:.1f}).")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--actor", action="append", default=[], metavar="FAMILY=DIR",
+                        help="actor directory per family; only the families given are run "
+                             "(default: both, built under benchmarks/out/generalization)")
+    parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
+                        help=f"held-out map frames per performance (default {DEFAULT_FRAMES}; 0 = all)")
+    parser.add_argument("--retrain", action="store_true", help="rebuild the cached models")
+    args = parser.parse_args()
+    defaults = {"a": OUT / "actor-a-l0", "b": OUT / "actor-b-l0"}
+    actors = {} if args.actor else defaults
+    for item in args.actor:                      # given: only those families
+        family, _, path = item.partition("=")
+        if family not in defaults or not path:
+            parser.error(f"--actor wants a=DIR or b=DIR, got {item!r}")
+        actors[family] = Path(path)
+    t0 = time.perf_counter()
+    OUT.mkdir(parents=True, exist_ok=True)
+    MODELS.mkdir(parents=True, exist_ok=True)
+    ss.MODELS.mkdir(parents=True, exist_ok=True)
+    frames = args.frames or None
+    results = {}
+    for family, actor_dir in actors.items():
+        actor_dir = actor_dir.resolve()
+        ensure_actor(family, actor_dir)
+        print(f"family {family}: {actor_dir}", file=sys.stderr)
+        results[family] = evaluate_family(family, actor_dir, frames, args.retrain)
+        plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
+    text = report(results, frames, time.perf_counter() - t0)
+    print(text)
+    (OUT / "report.md").write_text(text)
+    (OUT / "report.json").write_text(json.dumps(
+        {f: {" / ".join(k): v for k, v in r["rows"].items()} for f, r in results.items()}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,607 @@
+"""Pose-space detail report (bickel2008 §6.1-6.2): Fig. 4 study, held-out accuracy against the
+thin shell, the nearest training frame and the PDM, transfer to a second identity, speed.
+
+Usage: ``python benchmarks/pose_space_report.py ACTOR_DIR [ACTOR_DIR ...] [--target DIR]
+[--quick] [--reuse]``. Every actor directory has the sample actor's layout (``neutral.npz``,
+``markers.json``, ``performances/train_*.npz`` and ``heldout_*.npz`` with map frames), so any
+actor family written that way can be reported. Output: ``benchmarks/out/pose_space/``
+(``report.md``, ``report.json``, figures, models under ``models/``).
+
+Per actor:
+
+* **Fig. 4 study** — a 100-frame training sequence (100 frames evenly spaced over the
+  ``train_*`` clips), the L2 (RMS) vertex error over the face region and the 100 frames, mm,
+  against the basis size P = 1…20, for: *global blend shapes* (the P basis poses' meshes
+  with convex weights matching the frame's features, §6.1: "our feature distance metric ...
+  to find a convex combination of blend shapes"), *locally controlled blend shapes* (the
+  basis meshes interpolated per vertex with the locally supported metric (3), §6.1), PSD and
+  WPSD, each with exact interpolation of the P poses and least squares over the 100 frames.
+  Basis poses by the greedy selection of §5.2 (λ = 0), per method and fit; the blend shapes
+  use the WPSD sequences. The thin shell (P = 0) is the reference line.
+* **held-out accuracy** — every ``heldout_*`` performance at its map frames, with clean
+  markers, noisy markers (Gaussian σ = 0.3 mm per coordinate, seeded) and occluded markers
+  (10 % of the markers of every frame set to NaN, seeded). Methods: *thin shell* (no
+  detail: the detailed neutral deformed to the markers), *nearest training frame* (its
+  correction and fine map on the held-out shell), *PDM* (biquadratic, defaults; fine band at the training maps' size), *PSD* and
+  *WPSD* (defaults: least squares, P = 12, smoothing by validation). Metrics exactly as
+  ``benchmarks/pdm_report.py`` (its ``DetailTexels``, ``Scores``): vertex error |V − V_gt|
+  over the face region (mean and max here), and the fine detail as high-passed detail
+  heights at the face texels (Pearson r; relative error = RMS error / RMS of the ground
+  truth's high-passed heights). Also the mean per-frame confidence of the pose-space models.
+* **transfer** (``--target``) — the WPSD model transferred (§5.4) to a second identity with
+  40 landmark pairs (farthest-point samples of the source's face vertices; both identities
+  come from one rig, so vertex i corresponds — only these 40 pairs are given, the dense
+  correspondence is computed), driven by the target's own markers, scored against the
+  target's ground truth beside the target's thin shell and a WPSD trained on the target.
+* **speed** (2 cores) — per-frame synthesis at the actor's level with P = 6 and P = 20
+  (``mesh``: large scale + fine scale + tangent frames; and with the displacement map),
+  against scipy's ``RBFInterpolator`` doing the same interpolation in the same run (for PSD
+  one interpolator over all 3n values; for WPSD one per vertex, timed on a vertex sample and
+  scaled to n), training time, and stored floats/ints per vertex.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+OUT = ROOT / "benchmarks" / "out" / "pose_space"
+
+import harness as pr  # noqa: E402  (the reports' shared data, metric and baselines)
+
+FIG4_FRAMES = 100
+FIG4_MAX_P = 20
+NOISE_MM = 0.3
+OCCLUDED_FRACTION = 0.1
+SEED = 7
+LANDMARKS = 40
+SPEED_FRAMES = 20
+SPEED_WARMUP = 2
+FACE = "face"
+CONDITIONS = ("clean", "noisy", "occluded")
+
+
+# --------------------------------------------------------------------------------------
+# data
+
+def training_clips(actor_dir: Path, actor):
+    from service.samples.dataset import load_clip, performance_names
+
+    return [load_clip(actor_dir, name, actor) for name in performance_names(actor_dir, "train_")]
+
+
+def heldout_names(actor_dir: Path) -> list[str]:
+    from service.samples.dataset import performance_names
+
+    return performance_names(actor_dir, "heldout_")
+
+
+def perturb(markers: np.ndarray, condition: str, rng) -> np.ndarray:
+    """Markers (k,M,3) under a condition: clean, noisy (σ 0.3 mm) or occluded (10 % NaN)."""
+    m = markers.copy()
+    if condition == "noisy":
+        m += rng.normal(0.0, NOISE_MM, m.shape)
+    elif condition == "occluded":
+        k, M = m.shape[:2]
+        for f in range(k):
+            m[f, rng.choice(M, int(round(OCCLUDED_FRACTION * M)), replace=False)] = np.nan
+    return m
+
+
+def cached_model(path: Path, reuse: bool, build, load):
+    """(model, training seconds): loaded from ``path`` with ``reuse``, else built and saved."""
+    record = path.with_suffix(".train.json")
+    if reuse and (path / "manifest.json").is_file() and record.is_file():
+        return load(path), json.loads(record.read_text())["train_s"]
+    t0 = time.perf_counter()
+    model = build()
+    seconds = time.perf_counter() - t0
+    model.save(path)
+    record.write_text(json.dumps({"train_s": seconds}))
+    return model, seconds
+
+
+# --------------------------------------------------------------------------------------
+# Fig. 4
+
+def fig4_study(actor, clips, max_p: int) -> dict:
+    """L2 error over a 100-frame training sequence vs basis size (module docstring)."""
+    from service.methods.pdm.base_surface import head_alignment, stability_weights
+    from service.methods.pose_space import rbf
+    from service.methods.pose_space.corrections import corrections, large_scale_surface
+    from service.methods.pose_space.feature_graph import automatic_graph
+    from service.methods.pose_space.model import _even_sample, _phi, _targets, node_operator, select_basis
+    from service.methods.pose_space.params import PsdParams, WpsdParams
+    from service.methods.pose_space.weighting import edge_weights
+    from service.methods.shape_space.simplex_qp import simplex_least_squares
+
+    markers = np.concatenate([c.markers for c in clips])
+    V = np.concatenate([c.vertices for c in clips])
+    pick = np.unique(np.linspace(0, len(markers) - 1, FIG4_FRAMES).round().astype(np.int64))
+    markers, V = markers[pick], V[pick]
+    T, n = len(markers), actor.n_vertices
+    rest = actor.marker_positions()
+    pose = head_alignment(markers, rest)
+    pose = head_alignment(markers, rest, stability_weights(pose.remove(markers), rest))
+    base = large_scale_surface(actor)
+    u_H = base.handle_displacements(pose.remove(markers))
+    aligned = pose.remove(V)
+    C = corrections(base, u_H, aligned)                                       # (T,n,3)
+    U = (aligned - actor.vertices).astype(np.float32)                         # blend-shape targets
+    shell_sq = np.einsum("tvc,tvc->v", C[:, actor.regions[FACE]], C[:, actor.regions[FACE]], dtype=np.float64)
+    graph = automatic_graph(actor.marker_uv(), rest)
+    nodes = node_operator(actor.faces, actor.marker_triangle, actor.marker_barycentric, n)
+    node_rest = nodes @ actor.vertices
+    F = graph.features(node_rest + np.einsum("nm,fmd->fnd", np.asarray(nodes @ base.basis.astype(np.float64)), u_H))
+    wp = WpsdParams(basis_size=max_p, smoothing=0.0)
+    alpha = edge_weights(actor.vertices, node_rest, graph)
+    first = int(np.argmin(np.linalg.norm(F, axis=1)))
+    sample = _even_sample(n, wp.selection_vertices)
+    seq = {}
+    for fit in ("exact", "least_squares"):
+        p = wp.model_copy(update={"fit": fit})
+        seq[("wpsd", fit)], _ = select_basis(F, _targets(C, sample, True), alpha[sample], p, 0.0, first)
+        K = np.zeros((T, T))
+        for v0 in range(0, n, 4096):
+            Cv = C[:, v0:v0 + 4096].reshape(T, -1).astype(np.float64)
+            K += Cv @ Cv.T
+        pp = PsdParams(basis_size=max_p, smoothing=0.0, fit=fit)
+        seq[("psd", fit)], _ = select_basis(F, rbf.gram_factor(K)[None], None, pp, 0.0, first)
+    face = np.flatnonzero(actor.regions[FACE])
+    count = T * len(face)
+    sq = {k: np.zeros(max_p) for k in ("global blend shapes", "local blend shapes", "local blend shapes (LSq)",
+                                       "PSD", "PSD (LSq)", "WPSD", "WPSD (LSq)")}
+    # PSD: one system for all face vertices
+    Cf = _targets(C, face, False)
+    for fit, name in (("exact", "PSD"), ("least_squares", "PSD (LSq)")):
+        sel = seq[("psd", fit)]
+        Phi = _phi(F, F[sel], None)
+        for P in range(1, len(sel) + 1):
+            W = rbf.fit_basis(Phi[:, :, :P], Cf, sel[:P], 0.0, fit == "exact")
+            sq[name][P - 1] = rbf.residual_sq(Phi[:, :, :P], Cf, W).sum()
+    # WPSD and local blend shapes: per-vertex systems, vertex chunks
+    for v0 in range(0, len(face), 2048):
+        vs = face[v0:v0 + 2048]
+        Dc, Du = _targets(C, vs, True), _targets(U, vs, True)
+        for fit, name, bs in (("exact", "WPSD", "local blend shapes"),
+                              ("least_squares", "WPSD (LSq)", "local blend shapes (LSq)")):
+            sel = seq[("wpsd", fit)]
+            Phi = _phi(F, F[sel], alpha[vs])
+            for P in range(1, len(sel) + 1):
+                for D, key in ((Dc, name), (Du, bs)):
+                    W = rbf.fit_basis(Phi[:, :, :P], D, sel[:P], 0.0, fit == "exact")
+                    sq[key][P - 1] += rbf.residual_sq(Phi[:, :, :P], D, W).sum()
+    # global blend shapes: convex weights matching the features, the basis meshes blended
+    sel = seq[("wpsd", "least_squares")]
+    Uf = U[:, face].astype(np.float64)
+    for P in range(1, len(sel) + 1):
+        Fb = F[sel[:P]].T                                                     # (E,P)
+        Wc = np.stack([simplex_least_squares(Fb, F[t]).w for t in range(T)])   # (T,P)
+        R = Uf - np.einsum("tp,pvc->tvc", Wc, Uf[sel[:P]])
+        sq["global blend shapes"][P - 1] = float(np.einsum("tvc,tvc->", R, R))
+    return {"P": list(range(1, max_p + 1)), "frames": T,
+            "rms_mm": {k: np.sqrt(v / count).tolist() for k, v in sq.items()},
+            "thin_shell_rms_mm": float(np.sqrt(shell_sq.sum() / count)),
+            "basis": {f"{m} {f}": [int(pick[j]) for j in s] for (m, f), s in seq.items()}}
+
+
+def plot_fig4(study: dict, path: Path, title: str) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5.2), layout="constrained")
+    style = {"global blend shapes": ("#7f7f7f", "-"), "local blend shapes": ("#bcbd22", "-"),
+             "local blend shapes (LSq)": ("#bcbd22", "--"), "PSD": ("#1f77b4", "-"),
+             "PSD (LSq)": ("#1f77b4", "--"), "WPSD": ("#d62728", "-"), "WPSD (LSq)": ("#d62728", "--")}
+    for name, rms in study["rms_mm"].items():
+        c, ls = style[name]
+        ax.plot(study["P"], rms, ls, color=c, marker="o", ms=3, label=name)
+    ax.axhline(study["thin_shell_rms_mm"], color="k", lw=0.8, ls=":", label="thin shell only (P = 0)")
+    ax.set_yscale("log")
+    ax.set_xlabel("basis size P (example poses)")
+    ax.set_ylabel(f"L2 (RMS) vertex error over the face, {study['frames']} training frames, mm")
+    ax.set_xticks(study["P"])
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, ncols=2)
+    ax.set_title(title, fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------
+# held-out accuracy
+
+def pose_space_prediction(model, markers, tex):
+    out = model.synthesize(markers, ("mesh", "displacement"))
+    return out["vertices"].astype(np.float64), tex.texels(out["displacement"]), out["confidence"]
+
+
+def evaluate(gt, methods: dict, tex, actor) -> dict:
+    """Scores of every method (name → callable(markers) → (V, d, confidence|None)) on the
+    held-out frames ``gt`` (a ``pdm_report.Heldout``): pdm_report's metric, plus the max."""
+    normals = tex.normals(gt.medium, actor.faces)
+    gt_hp = np.stack([tex.highpass(tex.texels(d)) for d in gt.displacement])
+    signal = float(np.sqrt(np.mean(gt_hp[:, tex.face] ** 2)))
+    out = {"signal_rms_mm": signal, "methods": {}}
+    for name, method in methods.items():
+        V, D, conf = method(gt.markers)
+        acc = pr.Scores(np.asarray(actor.regions[FACE]), tex.face)
+        for f in range(len(gt.frames)):
+            err = np.linalg.norm(V[f] - gt.vertices[f], axis=-1)
+            hp = tex.highpass(tex.heights(V[f], gt.medium[f], normals[f], None if D is None else D[f]))
+            acc.add(err, hp, gt_hp[f])
+        r = acc.result()
+        r["max_mm"] = float(np.concatenate(acc.vertex_errors).max())
+        r["fine_rel"] = r["fine_rms_mm"] / signal
+        r["confidence"] = None if conf is None else float(np.mean(conf))
+        out["methods"][name] = r
+    return out
+
+
+def shell_method(model):
+    """No detail: the model's own shell of the detailed neutral, fine map 0."""
+    def run(markers):
+        ev = model.evaluator
+        pose, u = ev.deformation(markers)
+        return pose.restore(ev.base.deform(u)), None, None
+    return run
+
+
+# --------------------------------------------------------------------------------------
+# speed
+
+def speed(model, markers: np.ndarray) -> dict:
+    """Median ms per frame (one frame per call) of ``mesh`` and ``mesh + displacement``, and the
+    same interpolation by scipy's RBFInterpolator (module docstring)."""
+    from scipy.interpolate import RBFInterpolator
+
+    res = {}
+    for outs in (("mesh",), ("mesh", "displacement")):
+        for f in range(SPEED_WARMUP):
+            model.synthesize(markers[f:f + 1], outs)
+        t = []
+        for f in range(SPEED_WARMUP, len(markers)):
+            t0 = time.perf_counter()
+            model.synthesize(markers[f:f + 1], outs)
+            t.append(time.perf_counter() - t0)
+        res["+".join(outs)] = 1e3 * float(np.median(t))
+    ev, d = model.evaluator, model.data
+    _, u = ev.deformation(markers)
+    feats = ev.features(u)
+    # ours: the fine-scale evaluation alone (distances + weighted sum), per frame
+    t = []
+    for f in feats[SPEED_WARMUP:]:
+        t0 = time.perf_counter()
+        ev.corrections(ev.sq_distances(f[None]))
+        t.append(time.perf_counter() - t0)
+    res["ours_fine_ms"] = 1e3 * float(np.median(t))
+    fb = d.basis_features
+    values = ev.corrections(ev.sq_distances(fb))                               # (P,n,3) at the centres
+    n = d.n_vertices
+    if ev.alpha is None:
+        interp = RBFInterpolator(fb, values.reshape(len(fb), -1), kernel="linear", degree=-1)
+        t = []
+        for f in feats[SPEED_WARMUP:]:
+            t0 = time.perf_counter()
+            got = interp(f[None])
+            t.append(time.perf_counter() - t0)
+        res["scipy_fine_ms"] = 1e3 * float(np.median(t))
+        res["scipy_max_diff_mm"] = float(np.abs(got.reshape(n, 3) - ev.corrections(ev.sq_distances(feats[-1:]))[0]).max())
+        res["scipy_vertices_timed"] = n
+    else:
+        # one interpolator per vertex in the scaled features sqrt(α_v)·f (Euclidean = eq. 3)
+        k = 200
+        vs = np.linspace(0, n - 1, k).round().astype(np.int64)
+        A = ev.alpha
+        interps = []
+        for v in vs:
+            row = A[v]
+            s = np.sqrt(row.data)
+            interps.append((row.indices, s, RBFInterpolator(fb[:, row.indices] * s, values[:, v],
+                                                            kernel="linear", degree=-1)))
+        t = []
+        for f in feats[SPEED_WARMUP:SPEED_WARMUP + 5]:
+            t0 = time.perf_counter()
+            got = [it(f[idx][None] * s) for idx, s, it in interps]
+            t.append(time.perf_counter() - t0)
+        res["scipy_fine_ms"] = 1e3 * float(np.median(t)) * n / k
+        mine = ev.corrections(ev.sq_distances(feats[SPEED_WARMUP + 4:SPEED_WARMUP + 5]))[0][vs]
+        res["scipy_max_diff_mm"] = float(np.abs(np.concatenate(got) - mine).max())
+        res["scipy_vertices_timed"] = k
+    res["ratio_scipy_over_ours"] = res["scipy_fine_ms"] / res["ours_fine_ms"]
+    return res
+
+
+def storage(model) -> dict:
+    """Stored floats and ints per vertex (what evaluation reads), and per map texel."""
+    d = model.data
+    n, P, M = d.n_vertices, d.basis_size, d.n_markers
+    a = 0.0 if d.alpha is None else d.alpha.nnz / n
+    floats = M + 3 * P + a + 3                     # B row, RBF weights, α, rest position
+    return {"floats_per_vertex": floats, "ints_per_vertex": a,
+            "floats_per_texel": P if d.map_resolution else 0,
+            "texels_per_vertex": len(d.map_index) / n,
+            "layout": f"B row {M} + weights 3P = {3 * P} + α {a:.1f} + rest position 3; ints: α columns {a:.1f}"}
+
+
+# --------------------------------------------------------------------------------------
+
+def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    idx = [int(rng.integers(len(V)))]
+    d = np.linalg.norm(V - V[idx[0]], axis=1)
+    for _ in range(k - 1):
+        idx.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(V - V[idx[-1]], axis=1))
+    return np.array(idx)
+
+
+def run_speed(actor_dir: Path) -> dict:
+    """Only the speed section, with the models a previous run saved (``--speed-only``)."""
+    from service.methods.pose_space import PoseSpaceModel
+
+    models = OUT / "models" / actor_dir.name
+    with np.load(actor_dir / "performances" / f"{heldout_names(actor_dir)[0]}.npz") as d:
+        mk = d["markers"][: SPEED_WARMUP + SPEED_FRAMES].astype(np.float64)
+    out = {}
+    for label in ("PSD", "WPSD", "WPSD P=6", "WPSD P=20"):
+        path = models / label.replace(" ", "_").replace("=", "")
+        if (path / "manifest.json").is_file():
+            model = PoseSpaceModel.load(path)
+            out[label] = speed(model, mk)
+            out[label].update(storage(model), basis_size=model.data.basis_size,
+                              train_s=json.loads(path.with_suffix(".train.json").read_text())["train_s"])
+    return out
+
+
+def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool) -> dict:
+    from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
+    from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
+    from service.methods.pose_space.transfer import transfer
+    from service.samples.dataset import load_actor
+
+    name = actor_dir.name
+    models = OUT / "models" / name
+    models.mkdir(parents=True, exist_ok=True)
+    actor = load_actor(actor_dir)
+    clips = training_clips(actor_dir, actor)
+    res = {"actor": str(actor_dir), "vertices": actor.n_vertices, "markers": actor.n_markers,
+           "train_frames": sum(c.frames for c in clips), "train_clips": len(clips)}
+    log = lambda msg: print(f"[{name}] {msg}", file=sys.stderr, flush=True)
+
+    log("Fig. 4 study")
+    t0 = time.perf_counter()
+    cache = models / f"fig4{'_quick' if quick else ''}.json"
+    if reuse and cache.is_file():
+        res["fig4"] = json.loads(cache.read_text())
+    else:
+        res["fig4"] = fig4_study(actor, clips, 8 if quick else FIG4_MAX_P)
+        res["fig4"]["seconds"] = time.perf_counter() - t0
+        cache.write_text(json.dumps(res["fig4"]))
+    plot_fig4(res["fig4"], OUT / f"fig4_{name}.png",
+              f"bickel2008 Fig. 4 on {name}: L2 error over a {res['fig4']['frames']}-frame training sequence")
+
+    log("training")
+    train_s = {}
+    pdm, train_s["PDM biquadratic"] = cached_model(models / "pdm", reuse, lambda: pdm_train(actor, clips, PdmParams(
+        fine_resolution=clips[0].displacement.shape[1])),
+                                                   PdmModel.load)
+    variants = {"PSD": PsdParams(), "WPSD": WpsdParams(), "WPSD P=6": WpsdParams(basis_size=6),
+                "WPSD P=20": WpsdParams(basis_size=20)}
+    if quick:
+        variants = {"PSD": PsdParams(), "WPSD": WpsdParams()}
+    ps = {}
+    for label, params in variants.items():
+        log(f"  {label}")
+        ps[label], train_s[label] = cached_model(models / label.replace(" ", "_").replace("=", ""), reuse,
+                                                 lambda p=params: train(actor, clips, p), PoseSpaceModel.load)
+    res["train_s"] = train_s
+    res["fit"] = {k: {kk: m.metrics[kk] for kk in ("basis_size", "smoothing", "validation", "correction_fit_rms_mm",
+                                                  "correction_signal_rms_mm", "map_fit_rms_mm", "map_signal_rms_mm",
+                                                  "feature_edges", "alpha_nonzero_per_vertex", "basis")}
+                  for k, m in ps.items()}
+
+    log("held-out accuracy")
+    sigma = pdm.metrics["highpass_sigma_texels"]
+    tex = pr.DetailTexels.build(actor, pdm.fine.resolution, sigma)
+    baselines = pr.Baselines.build(actor, clips, pdm, tex)
+    methods = {
+        "thin shell (no detail)": lambda m: baselines.no_detail(m)[:2] + (None,),
+        "nearest training frame": lambda m: baselines.nearest(m)[:2] + (None,),
+        "PDM biquadratic": lambda m: pr.pdm_prediction(pdm, m, tex)[:2] + (None,),
+        "PSD": lambda m: pose_space_prediction(ps["PSD"], m, tex),
+        "WPSD": lambda m: pose_space_prediction(ps["WPSD"], m, tex),
+    }
+    if "WPSD P=20" in ps:
+        methods["WPSD P=20"] = lambda m: pose_space_prediction(ps["WPSD P=20"], m, tex)
+    res["heldout"] = {}
+    for perf in heldout_names(actor_dir):
+        gt = pr.load_heldout(actor_dir, perf, 6 if quick else None)
+        for cond in CONDITIONS:
+            rng = np.random.default_rng(SEED)
+            clean = gt.markers
+            gt.markers = perturb(clean, cond, rng)
+            log(f"  {perf} / {cond}")
+            res["heldout"][f"{perf} / {cond}"] = evaluate(gt, methods, tex, actor)
+            res["heldout"][f"{perf} / {cond}"]["frames"] = len(gt.frames)
+            gt.markers = clean
+    del baselines
+
+    if target_dir is not None:
+        log("transfer")
+        target = load_actor(target_dir)
+        face = np.flatnonzero(actor.regions[FACE])
+        lm = face[farthest_points(actor.vertices[face], LANDMARKS)]
+        t0 = time.perf_counter()
+        moved = transfer(ps["WPSD"], target, np.stack([lm, lm], axis=1))
+        transfer_s = time.perf_counter() - t0
+        tclips = training_clips(target_dir, target)
+        own, own_s = cached_model(models / f"target_{target_dir.name}_WPSD", reuse,
+                                  lambda: train(target, tclips, WpsdParams()), PoseSpaceModel.load)
+        del tclips
+        ttex = pr.DetailTexels.build(target, moved.data.map_resolution, sigma)
+        tmethods = {"thin shell (no detail)": shell_method(own),
+                    "WPSD transferred from " + name: lambda m: pose_space_prediction(moved, m, ttex),
+                    "WPSD trained on the target": lambda m: pose_space_prediction(own, m, ttex)}
+        res["transfer"] = {"target": str(target_dir), "landmarks": LANDMARKS, "seconds": transfer_s,
+                           "target_train_s": own_s, "correspondence": moved.metrics["transfer"], "scores": {}}
+        for perf in heldout_names(target_dir):
+            gt = pr.load_heldout(target_dir, perf, 6 if quick else None)
+            log(f"  target {perf}")
+            res["transfer"]["scores"][perf] = evaluate(gt, tmethods, ttex, target)
+            res["transfer"]["scores"][perf]["frames"] = len(gt.frames)
+
+    log("speed")
+    with np.load(actor_dir / "performances" / f"{heldout_names(actor_dir)[0]}.npz") as d:
+        mk = d["markers"][: SPEED_WARMUP + SPEED_FRAMES].astype(np.float64)
+    res["speed"] = {}
+    for label in ("PSD", "WPSD", "WPSD P=6", "WPSD P=20"):
+        if label in ps:
+            res["speed"][label] = speed(ps[label], mk)
+            res["speed"][label].update(storage(ps[label]), basis_size=ps[label].data.basis_size,
+                                       train_s=train_s[label])
+    return res
+
+
+# --------------------------------------------------------------------------------------
+# the report
+
+def _f(x, d=3):
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return "–"
+    return f"{x:.{d}f}"
+
+
+def report(results: list[dict], meta: dict) -> str:
+    L = ["# Pose-space detail report (bickel2008 §6): Fig. 4, held-out accuracy, transfer, speed", "",
+         f"{meta['cpus']} CPU cores, load average {meta['load_before']} before / {meta['load_after']} after; "
+         f"{meta['git']}." + (" **--quick** run." if meta["quick"] else ""), ""]
+    for r in results:
+        name = Path(r["actor"]).name
+        L += [f"## {name}", "",
+              f"{r['actor']}: {r['vertices']:,} vertices, {r['markers']} markers, "
+              f"{r['train_frames']} training frames in {r['train_clips']} clips.", "",
+              "### Fig. 4: L2 error over the training sequence vs basis size", "",
+              f"RMS vertex error (mm) over the face region and the {r['fig4']['frames']} frames of the "
+              f"training sequence; thin shell alone {r['fig4']['thin_shell_rms_mm']:.4f} mm. "
+              f"![Fig. 4](fig4_{name}.png)", ""]
+        names = list(r["fig4"]["rms_mm"])
+        L += ["| P | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+        for i, P in enumerate(r["fig4"]["P"]):
+            vals = [r["fig4"]["rms_mm"][k][i] for k in names]
+            best = int(np.argmin(vals))
+            L.append(f"| {P} | " + " | ".join(("**%.4f**" if j == best else "%.4f") % v
+                                             for j, v in enumerate(vals)) + " |")
+        L += ["", "### Held-out performances", "",
+              "Vertex error |V − V_gt| over the face region (mean, max, mm); fine detail: high-passed "
+              "detail heights at the face texels (pdm_report's metric): Pearson r and relative error "
+              "(RMS error / RMS of the ground truth's high-passed detail). Confidence: mean per-frame "
+              "confidence of the pose-space models.", "",
+              "| performance / markers | frames | method | mean mm | max mm | p95 mm | fine r | fine rel. err | confidence |",
+              "|---|---|---|---|---|---|---|---|---|"]
+        for key, ev in r["heldout"].items():
+            for m, s in ev["methods"].items():
+                L.append(f"| {key} | {ev['frames']} | {m} | {_f(s['medium_mean_mm'])} | {_f(s['max_mm'], 2)} | "
+                         f"{_f(s['medium_p95_mm'])} | {_f(s['fine_r'])} | {_f(s['fine_rel'])} | {_f(s['confidence'], 3)} |")
+        L += ["", "Claims checked on every row (WPSD = the default WPSD model):", ""]
+        for key, ev in r["heldout"].items():
+            mm = ev["methods"]
+            w = mm["WPSD"]
+            checks = [f"fine rel. err below the nearest frame: {'yes' if w['fine_rel'] < mm['nearest training frame']['fine_rel'] else 'NO'}",
+                      f"below the PDM: {'yes' if w['fine_rel'] < mm['PDM biquadratic']['fine_rel'] else 'NO'}",
+                      f"max error ≤ the thin shell's: {'yes' if w['max_mm'] <= mm['thin shell (no detail)']['max_mm'] else 'NO'}"]
+            L.append(f"- {key}: " + "; ".join(checks))
+        L += ["", "### Training", "", "| model | training s | P | smoothing λ | correction fit RMS mm (face) | "
+              "correction signal RMS mm (face) | map fit / signal RMS mm | α per vertex |", "|---|---|---|---|---|---|---|---|"]
+        for k, f in r["fit"].items():
+            L.append(f"| {k} | {r['train_s'][k]:.1f} | {f['basis_size']} | {f['smoothing']:g} | "
+                     f"{f['correction_fit_rms_mm'][FACE]:.4f} | {f['correction_signal_rms_mm'][FACE]:.4f} | "
+                     f"{_f(f['map_fit_rms_mm'], 4)} / {_f(f['map_signal_rms_mm'], 4)} | {_f(f['alpha_nonzero_per_vertex'], 1)} |")
+        L.append(f"| PDM biquadratic | {r['train_s']['PDM biquadratic']:.1f} | | | | | | |")
+        L += ["", "Smoothing validation (held-out every 4th training frame, their markers with 0.3 mm noise; "
+              "RMS correction error, mm, on the selection vertices):", ""]
+        for k, f in r["fit"].items():
+            if f["validation"]:
+                L.append(f"- {k}: " + ", ".join(f"λ={v['smoothing']:g}: {v['rms']:.4f}" for v in f["validation"])
+                         + f" → **{f['smoothing']:g}**")
+        if "transfer" in r:
+            t = r["transfer"]
+            c = t["correspondence"]
+            L += ["", f"### Transfer to {Path(t['target']).name}", "",
+                  f"{t['landmarks']} landmark pairs; transfer {t['seconds']:.1f} s; projection distance of the "
+                  f"target vertices onto the fitted source mean {c['projection_mean_mm']:.3f} / p95 "
+                  f"{c['projection_p95_mm']:.3f} / max {c['projection_max_mm']:.2f} mm; landmark RMS after the "
+                  f"rigid pre-alignment {c['landmark_rms_after_rigid_mm']:.2f} mm. The target's own WPSD "
+                  f"trained in {t['target_train_s']:.0f} s.", "",
+                  "| performance | frames | method | mean mm | max mm | fine r | fine rel. err | confidence |",
+                  "|---|---|---|---|---|---|---|---|"]
+            for perf, ev in t["scores"].items():
+                for m, s in ev["methods"].items():
+                    L.append(f"| {perf} | {ev['frames']} | {m} | {_f(s['medium_mean_mm'])} | {_f(s['max_mm'], 2)} | "
+                             f"{_f(s['fine_r'])} | {_f(s['fine_rel'])} | {_f(s['confidence'])} |")
+        L += ["", f"### Speed ({meta['cpus']} cores, one frame per call, median of {SPEED_FRAMES})", "",
+              "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | scipy RBFInterpolator ms "
+              "(same interpolation) | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+        for k, s in r["speed"].items():
+            L.append(f"| {k} | {s['basis_size']} | {s['mesh']:.1f} | {s['mesh+displacement']:.1f} | {s['ours_fine_ms']:.2f} | "
+                     f"{s['scipy_fine_ms']:.1f}{' (est. from %d vertices)' % s['scipy_vertices_timed'] if k != 'PSD' else ''} | "
+                     f"{s['ratio_scipy_over_ours']:.1f}× | {s['scipy_max_diff_mm']:.1e} | {s['train_s']:.0f} | "
+                     f"{s['floats_per_vertex']:.0f} / {s['ints_per_vertex']:.0f} |")
+        L += ["", "Stored per vertex: " + "; ".join(f"{k}: {s['layout']}" for k, s in r["speed"].items())
+              + f". Plus per map texel P floats ({r['speed'][next(iter(r['speed']))]['texels_per_vertex']:.1f} "
+              "texels per vertex). The paper: 137 floats and 24 ints per vertex (H = 89, P = 6).", ""]
+    return "\n".join(L) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("actors", nargs="+", type=Path, help="actor directories (sample-actor layout)")
+    parser.add_argument("--target", type=Path, help="second identity for the transfer (sample-actor layout)")
+    parser.add_argument("--quick", action="store_true", help="6 held-out frames, P ≤ 8, two models")
+    parser.add_argument("--reuse", action="store_true", help="reuse models saved under benchmarks/out/pose_space/models")
+    parser.add_argument("--speed-only", action="store_true",
+                        help="only the speed section, with the models of a previous run (report_speed.md)")
+    args = parser.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    if args.speed_only:
+        res = {a.name: run_speed(a.resolve()) for a in args.actors}
+        lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})", ""]
+        for name, sp_ in res.items():
+            lines += [f"## {name}", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "
+                      "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
+                      "|---|---|---|---|---|---|---|---|---|---|"]
+            for k, s_ in sp_.items():
+                lines.append(f"| {k} | {s_['basis_size']} | {s_['mesh']:.1f} | {s_['mesh+displacement']:.1f} | "
+                             f"{s_['ours_fine_ms']:.2f} | {s_['scipy_fine_ms']:.1f} | {s_['ratio_scipy_over_ours']:.1f}× | "
+                             f"{s_['scipy_max_diff_mm']:.1e} | {s_['train_s']:.0f} | {s_['floats_per_vertex']:.0f} / "
+                             f"{s_['ints_per_vertex']:.0f} |")
+            lines.append("")
+        (OUT / "report_speed.md").write_text("\n".join(lines))
+        (OUT / "report_speed.json").write_text(json.dumps(res, indent=1))
+        print("\n".join(lines))
+        return
+    t0 = time.perf_counter()
+    git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    meta = {"cpus": os.cpu_count(), "load_before": f"{os.getloadavg()[0]:.1f}", "git": f"commit {git}",
+            "quick": args.quick}
+    results = [run_actor(a.resolve(), args.target.resolve() if args.target else None, args.quick, args.reuse)
+               for a in args.actors]
+    meta["load_after"] = f"{os.getloadavg()[0]:.1f}"
+    text = report(results, meta) + f"\nTotal run {time.perf_counter() - t0:.0f} s.\n"
+    (OUT / "report.md").write_text(text)
+    (OUT / "report.json").write_text(json.dumps(results, indent=1, default=float))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Generated protobuf packages (``facesynth.v1``)."""

@@ -1,0 +1,1 @@
+"""``facesynth.v1``: the stubs generated from ``synthesis.proto`` (do not edit them)."""

@@ -1,0 +1,14 @@
+"""The API's resources, one module each; a client holds one instance of each
+(``client.actors``, ``client.clips``, ...), shared by :class:`~facesynth_client.Client` and
+:class:`~facesynth_client.AsyncClient`."""
+
+from .actors import Actors
+from .artifacts import Artifacts
+from .clips import Clips
+from .jobs import Jobs
+from .models import Models
+from .rigs import Rigs
+from .synthesis import Synthesis
+from .tracking import Tracking
+
+__all__ = ["Actors", "Artifacts", "Clips", "Jobs", "Models", "Rigs", "Synthesis", "Tracking"]

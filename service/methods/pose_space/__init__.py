@@ -1,0 +1,14 @@
+"""Pose-space animation and transfer of facial details (Bickel, Lang, Botsch, Otaduy, Gross
+2008, "Pose-space animation and transfer of facial details", SCA).
+
+Modules: :mod:`.params` (PsdParams / WpsdParams), :mod:`.feature_graph` (§3, §5.1 the graph
+and its strain features), :mod:`.corrections` (§4 large scale, §5.2 corrections in tangent
+frames), :mod:`.rbf` (§5.2 exact / least-squares RBF weights, greedy basis),
+:mod:`.weighting` (§5.3 eq. 3-4, sparse α), :mod:`.model` (train, the stored data, the
+evaluator, synthesis), :mod:`.store` (model directory), :mod:`.transfer` (§5.4).
+"""
+
+from service.methods.pose_space.model import PoseSpaceData, PoseSpaceModel, train
+from service.methods.pose_space.params import PoseSpaceParams, PsdParams, WpsdParams
+
+__all__ = ["PoseSpaceData", "PoseSpaceModel", "PoseSpaceParams", "PsdParams", "WpsdParams", "train"]

@@ -1,0 +1,563 @@
+"""Pose-space detail models: training, the stored data and the per-frame evaluator
+(bickel2008 §3-5: PSD eq. 2, WPSD eq. 3-5).
+
+Training (:func:`train`), from clips of high-resolution frames with their markers:
+
+1. head pose removed from every frame (weighted Kabsch with stability weights, as the PDM);
+2. large scale: the detailed neutral deformed by the precomputed thin shell (§4);
+3. features: relative stretch of the feature-graph edges (§5.1), measured on the shell at
+   the feature nodes (the markers' surface points), ``node_rest + (N B) u_H``;
+4. corrections: each frame minus its shell, in the shell's tangent frames (§5.2);
+   the clips' fine displacement maps (detail below the mesh resolution, relative to the
+   mesh) are learned by the same RBFs at the texels (below);
+5. WPSD only: the sparse edge weights α of eq. 4;
+6. smoothing λ (if not given) by validation on held-out training frames (below);
+7. basis: greedy selection (§5.2) from the frame of smallest strain (the rest pose);
+8. weights: exact interpolation of the basis or least squares over all frames (§5.2),
+   per vertex with the vertex's metric for WPSD (eq. 5), shared for PSD (eq. 2).
+
+Synthesis (:meth:`PoseSpaceModel.synthesize`, §5.3 "at run-time"): markers → head pose →
+handle displacements (occluded completed) → shell ``X = 𝓕 + B u_H`` → features → per-vertex
+distances to the basis poses (one sparse product for WPSD) → ``c_v = Σ_j w_v,j φ_v,j``
+rotated into X's tangent frames → head pose put back.
+
+Choices and departures (the paper is silent or differs):
+
+* **fine map band** — the paper's details live at the vertices of a 1M-triangle mesh. The
+  sample actor's (and a scanner's) detail below the mesh resolution arrives as a
+  displacement map relative to the mesh; it is learned per covered texel with the same
+  RBF: a texel's squared distance is the barycentric interpolation of its triangle's
+  vertex distances (for WPSD this is eq. 3 with α interpolated to the texel, eq. 3 being
+  linear in α), its weights are fitted like a vertex's (scalar target). Output
+  ``displacement``; ``vertices_detailed`` adds it along the normals;
+* **rest pose** — the greedy selection starts from the training frame of smallest feature
+  norm (the captured rest pose; the clips start neutral);
+* **selection on a vertex sample** — WPSD's greedy selection and the validation measure the
+  fit error on ``selection_vertices`` vertices (an even stride); the final weights are fitted
+  at every vertex. PSD's selection uses every vertex (through the (T,T) Gram factor of the
+  corrections, :func:`~.rbf.gram_factor`). The maps do not take part in the selection;
+* **smoothing** — ``params.smoothing = None`` picks λ from ``smoothing_grid``: every
+  ``validation_stride``-th training frame is held out, the basis is selected on the others
+  (once, at λ = 0) and fitted for each λ, and the held-out frames' features, computed from
+  their markers plus Gaussian noise of ``validation_noise_mm`` (seeded), predict their
+  corrections; the λ of smallest RMS error wins. The table is in ``metrics["validation"]``;
+* **clamp** — with ``clamp`` each feature is limited to its training range widened by
+  ``extrapolation_margin`` (the linear kernel extrapolates without bound); ``clamped`` (F,)
+  is the fraction of limited features;
+* **confidence** (F,) — how far the frame's features lie outside the training features:
+  δ = ‖max(0, f − f_max, f_min − f)‖ (per-edge excess beyond the training range, strain
+  units, before the clamp), relative to the median feature norm of the training frames δ₀
+  (a typical expression's strength): ``confidence = exp(−δ / δ₀)``; 1 inside the training
+  box, 1/e a typical expression's distance beyond it;
+* weights are rounded to float32 when training ends (the stored precision), so a saved and
+  reloaded model synthesizes bit-identical results.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from service.geometry.normal_map import NormalMapper
+from service.geometry.uv_raster import (
+    interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
+)
+from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
+from service.methods.outputs import check_outputs
+from service.methods.pdm.base_surface import (
+    BaseSurface, HeadPose, TooFewMarkers, head_alignment, stability_weights,
+)
+from service.methods.pose_space import rbf, store
+from service.methods.pose_space.data import PoseSpaceData
+from service.methods.pose_space.corrections import apply_corrections, corrections, large_scale_surface
+from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs
+from service.methods.pose_space.params import (
+    VALIDATION_SEED, Params, PsdParams, WpsdParams,
+)
+from service.methods.pose_space.weighting import edge_weights, weighted_sq_distances
+
+#: outputs of :meth:`PoseSpaceModel.synthesize` (API.md; the PDM's vocabulary without albedo)
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "normal_map")
+#: frames evaluated at once
+FRAME_CHUNK = 8
+#: vertices / texels per chunk of the per-vertex fits
+FIT_CHUNK = 2048
+TEXEL_CHUNK = 4096
+
+
+# ---------------------------------------------------------------------------------------
+# the stored data
+
+def node_operator(faces: np.ndarray, triangle: np.ndarray, barycentric: np.ndarray, n: int) -> sp.csr_matrix:
+    """(N,n) sparse: vertices → surface points at (triangle (N,), barycentric (N,3))."""
+    N = len(triangle)
+    return sp.csr_matrix((np.asarray(barycentric, np.float64).ravel(),
+                          (np.repeat(np.arange(N), 3), np.asarray(faces)[triangle].ravel())), shape=(N, n))
+
+
+# ---------------------------------------------------------------------------------------
+# the evaluator: precomputed once, evaluated per frame
+
+class PoseSpaceEvaluator:
+    """What synthesis evaluates per frame, derived once from :class:`PoseSpaceData`.
+
+    Attributes: ``base`` the thin shell (basis B, handle energy, tangent-frame field);
+    ``node_rest`` (N,3) and ``node_basis`` (N,M) so that node positions are
+    ``node_rest + node_basis @ u_H``; ``alpha`` (n,E) float64 CSR (WPSD); the map band's
+    vertex → texel interpolation (Pt,n) and texel → vertex sampler (n,Pt).
+    """
+
+    def __init__(self, data: PoseSpaceData, base: BaseSurface | None = None):
+        self.data = data
+        self.base = base or BaseSurface.from_smooth(data.neutral, data.faces, data.uv, data.uv_faces,
+                                                    data.handles, data.rest_markers)
+        n = data.n_vertices
+        nodes = node_operator(data.faces, data.node_triangle, data.node_barycentric, n)
+        self.node_rest = nodes @ data.neutral
+        self.node_basis = np.asarray(nodes @ self.base.basis.astype(np.float64))
+        self.graph = data.graph
+        self.alpha = None if data.alpha is None else data.alpha.astype(np.float64).tocsr()
+        self.weights = np.ascontiguousarray(data.weights)
+        if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
+            self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
+        self.map_interp = self.map_sampler = None
+        self.normal_mapper: NormalMapper | None = None
+        if data.map_resolution:
+            H = data.map_resolution
+            raster = rasterize_uv(data.uv, data.uv_faces, H, H)
+            self.map_interp = interpolation_matrix(raster, data.faces, n)[data.map_index].tocsr()
+            self.map_interp32 = self.map_interp.astype(np.float32)
+            mask = np.zeros(H * H, bool)
+            mask[data.map_index] = True
+            self.map_sampler = sampling_matrix(data.uv, data.uv_faces, data.faces, n,
+                                               mask.reshape(H, H))[:, data.map_index].tocsr()
+            self._raster = raster
+
+    # -- large scale and features
+    def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray]:
+        """Head pose and complete handle displacements u_H (F,M,3) of world markers (F,M,3)."""
+        try:
+            pose = head_alignment(markers, self.data.rest_markers, self.data.pose_weights)
+        except TooFewMarkers as e:
+            raise InvalidInput(f"frame {e.frame} has {e.visible} visible markers, at least "
+                               f"{e.required} are needed") from None
+        return pose, self.base.handle_displacements(pose.remove(markers))
+
+    def features(self, u_H: np.ndarray) -> np.ndarray:
+        """Features f (F,E) of complete handle displacements (F,M,3) (§5.1)."""
+        nodes = self.node_rest + np.einsum("nm,fmd->fnd", self.node_basis, u_H)
+        return self.graph.features(nodes)
+
+    def limit(self, f: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Features limited to the widened training range, and the fraction limited (F,)."""
+        if margin is None:
+            return f, np.zeros(len(f))
+        d = self.data
+        span = d.feature_high - d.feature_low
+        g = np.clip(f, d.feature_low - margin * span, d.feature_high + margin * span)
+        return g, np.mean(g != f, axis=-1)
+
+    def confidence(self, f: np.ndarray) -> np.ndarray:
+        """exp(−δ/δ₀) (F,) of features f (F,E) (module docstring)."""
+        d = self.data
+        excess = np.maximum(0.0, np.maximum(f - d.feature_high, d.feature_low - f))
+        return np.exp(-np.linalg.norm(excess, axis=-1) / d.confidence_scale)
+
+    # -- fine scale
+    def sq_distances(self, f: np.ndarray) -> np.ndarray:
+        """Squared feature distances to the basis poses: WPSD (n,F,P) per vertex (eq. 3),
+        PSD (1,F,P) (eq. 2)."""
+        fb = self.data.basis_features
+        if self.alpha is None:
+            g = f[:, None, :] - fb[None]
+            return np.einsum("fpe,fpe->fp", g, g)[None]
+        return weighted_sq_distances(self.alpha, f, fb)
+
+    def corrections(self, D2: np.ndarray) -> np.ndarray:
+        """Corrections c (F,n,3) in the tangent frames, from :meth:`sq_distances` (eq. 2, 5)."""
+        phi = rbf.kernel(np.sqrt(D2))
+        if self.alpha is None:
+            return (phi[0].astype(np.float32) @ self.weights).reshape(len(phi[0]), -1, 3)
+        return np.einsum("nfp,npc->fnc", phi, self.weights, optimize=True)
+
+    def fine_map(self, D2: np.ndarray) -> np.ndarray:
+        """Fine displacement (F,Pt) float32 at the map texels (module docstring: the map band)."""
+        W = self.data.map_weights
+        if self.alpha is None:
+            return (rbf.kernel(np.sqrt(D2[0])) @ W.T).astype(np.float32)
+        n, F, P = D2.shape
+        t2 = self.map_interp32 @ D2.reshape(n, F * P).astype(np.float32)      # (Pt,F·P)
+        np.maximum(t2, 0.0, out=t2)
+        phi = rbf.kernel(np.sqrt(t2, out=t2)).reshape(-1, F, P)
+        return np.matmul(phi, W[:, :, None])[..., 0].T                         # (F,Pt)
+
+
+# ---------------------------------------------------------------------------------------
+# the model
+
+class PoseSpaceModel:
+    """A trained PSD or WPSD model (bickel2008 §5); :meth:`synthesize` turns markers into
+    meshes and maps. Build with :func:`train`, :meth:`load` or
+    :func:`~service.methods.pose_space.transfer.transfer`."""
+
+    def __init__(self, data: PoseSpaceData, evaluator: PoseSpaceEvaluator | None = None):
+        self.data = data
+        self.evaluator = evaluator or PoseSpaceEvaluator(data)
+
+    @property
+    def metrics(self) -> dict:
+        return self.data.metrics
+
+    @property
+    def params(self) -> Params:
+        return self.data.params
+
+    @property
+    def kind(self) -> str:
+        return self.data.kind
+
+    @property
+    def n_markers(self) -> int:
+        return self.data.n_markers
+
+    def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
+                   clamp: bool = True) -> dict[str, np.ndarray]:
+        """Meshes and maps for world-space markers (F,M,3), NaN for occluded (§5.3 run time).
+
+        Returns a dict with (as asked in ``outputs``, API.md; the PDM's keys):
+        ``vertices`` (F,n,3) float32 shell plus pose-space corrections, in the markers'
+        world pose; ``vertices_detailed`` (F,n,3) with the fine map baked along the normals;
+        ``displacement`` (F,H,H) float32 the fine map (detail below the mesh, relative to
+        ``vertices``, along the normal); ``normal_map`` (F,H,H,3) tangent space; always
+        ``faces``, ``clamped`` (F,) the fraction of features limited (``clamp``) and
+        ``confidence`` (F,) (module docstring).
+
+        Raises :class:`InvalidInput` for a wrong marker shape, too few visible markers, an
+        unknown output, or a map output of a model trained without maps.
+        """
+        ev, d = self.evaluator, self.data
+        markers = np.asarray(markers, dtype=np.float64)
+        if markers.ndim == 2:
+            markers = markers[None]
+        M = d.n_markers
+        if markers.ndim != 3 or markers.shape[1:] != (M, 3):
+            raise InvalidInput(f"model expects markers (F,{M},3), got {markers.shape}")
+        want = set(outputs)
+        check_outputs(outputs, OUTPUTS)
+        if want & {"mesh_detailed", "displacement", "normal_map"} and not d.map_resolution:
+            raise InvalidInput("this model was trained without displacement maps; only 'mesh' "
+                               "is available")
+        nf, n = len(markers), d.n_vertices
+        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32),
+                                      "clamped": np.zeros(nf, np.float32),
+                                      "confidence": np.zeros(nf, np.float32)}
+        if want & {"mesh", "mesh_detailed"}:
+            out["vertices"] = np.empty((nf, n, 3), np.float32)
+        if "mesh_detailed" in want:
+            out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
+        H = d.map_resolution
+        if want & {"displacement", "normal_map"}:
+            out["displacement"] = np.zeros((nf, H, H), np.float32)
+        if "normal_map" in want:
+            if ev.normal_mapper is None:
+                ev.normal_mapper = NormalMapper(ev._raster, d.faces, d.uv, d.uv_faces, n)
+            out["normal_map"] = np.empty((nf, H, H, 3), np.float32)
+        margin = d.params.extrapolation_margin if clamp else None
+        for s in range(0, nf, FRAME_CHUNK):
+            sl = slice(s, min(s + FRAME_CHUNK, nf))
+            pose, u_H = ev.deformation(markers[sl])
+            f = ev.features(u_H)
+            out["confidence"][sl] = ev.confidence(f)
+            f, out["clamped"][sl] = ev.limit(f, margin)
+            X = ev.base.deform(u_H)
+            D2 = ev.sq_distances(f)
+            medium = apply_corrections(ev.base, X, ev.corrections(D2))
+            if "vertices" in out:
+                out["vertices"][sl] = pose.restore(medium)
+            if not want & {"mesh_detailed", "displacement", "normal_map"}:
+                continue
+            disp = ev.fine_map(D2)                                               # (f,Pt)
+            if "displacement" in out:
+                out["displacement"][sl].reshape(len(disp), -1)[:, d.map_index] = disp
+            if want & {"mesh_detailed", "normal_map"}:
+                mframes = ev.base.frames(medium)
+            if "mesh_detailed" in want:
+                h = (ev.map_sampler @ disp.T).T
+                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
+            if "normal_map" in want:
+                for k in range(sl.stop - sl.start):
+                    out["normal_map"][s + k] = ev.normal_mapper.normal_map(
+                        out["displacement"][s + k], medium[k], mframes[k])
+        if "displacement" not in want:
+            out.pop("displacement", None)
+        return out
+
+    def save(self, path) -> dict:
+        """Write the model directory (manifest.json, model.npz, cache.npz); see :mod:`.store`."""
+        return store.write_model(self.data, self.evaluator.base, path)
+
+    @classmethod
+    def load(cls, path) -> "PoseSpaceModel":
+        """Read a model directory written by :meth:`save`, verifying checksums."""
+        data, base = store.read_model(path)
+        return cls(data, PoseSpaceEvaluator(data, base))
+
+
+# ---------------------------------------------------------------------------------------
+# training
+
+def _phi(rows: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix | None) -> np.ndarray:
+    """Kernel values (B,T,P) of features ``rows`` (T,E) against ``basis`` (P,E): PSD B = 1,
+    WPSD one row per vertex of ``alpha`` (B,E)."""
+    if alpha is None:
+        g = rows[:, None, :] - basis[None]
+        return rbf.kernel(np.sqrt(np.einsum("tpe,tpe->tp", g, g)))[None]
+    return rbf.kernel(np.sqrt(weighted_sq_distances(alpha, rows, basis)))
+
+
+def _even_sample(n: int, k: int) -> np.ndarray:
+    return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(np.int64))
+
+
+def _targets(C: np.ndarray, verts: np.ndarray, wpsd: bool) -> np.ndarray:
+    """Correction targets (B,T,C) of vertices ``verts``: WPSD (|v|,T,3), PSD (1,T,3|v|)."""
+    c = C[:, verts].astype(np.float64)
+    return c.transpose(1, 0, 2) if wpsd else c.reshape(len(C), 1, -1).transpose(1, 0, 2)
+
+
+def select_basis(F: np.ndarray, D: np.ndarray, alpha: sp.csr_matrix | None, params: Params,
+                 smoothing: float, first: int) -> tuple[list[int], list[float]]:
+    """Greedy basis (§5.2) over training features F (T,E) and targets D (B,T,C)
+    (WPSD: alpha (B,E) of the B vertices; PSD: alpha None, B = 1)."""
+    return rbf.greedy_basis(lambda j: _phi(F, F[j:j + 1], alpha)[:, :, 0], D, params.basis_size,
+                            first, smoothing, params.fit == "exact", params.error_threshold)
+
+
+def validate_smoothing(F: np.ndarray, F_noisy: np.ndarray, D: np.ndarray, alpha, params: Params,
+                       first: int) -> tuple[float, list[dict]]:
+    """λ from ``params.smoothing_grid`` by held-out training frames (module docstring).
+
+    F (T,E) clean features, F_noisy (T,E) features from noisy markers, D (B,T,C) targets.
+    Returns the chosen λ and the table [{smoothing, rms}] (rms in the targets' unit).
+    """
+    T = len(F)
+    held = np.zeros(T, bool)
+    held[::params.validation_stride] = True
+    held[first] = False
+    fit, val = np.flatnonzero(~held), np.flatnonzero(held)
+    # one greedy selection (at the ridge floor); every λ refits that basis
+    sel, _ = select_basis(F[fit], D[:, fit], alpha, params, 0.0, int(np.searchsorted(fit, first)))
+    basis = F[fit][sel]
+    Phi, Phi_val = _phi(F[fit], basis, alpha), _phi(F_noisy[val], basis, alpha)
+    table = []
+    for lam in params.smoothing_grid:
+        W = rbf.fit_basis(Phi, D[:, fit], sel, lam, params.fit == "exact")
+        err = rbf.residual_sq(Phi_val, D[:, val], W)
+        table.append({"smoothing": float(lam), "rms": float(np.sqrt(err.sum() / (D[:, val].size)))})
+    best = min(table, key=lambda r: r["rms"])
+    return best["smoothing"], table
+
+
+def _clip_maps(clips: Sequence[Clip], H: int, index: np.ndarray) -> np.ndarray:
+    """The clips' fine maps (T,Pt) float32 at the covered texels of an H×H map."""
+    out = []
+    uv = texel_centers_uv(H, H).reshape(-1, 2)[index]
+    for c in clips:
+        m = c.displacement
+        if m.shape[1] == H:
+            out.append(m.reshape(len(m), -1)[:, index].astype(np.float32))
+        else:
+            out.append(np.stack([sample_map(x, uv) for x in m]).astype(np.float32))
+    return np.concatenate(out)
+
+
+def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
+          progress: Progress = no_progress) -> PoseSpaceModel:
+    """Fit a PSD or WPSD model to training clips (bickel2008 §5; steps in the module docstring).
+
+    Parameters
+    ----------
+    actor : ActorData          neutral, UV layout, markers
+    clips : sequence of Clip   high-resolution frames with their markers (maps optional: with
+                               maps the model also learns the fine displacement map)
+    params : PsdParams | WpsdParams   (default WpsdParams())
+    progress : Progress
+
+    Raises :class:`InvalidInput` for clips that do not match the actor, frames with too few
+    markers, markers sharing a handle, or a bad feature graph.
+    """
+    params = params if params is not None else WpsdParams()
+    if not isinstance(params, (PsdParams, WpsdParams)):
+        raise InvalidInput(f"params must be PsdParams or WpsdParams, got {type(params).__name__}")
+    wpsd = params.method == "wpsd"
+    clips = list(clips)
+    check_clips(actor, clips)
+    progress(0.0, "alignment")
+    markers = np.concatenate([c.markers for c in clips]).astype(np.float64)
+    names = [f"{c.name}:{f}" for c in clips for f in range(c.frames)]
+    T, n = len(markers), actor.n_vertices
+    if T < 2:
+        raise InvalidInput(f"training needs at least 2 frames, got {T}")
+    rest = actor.marker_positions()
+    try:
+        pose = head_alignment(markers, rest)
+        pose_weights = stability_weights(pose.remove(markers), rest)
+        pose = head_alignment(markers, rest, pose_weights)
+    except TooFewMarkers as e:
+        raise InvalidInput(f"{names[e.frame]} has {e.visible} visible markers, at least "
+                           f"{e.required} are needed") from None
+
+    progress(0.05, "large-scale shell")
+    base = large_scale_surface(actor)
+    u_H = base.handle_displacements(pose.remove(markers))
+    graph = (graph_from_pairs(params.feature_edges, actor.marker_names, rest) if params.feature_edges
+             else automatic_graph(actor.marker_uv(), rest, params.max_edge_ratio, params.min_angle_deg))
+
+    def shell_features(u):
+        nodes_now = node_rest + np.einsum("nm,fmd->fnd", node_basis, u)
+        return graph.features(nodes_now)
+
+    nodes = node_operator(actor.faces, actor.marker_triangle, actor.marker_barycentric, n)
+    node_rest, node_basis = nodes @ actor.vertices, np.asarray(nodes @ base.basis.astype(np.float64))
+    F = shell_features(u_H)                                                   # (T,E)
+
+    progress(0.15, "corrections")
+    C = np.empty((T, n, 3), np.float32)
+    t0 = 0
+    for c in clips:
+        sl = slice(t0, t0 + c.frames)
+        C[sl] = corrections(base, u_H[sl], pose[sl].remove(c.vertices))
+        t0 += c.frames
+    maps = None
+    if clips[0].displacement is not None:
+        H = params.map_resolution or clips[0].displacement.shape[1]
+        raster = rasterize_uv(actor.uv, actor.uv_faces, H, H)
+        map_index = np.flatnonzero(raster.mask.ravel())
+        maps = _clip_maps(clips, H, map_index)                                # (T,Pt)
+    else:
+        H, map_index = 0, np.zeros(0, np.int64)
+
+    alpha = None
+    if wpsd:
+        progress(0.25, "edge weights")
+        alpha = edge_weights(actor.vertices, node_rest, graph, params.alpha_threshold,
+                             params.max_edges_per_vertex, params.beta)
+
+    first = int(np.argmin(np.linalg.norm(F, axis=1)))
+    sample = _even_sample(n, params.selection_vertices)
+    alpha_s = None if alpha is None else alpha[sample]
+    D_s = _targets(C, sample, wpsd)
+    table = None
+    smoothing = params.smoothing
+    if smoothing is None:
+        progress(0.3, "smoothing validation")
+        rng = np.random.default_rng(VALIDATION_SEED)
+        noisy = markers + rng.normal(0.0, params.validation_noise_mm, markers.shape)
+        pn = head_alignment(noisy, rest, pose_weights)
+        F_noisy = shell_features(base.handle_displacements(pn.remove(noisy)))
+        smoothing, table = validate_smoothing(F, F_noisy, D_s, alpha_s, params, first)
+
+    progress(0.45, "basis selection")
+    if wpsd:
+        sel, sel_errors = select_basis(F, D_s, alpha_s, params, smoothing, first)
+    else:
+        K = np.zeros((T, T))
+        for v0 in range(0, n, FIT_CHUNK):
+            Cv = C[:, v0:v0 + FIT_CHUNK].reshape(T, -1).astype(np.float64)
+            K += Cv @ Cv.T
+        sel, sel_errors = select_basis(F, rbf.gram_factor(K)[None], None, params, smoothing, first)
+    basis = F[sel]
+    P = len(sel)
+    exact = params.fit == "exact"
+
+    progress(0.55, "weights")
+    weights = np.empty((n, P, 3), np.float32)
+    fit_sq = np.zeros(n)
+    if wpsd:
+        for v0 in range(0, n, FIT_CHUNK):
+            vs = np.arange(v0, min(v0 + FIT_CHUNK, n))
+            Phi = _phi(F, basis, alpha[vs])
+            Dv = _targets(C, vs, True)
+            W = rbf.fit_basis(Phi, Dv, sel, smoothing, exact)
+            weights[vs] = W
+            R = Dv - np.einsum("btp,bpc->btc", Phi, W)
+            fit_sq[vs] = np.einsum("btc,btc->b", R, R)
+    else:
+        Phi = _phi(F, basis, None)
+        S = rbf.fit_basis(Phi, np.eye(T)[None], sel, smoothing, exact)[0]      # (P,T): W = S D
+        for v0 in range(0, n, FIT_CHUNK):
+            Cv = C[:, v0:v0 + FIT_CHUNK].astype(np.float64)                     # (T,c,3)
+            W = np.einsum("pt,tvc->vpc", S, Cv)
+            weights[v0:v0 + FIT_CHUNK] = W
+            R = Cv - np.einsum("tp,vpc->tvc", Phi[0], W)
+            fit_sq[v0:v0 + FIT_CHUNK] = np.einsum("tvc,tvc->v", R, R)
+
+    map_weights = np.zeros((len(map_index), P), np.float32)
+    map_rms = None
+    if maps is not None:
+        progress(0.75, "map weights")
+        if wpsd:
+            interp = interpolation_matrix(raster, actor.faces, n)[map_index].tocsr()
+            G = ((F[:, None, :] - basis[None]) ** 2).reshape(T * P, -1).T        # (E,T·P)
+            sq = 0.0
+            for t0 in range(0, len(map_index), TEXEL_CHUNK):
+                rows = interp[t0:t0 + TEXEL_CHUNK]
+                verts = np.unique(rows.indices)
+                D2 = np.asarray(alpha[verts] @ G)                                 # (|v|,T·P)
+                Phi = rbf.kernel(np.sqrt(np.maximum(rows[:, verts] @ D2, 0.0))).reshape(-1, T, P)
+                Dt = maps[:, t0:t0 + TEXEL_CHUNK].T[..., None].astype(np.float64)
+                W = rbf.fit_basis(Phi, Dt, sel, smoothing, exact)
+                map_weights[t0:t0 + TEXEL_CHUNK] = W[..., 0]
+                sq += rbf.residual_sq(Phi, Dt, W).sum()
+        else:
+            map_weights[:] = (S @ maps.astype(np.float64)).T
+            R = maps - Phi[0] @ map_weights.T.astype(np.float64)
+            sq = float(np.einsum("tp,tp->", R, R))
+        map_rms = float(np.sqrt(sq / maps.size))
+
+    progress(0.95, "metrics")
+    regions = {k: np.asarray(v, bool) for k, v in actor.regions.items()}
+    signal = np.einsum("tvc,tvc->v", C, C, dtype=np.float64)
+    rms = {"all": float(np.sqrt(fit_sq.sum() / (T * n)))}
+    sig = {"all": float(np.sqrt(signal.sum() / (T * n)))}
+    for k, m in regions.items():
+        if m.any():
+            rms[k] = float(np.sqrt(fit_sq[m].sum() / (T * m.sum())))
+            sig[k] = float(np.sqrt(signal[m].sum() / (T * m.sum())))
+    norms = np.linalg.norm(F, axis=1)
+    metrics = {
+        "kind": params.method,
+        "training_frames": T,
+        "clips": [c.name for c in clips],
+        "feature_edges": graph.n_edges,
+        "basis_size": P,
+        "basis": [names[j] for j in sel],
+        "selection_relative_error": sel_errors,
+        "smoothing": float(smoothing),
+        "validation": table,
+        "correction_fit_rms_mm": rms,
+        "correction_signal_rms_mm": sig,
+        "map_fit_rms_mm": map_rms,
+        "map_signal_rms_mm": None if maps is None else float(np.sqrt(np.mean(maps.astype(np.float64) ** 2))),
+        "alpha_nonzero_per_vertex": None if alpha is None else float(alpha.nnz / n),
+    }
+    data = PoseSpaceData(
+        params=params, faces=np.asarray(actor.faces, np.int64), uv=np.asarray(actor.uv, np.float64),
+        uv_faces=np.asarray(actor.uv_faces, np.int64), neutral=np.asarray(actor.vertices, np.float64),
+        handles=base.handles, rest_markers=rest, pose_weights=pose_weights,
+        node_triangle=np.asarray(actor.marker_triangle, np.int64),
+        node_barycentric=np.asarray(actor.marker_barycentric, np.float64),
+        edges=graph.edges, rest_length=graph.rest_length, basis_features=basis, weights=weights,
+        alpha=None if alpha is None else alpha.astype(np.float32),
+        map_resolution=int(H), map_index=map_index, map_weights=map_weights,
+        feature_low=F.min(axis=0), feature_high=F.max(axis=0),
+        confidence_scale=float(max(np.median(norms), 1e-9)),
+        basis_names=tuple(names[j] for j in sel), metrics=metrics)
+    progress(1.0, "done")
+    return PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
+
+
+__all__ = ["OUTPUTS", "PoseSpaceData", "PoseSpaceEvaluator", "PoseSpaceModel", "node_operator",
+           "train"]

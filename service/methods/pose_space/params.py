@@ -1,0 +1,118 @@
+"""Training parameters of pose-space detail (bickel2008 §5): one frozen pydantic model per method.
+
+:class:`PsdParams` (kind ``psd``, §5.2: one feature distance per example pose) and
+:class:`WpsdParams` (kind ``wpsd``, §5.3: per-vertex weighted feature distances) share
+:class:`PoseSpaceParams`; the field ``method`` tells them apart in a stored manifest
+(:func:`parse_params`). The library, the API and OpenAPI use these same models.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Union
+
+from pydantic import Field
+
+from service.methods.params import MethodParams
+
+#: relative ridge always added to least-squares normal equations (x mean diagonal): keeps
+#: nearly dependent basis columns solvable; changes well-posed fits by ~1e-10 relative
+RIDGE_FLOOR = 1e-10
+#: candidate smoothing values of the validation (relative ridge, see ``rbf.solve_weights``)
+SMOOTHING_GRID = (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
+#: seed of the validation's marker noise
+VALIDATION_SEED = 0
+
+
+class PoseSpaceParams(MethodParams):
+    """Parameters shared by PSD and WPSD (bickel2008 §5.1-5.2)."""
+
+    fit: Literal["least_squares", "exact"] = Field(
+        default="least_squares",
+        description="How the RBF weights are computed from the selected basis poses (§5.2): "
+                    "'exact' interpolates the P basis poses, 'least_squares' fits all T "
+                    "training frames with the P basis poses as centres.")
+    basis_size: int = Field(
+        default=12, ge=1, le=64,
+        description="Largest number P of basis poses chosen by the greedy selection (§5.2: "
+                    "start from the rest pose, add the worst-fit training frame).")
+    error_threshold: float = Field(
+        default=0.0, ge=0.0, lt=1.0,
+        description="Stop the greedy selection once the relative RMS training error of the "
+                    "corrections falls to this value (0: always use basis_size poses).")
+    smoothing: float | None = Field(
+        default=None, ge=0.0, le=10.0,
+        description="Relative ridge λ of the RBF solve ((ΦᵀΦ + λ·tr(ΦᵀΦ)/P·I) w = Φᵀd). "
+                    "null: chosen from smoothing_grid by validation on held-out training "
+                    "frames (every validation_stride-th frame, markers with "
+                    "validation_noise_mm noise).")
+    smoothing_grid: tuple[float, ...] = Field(
+        default=SMOOTHING_GRID, min_length=1,
+        description="Candidate values of the validation of smoothing.")
+    validation_stride: int = Field(
+        default=4, ge=2, le=100,
+        description="Every k-th training frame is held out when smoothing is validated.")
+    validation_noise_mm: float = Field(
+        default=0.3, ge=0.0, le=10.0,
+        description="Gaussian noise (σ per coordinate, actor unit) added to the held-out "
+                    "frames' markers when smoothing is validated: the tracking noise the "
+                    "detail must be robust to (a property of the capture system; 0 validates "
+                    "on clean markers).")
+    feature_edges: tuple[tuple[str, str], ...] | None = Field(
+        default=None,
+        description="The feature graph as marker-name pairs (§3); null builds it "
+                    "automatically (Delaunay triangulation of the markers in UV, long and "
+                    "sliver-only edges pruned).")
+    max_edge_ratio: float = Field(
+        default=2.5, gt=1.0, le=100.0,
+        description="Automatic graph: drop edges longer (rest length) than this multiple "
+                    "of the median edge.")
+    min_angle_deg: float = Field(
+        default=12.0, ge=0.0, lt=60.0,
+        description="Automatic graph: drop edges that belong only to UV triangles with a "
+                    "smaller angle (boundary slivers of the triangulation).")
+    map_resolution: int | None = Field(
+        default=None, ge=16, le=8192,
+        description="Texels per side of the fine displacement map learned from the "
+                    "training clips' maps (null: the clips' own size).")
+    extrapolation_margin: float | None = Field(
+        default=0.25, ge=0.0,
+        description="With clamp, each feature (edge strain) is limited to its training "
+                    "range widened by this fraction of the range on both sides, so poses "
+                    "beyond the training data do not extrapolate the linear kernel without "
+                    "bound; null disables the limit.")
+    selection_vertices: int = Field(
+        default=4096, ge=16,
+        description="Vertices (an even stride over the mesh) on which WPSD's greedy basis "
+                    "selection and the smoothing validation measure the fit error.")
+
+
+class PsdParams(PoseSpaceParams):
+    """Pose-space deformation with one feature distance per pose (bickel2008 §5.2, eq. 2)."""
+
+    method: Literal["psd"] = Field(default="psd", description="Global pose-space deformation.")
+
+
+class WpsdParams(PoseSpaceParams):
+    """Weighted pose-space deformation (bickel2008 §5.3, eq. 3-5)."""
+
+    method: Literal["wpsd"] = Field(default="wpsd", description="Per-vertex weighted PSD.")
+    alpha_threshold: float = Field(
+        default=0.025, gt=0.0, lt=1.0,
+        description="Discard edge weights ᾱ below this value (§5.3: 0.025).")
+    max_edges_per_vertex: int = Field(
+        default=16, ge=1, le=256,
+        description="At most this many feature edges influence a vertex (§5.3: 16).")
+    beta: float | None = Field(
+        default=None, gt=0.0,
+        description="Decay β of eq. 4 in 1/actor unit; null: per vertex, from the local "
+                    "density of the graph, so that exactly max_edges_per_vertex edges have "
+                    "ᾱ ≥ alpha_threshold.")
+
+
+Params = Union[PsdParams, WpsdParams]
+
+
+def parse_params(raw: dict) -> Params:
+    """The params model of a stored manifest's ``params`` (by its ``method``)."""
+    cls = WpsdParams if raw.get("method", "wpsd") == "wpsd" else PsdParams
+    return cls.model_validate(raw)

@@ -1,0 +1,89 @@
+"""A pose-space model on disk: ``manifest.json`` + ``model.npz`` (+ ``cache.npz``).
+
+* ``model.npz``  every array of :class:`~.model.PoseSpaceData` in the dtype the model holds
+  (the rest mesh and layout, handles, rest markers, pose weights, feature nodes and graph,
+  basis features, per-vertex RBF weights (n,P,3) float32, α as CSR arrays ``alpha_data``
+  float32 / ``alpha_indices`` / ``alpha_indptr`` (WPSD), the map band's texels and weights,
+  the training feature range); a load reproduces the model bit for bit;
+* ``cache.npz``  the thin-shell basis (n,M) float32 and handle energy: derived (a load
+  without it recomputes them), listed under ``derived`` and checksummed like the rest;
+* ``manifest.json``  kind (``psd`` | ``wpsd``), format version, params, metrics, scalars,
+  basis names and the sha256 of every file (:mod:`service.methods.model_dir`).
+
+Every file is written atomically, the manifest last.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from service.io.atomic import write_bytes, write_npz
+from service.io.npz import npz_arrays
+from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.methods.pdm.base_surface import BaseSurface
+from service.methods.pose_space.data import PoseSpaceData
+from service.methods.pose_space.params import parse_params
+
+FORMAT_VERSION = 1
+CACHE = "cache.npz"
+ARRAYS = ("faces", "uv", "uv_faces", "neutral", "handles", "rest_markers", "pose_weights",
+          "node_triangle", "node_barycentric", "edges", "rest_length", "basis_features", "weights",
+          "map_index", "map_weights", "feature_low", "feature_high")
+
+
+def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
+    """Write a model's stored data ``d`` (and its thin shell's basis as derived data) into
+    directory ``path`` (created); returns the manifest."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    arrays = {k: getattr(d, k) for k in ARRAYS}
+    if d.alpha is not None:
+        arrays.update(alpha_data=d.alpha.data, alpha_indices=d.alpha.indices,
+                      alpha_indptr=d.alpha.indptr, alpha_shape=np.array(d.alpha.shape))
+    files = {"model.npz": write_npz(path / "model.npz", arrays)}
+    derived = {CACHE: write_npz(path / CACHE, {"basis": base.basis, "energy": base.energy})}
+    manifest = {
+        "kind": d.kind, "format_version": FORMAT_VERSION, "params": d.params.model_dump(mode="json"),
+        "metrics": d.metrics, "map_resolution": d.map_resolution,
+        "confidence_scale": d.confidence_scale, "basis_names": list(d.basis_names),
+        "files": files, "derived": derived,
+        "size_bytes": sum((path / f).stat().st_size for f in files),
+    }
+    write_bytes(path / "manifest.json", json.dumps(manifest, indent=1).encode())
+    return manifest
+
+
+def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
+    """The stored data and thin shell of a model written by :func:`write_model` (checksums
+    verified first)."""
+    path = Path(path)
+    try:
+        kind = json.loads((path / "manifest.json").read_bytes()).get("kind")
+    except (OSError, ValueError) as e:
+        raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
+    if kind not in ("psd", "wpsd"):
+        raise ModelCorrupt(f"{path}: not a pose-space model (kind {kind!r})")
+    manifest, data = read_model_files(path, kind, FORMAT_VERSION, required=("model.npz",))
+    a = npz_arrays(data["model.npz"])
+    missing = [k for k in ARRAYS if k not in a]
+    if missing:
+        raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
+    alpha = None
+    if "alpha_data" in a:
+        alpha = sp.csr_matrix((a["alpha_data"], a["alpha_indices"], a["alpha_indptr"]),
+                              shape=tuple(int(x) for x in a["alpha_shape"]))
+    params = parse_params(manifest["params"])
+    if params.method != kind:
+        raise ModelCorrupt(f"{path}: params are for {params.method}, the manifest says {kind}")
+    d = PoseSpaceData(params=params, alpha=alpha, map_resolution=int(manifest["map_resolution"]),
+                      confidence_scale=float(manifest["confidence_scale"]),
+                      basis_names=tuple(manifest["basis_names"]), metrics=manifest["metrics"],
+                      **{k: a[k] for k in ARRAYS})
+    cache = npz_arrays(data[CACHE]) if CACHE in data else {}
+    base = BaseSurface.from_smooth(d.neutral, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
+                                   basis=cache.get("basis"), energy=cache.get("energy"))
+    return d, base

@@ -1,0 +1,10 @@
+"""Stress-driven blending of expression maps (the "Real-Time Rendering" of the Digital Ira
+course, 2014: "surface stress values [are used] to blend diffuse texture, specular, normal,
+and displacement maps from the different high-resolution expression scans per-vertex at
+run time"), with the per-region wrinkle-map weights a real-time engine plays back.
+
+Modules: :mod:`.params` (the one parameter model), :mod:`.stress` (per-vertex surface
+stress from deformation gradients), :mod:`.weights` (stress similarity → blend weights),
+:mod:`.regions` (wrinkle masks and per-frame region weights), :mod:`.model` (training and
+synthesis), :mod:`.store` (model directories).
+"""

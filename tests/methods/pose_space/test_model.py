@@ -1,0 +1,96 @@
+"""Tests for service.methods.pose_space.model: training and synthesis on the level-0 sample actor."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.methods.inputs import InvalidInput
+from service.methods.pose_space import PsdParams, WpsdParams, train
+from service.methods.pose_space.corrections import corrections
+
+
+def _aligned_truth(model, clip, frames):
+    ev = model.evaluator
+    pose, u_H = ev.deformation(clip.markers[frames])
+    return pose, u_H, pose.remove(clip.vertices[frames])
+
+
+def test_exact_wpsd_reproduces_its_example_poses(wpsd_exact, ps_data):
+    actor, clips = ps_data
+    names = [f"{c.name}:{f}" for c in clips for f in range(c.frames)]
+    assert len(wpsd_exact.data.basis_names) == 5
+    for name in wpsd_exact.data.basis_names:
+        clip = next(c for c in clips if c.name == name.split(":")[0])
+        f = int(name.split(":")[1])
+        out = wpsd_exact.synthesize(clip.markers[f:f + 1], ("mesh",), clamp=False)
+        # the example mesh itself (float32 weights and output: 1e-4 mm); the shell alone is far off
+        np.testing.assert_allclose(out["vertices"][0], clip.vertices[f], atol=2e-4)
+    assert set(wpsd_exact.data.basis_names) <= set(names)
+
+
+def test_corrections_rebuild_the_example_exactly(wpsd_exact, ps_data):
+    from service.methods.pose_space.corrections import apply_corrections
+
+    _, clips = ps_data
+    ev = wpsd_exact.evaluator
+    pose, u_H, aligned = _aligned_truth(wpsd_exact, clips[1], [0, 7, 13])
+    c = corrections(ev.base, u_H, aligned)
+    X = ev.base.deform(u_H)
+    np.testing.assert_allclose(apply_corrections(ev.base, X, c), aligned, atol=1e-4)
+    assert np.abs(c).max() > 0.5                       # the shell misses the wrinkles
+
+
+def test_least_squares_psd_beats_the_thin_shell_on_training_frames(psd_lsq, ps_data):
+    actor, clips = ps_data
+    m = psd_lsq.metrics
+    assert m["correction_fit_rms_mm"]["face"] < 0.5 * m["correction_signal_rms_mm"]["face"]
+    assert m["basis_size"] == 5 and len(m["selection_relative_error"]) == 5
+    assert np.all(np.diff(m["selection_relative_error"]) <= 1e-12)
+    assert m["smoothing"] in PsdParams().smoothing_grid and len(m["validation"]) == len(PsdParams().smoothing_grid)
+    fr = [f for f, _ in psd_lsq.stages]
+    assert fr[0] == 0.0 and fr[-1] == 1.0 and np.all(np.diff(fr) >= 0)
+
+
+def test_synthesis_is_invariant_to_head_pose(wpsd_exact, ps_data):
+    _, clips = ps_data
+    markers = clips[2].markers[[4, 12]]
+    R = Rotation.from_euler("xyz", [10, -25, 5], degrees=True).as_matrix()
+    t = np.array([30.0, -5.0, 12.0])
+    a = wpsd_exact.synthesize(markers, ("mesh", "displacement"))
+    b = wpsd_exact.synthesize(markers @ R.T + t, ("mesh", "displacement"))
+    np.testing.assert_allclose(b["vertices"], a["vertices"] @ R.T + t, atol=2e-3)
+    np.testing.assert_allclose(b["displacement"], a["displacement"], atol=1e-4)
+    np.testing.assert_allclose(b["confidence"], a["confidence"], atol=1e-6)
+
+
+def test_outputs_confidence_and_occlusion(wpsd_exact, ps_data):
+    actor, clips = ps_data
+    m = clips[0].markers[[5]]
+    out = wpsd_exact.synthesize(m, ("mesh", "mesh_detailed", "displacement", "normal_map"))
+    H = wpsd_exact.data.map_resolution
+    assert out["vertices"].shape == (1, actor.n_vertices, 3) and out["normal_map"].shape == (1, H, H, 3)
+    assert out["confidence"][0] == pytest.approx(1.0)      # a training frame is inside the range
+    # exaggerated expression: features beyond the training range lower the confidence
+    rest = actor.marker_positions()
+    far = rest + 2.5 * (m[0] - rest)
+    far_out = wpsd_exact.synthesize(far[None], ("mesh",))
+    assert far_out["confidence"][0] < 0.8 and far_out["clamped"][0] > 0
+    # occluded markers: NaN rows are completed by the shell
+    occ = m.copy()
+    occ[0, ::10] = np.nan
+    o = wpsd_exact.synthesize(occ, ("mesh",))
+    assert np.isfinite(o["vertices"]).all()
+    face = actor.regions["face"]
+    assert np.abs(o["vertices"][0, face] - out["vertices"][0, face]).mean() < 0.3
+
+
+def test_bad_input_is_rejected(wpsd_exact, ps_data):
+    actor, clips = ps_data
+    with pytest.raises(InvalidInput, match=r"markers \(F,150,3\)"):
+        wpsd_exact.synthesize(np.zeros((2, 3, 3)))
+    with pytest.raises(InvalidInput, match="unknown outputs"):
+        wpsd_exact.synthesize(clips[0].markers[:1], ("albedo",))
+    with pytest.raises(InvalidInput, match="visible markers"):
+        wpsd_exact.synthesize(np.full((1, 150, 3), np.nan))
+    with pytest.raises(InvalidInput, match="no marker named"):
+        train(actor, clips[:1], WpsdParams(feature_edges=(("nope", "x"),)))

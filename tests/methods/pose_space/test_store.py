@@ -1,0 +1,40 @@
+"""Tests for service.methods.pose_space.store: the model directory round trip."""
+
+import numpy as np
+import pytest
+
+from service.methods.model_dir import ModelCorrupt
+from service.methods.pose_space import PoseSpaceModel
+
+OUT = ("mesh", "mesh_detailed", "displacement", "normal_map")
+
+
+@pytest.mark.parametrize("which", ["wpsd_exact", "psd_lsq"])
+def test_save_load_round_trip_is_bit_exact(which, request, ps_data, tmp_path):
+    model = request.getfixturevalue(which)
+    _, clips = ps_data
+    manifest = model.save(tmp_path / "m")
+    assert manifest["kind"] == model.kind and "cache.npz" in manifest["derived"]
+    loaded = PoseSpaceModel.load(tmp_path / "m")
+    assert loaded.params == model.params and loaded.metrics == model.metrics
+    markers = clips[1].markers[[2, 9]]
+    a, b = model.synthesize(markers, OUT), loaded.synthesize(markers, OUT)
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+    # without the derived cache the basis is recomputed: the same numbers
+    (tmp_path / "m" / "cache.npz").unlink()
+    import json
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    man["derived"] = {}
+    (tmp_path / "m" / "manifest.json").write_text(json.dumps(man))
+    c = PoseSpaceModel.load(tmp_path / "m").synthesize(markers, ("mesh",))
+    np.testing.assert_allclose(c["vertices"], a["vertices"], atol=1e-5)
+
+
+def test_load_rejects_a_changed_file(wpsd_exact, tmp_path):
+    wpsd_exact.save(tmp_path / "m")
+    with open(tmp_path / "m" / "model.npz", "r+b") as f:
+        f.seek(200)
+        f.write(b"\x00\x01")
+    with pytest.raises(ModelCorrupt, match="checksum"):
+        PoseSpaceModel.load(tmp_path / "m")
