@@ -350,7 +350,8 @@ class BlobStore:
             free, total = stat.f_bavail * stat.f_frsize, stat.f_blocks * stat.f_frsize
         except OSError as error:
             free = total = 0
-            reason = reason or f"the blob store cannot be inspected ({os.strerror(error.errno or errno.EIO)})"
+            text = os.strerror(error.errno or errno.EIO)
+            reason = reason or f"the blob store cannot be inspected ({text})"
         if not reason and free < min_free_bytes:
             reason = (f"the blob store is nearly full: {free} bytes free, fewer than the "
                       f"{min_free_bytes} required")

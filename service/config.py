@@ -74,7 +74,7 @@ class Settings(BaseSettings):
                     "JSON list). Each entry is TOKEN (tenant 'default'), TENANT:TOKEN or "
                     "TENANT:TOKEN:admin (sees every tenant); TOKEN may be "
                     "'sha256:<hex digest of the token>' so the token itself is not stored "
-                    "(service.tenancy). Empty: no authentication, and the API only listens "
+                    "(models_store.tenancy). Empty: no authentication, and the API only listens "
                     "on loopback.")
     public_health: bool = Field(
         default=True,
@@ -192,8 +192,8 @@ class Settings(BaseSettings):
     @field_validator("tokens")
     @classmethod
     def _check_tokens(cls, value: list[str]) -> list[str]:
-        """Every entry parses (service.tenancy.parse_entry); the error never shows a token."""
-        from service.tenancy import parse_entry
+        """Every entry parses (models_store.tenancy.parse_entry); the error never shows a token."""
+        from models_store.tenancy import parse_entry
 
         for number, entry in enumerate(value, 1):
             try:

@@ -4,12 +4,13 @@ listens on loopback, which ``facesynth serve`` enforces).
 
 :func:`check_bearer` is the dependency of every ``/v1`` route (and of ``/healthz``,
 ``/readyz``, ``/metrics`` and the docs when their ``public_*`` setting is false). It finds
-the token's :class:`~service.tenancy.Principal` in the configured
-:class:`~service.tenancy.TokenTable` (constant-time, digests only) and scopes the rest of the
-request to its tenant (:func:`models_store.registry.acting_for` semantics, through the
+the token's :class:`~models_store.tenancy.Principal` in the configured
+:class:`~models_store.tenancy.TokenTable` (constant-time, digests only) and scopes the rest
+of the request to its tenant (:func:`models_store.registry.acting_for` semantics, through the
 registry's context variables): listings show only the tenant's rows, another tenant's ids
 answer 404, new actors belong to it. An admin token is scoped to every tenant. Without
-tokens every request acts as :data:`~service.tenancy.ANONYMOUS` (an admin of ``default``).
+tokens every request acts as :data:`~models_store.tenancy.ANONYMOUS` (an admin of
+``default``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from fastapi import Request
 from models_store.registry import TENANT_OWNER, TENANT_SCOPE
 from service.api.errors import Unauthorized
 from service.config import Settings
-from service.tenancy import ANONYMOUS, Principal, TokenTable
+from models_store.tenancy import ANONYMOUS, Principal, TokenTable
 
 
 def token_matches(given: str, tokens: Sequence[str]) -> bool:

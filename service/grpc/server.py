@@ -30,8 +30,8 @@ from typing import Callable, Iterable, Iterator, Protocol, Sequence
 import grpc
 import numpy as np
 
+from models_store.tenancy import Principal, TokenTable
 from service.grpc import codec
-from service.tenancy import Principal, TokenTable
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
 from service.errors import (
@@ -190,7 +190,7 @@ class BearerTokenAuth(grpc.ServerInterceptor):
     """Refuses calls without ``authorization: Bearer <token>`` metadata naming one of
     ``tokens`` (UNAUTHENTICATED), and runs each authorized call scoped to its token's tenant
     (another tenant's model answers NOT_FOUND, as an unknown one). ``tokens`` are
-    ``FACESYNTH_TOKENS`` entries (:mod:`service.tenancy`: digests only, constant-time)."""
+    ``FACESYNTH_TOKENS`` entries (:mod:`models_store.tenancy`: digests only, constant-time)."""
 
     def __init__(self, tokens: Sequence[str]):
         if not tokens or not all(tokens):

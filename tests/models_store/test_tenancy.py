@@ -1,4 +1,4 @@
-"""service.tenancy: token entries, hashed tokens, constant-time lookup (issue 16, defect 13)."""
+"""models_store.tenancy: token entries, hashed tokens, constant-time lookup (issue 16, defect 13)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import hashlib
 
 import pytest
 
-from service.tenancy import ANONYMOUS, Principal, TokenTable, parse_entry
+from models_store.tenancy import ANONYMOUS, Principal, TokenTable, parse_entry
 
 
 def sha(token: str) -> str:
