@@ -28,6 +28,7 @@ from service.app import uploads
 from service.app.input_rigs import REGISTER_JOB, LoadedRig, load_rig
 from service.app.retiming import check_retime_kind, parse_retime_request, resolve_keyframes
 from service.app.limits import RETRY_AFTER_SECONDS
+from service.app.validation import check_text
 from service.app.services import Services, Submit
 from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
                                    check_response_request, encode, negotiate, parse_job_input,
@@ -131,7 +132,8 @@ def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.Marke
         registry.set_markers(session, services.blobs, actor_id, layout.blob,
                              marker_count=layout.marker_count)
     return schemas.MarkersInfo(marker_count=layout.marker_count, snapped=layout.snapped,
-                               max_snap_distance=layout.max_snap_distance)
+                               max_snap_distance=layout.max_snap_distance,
+                               renormalized=layout.renormalized)
 
 
 # ---------------------------------------------------------------------------- clips
@@ -140,6 +142,8 @@ def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads
     """Validate a clip (NPZ bytes or a multipart :class:`~service.app.uploads.ClipForm`)
     against the actor's neutral and layout, and store it; the stored clip and the marker
     reader's notes."""
+    if name is not None:
+        check_text(name, "the clip name")
     with services.session() as session:
         actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
         names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor_id))

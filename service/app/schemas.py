@@ -51,9 +51,19 @@ class ActorCreate(BaseModel):
     metadata: dict[str, Any] = Field(default_factory=dict,
                                      description="Free-form JSON metadata (at most 64 KiB).")
 
+    @field_validator("name")
+    @classmethod
+    def _encodable_name(cls, value: str) -> str:
+        from service.app.validation import check_text
+
+        return check_text(value, "the actor name")
+
     @field_validator("metadata")
     @classmethod
     def _bounded(cls, value: dict[str, Any]) -> dict[str, Any]:
+        from service.app.validation import check_json_text
+
+        check_json_text(value, "metadata")       # before json.dumps, which would accept it
         size = len(json.dumps(value, allow_nan=False).encode())
         if size > METADATA_MAX_BYTES:
             raise ValueError(f"metadata is {size} bytes as JSON, more than {METADATA_MAX_BYTES}")
@@ -125,6 +135,10 @@ class MarkersInfo(BaseModel):
     marker_count: int
     snapped: int = Field(description="Markers given as positions, snapped to the surface.")
     max_snap_distance: float = Field(description="Farthest snap, in the actor's unit.")
+    renormalized: int = Field(0, description=(
+        "Markers whose barycentric coordinates were within 1e-4 of summing to 1 (or of 0) but "
+        "not exactly, and were clipped at 0 and renormalized (e.g. a layout written with 6 "
+        "decimals)."))
 
 
 # ---------------------------------------------------------------------------- clips

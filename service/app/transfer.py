@@ -15,9 +15,6 @@ from typing import Annotated
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from models_store.ids import new_id
-from models_store.registry.jobs import new_job
-from models_store.schema import Model, utcnow
 from models_store import registry
 from service.app import schemas
 from service.app.operations import submit
@@ -86,13 +83,11 @@ def submit_transfer(services: Services, submit_job: Submit, model_id: str,
                                    f"{target.id!r} has {target.marker_count} markers")
             if not all(np.isfinite(w) and w >= 0 for w in weights) or not any(weights):
                 raise InvalidInput("params.pose_weights must be finite, >= 0 and not all zero")
-        model = Model(id=new_id("model"), actor_id=target.id, kind=source.kind,
-                      status="training", params=dict(source.params), created_at=utcnow())
-        job = new_job(TRANSFER_JOB, target.id, model.id, {
-            "model_id": model.id, "source_model_id": source.id, "landmarks": landmarks,
-            "params": body.params.model_dump(mode="json")})
-        session.add_all([model, job])
-        session.commit()
+        # the new model and its job belong to the target actor's tenant
+        model, job = registry.create_model(
+            session, target.id, source.kind, source.params, job_kind=TRANSFER_JOB,
+            payload={"source_model_id": source.id, "landmarks": landmarks,
+                     "params": body.params.model_dump(mode="json")})
         submit(session, submit_job, job)
         return schemas.ModelAccepted(model_id=model.id, job_id=job.id)
 

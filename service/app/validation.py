@@ -103,3 +103,41 @@ def check_finite_frames(values: np.ndarray, what: str, element: str,
         note = "; NaN marks an occluded marker, infinity is not allowed" if allow_nan else ""
         raise InvalidInput(f"{what} frame {f} {element} {k} has a non-finite coordinate "
                            f"({int(bad.sum())} such entries in all{note})")
+
+
+def check_text(value: str, what: str) -> str:
+    """``value`` if it can be stored and served back: encodable as UTF-8 (no lone surrogate
+    such as ``"\\udfff"``, which JSON can carry but neither the database nor the response
+    encoder can) and free of NUL characters (PostgreSQL text and JSON refuse them).
+
+    Every user string that is stored — actor names, metadata keys and values, clip and rig
+    names — passes this *before* anything is written, so no row is committed that the API
+    cannot serialize (issue 16: one such row made every actor listing a 500).
+
+    Raises
+    ------
+    InvalidInput   naming ``what``, the offending character and its position
+    """
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError as error:
+        raise InvalidInput(f"{what} is not valid Unicode: it holds the lone surrogate "
+                           f"U+{ord(value[error.start]):04X} at position {error.start}") from None
+    if "\x00" in value:
+        raise InvalidInput(f"{what} contains a NUL character at position {value.index(chr(0))}")
+    return value
+
+
+def check_json_text(value, what: str):
+    """``value`` (parsed JSON) if every string in it, keys included, passes
+    :func:`check_text`; the message names the path, e.g. ``metadata['a'][0]``."""
+    if isinstance(value, str):
+        return check_text(value, what)
+    if isinstance(value, dict):
+        for key, item in value.items():
+            check_text(str(key), f"a key of {what}")
+            check_json_text(item, f"{what}[{key!r}]")
+    elif isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            check_json_text(item, f"{what}[{index}]")
+    return value

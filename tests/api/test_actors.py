@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.api.conftest import NPZ, assert_problem, grid, layout_body, npz
 
@@ -219,3 +220,59 @@ def test_delete_actor_with_models_needs_cascade(client, grid_actor, submitted):
 def test_actor_metadata_is_bounded(client):
     assert_problem(client.post("/v1/actors", json={"name": "A", "metadata": {"x": "y" * 70000}}),
                    422, "metadata")
+
+
+# -- poison strings never reach the database (issue 16, defect 1) ----------------------------
+@pytest.mark.parametrize("body", [
+    '{"name": "p", "metadata": {"k": "\\udfff"}}',             # a lone surrogate as a value
+    '{"name": "p", "metadata": {"\\ud800": 1}}',               # ... as a key
+    '{"name": "p", "metadata": {"a": [{"b": "x\\udc00y"}]}}',  # ... nested
+    '{"name": "p\\udfff"}',                                    # ... in the name
+    '{"name": "p", "metadata": {"k": "a\\u0000b"}}',           # a NUL character
+])
+def test_unencodable_strings_are_refused_before_anything_is_written(client, body):
+    response = client.post("/v1/actors", content=body.encode(),
+                           headers={"Content-Type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert client.get("/v1/actors").status_code == 200
+    assert client.get("/v1/actors").json()["items"] == []
+
+
+# -- barycentrics written with 6 decimals (issue 16, defect 14) ------------------------------
+def _triangle_layout(barycentrics) -> bytes:
+    import json
+
+    return json.dumps({"markers": [{"name": f"M{k}", "triangle": k, "barycentric": list(b)}
+                                   for k, b in enumerate(barycentrics)]}).encode()
+
+
+def test_barycentrics_off_by_rounding_are_renormalized_and_reported(client, actor_id):
+    V, F, uv = grid()
+    assert client.put(f"/v1/actors/{actor_id}/neutral", content=npz(vertices=V, faces=F, uv=uv),
+                      headers=NPZ).status_code == 200
+    exported = [(0.2, 0.3, 0.499999), (0.333333, 0.333333, 0.333333), (0.5, 0.5, 0.0),
+                (1.00005, 0.0, 0.0), (-0.000001, 0.5, 0.500001)]
+    response = client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(exported),
+                          headers={"Content-Type": "application/json"})
+    assert response.status_code == 200, response.text
+    info = response.json()
+    assert (info["marker_count"], info["renormalized"]) == (5, 4)   # (0.5, 0.5, 0) was exact
+    off = [(0.2, 0.3, 0.4998)]                                       # 2e-4: a real error
+    assert_problem(client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(off),
+                              headers={"Content-Type": "application/json"}), 422, "M0")
+
+
+def test_a_text_plain_neutral_is_415_not_422(client, actor_id):
+    """issue 16, defect 9: text/plain was parsed as OBJ and answered 422."""
+    assert_problem(client.put(f"/v1/actors/{actor_id}/neutral", content=b"v 0 0 0\n",
+                              headers={"Content-Type": "text/plain"}), 415, "model/obj")
+
+
+def test_an_int8_neutral_is_refused_and_does_not_replace_the_stored_one(client, grid_actor):
+    """issue 16, defect 9: int8 vertices were accepted and replaced the actor's neutral."""
+    V, F, uv = grid()
+    before = client.get(f"/v1/actors/{grid_actor}").json()
+    response = client.put(f"/v1/actors/{grid_actor}/neutral",
+                          content=npz(vertices=V.astype(np.int8), faces=F, uv=uv), headers=NPZ)
+    assert_problem(response, 422, "'vertices'", "float")
+    assert client.get(f"/v1/actors/{grid_actor}").json() == before

@@ -151,3 +151,11 @@ def test_clip_multipart_reports_the_marker_readers_notes(client, grid_actor):
     # the CSV of the other multipart test reads as declared: no notes
     files[-1] = ("markers", ("take.csv", _csv(3), "text/csv"))
     assert client.post(f"/v1/actors/{grid_actor}/clips", files=files).json()["notes"] == []
+
+
+def test_a_clip_name_with_a_nul_is_refused_before_anything_is_stored(client, grid_actor):
+    """issue 16, defects 1 and 7: ``?name=a%00b`` used to reach PostgreSQL and fail there."""
+    actor_id = grid_actor
+    response = client.post(f"/v1/actors/{actor_id}/clips?name=a%00b", content=b"x", headers=NPZ)
+    assert_problem(response, 422, "NUL")
+    assert client.get(f"/v1/actors/{actor_id}/clips").json()["items"] == []

@@ -253,7 +253,7 @@ def test_synthesis_slots_answer_503_when_busy():
     from service.app.metrics import Metrics
     from service.app.synthesis import SynthesisInput, Synthesizer
 
-    synthesizer = Synthesizer(Metrics(), limit=1)
+    synthesizer = Synthesizer(Metrics(), limit=1, wait_seconds=0.0)
     model = SimpleNamespace(synthesize=lambda frames, outputs, clamp: {"faces": np.zeros((1, 3))})
     loaded = SimpleNamespace(model=model, kind=SimpleNamespace(name="fake"))
     request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
@@ -263,6 +263,63 @@ def test_synthesis_slots_answer_503_when_busy():
         synthesizer.run(loaded, request)
     status, headers = status_of(error.value)
     assert status == 503 and headers["Retry-After"] == "1"
+
+
+def test_busy_syntheses_queue_for_a_bounded_wait_and_the_depth_is_a_metric():
+    """issue 16, defect 12: excess requests were refused at once (77 % 503s with 16 clients);
+    now they wait up to ``wait_seconds`` for a slot, and /metrics shows how many wait."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from service.app.metrics import Metrics
+    from service.app.synthesis import SynthesisInput, Synthesizer
+    from service.errors import Unavailable
+
+    metrics = Metrics()
+    synthesizer = Synthesizer(metrics, limit=1, wait_seconds=5.0, max_queue=2)
+    release = threading.Event()
+
+    def slow(frames, outputs, clamp):
+        release.wait(10)
+        return {"faces": np.zeros((1, 3))}
+
+    loaded = SimpleNamespace(model=SimpleNamespace(synthesize=slow),
+                             kind=SimpleNamespace(name="fake"))
+    request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
+    results: list[object] = []
+
+    def call():
+        try:
+            results.append(synthesizer.run(loaded, request))
+        except Unavailable as error:
+            results.append(error)
+
+    threads = [threading.Thread(target=call) for _ in range(3)]    # 1 runs, 2 wait
+    for t in threads:
+        t.start()
+    deadline = time.monotonic() + 5
+    while synthesizer.waiting < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert (synthesizer.running, synthesizer.waiting) == (1, 2)
+    text = metrics.render().decode()
+    assert "facesynth_synthesis_queue_depth 2.0" in text
+    assert "facesynth_synthesis_running 1.0" in text
+    with pytest.raises(Unavailable, match="2 requests are waiting"):    # the queue is full
+        synthesizer.run(loaded, request)
+    release.set()
+    for t in threads:
+        t.join(10)
+    assert len(results) == 3 and all(isinstance(r, dict) for r in results)   # none refused
+    assert synthesizer.waiting == 0 and "facesynth_synthesis_queue_depth 0.0" in \
+        metrics.render().decode()
+    # a wait that runs out is a 503
+    short = Synthesizer(Metrics(), limit=1, wait_seconds=0.2)
+    short._slots.acquire()
+    start = time.monotonic()
+    with pytest.raises(Unavailable, match="waited 0.2 s"):
+        short.run(loaded, request)
+    assert 0.2 <= time.monotonic() - start < 1.0
 
 
 def test_per_vertex_displacement_is_refused_as_a_map_not_a_500():

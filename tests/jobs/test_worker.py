@@ -207,7 +207,48 @@ def test_queued_jobs_whose_message_was_lost_are_resubmitted_when_a_worker_starts
     with deployment.session() as session:
         assert job.id not in resubmit_stale(deployment.settings)  # too young to be lost
         assert job.id in resubmit_stale(deployment.settings, older_than=0.0)
+        # its message now waits in the queue: not submitted again
+        assert job.id not in resubmit_stale(deployment.settings, older_than=0.0)
         registry.request_cancel(session, job.id)
+    get_queue(deployment.settings).huey.flush()
+
+
+# -- issue 16, defect 5: lost messages and dead workers, without restarting anything --------
+@pytest.fixture
+def probe_kind(monkeypatch):
+    from service.jobs import tasks
+
+    monkeypatch.setitem(tasks.TASKS, "probe", lambda job: {"ran": job.attempt})
+
+
+def test_a_job_whose_message_is_lost_runs_within_the_bound_on_a_running_worker(
+        deployment, start_worker, probe_kind):
+    settings = deployment.settings.model_copy(update={"job_resubmit_seconds": 1.0})
+    start_worker(settings)
+    with deployment.session() as session:     # committed, never enqueued: the message is lost
+        job = registry.create_job(session, "probe", deployment.actor_id)
+    finished = deployment.wait(job.id, timeout=1.0 + 5 * settings.job_lease_seconds)
+    assert (finished.status, finished.result) == ("succeeded", {"ran": 1})
+    assert (finished.started_at - job.created_at).total_seconds() >= 1.0
+
+
+def test_expired_leases_are_reaped_with_no_worker_alive(deployment, probe_kind):
+    from service.jobs.worker import start_maintenance
+
+    with deployment.session() as session:
+        job = registry.create_job(session, "probe", deployment.actor_id)
+        registry.claim_job(session, "dead-host:1:thread", lease_seconds=0.2, max_retries=2,
+                           job_id=job.id)
+    maintenance = start_maintenance(deployment.settings)      # what an API process runs
+    try:
+        requeued = deployment.wait(job.id, timeout=3 * deployment.settings.job_lease_seconds,
+                                   until=lambda j: j.status != "running")
+    finally:
+        maintenance.stop(timeout=10)
+    assert (requeued.status, requeued.worker, requeued.attempts) == ("queued", None, 1)
+    with deployment.session() as session:
+        registry.request_cancel(session, job.id)
+    get_queue(deployment.settings).huey.flush()
 
 
 def test_synthesis_job_writes_per_frame_obj_and_exr_into_a_zip(deployment, trained, start_worker,

@@ -27,7 +27,6 @@ bounded for any length (a USD stage holds the points once; they are not kept twi
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -82,7 +81,7 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     frames = len(inputs)
     media_type, suffix = artifact_type(fmt, outputs)
     uv, uv_faces = getattr(trained, "uv", None), getattr(trained, "uv_faces", None)
-    with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".synthesize-") as tmp:
+    with store.blobs.scratch_dir("synthesize") as tmp:  # locked: never swept while in use
         if fmt == "npz":
             writer = FrameNpzWriter(Path(tmp), frames, STATIC_OUTPUTS)
         elif fmt == "usd":
