@@ -103,6 +103,9 @@ def test_no_route_crosses_tenants(deployment, actor_dir):
             ("GET", f"/v1/jobs/{job['job_id']}", {}), ("DELETE", f"/v1/jobs/{job['job_id']}", {}),
             ("GET", f"/v1/jobs/{job['job_id']}/events", {}),
             ("GET", f"/v1/artifacts/{artifact}", {}),
+            ("POST", f"/v1/actors/{actor}/bone-rig-jobs", {"json": {"clip_id": clip_ids[0]}}),
+            ("POST", f"/v1/models/{model}/transfer",
+             {"json": {"target_actor_id": b_actor, "landmarks": [[i, i] for i in range(40)]}}),
         ]
         for method, path, kwargs in routes:
             response = b.request(method, path, **kwargs)
