@@ -190,6 +190,9 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                     "mean": s["medium_mean_mm"], "p95": s["medium_p95_mm"], "max": float(face_err.max()),
                     "corr": s["fine_r"], "rel": s["fine_rms_mm"] / r["signal_rms_mm"][pdm.FACE],
                     "frames": len(gt.frames), "seconds": time.perf_counter() - t0}
+                r_ = rows[(rname, cname, name)]
+                print(f"ROW | {family} | {rname} | {cname} | {name} | {r_['mean']:.3f} | {r_['p95']:.3f} "
+                      f"| {r_['max']:.2f} | {r_['corr']:.2f} | {r_['rel']:.2f} |", file=sys.stderr, flush=True)
                 if name == WORST_OF:
                     k = int(np.argmax(face_err.max(axis=1)))
                     if worst is None or face_err[k].max() > worst["max"]:
