@@ -20,6 +20,10 @@ shows) and ``heldout_amplified`` (every training expression 25–40 % beyond its
 their ``_noisy`` (σ = 0.3 mm per coordinate) and ``_occluded`` (NaN bursts) marker variants,
 scored against the same clean ground truth.
 
+The PDMs are trained with their default parameters (``pdm_report.worker_train``: fine band
+1024²); on a level-0 actor, whose maps are 512², their fine maps are box-filtered to 512²
+and the band split's σ halved, so every method is scored at the actor's map resolution.
+
 Metrics are those of ``pdm_report.py`` (:func:`pdm_report.evaluate_performance`, face
 region): vertex error |V − V_gt| pooled over frames and face vertices — mean, p95 and max —
 and the high-passed detail height (mesh + map) against the ground truth's: Pearson r
@@ -129,7 +133,19 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     actor = load_actor(actor_dir)
     models = pdm_models(actor_dir, retrain)
     bq = models["biquadratic"]
-    tex = pdm.DetailTexels.build(actor, bq.fine.resolution, bq.metrics["highpass_sigma_texels"])
+    # scored at the actor's map resolution (a level-0 actor's maps are 512², the PDM's fine
+    # band 1024²: its maps are box-filtered down, its band split's σ scaled with them)
+    H = json.loads((actor_dir / "manifest.json").read_text())["map_resolution"]
+    tex = pdm.DetailTexels.build(actor, H, bq.metrics["highpass_sigma_texels"] * H / bq.fine.resolution)
+
+    def pdm_prediction(model, markers):
+        out = model.synthesize(markers, pdm.BASIC_OUTPUTS)
+        D = out["displacement"]
+        k = D.shape[-1] // H
+        if k > 1:
+            D = D.reshape(len(D), H, k, H, k).mean(axis=(2, 4))
+        return out["vertices"].astype(np.float64), tex.texels(D), out["clamped"]
+
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
     del clips
@@ -153,7 +169,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                                      markers=_variant_markers(actor_dir, perf + suffix, gt_clean.frames))
             methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
-            methods.update({f"PDM {o}": (lambda m, model=model: pdm.pdm_prediction(model, m, tex))
+            methods.update({f"PDM {o}": (lambda m, model=model: pdm_prediction(model, m))
                             for o, model in models.items()})
             methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
             if cname == "clean":
@@ -173,6 +189,9 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                     "mean": s["medium_mean_mm"], "p95": s["medium_p95_mm"], "max": float(face_err.max()),
                     "corr": s["fine_r"], "rel": s["fine_rms_mm"] / r["signal_rms_mm"][pdm.FACE],
                     "frames": len(gt.frames), "seconds": time.perf_counter() - t0}
+                r_ = rows[(rname, cname, name)]
+                print(f"ROW | {family} | {rname} | {cname} | {name} | {r_['mean']:.3f} | {r_['p95']:.3f} "
+                      f"| {r_['max']:.2f} | {r_['corr']:.2f} | {r_['rel']:.2f} |", file=sys.stderr, flush=True)
                 if name == WORST_OF:
                     k = int(np.argmax(face_err.max(axis=1)))
                     if worst is None or face_err[k].max() > worst["max"]:
@@ -184,8 +203,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     errors = {}
     for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic", SS_MARKERS):
         fn = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
-              "PDM linear": lambda m: pdm.pdm_prediction(models["linear"], m, tex),
-              "PDM biquadratic": lambda m: pdm.pdm_prediction(bq, m, tex),
+              "PDM linear": lambda m: pdm_prediction(models["linear"], m),
+              "PDM biquadratic": lambda m: pdm_prediction(bq, m),
               SS_MARKERS: lambda m: shape_space(m, "markers")}[name]
         try:
             V = fn(worst["markers"])[0][0]
