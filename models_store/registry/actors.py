@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
@@ -12,6 +12,7 @@ from models_store.errors import Conflict, NotFound
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, model_prefix,
                                            put_blob)
+from models_store.registry.paging import after_key
 from models_store.registry.jobs import cancel_active_jobs
 from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
 
@@ -37,9 +38,12 @@ def get_actor(session: Session, actor_id: str) -> Actor:
     return get_row(session, Actor, "actor", actor_id)
 
 
-def list_actors(session: Session) -> list[Actor]:
-    """All actors, oldest first."""
-    return list(session.scalars(select(Actor).order_by(Actor.created_at, Actor.id)))
+def list_actors(session: Session, *, after: Sequence[str] | None = None,
+                limit: int | None = None) -> list[Actor]:
+    """All actors, oldest first (a page of them with ``after``/``limit``:
+    :func:`~models_store.registry.paging.after_key`)."""
+    return list(session.scalars(after_key(select(Actor).order_by(Actor.created_at, Actor.id),
+                                          Actor, after, limit)))
 
 
 def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,

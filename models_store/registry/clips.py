@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from typing import Sequence
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
 from models_store.ids import new_id
 from models_store.registry._common import Data, actor_prefix, commit, get_row, owned, put_blob
+from models_store.registry.paging import after_key
 from models_store.registry.actors import get_actor
 from models_store.schema import Clip, utcnow
 
@@ -32,11 +35,13 @@ def get_clip(session: Session, clip_id: str, actor_id: str | None = None) -> Cli
     return owned(get_row(session, Clip, "clip", clip_id), "clip", actor_id)
 
 
-def list_clips(session: Session, actor_id: str) -> list[Clip]:
-    """The actor's clips, oldest first (NotFound for an unknown actor)."""
+def list_clips(session: Session, actor_id: str, *, after: Sequence[str] | None = None,
+               limit: int | None = None) -> list[Clip]:
+    """The actor's clips, oldest first (NotFound for an unknown actor); a page of them with
+    ``after``/``limit`` (:func:`~models_store.registry.paging.after_key`)."""
     get_actor(session, actor_id)
-    return list(session.scalars(select(Clip).where(Clip.actor_id == actor_id)
-                                .order_by(Clip.created_at, Clip.id)))
+    return list(session.scalars(after_key(select(Clip).where(Clip.actor_id == actor_id)
+                                          .order_by(Clip.created_at, Clip.id), Clip, after, limit)))
 
 
 def read_clip(session: Session, blobs: BlobStore, clip_id: str) -> bytes:

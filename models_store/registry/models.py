@@ -13,6 +13,7 @@ from models_store.errors import Conflict
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (commit, fail_training_model, get_row, error_record,
                                            model_prefix, owned, refetch)
+from models_store.registry.paging import after_key
 from models_store.registry.actors import get_actor
 from models_store.registry.clips import get_clip
 from models_store.registry.jobs import cancel_active_jobs, new_job
@@ -49,15 +50,17 @@ def get_model(session: Session, model_id: str, actor_id: str | None = None) -> M
 
 
 def list_models(session: Session, actor_id: str | None = None,
-                status: str | None = None) -> list[Model]:
-    """Models, oldest first, optionally of one actor (NotFound if unknown) or status."""
+                status: str | None = None, *, after: Sequence[str] | None = None,
+                limit: int | None = None) -> list[Model]:
+    """Models, oldest first, optionally of one actor (NotFound if unknown) or status; a page
+    of them with ``after``/``limit`` (:func:`~models_store.registry.paging.after_key`)."""
     query = select(Model).order_by(Model.created_at, Model.id)
     if actor_id is not None:
         get_actor(session, actor_id)
         query = query.where(Model.actor_id == actor_id)
     if status is not None:
         query = query.where(Model.status == status)
-    return list(session.scalars(query))
+    return list(session.scalars(after_key(query, Model, after, limit)))
 
 
 def mark_model_ready(session: Session, blobs: BlobStore, model_id: str, model_dir: Path, *,

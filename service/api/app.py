@@ -25,6 +25,7 @@ from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
 from service.api.bodies import BodyLimitMiddleware
+from service.api.query import reject_unknown_query
 from service.config import Settings, get_settings
 
 API_VERSION = "1"
@@ -37,6 +38,14 @@ Arrays travel as NumPy `.npz` (`application/x-npz`); errors are RFC 9457
 `application/problem+json` (`{type, title, status, detail, errors?}`); long work is a job
 (`202 Accepted`, `Location: /v1/jobs/{job_id}`). When the server has tokens, every `/v1`
 route needs `Authorization: Bearer <token>`.
+
+Query parameters are checked like JSON bodies: one a route does not declare is a 422 naming
+it (`errors: [{"loc": ["query", "outptus"], "type": "extra_forbidden", ...}]`).
+
+Every list route pages its `items`: `limit` (1–1000, default 100) and `cursor`. When more
+items follow, the answer has `next_cursor`; send it back unchanged as `cursor` for the next
+page. Cursors are keyset-based (the last item's sort key), so paging neither skips nor repeats
+items while others are added or deleted.
 """
 TAGS = [
     {"name": "health", "description": "Liveness, readiness and Prometheus metrics."},
@@ -82,7 +91,8 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                 app.state.services.close()
 
     app = FastAPI(title="facesynth", version=API_VERSION, description=DESCRIPTION,
-                  openapi_tags=TAGS, lifespan=lifespan)
+                  openapi_tags=TAGS, lifespan=lifespan,
+                  dependencies=[Depends(reject_unknown_query)])
     app.state.metrics = Metrics()
     app.state.synthesizer = Synthesizer(app.state.metrics)
     errors.install(app)

@@ -344,7 +344,14 @@ class Artifact(BaseModel):
 
 
 class Items(BaseModel):
-    """Base of list responses: ``{"items": [...]}``."""
+    """Base of list responses: ``{"items": [...], "next_cursor": ...}``.
+
+    A list answers one page (``limit`` items at most); ``next_cursor`` is set when more
+    follow, to be sent back as ``cursor`` (``service/api/query.py``)."""
+
+    next_cursor: str | None = Field(
+        default=None, description="Set when more items follow: send it back as `cursor` for "
+                                  "the next page; absent or null on the last page.")
 
 
 class ActorList(Items):

@@ -82,7 +82,7 @@ def test_train_model_answers_202_with_a_queued_job(client, grid_actor, submitted
     assert (job["kind"], job["model_id"], job["status"]) == ("train", accepted["model_id"], "queued")
     listed = client.get(f"/v1/actors/{grid_actor}/models").json()["items"]
     assert [m["id"] for m in listed] == [accepted["model_id"]]
-    assert client.get(f"/v1/actors/{grid_actor}/models", params={"status": "ready"}).json() == {"items": []}
+    assert client.get(f"/v1/actors/{grid_actor}/models", params={"status": "ready"}).json() == {"items": [], "next_cursor": None}
 
 
 def test_train_model_rejects_a_misspelt_param(client, grid_actor):
