@@ -15,7 +15,7 @@ from typing import Any, AsyncIterator
 from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.api import errors
+from service.api import docs, errors
 from service.api.auth import check_bearer
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
@@ -91,8 +91,9 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                 app.state.services.close()
 
     app = FastAPI(title="facesynth", version=API_VERSION, description=DESCRIPTION,
-                  openapi_tags=TAGS, lifespan=lifespan,
+                  openapi_tags=TAGS, lifespan=lifespan, docs_url=None, redoc_url=None,
                   dependencies=[Depends(reject_unknown_query)])
+    docs.install(app)
     app.state.metrics = Metrics()
     app.state.synthesizer = Synthesizer(app.state.metrics)
     errors.install(app)
