@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from sqlalchemy import select, update
+from sqlalchemy import ColumnElement, and_, func, not_, select, update
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
@@ -49,6 +49,18 @@ def get_model(session: Session, model_id: str, actor_id: str | None = None) -> M
     return owned(get_row(session, Model, "model", model_id), "model", actor_id)
 
 
+def _status_is(status: str) -> ColumnElement[bool]:
+    """The models of reported ``status``: a cancelled training is stored ``failed`` with the
+    error code ``cancelled`` and reported ``cancelled``, not ``failed``."""
+    cancelled = and_(Model.status == "failed",
+                     func.coalesce(Model.error["code"].as_string(), "") == "cancelled")
+    if status == "cancelled":
+        return cancelled
+    if status == "failed":
+        return and_(Model.status == "failed", not_(cancelled))
+    return Model.status == status
+
+
 def list_models(session: Session, actor_id: str | None = None,
                 status: str | None = None, *, after: Sequence[str] | None = None,
                 limit: int | None = None) -> list[Model]:
@@ -59,7 +71,7 @@ def list_models(session: Session, actor_id: str | None = None,
         get_actor(session, actor_id)
         query = query.where(Model.actor_id == actor_id)
     if status is not None:
-        query = query.where(Model.status == status)
+        query = query.where(_status_is(status))
     return list(session.scalars(after_key(query, Model, after, limit)))
 
 

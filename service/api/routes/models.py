@@ -53,8 +53,8 @@ _KIND_DOCS = "\n\n".join(
     responses=problems(400, 404, 409, 415, 422, 503),
     description=("Create a model of the actor from its clips and queue its training. Answers "
                  "202 with `{model_id, job_id}` and `Location: /v1/jobs/{job_id}`; the model "
-                 "is `training` until the job ends, then `ready` or `failed`. A misspelt or "
-                 "out-of-range parameter is a 422 naming it.\n\nKinds:\n\n" + _KIND_DOCS))
+                 "is `training` until the job ends, then `ready`, `failed` or `cancelled` (the "
+                 "job was cancelled). A misspelt or out-of-range parameter is a 422 naming it.\n\nKinds:\n\n" + _KIND_DOCS))
 async def train_model(actor_id: str, request_body: Annotated[TrainBody, Body()],  # type: ignore[valid-type]
                       services: ServicesDep, submit: SubmitDep,
                       response: Response) -> schemas.ModelAccepted:
@@ -80,7 +80,7 @@ def list_models(actor_id: str, session: SessionDep, page: PageDep,
 @router.get("/v1/models/{model_id}", response_model=schemas.Model, summary="Get a model",
             responses=problems(404))
 def get_model(model_id: str, session: SessionDep) -> schemas.Model:
-    """A model's kind, status (`training`, `ready`, `failed`), parameters and training
+    """A model's kind, status (`training`, `ready`, `failed`, `cancelled`), parameters and training
     metrics (fit errors)."""
     return schemas.Model.model_validate(registry.get_model(session, model_id))
 
