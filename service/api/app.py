@@ -84,6 +84,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         own = services is None
         app.state.services = Services.open(settings) if own else services
+        app.state.metrics.watch_cache(app.state.services.models)
         try:
             yield
         finally:

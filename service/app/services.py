@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session
@@ -130,6 +130,35 @@ class Services:
             # which can be several times its files (a shape-space model's prefactored solves)
             return self.models.get_or_load(model_id, load,
                                            size_of=lambda loaded: max(nbytes(loaded.model), size))
+
+    def preload(self, models: Sequence[str]) -> list[str]:
+        """Load models into the cache before the first request needs them (a stream's first
+        frame otherwise waits for the load: 7.7 s for a level-1 PDM).
+
+        Parameters
+        ----------
+        models : model ids, or ``["all"]`` for every ready model (oldest first; the cache's
+                 byte budget still applies, so the last ones loaded are the ones kept)
+
+        Returns
+        -------
+        list[str]   the ids loaded
+
+        Raises
+        ------
+        NotFound, Conflict   a named model is unknown or not ready
+        """
+        if list(models) == ["all"]:
+            with self.session() as session:
+                models = [m.id for m in registry.list_models(session, status="ready")]
+        loaded = []
+        for model_id in models:
+            self.loaded_model(model_id)
+            loaded.append(model_id)
+        log.info("preloaded %d model(s): %s", len(loaded), ", ".join(loaded) or "none",
+                 extra={"cache_bytes": self.models.total_bytes,
+                        "cache_models": len(self.models)})
+        return loaded
 
     def forget_model(self, model_id: str) -> None:
         """Drop a (deleted) model from the cache."""
