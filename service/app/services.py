@@ -9,10 +9,12 @@ server (:func:`service.grpc.server.serve`), so both share one cache.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
+import numpy as np
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session
 
@@ -20,6 +22,8 @@ from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.cache import ByteLRUCache
 from service.app.limits import REGISTRATION_CACHE_BYTES
+from service.app.marker_units import MarkerReference, face_unit, layout_positions
+from service.app.uploads import neutral_arrays
 from service.config import Settings
 from service.methods.footprint import nbytes
 from service.errors import Conflict
@@ -71,6 +75,9 @@ class Services:
         default_factory=lambda: ByteLRUCache(REGISTRATION_CACHE_BYTES), repr=False)
     #: write-once blobs (keys, or files of model directories) this process has verified
     verified_blobs: set[str] = field(default_factory=set, repr=False)
+    #: marker layouts on their neutrals by (actor id, neutral sha256, layout sha256), for the
+    #: unit check of marker requests (at most 64, newest first)
+    marker_references: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def open(cls, settings: Settings) -> "Services":
@@ -159,6 +166,26 @@ class Services:
                  extra={"cache_bytes": self.models.total_bytes,
                         "cache_models": len(self.models)})
         return loaded
+
+    def marker_reference(self, actor_id: str | None) -> MarkerReference | None:
+        """The actor's marker layout on its neutral (cached by the two blobs' digests), or
+        None without an actor, a neutral or a layout."""
+        if actor_id is None:
+            return None
+        with self.session() as session:
+            actor = registry.get_actor(session, actor_id)
+            if actor.neutral_blob is None or actor.markers_blob is None:
+                return None
+            key = (actor_id, actor.neutral_sha256, actor.markers_sha256)
+            cached = self.marker_references.get(key)
+            if cached is None:
+                V, F = neutral_arrays(registry.read_neutral(session, self.blobs, actor_id))
+                layout = json.loads(registry.read_markers(session, self.blobs, actor_id))
+                rest = layout_positions(V, F, np.asarray(layout["triangle"]),
+                                        np.asarray(layout["barycentric"]))
+                cached = MarkerReference(rest, face_unit(rest, (actor.meta or {}).get("units")))
+                self.marker_references = {key: cached, **dict(list(self.marker_references.items())[:63])}
+            return cached
 
     def forget_model(self, model_id: str) -> None:
         """Drop a (deleted) model from the cache."""

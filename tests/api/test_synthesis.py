@@ -146,6 +146,17 @@ def test_synthesis_is_counted_in_metrics(ready):
     assert 'facesynth_synthesis_fps{kind="pdm"}' in text
 
 
+def test_markers_in_metres_for_a_millimetre_actor_are_a_422_naming_the_unit(ready):
+    client, _, model_id, markers, _ = ready
+    body = assert_problem(synth(client, model_id, npz(markers=markers / 1000)), 422,
+                          "were they sent in metres?", "mm")
+    assert "about 1000× smaller" in body["detail"]
+    response = client.post(f"/v1/models/{model_id}/synthesis-jobs",
+                           content=npz(markers=markers / 10), headers=NPZ)
+    assert_problem(response, 422, "were they sent in centimetres?")
+    assert synth(client, model_id, npz(markers=markers)).status_code == 200
+
+
 def _cache_metrics(client) -> dict[str, float]:
     return {line.split()[0].removeprefix("facesynth_model_cache_"): float(line.split()[-1])
             for line in client.get("/metrics").text.splitlines()
