@@ -129,6 +129,30 @@ def cmd_worker(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    """Probe the database, the blob store and the job queue of the FACESYNTH_* settings
+    (what ``/readyz`` checks, for a process that serves no HTTP: the worker's container
+    healthcheck). Prints the checks as JSON; exit 0 when all are ok, 1 otherwise. The
+    database is not migrated."""
+    import json
+
+    from models_store.cache import ByteLRUCache
+    from service.app.services import Services
+    from service.config import Settings
+    from service.store.container import get_store
+
+    overrides = {name: getattr(args, name) for name in ("data_dir", "database_url", "queue_url")
+                 if getattr(args, name) is not None}
+    settings = Settings(**overrides)
+    services = Services(settings=settings, store=get_store(settings), models=ByteLRUCache(0))
+    try:
+        checks = services.check()
+    finally:
+        services.close()
+    print(json.dumps(checks))
+    return 0 if all(value == "ok" for value in checks.values()) else 1
+
+
 def _listen(host: str, port: int):
     """A listening TCP socket on ``host:port`` (IPv6 for an address with a colon).
 
@@ -303,6 +327,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--queue-name", help="queue name (FACESYNTH_QUEUE_NAME)")
     p.add_argument("--workers", type=int, help="job threads (FACESYNTH_WORKERS, default 1)")
     p.set_defaults(func=cmd_worker)
+
+    p = sub.add_parser("check", help="probe the database, blob store and queue (exit 0 when "
+                                     "all answer); the worker container's healthcheck",
+                       description="Print the readiness checks (as /readyz) of the FACESYNTH_* "
+                                   "settings as JSON; exit 0 when every check is ok, else 1.")
+    p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
+    p.add_argument("--database-url", help="metadata database URL (FACESYNTH_DATABASE_URL)")
+    p.add_argument("--queue-url", help="queue storage URL (FACESYNTH_QUEUE_URL)")
+    p.set_defaults(func=cmd_check)
 
     p = sub.add_parser("serve", help="run the HTTP API, the gRPC server and embedded job workers",
                        description="Serve the HTTP API (API.md), the gRPC synthesis stream and "
