@@ -4,14 +4,15 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench demo clean
+.PHONY: setup run test bench demo clean constraints
 
-$(STAMP): pyproject.toml clients/python/pyproject.toml
+# every dependency at the version in constraints.txt (the tested set; `make constraints`)
+$(STAMP): pyproject.toml clients/python/pyproject.toml constraints.txt
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (Python 3.11+)"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
-	$(BIN)/python -m pip install --quiet -e ./clients/python
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e './clients/python[grpc]'
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -41,6 +42,11 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/correspondence_report.py
 	$(BIN)/python benchmarks/generalization_report.py
 	$(BIN)/python benchmarks/load.py
+
+## constraints: rewrite constraints.txt from the versions installed in .venv (after
+## changing a dependency in pyproject.toml: install it, then run this)
+constraints: $(STAMP)
+	$(BIN)/python docker/freeze_constraints.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -148,9 +149,67 @@ def cmd_worker(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    """Probe the database, the blob store and the job queue of the FACESYNTH_* settings
+    (what ``/readyz`` checks, for a process that serves no HTTP: the worker's container
+    healthcheck). Prints the checks as JSON; exit 0 when all are ok, 1 otherwise. The
+    database is not migrated."""
+    import json
+
+    from models_store.cache import ByteLRUCache
+    from service.app.services import Services
+    from service.config import Settings
+    from service.store.container import get_store
+
+    overrides = {name: getattr(args, name) for name in ("data_dir", "database_url", "queue_url")
+                 if getattr(args, name) is not None}
+    settings = Settings(**overrides)
+    services = Services(settings=settings, store=get_store(settings), models=ByteLRUCache(0))
+    try:
+        checks = services.check()
+    finally:
+        services.close()
+    print(json.dumps(checks))
+    return 0 if all(value == "ok" for value in checks.values()) else 1
+
+
+def _listen(host: str, port: int):
+    """A listening TCP socket on ``host:port`` (IPv6 for an address with a colon).
+
+    Raises
+    ------
+    OSError   the address cannot be bound (e.g. ``EADDRINUSE``)
+    """
+    import socket
+
+    bare = host.strip("[]")
+    family = socket.AF_INET6 if ":" in bare else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # TIME_WAIT only, not sharing
+        sock.bind((bare, port))
+        sock.listen(2048)
+    except OSError:
+        sock.close()
+        raise
+    sock.set_inheritable(True)
+    return sock
+
+
+def _serve_error(message: str) -> int:
+    """One line on stderr and exit status 2 (a usage or environment problem, no traceback)."""
+    print(f"facesynth serve: {message}", file=sys.stderr)
+    return 2
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """The HTTP API (uvicorn), the gRPC streaming server (same host) and embedded job
-    workers, sharing one database, blob store and model cache, until SIGINT/SIGTERM."""
+    workers, sharing one database, blob store and model cache, until SIGINT/SIGTERM.
+
+    Both addresses are bound before anything else starts: a port that cannot be bound is
+    one line naming ``--port`` or ``--grpc-port`` and exit status 2. With ``--preload``
+    the named models (or ``all`` ready ones) are loaded into the cache before serving."""
+    import logging
     import signal
 
     import uvicorn
@@ -159,6 +218,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.logs import configure_logging
     from service.app.services import Services
     from service.config import Settings
+    from service.errors import FacesynthError
     from service.grpc.server import is_loopback, serve
     from service.jobs.worker import start_embedded, start_maintenance
 
@@ -178,24 +238,52 @@ def cmd_serve(args: argparse.Namespace) -> int:
         # embedded workers' grace period, the gRPC drain); exit through it instead
         raise SystemExit(0)
 
+    log = logging.getLogger("facesynth.serve")
+    preload = [m for part in (args.preload or []) for m in part.split(",") if m]
+    try:
+        http_socket = _listen(settings.host, settings.port)
+    except OSError as error:
+        return _serve_error(f"cannot listen on {settings.host}:{settings.port} for HTTP "
+                            f"({error.strerror or error}); choose another --port "
+                            "(FACESYNTH_PORT)")
     previous_sigterm = signal.signal(signal.SIGTERM, stop)
     services = Services.open(settings)
     workers = grpc_server = None
     try:
+        try:
+            grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
+                                tokens=settings.tokens)
+        except RuntimeError as error:
+            return _serve_error(f"cannot listen on {settings.host}:{settings.grpc_port} for "
+                                f"gRPC ({error}); choose another --grpc-port "
+                                "(FACESYNTH_GRPC_PORT)")
+        if preload:
+            try:
+                services.preload(preload)
+            except FacesynthError as error:
+                return _serve_error(f"--preload: {error}")
         if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
             workers = start_embedded(settings, settings.workers)
         else:  # reap expired leases and resubmit lost messages even with no worker alive
             workers = start_maintenance(settings)
-        grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
-                            tokens=settings.tokens)
+        log.info("facesynth serving HTTP on http://%s:%d (docs at /docs) and gRPC on %s:%d",
+                 settings.host, settings.port, settings.host, settings.grpc_port,
+                 extra={"http": f"{settings.host}:{settings.port}",
+                        "grpc": f"{settings.host}:{settings.grpc_port}",
+                        "workers": settings.workers})
         from service.api.connections import protocol_class
 
         http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
                               settings.body_rate_grace_seconds,
                               settings.max_connections_per_client)
-        uvicorn.run(create_app(settings, services=services), host=settings.host,
-                    port=settings.port, log_config=None, access_log=False, http=http)
+        config = uvicorn.Config(create_app(settings, services=services), host=settings.host,
+                                port=settings.port, log_config=None, access_log=False, http=http)
+        try:
+            uvicorn.Server(config).run(sockets=[http_socket])
+        except KeyboardInterrupt:  # as uvicorn.run: SIGINT after the graceful shutdown
+            pass
     finally:
+        http_socket.close()
         if grpc_server is not None:
             grpc_server.stop(grace=5).wait()
         if workers is not None:
@@ -300,6 +388,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="job threads (FACESYNTH_WORKERS, default 1)")
     p.set_defaults(func=cmd_worker)
 
+    p = sub.add_parser("check", help="probe the database, blob store and queue (exit 0 when "
+                                     "all answer); the worker container's healthcheck",
+                       description="Print the readiness checks (as /readyz) of the FACESYNTH_* "
+                                   "settings as JSON; exit 0 when every check is ok, else 1.")
+    p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
+    p.add_argument("--database-url", help="metadata database URL (FACESYNTH_DATABASE_URL)")
+    p.add_argument("--queue-url", help="queue storage URL (FACESYNTH_QUEUE_URL)")
+    p.set_defaults(func=cmd_check)
+
     p = sub.add_parser("serve", help="run the HTTP API, the gRPC server and embedded job workers",
                        description="Serve the HTTP API (API.md), the gRPC synthesis stream and "
                                    "job workers in one process. Every option defaults to its "
@@ -312,6 +409,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
     p.add_argument("--workers", type=int, help="embedded job threads (FACESYNTH_WORKERS, default 1; "
                                                "0: no embedded worker, API only)")
+    p.add_argument("--preload", action="append", metavar="MODELS",
+                   default=[os.environ["FACESYNTH_PRELOAD"]] if os.environ.get("FACESYNTH_PRELOAD") else None,
+                   help="load these models into the cache at start-up: comma-separated model "
+                        "ids, or 'all' for every ready model (FACESYNTH_PRELOAD; repeatable)")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("store", help="maintenance of the model store")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session
@@ -13,6 +13,7 @@ from models_store.ids import new_id, new_token, validate_tenant
 from models_store.registry._common import (TENANT_OWNER, Data, actor_prefix, commit, get_row,
                                            in_tenant, model_prefix, put_blob, refetch, scoped,
                                            storable)
+from models_store.registry.paging import after_key
 from models_store.registry.jobs import cancel_active_jobs
 from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
 
@@ -47,13 +48,15 @@ def get_actor(session: Session, actor_id: str, *, tenant: str | None = None) -> 
     return in_tenant(get_row(session, Actor, "actor", actor_id), "actor", tenant)
 
 
-def list_actors(session: Session, *, tenant: str | None = None) -> list[Actor]:
-    """All actors (of ``tenant``, if named), oldest first."""
+def list_actors(session: Session, *, tenant: str | None = None,
+                after: Sequence[str] | None = None, limit: int | None = None) -> list[Actor]:
+    """All actors (of ``tenant``, if named), oldest first (a page of them with
+    ``after``/``limit``: :func:`~models_store.registry.paging.after_key`)."""
     query = select(Actor).order_by(Actor.created_at, Actor.id)
     tenant = scoped(tenant)
     if tenant is not None:
         query = query.where(Actor.tenant == tenant)
-    return list(session.scalars(query))
+    return list(session.scalars(after_key(query, Actor, after, limit)))
 
 
 def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import BinaryIO
+from typing import BinaryIO, Sequence
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -11,6 +11,7 @@ from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from models_store.ids import new_id
 from models_store.registry._common import Data, commit, get_row, put_blob, scoped
+from models_store.registry.paging import after_key
 from models_store.registry.jobs import get_job
 from models_store.schema import Artifact, Job, utcnow
 
@@ -39,11 +40,14 @@ def get_artifact(session: Session, artifact_id: str, *, tenant: str | None = Non
     return artifact
 
 
-def list_artifacts(session: Session, job_id: str, *, tenant: str | None = None) -> list[Artifact]:
-    """A job's artifacts, oldest first."""
+def list_artifacts(session: Session, job_id: str, *, tenant: str | None = None,
+                   after: Sequence[str] | None = None, limit: int | None = None) -> list[Artifact]:
+    """A job's artifacts, oldest first; a page of them with ``after``/``limit``
+    (:func:`~models_store.registry.paging.after_key`)."""
     get_job(session, job_id, tenant=tenant)
-    return list(session.scalars(select(Artifact).where(Artifact.job_id == job_id)
-                                .order_by(Artifact.created_at, Artifact.id)))
+    return list(session.scalars(after_key(select(Artifact).where(Artifact.job_id == job_id)
+                                          .order_by(Artifact.created_at, Artifact.id),
+                                          Artifact, after, limit)))
 
 
 def open_artifact(session: Session, blobs: BlobStore, artifact_id: str, *,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Sequence
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -10,6 +12,7 @@ from models_store.errors import NotFound
 from models_store.ids import new_id
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, owned, put_blob,
                                            scoped, storable)
+from models_store.registry.paging import after_key
 from models_store.registry.actors import get_actor
 from models_store.schema import Actor, Clip, utcnow
 
@@ -41,11 +44,13 @@ def get_clip(session: Session, clip_id: str, actor_id: str | None = None, *,
     return clip
 
 
-def list_clips(session: Session, actor_id: str, *, tenant: str | None = None) -> list[Clip]:
-    """The actor's clips, oldest first (NotFound for an unknown actor)."""
+def list_clips(session: Session, actor_id: str, *, tenant: str | None = None,
+               after: Sequence[str] | None = None, limit: int | None = None) -> list[Clip]:
+    """The actor's clips, oldest first (NotFound for an unknown actor); a page of them with
+    ``after``/``limit`` (:func:`~models_store.registry.paging.after_key`)."""
     get_actor(session, actor_id, tenant=tenant)
-    return list(session.scalars(select(Clip).where(Clip.actor_id == actor_id)
-                                .order_by(Clip.created_at, Clip.id)))
+    return list(session.scalars(after_key(select(Clip).where(Clip.actor_id == actor_id)
+                                          .order_by(Clip.created_at, Clip.id), Clip, after, limit)))
 
 
 def read_clip(session: Session, blobs: BlobStore, clip_id: str, *,

@@ -16,6 +16,7 @@ from models_store.ids import is_valid_id, new_id
 from models_store.registry._common import (check_error, commit, fail_training_model, get_row,
                                            error_record, in_tenant, owned, refetch, scoped)
 from models_store.schema import DEFAULT_TENANT, JOB_FINAL_STATUSES, Actor, Job, Model, utcnow
+from models_store.registry.paging import after_key
 
 #: how often :func:`claim_job` retries when another claimer wins the candidate it picked
 MAX_CLAIM_ROUNDS = 100
@@ -52,15 +53,17 @@ def get_job(session: Session, job_id: str, *, tenant: str | None = None) -> Job:
 
 def list_jobs(session: Session, *, status: str | None = None, actor_id: str | None = None,
               kind: str | None = None, model_id: str | None = None,
-              tenant: str | None = None) -> list[Job]:
-    """Jobs, oldest first, filtered by any of status, actor, kind, model and tenant."""
+              tenant: str | None = None, after: Sequence[str] | None = None,
+              limit: int | None = None) -> list[Job]:
+    """Jobs, oldest first, filtered by any of status, actor, kind, model and tenant; a page
+    of them with ``after``/``limit`` (:func:`~models_store.registry.paging.after_key`)."""
     query = select(Job).order_by(Job.created_at, Job.id)
     tenant = scoped(tenant)
     for column, value in ((Job.status, status), (Job.actor_id, actor_id), (Job.kind, kind),
                           (Job.model_id, model_id), (Job.tenant, tenant)):
         if value is not None:
             query = query.where(column == value)
-    return list(session.scalars(query))
+    return list(session.scalars(after_key(query, Job, after, limit)))
 
 
 def _held(job_id: str, worker: str | None) -> ColumnElement[bool]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from sqlalchemy import select, update
+from sqlalchemy import ColumnElement, and_, func, not_, select, update
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
@@ -13,6 +13,7 @@ from models_store.errors import Conflict
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (commit, fail_training_model, get_row, error_record,
                                            in_tenant, model_prefix, owned, refetch, scoped)
+from models_store.registry.paging import after_key
 from models_store.registry.actors import get_actor
 from models_store.registry.clips import get_clip
 from models_store.registry.jobs import cancel_active_jobs, new_job
@@ -56,9 +57,23 @@ def get_model(session: Session, model_id: str, actor_id: str | None = None, *,
     return owned(model, "model", actor_id)
 
 
+def _status_is(status: str) -> ColumnElement[bool]:
+    """The models of reported ``status``: a cancelled training is stored ``failed`` with the
+    error code ``cancelled`` and reported ``cancelled``, not ``failed``."""
+    cancelled = and_(Model.status == "failed",
+                     func.coalesce(Model.error["code"].as_string(), "") == "cancelled")
+    if status == "cancelled":
+        return cancelled
+    if status == "failed":
+        return and_(Model.status == "failed", not_(cancelled))
+    return Model.status == status
+
+
 def list_models(session: Session, actor_id: str | None = None,
-                status: str | None = None, *, tenant: str | None = None) -> list[Model]:
-    """Models, oldest first, optionally of one actor (NotFound if unknown), status or tenant."""
+                status: str | None = None, *, tenant: str | None = None,
+                after: Sequence[str] | None = None, limit: int | None = None) -> list[Model]:
+    """Models, oldest first, optionally of one actor (NotFound if unknown), status or tenant;
+    a page of them with ``after``/``limit`` (:func:`~models_store.registry.paging.after_key`)."""
     query = select(Model).order_by(Model.created_at, Model.id)
     tenant = scoped(tenant)
     if tenant is not None:
@@ -67,8 +82,8 @@ def list_models(session: Session, actor_id: str | None = None,
         get_actor(session, actor_id, tenant=tenant)
         query = query.where(Model.actor_id == actor_id)
     if status is not None:
-        query = query.where(Model.status == status)
-    return list(session.scalars(query))
+        query = query.where(_status_is(status))
+    return list(session.scalars(after_key(query, Model, after, limit)))
 
 
 def mark_model_ready(session: Session, blobs: BlobStore, model_id: str, model_dir: Path, *,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Sequence
+
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
@@ -11,6 +13,7 @@ from models_store.ids import new_id, new_token
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, error_record,
                                            put_blob, refetch)
 from models_store.registry.actors import MAX_SWAP_ROUNDS
+from models_store.registry.paging import after_key
 from models_store.registry.actors import get_actor
 from models_store.schema import InputRig, utcnow
 
@@ -82,12 +85,13 @@ def get_input_rig(session: Session, actor_id: str, name: str, *,
     return rig
 
 
-def list_input_rigs(session: Session, actor_id: str, *,
-                    tenant: str | None = None) -> list[InputRig]:
-    """The actor's input rigs, by name."""
+def list_input_rigs(session: Session, actor_id: str, *, tenant: str | None = None,
+                    after: Sequence[str] | None = None, limit: int | None = None) -> list[InputRig]:
+    """The actor's input rigs, by name; a page of them with ``after``/``limit``
+    (:func:`~models_store.registry.paging.after_key`)."""
     get_actor(session, actor_id, tenant=tenant)
-    return list(session.scalars(select(InputRig).where(InputRig.actor_id == actor_id)
-                                .order_by(InputRig.name)))
+    return list(session.scalars(after_key(select(InputRig).where(InputRig.actor_id == actor_id)
+                                          .order_by(InputRig.name), InputRig, after, limit)))
 
 
 def mark_rig_ready(session: Session, blobs: BlobStore, rig_id: str, data: Data) -> InputRig:

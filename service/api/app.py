@@ -15,7 +15,7 @@ from typing import Any, AsyncIterator
 from fastapi import Depends, FastAPI, Request
 from fastapi.openapi.utils import get_openapi
 
-from service.api import errors
+from service.api import docs, errors
 from service.api.auth import check_bearer
 from service.api.edge import UrlGuardMiddleware
 from service.api.logs import RequestContextMiddleware
@@ -27,6 +27,7 @@ from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
 from service.api.bodies import BodyLimitMiddleware, LargeUploadLimiter
+from service.api.query import reject_unknown_query
 from service.config import Settings, get_settings
 
 API_VERSION = "1"
@@ -39,6 +40,14 @@ Arrays travel as NumPy `.npz` (`application/x-npz`); errors are RFC 9457
 `application/problem+json` (`{type, title, status, detail, errors?}`); long work is a job
 (`202 Accepted`, `Location: /v1/jobs/{job_id}`). When the server has tokens, every `/v1`
 route needs `Authorization: Bearer <token>`.
+
+Query parameters are checked like JSON bodies: one a route does not declare is a 422 naming
+it (`errors: [{"loc": ["query", "outptus"], "type": "extra_forbidden", ...}]`).
+
+Every list route pages its `items`: `limit` (1–1000, default 100) and `cursor`. When more
+items follow, the answer has `next_cursor`; send it back unchanged as `cursor` for the next
+page. Cursors are keyset-based (the last item's sort key), so paging neither skips nor repeats
+items while others are added or deleted.
 """
 TAGS = [
     {"name": "health", "description": "Liveness, readiness and Prometheus metrics."},
@@ -79,16 +88,19 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         own = services is None
         app.state.services = Services.open(settings) if own else services
+        app.state.metrics.watch_cache(app.state.services.models)
         try:
             yield
         finally:
             if own:
                 app.state.services.close()
 
-    docs = {} if settings.public_docs else {"openapi_url": None, "docs_url": None,
-                                            "redoc_url": None}
+    hidden = {} if settings.public_docs else {"openapi_url": None}
     app = FastAPI(title="facesynth", version=API_VERSION, description=DESCRIPTION,
-                  openapi_tags=TAGS, lifespan=lifespan, **docs)
+                  openapi_tags=TAGS, lifespan=lifespan, docs_url=None, redoc_url=None,
+                  dependencies=[Depends(reject_unknown_query)], **hidden)
+    if settings.public_docs:
+        docs.install(app)
     app.state.metrics = Metrics()
     app.state.synthesizer = Synthesizer(app.state.metrics, settings.max_concurrent_syntheses,
                                         settings.synthesis_queue_seconds,
@@ -119,8 +131,8 @@ async def check_unless_public(request: Request) -> None:
 
 
 def _protected_docs(app: FastAPI) -> None:
-    """``/openapi.json`` and ``/docs`` behind the bearer token (``public_docs`` false)."""
-    from fastapi.openapi.docs import get_swagger_ui_html
+    """``/openapi.json`` and ``/docs`` behind the bearer token (``public_docs`` false); the
+    page's assets are the bundled ones (:mod:`service.api.docs`), never a CDN."""
     from fastapi.responses import HTMLResponse, JSONResponse
 
     @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(check_bearer)])
@@ -129,7 +141,9 @@ def _protected_docs(app: FastAPI) -> None:
 
     @app.get("/docs", include_in_schema=False, dependencies=[Depends(check_bearer)])
     def swagger() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url="/openapi.json", title=app.title)
+        return docs.swagger_page(app, "/openapi.json")
+
+    docs.mount_assets(app)
 
 
 def _openapi(app: FastAPI) -> dict[str, Any]:

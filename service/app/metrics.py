@@ -11,20 +11,28 @@ never share series. Collected:
   with several API replicas each replica observes every job);
 - ``facesynth_synthesis_frames_total`` counter and ``facesynth_synthesis_seconds_total``
   counter by model kind (their ratio is the synthesis rate in frames per second), and the
-  ``facesynth_synthesis_fps`` gauge of the latest synchronous request.
+  ``facesynth_synthesis_fps`` gauge of the latest synchronous request;
+- the model cache, read at each scrape (:meth:`Metrics.watch_cache`): gauges
+  ``facesynth_model_cache_models`` (models loaded), ``facesynth_model_cache_bytes`` (their
+  weighed size) and ``facesynth_model_cache_budget_bytes``, and counters
+  ``facesynth_model_cache_hits_total`` and ``facesynth_model_cache_misses_total`` (loads).
 """
 
 from __future__ import annotations
 
 import threading
 from datetime import datetime
+from typing import Any, Iterable
 
 from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge,
                                Histogram, generate_latest)
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from models_store import registry
+from models_store.cache import ByteLRUCache
 from models_store.schema import Job, utcnow
 
 CONTENT_TYPE = CONTENT_TYPE_LATEST
@@ -63,6 +71,12 @@ class Metrics:
             "facesynth_synthesis_running", "Synchronous syntheses running", registry=self.registry)
         self._finished_since: datetime = utcnow()
         self._lock = threading.Lock()
+        self._cache = _CacheCollector()
+        self.registry.register(self._cache)
+
+    def watch_cache(self, cache: ByteLRUCache[Any]) -> None:
+        """Report ``cache`` (the process's model cache) at each scrape."""
+        self._cache.cache = cache
 
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         """Record one answered HTTP request."""
@@ -92,3 +106,28 @@ class Metrics:
     def render(self) -> bytes:
         """The text exposition of every metric."""
         return generate_latest(self.registry)
+
+
+class _CacheCollector(Collector):
+    """The model cache's state, read when scraped (nothing before :meth:`watch_cache`)."""
+
+    def __init__(self) -> None:
+        self.cache: ByteLRUCache[Any] | None = None
+
+    def describe(self) -> Iterable[Metric]:
+        return []
+
+    def collect(self) -> Iterable[Metric]:
+        cache = self.cache
+        if cache is None:
+            return
+        yield GaugeMetricFamily("facesynth_model_cache_models", "Models loaded in the cache",
+                                value=len(cache))
+        yield GaugeMetricFamily("facesynth_model_cache_bytes",
+                                "Weighed size of the models in the cache", value=cache.total_bytes)
+        yield GaugeMetricFamily("facesynth_model_cache_budget_bytes",
+                                "Byte budget of the model cache", value=cache.budget_bytes)
+        yield CounterMetricFamily("facesynth_model_cache_hits",
+                                  "Model lookups answered from the cache", value=cache.hits)
+        yield CounterMetricFamily("facesynth_model_cache_misses",
+                                  "Model lookups that loaded the model", value=cache.misses)

@@ -288,7 +288,7 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
         other = "synthesize" if loaded.kind.input == "markers" else "enhance"
         raise InvalidInput(f"a {loaded.kind.name} model takes {loaded.kind.input}: use "
                            f"POST /v1/models/{model_id}/{other}")
-    expected = Expected.of(loaded)
+    expected = replace(Expected.of(loaded), reference=services.marker_reference(loaded.actor_id))
     loaded_rig = None
     if rig is not None:
         loaded_rig = load_rig(services, loaded.actor_id, rig, expected.count)
@@ -328,7 +328,8 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     kind_info = get_kind(model.kind)
     key = "markers" if kind_info.input == "markers" else "vertices"
     expected = Expected(model_id, model.kind, key,
-                        actor.marker_count if key == "markers" else actor.vertex_count)
+                        actor.marker_count if key == "markers" else actor.vertex_count,
+                        reference=services.marker_reference(model.actor_id))
     loaded_rig: LoadedRig | None = None
     if rig is not None:
         if key != "vertices":

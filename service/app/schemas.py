@@ -13,13 +13,16 @@ import json
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from service.app.limits import METADATA_MAX_BYTES
 from service.methods.outputs import Output
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-ModelStatus = Literal["training", "ready", "failed"]
+#: ``cancelled`` (added in API 1, additive): the training job was cancelled. The store keeps
+#: such a model ``failed`` with the error code ``cancelled``; the API reports it as
+#: ``cancelled`` (see :class:`Model`) and ``?status=`` filters by the reported status.
+ModelStatus = Literal["training", "ready", "failed", "cancelled"]
 ResultFormat = Literal["npz", "obj-exr-zip", "usd"]
 #: an input rig's name (the ``{rig}`` of ``/input-rigs/{rig}``, the ``rig`` of synthesis)
 RIG_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
@@ -224,12 +227,23 @@ class Model(BaseModel):
     id: str
     actor_id: str
     kind: str
-    status: ModelStatus
+    status: ModelStatus = Field(description=(
+        "`training` until its training job ends, then `ready`, `failed` (see `error`) or "
+        "`cancelled` (the training job was cancelled; `error.code` is `cancelled`). "
+        "`cancelled` is a value added to API 1: treat unknown values as not ready."))
     params: dict[str, Any]
     metrics: dict[str, Any] | None = Field(None, description="Training fit errors.")
     created_at: datetime
     size_bytes: int | None = None
     error: ErrorRecord | None = None
+
+    @model_validator(mode="after")
+    def _cancelled(self) -> "Model":
+        """A model whose training was cancelled (stored ``failed`` with error code
+        ``cancelled``) is reported ``cancelled``."""
+        if self.status == "failed" and self.error is not None and self.error.code == "cancelled":
+            self.status = "cancelled"
+        return self
 
 
 class MapInfo(BaseModel):
@@ -373,7 +387,14 @@ class Artifact(BaseModel):
 
 
 class Items(BaseModel):
-    """Base of list responses: ``{"items": [...]}``."""
+    """Base of list responses: ``{"items": [...], "next_cursor": ...}``.
+
+    A list answers one page (``limit`` items at most); ``next_cursor`` is set when more
+    follow, to be sent back as ``cursor`` (``service/api/query.py``)."""
+
+    next_cursor: str | None = Field(
+        default=None, description="Set when more items follow: send it back as `cursor` for "
+                                  "the next page; absent or null on the last page.")
 
 
 class ActorList(Items):

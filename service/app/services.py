@@ -9,10 +9,12 @@ server (:func:`service.grpc.server.serve`), so both share one cache.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
+import numpy as np
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session
 
@@ -20,6 +22,8 @@ from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.cache import ByteLRUCache
 from service.app.limits import REGISTRATION_CACHE_BYTES
+from service.app.marker_units import MarkerReference, face_unit, layout_positions
+from service.app.uploads import neutral_arrays
 from service.config import Settings
 from service.methods.footprint import nbytes
 from service.errors import Conflict
@@ -71,6 +75,9 @@ class Services:
         default_factory=lambda: ByteLRUCache(REGISTRATION_CACHE_BYTES), repr=False)
     #: write-once blobs (keys, or files of model directories) this process has verified
     verified_blobs: set[str] = field(default_factory=set, repr=False)
+    #: marker layouts on their neutrals by (actor id, neutral sha256, layout sha256), for the
+    #: unit check of marker requests (at most 64, newest first)
+    marker_references: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def open(cls, settings: Settings) -> "Services":
@@ -130,6 +137,55 @@ class Services:
             # which can be several times its files (a shape-space model's prefactored solves)
             return self.models.get_or_load(model_id, load,
                                            size_of=lambda loaded: max(nbytes(loaded.model), size))
+
+    def preload(self, models: Sequence[str]) -> list[str]:
+        """Load models into the cache before the first request needs them (a stream's first
+        frame otherwise waits for the load: 7.7 s for a level-1 PDM).
+
+        Parameters
+        ----------
+        models : model ids, or ``["all"]`` for every ready model (oldest first; the cache's
+                 byte budget still applies, so the last ones loaded are the ones kept)
+
+        Returns
+        -------
+        list[str]   the ids loaded
+
+        Raises
+        ------
+        NotFound, Conflict   a named model is unknown or not ready
+        """
+        if list(models) == ["all"]:
+            with self.session() as session:
+                models = [m.id for m in registry.list_models(session, status="ready")]
+        loaded = []
+        for model_id in models:
+            self.loaded_model(model_id)
+            loaded.append(model_id)
+        log.info("preloaded %d model(s): %s", len(loaded), ", ".join(loaded) or "none",
+                 extra={"cache_bytes": self.models.total_bytes,
+                        "cache_models": len(self.models)})
+        return loaded
+
+    def marker_reference(self, actor_id: str | None) -> MarkerReference | None:
+        """The actor's marker layout on its neutral (cached by the two blobs' digests), or
+        None without an actor, a neutral or a layout."""
+        if actor_id is None:
+            return None
+        with self.session() as session:
+            actor = registry.get_actor(session, actor_id)
+            if actor.neutral_blob is None or actor.markers_blob is None:
+                return None
+            key = (actor_id, actor.neutral_sha256, actor.markers_sha256)
+            cached = self.marker_references.get(key)
+            if cached is None:
+                V, F = neutral_arrays(registry.read_neutral(session, self.blobs, actor_id))
+                layout = json.loads(registry.read_markers(session, self.blobs, actor_id))
+                rest = layout_positions(V, F, np.asarray(layout["triangle"]),
+                                        np.asarray(layout["barycentric"]))
+                cached = MarkerReference(rest, face_unit(rest, (actor.meta or {}).get("units")))
+                self.marker_references = {key: cached, **dict(list(self.marker_references.items())[:63])}
+            return cached
 
     def forget_model(self, model_id: str) -> None:
         """Drop a (deleted) model from the cache."""

@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from service.errors import NotAcceptable, PayloadTooLarge, Unavailable, invalid_fields
 from service.app.limits import (MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS,
                                 SYNTHESIS_QUEUE_DEPTH, SYNTHESIS_WAIT_SECONDS)
+from service.app.marker_units import MarkerReference
 from service.app.metrics import Metrics
 from service.app.schemas import SynthesizeBody
 from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
@@ -97,6 +98,8 @@ class Expected:
     count: int | None
     owner: str | None = None
     markers: int | None = None
+    #: the actor's layout on its neutral: marker frames are refused in the wrong unit
+    reference: MarkerReference | None = None
 
     @classmethod
     def of(cls, loaded: LoadedModel) -> "Expected":
@@ -112,8 +115,12 @@ class Expected:
 
     def check(self, frames: np.ndarray) -> None:
         """422 ``"model expects 150 markers, got 149"`` (or ``"input rig 'lod2' has 4012
-        vertices, the frames have 4000"``) unless frames is (F, count, 3)."""
+        vertices, the frames have 4000"``) unless frames is (F, count, 3); for markers, 422
+        naming the likely unit when they are in another unit than the actor's layout
+        (:mod:`service.app.marker_units`)."""
         if self.count is None or frames.shape[1] == self.count:
+            if self.key == "markers" and self.reference is not None:
+                self.reference.check(frames)
             return
         if self.owner is None:
             raise InvalidInput(f"model expects {self.count} {self.key}, got {frames.shape[1]}")

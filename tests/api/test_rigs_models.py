@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 
+from models_store import registry
 from tests.api.conftest import NPZ, assert_problem, grid, npz
 
 
@@ -82,7 +83,7 @@ def test_train_model_answers_202_with_a_queued_job(client, grid_actor, submitted
     assert (job["kind"], job["model_id"], job["status"]) == ("train", accepted["model_id"], "queued")
     listed = client.get(f"/v1/actors/{grid_actor}/models").json()["items"]
     assert [m["id"] for m in listed] == [accepted["model_id"]]
-    assert client.get(f"/v1/actors/{grid_actor}/models", params={"status": "ready"}).json() == {"items": []}
+    assert client.get(f"/v1/actors/{grid_actor}/models", params={"status": "ready"}).json() == {"items": [], "next_cursor": None}
 
 
 def test_train_model_rejects_a_misspelt_param(client, grid_actor):
@@ -114,7 +115,8 @@ def test_train_model_when_the_queue_is_down_is_503_and_cancels(client, grid_acto
     assert_problem(response, 503, "queue")
     assert response.headers["retry-after"] == "1"
     model = client.get(f"/v1/actors/{grid_actor}/models").json()["items"][0]
-    assert model["status"] == "failed"
+    # its training job was cancelled, so the model reports cancelled (error code cancelled)
+    assert (model["status"], model["error"]["code"]) == ("cancelled", "cancelled")
 
 
 def test_training_model_cannot_synthesize_or_list_maps(client, grid_actor):
@@ -145,3 +147,30 @@ def test_kinds_and_openapi_document_pdm_with_its_patent_notice(client):
     assert "8,902,232" in train["description"] and train["tags"] == ["models"]
     assert {t["name"] for t in spec["tags"]} >= {"actors", "models", "synthesis", "jobs"}
     assert "TrainPdm" in spec["components"]["schemas"]
+
+
+def test_a_cancelled_training_reports_the_model_cancelled(client, grid_actor):
+    """Cancelling a queued training (at once) and a running one (when the worker stops it)
+    both report the model ``cancelled``, not ``failed``; ``?status=`` filters by it."""
+    clip_id = _clip(client, grid_actor)
+    train = lambda: client.post(f"/v1/actors/{grid_actor}/models",
+                                json={"kind": "pdm", "clips": [clip_id]}).json()
+    queued, running, failing = train(), train(), train()
+    assert client.delete(f"/v1/jobs/{queued['job_id']}").json()["status"] == "cancelled"
+    services = client.app.state.services
+    with services.session() as session:
+        for accepted in (running, failing):
+            registry.claim_job(session, "w1", lease_seconds=60, max_retries=0,
+                               job_id=accepted["job_id"])
+        assert client.delete(f"/v1/jobs/{running['job_id']}").status_code == 202
+        registry.finish_job(session, running["job_id"], "cancelled", worker="w1")
+        registry.finish_job(session, failing["job_id"], "failed", worker="w1",
+                            error={"code": "invalid_input", "message": "bad clip"})
+    status = lambda m: client.get(f"/v1/models/{m['model_id']}").json()["status"]
+    assert [status(m) for m in (queued, running, failing)] == ["cancelled", "cancelled", "failed"]
+    listed = lambda s: [m["id"] for m in client.get(f"/v1/actors/{grid_actor}/models",
+                                                    params={"status": s}).json()["items"]]
+    assert listed("cancelled") == [queued["model_id"], running["model_id"]]
+    assert listed("failed") == [failing["model_id"]]
+    enum = client.get("/openapi.json").json()["components"]["schemas"]["Model"]["properties"]["status"]
+    assert enum["enum"] == ["training", "ready", "failed", "cancelled"]

@@ -32,6 +32,34 @@ def test_serve_refuses_a_public_host_without_tokens(capsys, monkeypatch):
     assert "refusing to listen on 0.0.0.0 without tokens" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("busy", ["http", "grpc"])
+def test_serve_with_a_port_in_use_is_one_line_naming_the_option_and_exit_2(
+        busy, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("service.logs.configure_logging", lambda *a, **k: None)
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen(1)
+        taken = holder.getsockname()[1]
+        port, grpc_port = (taken, free_port()) if busy == "http" else (free_port(), taken)
+        code = main(["serve", "--port", str(port), "--grpc-port", str(grpc_port),
+                     "--data-dir", str(tmp_path), "--workers", "0"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    option = "--port" if busy == "http" else "--grpc-port"
+    assert f"127.0.0.1:{taken}" in err and option in err
+    assert ("--grpc-port" in err) == (busy == "grpc")
+
+
+def test_serve_preload_of_an_unknown_model_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("service.logs.configure_logging", lambda *a, **k: None)
+    code = main(["serve", "--port", str(free_port()), "--grpc-port", str(free_port()),
+                 "--data-dir", str(tmp_path), "--workers", "0",
+                 "--preload", "mdl_00000000000000000000000000"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("facesynth serve: --preload: ") and len(err.splitlines()) == 1
+
+
 def test_serve_runs_http_grpc_and_workers(tmp_path):
     port, grpc_port = free_port(), free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
@@ -71,7 +99,12 @@ def test_serve_runs_http_grpc_and_workers(tmp_path):
             process.kill()
             _, stderr = process.communicate()
     assert process.returncode == 0, stderr
-    access = [json.loads(line) for line in stderr.splitlines()
-              if line.startswith("{") and '"facesynth.access"' in line]
+    records = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
+    started = [r for r in records if r["logger"] == "facesynth.serve"]
+    assert len(started) == 1, stderr
+    assert (started[0]["http"], started[0]["grpc"]) == (f"127.0.0.1:{port}", f"127.0.0.1:{grpc_port}")
+    assert f"http://127.0.0.1:{port}" in started[0]["message"]
+    assert f"gRPC on 127.0.0.1:{grpc_port}" in started[0]["message"]
+    access = [r for r in records if r["logger"] == "facesynth.access"]
     assert any(entry.get("request_id") == "serve-test" and entry["route"] == "/readyz"
                for entry in access)

@@ -147,6 +147,42 @@ def test_synthesis_is_counted_in_metrics(ready):
     assert 'facesynth_synthesis_fps{kind="pdm"}' in text
 
 
+def test_markers_in_metres_for_a_millimetre_actor_are_a_422_naming_the_unit(ready):
+    client, _, model_id, markers, _ = ready
+    body = assert_problem(synth(client, model_id, npz(markers=markers / 1000)), 422,
+                          "were they sent in metres?", "mm")
+    assert "about 1000× smaller" in body["detail"]
+    response = client.post(f"/v1/models/{model_id}/synthesis-jobs",
+                           content=npz(markers=markers / 10), headers=NPZ)
+    assert_problem(response, 422, "were they sent in centimetres?")
+    assert synth(client, model_id, npz(markers=markers)).status_code == 200
+
+
+def _cache_metrics(client) -> dict[str, float]:
+    return {line.split()[0].removeprefix("facesynth_model_cache_"): float(line.split()[-1])
+            for line in client.get("/metrics").text.splitlines()
+            if line.startswith("facesynth_model_cache_")}
+
+
+def test_preload_and_the_model_cache_in_metrics(ready):
+    """Preloading (``Services.preload``, ``facesynth serve --preload``) loads the ready
+    model once; each later request is a cache hit; /metrics reports the cache's state."""
+    client, _, model_id, markers, _ = ready
+    services = client.app.state.services
+    services.forget_model(model_id)
+    before = _cache_metrics(client)
+    assert before["models"] == 0 and before["bytes"] == 0
+    assert before["budget_bytes"] == services.settings.model_cache_bytes
+    assert services.preload(["all"]) == [model_id]
+    loaded = _cache_metrics(client)
+    assert loaded["models"] == 1 and loaded["misses_total"] == before["misses_total"] + 1
+    assert loaded["bytes"] == services.models.total_bytes > 0
+    assert synth(client, model_id, npz(markers=markers)).status_code == 200
+    after = _cache_metrics(client)
+    assert after["hits_total"] == loaded["hits_total"] + 1
+    assert after["misses_total"] == loaded["misses_total"]      # no second load
+
+
 def test_model_maps_list_and_download(ready):
     client, _, model_id, _, _ = ready
     maps = {m["name"]: m for m in client.get(f"/v1/models/{model_id}/maps").json()["items"]}

@@ -199,7 +199,7 @@ def test_transfer_refusals(client, grid_actor, submitted):
     assert (job["kind"], job["status"], job["model_id"]) == ("transfer", "queued", new_model)
     assert client.get(f"/v1/models/{new_model}").json()["status"] == "training"
     assert client.delete(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
-    assert client.get(f"/v1/models/{new_model}").json()["status"] == "failed"
+    assert client.get(f"/v1/models/{new_model}").json()["status"] == "cancelled"
 
 
 def test_transfer_is_in_the_openapi_document(client):

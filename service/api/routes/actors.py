@@ -6,9 +6,11 @@ from fastapi import APIRouter, Depends, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from models_store import registry
+from models_store.schema import Actor
 from service.api import bodies
 from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SessionDep
+from service.api.query import PageDep
 from service.api.routes import body, inline_schema, problems
 
 router = APIRouter(prefix="/v1/actors", tags=["actors"])
@@ -25,10 +27,11 @@ def create_actor(actor: schemas.ActorCreate, session: SessionDep, response: Resp
 
 
 @router.get("", response_model=schemas.ActorList, summary="List actors")
-def list_actors(session: SessionDep) -> schemas.ActorList:
-    """Every actor, oldest first."""
-    return schemas.ActorList(items=[schemas.Actor.model_validate(a)
-                                    for a in registry.list_actors(session)])
+def list_actors(session: SessionDep, page: PageDep) -> schemas.ActorList:
+    """Every actor, oldest first, a page at a time (`limit`, `cursor`)."""
+    rows, cursor = page.rows(registry.list_actors(session, **page.fetch(Actor)))
+    return schemas.ActorList(items=[schemas.Actor.model_validate(a) for a in rows],
+                             next_cursor=cursor)
 
 
 @router.get("/{actor_id}", response_model=schemas.Actor, summary="Get an actor",

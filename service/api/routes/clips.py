@@ -8,9 +8,11 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from models_store import registry
+from models_store.schema import Clip
 from service.api import bodies
 from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SessionDep
+from service.api.query import PageDep
 from service.api.routes import body, problems
 
 router = APIRouter(prefix="/v1/actors/{actor_id}/clips", tags=["clips"])
@@ -50,10 +52,11 @@ async def add_clip(actor_id: str, request: Request, services: ServicesDep,
 
 @router.get("", response_model=schemas.ClipList, summary="List an actor's clips",
             responses=problems(404))
-def list_clips(actor_id: str, session: SessionDep) -> schemas.ClipList:
-    """The actor's clips, oldest first."""
-    return schemas.ClipList(items=[schemas.Clip.model_validate(c)
-                                   for c in registry.list_clips(session, actor_id)])
+def list_clips(actor_id: str, session: SessionDep, page: PageDep) -> schemas.ClipList:
+    """The actor's clips, oldest first, a page at a time (`limit`, `cursor`)."""
+    rows, cursor = page.rows(registry.list_clips(session, actor_id, **page.fetch(Clip)))
+    return schemas.ClipList(items=[schemas.Clip.model_validate(c) for c in rows],
+                            next_cursor=cursor)
 
 
 @router.get("/{clip_id}", response_model=schemas.Clip, summary="Get a clip",

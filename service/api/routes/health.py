@@ -37,8 +37,9 @@ def readyz(services: ServicesDep) -> JSONResponse:
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response,
             responses={200: {"content": {CONTENT_TYPE: {"schema": {"type": "string"}}}}})
 async def metrics(request: Request, services: ServicesDep) -> Response:
-    """Request latency by route, queued jobs, job durations and synthesis frames and rate,
-    in the Prometheus text format."""
+    """Request latency by route, queued jobs, job durations, synthesis frames and rate, and
+    the model cache (models loaded, bytes, budget, hits, misses), in the Prometheus text
+    format."""
     app_metrics = request.app.state.metrics
 
     def render() -> bytes:

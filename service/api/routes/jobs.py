@@ -12,9 +12,10 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from models_store import registry
-from models_store.schema import JOB_FINAL_STATUSES
+from models_store.schema import JOB_FINAL_STATUSES, Artifact, Job
 from service.app import limits, schemas
 from service.api.deps import ServicesDep, SessionDep
+from service.api.query import PageDep
 from service.api.routes import problems
 from service.app.services import Services
 
@@ -22,14 +23,17 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 
 @router.get("", response_model=schemas.JobList, summary="List jobs")
-def list_jobs(session: SessionDep,
+def list_jobs(session: SessionDep, page: PageDep,
               status_filter: Annotated[schemas.JobStatus | None, Query(alias="status")] = None,
               actor_id: str | None = None, kind: str | None = None,
               model_id: str | None = None) -> schemas.JobList:
-    """Jobs, oldest first, filtered by any of `status`, `actor_id`, `kind`, `model_id`."""
-    rows = registry.list_jobs(session, status=status_filter, actor_id=actor_id, kind=kind,
-                              model_id=model_id)
-    return schemas.JobList(items=[schemas.Job.model_validate(j) for j in rows])
+    """Jobs, oldest first, filtered by any of `status`, `actor_id`, `kind`, `model_id`, a
+    page at a time (`limit`, `cursor`)."""
+    rows, cursor = page.rows(registry.list_jobs(session, status=status_filter,
+                                                actor_id=actor_id, kind=kind, model_id=model_id,
+                                                **page.fetch(Job)))
+    return schemas.JobList(items=[schemas.Job.model_validate(j) for j in rows],
+                           next_cursor=cursor)
 
 
 @router.get("/{job_id}", response_model=schemas.Job, summary="Get a job",
@@ -56,10 +60,12 @@ def cancel_job(job_id: str, session: SessionDep, response: Response) -> schemas.
 
 @router.get("/{job_id}/artifacts", response_model=schemas.ArtifactList,
             summary="List a job's artifacts", responses=problems(404))
-def list_artifacts(job_id: str, session: SessionDep) -> schemas.ArtifactList:
-    """The downloadable results of a job (`GET /v1/artifacts/{artifact_id}`)."""
-    return schemas.ArtifactList(items=[schemas.Artifact.model_validate(a)
-                                       for a in registry.list_artifacts(session, job_id)])
+def list_artifacts(job_id: str, session: SessionDep, page: PageDep) -> schemas.ArtifactList:
+    """The downloadable results of a job (`GET /v1/artifacts/{artifact_id}`), a page at a
+    time (`limit`, `cursor`)."""
+    rows, cursor = page.rows(registry.list_artifacts(session, job_id, **page.fetch(Artifact)))
+    return schemas.ArtifactList(items=[schemas.Artifact.model_validate(a) for a in rows],
+                                next_cursor=cursor)
 
 
 @router.get(

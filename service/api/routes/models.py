@@ -11,9 +11,11 @@ from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from models_store import registry
 from models_store.errors import NotFound
+from models_store.schema import Model
 from service.api import bodies
 from service.app import operations, schemas
 from service.api.deps import ServicesDep, SessionDep, SubmitDep
+from service.api.query import PageDep
 from service.api.routes import binary_response, problems, set_job_location
 from service.methods.kinds import KINDS, Kind
 
@@ -51,8 +53,8 @@ _KIND_DOCS = "\n\n".join(
     responses=problems(400, 404, 409, 415, 422, 503),
     description=("Create a model of the actor from its clips and queue its training. Answers "
                  "202 with `{model_id, job_id}` and `Location: /v1/jobs/{job_id}`; the model "
-                 "is `training` until the job ends, then `ready` or `failed`. A misspelt or "
-                 "out-of-range parameter is a 422 naming it.\n\nKinds:\n\n" + _KIND_DOCS))
+                 "is `training` until the job ends, then `ready`, `failed` or `cancelled` (the "
+                 "job was cancelled). A misspelt or out-of-range parameter is a 422 naming it.\n\nKinds:\n\n" + _KIND_DOCS))
 async def train_model(actor_id: str, request_body: Annotated[TrainBody, Body()],  # type: ignore[valid-type]
                       services: ServicesDep, submit: SubmitDep,
                       response: Response) -> schemas.ModelAccepted:
@@ -64,18 +66,21 @@ async def train_model(actor_id: str, request_body: Annotated[TrainBody, Body()],
 
 @router.get("/v1/actors/{actor_id}/models", response_model=schemas.ModelList,
             summary="List an actor's models", responses=problems(404))
-def list_models(actor_id: str, session: SessionDep,
+def list_models(actor_id: str, session: SessionDep, page: PageDep,
                 status_filter: Annotated[schemas.ModelStatus | None,
                                          Query(alias="status")] = None) -> schemas.ModelList:
-    """The actor's models, oldest first, optionally of one status."""
-    return schemas.ModelList(items=[schemas.Model.model_validate(m) for m in
-                                    registry.list_models(session, actor_id, status_filter)])
+    """The actor's models, oldest first, optionally of one status, a page at a time
+    (`limit`, `cursor`)."""
+    rows, cursor = page.rows(registry.list_models(session, actor_id, status_filter,
+                                                  **page.fetch(Model)))
+    return schemas.ModelList(items=[schemas.Model.model_validate(m) for m in rows],
+                             next_cursor=cursor)
 
 
 @router.get("/v1/models/{model_id}", response_model=schemas.Model, summary="Get a model",
             responses=problems(404))
 def get_model(model_id: str, session: SessionDep) -> schemas.Model:
-    """A model's kind, status (`training`, `ready`, `failed`), parameters and training
+    """A model's kind, status (`training`, `ready`, `failed`, `cancelled`), parameters and training
     metrics (fit errors)."""
     return schemas.Model.model_validate(registry.get_model(session, model_id))
 
@@ -90,10 +95,13 @@ async def delete_model(model_id: str, services: ServicesDep) -> Response:
 
 @router.get("/v1/models/{model_id}/maps", response_model=schemas.MapList,
             summary="List a model's UV-space maps", responses=problems(404, 409))
-async def list_maps(model_id: str, services: ServicesDep) -> schemas.MapList:
+async def list_maps(model_id: str, services: ServicesDep, page: PageDep) -> schemas.MapList:
     """The model's maps as multi-channel EXR files (e.g. a PDM's coefficient maps
-    `x.a0 … z.a5` and `n.a0 … n.a5`), for evaluation in a renderer."""
-    return schemas.MapList(items=await run_in_threadpool(operations.list_maps, services, model_id))
+    `x.a0 … z.a5` and `n.a0 … n.a5`), for evaluation in a renderer, a page at a time
+    (`limit`, `cursor`)."""
+    maps = await run_in_threadpool(operations.list_maps, services, model_id)
+    items, cursor = page.items(maps, key=lambda m: m.name)
+    return schemas.MapList(items=items, next_cursor=cursor)
 
 
 @router.get("/v1/models/{model_id}/maps/{name}.exr", summary="Download a map (EXR)",
@@ -114,9 +122,11 @@ async def get_map(model_id: str, name: Annotated[str, Path(max_length=128)],
 
 
 @router.get("/v1/kinds", response_model=schemas.KindList, summary="List model kinds")
-def list_kinds() -> schemas.KindList:
-    """The model kinds this server trains, with their parameters' JSON Schema."""
-    return schemas.KindList(items=[_kind_info(k) for k in KINDS.values()])
+def list_kinds(page: PageDep) -> schemas.KindList:
+    """The model kinds this server trains, with their parameters' JSON Schema, a page at a
+    time (`limit`, `cursor`)."""
+    items, cursor = page.items([_kind_info(k) for k in KINDS.values()], key=lambda k: k.name)
+    return schemas.KindList(items=items, next_cursor=cursor)
 
 
 @router.get("/v1/kinds/{name}", response_model=schemas.KindInfo, summary="Get a model kind",

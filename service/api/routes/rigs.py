@@ -8,9 +8,11 @@ from fastapi import APIRouter, Path, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from models_store import registry
+from models_store.schema import InputRig
 from service.api import bodies
 from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SessionDep, SubmitDep
+from service.api.query import PageDep
 from service.api.routes import body, problems, set_job_location
 
 router = APIRouter(prefix="/v1/actors/{actor_id}/input-rigs", tags=["input-rigs"])
@@ -49,10 +51,13 @@ async def put_input_rig(actor_id: str, rig: RigName, request: Request, services:
 
 @router.get("", response_model=schemas.RigList, summary="List an actor's input rigs",
             responses=problems(404))
-def list_input_rigs(actor_id: str, session: SessionDep) -> schemas.RigList:
-    """The actor's input rigs by name, with their registration state."""
-    return schemas.RigList(items=[schemas.InputRig.model_validate(r)
-                                  for r in registry.list_input_rigs(session, actor_id)])
+def list_input_rigs(actor_id: str, session: SessionDep, page: PageDep) -> schemas.RigList:
+    """The actor's input rigs by name, with their registration state, a page at a time
+    (`limit`, `cursor`)."""
+    rows, cursor = page.rows(registry.list_input_rigs(session, actor_id,
+                                                      **page.fetch(InputRig)))
+    return schemas.RigList(items=[schemas.InputRig.model_validate(r) for r in rows],
+                           next_cursor=cursor)
 
 
 @router.get("/{rig}", response_model=schemas.InputRig, summary="Get an input rig",
