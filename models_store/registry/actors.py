@@ -13,7 +13,7 @@ from models_store.ids import new_id, new_token
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, model_prefix,
                                            put_blob)
 from models_store.registry.jobs import cancel_active_jobs
-from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
+from models_store.schema import Actor, Clip, InputRig, Job, Model, Scan, utcnow
 
 
 def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None = None) -> Actor:
@@ -44,7 +44,7 @@ def list_actors(session: Session) -> list[Actor]:
 
 def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,
                  cascade: bool = False) -> None:
-    """Delete an actor with its clips, input rigs and their blobs.
+    """Delete an actor with its clips, input rigs, scans and their blobs.
 
     Its models are deleted too with ``cascade=True``; without it an actor that has models
     is a :class:`Conflict`. Queued or running jobs of the actor are cancelled (see
@@ -56,7 +56,7 @@ def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,
         raise Conflict(f"actor {actor_id!r} has {len(models)} model(s) "
                        f"({', '.join(m.id for m in models)}); delete them first or cascade")
     cancel_active_jobs(session, Job.actor_id == actor_id, "its actor was deleted")
-    for row_type in (Model, Clip, InputRig):  # children first: the foreign keys
+    for row_type in (Model, Clip, InputRig, Scan):  # children first: the foreign keys
         session.execute(delete(row_type).where(row_type.actor_id == actor_id)
                         .execution_options(synchronize_session=False))
     session.execute(delete(Actor).where(Actor.id == actor_id)
