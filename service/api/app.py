@@ -20,7 +20,8 @@ from service.api.auth import check_bearer
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
-from service.api.routes import actors, artifacts, clips, health, jobs, models, rigs, synthesis
+from service.api.routes import (actors, artifacts, clips, health, jobs, models, rigs, scans,
+                                synthesis)
 from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
@@ -51,6 +52,8 @@ TAGS = [
                                          "synchronous for a few frames, jobs for performances."},
     {"name": "jobs", "description": "Long work: state, progress events, cancellation."},
     {"name": "artifacts", "description": "Downloadable job results."},
+    {"name": "scans", "description": "Facial scans as UV-space maps, and scan correspondence "
+                                     "(a job)."},
 ]
 
 
@@ -89,7 +92,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)
-    for module in (actors, clips, rigs, models, synthesis, jobs, artifacts):
+    for module in (actors, clips, rigs, models, synthesis, jobs, artifacts, scans):
         app.include_router(module.router, dependencies=[Depends(check_bearer)])
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

@@ -10,11 +10,13 @@ through ``job.progress`` (where cancellation takes effect) and returns the job's
 from __future__ import annotations
 
 from service.jobs.running import Task
+from service.jobs.tasks.correspond import correspond_scans
 from service.jobs.tasks.register import register
 from service.jobs.tasks.synthesize import synthesize
 from service.jobs.tasks.train import train
 
 #: job kind → task function
-TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize, "register": register}
+TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize, "register": register,
+                          "correspond": correspond_scans}
 
-__all__ = ["TASKS", "train", "synthesize", "register"]
+__all__ = ["TASKS", "train", "synthesize", "register", "correspond_scans"]
