@@ -133,6 +133,15 @@ def test_cancellation_at_a_progress_point_stores_nothing(deployment, scans):
         assert registry.list_artifacts(session, job_id) == []
 
 
+def test_a_retry_reuses_the_artifacts_of_an_earlier_attempt(deployment, scans):
+    job_id = create_job(deployment, scans)
+    first = correspond_scans(running(deployment, job_id, lambda f, s: None))
+    again = correspond_scans(running(deployment, job_id, lambda f, s: None))
+    assert again["artifacts"] == first["artifacts"]
+    with deployment.session() as session:
+        assert len(registry.list_artifacts(session, job_id)) == 3
+
+
 def test_a_scan_deleted_after_submission_fails_the_job(deployment, scans):
     settings = deployment.settings.model_copy(update={"queue_url": "memory://"})
     job_id = create_job(deployment, scans)

@@ -28,7 +28,9 @@ Artifacts, in the target's UV space (H,W):
 Result ``{"artifact_ids": [...], "artifacts": {filename: id}, "source_scan_id",
 "target_scan_id", "metrics": {"mean_confidence", "coverage", "width", "height",
 "seconds": {stage: s}}}``; ``coverage`` is the fraction of the target's covered texels that
-the warped source covers.
+the warped source covers. The result is a function of the stored scans and the payload, so a
+retry (after a worker died mid-way) reuses the artifacts an earlier attempt stored, by file
+name, instead of storing them twice.
 """
 
 from __future__ import annotations
@@ -101,13 +103,18 @@ def correspond_scans(job: RunningJob) -> dict[str, Any]:
         valid = np.isfinite(vertices).all(axis=1)
         files.append(("blendshape.npz", npz_bytes(vertices=vertices.astype(np.float32),
                                                   valid=valid), NPZ))
-    ids: dict[str, str] = {}
+    with store.sessions() as session:       # a retry keeps what an earlier attempt stored
+        ids = {a.filename: a.id for a in registry.list_artifacts(session, job.id)
+               if a.filename in {f for f, _, _ in files}}
     for k, (filename, data, media_type) in enumerate(files):
         job.progress(CORRESPONDED + (1.0 - CORRESPONDED) * k / len(files), "storing the results")
+        if filename in ids:
+            continue
         with store.sessions() as session:
             ids[filename] = registry.add_artifact(session, store.blobs, job.id, data,
                                                   media_type=media_type,
                                                   filename=filename).id
+    ids = {f: ids[f] for f, _, _ in files}
     seconds["store"] = time.perf_counter() - t1
     seconds["total"] = time.perf_counter() - t0
     covered = target.get("mask")
