@@ -7,8 +7,9 @@ diffuse texture the correspondence is computed on) and ``position`` (H,W,3) floa
 point cloud in UV space, in the actor's unit) are required; ``specular`` (H,W,3),
 ``normal`` (H,W,3) float and ``mask`` (H,W) bool (the covered texels) are optional. It is
 read with the bounded NPZ reader (:class:`~service.app.uploads.NpzUpload`: headers checked
-before any data is decompressed), checked for finite values, and stored canonically
-(float32 maps, bool mask) as one blob under the actor's prefix.
+before any data is decompressed), checked for finite values on the covered texels (NaN or
+infinite values outside ``mask`` become 0), and stored canonically (float32 maps, bool
+mask) as one blob under the actor's prefix.
 
 The ``correspond`` job's payload (:mod:`service.jobs.tasks.correspond`) is ``{"source_scan_id",
 "target_scan_id", "landmarks": [[[u_s, v_s], [u_t, v_t]], ...], "pinned": [...], "params":
@@ -127,19 +128,25 @@ def parse_scan(data: bytes, settings: Settings) -> tuple[bytes, int, int, list[s
                            f"[{MIN_SIDE}, {MAX_SIDE}]")
     arrays = upload.load()
     canonical = {}
+    mask = arrays.get(MASK)
+    if mask is not None:
+        if not mask.any():
+            raise InvalidInput("the scan's 'mask' covers no texel")
+        canonical[MASK] = mask = mask.astype(bool)
     for name, values in arrays.items():
         if name == MASK:
-            if not values.any():
-                raise InvalidInput("the scan's 'mask' covers no texel")
-            canonical[name] = values.astype(bool)
             continue
-        finite = np.isfinite(values)
+        finite = np.isfinite(values).all(axis=-1)
+        if mask is not None:                  # uncovered texels may hold anything: zeroed
+            values = np.where(finite[..., None] | mask[..., None], values, 0.0)
+            finite |= ~mask
         if not finite.all():
-            bad = np.argwhere(~finite.all(axis=-1))
-            raise InvalidInput(f"the scan's '{name}' has {len(bad)} texels with NaN or "
+            bad = np.argwhere(~finite)
+            where = "covered texels" if mask is not None else "texels"
+            raise InvalidInput(f"the scan's '{name}' has {len(bad)} {where} with NaN or "
                                f"infinite values (first at row {bad[0][0]}, column "
-                               f"{bad[0][1]}); every value must be finite (use 'mask' for "
-                               "texels the scan does not cover)")
+                               f"{bad[0][1]}); values must be finite where 'mask' is true "
+                               "(without a mask: everywhere)")
         canonical[name] = values.astype(np.float32)
     if MASK not in canonical and not (canonical["albedo"] != 0).any():
         raise InvalidInput("the scan's 'albedo' is zero everywhere (no texel is covered)")

@@ -95,6 +95,19 @@ def test_scan_uploads_are_validated(client, actor_id):
     bad[3, 5, 1] = np.nan
     assert_problem(client.post(url, content=npz(albedo=a, position=bad), headers=NPZ), 422,
                    "'position' has 1 texels", "row 3, column 5")
+    inside = np.ones((16, 16), bool)
+    assert_problem(client.post(url, content=npz(albedo=a, position=bad, mask=inside),
+                               headers=NPZ), 422, "'position' has 1 covered texels")
+    inside[3, 5] = False                       # NaN outside the mask is stored as 0
+    body = client.post(url, content=npz(albedo=a, position=bad, mask=inside), headers=NPZ)
+    assert body.status_code == 201, body.text
+    from models_store import registry
+
+    services = client.app.state.services
+    with services.session() as session:
+        stored = load_npz(registry.read_scan(session, services.blobs, body.json()["scan_id"]))
+    assert stored["position"][3, 5].tolist() == [0.0, 0.0, 0.0]
+    np.testing.assert_array_equal(stored["position"][inside], a[inside])
     assert_problem(client.post(url, content=npz(albedo=a, position=a.astype(int)), headers=NPZ),
                    422, "dtype")
     assert_problem(client.post(url, content=npz(albedo=a, position=a, mask=np.ones((16, 16))),

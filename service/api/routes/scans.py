@@ -23,12 +23,13 @@ router = APIRouter(prefix="/v1/actors/{actor_id}", tags=["scans"])
         "texture the correspondence is computed on) and `position` (H,W,3) float (the point "
         "cloud in the actor's unit) are required; `specular` (H,W,3), `normal` (H,W,3) float "
         "and `mask` (H,W) bool (the covered texels; default: albedo non-zero) are optional. "
-        "Values must be finite; 8 ≤ H, W ≤ 8192.")))
+        "Values must be finite on the covered texels (NaN or infinite values outside `mask` "
+        "are stored as 0); 8 ≤ H, W ≤ 8192.")))
 async def add_scan(actor_id: str, request: Request, services: ServicesDep,
                    name: Annotated[str | None, Query(max_length=200)] = None) -> scans.Scan:
     """Store a scan of the actor; answers 201 with `{scan_id, name, width, height, maps}`.
     A missing `albedo`/`position`, maps of different sizes, a wrong dtype or a non-finite
-    value are a 422 naming the map."""
+    value on a covered texel are a 422 naming the map."""
     _, data = await bodies.read_body(request, uploads.NPZ_TYPES)
     return await run_in_threadpool(scans.add_scan, services, actor_id, data, name)
 
