@@ -40,6 +40,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/game_outputs_report.py
 	$(BIN)/python benchmarks/correspondence_report.py
 	$(BIN)/python benchmarks/generalization_report.py
+	$(BIN)/python benchmarks/load.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

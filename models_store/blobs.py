@@ -20,15 +20,27 @@ user can read them (``atomic_open``'s ``mkstemp`` alone would leave 0600).
 Keys are ``/``-separated segments of ``[A-Za-z0-9._-]`` each starting with a letter or
 digit: no absolute paths, no ``..``, no hidden names (temporary names start with a dot, so
 they can never collide with a key).
+
+Temporaries — the siblings of blobs being written, directories being deleted, the scratch
+directories of jobs (:meth:`BlobStore.scratch_dir`) — are the hidden names. A crash (a
+SIGKILLed worker or API) leaves them behind; :meth:`BlobStore.sweep_temporaries` removes
+those older than an age, and never a scratch directory still in use: its owner holds an
+exclusive ``flock`` on it for as long as it lives, which the kernel releases when the owner
+dies however it dies. :meth:`BlobStore.health` tells whether the store can be written and
+how much space is free (for ``/readyz``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import hashlib
 import io
 import os
 import re
 import shutil
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Iterator
@@ -83,6 +95,28 @@ def tree_digest(entries: dict[str, str]) -> str:
     """
     lines = "".join(f"{entries[p]}  {p}\n" for p in sorted(entries))
     return hashlib.sha256(lines.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class StoreHealth:
+    """Whether the blob store can take writes: :meth:`BlobStore.health`.
+
+    Attributes
+    ----------
+    writable : bool     a probe file could be created, written, fsynced and removed
+    free_bytes : int    space available to this process (``statvfs`` ``f_bavail``)
+    total_bytes : int   size of the filesystem
+    reason : str        why the store is not ready ("" when it is); no server paths
+    """
+
+    writable: bool
+    free_bytes: int
+    total_bytes: int
+    reason: str = ""
+
+    @property
+    def ready(self) -> bool:
+        return not self.reason
 
 
 class BlobStore:
@@ -237,6 +271,92 @@ class BlobStore:
             raise NotFound("blob", key)
         return path
 
+    # -- scratch space, temporaries, health --------------------------------------------------
+    @contextlib.contextmanager
+    def scratch_dir(self, prefix: str) -> Iterator[Path]:
+        """A new hidden scratch directory ``.<prefix>-<token>`` in the store's root (the same
+        filesystem as the blobs, so a finished result is stored by a rename or a local copy),
+        removed when the block ends however it ends.
+
+        While the block runs the directory is locked (``flock``), so
+        :meth:`sweep_temporaries` never removes it, however old it is.
+        """
+        if not re.fullmatch(r"[a-z][a-z0-9-]{0,40}", prefix):
+            raise ValueError(f"scratch prefix {prefix!r} must be lowercase letters, digits, -")
+        path = self.root / f".{prefix}-{new_token()}"
+        os.mkdir(path, DIR_MODE)
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+            os.close(fd)
+
+    def sweep_temporaries(self, older_than: float, now: float | None = None) -> list[str]:
+        """Remove the temporaries a crash left behind; their paths relative to the root.
+
+        A temporary is any hidden name (``.…``) in the store: the siblings of blobs being
+        written, directories being deleted, job scratch directories. One is removed when
+        nothing in it was modified for ``older_than`` seconds and, for a directory, no
+        process holds its lock (:meth:`scratch_dir`). Hidden directories are removed whole
+        and not looked into.
+
+        Parameters
+        ----------
+        older_than : float   age in seconds (newest modification time in the tree)
+        now : float          the current time (``time.time()``; for tests)
+        """
+        now = time.time() if now is None else now
+        removed: list[str] = []
+        for dirpath, dirnames, filenames in os.walk(self.root):
+            hidden = [d for d in dirnames if d.startswith(".")]
+            dirnames[:] = [d for d in dirnames if not d.startswith(".")]
+            for name in hidden + [f for f in filenames if f.startswith(".")]:
+                path = Path(dirpath, name)
+                try:
+                    if now - _newest_mtime(path) < older_than or not _remove_unlocked(path):
+                        continue
+                except FileNotFoundError:  # its owner finished meanwhile
+                    continue
+                removed.append(path.relative_to(self.root).as_posix())
+        return removed
+
+    def health(self, min_free_bytes: int = 0) -> StoreHealth:
+        """Probe whether the store can be written and has ``min_free_bytes`` free.
+
+        Writes, fsyncs and removes a small hidden probe file in the root; never raises for
+        a storage fault (the answer says what is wrong, without server paths).
+        """
+        probe = self.root / f".probe-{new_token()}.tmp"
+        reason = ""
+        writable = True
+        try:
+            fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, FILE_MODE)
+            try:
+                os.write(fd, b"facesynth readiness probe\n")
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+                probe.unlink(missing_ok=True)
+        except OSError as error:
+            writable = False
+            text = os.strerror(error.errno or errno.EIO)
+            reason = (f"the blob store is full ({text})"
+                      if error.errno in (errno.ENOSPC, errno.EDQUOT) else
+                      f"the blob store is not writable ({text})")
+        try:
+            stat = os.statvfs(self.root)
+            free, total = stat.f_bavail * stat.f_frsize, stat.f_blocks * stat.f_frsize
+        except OSError as error:
+            free = total = 0
+            text = os.strerror(error.errno or errno.EIO)
+            reason = reason or f"the blob store cannot be inspected ({text})"
+        if not reason and free < min_free_bytes:
+            reason = (f"the blob store is nearly full: {free} bytes free, fewer than the "
+                      f"{min_free_bytes} required")
+        return StoreHealth(writable, int(free), int(total), reason)
+
     # -- deleting ------------------------------------------------------------------------
     def delete(self, key: str) -> bool:
         """Remove the file or directory blob (or key prefix) ``key``.
@@ -265,6 +385,36 @@ class BlobStore:
 
 
 # -- file-system helpers -----------------------------------------------------------------
+def _newest_mtime(path: Path) -> float:
+    """The latest modification time of ``path`` or of anything under it (seconds)."""
+    newest = path.lstat().st_mtime
+    if path.is_dir() and not path.is_symlink():
+        for dirpath, dirnames, filenames in os.walk(path):
+            for name in dirnames + filenames:
+                try:
+                    newest = max(newest, os.lstat(os.path.join(dirpath, name)).st_mtime)
+                except FileNotFoundError:
+                    pass
+    return newest
+
+
+def _remove_unlocked(path: Path) -> bool:
+    """Remove a file, or a directory nobody holds a ``flock`` on; whether it was removed."""
+    if not path.is_dir() or path.is_symlink():
+        path.unlink()
+        return True
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False                      # a live scratch directory
+        shutil.rmtree(path, ignore_errors=True)
+        return True
+    finally:
+        os.close(fd)
+
+
 def _walk_files(top: Path) -> Iterator[tuple[Path, str]]:
     """Regular files under ``top`` as (path, relative POSIX path), sorted.
 

@@ -131,3 +131,59 @@ class Unavailable(FacesynthError):
 class InsufficientStorage(FacesynthError):
     """The data disk (or quota) is full."""
 
+
+# -- storage faults ------------------------------------------------------------------------
+import errno as _errno  # noqa: E402
+import os as _os  # noqa: E402
+
+#: errno values meaning "the disk (or the user's quota) is full"
+FULL_ERRNOS = frozenset({_errno.ENOSPC, _errno.EDQUOT})
+#: errno values meaning "the storage cannot be written now" (read-only, lost permission)
+UNWRITABLE_ERRNOS = frozenset({_errno.EROFS, _errno.EACCES})
+#: Retry-After of a read-only or unwritable store, seconds
+STORAGE_RETRY_AFTER = 30
+
+
+def storage_fault(error: BaseException) -> tuple[str, str] | None:
+    """Classify an exception (or one in its ``__cause__``/``__context__`` chain) that comes
+    from the server's storage being full or unwritable.
+
+    Returns
+    -------
+    (code, reason) | None   ``("insufficient_storage", strerror)`` for ENOSPC/EDQUOT,
+                            ``("storage_unavailable", strerror)`` for EROFS/EACCES, None for
+                            anything else. The reason is the OS's text for the errno alone:
+                            never the file name, which is a server path.
+    """
+    seen: set[int] = set()
+    current: BaseException | None = error
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, OSError) and current.errno is not None:
+            reason = os_reason(current.errno)
+            if current.errno in FULL_ERRNOS:
+                return "insufficient_storage", reason
+            if current.errno in UNWRITABLE_ERRNOS:
+                return "storage_unavailable", reason
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def os_reason(number: int) -> str:
+    """The OS's message for an errno (``"No space left on device"``), without any path."""
+    return _os.strerror(number)
+
+
+def storage_error(error: BaseException) -> FacesynthError | None:
+    """The :class:`InsufficientStorage` or :class:`Unavailable` (retry after 30 s) meaning
+    of a storage fault (:func:`storage_fault`), with no server path in its message; None
+    for anything else."""
+    fault = storage_fault(error)
+    if fault is None:
+        return None
+    code, reason = fault
+    if code == "insufficient_storage":
+        return InsufficientStorage(f"the server's storage is full ({reason}); try again once "
+                                   "space has been freed")
+    return Unavailable(f"the server's storage cannot be written now ({reason}); try again "
+                       "later", retry_after=STORAGE_RETRY_AFTER)

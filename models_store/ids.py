@@ -86,3 +86,15 @@ def _check_kind(kind: str) -> str:
 
 def _prefix(kind: str) -> str:
     return PREFIXES[_check_kind(kind)]
+
+
+#: a tenant id: letters, digits, ``._-``, starting with a letter or digit, 1-64 characters
+TENANT_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
+
+def validate_tenant(value: object) -> str:
+    """Return ``value`` if it is a well-formed tenant id, else raise ``ValueError``."""
+    if not isinstance(value, str) or not TENANT_PATTERN.fullmatch(value):
+        raise ValueError(f"tenant {value!r} must be 1-64 characters [A-Za-z0-9._-] starting "
+                         "with a letter or digit")
+    return value

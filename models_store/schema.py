@@ -9,6 +9,9 @@ The schema in the database is made by the Alembic migrations in
 ``models_store/migrations/versions`` (``models_store.db.upgrade``), never by
 ``create_all``; a test checks that the migrations and these classes agree.
 
+Every actor, model and job has a ``tenant``; clips and input rigs belong to their actor's
+tenant and artifacts to their job's (:mod:`models_store.registry` scopes every lookup by it).
+
 A ready model is immutable: flushing any change to a model whose stored status is ``ready``
 raises :class:`~models_store.errors.Conflict` (see :func:`_forbid_changes_to_ready_models`).
 """
@@ -36,6 +39,9 @@ ID = String(32)         # prefix + "_" + 26 characters (models_store.ids)
 BLOB_KEY = String(512)  # models_store.blobs key
 SHA256 = String(64)     # hex digest
 NAME = String(200)
+TENANT = String(64)     # models_store.ids.validate_tenant
+#: the tenant of rows made before tenants existed, and of tokens that name none
+DEFAULT_TENANT = "default"
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -97,6 +103,8 @@ class Actor(Base):
     __tablename__ = "actors"
 
     id: Mapped[str] = mapped_column(ID, primary_key=True)
+    tenant: Mapped[str] = mapped_column(TENANT, default=DEFAULT_TENANT,
+                                        server_default=DEFAULT_TENANT, index=True)
     name: Mapped[str] = mapped_column(NAME)
     #: free-form user metadata (the column is named ``metadata``)
     meta: Mapped[dict[str, Any]] = mapped_column("metadata", default=dict)
@@ -179,6 +187,8 @@ class Model(Base):
     __table_args__ = (CheckConstraint(_one_of("status", MODEL_STATUSES), name="status"),)
 
     id: Mapped[str] = mapped_column(ID, primary_key=True)
+    tenant: Mapped[str] = mapped_column(TENANT, default=DEFAULT_TENANT,
+                                        server_default=DEFAULT_TENANT, index=True)
     actor_id: Mapped[str] = mapped_column(ForeignKey("actors.id"), index=True)
     kind: Mapped[str] = mapped_column(String(32))
     status: Mapped[str] = mapped_column(String(16), default="training")
@@ -209,6 +219,8 @@ class Job(Base):
     )
 
     id: Mapped[str] = mapped_column(ID, primary_key=True)
+    tenant: Mapped[str] = mapped_column(TENANT, default=DEFAULT_TENANT,
+                                        server_default=DEFAULT_TENANT, index=True)
     kind: Mapped[str] = mapped_column(String(32), index=True)
     actor_id: Mapped[str] = mapped_column(ID, index=True)
     model_id: Mapped[str | None] = mapped_column(ID, index=True)

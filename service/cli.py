@@ -11,6 +11,7 @@
     facesynth serve [--host H] [--port P] [--grpc-port G] [--data-dir DIR] [--workers N]
                                                                HTTP API + gRPC + embedded job workers
                                                                (--workers 0: API + gRPC only)
+    facesynth store fsck [--remove] [--min-age S]             orphaned / missing blobs (and removal)
 """
 
 from __future__ import annotations
@@ -159,7 +160,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.app.services import Services
     from service.config import Settings
     from service.grpc.server import is_loopback, serve
-    from service.jobs.worker import start_embedded
+    from service.jobs.worker import start_embedded, start_maintenance
 
     overrides = {name: getattr(args, name) for name in ("host", "port", "grpc_port", "data_dir",
                                                         "workers")
@@ -183,10 +184,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
             workers = start_embedded(settings, settings.workers)
+        else:  # reap expired leases and resubmit lost messages even with no worker alive
+            workers = start_maintenance(settings)
         grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
                             tokens=settings.tokens)
+        from service.api.connections import protocol_class
+
+        http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
+                              settings.body_rate_grace_seconds,
+                              settings.max_connections_per_client)
         uvicorn.run(create_app(settings, services=services), host=settings.host,
-                    port=settings.port, log_config=None, access_log=False)
+                    port=settings.port, log_config=None, access_log=False, http=http)
     finally:
         if grpc_server is not None:
             grpc_server.stop(grace=5).wait()
@@ -195,6 +203,34 @@ def cmd_serve(args: argparse.Namespace) -> int:
         services.close()
         signal.signal(signal.SIGTERM, previous_sigterm)
     return 0
+
+
+def cmd_store_fsck(args: argparse.Namespace) -> int:
+    """Report (and with --remove delete) blobs no row references, and rows whose blob is
+    missing; exit status 1 when something is inconsistent."""
+    import json
+
+    from models_store.db import make_engine, make_session_factory
+    from models_store.blobs import BlobStore
+    from models_store.fsck import fsck
+    from service.config import Settings
+
+    overrides = {name: getattr(args, name) for name in ("data_dir", "database_url")
+                 if getattr(args, name) is not None}
+    settings = Settings(**overrides)
+    engine = make_engine(settings.database_url_resolved)
+    try:
+        with make_session_factory(engine)() as session:
+            report = fsck(session, BlobStore(settings.blob_dir), remove=args.remove,
+                          min_age=args.min_age)
+    finally:
+        engine.dispose()
+    print(json.dumps({"referenced": report.referenced, "orphans": report.orphans,
+                      "removed": report.removed, "kept_young": report.kept_young,
+                      "missing": [dict(zip(("table", "id", "key"), m)) for m in report.missing]},
+                     indent=2))
+    return 0 if report.clean or (args.remove and not report.missing
+                                 and len(report.removed) == len(report.orphans)) else 1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -277,6 +313,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="embedded job threads (FACESYNTH_WORKERS, default 1; "
                                                "0: no embedded worker, API only)")
     p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("store", help="maintenance of the model store")
+    store_sub = p.add_subparsers(dest="store_command", required=True)
+    p = store_sub.add_parser("fsck", help="report blobs no row references (orphans) and rows whose "
+                                          "blob is missing; --remove deletes old orphans")
+    p.add_argument("--data-dir", type=Path, help="data directory (FACESYNTH_DATA_DIR)")
+    p.add_argument("--database-url", help="metadata database URL (FACESYNTH_DATABASE_URL)")
+    p.add_argument("--remove", action="store_true", help="delete the orphans older than --min-age")
+    p.add_argument("--min-age", type=float, default=3600.0,
+                   help="seconds; younger orphans may be about to be referenced (default 3600)")
+    p.set_defaults(func=cmd_store_fsck)
 
     from service.client_cli import add_client_commands
 

@@ -9,10 +9,14 @@
     facesynth clips list ACTOR
     facesynth train ACTOR --kind pdm --clips ID ... [--params JSON] [--set k=v ...] [--no-wait]
     facesynth jobs list [--status S] [--actor ID] [--kind K] | show JOB | watch JOB | cancel JOB
-    facesynth synthesize MODEL take.c3d|take.trc|take.csv|take.npz -o OUT [--format obj-exr|npz]
+    facesynth synthesize MODEL take.c3d|take.trc|take.csv|take.npz -o OUT [--format obj-exr|npz|usd]
                          [--pattern 'shot_{frame:04d}'] [--start-frame N]
-    facesynth enhance MODEL frames.npz -o OUT [--rig NAME] [--format obj-exr|npz] [...]
+    facesynth enhance MODEL frames.npz -o OUT [--rig NAME] [--format obj-exr|npz|usd] [...]
     facesynth models list ACTOR | show MODEL | delete MODEL | export MODEL -o DIR
+    facesynth transfer MODEL --target ACTOR --landmarks FILE [--params JSON] [--set k=v ...]
+                       [--no-wait]
+    facesynth bone-rig ACTOR --clip ID | --artifact ID --out DIR [--params JSON]
+                       [--set k=v ...] [--fps F] [--no-wait]
 
 Every command takes --server URL (FACESYNTH_URL, default http://127.0.0.1:8000) and
 --token T (FACESYNTH_TOKEN), before or after the command's name; every listing and show takes
@@ -50,7 +54,7 @@ from typing import Any, Callable, Iterator
 
 EXIT_OK, EXIT_JOB_FAILED, EXIT_USAGE, EXIT_REJECTED, EXIT_SERVER = 0, 1, 2, 3, 4
 #: result formats of ``synthesize``/``enhance`` → the synthesis job's format
-FORMATS = {"obj-exr": "obj-exr-zip", "npz": "npz"}
+FORMATS = {"obj-exr": "obj-exr-zip", "npz": "npz", "usd": "usd"}
 #: the arrays the API takes in a neutral .npz (plus ``region_<name>``) and in a clip .npz
 NEUTRAL_ARRAYS = ("vertices", "faces", "uv", "uv_faces", "quad_split")
 REGION_PREFIX = "region_"
@@ -644,6 +648,37 @@ def _unpack_frames(archive: Path, stage: Path, pattern: str, start: int) -> dict
     return frames
 
 
+def _usd_frames(path: Path) -> int:
+    """F of a USD point cache, from its stage's start and end time codes (metadata only)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    return int(round(stage.GetEndTimeCode() - stage.GetStartTimeCode())) + 1
+
+
+def _unpack_usd(artifact: Path, stage: Path, stem: str) -> dict[int, list[str]]:
+    """A ``usd`` artifact into ``stage``: the cache as ``<stem>.usd``, or the zip's cache(s)
+    and maps under their own names (the cache references the maps by them); returns frame
+    index → the files holding that frame (the cache(s) and that frame's maps)."""
+    if not zipfile.is_zipfile(artifact):
+        artifact.rename(stage / f"{stem}.usd")
+        caches, maps = [f"{stem}.usd"], {}
+    else:
+        with zipfile.ZipFile(artifact) as z:
+            names = [Path(name).name for name in z.namelist()]
+            for info, name in zip(z.infolist(), names):
+                with z.open(info) as source, open(stage / name, "wb") as target:
+                    shutil.copyfileobj(source, target, 1 << 20)
+        artifact.unlink()
+        caches = sorted(name for name in names if name.endswith(".usd"))
+        maps = {}
+        for name in names:
+            match = _ZIP_MEMBER.match(name)
+            if match is not None:
+                maps.setdefault(int(match.group(1)), []).append(name)
+    return {k: caches + sorted(maps.get(k, [])) for k in range(_usd_frames(stage / caches[0]))}
+
+
 def _run_performance(client, args, **source: Any) -> int:
     """A synthesis job for a whole performance, waited for and written into ``args.out``
     with its frame map ``frames.json``."""
@@ -668,6 +703,12 @@ def _run_performance(client, args, **source: Any) -> int:
                 frame_map["frames"] = [
                     {"frame": args.start_frame + k, "source_frame": k, "files": [path.name]}
                     for k in range(_npz_frames(path))]
+            elif args.format == "usd":                 # time code k is the input's frame k
+                download = client.download_artifact(artifact_id, stage / f".{stem}.artifact")
+                frame_map["frames"] = [
+                    {"frame": args.start_frame + k, "source_frame": k, "time_code": k,
+                     "files": names}
+                    for k, names in sorted(_unpack_usd(download, stage, stem).items())]
             else:
                 archive = client.download_artifact(artifact_id, stage / f".{stem}.zip")
                 frames = _unpack_frames(archive, stage, args.pattern, args.start_frame)
@@ -675,7 +716,7 @@ def _run_performance(client, args, **source: Any) -> int:
                 frame_map["frames"] = [
                     {"frame": args.start_frame + k, "source_frame": k, "files": sorted(names)}
                     for k, names in sorted(frames.items())]
-        if args.format != "npz":            # per-frame files: file → source frame index
+        if args.format == "obj-exr":        # per-frame files: file → source frame index
             frame_map["files"] = {name: row["source_frame"] for row in frame_map["frames"]
                                   for name in row["files"]}
         (stage / "frames.json").write_text(json.dumps(frame_map, indent=1))
@@ -754,6 +795,85 @@ def models_export(client, args) -> int:
             client.models.download_map(args.model, info.name, stage / f"{info.name}.exr")
     print(out)
     _say(f"model.json and {len(maps)} maps in {out}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------- transfer, bone rigs
+
+def read_landmarks(path: Path) -> list[list[int]]:
+    """Landmark pairs (source vertex, target vertex) from a file: JSON (``[[s, t], ...]`` or
+    ``{"landmarks": [...]}``), ``.npz`` with ``landmarks`` (L,2), or text/CSV with two
+    integer columns per line (``#`` comments, an optional header line of names).
+
+    Raises UsageError for a file that holds no (L,2) integer pairs.
+    """
+    import numpy as np
+
+    path = _file(path, "landmark file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".json":
+            value = json.loads(path.read_text())
+            pairs = value.get("landmarks") if isinstance(value, dict) else value
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                if "landmarks" not in data.files:
+                    raise UsageError(f"{path} has no 'landmarks' (L,2) (it has {sorted(data.files)})")
+                pairs = data["landmarks"].tolist()
+        else:
+            rows = [line.split("#")[0].replace(",", " ").split()
+                    for line in path.read_text().splitlines()]
+            rows = [row for row in rows if row]
+            if rows and not rows[0][0].lstrip("-").isdigit():
+                rows = rows[1:]                                 # a header line
+            pairs = [[int(v) for v in row] for row in rows]
+    except (ValueError, TypeError) as error:
+        raise UsageError(f"{path}: not landmark pairs ({error})") from None
+    ok = (isinstance(pairs, list) and pairs
+          and all(isinstance(row, list) and len(row) == 2
+                  and all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+                  for row in pairs))
+    if not ok:
+        raise UsageError(f"{path}: expected pairs of integer vertex indices [source, target], "
+                         "one per landmark")
+    return [[int(a), int(b)] for a, b in pairs]
+
+
+def transfer(client, args) -> int:
+    landmarks = read_landmarks(args.landmarks)
+    params = {**_json_arg(args.params, "--params"), **_assignments(args.set)}
+    accepted = client.models.transfer(args.model, args.target, landmarks, params or None)
+    if args.no_wait:
+        print(accepted.job_id)
+        _say(f"model {accepted.model_id} of actor {args.target} (job {accepted.job_id})")
+        return EXIT_OK
+    print(accepted.model_id, flush=True)
+    return _wait(client, args, accepted, f"transfer {accepted.model_id}")
+
+
+def bone_rig(client, args) -> int:
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: exists and is not a folder")
+    params = {**_json_arg(args.params, "--params"), **_assignments(args.set)}
+    accepted = client.bone_rigs.submit(args.actor, clip=args.clip, artifact=args.artifact,
+                                       params=params or None, fps=args.fps)
+    code = _wait(client, args, accepted, f"bone-rig {accepted.job_id}")
+    if code != EXIT_OK or args.no_wait:
+        return code
+    job = client.jobs.get(accepted)
+    metrics = (job.raw.get("result") or {}).get("metrics") or {}
+    with _output_dir(out) as stage:
+        for artifact_id, name in zip(job.artifact_ids, ("rig.npz", "rig.glb")):
+            client.download_artifact(artifact_id, stage / name)
+        (stage / "rig.json").write_text(json.dumps(
+            {"actor_id": args.actor, "job_id": job.id, "clip_id": args.clip,
+             "artifact_id": args.artifact, "metrics": metrics}, indent=1))
+    if metrics:
+        _say(f"{metrics.get('bones')} bones, reconstruction RMS {metrics.get('rms_mm', 0):.4g}, "
+             f"max {metrics.get('max_mm', 0):.4g} (actor units)")
+    _say(f"rig.npz, rig.glb and rig.json in {out}")
+    print(out)
     return EXIT_OK
 
 
@@ -953,7 +1073,9 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
         p.add_argument("-o", "--out", required=True, help="output folder (made once the "
                                                           "results are in)")
         p.add_argument("--format", choices=tuple(FORMATS), default="obj-exr",
-                       help="per-frame OBJ and EXR files (default), or one NPZ")
+                       help="per-frame OBJ and EXR files (default), one NPZ, or one USD "
+                            "point cache (time code k = input frame k; with maps, the cache "
+                            "and the EXR maps it references, named as the cache expects)")
         p.add_argument("--outputs", help="comma-separated outputs (default: the model kind's)")
         p.add_argument("--pattern", type=_frame_pattern, default=DEFAULT_PATTERN,
                        help="name of a frame's files, a Python format of {frame} (default "
@@ -994,6 +1116,30 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                 "write a model's description and UV maps to a folder")
     p.add_argument("model", help="model id")
     p.add_argument("-o", "--out", required=True, help="output folder")
+
+    p = command(sub, "transfer", transfer,
+                "transfer a psd/wpsd model's details to another actor (a job); prints the new "
+                "model's id, or with --no-wait only the job id", [waiting])
+    p.add_argument("model", help="id of the source model (psd or wpsd, ready)")
+    p.add_argument("--target", required=True, metavar="ACTOR", help="the target actor's id")
+    p.add_argument("--landmarks", required=True, metavar="FILE",
+                   help="corresponding vertex pairs (source, target): .json [[s, t], ...], "
+                        ".npz with 'landmarks' (L,2), or .csv/.txt with two columns")
+    p.add_argument("--params", help="transfer parameters as a JSON object (pose_weights)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
+
+    p = command(sub, "bone-rig", bone_rig,
+                "compress a performance to a bone rig (a job) and write rig.npz, rig.glb "
+                "and rig.json to a folder", [waiting])
+    p.add_argument("actor", help="actor id")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--clip", metavar="ID", help="one of the actor's clips")
+    source.add_argument("--artifact", metavar="ID", help="a synthesis job's .npz result")
+    p.add_argument("-o", "--out", required=True, help="output folder (made once the rig is in)")
+    p.add_argument("--params", help="decomposition parameters as a JSON object (bones, "
+                                    "max_influences, iterations, ...)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
+    p.add_argument("--fps", type=float, help="frame rate of the exported animation")
 
 
 def run(func: Callable) -> Callable[[argparse.Namespace], int]:

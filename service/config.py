@@ -35,7 +35,8 @@ class Settings(BaseSettings):
     """
 
     model_config = SettingsConfigDict(env_prefix="FACESYNTH_", extra="ignore",
-                                      validate_default=True)
+                                      validate_default=True,
+                                      hide_input_in_errors=True)  # never echo a token
 
     # -- storage -----------------------------------------------------------------------------
     data_dir: Path = Field(
@@ -70,16 +71,53 @@ class Settings(BaseSettings):
     tokens: Annotated[list[str], NoDecode] = Field(
         default_factory=list, repr=False,
         description="Accepted bearer tokens; in the environment a comma-separated list (or a "
-                    "JSON list). Empty: no authentication, and the API only listens on "
-                    "loopback.")
+                    "JSON list). Each entry is TOKEN (tenant 'default'), TENANT:TOKEN or "
+                    "TENANT:TOKEN:admin (sees every tenant); TOKEN may be "
+                    "'sha256:<hex digest of the token>' so the token itself is not stored "
+                    "(models_store.tenancy). Empty: no authentication, and the API only listens "
+                    "on loopback.")
+    public_health: bool = Field(
+        default=True,
+        description="/healthz and /readyz answer without a token (for probes); false: they "
+                    "need one like /v1.")
+    public_metrics: bool = Field(
+        default=True,
+        description="/metrics answers without a token (for scrapers); false: it needs one.")
+    public_docs: bool = Field(
+        default=True,
+        description="The OpenAPI schema and its pages (/openapi.json, /docs, /redoc) answer "
+                    "without a token; false: they need one.")
 
     # -- limits ------------------------------------------------------------------------------
     max_body_bytes: int = Field(default=256 * MiB, ge=1,
                                 description="Largest accepted request body, in bytes (413 above).")
+    spool_body_bytes: int = Field(
+        default=8 * MiB, ge=0,
+        description="Request bodies larger than this are spooled to a hidden file in the "
+                    "blob store while they are hashed, not gathered in memory chunk by chunk.")
+    max_concurrent_uploads: int = Field(
+        default=4, ge=1,
+        description="Most requests with a body over spool_body_bytes received at once; more "
+                    "wait up to upload_queue_seconds, then get 503 with Retry-After.")
+    upload_queue_seconds: float = Field(
+        default=30.0, ge=0,
+        description="How long a large upload waits for its turn (max_concurrent_uploads).")
     max_frames_per_request: int = Field(
         default=64, ge=1,
         description="Most frames a synchronous synthesis request may carry (413 above; larger "
                     "work goes to a synthesis job).")
+    max_concurrent_syntheses: int | None = Field(
+        default=None, ge=1,
+        description="Synchronous syntheses (and enhancements) run at once; None: one per CPU "
+                    "core of the machine.")
+    synthesis_queue_seconds: float = Field(
+        default=30.0, ge=0,
+        description="How long a synchronous synthesis waits for a free slot before it is "
+                    "answered 503 with Retry-After.")
+    synthesis_queue_depth: int = Field(
+        default=64, ge=0,
+        description="Most synchronous syntheses waiting for a slot at once; more are "
+                    "answered 503 at once. /metrics: facesynth_synthesis_queue_depth.")
     max_map_resolution: int = Field(default=4096, ge=1,
                                     description="Largest UV-space map side, in texels.")
     max_vertices: int = Field(default=2_000_000, ge=1,
@@ -87,6 +125,24 @@ class Settings(BaseSettings):
     model_cache_bytes: int = Field(
         default=2 * GiB, ge=0,
         description="Memory budget of the in-process cache of loaded models, in bytes.")
+
+    header_timeout_seconds: float = Field(
+        default=10.0, gt=0,
+        description="A request's headers must arrive within this many seconds of its first "
+                    "byte (408 and the connection closed otherwise); also the longest stall "
+                    "allowed inside a body.")
+    min_body_rate_bytes: float = Field(
+        default=1024.0, ge=0,
+        description="After body_rate_grace_seconds, a request body must arrive at an average "
+                    "of at least this many bytes per second, or the connection is closed.")
+    body_rate_grace_seconds: float = Field(
+        default=10.0, gt=0,
+        description="How long a request body may arrive at any rate before "
+                    "min_body_rate_bytes applies.")
+    max_connections_per_client: int = Field(
+        default=32, ge=1,
+        description="Most simultaneous HTTP connections from one client address; one more is "
+                    "answered 503 and closed.")
 
     # -- jobs --------------------------------------------------------------------------------
     job_max_retries: int = Field(
@@ -97,6 +153,31 @@ class Settings(BaseSettings):
         description="A running job's lease; a worker renews it by heartbeats, and a job whose "
                     "lease expired is requeued or failed.")
 
+    job_resubmit_seconds: float = Field(
+        default=30.0, gt=0, le=3600,
+        description="A queued job with no message waiting in the queue this long after it "
+                    "was created (the message was lost) is resubmitted; every API and worker "
+                    "process checks each maintenance round.")
+    maintenance_interval_seconds: float = Field(
+        default=5.0, gt=0, le=300,
+        description="Pause between maintenance rounds (reaping expired leases, resubmitting "
+                    "lost queued jobs), run by every worker and API process; shorter for "
+                    "short leases (a quarter lease).")
+
+    # -- storage hygiene and readiness -----------------------------------------------------
+    stale_temporary_seconds: float = Field(
+        default=900.0, gt=0,
+        description="A temporary in the blob store (a half-written blob, a job's scratch "
+                    "directory) left by a crash is removed once nothing in it changed for "
+                    "this long; a scratch directory in use is never removed.")
+    temporary_sweep_seconds: float = Field(
+        default=300.0, gt=0,
+        description="Pause between sweeps of stale temporaries (also swept at start-up).")
+    min_free_bytes: int = Field(
+        default=256 * MiB, ge=0,
+        description="/readyz answers 503 when the blob store has less free space than this, "
+                    "in bytes (or cannot be written).")
+
     @field_validator("tokens", mode="before")
     @classmethod
     def _split_tokens(cls, value: Any) -> Any:
@@ -106,6 +187,19 @@ class Settings(BaseSettings):
             value = json.loads(text) if text.startswith("[") else text.split(",")
         if isinstance(value, (list, tuple)):
             return [str(t).strip() for t in value if str(t).strip()]
+        return value
+
+    @field_validator("tokens")
+    @classmethod
+    def _check_tokens(cls, value: list[str]) -> list[str]:
+        """Every entry parses (models_store.tenancy.parse_entry); the error never shows a token."""
+        from models_store.tenancy import parse_entry
+
+        for number, entry in enumerate(value, 1):
+            try:
+                parse_entry(entry)
+            except ValueError as error:
+                raise ValueError(f"token entry {number}: {error}") from None
         return value
 
     @property

@@ -19,6 +19,11 @@ deleted again if that commit fails; an old blob is deleted only after the commit
 referencing it. A crash can therefore leave an unreferenced blob behind, never a row pointing
 to a missing or half-written blob.
 
+Tenants: actors, models and jobs have a tenant; clips and rigs are their actor's, artifacts
+their job's. Every lookup and listing is limited to :data:`TENANT_SCOPE`, which a request
+sets for its duration with :func:`acting_for` (unset — jobs, maintenance, admins — it is
+every tenant); another tenant's id raises the same ``NotFound`` as an unknown one.
+
 Jobs: every state change is one conditional UPDATE, so concurrent API processes, workers and
 reapers cannot both win a transition::
 
@@ -37,6 +42,7 @@ model stays ``training`` forever. Lease expiry compares wall clocks: the machine
 deployment must keep their clocks synchronized (NTP) to well within the lease.
 """
 
+from models_store.registry._common import TENANT_OWNER, TENANT_SCOPE, acting_for
 from models_store.registry.actors import (create_actor, delete_actor, get_actor, list_actors,
                                           read_markers, read_neutral, set_markers, set_neutral)
 from models_store.registry.artifacts import (add_artifact, get_artifact, list_artifacts,
@@ -52,6 +58,8 @@ from models_store.registry.rigs import (get_input_rig, get_input_rig_by_id, list
 from models_store.registry.scans import add_scan, delete_scan, get_scan, list_scans, read_scan
 
 __all__ = [
+    # tenants
+    "acting_for", "TENANT_SCOPE", "TENANT_OWNER",
     # actors
     "create_actor", "get_actor", "list_actors", "delete_actor", "set_neutral", "set_markers",
     "read_neutral", "read_markers",

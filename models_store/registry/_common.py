@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
-from typing import Any, Iterable, Mapping, TypeVar
+from contextvars import ContextVar
+from typing import Any, Iterable, Iterator, Mapping, TypeVar
 
 from sqlalchemy import update
 from sqlalchemy.exc import IntegrityError
@@ -12,7 +14,7 @@ from sqlalchemy.orm import Session
 from models_store.blobs import BlobInfo, BlobStore
 from models_store.errors import Conflict, NotFound
 from models_store.ids import is_valid_id
-from models_store.schema import Base, Model
+from models_store.schema import DEFAULT_TENANT, Base, Model
 
 Row = TypeVar("Row", bound=Base)
 #: blob content: bytes in memory, or the path of a file to copy
@@ -26,6 +28,41 @@ def get_row(session: Session, row_type: type[Row], kind: str, row_id: str) -> Ro
     row = session.get(row_type, row_id, populate_existing=True)
     if row is None:
         raise NotFound(kind, row_id)
+    return row
+
+
+#: the tenant the current request acts for: every lookup and listing of the registry is
+#: scoped to it (None, the default: every tenant — jobs, maintenance, admins). Set it for a
+#: block with :func:`acting_for`; an explicit ``tenant=`` argument narrows further.
+TENANT_SCOPE: ContextVar[str | None] = ContextVar("facesynth_tenant_scope", default=None)
+#: the tenant that new actors of the current request belong to
+TENANT_OWNER: ContextVar[str] = ContextVar("facesynth_tenant_owner", default=DEFAULT_TENANT)
+
+
+@contextlib.contextmanager
+def acting_for(owner: str, scope: str | None) -> Iterator[None]:
+    """Within the block, new actors belong to ``owner`` and lookups see only ``scope``
+    (None: every tenant, for an admin)."""
+    tokens = TENANT_OWNER.set(owner), TENANT_SCOPE.set(scope)
+    try:
+        yield
+    finally:
+        TENANT_SCOPE.reset(tokens[1])
+        TENANT_OWNER.reset(tokens[0])
+
+
+def scoped(tenant: str | None) -> str | None:
+    """The tenant a lookup is limited to: ``tenant`` if given, else :data:`TENANT_SCOPE`."""
+    return tenant if tenant is not None else TENANT_SCOPE.get()
+
+
+def in_tenant(row: Row, kind: str, tenant: str | None) -> Row:
+    """``row`` if it belongs to ``tenant`` (default: :data:`TENANT_SCOPE`; None: any), else
+    NotFound — the same NotFound as for an unknown id, so ids of other tenants reveal
+    nothing."""
+    tenant = scoped(tenant)
+    if tenant is not None and row.tenant != tenant:  # type: ignore[attr-defined]
+        raise NotFound(kind, row.id)  # type: ignore[attr-defined]
     return row
 
 
@@ -71,6 +108,27 @@ def refetch(session: Session, row_type: type[Row], row_id: str) -> Row:
     row = session.get(row_type, row_id, populate_existing=True)
     assert row is not None, f"{row_type.__name__} {row_id} vanished"
     return row
+
+
+def storable(value: Any, what: str) -> Any:
+    """``value`` if every string in it (dict keys included) is encodable as UTF-8 and free of
+    NUL characters, else ValueError: a row holding one could be committed but never read
+    back through the API (callers validate user input first; this is the last guard)."""
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(f"{what} holds a lone surrogate; refused before writing") from None
+        if "\x00" in value:
+            raise ValueError(f"{what} holds a NUL character; refused before writing")
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            storable(str(key), what)
+            storable(item, what)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            storable(item, what)
+    return value
 
 
 def error_record(code: str, message: str) -> dict[str, str]:

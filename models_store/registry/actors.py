@@ -4,53 +4,67 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from sqlalchemy import delete, select
+from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
 from models_store.errors import Conflict, NotFound
-from models_store.ids import new_id, new_token
-from models_store.registry._common import (Data, actor_prefix, commit, get_row, model_prefix,
-                                           put_blob)
+from models_store.ids import new_id, new_token, validate_tenant
+from models_store.registry._common import (TENANT_OWNER, Data, actor_prefix, commit, get_row,
+                                           in_tenant, model_prefix, put_blob, refetch, scoped,
+                                           storable)
 from models_store.registry.jobs import cancel_active_jobs
 from models_store.schema import Actor, Clip, InputRig, Job, Model, Scan, utcnow
 
+#: compare-and-swap attempts of one replacement before giving up with a Conflict
+MAX_SWAP_ROUNDS = 100
 
-def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None = None) -> Actor:
+
+def create_actor(session: Session, name: str, metadata: Mapping[str, Any] | None = None, *,
+                 tenant: str | None = None) -> Actor:
     """Create an actor.
 
     Parameters
     ----------
     name : str              display name (1-200 characters)
     metadata : mapping      free-form JSON-serializable metadata
+    tenant : str            the tenant it belongs to (:func:`models_store.ids.validate_tenant`;
+                            default: the current request's, :data:`._common.TENANT_OWNER`)
     """
     if not name or len(name) > 200:
         raise ValueError(f"actor name must have 1 to 200 characters, got {len(name or '')}")
-    actor = Actor(id=new_id("actor"), name=name, meta=dict(metadata or {}), created_at=utcnow())
+    tenant = TENANT_OWNER.get() if tenant is None else tenant
+    actor = Actor(id=new_id("actor"), tenant=validate_tenant(tenant),
+                  name=storable(name, "the actor name"),
+                  meta=storable(dict(metadata or {}), "the actor metadata"), created_at=utcnow())
     session.add(actor)
     commit(session)
     return actor
 
 
-def get_actor(session: Session, actor_id: str) -> Actor:
-    """The actor ``actor_id`` (NotFound if unknown)."""
-    return get_row(session, Actor, "actor", actor_id)
+def get_actor(session: Session, actor_id: str, *, tenant: str | None = None) -> Actor:
+    """The actor ``actor_id`` (NotFound if unknown, or not of ``tenant`` when one is named)."""
+    return in_tenant(get_row(session, Actor, "actor", actor_id), "actor", tenant)
 
 
-def list_actors(session: Session) -> list[Actor]:
-    """All actors, oldest first."""
-    return list(session.scalars(select(Actor).order_by(Actor.created_at, Actor.id)))
+def list_actors(session: Session, *, tenant: str | None = None) -> list[Actor]:
+    """All actors (of ``tenant``, if named), oldest first."""
+    query = select(Actor).order_by(Actor.created_at, Actor.id)
+    tenant = scoped(tenant)
+    if tenant is not None:
+        query = query.where(Actor.tenant == tenant)
+    return list(session.scalars(query))
 
 
 def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,
-                 cascade: bool = False) -> None:
+                 cascade: bool = False, tenant: str | None = None) -> None:
     """Delete an actor with its clips, input rigs, scans and their blobs.
 
     Its models are deleted too with ``cascade=True``; without it an actor that has models
     is a :class:`Conflict`. Queued or running jobs of the actor are cancelled (see
     :func:`request_cancel`); job records themselves are kept.
     """
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     models = list(session.scalars(select(Model).where(Model.actor_id == actor_id)))
     if models and not cascade:
         raise Conflict(f"actor {actor_id!r} has {len(models)} model(s) "
@@ -76,48 +90,80 @@ def _refuse_if_models(session: Session, actor: Actor, what: str) -> None:
 
 
 def set_neutral(session: Session, blobs: BlobStore, actor_id: str, data: Data, *,
-                vertex_count: int, triangle_count: int) -> Actor:
+                vertex_count: int, triangle_count: int, tenant: str | None = None) -> Actor:
     """Store the actor's high-resolution neutral mesh (the caller validated and counted it).
+
+    Concurrent replacements are safe: see :func:`_swap_blob` (the last commit wins, every
+    replaced blob is deleted, none is left unreferenced).
 
     Raises
     ------
     NotFound   unknown actor
     Conflict   the actor has models (they were trained on the current neutral)
     """
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     _refuse_if_models(session, actor, "neutral")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/neutral-{new_token()}", data)
-    old = actor.neutral_blob
-    actor.neutral_blob, actor.neutral_sha256 = info.key, info.sha256
-    actor.vertex_count, actor.triangle_count = vertex_count, triangle_count
-    commit(session, blobs, new_keys=[info.key], old_keys=[old])
-    return actor
+    return _swap_blob(session, blobs, actor_id, Actor.neutral_blob, info.key,
+                      neutral_blob=info.key, neutral_sha256=info.sha256,
+                      vertex_count=vertex_count, triangle_count=triangle_count)
 
 
 def set_markers(session: Session, blobs: BlobStore, actor_id: str, data: Data, *,
-                marker_count: int) -> Actor:
+                marker_count: int, tenant: str | None = None) -> Actor:
     """Store the actor's marker layout (JSON); raises as :func:`set_neutral`."""
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     _refuse_if_models(session, actor, "marker layout")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/markers-{new_token()}", data)
-    old = actor.markers_blob
-    actor.markers_blob, actor.markers_sha256 = info.key, info.sha256
-    actor.marker_count = marker_count
-    commit(session, blobs, new_keys=[info.key], old_keys=[old])
-    return actor
+    return _swap_blob(session, blobs, actor_id, Actor.markers_blob, info.key,
+                      markers_blob=info.key, markers_sha256=info.sha256,
+                      marker_count=marker_count)
 
 
-def read_neutral(session: Session, blobs: BlobStore, actor_id: str) -> bytes:
+def _swap_blob(session: Session, blobs: BlobStore, actor_id: str, column: Any, new_key: str,
+               **values: Any) -> Actor:
+    """Point the actor's ``column`` at the just-written ``new_key`` by compare-and-swap,
+    then delete exactly the blob it replaced.
+
+    The UPDATE is conditional on ``column`` still holding the key read just before
+    (``UPDATE … WHERE id = :actor AND column = :old``). When a concurrent replacement
+    committed in between, no row changes; the current key is read again and the swap
+    retried, so each writer deletes the blob *it* replaced and no blob is ever left
+    unreferenced (issue 16: 24 concurrent PUTs used to leave 13 orphans). The new blob is
+    deleted again if the actor vanished or the commit fails.
+    """
+    old = session.scalar(select(column).where(Actor.id == actor_id))
+    for _ in range(MAX_SWAP_ROUNDS):
+        same = column.is_(None) if old is None else column == old
+        changed = session.execute(update(Actor).where(Actor.id == actor_id, same).values(**values)
+                                  .execution_options(synchronize_session=False)).rowcount
+        if changed == 1:
+            commit(session, blobs, new_keys=[new_key], old_keys=[old])
+            return refetch(session, Actor, actor_id)
+        session.rollback()
+        row = session.execute(select(Actor.id, column).where(Actor.id == actor_id)).first()
+        if row is None:
+            blobs.delete(new_key)
+            raise NotFound("actor", actor_id, "it was deleted meanwhile")
+        old = row[1]
+    blobs.delete(new_key)
+    raise Conflict(f"actor {actor_id!r} was changed concurrently {MAX_SWAP_ROUNDS} times; "
+                   "try again")
+
+
+def read_neutral(session: Session, blobs: BlobStore, actor_id: str, *,
+                 tenant: str | None = None) -> bytes:
     """The stored neutral mesh's bytes, verified (NotFound if none was set)."""
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     if actor.neutral_blob is None:
         raise NotFound("neutral", actor_id, "the actor has no neutral mesh yet")
     return blobs.read_bytes(actor.neutral_blob, actor.neutral_sha256)  # type: ignore[arg-type]
 
 
-def read_markers(session: Session, blobs: BlobStore, actor_id: str) -> bytes:
+def read_markers(session: Session, blobs: BlobStore, actor_id: str, *,
+                 tenant: str | None = None) -> bytes:
     """The stored marker layout's bytes, verified (NotFound if none was set)."""
-    actor = get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     if actor.markers_blob is None:
         raise NotFound("marker layout", actor_id, "the actor has no marker layout yet")
     return blobs.read_bytes(actor.markers_blob, actor.markers_sha256)  # type: ignore[arg-type]

@@ -8,10 +8,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
+from models_store.errors import NotFound
 from models_store.ids import new_id
-from models_store.registry._common import Data, commit, get_row, put_blob
+from models_store.registry._common import Data, commit, get_row, put_blob, scoped
 from models_store.registry.jobs import get_job
-from models_store.schema import Artifact, utcnow
+from models_store.schema import Artifact, Job, utcnow
 
 
 def add_artifact(session: Session, blobs: BlobStore, job_id: str, data: Data, *,
@@ -28,21 +29,26 @@ def add_artifact(session: Session, blobs: BlobStore, job_id: str, data: Data, *,
     return artifact
 
 
-def get_artifact(session: Session, artifact_id: str) -> Artifact:
-    """The artifact ``artifact_id``."""
-    return get_row(session, Artifact, "artifact", artifact_id)
+def get_artifact(session: Session, artifact_id: str, *, tenant: str | None = None) -> Artifact:
+    """The artifact ``artifact_id`` (of a job of ``tenant``, if named)."""
+    artifact = get_row(session, Artifact, "artifact", artifact_id)
+    tenant = scoped(tenant)
+    if tenant is not None and session.scalar(select(Job.tenant)
+                                             .where(Job.id == artifact.job_id)) != tenant:
+        raise NotFound("artifact", artifact_id)
+    return artifact
 
 
-def list_artifacts(session: Session, job_id: str) -> list[Artifact]:
+def list_artifacts(session: Session, job_id: str, *, tenant: str | None = None) -> list[Artifact]:
     """A job's artifacts, oldest first."""
-    get_job(session, job_id)
+    get_job(session, job_id, tenant=tenant)
     return list(session.scalars(select(Artifact).where(Artifact.job_id == job_id)
                                 .order_by(Artifact.created_at, Artifact.id)))
 
 
-def open_artifact(session: Session, blobs: BlobStore,
-                  artifact_id: str) -> tuple[Artifact, BinaryIO]:
+def open_artifact(session: Session, blobs: BlobStore, artifact_id: str, *,
+                  tenant: str | None = None) -> tuple[Artifact, BinaryIO]:
     """An artifact's row and its verified content as an open binary file."""
-    artifact = get_artifact(session, artifact_id)
+    artifact = get_artifact(session, artifact_id, tenant=tenant)
     return artifact, blobs.open(artifact.blob, artifact.sha256)
 

@@ -14,47 +14,50 @@ from sqlalchemy.orm import Session
 from models_store.errors import Conflict, NotFound
 from models_store.ids import is_valid_id, new_id
 from models_store.registry._common import (check_error, commit, fail_training_model, get_row,
-                                           error_record, owned, refetch)
-from models_store.schema import JOB_FINAL_STATUSES, Actor, Job, Model, utcnow
+                                           error_record, in_tenant, owned, refetch, scoped)
+from models_store.schema import DEFAULT_TENANT, JOB_FINAL_STATUSES, Actor, Job, Model, utcnow
 
 #: how often :func:`claim_job` retries when another claimer wins the candidate it picked
 MAX_CLAIM_ROUNDS = 100
 
 
 def new_job(kind: str, actor_id: str, model_id: str | None,
-            payload: Mapping[str, Any] | None) -> Job:
+            payload: Mapping[str, Any] | None, *, tenant: str = DEFAULT_TENANT) -> Job:
     """A new queued job row (not yet added to a session)."""
-    return Job(id=new_id("job"), kind=kind, actor_id=actor_id, model_id=model_id,
+    return Job(id=new_id("job"), tenant=tenant, kind=kind, actor_id=actor_id, model_id=model_id,
                status="queued", progress=0.0, stage="", payload=dict(payload or {}),
                attempts=0, cancel_requested=False, created_at=utcnow())
 
 
 def create_job(session: Session, kind: str, actor_id: str, *, model_id: str | None = None,
-               payload: Mapping[str, Any] | None = None) -> Job:
-    """Create a queued job (NotFound for an unknown actor, or a model not the actor's).
+               payload: Mapping[str, Any] | None = None, tenant: str | None = None) -> Job:
+    """Create a queued job (NotFound for an unknown actor — or one not of ``tenant`` — or
+    a model not the actor's). The job belongs to the actor's tenant.
 
     ``payload`` holds ids and parameters as JSON, never objects.
     """
-    get_row(session, Actor, "actor", actor_id)
+    actor = in_tenant(get_row(session, Actor, "actor", actor_id), "actor", tenant)
     if model_id is not None:
         owned(get_row(session, Model, "model", model_id), "model", actor_id)
-    job = new_job(kind, actor_id, model_id, payload)
+    job = new_job(kind, actor_id, model_id, payload, tenant=actor.tenant)
     session.add(job)
     commit(session)
     return job
 
 
-def get_job(session: Session, job_id: str) -> Job:
-    """The job ``job_id``."""
-    return get_row(session, Job, "job", job_id)
+def get_job(session: Session, job_id: str, *, tenant: str | None = None) -> Job:
+    """The job ``job_id`` (of ``tenant``, if named)."""
+    return in_tenant(get_row(session, Job, "job", job_id), "job", tenant)
 
 
 def list_jobs(session: Session, *, status: str | None = None, actor_id: str | None = None,
-              kind: str | None = None, model_id: str | None = None) -> list[Job]:
-    """Jobs, oldest first, filtered by any of status, actor, kind and model."""
+              kind: str | None = None, model_id: str | None = None,
+              tenant: str | None = None) -> list[Job]:
+    """Jobs, oldest first, filtered by any of status, actor, kind, model and tenant."""
     query = select(Job).order_by(Job.created_at, Job.id)
+    tenant = scoped(tenant)
     for column, value in ((Job.status, status), (Job.actor_id, actor_id), (Job.kind, kind),
-                          (Job.model_id, model_id)):
+                          (Job.model_id, model_id), (Job.tenant, tenant)):
         if value is not None:
             query = query.where(column == value)
     return list(session.scalars(query))
@@ -118,10 +121,10 @@ def heartbeat(session: Session, job_id: str, worker: str, lease_seconds: float,
                         lease_expires_at=(now or utcnow()) + timedelta(seconds=lease_seconds))
 
 
-def request_cancel(session: Session, job_id: str) -> Job:
+def request_cancel(session: Session, job_id: str, *, tenant: str | None = None) -> Job:
     """Cancel a job: a queued job becomes ``cancelled`` at once, a running one is flagged
     and stops at its next progress point; a finished job is returned unchanged."""
-    job = get_job(session, job_id)
+    job = get_job(session, job_id, tenant=tenant)
     if job.status in JOB_FINAL_STATUSES:
         return job
     cancel_active_jobs(session, Job.id == job_id, "cancelled by request")

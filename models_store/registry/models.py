@@ -12,7 +12,7 @@ from models_store.blobs import BlobStore
 from models_store.errors import Conflict
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (commit, fail_training_model, get_row, error_record,
-                                           model_prefix, owned, refetch)
+                                           in_tenant, model_prefix, owned, refetch, scoped)
 from models_store.registry.actors import get_actor
 from models_store.registry.clips import get_clip
 from models_store.registry.jobs import cancel_active_jobs, new_job
@@ -21,39 +21,50 @@ from models_store.schema import Job, Model, utcnow
 
 def create_model(session: Session, actor_id: str, kind: str,
                  params: Mapping[str, Any] | None = None, *, clip_ids: Sequence[str] = (),
-                 job_kind: str = "train") -> tuple[Model, Job]:
-    """Create a model in status ``training`` together with its queued training job.
+                 job_kind: str = "train", payload: Mapping[str, Any] | None = None,
+                 tenant: str | None = None) -> tuple[Model, Job]:
+    """Create a model in status ``training`` together with the queued job that makes it
+    (a training job; or e.g. a transfer, ``job_kind="transfer"``).
 
     Both rows are committed at once, so a model never exists without the job that trains
-    it. The job's payload is ``{"model_id", "clip_ids"}``.
+    it. The job's payload is ``{"model_id", "clip_ids"}`` plus ``payload``.
 
     Raises
     ------
-    NotFound   unknown actor, or a clip that is not the actor's
+    NotFound   unknown actor (or not of ``tenant``), or a clip that is not the actor's
+
+    The model and its job belong to the actor's tenant.
     """
-    get_actor(session, actor_id)
+    actor = get_actor(session, actor_id, tenant=tenant)
     clip_ids = list(clip_ids)
     for clip_id in clip_ids:
         get_clip(session, clip_id, actor_id)
-    model = Model(id=new_id("model"), actor_id=actor_id, kind=kind, status="training",
-                  params=dict(params or {}), created_at=utcnow())
-    job = new_job(job_kind, actor_id, model.id, {"model_id": model.id, "clip_ids": clip_ids})
+    model = Model(id=new_id("model"), tenant=actor.tenant, actor_id=actor_id, kind=kind,
+                  status="training", params=dict(params or {}), created_at=utcnow())
+    job = new_job(job_kind, actor_id, model.id,
+                  {"model_id": model.id, "clip_ids": clip_ids, **dict(payload or {})},
+                  tenant=actor.tenant)
     session.add_all([model, job])
     commit(session)
     return model, job
 
 
-def get_model(session: Session, model_id: str, actor_id: str | None = None) -> Model:
-    """The model ``model_id`` (of ``actor_id``, if given)."""
-    return owned(get_row(session, Model, "model", model_id), "model", actor_id)
+def get_model(session: Session, model_id: str, actor_id: str | None = None, *,
+              tenant: str | None = None) -> Model:
+    """The model ``model_id`` (of ``actor_id``, if given; of ``tenant``, if named)."""
+    model = in_tenant(get_row(session, Model, "model", model_id), "model", tenant)
+    return owned(model, "model", actor_id)
 
 
 def list_models(session: Session, actor_id: str | None = None,
-                status: str | None = None) -> list[Model]:
-    """Models, oldest first, optionally of one actor (NotFound if unknown) or status."""
+                status: str | None = None, *, tenant: str | None = None) -> list[Model]:
+    """Models, oldest first, optionally of one actor (NotFound if unknown), status or tenant."""
     query = select(Model).order_by(Model.created_at, Model.id)
+    tenant = scoped(tenant)
+    if tenant is not None:
+        query = query.where(Model.tenant == tenant)
     if actor_id is not None:
-        get_actor(session, actor_id)
+        get_actor(session, actor_id, tenant=tenant)
         query = query.where(Model.actor_id == actor_id)
     if status is not None:
         query = query.where(Model.status == status)
@@ -96,18 +107,19 @@ def mark_model_failed(session: Session, model_id: str, code: str, message: str) 
     return refetch(session, Model, model_id)
 
 
-def model_dir(session: Session, blobs: BlobStore, model_id: str) -> Path:
+def model_dir(session: Session, blobs: BlobStore, model_id: str, *,
+              tenant: str | None = None) -> Path:
     """The verified directory of a ready model (Conflict if it is not ready)."""
-    model = get_model(session, model_id)
+    model = get_model(session, model_id, tenant=tenant)
     if model.status != "ready":
         raise Conflict(f"model {model_id!r} is {model.status}, not ready")
     return blobs.open_dir(model.blob, model.sha256)  # type: ignore[arg-type]
 
 
 def delete_model(session: Session, blobs: BlobStore, model_id: str,
-                 actor_id: str | None = None) -> None:
+                 actor_id: str | None = None, *, tenant: str | None = None) -> None:
     """Delete a model and its files; its queued or running jobs are cancelled."""
-    model = get_model(session, model_id, actor_id)
+    model = get_model(session, model_id, actor_id, tenant=tenant)
     cancel_active_jobs(session, Job.model_id == model_id, "its model was deleted")
     session.delete(model)
     commit(session, blobs, old_keys=[model_prefix(model_id)])

@@ -2,42 +2,70 @@
 
 from __future__ import annotations
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from models_store.blobs import BlobStore
 from models_store.errors import Conflict, NotFound
 from models_store.ids import new_id, new_token
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, error_record,
-                                           put_blob)
+                                           put_blob, refetch)
+from models_store.registry.actors import MAX_SWAP_ROUNDS
 from models_store.registry.actors import get_actor
 from models_store.schema import InputRig, utcnow
 
 
-def _find(session: Session, actor_id: str, name: str) -> InputRig | None:
+def _find(session: Session, actor_id: str, name: str,
+          tenant: str | None = None) -> InputRig | None:
     """The actor's rig called ``name``, or None (NotFound for an unknown actor)."""
-    get_actor(session, actor_id)
+    get_actor(session, actor_id, tenant=tenant)
     return session.scalars(select(InputRig).where(InputRig.actor_id == actor_id,
                                                   InputRig.name == name)).one_or_none()
 
 
 def put_input_rig(session: Session, blobs: BlobStore, actor_id: str, name: str,
-                  data: Data) -> InputRig:
+                  data: Data, *, tenant: str | None = None) -> InputRig:
     """Create or replace the input rig ``name`` of an actor; its status becomes
-    ``registering`` (a registration job then calls :func:`mark_rig_ready`)."""
-    rig = _find(session, actor_id, name)
+    ``registering`` (a registration job then calls :func:`mark_rig_ready`).
+
+    A replacement is a compare-and-swap on the rig's mesh key (as
+    :func:`models_store.registry.actors._swap_blob`): concurrent puts of one rig each delete
+    exactly the mesh and registration they replaced, and leave no blob unreferenced.
+    """
+    rig = _find(session, actor_id, name, tenant)
     rig_id = rig.id if rig is not None else new_id("rig")
     info = put_blob(blobs, f"{actor_prefix(actor_id)}/rigs/{rig_id}/mesh-{new_token()}", data)
     if rig is None:
-        rig = InputRig(id=rig_id, actor_id=actor_id, name=name, created_at=utcnow())
+        rig = InputRig(id=rig_id, actor_id=actor_id, name=name, created_at=utcnow(),
+                       mesh_blob=info.key, mesh_sha256=info.sha256, status="registering")
         session.add(rig)
-        old: list[str | None] = []
-    else:
+        try:
+            commit(session, blobs, new_keys=[info.key])
+            return rig
+        except Conflict:   # created concurrently under the same name (its blob is gone
+            rig = _find(session, actor_id, name)    # with the failed commit): replace that rig
+            if rig is None:
+                raise
+            info = put_blob(blobs, f"{actor_prefix(actor_id)}/rigs/{rig.id}/mesh-{new_token()}",
+                            data)
+    values = {"mesh_blob": info.key, "mesh_sha256": info.sha256, "status": "registering",
+              "registration_blob": None, "registration_sha256": None, "error": None}
+    for _ in range(MAX_SWAP_ROUNDS):
         old = [rig.mesh_blob, rig.registration_blob]
-    rig.mesh_blob, rig.mesh_sha256, rig.status = info.key, info.sha256, "registering"
-    rig.registration_blob = rig.registration_sha256 = rig.error = None
-    commit(session, blobs, new_keys=[info.key], old_keys=old)
-    return rig
+        changed = session.execute(
+            update(InputRig).where(InputRig.id == rig.id, InputRig.mesh_blob == rig.mesh_blob)
+            .values(**values).execution_options(synchronize_session=False)).rowcount
+        if changed == 1:
+            commit(session, blobs, new_keys=[info.key], old_keys=old)
+            return refetch(session, InputRig, rig.id)
+        session.rollback()
+        rig = session.get(InputRig, rig.id, populate_existing=True)
+        if rig is None:
+            blobs.delete(info.key)
+            raise NotFound("input rig", name, "it was deleted meanwhile")
+    blobs.delete(info.key)
+    raise Conflict(f"input rig {name!r} was changed concurrently {MAX_SWAP_ROUNDS} times; "
+                   "try again")
 
 
 def get_input_rig_by_id(session: Session, rig_id: str) -> InputRig:
@@ -45,17 +73,19 @@ def get_input_rig_by_id(session: Session, rig_id: str) -> InputRig:
     return get_row(session, InputRig, "rig", rig_id)
 
 
-def get_input_rig(session: Session, actor_id: str, name: str) -> InputRig:
+def get_input_rig(session: Session, actor_id: str, name: str, *,
+                  tenant: str | None = None) -> InputRig:
     """The input rig ``name`` of an actor."""
-    rig = _find(session, actor_id, name)
+    rig = _find(session, actor_id, name, tenant)
     if rig is None:
         raise NotFound("input rig", name, f"actor {actor_id!r} has no input rig of that name")
     return rig
 
 
-def list_input_rigs(session: Session, actor_id: str) -> list[InputRig]:
+def list_input_rigs(session: Session, actor_id: str, *,
+                    tenant: str | None = None) -> list[InputRig]:
     """The actor's input rigs, by name."""
-    get_actor(session, actor_id)
+    get_actor(session, actor_id, tenant=tenant)
     return list(session.scalars(select(InputRig).where(InputRig.actor_id == actor_id)
                                 .order_by(InputRig.name)))
 

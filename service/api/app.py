@@ -12,20 +12,21 @@ from __future__ import annotations
 import contextlib
 from typing import Any, AsyncIterator
 
-from fastapi import Depends, FastAPI
+from fastapi import Depends, FastAPI, Request
 from fastapi.openapi.utils import get_openapi
 
 from service.api import errors
 from service.api.auth import check_bearer
+from service.api.edge import UrlGuardMiddleware
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
-from service.api.routes import (actors, artifacts, clips, health, jobs, models, rigs, scans,
-                                synthesis)
+from service.api.routes import (actors, artifacts, bone_rigs, clips, health, jobs, models, rigs,
+                                scans, synthesis, transfer)
 from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
-from service.api.bodies import BodyLimitMiddleware
+from service.api.bodies import BodyLimitMiddleware, LargeUploadLimiter
 from service.config import Settings, get_settings
 
 API_VERSION = "1"
@@ -50,6 +51,8 @@ TAGS = [
                                       "maps; the model kinds."},
     {"name": "synthesis", "description": "Meshes and maps from markers or meshes: "
                                          "synchronous for a few frames, jobs for performances."},
+    {"name": "bone-rigs", "description": "Performances compressed to linear-blend-skinned bone "
+                                         "rigs (NPZ and glTF 2.0), as jobs."},
     {"name": "jobs", "description": "Long work: state, progress events, cancellation."},
     {"name": "artifacts", "description": "Downloadable job results."},
     {"name": "scans", "description": "Facial scans as UV-space maps, and scan correspondence "
@@ -84,18 +87,52 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
             if own:
                 app.state.services.close()
 
+    docs = {} if settings.public_docs else {"openapi_url": None, "docs_url": None,
+                                            "redoc_url": None}
     app = FastAPI(title="facesynth", version=API_VERSION, description=DESCRIPTION,
-                  openapi_tags=TAGS, lifespan=lifespan)
+                  openapi_tags=TAGS, lifespan=lifespan, **docs)
     app.state.metrics = Metrics()
-    app.state.synthesizer = Synthesizer(app.state.metrics)
+    app.state.synthesizer = Synthesizer(app.state.metrics, settings.max_concurrent_syntheses,
+                                        settings.synthesis_queue_seconds,
+                                        settings.synthesis_queue_depth)
     errors.install(app)
+    app.add_middleware(LargeUploadLimiter, limit=settings.max_concurrent_uploads,
+                       threshold=settings.spool_body_bytes,
+                       wait_seconds=settings.upload_queue_seconds)   # inside the size limit
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
+    app.add_middleware(UrlGuardMiddleware)
     app.add_middleware(RequestContextMiddleware, metrics=app.state.metrics)
-    app.include_router(health.router)
-    for module in (actors, clips, rigs, models, synthesis, jobs, artifacts, scans):
+    app.include_router(health.router, dependencies=[Depends(check_unless_public)])
+    for module in (actors, clips, rigs, models, transfer, synthesis, bone_rigs, jobs, artifacts,
+                   scans):
         app.include_router(module.router, dependencies=[Depends(check_bearer)])
+    if not settings.public_docs:
+        _protected_docs(app)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
+
+
+async def check_unless_public(request: Request) -> None:
+    """Dependency of the health router: ``/healthz`` and ``/readyz`` are open unless
+    ``public_health`` is false, ``/metrics`` unless ``public_metrics`` is (SECURITY.md)."""
+    settings = request.app.state.services.settings
+    public = settings.public_metrics if request.url.path == "/metrics" else settings.public_health
+    if not public:
+        await check_bearer(request)
+
+
+def _protected_docs(app: FastAPI) -> None:
+    """``/openapi.json`` and ``/docs`` behind the bearer token (``public_docs`` false)."""
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.responses import HTMLResponse, JSONResponse
+
+    @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(check_bearer)])
+    def openapi_json() -> JSONResponse:
+        return JSONResponse(app.openapi())
+
+    @app.get("/docs", include_in_schema=False, dependencies=[Depends(check_bearer)])
+    def swagger() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title=app.title)
 
 
 def _openapi(app: FastAPI) -> dict[str, Any]:

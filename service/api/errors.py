@@ -20,6 +20,8 @@ missing or invalid bearer token         401     ``…:unauthorized``
 request validation (with ``errors``)
 ``Unavailable`` (with ``Retry-After``)  503     ``…:overloaded``
 ``InsufficientStorage``                 507     ``…:insufficient-storage``
+``OSError`` ENOSPC / EDQUOT             507     ``…:insufficient-storage``
+``OSError`` EROFS / EACCES              503     ``…:storage-unavailable``
 ``Corrupt``, anything unexpected        500     ``…:internal``
 ======================================  ======  ======================
 
@@ -38,6 +40,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from models_store.errors import storage_error
 from service.errors import (
     Conflict, Corrupt, FacesynthError, InsufficientStorage, InvalidInput, MalformedInput,
     NotAcceptable, NotFound, PayloadTooLarge, Unavailable, UnsupportedFormat, field_errors, summary,
@@ -170,11 +173,27 @@ async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
 
 
 async def _meaning(request: Request, exc: FacesynthError) -> JSONResponse:
+    fault = storage_error(exc.__cause__ or exc.__context__) if not isinstance(
+        exc, (Unavailable, InsufficientStorage)) else None
+    if fault is not None:                # e.g. a store error caused by a full disk
+        exc = fault
     status, headers = status_of(exc)
     if status >= 500 and not isinstance(exc, Unavailable):
         return await _internal(request, exc)
     return problem(request, status, str(exc), errors=getattr(exc, "errors", None),
                    headers=headers)
+
+
+async def _os_error(request: Request, exc: OSError) -> JSONResponse:
+    """A full disk (ENOSPC, EDQUOT) is 507, a read-only or unwritable one (EROFS, EACCES) 503
+    with Retry-After, without the file name (a server path); any other OSError is a 500."""
+    meaning = storage_error(exc)
+    if meaning is None:
+        return await _internal(request, exc)
+    log.warning("storage fault on %s %s: %s", request.method, request.url.path, meaning)
+    status, headers = status_of(meaning)
+    slug = "insufficient-storage" if status == 507 else "storage-unavailable"
+    return problem(request, status, str(meaning), slug=slug, headers=headers)
 
 
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
@@ -191,4 +210,5 @@ def install(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _request_validation)
     app.add_exception_handler(StarletteHTTPException, _http)
     app.add_exception_handler(FacesynthError, _meaning)
+    app.add_exception_handler(OSError, _os_error)
     app.add_exception_handler(Exception, _internal)

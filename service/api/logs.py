@@ -21,6 +21,7 @@ from service.logs import request_id_var
 
 _SAFE_ID = re.compile(rf"[A-Za-z0-9._:-]{{1,{REQUEST_ID_MAX_LENGTH}}}")
 access_log = logging.getLogger("facesynth.access")
+error_log = logging.getLogger("facesynth.api")
 
 
 def request_id_from(scope: Scope) -> str:
@@ -37,7 +38,13 @@ def request_id_from(scope: Scope) -> str:
 class RequestContextMiddleware:
     """Pure ASGI middleware (streaming responses pass through untouched): assigns the
     request id, adds ``X-Request-ID`` to the response, logs one access line per request and
-    records its latency by route template in ``metrics``."""
+    records its latency by route template in ``metrics``.
+
+    An exception no handler took is logged with its traceback *and the request's id* and
+    answered here as a 500 problem; every response of status 500 or more carries
+    ``Connection: close`` (the server closes the connection after it, and a client's
+    connection pool must not reuse it).
+    """
 
     def __init__(self, app: ASGIApp, metrics: Metrics):
         self.app = app
@@ -52,17 +59,34 @@ class RequestContextMiddleware:
         token = request_id_var.set(request_id)
         start = time.perf_counter()
         status = 500
+        started = False
 
         async def send_with_id(message: Message) -> None:
-            nonlocal status
+            nonlocal status, started
             if message["type"] == "http.response.start":
-                status = message["status"]
-                message["headers"] = [*message.get("headers", []),
-                                      (b"x-request-id", request_id.encode())]
+                status, started = message["status"], True
+                headers = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+                if status >= 500 and not any(k.lower() == b"connection" for k, _ in headers):
+                    headers.append((b"connection", b"close"))   # the server will close it
+                message["headers"] = headers
             await send(message)
 
         try:
-            await self.app(scope, receive, send_with_id)
+            try:
+                await self.app(scope, receive, send_with_id)
+            except Exception:
+                # logged here, while the request id is still set (Starlette's outermost
+                # error middleware runs after it was reset), and answered here, so the
+                # connection ends with 'Connection: close' instead of a reset
+                error_log.exception("unhandled error on %s %s", scope["method"], scope["path"])
+                if started:
+                    raise
+                from starlette.requests import Request
+
+                from service.api.errors import problem
+
+                await problem(Request(scope), 500, "internal error (see the server log for this "
+                              "request id)", slug="internal")(scope, receive, send_with_id)
         finally:
             seconds = time.perf_counter() - start
             route = scope.get("route")

@@ -23,6 +23,11 @@ METADATA_MAX_BYTES = 64 << 10
 DEGENERATE_AREA_RTOL = 1e-12
 #: synchronous syntheses running at once; one more is answered 503 with Retry-After
 MAX_CONCURRENT_SYNTHESES = 2
+#: default longest wait of a synchronous synthesis for a slot, seconds (setting
+#: ``synthesis_queue_seconds``)
+SYNTHESIS_WAIT_SECONDS = 30.0
+#: default most synchronous syntheses waiting for a slot (setting ``synthesis_queue_depth``)
+SYNTHESIS_QUEUE_DEPTH = 64
 #: seconds a client is asked to wait after a 503
 RETRY_AFTER_SECONDS = 1
 #: how often the job event stream polls the database, seconds

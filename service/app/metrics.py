@@ -56,6 +56,11 @@ class Metrics:
         self.synthesis_fps = Gauge(
             "facesynth_synthesis_fps", "Frames per second of the latest synchronous synthesis",
             ["kind"], registry=self.registry)
+        self.synthesis_queue_depth = Gauge(
+            "facesynth_synthesis_queue_depth",
+            "Synchronous syntheses waiting for a slot", registry=self.registry)
+        self.synthesis_running = Gauge(
+            "facesynth_synthesis_running", "Synchronous syntheses running", registry=self.registry)
         self._finished_since: datetime = utcnow()
         self._lock = threading.Lock()
 

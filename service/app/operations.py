@@ -28,6 +28,7 @@ from service.app import uploads
 from service.app.input_rigs import REGISTER_JOB, LoadedRig, load_rig
 from service.app.retiming import check_retime_kind, parse_retime_request, resolve_keyframes
 from service.app.limits import RETRY_AFTER_SECONDS
+from service.app.validation import check_text
 from service.app.services import Services, Submit
 from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
                                    check_response_request, encode, negotiate, parse_job_input,
@@ -35,7 +36,7 @@ from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
 from service.io.atomic import sha256_file
 from service.io.exr import read_exr, write_exr
 from service.io.npz import npz_bytes
-from service.jobs.formats import RESULT_FORMATS
+from service.jobs.formats import check_result_format
 from service.errors import BlobCorrupt, Conflict, InvalidInput, NotFound, Unavailable
 from service.methods.kinds import get_kind
 from service.methods.shape_space.temporal import retime_keyframes
@@ -131,14 +132,18 @@ def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.Marke
         registry.set_markers(session, services.blobs, actor_id, layout.blob,
                              marker_count=layout.marker_count)
     return schemas.MarkersInfo(marker_count=layout.marker_count, snapped=layout.snapped,
-                               max_snap_distance=layout.max_snap_distance)
+                               max_snap_distance=layout.max_snap_distance,
+                               renormalized=layout.renormalized)
 
 
 # ---------------------------------------------------------------------------- clips
 def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads.ClipForm,
-             name: str | None) -> schemas.Clip:
+             name: str | None) -> schemas.ClipAdded:
     """Validate a clip (NPZ bytes or a multipart :class:`~service.app.uploads.ClipForm`)
-    against the actor's neutral and layout, and store it."""
+    against the actor's neutral and layout, and store it; the stored clip and the marker
+    reader's notes."""
+    if name is not None:
+        check_text(name, "the clip name")
     with services.session() as session:
         actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
         names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor_id))
@@ -151,7 +156,8 @@ def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads
     with services.session() as session:
         row = registry.add_clip(session, services.blobs, actor_id, clip.blob, frames=clip.frames,
                                 name=name)
-    return schemas.Clip.model_validate(row)
+        added = schemas.ClipAdded.model_validate(row)
+    return added.model_copy(update={"notes": list(clip.notes)})
 
 
 # ---------------------------------------------------------------------------- input rigs
@@ -310,9 +316,7 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     ``{"rig_id", "rig", "registration_blob", "registration_sha256"}`` and the job
     propagates the frames with exactly that registration.
     """
-    if result_format not in RESULT_FORMATS:
-        raise InvalidInput(f"result format {result_format!r} is not supported by this server "
-                           f"yet; choose from {list(RESULT_FORMATS)}")
+    check_result_format(result_format, outputs)
     with services.session() as session:
         model = registry.get_model(session, model_id)
         if model.status != "ready":

@@ -51,9 +51,19 @@ class ActorCreate(BaseModel):
     metadata: dict[str, Any] = Field(default_factory=dict,
                                      description="Free-form JSON metadata (at most 64 KiB).")
 
+    @field_validator("name")
+    @classmethod
+    def _encodable_name(cls, value: str) -> str:
+        from service.app.validation import check_text
+
+        return check_text(value, "the actor name")
+
     @field_validator("metadata")
     @classmethod
     def _bounded(cls, value: dict[str, Any]) -> dict[str, Any]:
+        from service.app.validation import check_json_text
+
+        check_json_text(value, "metadata")       # before json.dumps, which would accept it
         size = len(json.dumps(value, allow_nan=False).encode())
         if size > METADATA_MAX_BYTES:
             raise ValueError(f"metadata is {size} bytes as JSON, more than {METADATA_MAX_BYTES}")
@@ -125,6 +135,10 @@ class MarkersInfo(BaseModel):
     marker_count: int
     snapped: int = Field(description="Markers given as positions, snapped to the surface.")
     max_snap_distance: float = Field(description="Farthest snap, in the actor's unit.")
+    renormalized: int = Field(0, description=(
+        "Markers whose barycentric coordinates were within 1e-4 of summing to 1 (or of 0) but "
+        "not exactly, and were clipped at 0 and renormalized (e.g. a layout written with 6 "
+        "decimals)."))
 
 
 # ---------------------------------------------------------------------------- clips
@@ -141,6 +155,21 @@ class Clip(BaseModel):
     frames: int
     size_bytes: int
     created_at: datetime
+
+
+class ClipAdded(Clip):
+    """A clip just stored, with what its files' readers accepted that you should know."""
+
+    model_config = ConfigDict(from_attributes=True, json_schema_extra={"examples": [{
+        "clip_id": _CLIP_ID, "actor_id": _ACTOR_ID, "name": "smile", "frames": 120,
+        "size_bytes": 59000000, "created_at": _CREATED,
+        "notes": ["the TRC header says NumFrames 121 but the file has 120 frame rows; the "
+                  "120 rows were read"]}]})
+
+    notes: list[str] = Field(default_factory=list, description=(
+        "What the marker file's reader accepted but did not read as the file declares it "
+        "(e.g. a TRC whose `NumFrames` disagrees with its frame rows: the rows are read); "
+        "empty when every file read exactly as declared."))
 
 
 # ---------------------------------------------------------------------------- rigs

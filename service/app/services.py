@@ -149,8 +149,11 @@ class Services:
             status["database"] = "ok"
         except Exception as error:  # noqa: BLE001 - any failure means "not ready"
             status["database"] = f"unreachable: {type(error).__name__}: {error}"
-        root = self.blobs.root
-        status["blobs"] = "ok" if root.is_dir() else f"missing directory {root}"
+        if not self.blobs.root.is_dir():
+            status["blobs"] = "the blob store's directory is missing"
+        else:      # writable, with min_free_bytes free (no server paths in the answer)
+            health = self.blobs.health(self.settings.min_free_bytes)
+            status["blobs"] = "ok" if health.ready else health.reason
         status["queue"] = _queue_status(self.settings)
         return status
 

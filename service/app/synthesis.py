@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -19,7 +20,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from service.errors import NotAcceptable, PayloadTooLarge, Unavailable, invalid_fields
-from service.app.limits import MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS
+from service.app.limits import (MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS,
+                                SYNTHESIS_QUEUE_DEPTH, SYNTHESIS_WAIT_SECONDS)
 from service.app.metrics import Metrics
 from service.app.schemas import SynthesizeBody
 from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
@@ -205,25 +207,66 @@ def parse_synthesis_request(kind: str, data: bytes, expected: Expected, settings
 
 # ---------------------------------------------------------------------------- running
 class Synthesizer:
-    """Runs synchronous syntheses, at most ``limit`` at once (more are a 503 with
-    ``Retry-After``), and records frames and rate in the metrics."""
+    """Runs synchronous syntheses, at most ``limit`` at once; a request finding every slot
+    busy waits for one up to ``wait_seconds`` (at most ``max_queue`` requests wait; beyond
+    that, or when the wait runs out, a 503 with ``Retry-After``), and records frames, rate,
+    the running count and the queue depth in the metrics.
 
-    def __init__(self, metrics: Metrics, limit: int = MAX_CONCURRENT_SYNTHESES):
-        self._slots = threading.BoundedSemaphore(limit)
+    Parameters
+    ----------
+    metrics : Metrics
+    limit : int            syntheses at once (``max_concurrent_syntheses``; default: one per
+                           CPU core — a synthesis is CPU-bound)
+    wait_seconds : float   longest wait for a slot (``synthesis_queue_seconds``)
+    max_queue : int        most requests waiting at once (``synthesis_queue_depth``)
+    """
+
+    def __init__(self, metrics: Metrics, limit: int | None = None,
+                 wait_seconds: float = SYNTHESIS_WAIT_SECONDS,
+                 max_queue: int = SYNTHESIS_QUEUE_DEPTH):
+        self.limit = int(limit or max(1, os.cpu_count() or MAX_CONCURRENT_SYNTHESES))
+        self.wait_seconds, self.max_queue = float(wait_seconds), int(max_queue)
+        self._slots = threading.BoundedSemaphore(self.limit)
         self._metrics = metrics
+        self._lock = threading.Lock()
+        self.waiting = 0
+        self.running = 0
+
+    def _count(self, waiting: int = 0, running: int = 0) -> None:
+        with self._lock:
+            self.waiting += waiting
+            self.running += running
+            self._metrics.synthesis_queue_depth.set(self.waiting)
+            self._metrics.synthesis_running.set(self.running)
 
     @contextlib.contextmanager
     def slot(self, kind: str, frames: int) -> Iterator[None]:
-        """Hold one synthesis slot while the block runs (503 with ``Retry-After`` if none is
-        free) and record ``frames`` output frames of a ``kind`` model and the time taken."""
+        """Hold one synthesis slot while the block runs (waiting for one as the class
+        docstring says) and record ``frames`` output frames of a ``kind`` model and the
+        time taken."""
         if not self._slots.acquire(blocking=False):
-            raise Unavailable("every synthesis slot is busy; retry shortly, or submit a "
-                             "synthesis job", retry_after=RETRY_AFTER_SECONDS)
+            with self._lock:
+                full = self.waiting >= self.max_queue
+            if full:
+                raise Unavailable(f"every synthesis slot is busy and {self.waiting} requests "
+                                  f"are waiting (at most {self.max_queue}); retry shortly, or "
+                                  "submit a synthesis job", retry_after=RETRY_AFTER_SECONDS)
+            self._count(waiting=1)
+            try:
+                got = self._slots.acquire(timeout=self.wait_seconds)
+            finally:
+                self._count(waiting=-1)
+            if not got:
+                raise Unavailable(f"every synthesis slot stayed busy (waited "
+                                  f"{self.wait_seconds:g} s); retry shortly, or submit a "
+                                  "synthesis job", retry_after=RETRY_AFTER_SECONDS)
+        self._count(running=1)
         try:
             start = time.perf_counter()
             yield
             seconds = time.perf_counter() - start
         finally:
+            self._count(running=-1)
             self._slots.release()
         self._metrics.observe_synthesis(kind, frames, seconds)
 

@@ -12,7 +12,7 @@ readers' :class:`~service.io.errors.FormatError` (422), each naming the problem,
 Accepted media types:
 
 - NPZ: ``application/x-npz`` (``application/zip`` too: an NPZ is a zip archive);
-- OBJ: ``model/obj`` or ``text/plain``;
+- OBJ: ``model/obj`` (``text/plain`` is a 415: any text would otherwise be parsed as OBJ);
 - JSON: ``application/json``;
 - marker files: ``application/x-c3d`` (.c3d), ``text/x-trc`` (.trc), ``text/csv`` (.csv);
 - ``multipart/form-data`` where a route says so (files named by their part's filename).
@@ -46,7 +46,7 @@ from service.io.npz import ZIP_ERRORS, npy_header, npz_arrays
 from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
-OBJ_TYPES = ("model/obj", "text/plain")
+OBJ_TYPES = ("model/obj",)
 JSON_TYPE = "application/json"
 MULTIPART = "multipart/form-data"
 #: media type of a marker file → the reader's suffix
@@ -209,8 +209,8 @@ def npz_limit(settings: Settings) -> int:
 
 # ---------------------------------------------------------------------------- meshes
 MESH_SPECS = {
-    "vertices": ArraySpec(("V", 3), "fiu"), "faces": ArraySpec(("T", 3), "iu"),
-    "uv": ArraySpec(("K", 2), "fiu", False), "uv_faces": ArraySpec(("T", 3), "iu", False),
+    "vertices": ArraySpec(("V", 3), "f"), "faces": ArraySpec(("T", 3), "iu"),
+    "uv": ArraySpec(("K", 2), "f", False), "uv_faces": ArraySpec(("T", 3), "iu", False),
     "quad_split": ArraySpec(("T",), "iu", False),
 }
 REGION_SPEC = ArraySpec(("V",), "biu", False)
@@ -318,6 +318,7 @@ class LayoutUpload:
     marker_count: int
     snapped: int
     max_snap_distance: float
+    renormalized: int = 0
 
 
 def parse_layout(data: bytes, neutral: bytes) -> LayoutUpload:
@@ -335,8 +336,11 @@ def parse_layout(data: bytes, neutral: bytes) -> LayoutUpload:
     if free.any():
         snapped = surface_points(V, F, triangle[free], barycentric[free])
         distance = float(np.linalg.norm(snapped - layout.position[free], axis=1).max())
+    given = np.asarray(layout.kinds) == "triangle"
+    renormalized = int((given & ~np.all(barycentric == np.asarray(
+        layout.barycentric, np.float64).reshape(-1, 3), axis=1)).sum())
     blob = actor_store.layout_json(layout.names, triangle, barycentric)
-    return LayoutUpload(blob, len(layout.names), int(free.sum()), distance)
+    return LayoutUpload(blob, len(layout.names), int(free.sum()), distance, renormalized)
 
 
 def layout_names(layout: bytes) -> list[str]:
@@ -375,7 +379,7 @@ def read_marker_file(data: bytes, suffix: str, names: Sequence[str]) -> tuple[np
 
 # ---------------------------------------------------------------------------- clips
 CLIP_SPECS = {
-    "vertices": ArraySpec(("F", "V", 3), "fiu"), "markers": ArraySpec(("F", "M", 3), "fiu"),
+    "vertices": ArraySpec(("F", "V", 3), "f"), "markers": ArraySpec(("F", "M", 3), "fiu"),
     "displacement": ArraySpec(("F", "H", "H"), "fiu", False),
     "albedo": ArraySpec(("F", "A", "A", 3), "fiu", False),
     "fps": ArraySpec((), "fiu", False),
@@ -384,10 +388,13 @@ CLIP_SPECS = {
 
 @dataclass(frozen=True)
 class ClipUpload:
-    """A validated clip: its canonical blob and frame count."""
+    """A validated clip: its canonical blob, frame count, and the marker reader's notes
+    (:attr:`~service.io.marker_sequence.MarkerSequence.notes`: what it accepted that the
+    user should hear of, e.g. a TRC ``NumFrames`` that disagrees with its rows)."""
 
     blob: bytes
     frames: int
+    notes: tuple[str, ...] = ()
 
 
 def _check_clip(vertices: np.ndarray, markers: np.ndarray, n_markers: int) -> None:
@@ -451,10 +458,11 @@ def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
         vertices[k] = mesh.vertices
     filename, data = form.markers
     suffix = "." + filename.rsplit(".", 1)[-1].lower() if "." in filename else ""
-    markers, fps = read_marker_file(data, suffix, names)
+    sequence = read_markers(data, suffix)
+    markers, fps = markers_in_layout_order(sequence, names), sequence.fps
     _check_clip(vertices, markers, len(names))
     blob = actor_store.clip_npz(vertices, markers, fps=form.fps or fps or 30.0)
-    return ClipUpload(blob, len(vertices))
+    return ClipUpload(blob, len(vertices), sequence.notes)
 
 
 # ---------------------------------------------------------------------------- landmarks

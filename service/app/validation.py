@@ -14,6 +14,7 @@ from service.app.limits import DEGENERATE_AREA_RTOL
 from service.geometry.laplacian import triangle_areas
 from service.geometry.topology import edge_face_counts
 from service.io.mesh import Mesh
+from service.io.triangle_mesh import NO_UV
 from service.methods.inputs import InvalidInput
 
 #: UVs may lie this far outside the unit tile (rounding in exporters)
@@ -60,11 +61,23 @@ def check_triangles(V: np.ndarray, F: np.ndarray, what: str = "mesh") -> None:
 
 
 def check_uv_tile(mesh: Mesh, what: str = "neutral") -> None:
-    """Refuse a mesh without UVs, or with UVs outside the unit tile [0,1]² (API.md's maps
-    cover exactly that tile; UDIM layouts must be repacked into it)."""
+    """Refuse a mesh without UVs, with triangles that have none (``uv_faces`` rows of
+    :data:`~service.io.triangle_mesh.NO_UV`: an OBJ mixing ``v/vt`` corners with bare ``v``
+    or ``v//vn`` ones), or with UVs outside the unit tile [0,1]² (API.md's maps cover
+    exactly that tile, through the UVs of every triangle; UDIM layouts must be repacked into
+    it)."""
     if mesh.uv is None:
         raise InvalidInput(f"the {what} has no UV layout: send 'uv' (and 'uv_faces' for "
                            "seams) in the .npz, or 'vt' coordinates in the .obj")
+    if mesh.uv_faces is not None:
+        missing = np.flatnonzero(mesh.uv_faces[:, 0] == NO_UV)
+        if len(missing):
+            raise InvalidInput(
+                f"{len(missing)} of the {what}'s {len(mesh.faces)} triangles have no UVs (the "
+                f"first is triangle {int(missing[0])}; in an OBJ, faces written with bare 'v' "
+                f"or 'v//vn' corners); every triangle of a {what} needs UVs, as its maps cover "
+                "the surface through them: export the mesh with texture coordinates ('v/vt') "
+                "on every face")
     outside = np.flatnonzero(((mesh.uv < -UV_TOLERANCE) | (mesh.uv > 1 + UV_TOLERANCE)).any(axis=1))
     if len(outside):
         k = int(outside[0])
@@ -90,3 +103,41 @@ def check_finite_frames(values: np.ndarray, what: str, element: str,
         note = "; NaN marks an occluded marker, infinity is not allowed" if allow_nan else ""
         raise InvalidInput(f"{what} frame {f} {element} {k} has a non-finite coordinate "
                            f"({int(bad.sum())} such entries in all{note})")
+
+
+def check_text(value: str, what: str) -> str:
+    """``value`` if it can be stored and served back: encodable as UTF-8 (no lone surrogate
+    such as ``"\\udfff"``, which JSON can carry but neither the database nor the response
+    encoder can) and free of NUL characters (PostgreSQL text and JSON refuse them).
+
+    Every user string that is stored — actor names, metadata keys and values, clip and rig
+    names — passes this *before* anything is written, so no row is committed that the API
+    cannot serialize (issue 16: one such row made every actor listing a 500).
+
+    Raises
+    ------
+    InvalidInput   naming ``what``, the offending character and its position
+    """
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError as error:
+        raise InvalidInput(f"{what} is not valid Unicode: it holds the lone surrogate "
+                           f"U+{ord(value[error.start]):04X} at position {error.start}") from None
+    if "\x00" in value:
+        raise InvalidInput(f"{what} contains a NUL character at position {value.index(chr(0))}")
+    return value
+
+
+def check_json_text(value, what: str):
+    """``value`` (parsed JSON) if every string in it, keys included, passes
+    :func:`check_text`; the message names the path, e.g. ``metadata['a'][0]``."""
+    if isinstance(value, str):
+        return check_text(value, what)
+    if isinstance(value, dict):
+        for key, item in value.items():
+            check_text(str(key), f"a key of {what}")
+            check_json_text(item, f"{what}[{key!r}]")
+    elif isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            check_json_text(item, f"{what}[{index}]")
+    return value

@@ -26,6 +26,10 @@ from service.geometry.marker_layout import BARYCENTRIC_TOLERANCE, MarkerLayout
 #: of a collinear triangle.
 SLIVER_RTOL = 1e-6
 
+#: barycentrics of a layout whose sum is off by more than this (or that have a negative
+#: coordinate) are renormalized; closer ones, rounding in the last bits, are kept as given
+RENORMALIZE_ABOVE = 1e-12
+
 #: (query, candidate) pairs solved per vectorized chunk (bounds the temporaries, ~1 kB a pair).
 CHUNK_PAIRS = 1 << 16
 
@@ -157,7 +161,8 @@ def resolve_marker_layout(
     -------
     triangle : (M,) int64
     barycentric : (M,3) float64     non-negative, summing to 1 (``"triangle"`` markers: as
-                                    given, within ``BARYCENTRIC_TOLERANCE``)
+                                    given if within ``BARYCENTRIC_TOLERANCE``, clipped at 0
+                                    and divided by their sum)
 
     Raises
     ------
@@ -185,11 +190,15 @@ def resolve_marker_layout(
     _raise_first(names, (tri < 0) | (tri >= m), lambda i: (
         f"triangle {tri[i]} out of range [0, {m})"), sel)
     total = bary.sum(axis=1)
-    bad = ~np.isfinite(bary).all(axis=1) | (bary < 0).any(axis=1)
+    bad = ~np.isfinite(bary).all(axis=1) | (bary < -BARYCENTRIC_TOLERANCE).any(axis=1)
     bad |= ~(np.abs(total - 1) <= BARYCENTRIC_TOLERANCE)
     _raise_first(names, bad, lambda i: (
         f"barycentric {bary[i].tolist()} (sum {float(total[i])!r}); expected 3 non-negative "
         f"numbers summing to 1 within {BARYCENTRIC_TOLERANCE:g}"), sel)
+    # within the tolerance but off (rounded exports): clipped at 0 and renormalized
+    off = (bary < 0).any(axis=1) | (np.abs(total - 1) > RENORMALIZE_ABOVE)
+    fixed = np.clip(bary[off], 0.0, None)
+    bary[off] = fixed / fixed.sum(axis=1, keepdims=True)
     triangle[sel], barycentric[sel] = tri, bary
 
     # vertex: the first triangle using it, one-hot at that corner

@@ -11,8 +11,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BARYCENTRIC_TOLERANCE = 1e-6
-"""How far the barycentric coordinates of a layout marker may sum from 1."""
+BARYCENTRIC_TOLERANCE = 1e-4
+"""How far the barycentric coordinates of a layout marker may sum from 1 (and fall below 0).
+
+Layouts exported with 6 decimals sum to 1 ± 1e-6 and more (three rounded thirds are off by
+1e-6; a coordinate rounded from 0.9999995 by 5e-7 each); 1e-4 accepts every such file while
+still refusing coordinates that are really wrong (a marker 1e-4 of a triangle away is
+sub-micron on a face). Accepted coordinates are clipped at 0 and renormalized to sum to 1
+(:func:`service.geometry.closest_point.resolve_marker_layout`), and the API reports how many
+markers were."""
 
 
 @dataclass(frozen=True, eq=False)

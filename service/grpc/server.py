@@ -19,7 +19,6 @@ refused with RESOURCE_EXHAUSTED rather than queued behind a live stream.
 
 from __future__ import annotations
 
-import hmac
 import ipaddress
 import logging
 import re
@@ -31,6 +30,7 @@ from typing import Callable, Iterable, Iterator, Protocol, Sequence
 import grpc
 import numpy as np
 
+from models_store.tenancy import Principal, TokenTable
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
@@ -187,32 +187,63 @@ def _name_frame(message: str, where: str) -> str:
 
 # ---------------------------------------------------------------------- auth
 class BearerTokenAuth(grpc.ServerInterceptor):
-    """Refuses calls without ``authorization: Bearer <token>`` metadata naming one of ``tokens``
-    (UNAUTHENTICATED); tokens are compared in constant time."""
+    """Refuses calls without ``authorization: Bearer <token>`` metadata naming one of
+    ``tokens`` (UNAUTHENTICATED), and runs each authorized call scoped to its token's tenant
+    (another tenant's model answers NOT_FOUND, as an unknown one). ``tokens`` are
+    ``FACESYNTH_TOKENS`` entries (:mod:`models_store.tenancy`: digests only, constant-time)."""
 
     def __init__(self, tokens: Sequence[str]):
         if not tokens or not all(tokens):
             raise ValueError("BearerTokenAuth needs one or more non-empty tokens")
-        self._tokens = tuple(t.encode() for t in tokens)
+        self._table = TokenTable(tokens)
 
-    def authorized(self, metadata: Sequence[tuple[str, str | bytes]] | None) -> bool:
-        """Whether the call metadata carries a valid bearer token."""
+    def principal(self, metadata: Sequence[tuple[str, str | bytes]] | None) -> Principal | None:
+        """The principal of the call's bearer token, or None."""
         for key, value in metadata or ():
             if key != "authorization" or not isinstance(value, str):
                 continue
             scheme, _, token = value.partition(" ")
-            if scheme.lower() == "bearer":
-                given = token.strip().encode()
-                # no short-circuit: every token is compared
-                if sum(hmac.compare_digest(given, t) for t in self._tokens):
-                    return True
-        return False
+            if scheme.lower() == "bearer" and token.strip():
+                found = self._table.authenticate(token.strip())
+                if found is not None:
+                    return found
+        return None
+
+    def authorized(self, metadata: Sequence[tuple[str, str | bytes]] | None) -> bool:
+        """Whether the call metadata carries a valid bearer token."""
+        return self.principal(metadata) is not None
 
     def intercept_service(self, continuation, handler_call_details):
         handler = continuation(handler_call_details)
-        if handler is None or self.authorized(handler_call_details.invocation_metadata):
+        if handler is None:
             return handler
-        return _refusing(handler)
+        principal = self.principal(handler_call_details.invocation_metadata)
+        if principal is None:
+            return _refusing(handler)
+        return _scoped(handler, principal)
+
+
+def _scoped(handler: grpc.RpcMethodHandler, principal: Principal) -> grpc.RpcMethodHandler:
+    """``handler`` with its behaviour run with the registry scoped to ``principal``'s tenant
+    (set on the serving thread for the call's duration, reset after it)."""
+    from models_store.registry import acting_for
+
+    kind = (("stream" if handler.request_streaming else "unary") + "_"
+            + ("stream" if handler.response_streaming else "unary"))
+    behavior = getattr(handler, kind)
+
+    if handler.response_streaming:
+        def run(request_or_iterator, context):
+            with acting_for(principal.tenant, principal.scope):
+                yield from behavior(request_or_iterator, context)
+    else:
+        def run(request_or_iterator, context):
+            with acting_for(principal.tenant, principal.scope):
+                return behavior(request_or_iterator, context)
+
+    make = getattr(grpc, f"{kind}_rpc_method_handler")
+    return make(run, request_deserializer=handler.request_deserializer,
+                response_serializer=handler.response_serializer)
 
 
 def _refusing(handler: grpc.RpcMethodHandler) -> grpc.RpcMethodHandler:

@@ -170,7 +170,8 @@ def read_marker_layout(
             )
             barycentric[m] = _layout_vector(entry["barycentric"], label, "barycentric")
             total = float(barycentric[m].sum())
-            if (barycentric[m] < 0).any() or abs(total - 1) > BARYCENTRIC_TOLERANCE:
+            if ((barycentric[m] < -BARYCENTRIC_TOLERANCE).any()
+                    or abs(total - 1) > BARYCENTRIC_TOLERANCE):
                 raise MarkerFormatError(
                     f"{label} has barycentric {entry['barycentric']}; they must be non-negative "
                     f"and sum to 1 (within {BARYCENTRIC_TOLERANCE:g}), the sum is {total!r}"

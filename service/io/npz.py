@@ -21,6 +21,11 @@ ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.erro
               zipfile.BadZipFile, zlib.error)
 
 
+#: what NumPy's header parser (``ast.literal_eval`` after ``tokenize``) raises on a
+#: malformed header besides ValueError: a truncated literal, deep nesting, a wrong type
+_HEADER_ERRORS = (SyntaxError, tokenize.TokenError, TypeError, RecursionError, MemoryError)
+
+
 def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of one ``.npy`` member, from its header only.
 
@@ -36,16 +41,22 @@ def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple
                 else np.lib.format.read_array_header_2_0)
         try:
             shape, _, dtype = read(f)
-        except (tokenize.TokenError, SyntaxError, RecursionError, MemoryError) as error:
+        except _HEADER_ERRORS as error:
             # numpy tokenizes the header (a Python literal) before its own checks
             raise ValueError(f"malformed .npy header: {error}") from None
+    if any(int(n) < 0 for n in shape):
+        raise ValueError(f"malformed .npy header: negative dimension in shape {shape}")
     return tuple(int(s) for s in shape), dtype
 
 
 def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
-    """Every array of an in-memory ``.npz`` (never unpickled)."""
-    with np.load(io.BytesIO(data), allow_pickle=False) as d:
-        return {k: d[k] for k in d.files}
+    """Every array of an in-memory ``.npz`` (never unpickled); a malformed member header
+    raises ``ValueError`` (see :func:`npy_header`)."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as d:
+            return {k: d[k] for k in d.files}
+    except _HEADER_ERRORS as error:
+        raise ValueError(f"malformed .npy header: {type(error).__name__}") from None
 
 
 def npz_bytes(**arrays: np.ndarray) -> bytes:

@@ -60,7 +60,6 @@ class FrameZipWriter:
         faces = arrays.get("faces")
         count = next(len(arrays[k]) for k in arrays if k in MEMBERS or k == "clamped")
         for k in range(count):
-            name = f"frame_{start + k:0{self._digits}d}"
             for key, (suffix, kind) in MEMBERS.items():
                 if key not in arrays:
                     continue
@@ -70,10 +69,20 @@ class FrameZipWriter:
                                            self.uv, self.uv_faces), dtype=np.float32)
                 else:
                     write_map(buffer, arrays[key][k])
-                self._zip.writestr(f"{name}{suffix}.{kind}", buffer.getvalue())
+                self._zip.writestr(self.member(start + k, key), buffer.getvalue())
             if "clamped" in arrays:
                 self._clamped.append(f"{start + k},{float(arrays['clamped'][k]):.6g}")
         self._written += count
+
+    def member(self, frame: int, key: str) -> str:
+        """The member name of output array ``key`` (a key of :data:`MEMBERS`) of ``frame``:
+        ``frame_0007_displacement.exr``."""
+        suffix, kind = MEMBERS[key]
+        return f"frame_{frame:0{self._digits}d}{suffix}.{kind}"
+
+    def add_file(self, path: Path, arcname: str) -> None:
+        """Copy the file ``path`` into the zip as ``arcname`` (streamed, not read whole)."""
+        self._zip.write(path, arcname=arcname)
 
     def finish(self) -> Path:
         """Close the zip and return its path (``ValueError`` if frames are missing)."""

@@ -16,6 +16,9 @@ raises :class:`InvalidInput`           ``failed``, error ``{code: "invalid_input
                                        message}`` — the user's input was the problem
 raises ``NotFound``                    ``failed``, ``not_found`` (e.g. a clip deleted
                                        while queued)
+raises ``OSError`` ENOSPC / EDQUOT     ``failed``, ``insufficient_storage`` (no server
+                                       paths in the message)
+raises ``OSError`` EROFS / EACCES      ``failed``, ``storage_unavailable``
 raises anything else                   ``failed``, ``internal``, the exception's text
 has a kind no task function runs       ``failed``, ``unsupported_job_kind``
 =====================================  ===============================================
@@ -162,6 +165,19 @@ def _run_task(running: RunningJob, tasks: Mapping[str, Task]) -> Any:
     except NotFound as exc:
         return "failed", None, _error("not_found", str(exc))
     except Exception as exc:
+        from models_store.errors import storage_fault
+
+        fault = storage_fault(exc)
+        if fault is not None:   # a full or read-only disk: a clear code, no server paths
+            code, reason = fault
+            log.error("job %s failed: storage %s (%s)", running.id, code, reason)
+            if code == "insufficient_storage":
+                return "failed", None, _error(code, f"the server's storage is full ({reason}); "
+                                              "the job can be submitted again once space is "
+                                              "freed")
+            return "failed", None, _error(code, f"the server's storage cannot be written "
+                                          f"({reason}); the job can be submitted again once "
+                                          "it is writable")
         log.exception("job %s failed", running.id)
         return "failed", None, _error("internal", f"{type(exc).__name__}: {exc}")
 

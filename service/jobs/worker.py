@@ -4,12 +4,19 @@
 database, blob store and queue; ``facesynth serve`` runs one in-process with
 :func:`start_embedded`. Besides running jobs, every worker
 
-- on start, migrates the database (a worker may start before the API) and resubmits
-  queued jobs older than :data:`STALE_QUEUED_SECONDS`, whose message may have been lost
-  (the API died between committing the job and enqueuing it, a queue was flushed);
-- every few seconds reaps jobs whose lease expired (their worker died or hung):
+- on start, migrates the database (a worker may start before the API);
+- runs :class:`Maintenance` rounds every ``maintenance_interval_seconds`` (at most a
+  quarter lease): it reaps jobs whose lease expired (their worker died or hung):
   :func:`models_store.registry.reap_expired` requeues them (or fails them after
-  ``job_max_retries`` retries) and the worker resubmits the requeued ones.
+  ``job_max_retries`` retries) and resubmits the requeued ones; it resubmits queued jobs
+  older than ``job_resubmit_seconds`` that have no message waiting in the queue (the API
+  died between committing the job and enqueuing it, a message was lost or a queue
+  flushed); and at start and every ``temporary_sweep_seconds`` it removes the temporaries
+  that crashes left in the blob store (:meth:`models_store.blobs.BlobStore.sweep_temporaries`).
+
+An API process without an embedded worker runs the same rounds on a thread
+(:func:`start_maintenance`), so expired leases are reaped and lost messages resubmitted
+even when no worker is alive.
 
 Stopping (SIGINT/SIGTERM for ``facesynth worker``, :meth:`EmbeddedWorker.stop`) is
 graceful: no new jobs are taken and running ones get ``grace_seconds`` to finish; after
@@ -38,10 +45,6 @@ from service.jobs.queue import JobQueue, get_queue, submit
 
 log = logging.getLogger(__name__)
 
-#: longest pause between reaper rounds, seconds (shorter for short leases: a quarter lease)
-REAP_INTERVAL = 5.0
-#: at start, queued jobs created longer ago than this are resubmitted, seconds
-STALE_QUEUED_SECONDS = 30.0
 #: longest pause between polls of an empty (SQLite) queue, seconds
 POLL_MAX_DELAY = 1.0
 #: how long running jobs may take to finish when the worker stops, seconds
@@ -70,20 +73,101 @@ def reap_and_resubmit(settings: Settings) -> list[str]:
     return reaped.requeued
 
 
-def resubmit_stale(settings: Settings, older_than: float = STALE_QUEUED_SECONDS) -> list[str]:
-    """Resubmit queued jobs created more than ``older_than`` seconds ago; their ids.
+def resubmit_stale(settings: Settings, older_than: float | None = None) -> list[str]:
+    """Resubmit queued jobs created more than ``older_than`` seconds ago (default
+    ``settings.job_resubmit_seconds``) whose message is not waiting in the queue; their ids.
 
-    A duplicate message is harmless: only one claim of a job can succeed.
+    A duplicate message is harmless (only one claim of a job can succeed), but checking
+    the queue's pending messages keeps a long backlog from being enqueued again and again.
     """
+    older_than = settings.job_resubmit_seconds if older_than is None else older_than
     cutoff = utcnow() - timedelta(seconds=older_than)
     with get_store(settings).sessions() as session:
         stale = [job.id for job in registry.list_jobs(session, status="queued")
                  if job.created_at < cutoff]
-    for job_id in stale:
+    if not stale:
+        return []
+    waiting = _pending_job_ids(settings)
+    lost = [job_id for job_id in stale if job_id not in waiting]
+    for job_id in lost:
         submit(settings, job_id)
-    if stale:
-        log.info("resubmitted %d queued job(s) whose message may have been lost", len(stale))
-    return stale
+    if lost:
+        log.warning("resubmitted %d queued job(s) with no message in the queue: %s",
+                    len(lost), lost)
+    return lost
+
+
+def _pending_job_ids(settings: Settings) -> set[str]:
+    """Job ids of the ``run_job`` messages waiting in the queue."""
+    ids: set[str] = set()
+    for task in get_queue(settings).huey.pending():
+        if task.args:
+            ids.add(str(task.args[0]))
+    return ids
+
+
+def sweep_temporaries(settings: Settings) -> list[str]:
+    """Remove temporaries left in the blob store by crashes (see the module docstring)."""
+    removed = get_store(settings).blobs.sweep_temporaries(settings.stale_temporary_seconds)
+    if removed:
+        log.warning("removed %d stale temporary file(s)/directory(ies) from the blob store: %s",
+                    len(removed), removed)
+    return removed
+
+
+class Maintenance:
+    """One process's maintenance rounds (see the module docstring); :meth:`round` never
+    raises (the database may be briefly unreachable: the next round tries again)."""
+
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.interval = min(settings.maintenance_interval_seconds,
+                            max(0.2, settings.job_lease_seconds / 4))
+        self._next_sweep = 0.0
+
+    def round(self) -> None:
+        if get_queue(self.settings).immediate:   # memory://: jobs run when submitted
+            return
+        _safely(reap_and_resubmit, self.settings)
+        _safely(resubmit_stale, self.settings)
+        if time.monotonic() >= self._next_sweep:
+            _safely(sweep_temporaries, self.settings)
+            self._next_sweep = time.monotonic() + self.settings.temporary_sweep_seconds
+
+    def run(self, stop: threading.Event) -> None:
+        """Rounds every :attr:`interval` seconds until ``stop`` is set."""
+        while True:
+            self.round()
+            if stop.wait(self.interval):
+                return
+
+
+def _safely(function, settings: Settings) -> None:
+    try:
+        function(settings)
+    except Exception:  # the database may be briefly unreachable: try again next round
+        log.exception("%s failed", function.__name__)
+
+
+@dataclass
+class MaintenanceThread:
+    """:class:`Maintenance` rounds on a daemon thread of this process."""
+
+    thread: threading.Thread
+    stop_event: threading.Event
+
+    def stop(self, timeout: float | None = None) -> None:
+        self.stop_event.set()
+        self.thread.join(timeout)
+
+
+def start_maintenance(settings: Settings) -> MaintenanceThread:
+    """Run maintenance rounds on a daemon thread (an API process without workers)."""
+    stop = threading.Event()
+    thread = threading.Thread(target=Maintenance(settings).run, args=(stop,),
+                              name="facesynth-maintenance", daemon=True)
+    thread.start()
+    return MaintenanceThread(thread, stop)
 
 
 class Worker:
@@ -111,7 +195,8 @@ class Worker:
             raise ValueError("the memory:// queue runs jobs when they are submitted; it has "
                              "no workers (set FACESYNTH_QUEUE_URL to redis://... or unset it)")
         db.upgrade(settings.database_url_resolved)
-        self.reap_interval = min(REAP_INTERVAL, max(0.2, settings.job_lease_seconds / 4))
+        self.maintenance = Maintenance(settings)
+        self.reap_interval = self.maintenance.interval
         self._hurry = threading.Event()  # a second stop request: skip the grace period
 
     def run(self, stop: threading.Event | None = None) -> None:
@@ -122,7 +207,6 @@ class Worker:
         consumer = _Consumer(self.queue.huey, workers=self.workers, periodic=False,
                              worker_type="thread", initial_delay=0.05, backoff=1.5,
                              max_delay=POLL_MAX_DELAY, check_worker_health=True)
-        self._safely(resubmit_stale, self.settings)
         consumer.start()
         log.info("worker started: %d thread(s), queue %s, database %s", self.workers,
                  self.settings.queue_url or "sqlite", self.settings.database_url_resolved)
@@ -135,7 +219,7 @@ class Worker:
                 except ConsumerStopped:
                     break
                 if time.monotonic() >= next_reap:
-                    self._safely(reap_and_resubmit, self.settings)
+                    self.maintenance.round()
                     next_reap = time.monotonic() + self.reap_interval
         finally:
             self._shutdown(consumer)
@@ -169,13 +253,6 @@ class Worker:
 
         previous = {sig: signal.signal(sig, handle) for sig in (signal.SIGINT, signal.SIGTERM)}
         return lambda: [signal.signal(sig, handler) for sig, handler in previous.items()]
-
-    @staticmethod
-    def _safely(function, settings: Settings) -> None:
-        try:
-            function(settings)
-        except Exception:  # the database may be briefly unreachable: try again next round
-            log.exception("%s failed", function.__name__)
 
 
 def run_worker(settings: Settings, workers: int | None = None,

@@ -41,6 +41,7 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
+from service.geometry.marker_layout import BARYCENTRIC_TOLERANCE  # the layout readers' (1e-4)
 from service.io.npz import npz_arrays, npz_bytes
 from service.methods.inputs import ActorData, Clip, InvalidInput, check_clips
 
@@ -48,8 +49,6 @@ from service.methods.inputs import ActorData, Clip, InvalidInput, check_clips
 REGION_PREFIX = "region_"
 #: allowed region names
 _REGION_NAME = re.compile(r"[A-Za-z0-9_]{1,64}")
-#: barycentric coordinates must be >= -this and sum to 1 within it
-BARYCENTRIC_TOLERANCE = 1e-6
 #: media types of the canonical blobs
 NPZ_MEDIA_TYPE = "application/x-npz"
 LAYOUT_MEDIA_TYPE = "application/json"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.api.conftest import NPZ, assert_problem, grid, layout_body, npz
 
@@ -107,6 +108,27 @@ def test_put_neutral_rejects_missing_or_out_of_tile_uv(client, actor_id):
                    "outside the unit tile")
 
 
+def test_put_neutral_obj_with_faces_lacking_uvs_says_how_many_and_why(client, actor_id):
+    """Two objects, one with v/vt corners and one with v//vn (it reads: NO_UV rows); the
+    neutral is refused naming the 3 untextured triangles of 4, not an index -1."""
+    obj = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\n"
+           "vt 0 0\nvt 0.5 0\nvt 0.5 1\nvn 0 0 1\n"
+           "o textured\nf 1/1 2/2 3/3\n"
+           "o bare\nf 1//1 3//1 4//1\nf 2//1 5//1 6//1\nf 2//1 6//1 3//1\n")
+    body = assert_problem(put_neutral(client, actor_id, obj.encode(),
+                                      {"Content-Type": "model/obj"}), 422,
+                          "3 of the neutral's 4 triangles have no UVs", "first is triangle 1",
+                          "every triangle of a neutral needs UVs")
+    assert "-1" not in body["detail"] and "out of range" not in body["detail"]
+    # the same mesh as an NPZ with NO_UV rows: the same answer
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
+    F = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+    uv_faces = np.array([[0, 1, 2], [-1, -1, -1], [-1, -1, -1], [0, 1, 2]])
+    assert_problem(put_neutral(client, actor_id, npz(vertices=V, faces=F, uv=V[:3, :2] / 2,
+                                                     uv_faces=uv_faces)), 422,
+                   "2 of the neutral's 4 triangles have no UVs", "first is triangle 1")
+
+
 def test_put_neutral_rejects_bad_archives(client, actor_id):
     V, F, uv = grid()
     assert_problem(put_neutral(client, actor_id, npz(vertices=V, faces=F, uv=uv, colour=V)),
@@ -198,3 +220,59 @@ def test_delete_actor_with_models_needs_cascade(client, grid_actor, submitted):
 def test_actor_metadata_is_bounded(client):
     assert_problem(client.post("/v1/actors", json={"name": "A", "metadata": {"x": "y" * 70000}}),
                    422, "metadata")
+
+
+# -- poison strings never reach the database (issue 16, defect 1) ----------------------------
+@pytest.mark.parametrize("body", [
+    '{"name": "p", "metadata": {"k": "\\udfff"}}',             # a lone surrogate as a value
+    '{"name": "p", "metadata": {"\\ud800": 1}}',               # ... as a key
+    '{"name": "p", "metadata": {"a": [{"b": "x\\udc00y"}]}}',  # ... nested
+    '{"name": "p\\udfff"}',                                    # ... in the name
+    '{"name": "p", "metadata": {"k": "a\\u0000b"}}',           # a NUL character
+])
+def test_unencodable_strings_are_refused_before_anything_is_written(client, body):
+    response = client.post("/v1/actors", content=body.encode(),
+                           headers={"Content-Type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert client.get("/v1/actors").status_code == 200
+    assert client.get("/v1/actors").json()["items"] == []
+
+
+# -- barycentrics written with 6 decimals (issue 16, defect 14) ------------------------------
+def _triangle_layout(barycentrics) -> bytes:
+    import json
+
+    return json.dumps({"markers": [{"name": f"M{k}", "triangle": k, "barycentric": list(b)}
+                                   for k, b in enumerate(barycentrics)]}).encode()
+
+
+def test_barycentrics_off_by_rounding_are_renormalized_and_reported(client, actor_id):
+    V, F, uv = grid()
+    assert client.put(f"/v1/actors/{actor_id}/neutral", content=npz(vertices=V, faces=F, uv=uv),
+                      headers=NPZ).status_code == 200
+    exported = [(0.2, 0.3, 0.499999), (0.333333, 0.333333, 0.333333), (0.5, 0.5, 0.0),
+                (1.00005, 0.0, 0.0), (-0.000001, 0.5, 0.500001)]
+    response = client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(exported),
+                          headers={"Content-Type": "application/json"})
+    assert response.status_code == 200, response.text
+    info = response.json()
+    assert (info["marker_count"], info["renormalized"]) == (5, 4)   # (0.5, 0.5, 0) was exact
+    off = [(0.2, 0.3, 0.4998)]                                       # 2e-4: a real error
+    assert_problem(client.put(f"/v1/actors/{actor_id}/markers", content=_triangle_layout(off),
+                              headers={"Content-Type": "application/json"}), 422, "M0")
+
+
+def test_a_text_plain_neutral_is_415_not_422(client, actor_id):
+    """issue 16, defect 9: text/plain was parsed as OBJ and answered 422."""
+    assert_problem(client.put(f"/v1/actors/{actor_id}/neutral", content=b"v 0 0 0\n",
+                              headers={"Content-Type": "text/plain"}), 415, "model/obj")
+
+
+def test_an_int8_neutral_is_refused_and_does_not_replace_the_stored_one(client, grid_actor):
+    """issue 16, defect 9: int8 vertices were accepted and replaced the actor's neutral."""
+    V, F, uv = grid()
+    before = client.get(f"/v1/actors/{grid_actor}").json()
+    response = client.put(f"/v1/actors/{grid_actor}/neutral",
+                          content=npz(vertices=V.astype(np.int8), faces=F, uv=uv), headers=NPZ)
+    assert_problem(response, 422, "'vertices'", "float")
+    assert client.get(f"/v1/actors/{grid_actor}").json() == before

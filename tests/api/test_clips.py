@@ -6,7 +6,7 @@ import io
 
 import numpy as np
 
-from service.io.markers import MarkerSequence, write_markers_csv
+from service.io.markers import MarkerSequence, write_markers_csv, write_markers_trc
 from service.io.mesh import Mesh, write_obj
 from tests.api.conftest import NPZ, assert_problem, grid, npz
 
@@ -32,6 +32,7 @@ def test_clip_npz_add_list_get_delete(client, grid_actor):
     assert clip["frames"] == 3 and clip["name"] == "smile" and clip["clip_id"].startswith("clp_")
     url = f"/v1/actors/{grid_actor}/clips"
     assert [c["clip_id"] for c in client.get(url).json()["items"]] == [clip["clip_id"]]
+    assert clip.pop("notes") == []           # the upload's answer only: an NPZ has none
     assert client.get(f"{url}/{clip['clip_id']}").json() == clip
     assert client.delete(f"{url}/{clip['clip_id']}").status_code == 204
     assert_problem(client.get(f"{url}/{clip['clip_id']}"), 404)
@@ -128,3 +129,33 @@ def test_clip_multipart_marker_file_must_cover_the_layout(client, grid_actor):
                    "lacks 1 of the layout's 3 markers: M2")
     files = [("frames", ("a.obj", _obj(grid()[0]), "model/obj"))]
     assert_problem(client.post(f"/v1/actors/{grid_actor}/clips", files=files), 422, "'markers'")
+
+
+def test_clip_multipart_reports_the_marker_readers_notes(client, grid_actor):
+    """A TRC whose NumFrames (5) disagrees with its 3 rows is read, and the answer says so."""
+    buffer = io.BytesIO()
+    positions = np.arange(3 * 3 * 3, dtype=float).reshape(3, 3, 3)
+    write_markers_trc(buffer, MarkerSequence(positions, ("M0", "M1", "M2")), fps=30.0)
+    lines = buffer.getvalue().decode().split("\n")
+    values = lines[2].split("\t")
+    assert (lines[1].split("\t")[2], values[2]) == ("NumFrames", "3")
+    lines[2] = "\t".join(values[:2] + ["5"] + values[3:])
+    V = grid()[0]
+    files = [("frames", (f"f{k}.obj", _obj(V + k), "model/obj")) for k in range(3)]
+    files.append(("markers", ("take.trc", "\n".join(lines).encode(), "text/plain")))
+    response = client.post(f"/v1/actors/{grid_actor}/clips", files=files)
+    assert response.status_code == 201, response.text
+    assert response.json()["frames"] == 3
+    assert response.json()["notes"] == [
+        "the TRC header says NumFrames 5 but the file has 3 frame rows; the 3 rows were read"]
+    # the CSV of the other multipart test reads as declared: no notes
+    files[-1] = ("markers", ("take.csv", _csv(3), "text/csv"))
+    assert client.post(f"/v1/actors/{grid_actor}/clips", files=files).json()["notes"] == []
+
+
+def test_a_clip_name_with_a_nul_is_refused_before_anything_is_stored(client, grid_actor):
+    """issue 16, defects 1 and 7: ``?name=a%00b`` used to reach PostgreSQL and fail there."""
+    actor_id = grid_actor
+    response = client.post(f"/v1/actors/{actor_id}/clips?name=a%00b", content=b"x", headers=NPZ)
+    assert_problem(response, 422, "NUL")
+    assert client.get(f"/v1/actors/{actor_id}/clips").json()["items"] == []

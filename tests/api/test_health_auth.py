@@ -105,3 +105,43 @@ def test_bearer_tokens_are_required_when_configured(secured):
 def test_token_matches_every_token():
     assert token_matches("b", ["a", "b"]) and not token_matches("c", ["a", "b"])
     assert not token_matches("", ["a"])
+
+
+# -- tenants (issue 16, defect 13) -----------------------------------------------------------
+TENANT_TOKENS = ["studio-a:token-a", "studio-b:sha256:"
+                 + __import__("hashlib").sha256(b"token-b").hexdigest(), "ops:token-ops:admin"]
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def test_tokens_map_to_tenants_and_other_tenants_ids_are_unknown(tmp_path):
+    with make_client(Settings(data_dir=tmp_path, tokens=TENANT_TOKENS), Recorder()) as c:
+        a = c.post("/v1/actors", json={"name": "A"}, headers=bearer("token-a")).json()["id"]
+        b = c.post("/v1/actors", json={"name": "B"}, headers=bearer("token-b")).json()["id"]
+        assert [x["id"] for x in c.get("/v1/actors", headers=bearer("token-a")).json()["items"]] == [a]
+        assert [x["id"] for x in c.get("/v1/actors", headers=bearer("token-b")).json()["items"]] == [b]
+        both = c.get("/v1/actors", headers=bearer("token-ops")).json()["items"]
+        assert {x["id"] for x in both} == {a, b}
+        unknown = "act_" + "0" * 26
+        for method in ("GET", "DELETE"):
+            crossed = c.request(method, f"/v1/actors/{a}", headers=bearer("token-b"))
+            twin = c.request(method, f"/v1/actors/{unknown}", headers=bearer("token-b"))
+            assert crossed.status_code == twin.status_code == 404
+            assert crossed.json()["detail"].replace(a, unknown) == twin.json()["detail"]
+        assert c.get(f"/v1/actors/{a}", headers=bearer("token-a")).status_code == 200
+        assert c.get(f"/v1/actors/{a}", headers=bearer("token-ops")).status_code == 200
+        assert c.get("/v1/jobs", headers=bearer("token-b")).json()["items"] == []
+
+
+def test_health_metrics_and_docs_can_require_a_token(tmp_path):
+    settings = Settings(data_dir=tmp_path, tokens=["t"], public_health=False,
+                        public_metrics=False, public_docs=False)
+    with make_client(settings, Recorder()) as c:
+        for path in ("/healthz", "/readyz", "/metrics", "/openapi.json", "/docs"):
+            assert c.get(path).status_code == 401, path
+            assert c.get(path, headers=bearer("t")).status_code == 200, path
+    with make_client(Settings(data_dir=tmp_path / "open", tokens=["t"]), Recorder()) as c:
+        for path in ("/healthz", "/readyz", "/metrics", "/openapi.json", "/docs"):
+            assert c.get(path).status_code == 200, path

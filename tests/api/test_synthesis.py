@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
 
 import numpy as np
 import pytest
@@ -209,7 +210,8 @@ def test_synthesis_job_refusals(ready, pdm_model):
     assert_problem(client.post(url, content=npz(markers=markers[:, :5]), headers=NPZ), 422,
                    f"model expects {M} markers, got 5")
     assert_problem(client.post(url, content=npz(markers=markers), headers=NPZ,
-                               params={"format": "usd"}), 422, "'usd' is not supported")
+                               params={"format": "usd", "outputs": "displacement"}), 422,
+                   "format 'usd' is a point cache and needs a mesh output")
     assert_problem(client.post(url, content=_csv(markers[:, :3], ["a", "b", "c"]),
                                headers={"Content-Type": "text/csv"}), 422, "lacks")
     assert_problem(client.post(url, content=b"x", headers={"Content-Type": "image/png"}), 415)
@@ -251,7 +253,7 @@ def test_synthesis_slots_answer_503_when_busy():
     from service.app.metrics import Metrics
     from service.app.synthesis import SynthesisInput, Synthesizer
 
-    synthesizer = Synthesizer(Metrics(), limit=1)
+    synthesizer = Synthesizer(Metrics(), limit=1, wait_seconds=0.0)
     model = SimpleNamespace(synthesize=lambda frames, outputs, clamp: {"faces": np.zeros((1, 3))})
     loaded = SimpleNamespace(model=model, kind=SimpleNamespace(name="fake"))
     request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
@@ -261,6 +263,63 @@ def test_synthesis_slots_answer_503_when_busy():
         synthesizer.run(loaded, request)
     status, headers = status_of(error.value)
     assert status == 503 and headers["Retry-After"] == "1"
+
+
+def test_busy_syntheses_queue_for_a_bounded_wait_and_the_depth_is_a_metric():
+    """issue 16, defect 12: excess requests were refused at once (77 % 503s with 16 clients);
+    now they wait up to ``wait_seconds`` for a slot, and /metrics shows how many wait."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from service.app.metrics import Metrics
+    from service.app.synthesis import SynthesisInput, Synthesizer
+    from service.errors import Unavailable
+
+    metrics = Metrics()
+    synthesizer = Synthesizer(metrics, limit=1, wait_seconds=5.0, max_queue=2)
+    release = threading.Event()
+
+    def slow(frames, outputs, clamp):
+        release.wait(10)
+        return {"faces": np.zeros((1, 3))}
+
+    loaded = SimpleNamespace(model=SimpleNamespace(synthesize=slow),
+                             kind=SimpleNamespace(name="fake"))
+    request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
+    results: list[object] = []
+
+    def call():
+        try:
+            results.append(synthesizer.run(loaded, request))
+        except Unavailable as error:
+            results.append(error)
+
+    threads = [threading.Thread(target=call) for _ in range(3)]    # 1 runs, 2 wait
+    for t in threads:
+        t.start()
+    deadline = time.monotonic() + 5
+    while synthesizer.waiting < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert (synthesizer.running, synthesizer.waiting) == (1, 2)
+    text = metrics.render().decode()
+    assert "facesynth_synthesis_queue_depth 2.0" in text
+    assert "facesynth_synthesis_running 1.0" in text
+    with pytest.raises(Unavailable, match="2 requests are waiting"):    # the queue is full
+        synthesizer.run(loaded, request)
+    release.set()
+    for t in threads:
+        t.join(10)
+    assert len(results) == 3 and all(isinstance(r, dict) for r in results)   # none refused
+    assert synthesizer.waiting == 0 and "facesynth_synthesis_queue_depth 0.0" in \
+        metrics.render().decode()
+    # a wait that runs out is a 503
+    short = Synthesizer(Metrics(), limit=1, wait_seconds=0.2)
+    short._slots.acquire()
+    start = time.monotonic()
+    with pytest.raises(Unavailable, match="waited 0.2 s"):
+        short.run(loaded, request)
+    assert 0.2 <= time.monotonic() - start < 1.0
 
 
 def test_per_vertex_displacement_is_refused_as_a_map_not_a_500():
@@ -280,3 +339,47 @@ def test_retime_is_refused_for_a_pdm_model(ready):
     assert_problem(response, 422, "a pdm model cannot retime", "supported by the kinds shape_space")
     assert_problem(client.post(f"/v1/models/{model_id}/enhance", content=npz(vertices=np.zeros((1, 4, 3))),
                                headers=NPZ, params={"rig": "lod"}), 422, "takes markers")
+
+
+def test_a_usd_synthesis_job_through_the_api_is_a_zip_of_the_cache_and_its_maps(ready, tmp_path):
+    """Submitted over HTTP, run by the job runner in this process (jobs are only recorded
+    here), downloaded over HTTP: the cache's points are the npz job's vertices, bit for bit."""
+    from pxr import Usd, UsdGeom, UsdShade
+
+    from service.jobs import runner
+
+    client, _, model_id, markers, submitted = ready
+    services = client.app.state.services
+    body = npz(markers=markers, fps=np.float64(25.0))
+    results = {}
+    for fmt in ("usd", "npz"):
+        response = client.post(f"/v1/models/{model_id}/synthesis-jobs", content=body,
+                               headers=NPZ, params={"outputs": "mesh,displacement",
+                                                    "format": fmt})
+        assert response.status_code == 202, response.text
+        job_id = response.json()["job_id"]
+        assert job_id in submitted
+        assert runner.execute(services.settings, job_id, "test-host:1:MainThread") == "succeeded"
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        (artifact_id,) = job["result"]["artifact_ids"]
+        results[fmt] = client.get(f"/v1/artifacts/{artifact_id}")
+        assert results[fmt].status_code == 200
+    assert results["usd"].headers["content-type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(results["usd"].content)) as z:
+        assert sorted(z.namelist()) == ["clamped.csv", "frame_0000_displacement.exr",
+                                        "frame_0001_displacement.exr", "performance.usd"]
+        z.extractall(tmp_path)
+    expected = load_npz(results["npz"].content)
+    stage = Usd.Stage.Open(str(tmp_path / "performance.usd"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Mesh"))
+    points = np.stack([np.asarray(mesh.GetPointsAttr().Get(t)) for t in (0, 1)])
+    assert mesh.GetPointsAttr().GetTimeSamples() == [0.0, 1.0]
+    assert points.dtype == expected["vertices"].dtype == np.float32
+    np.testing.assert_array_equal(points, expected["vertices"])
+    np.testing.assert_array_equal(np.asarray(mesh.GetFaceVertexIndicesAttr().Get()),
+                                  expected["faces"].ravel())
+    assert stage.GetTimeCodesPerSecond() == 25.0
+    texture = UsdShade.Shader(stage.GetPrimAtPath("/Face/Looks/Material/displacementTexture"))
+    resolved = texture.GetInput("file").GetAttr().Get(1).resolvedPath
+    np.testing.assert_array_equal(read_map(open(resolved, "rb").read()),
+                                  expected["displacement"][1])

@@ -171,6 +171,28 @@ def test_a_script_uploads_the_actor_folder_trains_and_synthesizes(server, actor_
     frame_map = json.loads((tmp_path / "npz" / "frames.json").read_text())
     assert [row["source_frame"] for row in frame_map["frames"]] == [0, 1, 2, 3, 4]
 
+    # --format usd: one point cache (time code k = input frame k); with maps, the cache
+    # beside the EXR maps it references, under the names it references them by
+    from pxr import Usd, UsdGeom
+    for outputs, files, frame_2 in (
+            ("mesh", ["take.usd"], ["take.usd"]),
+            ("mesh,displacement",
+             ["clamped.csv", "performance.usd"] + [f"frame_{k:04d}_displacement.exr"
+                                                   for k in range(5)],
+             ["performance.usd", "frame_0002_displacement.exr"])):
+        out = tmp_path / f"usd-{len(files)}"
+        facesynth("--server", url, "synthesize", model, str(actor_dir.parent / "take.csv"),
+                  "-o", str(out), "--format", "usd", "--outputs", outputs, "--start-frame",
+                  "101", check=EXIT_OK)
+        assert sorted(p.name for p in out.iterdir()) == sorted(files + ["frames.json"])
+        rows = json.loads((out / "frames.json").read_text())["frames"]
+        assert [(row["frame"], row["time_code"]) for row in rows] == [(101 + k, k) for k in range(5)]
+        assert rows[2]["files"] == frame_2
+        stage = Usd.Stage.Open(str(out / rows[0]["files"][0]))
+        points = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Mesh")).GetPointsAttr()
+        assert points.GetTimeSamples() == [0.0, 1.0, 2.0, 3.0, 4.0]
+        assert np.asarray(points.Get(3)).shape == (16 * 13, 3)
+
     # every listing and show parses as JSON
     for argv in (("actors", "list"), ("models", "list", actor), ("jobs", "list"),
                  ("jobs", "list", "--status", "succeeded")):

@@ -20,6 +20,7 @@ Teardown always kills every process it started.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import shutil
@@ -202,20 +203,25 @@ class Deployment:
         return BlobStore(self.data_dir / "blobs")
 
 
-@pytest.fixture(scope="module")
-def deployment(tmp_path_factory, postgres_server, redis_server) -> Iterator[Deployment]:  # noqa: F811
-    """The API (no embedded worker) and two workers on a fresh database and queue name."""
+@contextlib.contextmanager
+def running_deployment(root: Path, postgres_server: str, redis_server: str, *,  # noqa: F811
+                       data_dir: Path | None = None, workers: int = 2,
+                       env: dict[str, str] | None = None) -> Iterator[Deployment]:
+    """The API (no embedded worker) and ``workers`` workers on a fresh database and queue
+    name, with ``env`` added to their environment; everything is killed and removed at the
+    end (``data_dir``, default ``root/data``, is emptied, not removed, when given)."""
     import redis
 
-    root = tmp_path_factory.mktemp("e2e_deployment")
-    data_dir, logs = root / "data", root / "logs"
-    data_dir.mkdir()
-    logs.mkdir()
+    logs = root / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    own_data = data_dir is None
+    data_dir = root / "data" if data_dir is None else data_dir
+    data_dir.mkdir(parents=True, exist_ok=True)
     queue_name = f"facesynth_e2e_{secrets.token_hex(6)}"
     with temporary_database(postgres_server, prefix="facesynth_e2e_") as database_url:
         port, grpc_port = free_port(), free_port()
-        env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
-        env.update({
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
+        full_env.update({
             "FACESYNTH_DATA_DIR": str(data_dir),
             "FACESYNTH_DATABASE_URL": database_url,
             "FACESYNTH_QUEUE_URL": redis_server,
@@ -225,14 +231,15 @@ def deployment(tmp_path_factory, postgres_server, redis_server) -> Iterator[Depl
             "FACESYNTH_PORT": str(port),
             "FACESYNTH_GRPC_PORT": str(grpc_port),
             "PYTHONUNBUFFERED": "1",
+            **(env or {}),
         })
-        deployment = Deployment(env, data_dir, logs, database_url, redis_server, queue_name,
-                                port, grpc_port)
+        deployment = Deployment(full_env, data_dir, logs, database_url, redis_server,
+                                queue_name, port, grpc_port)
         connection = redis.Redis.from_url(redis_server)
         try:
             deployment.start_api()
-            deployment.start_worker()
-            deployment.start_worker()
+            for _ in range(workers):
+                deployment.start_worker()
             yield deployment
         finally:
             deployment.kill_all()
@@ -242,8 +249,23 @@ def deployment(tmp_path_factory, postgres_server, redis_server) -> Iterator[Depl
                 assert not list(connection.scan_iter(f"*{queue_name}*"))
             finally:
                 connection.close()
-                shutil.rmtree(data_dir, ignore_errors=True)
+                if own_data:
+                    shutil.rmtree(data_dir, ignore_errors=True)
+                else:
+                    for child in data_dir.iterdir():
+                        if child.is_dir():
+                            shutil.rmtree(child, ignore_errors=True)
+                        else:
+                            child.unlink(missing_ok=True)
         # leaving the block drops the database (WITH (FORCE))
+
+
+@pytest.fixture(scope="module")
+def deployment(tmp_path_factory, postgres_server, redis_server) -> Iterator[Deployment]:  # noqa: F811
+    """The API (no embedded worker) and two workers on a fresh database and queue name."""
+    with running_deployment(tmp_path_factory.mktemp("e2e_deployment"), postgres_server,
+                            redis_server) as deployment:
+        yield deployment
 
 
 @pytest.hookimpl(hookwrapper=True)

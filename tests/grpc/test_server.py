@@ -139,3 +139,27 @@ def test_streams_beyond_max_workers_are_refused_not_queued(load_model, heldout_m
         finally:
             release.set()
         assert [list(s) for s in open_streams] == [[], []]
+
+
+def test_each_call_is_scoped_to_its_tokens_tenant(load_model, heldout_markers):
+    """issue 16, defect 13: the stream sees only its tenant's models (the registry scope is
+    set for the call and reset after it); an admin token sees every tenant."""
+    from models_store.registry import TENANT_SCOPE
+
+    seen = []
+
+    def scoped_load(model_id):
+        seen.append(TENANT_SCOPE.get())
+        if TENANT_SCOPE.get() not in (None, "studio-a"):
+            from service.errors import NotFound
+
+            raise NotFound("model", model_id)
+        return load_model(model_id)
+
+    with running(scoped_load, tokens=["studio-a:tok-a", "studio-b:tok-b", "ops:tok-o:admin"]) as ch:
+        assert len(list(stream_synthesize(ch, MODEL_ID, heldout_markers[:1], token="tok-a"))) == 1
+        e = _status(stream_synthesize(ch, MODEL_ID, heldout_markers[:1], token="tok-b"))
+        assert e.code() == grpc.StatusCode.NOT_FOUND
+        assert len(list(stream_synthesize(ch, MODEL_ID, heldout_markers[:1], token="tok-o"))) == 1
+    assert seen == ["studio-a", "studio-b", None]
+    assert TENANT_SCOPE.get() is None

@@ -267,10 +267,14 @@ def test_bad_marker_layout_raises_a_specific_format_error(entry, message):
         read_marker_layout(_layout_with(entry), vertex_count=1000, triangle_count=10000)
 
 
-def test_barycentric_sum_tolerance_is_one_in_a_million():
-    read_marker_layout(_layout_with({"name": "X", "triangle": 1, "barycentric": [0.2, 0.3, 0.5000009]}))
-    with pytest.raises(MarkerFormatError, match="sum to 1"):
-        read_marker_layout(_layout_with({"name": "X", "triangle": 1, "barycentric": [0.2, 0.3, 0.500002]}))
+def test_barycentric_sum_tolerance_fits_files_written_with_six_decimals():
+    """issue 16, defect 14: 1e-6 refused real exported layouts; the tolerance is 1e-4."""
+    for bary in ([0.2, 0.3, 0.5000009], [0.333333, 0.333333, 0.333333], [0.2, 0.3, 0.50009],
+                 [-0.00009, 0.5, 0.50009]):
+        read_marker_layout(_layout_with({"name": "X", "triangle": 1, "barycentric": bary}))
+    for bary in ([0.2, 0.3, 0.5002], [-0.0002, 0.5, 0.5002]):
+        with pytest.raises(MarkerFormatError, match="sum to 1"):
+            read_marker_layout(_layout_with({"name": "X", "triangle": 1, "barycentric": bary}))
 
 
 def test_corrupted_marker_files_raise_only_format_errors(sequence):

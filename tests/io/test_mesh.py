@@ -413,3 +413,16 @@ def test_corrupted_mesh_files_raise_only_format_errors():
                 read(corrupt(buffer.getvalue(), rng, trial, b"0123456789-/ .\nnan"))
             except FormatError:
                 pass
+
+
+@pytest.mark.parametrize("key, dtype", [("vertices", np.int8), ("vertices", np.int64),
+                                        ("vertices", np.bool_), ("uv", np.int32)])
+def test_npz_meshes_with_non_float_coordinates_are_refused(key, dtype):
+    """issue 16, defect 9: int8 vertices used to be accepted (and replaced a neutral)."""
+    from service.io.npz import npz_bytes
+
+    arrays = {"vertices": np.zeros((3, 3), np.float32), "faces": np.array([[0, 1, 2]], np.int32),
+              "uv": np.zeros((3, 2), np.float32)}
+    arrays[key] = arrays[key].astype(dtype)
+    with pytest.raises(MeshFormatError, match=f"'{key}' has dtype .*expected floating point"):
+        read_npz(npz_bytes(**arrays))

@@ -55,6 +55,19 @@ def test_unclaimable_and_unknown_jobs_are_skipped(deployment):
 @pytest.mark.parametrize("error, code, message", [
     (InvalidInput("clip 'x' frame 3 has NaN"), "invalid_input", "clip 'x' frame 3 has NaN"),
     (RuntimeError("disk on fire"), "internal", "RuntimeError: disk on fire"),
+    # issue 16, defect 4: storage errors get their own codes and never show server paths
+    (OSError(28, "No space left on device", "/srv/data/blobs/.synthesize-x/vertices.npy"),
+     "insufficient_storage", "the server's storage is full (No space left on device); the "
+                             "job can be submitted again once space is freed"),
+    (OSError(122, "Disk quota exceeded", "/srv/data/blobs/a"),
+     "insufficient_storage", "the server's storage is full (Disk quota exceeded); the "
+                             "job can be submitted again once space is freed"),
+    (OSError(30, "Read-only file system", "/srv/data/blobs/a"),
+     "storage_unavailable", "the server's storage cannot be written (Read-only file system); "
+                            "the job can be submitted again once it is writable"),
+    (PermissionError(13, "Permission denied", "/srv/data/blobs/a"),
+     "storage_unavailable", "the server's storage cannot be written (Permission denied); "
+                            "the job can be submitted again once it is writable"),
 ])
 def test_task_errors_become_the_jobs_error(deployment, probe, error, code, message):
     def task(job):

@@ -207,7 +207,48 @@ def test_queued_jobs_whose_message_was_lost_are_resubmitted_when_a_worker_starts
     with deployment.session() as session:
         assert job.id not in resubmit_stale(deployment.settings)  # too young to be lost
         assert job.id in resubmit_stale(deployment.settings, older_than=0.0)
+        # its message now waits in the queue: not submitted again
+        assert job.id not in resubmit_stale(deployment.settings, older_than=0.0)
         registry.request_cancel(session, job.id)
+    get_queue(deployment.settings).huey.flush()
+
+
+# -- issue 16, defect 5: lost messages and dead workers, without restarting anything --------
+@pytest.fixture
+def probe_kind(monkeypatch):
+    from service.jobs import tasks
+
+    monkeypatch.setitem(tasks.TASKS, "probe", lambda job: {"ran": job.attempt})
+
+
+def test_a_job_whose_message_is_lost_runs_within_the_bound_on_a_running_worker(
+        deployment, start_worker, probe_kind):
+    settings = deployment.settings.model_copy(update={"job_resubmit_seconds": 1.0})
+    start_worker(settings)
+    with deployment.session() as session:     # committed, never enqueued: the message is lost
+        job = registry.create_job(session, "probe", deployment.actor_id)
+    finished = deployment.wait(job.id, timeout=1.0 + 5 * settings.job_lease_seconds)
+    assert (finished.status, finished.result) == ("succeeded", {"ran": 1})
+    assert (finished.started_at - job.created_at).total_seconds() >= 1.0
+
+
+def test_expired_leases_are_reaped_with_no_worker_alive(deployment, probe_kind):
+    from service.jobs.worker import start_maintenance
+
+    with deployment.session() as session:
+        job = registry.create_job(session, "probe", deployment.actor_id)
+        registry.claim_job(session, "dead-host:1:thread", lease_seconds=0.2, max_retries=2,
+                           job_id=job.id)
+    maintenance = start_maintenance(deployment.settings)      # what an API process runs
+    try:
+        requeued = deployment.wait(job.id, timeout=3 * deployment.settings.job_lease_seconds,
+                                   until=lambda j: j.status != "running")
+    finally:
+        maintenance.stop(timeout=10)
+    assert (requeued.status, requeued.worker, requeued.attempts) == ("queued", None, 1)
+    with deployment.session() as session:
+        registry.request_cancel(session, job.id)
+    get_queue(deployment.settings).huey.flush()
 
 
 def test_synthesis_job_writes_per_frame_obj_and_exr_into_a_zip(deployment, trained, start_worker,
@@ -226,3 +267,88 @@ def test_synthesis_job_writes_per_frame_obj_and_exr_into_a_zip(deployment, train
         assert mesh.uv_faces is not None and len(mesh.uv_faces) == len(mesh.faces)
         np.testing.assert_array_equal(read_map(z.read("frame_0001_displacement.exr")),
                                       expected["displacement"][1])
+
+
+def _usd_points(path):
+    """(points (F,V,3) float32 at the time samples, faceVertexIndices (T·3,), time codes,
+    timeCodesPerSecond) of the cache at ``path``."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Mesh"))
+    times = mesh.GetPointsAttr().GetTimeSamples()
+    points = np.stack([np.asarray(mesh.GetPointsAttr().Get(t)) for t in times])
+    return (points, np.asarray(mesh.GetFaceVertexIndicesAttr().Get()), times,
+            stage.GetTimeCodesPerSecond())
+
+
+def _job_with_fps(deployment, model_id, markers, fps, **payload) -> str:
+    """A queued synthesis job whose input artifact states ``fps``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, markers=markers.astype(np.float32), fps=np.float64(fps))
+    with deployment.session() as session:
+        job = registry.create_job(session, "synthesize", deployment.actor_id, model_id=model_id)
+        artifact = registry.add_artifact(session, deployment.store.blobs, job.id,
+                                         buffer.getvalue(), media_type="application/x-npz")
+        job.payload = {"model_id": model_id, "markers_artifact_id": artifact.id, **payload}
+        session.commit()
+        return job.id
+
+
+def _artifact(deployment, job):
+    (artifact_id,) = job.result["artifact_ids"]
+    with deployment.session() as session:
+        artifact, stream = registry.open_artifact(session, deployment.store.blobs, artifact_id)
+        with stream:
+            return artifact, stream.read()
+
+
+def test_synthesis_job_writes_a_usd_cache_whose_points_are_the_npz_vertices(
+        deployment, trained, start_worker, pdm_actor_dir, tmp_path):
+    model_id, _ = trained
+    markers = _markers(pdm_actor_dir, 20)           # two chunks of CHUNK_FRAMES = 16
+    start_worker(deployment.settings)
+    jobs = {fmt: _job_with_fps(deployment, model_id, markers, 24.0, outputs=["mesh"], format=fmt)
+            for fmt in ("usd", "npz")}
+    for job_id in jobs.values():
+        submit(deployment.settings, job_id)
+    (usd_artifact, usd), (_, npz) = (_artifact(deployment, deployment.wait(jobs[fmt]))
+                                     for fmt in ("usd", "npz"))
+    assert (usd_artifact.media_type, usd_artifact.filename) == ("application/octet-stream",
+                                                                f"{jobs['usd']}.usd")
+    (tmp_path / "take.usd").write_bytes(usd)
+    points, corners, times, fps = _usd_points(tmp_path / "take.usd")
+    result = npz_arrays(npz)
+    assert points.dtype == np.float32 and result["vertices"].dtype == np.float32
+    np.testing.assert_array_equal(points, result["vertices"])          # bit-exact
+    np.testing.assert_array_equal(corners, result["faces"].ravel())
+    assert times == list(map(float, range(20))) and fps == 24.0
+
+
+def test_cancelling_a_usd_job_stops_it_at_the_next_chunk(deployment, trained, pdm_actor_dir,
+                                                        monkeypatch):
+    import importlib
+
+    from service.jobs import runner
+
+    task = importlib.import_module("service.jobs.tasks.synthesize")  # the module, not the task
+
+    model_id, _ = trained
+    job_id = deployment.create_synthesis_job(model_id, _markers(pdm_actor_dir, 6),
+                                             outputs=["mesh"], format="usd")
+    chunks = []
+
+    class CancelAfterOneChunk(task.FrameUsdWriter):
+        def write(self, start, arrays):
+            super().write(start, arrays)
+            chunks.append(start)
+            with deployment.session() as session:
+                registry.request_cancel(session, job_id)
+
+    monkeypatch.setattr(task, "FrameUsdWriter", CancelAfterOneChunk)
+    monkeypatch.setattr(task, "CHUNK_FRAMES", 2)
+    monkeypatch.setattr(runner, "PROGRESS_INTERVAL", 0.0)   # every progress point is written
+    assert runner.execute(deployment.settings, job_id, "test-host:1:MainThread") == "cancelled"
+    job = deployment.job(job_id)
+    assert chunks == [0] and job.status == "cancelled" and job.result is None
+    assert job.progress == pytest.approx(task.LOADED + (task.SYNTHESIZED - task.LOADED) * 2 / 6)

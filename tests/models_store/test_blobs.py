@@ -186,3 +186,84 @@ def test_tree_digest_depends_on_paths_and_contents():
     assert a == tree_digest({"y": "2" * 64, "x": "1" * 64})     # order-independent
     assert a != tree_digest({"x": "2" * 64, "y": "1" * 64})
     assert a != tree_digest({"x": "1" * 64, "z": "2" * 64})
+
+
+# -- temporaries left by crashes (issue 16, defect 3) and the readiness probe (defect 4) ----
+SCRATCH_CHILD = r"""
+import os, sys, time
+from models_store.blobs import BlobStore
+with BlobStore(sys.argv[1]).scratch_dir("synthesize") as path:
+    (path / "vertices.npy").write_bytes(b"x" * 1000)
+    print(path.name, flush=True)
+    time.sleep(60)                          # killed here
+"""
+
+
+def _age(path, seconds):
+    """Set the modification time of ``path`` and everything under it ``seconds`` back."""
+    import time
+
+    then = time.time() - seconds
+    for p in [path, *path.rglob("*")] if path.is_dir() else [path]:
+        os.utime(p, (then, then))
+
+
+def test_sweep_removes_old_temporaries_and_keeps_blobs_young_ones_and_live_scratch(blobs):
+    import subprocess
+    import sys
+
+    blobs.put_bytes("actors/a/clips/clp_1", b"clip")
+    leftover_file = blobs.root / "actors" / "a" / "clips" / ".clp_2.k3j4.tmp"
+    leftover_file.write_bytes(b"half a clip")
+    leftover_dir = blobs.root / "models" / "m" / ".01j9.abc.tmp"
+    (leftover_dir / "maps").mkdir(parents=True)
+    (leftover_dir / "maps" / "x.exr").write_bytes(b"half a model")
+    young = blobs.root / "actors" / "a" / ".neutral-x.y.tmp"
+    young.write_bytes(b"being written")
+    # a worker SIGKILLed in the middle of a synthesis leaves its scratch directory
+    child = subprocess.Popen([sys.executable, "-c", SCRATCH_CHILD, str(blobs.root)],
+                             stdout=subprocess.PIPE, text=True)
+    killed = blobs.root / child.stdout.readline().strip()
+    child.kill()
+    child.wait(10)
+    assert killed.is_dir() and killed.name.startswith(".synthesize-")
+    with blobs.scratch_dir("train") as live:
+        (live / "model.npz").write_bytes(b"in use")
+        for path in (leftover_file, leftover_dir, killed, live):
+            _age(path, 3600)
+        removed = blobs.sweep_temporaries(older_than=600)
+        assert sorted(removed) == sorted(["actors/a/clips/.clp_2.k3j4.tmp",
+                                          "models/m/.01j9.abc.tmp", killed.name])
+        assert live.is_dir() and (live / "model.npz").read_bytes() == b"in use"
+    assert not live.exists()                       # the block's end removed it
+    assert young.exists() and blobs.read_bytes("actors/a/clips/clp_1",
+                                               hashlib.sha256(b"clip").hexdigest()) == b"clip"
+    assert blobs.sweep_temporaries(older_than=600) == []
+
+
+def test_scratch_prefix_is_checked(blobs):
+    with pytest.raises(ValueError, match="scratch prefix"):
+        with blobs.scratch_dir("../x"):
+            pass
+
+
+def test_health_reports_a_full_and_a_read_only_store():
+    from tests.filesystems import fill, read_only, small_filesystem
+
+    with small_filesystem(4 << 20) as point:
+        store = BlobStore(point / "blobs")
+        fine = store.health(min_free_bytes=1 << 20)
+        assert fine.ready and fine.writable and fine.total_bytes == 4 << 20
+        filler = fill(point, leave_bytes=256 << 10)
+        nearly = store.health(min_free_bytes=1 << 20)
+        assert nearly.writable and not nearly.ready
+        assert nearly.free_bytes <= 256 << 10
+        assert nearly.reason.startswith("the blob store is nearly full")
+        assert str(point) not in nearly.reason
+        filler.unlink()
+        with read_only(point):
+            ro = store.health(min_free_bytes=1 << 20)
+            assert not ro.writable and not ro.ready
+            assert ro.reason == "the blob store is not writable (Read-only file system)"
+        assert store.health(min_free_bytes=1 << 20).ready           # recovered
+        assert [p.name for p in (point / "blobs").iterdir()] == []  # no probe left behind

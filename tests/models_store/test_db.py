@@ -148,3 +148,16 @@ def test_naive_timestamps_are_refused(db_url):
         with pytest.raises(Exception, match="naive datetime"):
             session.commit()
     sessions.kw["bind"].dispose()
+
+
+def test_the_tenant_migration_gives_existing_rows_the_default_tenant(fresh_db_url):
+    upgrade(fresh_db_url, "0001")
+    engine = make_engine(fresh_db_url)
+    with engine.begin() as connection:
+        connection.execute(text("INSERT INTO actors (id, name, metadata, created_at) VALUES "
+                                "(:id, 'old', '{}', CURRENT_TIMESTAMP)"), {"id": "act_" + "1" * 26})
+    upgrade(fresh_db_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT tenant FROM actors")).scalars().all() == ["default"]
+    engine.dispose()
+    assert schema_diff(fresh_db_url) == []

@@ -486,3 +486,158 @@ def test_artifact_round_trip_and_corruption(session, blobs, actor):
     blobs.path(artifact.blob).write_bytes(b"npz bytez")
     with pytest.raises(BlobCorrupt):
         reg.open_artifact(session, blobs, artifact.id)
+
+
+# -- concurrent replacement leaves no orphan blobs (issue 16, defect 6) ----------------------
+def _concurrently(n, target):
+    start = threading.Barrier(n)
+    errors = []
+
+    def run(i):
+        start.wait()
+        try:
+            target(i)
+        except Exception as error:  # noqa: BLE001 - collected and asserted below
+            errors.append(error)
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    return errors
+
+
+@pytest.mark.parametrize("what", ["neutral", "markers"])
+def test_concurrent_replacements_leave_exactly_the_referenced_blob(sessions, session, blobs,
+                                                                   actor, what):
+    def put(i):
+        with sessions() as own:
+            if what == "neutral":
+                reg.set_neutral(own, blobs, actor.id, b"neutral %d" % i, vertex_count=i + 3,
+                                triangle_count=1)
+            else:
+                reg.set_markers(own, blobs, actor.id, b"markers %d" % i, marker_count=i + 1)
+
+    assert _concurrently(16, put) == []
+    row = reg.get_actor(session, actor.id)
+    key = row.neutral_blob if what == "neutral" else row.markers_blob
+    assert stored_files(blobs) == [key]                          # no orphans
+    data = (reg.read_neutral if what == "neutral" else reg.read_markers)(session, blobs, actor.id)
+    i = int(data.split()[1])                                     # the row and blob agree
+    assert (row.vertex_count if what == "neutral" else row.marker_count) == (
+        i + 3 if what == "neutral" else i + 1)
+
+
+def test_concurrent_rig_replacements_leave_exactly_the_referenced_blob(sessions, session, blobs,
+                                                                       actor):
+    reg.put_input_rig(session, blobs, actor.id, "lowres", b"first")
+
+    def put(i):
+        with sessions() as own:
+            reg.put_input_rig(own, blobs, actor.id, "lowres", b"mesh %d" % i)
+
+    assert _concurrently(12, put) == []
+    rig = reg.get_input_rig(session, actor.id, "lowres")
+    assert stored_files(blobs) == [rig.mesh_blob]
+
+
+def test_concurrent_first_puts_of_one_rig_make_one_rig_and_no_orphans(sessions, session, blobs,
+                                                                      actor):
+    def put(i):
+        with sessions() as own:
+            reg.put_input_rig(own, blobs, actor.id, "fresh", b"mesh %d" % i)
+
+    assert _concurrently(8, put) == []
+    (rig,) = reg.list_input_rigs(session, actor.id)
+    assert stored_files(blobs) == [rig.mesh_blob]
+
+
+# -- tenants (issue 16, defect 13) -----------------------------------------------------------
+def test_every_lookup_is_scoped_to_the_tenant_and_others_ids_are_plain_not_found(
+        session, blobs, model_dir):
+    a = reg.create_actor(session, "Ada", tenant="studio-a")
+    b = reg.create_actor(session, "Bob", tenant="studio-b")
+    reg.set_neutral(session, blobs, a.id, b"n", vertex_count=3, triangle_count=1)
+    clip = reg.add_clip(session, blobs, a.id, b"clip", frames=1)
+    reg.put_input_rig(session, blobs, a.id, "low", b"mesh")
+    model, job = reg.create_model(session, a.id, "pdm", {}, clip_ids=[clip.id])
+    artifact = reg.add_artifact(session, blobs, job.id, b"r", media_type="x/y")
+    assert (model.tenant, job.tenant) == ("studio-a", "studio-a")      # inherited from the actor
+    assert [x.id for x in reg.list_actors(session, tenant="studio-a")] == [a.id]
+    assert [x.id for x in reg.list_actors(session, tenant="studio-b")] == [b.id]
+    assert len(reg.list_actors(session)) == 2                            # admin: every tenant
+    assert reg.list_models(session, tenant="studio-b") == []
+    assert reg.list_jobs(session, tenant="studio-b") == []
+    assert [j.id for j in reg.list_jobs(session, tenant="studio-a")] == [job.id]
+    other = "studio-b"
+    calls = {
+        "actor": lambda: reg.get_actor(session, a.id, tenant=other),
+        "neutral": lambda: reg.read_neutral(session, blobs, a.id, tenant=other),
+        "set neutral": lambda: reg.set_neutral(session, blobs, a.id, b"x", vertex_count=3,
+                                               triangle_count=1, tenant=other),
+        "clips": lambda: reg.list_clips(session, a.id, tenant=other),
+        "clip": lambda: reg.get_clip(session, clip.id, tenant=other),
+        "add clip": lambda: reg.add_clip(session, blobs, a.id, b"c", frames=1, tenant=other),
+        "delete clip": lambda: reg.delete_clip(session, blobs, clip.id, tenant=other),
+        "rig": lambda: reg.get_input_rig(session, a.id, "low", tenant=other),
+        "put rig": lambda: reg.put_input_rig(session, blobs, a.id, "low", b"m", tenant=other),
+        "model": lambda: reg.get_model(session, model.id, tenant=other),
+        "models": lambda: reg.list_models(session, a.id, tenant=other),
+        "train": lambda: reg.create_model(session, a.id, "pdm", {}, tenant=other),
+        "delete model": lambda: reg.delete_model(session, blobs, model.id, tenant=other),
+        "job": lambda: reg.get_job(session, job.id, tenant=other),
+        "create job": lambda: reg.create_job(session, "synthesize", a.id, tenant=other),
+        "cancel": lambda: reg.request_cancel(session, job.id, tenant=other),
+        "artifact": lambda: reg.get_artifact(session, artifact.id, tenant=other),
+        "artifacts": lambda: reg.list_artifacts(session, job.id, tenant=other),
+        "open artifact": lambda: reg.open_artifact(session, blobs, artifact.id, tenant=other),
+        "delete actor": lambda: reg.delete_actor(session, blobs, a.id, cascade=True,
+                                                 tenant=other),
+    }
+    for what, call in calls.items():
+        with pytest.raises(NotFound) as raised:
+            call()
+        assert "another" not in str(raised.value) and "studio" not in str(raised.value), what
+    # nothing changed
+    assert reg.get_job(session, job.id, tenant="studio-a").status == "queued"
+    assert reg.read_clip(session, blobs, clip.id, tenant="studio-a") == b"clip"
+    assert len(reg.list_clips(session, a.id)) == 1
+    assert reg.get_model(session, model.id, tenant="studio-a").id == model.id
+
+
+def test_malformed_tenants_are_refused(session):
+    for bad in ("", "../x", "a b", "x" * 65):
+        with pytest.raises(ValueError, match="tenant"):
+            reg.create_actor(session, "Ada", tenant=bad)
+
+
+def test_acting_for_scopes_every_call_without_arguments(session, blobs):
+    with reg.acting_for("studio-a", "studio-a"):
+        a = reg.create_actor(session, "Ada")
+        job = reg.create_job(session, "synthesize", a.id)
+    with reg.acting_for("studio-b", "studio-b"):
+        b = reg.create_actor(session, "Bob")
+        assert [x.id for x in reg.list_actors(session)] == [b.id]
+        assert reg.list_jobs(session) == []
+        for call in (lambda: reg.get_actor(session, a.id), lambda: reg.get_job(session, job.id),
+                     lambda: reg.list_clips(session, a.id)):
+            with pytest.raises(NotFound):
+                call()
+    with reg.acting_for("ops", None):                     # an admin
+        assert {x.id for x in reg.list_actors(session)} == {a.id, b.id}
+        assert reg.create_actor(session, "Op").tenant == "ops"
+    assert (a.tenant, b.tenant, job.tenant) == ("studio-a", "studio-b", "studio-a")
+    assert len(reg.list_actors(session)) == 3            # no scope outside a request
+
+
+@pytest.mark.parametrize("name, metadata", [("ok", {"k": "\udfff"}), ("ok", {"\ud800": 1}),
+                                            ("p\udfff", {}), ("ok", {"k": ["a\x00"]})])
+def test_unencodable_strings_are_never_committed(session, blobs, name, metadata):
+    with pytest.raises(ValueError, match="refused before writing"):
+        reg.create_actor(session, name, metadata)
+    assert reg.list_actors(session) == []
+    actor = reg.create_actor(session, "fine")
+    with pytest.raises(ValueError, match="refused before writing"):
+        reg.add_clip(session, blobs, actor.id, b"clip", frames=1, name="a\x00b")
+    assert reg.list_clips(session, actor.id) == [] and list(blobs.root.rglob("*")) == []

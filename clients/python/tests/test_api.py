@@ -124,7 +124,7 @@ def test_clips_from_arrays_npz_file_and_per_frame_objs(client, sheet_actor, tmp_
     csv = tmp_path / "take.csv"
     csv.write_text(markers_csv(markers))
     multipart = fs.clips.upload_frames(actor.actor_id, objs, csv, fps=24, name="multipart")
-    assert multipart.frames == 3
+    assert multipart.frames == 3 and multipart.notes == []
 
     listed = {c.clip_id for c in fs.clips.list(actor.actor_id)}
     assert {from_file.clip_id, multipart.clip_id} <= listed
@@ -279,6 +279,19 @@ def test_synthesis_job_download_and_job_routes(client, sheet_actor, pdm_model, t
     events = list(client.jobs.events(job))
     assert len(events) == 1 and events[0].status == "succeeded"
     assert client.cancel(job).status == "succeeded"  # a finished job is left as it is
+
+    # format="usd": one point cache whose points are the npz result's vertices, bit for bit
+    from pxr import Usd, UsdGeom
+    usd_job = client.wait(client.synthesis.submit_job(pdm_model, markers=markers, fps=24.0,
+                                                      outputs=["mesh"], format="usd"),
+                          timeout=120)
+    cache = client.download_artifact(usd_job.artifact_ids[0], tmp_path / "take.usd")
+    stage = Usd.Stage.Open(str(cache))
+    points = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Mesh")).GetPointsAttr()
+    assert points.GetTimeSamples() == [float(k) for k in range(12)]
+    assert stage.GetTimeCodesPerSecond() == 24.0
+    np.testing.assert_array_equal(np.stack([np.asarray(points.Get(k)) for k in range(12)]),
+                                  arrays["vertices"])
 
     csv = tmp_path / "perf.csv"
     csv.write_text(markers_csv(markers[:5]))

@@ -54,7 +54,7 @@ async def delete_actor(actor_id: str, services: ServicesDep, cascade: bool = Fal
     openapi_extra=body(uploads.MESH_TYPES, description=(
         "`.npz` (`application/x-npz`) with `vertices` (V,3), `faces` (T,3), `uv` (V,2) per "
         "vertex or (K,2) with `uv_faces` (T,3), optional `quad_split` (T,) and `region_<name>` "
-        "(V,) bool vertex sets; or `.obj` (`model/obj`, `text/plain`) with `vt` coordinates.")))
+        "(V,) bool vertex sets; or `.obj` (`model/obj`) with `vt` coordinates.")))
 async def put_neutral(actor_id: str, request: Request, services: ServicesDep) -> schemas.NeutralInfo:
     """Store the actor's neutral with its UV layout. The vertex order is kept exactly (it is
     the correspondence every clip follows); polygons are fan-split into triangles and counted.

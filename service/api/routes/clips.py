@@ -19,7 +19,8 @@ _FILE = {"type": "string", "format": "binary"}
 
 
 @router.post(
-    "", status_code=status.HTTP_201_CREATED, response_model=schemas.Clip, summary="Add a clip",
+    "", status_code=status.HTTP_201_CREATED, response_model=schemas.ClipAdded,
+    summary="Add a clip",
     responses=problems(400, 404, 409, 413, 415, 422),
     openapi_extra=body(uploads.NPZ_TYPES, multipart={
         "frames": {"type": "array", "items": _FILE,
@@ -33,10 +34,12 @@ _FILE = {"type": "string", "format": "binary"}
                     "`albedo` (F,A,A,3) linear RGB, `fps`; or multipart per-frame OBJs and a "
                     "marker file."))
 async def add_clip(actor_id: str, request: Request, services: ServicesDep,
-                   name: Annotated[str | None, Query(max_length=200)] = None) -> schemas.Clip:
+                   name: Annotated[str | None, Query(max_length=200)] = None) -> schemas.ClipAdded:
     """Store a captured clip. Every frame must have the neutral's vertex count (e.g. 422
     "clip frame 12 has 40000 vertices, the neutral has 40962") and the layout's marker
-    count; vertices must be finite. Needs the neutral and the marker layout first (409)."""
+    count; vertices must be finite. Needs the neutral and the marker layout first (409).
+    The answer's `notes` say what the marker file's reader accepted that you should know
+    (e.g. a TRC whose `NumFrames` disagrees with its rows)."""
     kind = bodies.require_media_type(request, uploads.NPZ_TYPES + (uploads.MULTIPART,))
     if kind == uploads.MULTIPART:
         data = await bodies.read_clip_form(request)

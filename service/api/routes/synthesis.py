@@ -145,8 +145,15 @@ async def submit_synthesis_job(
         model_id: str, request: Request, services: ServicesDep, submit: SubmitDep,
         response: Response, outputs: OutputsQuery = None, clamp: bool = True,
         result_format: Annotated[schemas.ResultFormat, Query(
-            alias="format", description="`npz`, or `obj-exr-zip` for per-frame OBJ + EXR files, "
-                                        "or `usd` where supported")] = "npz",
+            alias="format", description=(
+                "`npz` (default); `obj-exr-zip` for per-frame OBJ + EXR files in a zip; or "
+                "`usd`, one USD point cache (binary crate `.usd`: the mesh's topology and "
+                "`st` UVs once, float32 `points` time-sampled per frame at time codes 0…F-1, "
+                "`timeCodesPerSecond` the input's fps or 30). `usd` needs `mesh` or "
+                "`mesh_detailed` in the outputs; with maps (or both meshes) the artifact is a "
+                "zip of `performance.usd` / `performance_detailed.usd` and the per-frame EXR "
+                "maps (`frame_0000_displacement.exr`, ...) that its UsdPreviewSurface reads, "
+                "plus `clamped.csv`."))] = "npz",
         rig: RigQuery = None,
 ) -> schemas.JobAccepted:
     """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and

@@ -7,7 +7,7 @@ Payload::
        | "markers_blob": "<key>", "markers_sha256": "<hex>",   # … or a blob of the store
      "outputs": ["mesh", "displacement"],          # optional (API.md's outputs)
      "clamp": true,                                # optional: the extrapolation limit
-     "format": "npz"}                              # optional: "npz" or "obj-exr-zip"
+     "format": "npz"}                              # optional: "npz", "obj-exr-zip", "usd"
 
 A mesh-driven model (``shape_space``) takes ``vertices`` instead of ``markers``
 (``vertices_artifact_id`` | ``vertices_blob`` + ``vertices_sha256``: (F,n,3) on the actor's
@@ -19,13 +19,14 @@ against its sha256) before they are enhanced.
 Result ``{"model_id", "artifact_ids": [one artifact]}``: for ``npz`` the arrays of API.md's
 synthesize response (``vertices`` (F,n,3), ``faces``, the asked maps, ``clamped`` (F,)); for
 ``obj-exr-zip`` one OBJ per frame and mesh output and one EXR per frame and map
-(:mod:`service.jobs.frame_zip`). Both are written chunk by chunk, so memory stays bounded
-for any length.
+(:mod:`service.jobs.frame_zip`); for ``usd`` one USD point cache at the input's frame rate
+(its ``fps``, else 30), or a zip of the cache and the EXR maps it references when maps are
+asked (:mod:`service.jobs.frame_usd`). All are written chunk by chunk, so memory stays
+bounded for any length (a USD stage holds the points once; they are not kept twice).
 """
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -37,7 +38,8 @@ from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from service.io.npz import npz_arrays
 from service.jobs.frame_npz import STATIC_KEYS, FrameNpzWriter
-from service.jobs.formats import RESULT_FORMATS
+from service.jobs.formats import artifact_type, check_result_format, usd_is_zip
+from service.jobs.frame_usd import DEFAULT_FPS, FrameUsdWriter
 from service.jobs.frame_zip import FrameZipWriter
 from service.jobs.running import RunningJob
 from service.methods.inputs import InvalidInput
@@ -59,9 +61,8 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     payload = job.payload
     model_id = payload["model_id"]
     fmt = payload.get("format", "npz")
-    if fmt not in RESULT_FORMATS:
-        raise InvalidInput(f"result format {fmt!r} is not supported; choose from {list(RESULT_FORMATS)}")
     outputs = tuple(payload.get("outputs") or DEFAULT_OUTPUTS)
+    check_result_format(fmt, outputs)
     clamp = bool(payload.get("clamp", True))
     store = job.store
     job.progress(0.0, "loading the model")
@@ -72,17 +73,23 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
         if model.status != "ready":
             raise InvalidInput(f"model {model_id!r} is {model.status}, not ready")
         path = registry.model_dir(session, store.blobs, model_id)
-        inputs = read_frames(session, store.blobs, payload, key)
+        inputs, fps = read_frames(session, store.blobs, payload, key)
     registration = read_registration(store.blobs, payload) if payload.get("rig_id") else None
     if registration is not None and key != "vertices":
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)
     frames = len(inputs)
-    media_type, suffix = RESULT_FORMATS[fmt]
-    with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".synthesize-") as tmp:
-        writer = (FrameNpzWriter(Path(tmp), frames, STATIC_OUTPUTS) if fmt == "npz" else
-                  FrameZipWriter(Path(tmp) / "result.zip", frames,
-                                 getattr(trained, "uv", None), getattr(trained, "uv_faces", None)))
+    media_type, suffix = artifact_type(fmt, outputs)
+    uv, uv_faces = getattr(trained, "uv", None), getattr(trained, "uv_faces", None)
+    with store.blobs.scratch_dir("synthesize") as tmp:  # locked: never swept while in use
+        if fmt == "npz":
+            writer = FrameNpzWriter(Path(tmp), frames, STATIC_OUTPUTS)
+        elif fmt == "usd":
+            writer = FrameUsdWriter(Path(tmp), frames, uv, uv_faces,
+                                    fps=DEFAULT_FPS if fps is None else fps,
+                                    as_zip=usd_is_zip(outputs))
+        else:
+            writer = FrameZipWriter(Path(tmp) / "result.zip", frames, uv, uv_faces)
         for start in range(0, frames, CHUNK_FRAMES):
             job.progress(LOADED + (SYNTHESIZED - LOADED) * start / frames, "synthesizing")
             stop = min(start + CHUNK_FRAMES, frames)
@@ -103,9 +110,10 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
 
 
 def read_frames(session: Session, blobs: BlobStore, payload: Mapping[str, Any],
-                key: str = "markers") -> np.ndarray:
-    """The payload's input frames under ``key``: markers (F,M,3) or vertices (F,V,3)
-    float64 (InvalidInput if absent or malformed)."""
+                key: str = "markers") -> tuple[np.ndarray, float | None]:
+    """The payload's input frames under ``key``, markers (F,M,3) or vertices (F,V,3)
+    float64 (InvalidInput if absent or malformed), and the input's ``fps`` (None if it
+    states none)."""
     if payload.get(f"{key}_artifact_id"):
         artifact, stream = registry.open_artifact(session, blobs, payload[f"{key}_artifact_id"])
         with stream:
@@ -115,14 +123,18 @@ def read_frames(session: Session, blobs: BlobStore, payload: Mapping[str, Any],
     else:
         raise InvalidInput(f"the job names no input: give {key}_artifact_id or {key}_blob")
     try:
-        frames = np.asarray(npz_arrays(data)[key], np.float64)
+        arrays = npz_arrays(data)
+        frames = np.asarray(arrays[key], np.float64)
+        fps = float(arrays["fps"]) if "fps" in arrays else None
     except KeyError:
         raise InvalidInput(f"the input .npz has no '{key}' array") from None
     except (ValueError, OSError, EOFError) as error:
         raise InvalidInput(f"the input is not a readable .npz: {error}") from None
     if frames.ndim != 3 or frames.shape[-1] != 3 or len(frames) == 0:
         raise InvalidInput(f"{key} must be (F,N,3) with F >= 1, got {frames.shape}")
-    return frames
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise InvalidInput(f"the input's fps must be a positive number, got {fps}")
+    return frames, fps
 
 
 def read_registration(blobs: BlobStore, payload: Mapping[str, Any]) -> RigRegistration:

@@ -7,7 +7,6 @@ writes it); the model row names the kind and holds the parameters. Result ``{"mo
 from __future__ import annotations
 
 import json
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +47,7 @@ def train(job: RunningJob) -> dict[str, Any]:
     del actor, clips
     job.progress(TRAINED, "storing the model")
     # a hidden temporary directory in the blob root: same filesystem, never a blob key
-    with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".train-") as tmp:
+    with store.blobs.scratch_dir("train") as tmp:  # locked: never swept while in use
         path = Path(tmp) / "model"
         trained.save(path)
         with store.sessions() as session:

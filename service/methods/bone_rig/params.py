@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from service.methods.params import MethodParams
 
 
-class BoneRigParams(BaseModel):
+class BoneRigParams(MethodParams):
     """Parameters of :func:`service.methods.bone_rig.decomposition.decompose` (Le & Deng 2012).
 
     The course's game rig had 70 bones on a 4K-polygon mesh; glTF engines and most game
     runtimes skin with at most 4 (some 8) influences per vertex.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     bones: int = Field(
         default=70, ge=1, le=1024,

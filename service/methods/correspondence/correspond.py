@@ -31,8 +31,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from service.methods.params import MethodParams
 from service.geometry import optical_flow as of
 from service.geometry.uv_raster import uv_to_texel
 from service.methods.correspondence.prewarp import piecewise_affine_coords
@@ -45,7 +46,7 @@ DIFFUSE = "albedo"
 COVERAGE = "mask"
 
 
-class CorrespondenceParams(BaseModel):
+class CorrespondenceParams(MethodParams):
     """Parameters of :func:`correspond` (the API's ``correspond`` job uses this same model).
 
     Defaults chosen on the level-1 sample actor's scans at 1024² (smile, brow raise, pucker;
@@ -59,7 +60,6 @@ class CorrespondenceParams(BaseModel):
     the sharpening about the same.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     prewarp: bool = Field(True, description="step 1: Delaunay piecewise-affine pre-warp from "
                           "the landmarks (False: the flow starts from the identity)")

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from service.methods.params import MethodParams
 
 
-class StressBlendParams(BaseModel):
+class StressBlendParams(MethodParams):
     """Parameters of :func:`service.methods.stress_blend.model.train`."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     stress_smoothing: int = Field(
         default=4, ge=0, le=200,

@@ -96,9 +96,9 @@ def test_bad_inputs_and_params_are_rejected():
         correspond(maps, maps, np.zeros((3, 4)))
     with pytest.raises(InvalidInput, match="source_occlusion"):
         correspond(maps, maps, landmarks_uv(pts, pts), source_occlusion=np.zeros((3, 3), bool))
-    with pytest.raises(ValidationError):
+    with pytest.raises(InvalidInput, match="flow must be one of"):
         CorrespondenceParams(flow="deepflow")
-    with pytest.raises(ValidationError):
+    with pytest.raises(InvalidInput, match="sharpen_sigmaa is not a parameter"):
         CorrespondenceParams(sharpen_sigmaa=2.0)
     p = CorrespondenceParams()
     with pytest.raises(ValidationError):

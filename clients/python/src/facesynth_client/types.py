@@ -103,7 +103,12 @@ class MarkersInfo(_Parsed):
 
 @dataclass
 class Clip(_Parsed):
-    """A stored clip of an actor."""
+    """A stored clip of an actor.
+
+    ``notes`` (uploads only): what the server's marker reader accepted but did not read as
+    the file declares it, e.g. a TRC whose ``NumFrames`` disagrees with its rows; empty
+    otherwise.
+    """
 
     clip_id: str
     frames: int
@@ -111,6 +116,7 @@ class Clip(_Parsed):
     name: str | None = None
     size_bytes: int | None = None
     created_at: datetime | None = field(default=None, metadata=_DT)
+    notes: list[str] = field(default_factory=list)
     raw: dict[str, Any] = _raw()
 
     @property

@@ -4,6 +4,7 @@
 
 from .actors import Actors
 from .artifacts import Artifacts
+from .bone_rigs import BoneRigs
 from .clips import Clips
 from .jobs import Jobs
 from .models import Models
@@ -12,4 +13,4 @@ from .scans import Scans
 from .synthesis import Synthesis
 from .tracking import Tracking
 
-__all__ = ["Actors", "Artifacts", "Clips", "Jobs", "Models", "Rigs", "Scans", "Synthesis", "Tracking"]
+__all__ = ["Actors", "Artifacts", "BoneRigs", "Clips", "Jobs", "Models", "Rigs", "Scans", "Synthesis", "Tracking"]

@@ -45,6 +45,37 @@ class Models(Resource):
         return self._run(self._core.call_accepted(
             Call("POST", f"/v1/actors/{actor_id}/models", json=body), ModelAccepted.from_json))
 
+    def transfer(self, model_id: str, target_actor_id: str, landmarks: Sequence[Sequence[int]],
+                 params: Mapping[str, Any] | None = None) -> ModelAccepted:
+        """Transfer a ready ``psd``/``wpsd`` model's details to another actor (Bickel et al.
+        2008 §5.4; a job).
+
+        Parameters
+        ----------
+        target_actor_id : str        the actor the details go to (neutral and markers uploaded)
+        landmarks : (L,2) ints       corresponding [source_vertex, target_vertex] pairs on the
+                                     two neutrals (at least 4; ~40 spread over the face)
+        params : dict, optional      ``pose_weights``: one head-alignment weight per target
+                                     marker
+
+        Returns
+        -------
+        ModelAccepted   ``model_id`` (the target's new model, ``training`` until the job
+                        ends) and ``job_id``
+
+        Examples
+        --------
+        >>> accepted = client.models.transfer(model_id, other.id, pairs)    # doctest: +SKIP
+        >>> client.wait(accepted, progress=True)                            # doctest: +SKIP
+        >>> client.synthesize(accepted.model_id, other_markers)             # doctest: +SKIP
+        """
+        body: dict[str, Any] = {"target_actor_id": target_actor_id,
+                                "landmarks": [[int(a), int(b)] for a, b in landmarks]}
+        if params is not None:
+            body["params"] = dict(params)
+        return self._run(self._core.call_accepted(
+            Call("POST", f"/v1/models/{model_id}/transfer", json=body), ModelAccepted.from_json))
+
     def get(self, model_id: str) -> Model:
         """A model: kind, status (``training``, ``ready``, ``failed``), params, metrics."""
         return self._run(self._core.call_json(Call("GET", f"/v1/models/{model_id}"),

@@ -202,7 +202,10 @@ class Synthesis(Resource):
                                              if given)
         fps : float, optional
         outputs : as for :meth:`synthesize`
-        format : str    ``npz``, ``obj-exr-zip`` (per-frame OBJ + EXR) or ``usd``
+        format : str    ``npz``, ``obj-exr-zip`` (per-frame OBJ + EXR) or ``usd`` (one USD
+                        point cache, time code k = frame k, at ``fps``; a zip of the cache
+                        and the EXR maps it references when maps are among the outputs;
+                        needs ``mesh`` or ``mesh_detailed``)
         rig : str, optional
 
         Returns

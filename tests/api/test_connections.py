@@ -1,0 +1,126 @@
+"""service.api.connections: slow headers, slow bodies and too many connections per client
+are cut off within their bounds (issue 16, defect 10). A real uvicorn server on loopback."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+import uvicorn
+
+from service.api.connections import protocol_class
+from tests.servers import free_port
+
+HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT = 1.0, 200.0, 1.0, 4
+
+
+async def app(scope, receive, send):
+    if scope["type"] != "http":
+        return
+    size = 0
+    while True:
+        message = await receive()
+        size += len(message.get("body", b""))
+        if not message.get("more_body"):
+            break
+    body = str(size).encode()
+    await send({"type": "http.response.start", "status": 200,
+                "headers": [(b"content-length", str(len(body)).encode())]})
+    await send({"type": "http.response.body", "body": body})
+
+
+@pytest.fixture(scope="module")
+def server():
+    port = free_port()
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
+                            http=protocol_class(HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT),
+                            timeout_keep_alive=5)
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    yield port
+    server.should_exit = True
+    thread.join(10)
+
+
+def connect(port) -> socket.socket:
+    s = socket.create_connection(("127.0.0.1", port), timeout=10)
+    return s
+
+
+def closed_after(s: socket.socket, trickle: bytes, every: float, limit: float) -> tuple[float, bytes]:
+    """Send ``trickle`` one byte every ``every`` s until the server closes; (seconds, reply)."""
+    start = time.monotonic()
+    reply = b""
+    s.settimeout(every)
+    for byte in trickle:
+        try:
+            s.sendall(bytes([byte]))
+        except OSError:
+            break
+        try:
+            chunk = s.recv(4096)
+            reply += chunk
+            if not chunk:
+                break
+        except socket.timeout:
+            pass
+        except OSError:
+            break
+        assert time.monotonic() - start < limit, "the server kept the connection open"
+    return time.monotonic() - start, reply
+
+
+def test_a_normal_request_is_answered(server):
+    with connect(server) as s:
+        s.sendall(b"POST / HTTP/1.1\r\nhost: x\r\ncontent-length: 5\r\n\r\nhello")
+        reply = b""
+        while not reply.endswith(b"\r\n\r\n5"):
+            chunk = s.recv(4096)
+            assert chunk, reply
+            reply += chunk
+        assert reply.startswith(b"HTTP/1.1 200 ")
+
+
+def test_slow_headers_are_cut_off_with_408(server):
+    with connect(server) as s:
+        took, reply = closed_after(s, b"GET / HTTP/1.1\r\nhost: x\r\n" + b"x" * 100, 0.2, 5)
+    assert HEADER_TIMEOUT <= took < HEADER_TIMEOUT + 1.0
+    assert reply.startswith(b"HTTP/1.1 408 ")
+
+
+def test_a_silent_connection_is_cut_off(server):
+    with connect(server) as s:
+        start = time.monotonic()
+        assert s.recv(4096).startswith(b"HTTP/1.1 408 ")
+        assert s.recv(4096) == b""
+        assert time.monotonic() - start < HEADER_TIMEOUT + 1.0
+
+
+def test_a_slow_body_is_cut_off(server):
+    with connect(server) as s:
+        s.sendall(b"POST / HTTP/1.1\r\nhost: x\r\ncontent-length: 100000\r\n\r\n")
+        took, reply = closed_after(s, b"y" * 1000, 0.1, 6)
+    assert GRACE <= took < GRACE + 1.5
+    assert reply == b""
+
+
+def test_connections_per_client_are_bounded(server):
+    held = [connect(server) for _ in range(PER_CLIENT)]
+    try:
+        time.sleep(0.2)
+        with connect(server) as extra:
+            assert extra.recv(4096).startswith(b"HTTP/1.1 503 ")
+    finally:
+        for s in held:
+            s.close()
+    time.sleep(0.2)
+    with connect(server) as s:           # the count went down with the closed connections
+        s.sendall(b"GET / HTTP/1.1\r\nhost: x\r\n\r\n")
+        assert s.recv(4096).startswith(b"HTTP/1.1 200 ")
