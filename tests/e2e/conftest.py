@@ -64,6 +64,23 @@ def e2e_actor_dir(tmp_path_factory) -> Iterator[Path]:
     shutil.rmtree(out, ignore_errors=True)
 
 
+#: the clips of the small actor of the fault and tenancy tests
+FAULT_CLIPS = ("train_smile", "train_brow_raise")
+
+
+@pytest.fixture(scope="session")
+def actor_dir(tmp_path_factory) -> Iterator[Path]:
+    """A small level-0 sample actor (seed 1, 64² maps): two training clips and the held-out
+    in-range performance, shared by the fault, storage and tenancy tests (read only)."""
+    from service.samples.actor import build_sample_actor
+
+    out = tmp_path_factory.mktemp("fault_actor")
+    build_sample_actor(out, seed=1, level=0, with_tracking=False, map_resolution=64,
+                       performance_names=FAULT_CLIPS + (HELDOUT,))
+    yield out
+    shutil.rmtree(out, ignore_errors=True)
+
+
 @dataclass
 class Process:
     """One started service process, its output captured to ``<logs>/<name>.out|.err``."""

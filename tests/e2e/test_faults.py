@@ -10,10 +10,8 @@ training clips and the held-out performance), so a training takes seconds.
 
 from __future__ import annotations
 
-import io
 import json
 import os
-import shutil
 import signal
 import threading
 import time
@@ -28,13 +26,13 @@ from models_store import registry
 from models_store.fsck import fsck
 from service.samples.uploads import sample_actor_uploads
 from service.io.npz import npz_arrays, npz_bytes
-from tests.e2e.conftest import LEASE_SECONDS, Deployment, running_deployment
+from tests.e2e.conftest import FAULT_CLIPS, LEASE_SECONDS, Deployment, running_deployment
 from tests.servers import postgres_server, redis_server  # noqa: F401
 
 pytestmark = pytest.mark.e2e
 
 NPZ = {"Content-Type": "application/x-npz"}
-CLIPS = ("train_smile", "train_brow_raise")
+CLIPS = FAULT_CLIPS
 PARAMS = {"order": "biquadratic", "medium_resolution": 64, "fine_resolution": 64}
 FINAL = ("succeeded", "failed", "cancelled")
 #: maintenance and hygiene made fast, so the bounds below are short
@@ -44,17 +42,6 @@ ENV = {"FACESYNTH_JOB_RESUBMIT_SECONDS": "3", "FACESYNTH_MAINTENANCE_INTERVAL_SE
 REAP_BOUND = LEASE_SECONDS + 6
 #: a queued job whose message was lost runs by then
 RESUBMIT_BOUND = 3 + 6
-
-
-@pytest.fixture(scope="module")
-def actor_dir(tmp_path_factory) -> Iterator[Path]:
-    from service.samples.actor import build_sample_actor
-
-    out = tmp_path_factory.mktemp("fault_actor")
-    build_sample_actor(out, seed=1, level=0, with_tracking=False, map_resolution=64,
-                       performance_names=CLIPS + ("heldout_in_range",))
-    yield out
-    shutil.rmtree(out, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,6 @@ restart.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 from typing import Iterator
 
@@ -29,17 +28,6 @@ from tests.servers import postgres_server, redis_server  # noqa: F401
 pytestmark = pytest.mark.e2e
 
 SIZE = 48 << 20
-
-
-@pytest.fixture(scope="module")
-def actor_dir(tmp_path_factory) -> Iterator[Path]:
-    from service.samples.actor import build_sample_actor
-
-    out = tmp_path_factory.mktemp("storage_actor")
-    build_sample_actor(out, seed=1, level=0, with_tracking=False, map_resolution=64,
-                       performance_names=CLIPS + ("heldout_in_range",))
-    yield out
-    shutil.rmtree(out, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,6 @@ defect 13); another tenant's id answers exactly what an unknown id answers."""
 from __future__ import annotations
 
 import json
-import shutil
-from pathlib import Path
 from typing import Iterator
 
 import httpx
@@ -24,17 +22,6 @@ pytestmark = pytest.mark.e2e
 TOKENS = {"a": "token-of-studio-a", "b": "token-of-studio-b", "admin": "token-of-ops"}
 UNKNOWN = {"actor": "act_" + "0" * 26, "clip": "clp_" + "0" * 26, "model": "mdl_" + "0" * 26,
            "job": "job_" + "0" * 26, "artifact": "art_" + "0" * 26}
-
-
-@pytest.fixture(scope="module")
-def actor_dir(tmp_path_factory) -> Iterator[Path]:
-    from service.samples.actor import build_sample_actor
-
-    out = tmp_path_factory.mktemp("tenant_actor")
-    build_sample_actor(out, seed=1, level=0, with_tracking=False, map_resolution=64,
-                       performance_names=CLIPS + ("heldout_in_range",))
-    yield out
-    shutil.rmtree(out, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
