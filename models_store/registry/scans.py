@@ -39,12 +39,12 @@ def get_scan(session: Session, scan_id: str, actor_id: str | None = None, *,
              tenant: str | None = None) -> Scan:
     """The scan ``scan_id`` (of ``actor_id``, if given; of an actor of ``tenant``, if named;
     NotFound otherwise)."""
-    scan = owned(get_row(session, Scan, "scan", scan_id), "scan", actor_id)
-    tenant = scoped(tenant)
+    scan = get_row(session, Scan, "scan", scan_id)
+    tenant = scoped(tenant)                # first: another tenant's scan is an unknown id
     if tenant is not None and session.scalar(select(Actor.tenant)
                                              .where(Actor.id == scan.actor_id)) != tenant:
         raise NotFound("scan", scan_id)
-    return scan
+    return owned(scan, "scan", actor_id)
 
 
 def list_scans(session: Session, actor_id: str, *, tenant: str | None = None) -> list[Scan]:

@@ -166,6 +166,35 @@ def test_correspondence_refusals(client, actor_id, uv_scans, submitted):
     assert (job["kind"], job["status"]) == ("correspond", "queued")
 
 
+def test_another_tenants_scan_is_an_unknown_id(tmp_path, uv_scans):
+    from tests.api.conftest import Recorder, make_client
+    from tests.api.test_health_auth import TENANT_TOKENS, bearer
+    from service.config import Settings
+
+    settings = Settings(data_dir=tmp_path, max_body_bytes=8 << 20, tokens=TENANT_TOKENS)
+    with make_client(settings, Recorder()) as c:
+        a, b = bearer("token-a"), bearer("token-b")
+        actor_a = c.post("/v1/actors", json={"name": "A"}, headers=a).json()["id"]
+        actor_b = c.post("/v1/actors", json={"name": "B"}, headers=b).json()["id"]
+        body = scan_body(uv_scans.target)
+        scan_a = c.post(f"/v1/actors/{actor_a}/scans", content=body, headers={**NPZ, **a}).json()["scan_id"]
+        scan_b = c.post(f"/v1/actors/{actor_b}/scans", content=body, headers={**NPZ, **b}).json()["scan_id"]
+        unknown = "scn_" + "0" * 26
+        crossed = c.get(f"/v1/actors/{actor_b}/scans/{scan_a}", headers=b)
+        twin = c.get(f"/v1/actors/{actor_b}/scans/{unknown}", headers=b)
+        assert crossed.status_code == twin.status_code == 404
+        assert crossed.json()["detail"].replace(scan_a, unknown) == twin.json()["detail"]
+        job = {"source_scan_id": scan_a, "target_scan_id": scan_b, "landmarks": landmarks(uv_scans)}
+        crossed = c.post(f"/v1/actors/{actor_b}/correspondence-jobs", json=job, headers=b)
+        twin = c.post(f"/v1/actors/{actor_b}/correspondence-jobs",
+                      json={**job, "source_scan_id": unknown}, headers=b)
+        assert crossed.status_code == twin.status_code == 404
+        assert crossed.json()["detail"].replace(scan_a, unknown) == twin.json()["detail"]
+        assert c.get(f"/v1/actors/{actor_a}/scans", headers=b).status_code == 404
+        assert c.delete(f"/v1/actors/{actor_b}/scans/{scan_a}", headers=b).status_code == 404
+        assert [s["scan_id"] for s in c.get(f"/v1/actors/{actor_a}/scans", headers=a).json()["items"]] == [scan_a]
+
+
 # ---------------------------------------------------------------------------- the job
 def _artist_neutral(S):
     """The scanned part of the actor's neutral with the *target scan's* UV layout as its
