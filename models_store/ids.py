@@ -28,6 +28,7 @@ PREFIXES: dict[str, str] = {
     "job": "job",
     "artifact": "art",
     "rig": "rig",
+    "scan": "scn",
 }
 
 _BODY = f"[{ALPHABET}]{{26}}"

@@ -1,4 +1,4 @@
-"""The metadata tables: actors, clips, input rigs, models, jobs, artifacts.
+"""The metadata tables: actors, clips, input rigs, scans, models, jobs, artifacts.
 
 SQLAlchemy 2.0 declarative mapping, portable between SQLite and PostgreSQL. Timestamps are
 timezone-aware UTC datetimes in Python (:class:`UTCDateTime`); states are short strings
@@ -156,6 +156,27 @@ class InputRig(Base):
     registration_blob: Mapped[str | None] = mapped_column(BLOB_KEY)
     registration_sha256: Mapped[str | None] = mapped_column(SHA256)
     error: Mapped[dict[str, Any] | None] = mapped_column()
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class Scan(Base):
+    """A facial scan of an actor stored as UV-space maps (one canonical NPZ blob).
+
+    ``maps`` lists the arrays it holds (``albedo``, ``position`` and optionally
+    ``specular``, ``normal``, ``mask``), all ``height`` × ``width``.
+    """
+
+    __tablename__ = "scans"
+
+    id: Mapped[str] = mapped_column(ID, primary_key=True)
+    actor_id: Mapped[str] = mapped_column(ForeignKey("actors.id"), index=True)
+    name: Mapped[str | None] = mapped_column(NAME)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    maps: Mapped[list[str]] = mapped_column(JSON, default=list)
+    blob: Mapped[str] = mapped_column(BLOB_KEY)
+    sha256: Mapped[str] = mapped_column(SHA256)
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 

@@ -879,6 +879,70 @@ def bone_rig(client, args) -> int:
 
 # ---------------------------------------------------------------------------- parser
 
+def _landmarks_file(path: Path) -> tuple[list, list | None]:
+    """Landmarks (L,2,2) ``[[u_s, v_s], [u_t, v_t]]`` and optional pinned indices from a JSON
+    file (a list, or ``{"landmarks": [...], "pinned": [...]}``) or an ``.npz`` with
+    ``landmarks`` (L,2,2) (and optionally ``pinned`` (P,))."""
+    import numpy as np
+
+    pinned = None
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as data:
+            if "landmarks" not in data.files:
+                raise UsageError(f"{path} has no 'landmarks' (L,2,2) (it has {sorted(data.files)})")
+            landmarks = data["landmarks"]
+            if "pinned" in data.files:
+                pinned = [int(i) for i in np.ravel(data["pinned"])]
+    else:
+        try:
+            value = json.loads(path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise UsageError(f"{path}: not JSON ({error})") from None
+        if isinstance(value, dict):
+            pinned = value.get("pinned")
+            value = value.get("landmarks")
+        landmarks = value
+    try:
+        array = np.asarray(landmarks, dtype=float)
+    except (TypeError, ValueError):
+        array = np.zeros(0)
+    if array.ndim != 3 or array.shape[1:] != (2, 2):
+        raise UsageError(f"{path}: landmarks must be (L,2,2) [[u_s, v_s], [u_t, v_t]] per point, "
+                         f"got shape {array.shape}")
+    return array.tolist(), pinned
+
+
+def correspond(client, args) -> int:
+    """A correspondence job (source scan → target scan's UV space), waited for with a
+    progress bar; its artifacts (warped maps as EXR, warp.npz, blendshape.npz) and
+    ``result.json`` (the job's metrics) are written into ``args.out``."""
+    landmarks, pinned = _landmarks_file(_file(args.landmarks, "landmarks file"))
+    if args.pinned is not None:
+        pinned = args.pinned
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: exists and is not a folder")
+    accepted = client.scans.correspond(args.actor, args.source, args.target, landmarks,
+                                       pinned=pinned, params=_json_arg(args.params, "--params")
+                                       or None, artist_uv=args.artist_uv)
+    code = _wait(client, args, accepted, f"correspond {accepted.job_id}")
+    if code != EXIT_OK or args.no_wait:
+        return code
+    job = client.jobs.get(accepted)
+    files = dict(job.result.raw.get("artifacts") or {})
+    with _output_dir(out) as stage:
+        for filename, artifact_id in sorted(files.items()):
+            client.download_artifact(artifact_id, stage / Path(filename).name)
+        (stage / "result.json").write_text(json.dumps(
+            {"job_id": job.id, "source_scan_id": args.source, "target_scan_id": args.target,
+             "artifacts": files, "metrics": job.result.raw.get("metrics")}, indent=1))
+    metrics = job.result.raw.get("metrics") or {}
+    _say(f"{len(files)} files in {out}; mean confidence {metrics.get('mean_confidence', 0):.3f}, "
+         f"coverage {metrics.get('coverage', 0):.3f}")
+    print(out)
+    return EXIT_OK
+
+
 def add_global_options(parser: argparse.ArgumentParser) -> None:
     """``--server``, ``--token`` and ``--version`` on the top-level ``facesynth`` parser, so
     they may come before the command's name (``facesynth --server URL jobs list``)."""
@@ -1022,6 +1086,24 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                             "frames.json (default 0)")
         if name == "enhance":
             p.add_argument("--rig", help="the registered input rig the frames are on")
+
+    p = command(sub, "correspond", correspond,
+                "bring a source scan into a target scan's UV space (a correspondence job) "
+                "and write the warped maps, warp.npz and result.json to a folder", [waiting])
+    p.add_argument("actor", help="actor id")
+    p.add_argument("--source", required=True, help="source scan id (e.g. an expression)")
+    p.add_argument("--target", required=True, help="target scan id (e.g. the neutral)")
+    p.add_argument("--landmarks", required=True, metavar="FILE",
+                   help="JSON [[[u_s, v_s], [u_t, v_t]], ...] (or {landmarks, pinned}), or "
+                        ".npz with landmarks (L,2,2)")
+    p.add_argument("--pinned", type=int, nargs="+", metavar="I",
+                   help="indices of pinned landmarks")
+    p.add_argument("--params", help="correspondence parameters as a JSON object")
+    p.add_argument("--artist-uv", action="store_true",
+                   help="the actor's neutral has the target scan's UVs: also write its "
+                        "blendshape (blendshape.npz)")
+    p.add_argument("-o", "--out", required=True, help="output folder (made once the results "
+                                                      "are in)")
 
     models = group("models", "list, show, delete or export models")
     p = command(models, "list", models_list, "list an actor's models", [listing])

@@ -2,7 +2,7 @@
 
 Import the package and call its functions (``from models_store import registry``;
 ``registry.create_actor(session, "Ada")``); the submodules hold one resource each:
-:mod:`.actors` (with the neutral and the marker layout), :mod:`.clips`, :mod:`.rigs`,
+:mod:`.actors` (with the neutral and the marker layout), :mod:`.clips`, :mod:`.rigs`, :mod:`.scans`,
 :mod:`.models`, :mod:`.jobs`, :mod:`.artifacts`.
 
 Each operation is a plain function over a SQLAlchemy ``Session`` (from
@@ -55,6 +55,7 @@ from models_store.registry.models import (create_model, delete_model, get_model,
                                           mark_model_failed, mark_model_ready, model_dir)
 from models_store.registry.rigs import (get_input_rig, get_input_rig_by_id, list_input_rigs, mark_rig_failed,
                                         mark_rig_ready, put_input_rig)
+from models_store.registry.scans import add_scan, delete_scan, get_scan, list_scans, read_scan
 
 __all__ = [
     # tenants
@@ -66,6 +67,8 @@ __all__ = [
     "add_clip", "get_clip", "list_clips", "read_clip", "delete_clip",
     # input rigs
     "put_input_rig", "get_input_rig", "get_input_rig_by_id", "list_input_rigs", "mark_rig_ready", "mark_rig_failed",
+    # scans
+    "add_scan", "get_scan", "list_scans", "read_scan", "delete_scan",
     # models
     "create_model", "get_model", "list_models", "mark_model_ready", "mark_model_failed",
     "model_dir", "delete_model",

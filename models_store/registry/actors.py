@@ -15,7 +15,7 @@ from models_store.registry._common import (TENANT_OWNER, Data, actor_prefix, com
                                            storable)
 from models_store.registry.paging import after_key
 from models_store.registry.jobs import cancel_active_jobs
-from models_store.schema import Actor, Clip, InputRig, Job, Model, utcnow
+from models_store.schema import Actor, Clip, InputRig, Job, Model, Scan, utcnow
 
 #: compare-and-swap attempts of one replacement before giving up with a Conflict
 MAX_SWAP_ROUNDS = 100
@@ -61,7 +61,7 @@ def list_actors(session: Session, *, tenant: str | None = None,
 
 def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,
                  cascade: bool = False, tenant: str | None = None) -> None:
-    """Delete an actor with its clips, input rigs and their blobs.
+    """Delete an actor with its clips, input rigs, scans and their blobs.
 
     Its models are deleted too with ``cascade=True``; without it an actor that has models
     is a :class:`Conflict`. Queued or running jobs of the actor are cancelled (see
@@ -73,7 +73,7 @@ def delete_actor(session: Session, blobs: BlobStore, actor_id: str, *,
         raise Conflict(f"actor {actor_id!r} has {len(models)} model(s) "
                        f"({', '.join(m.id for m in models)}); delete them first or cascade")
     cancel_active_jobs(session, Job.actor_id == actor_id, "its actor was deleted")
-    for row_type in (Model, Clip, InputRig):  # children first: the foreign keys
+    for row_type in (Model, Clip, InputRig, Scan):  # children first: the foreign keys
         session.execute(delete(row_type).where(row_type.actor_id == actor_id)
                         .execution_options(synchronize_session=False))
     session.execute(delete(Actor).where(Actor.id == actor_id)

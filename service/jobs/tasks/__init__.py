@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from service.jobs.running import Task
 from service.jobs.tasks.bone_rig import BONE_RIG_JOB, bone_rig
+from service.jobs.tasks.correspond import correspond_scans
 from service.jobs.tasks.register import register
 from service.jobs.tasks.synthesize import synthesize
 from service.jobs.tasks.train import train
@@ -18,6 +19,8 @@ from service.jobs.tasks.transfer import TRANSFER_JOB, transfer
 
 #: job kind → task function
 TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize, "register": register,
-                          TRANSFER_JOB: transfer, BONE_RIG_JOB: bone_rig}
+                          TRANSFER_JOB: transfer, BONE_RIG_JOB: bone_rig,
+                          "correspond": correspond_scans}
 
-__all__ = ["TASKS", "train", "synthesize", "register", "transfer", "bone_rig"]
+__all__ = ["TASKS", "train", "synthesize", "register", "transfer", "bone_rig",
+           "correspond_scans"]

@@ -2,7 +2,7 @@
 
 Both hold the same resources, one module each under :mod:`facesynth_client.resources` —
 ``client.actors``, ``client.clips``, ``client.rigs``, ``client.models``, ``client.synthesis``,
-``client.jobs``, ``client.artifacts``, ``client.tracking``, ``client.bone_rigs`` — and differ only in how they run an
+``client.jobs``, ``client.artifacts``, ``client.tracking``, ``client.bone_rigs``, ``client.scans`` — and differ only in how they run an
 operation of :mod:`facesynth_client._core`: ``Client`` sends its requests with
 ``httpx.Client`` and returns the result, ``AsyncClient`` with ``httpx.AsyncClient`` and returns
 an awaitable (iterators are async iterators).
@@ -38,7 +38,8 @@ from typing import Any, Callable, Mapping
 import httpx
 
 from ._core import Call, Close, Core, DEFAULT_BASE_URL, Emit, Op, Read, Send, Sleep
-from .resources import (Actors, Artifacts, BoneRigs, Clips, Jobs, Models, Rigs, Synthesis,
+from .resources import (Actors, Artifacts, BoneRigs, Clips, Jobs, Models, Rigs, Scans,
+                        Synthesis,
                         Tracking)
 from .types import Readiness
 
@@ -85,7 +86,7 @@ class _Api:
     #: the resource classes, by attribute
     RESOURCES = {"actors": Actors, "clips": Clips, "rigs": Rigs, "models": Models,
                  "synthesis": Synthesis, "tracking": Tracking, "bone_rigs": BoneRigs,
-                 "jobs": Jobs, "artifacts": Artifacts}
+                 "jobs": Jobs, "artifacts": Artifacts, "scans": Scans}
 
     def __init__(self, base_url: str | None, token: str | None, *, timeout: Any,
                  max_retries: int, backoff: float, backoff_max: float, poll_interval: float,
@@ -113,6 +114,7 @@ class _Api:
         self.bone_rigs = BoneRigs(self)
         self.jobs = Jobs(self)
         self.artifacts = Artifacts(self)
+        self.scans = Scans(self)
 
     def _run(self, op: Op) -> Any:  # pragma: no cover - supplied by subclasses
         raise NotImplementedError

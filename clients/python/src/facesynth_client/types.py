@@ -15,7 +15,7 @@ from typing import Any, Callable, Mapping, TypeVar
 __all__ = [
     "Actor", "NeutralInfo", "MarkersInfo", "Clip", "InputRig", "RigAccepted", "Model",
     "ModelAccepted", "MapInfo", "KindInfo", "JobAccepted", "ErrorInfo", "JobResult", "Job",
-    "Artifact", "Readiness", "ClipFrame", "JOB_FINAL_STATUSES",
+    "Artifact", "Readiness", "ClipFrame", "JOB_FINAL_STATUSES", "Scan",
 ]
 
 #: job statuses after which nothing changes
@@ -314,3 +314,22 @@ class ClipFrame:
 
     def to_json(self) -> dict[str, Any]:
         return {"clip_id": self.clip_id, "frame": int(self.frame)}
+
+
+@dataclass
+class Scan(_Parsed):
+    """A stored scan of an actor: UV-space maps of ``width`` × ``height`` texels."""
+
+    scan_id: str
+    width: int
+    height: int
+    maps: list[str] = field(default_factory=list)
+    actor_id: str | None = None
+    name: str | None = None
+    size_bytes: int | None = None
+    created_at: datetime | None = field(default=None, metadata=_DT)
+    raw: dict[str, Any] = _raw()
+
+    @property
+    def id(self) -> str:
+        return self.scan_id

@@ -9,7 +9,8 @@ from .clips import Clips
 from .jobs import Jobs
 from .models import Models
 from .rigs import Rigs
+from .scans import Scans
 from .synthesis import Synthesis
 from .tracking import Tracking
 
-__all__ = ["Actors", "Artifacts", "BoneRigs", "Clips", "Jobs", "Models", "Rigs", "Synthesis", "Tracking"]
+__all__ = ["Actors", "Artifacts", "BoneRigs", "Clips", "Jobs", "Models", "Rigs", "Scans", "Synthesis", "Tracking"]
