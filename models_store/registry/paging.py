@@ -15,13 +15,15 @@ from typing import Any, Sequence
 from sqlalchemy import Select, and_, or_
 from sqlalchemy.orm import InstrumentedAttribute
 
-from models_store.schema import Actor, Artifact, Base, Clip, InputRig, Job, Model, UTCDateTime
+from models_store.schema import (Actor, Artifact, Base, Clip, InputRig, Job, Model, Scan,
+                                  UTCDateTime)
 
 #: each listed row type → the columns of its sort key, in order
 ORDER: dict[type[Base], tuple[InstrumentedAttribute, ...]] = {
     Actor: (Actor.created_at, Actor.id), Clip: (Clip.created_at, Clip.id),
     Model: (Model.created_at, Model.id), Job: (Job.created_at, Job.id),
     Artifact: (Artifact.created_at, Artifact.id), InputRig: (InputRig.name,),
+    Scan: (Scan.created_at, Scan.id),
 }
 
 

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from models_store.ids import new_id
+from models_store.registry.paging import after_key
 from models_store.registry._common import (Data, actor_prefix, commit, get_row, owned, put_blob,
                                            scoped, storable)
 from models_store.registry.actors import get_actor
@@ -47,11 +48,13 @@ def get_scan(session: Session, scan_id: str, actor_id: str | None = None, *,
     return owned(scan, "scan", actor_id)
 
 
-def list_scans(session: Session, actor_id: str, *, tenant: str | None = None) -> list[Scan]:
-    """The actor's scans, oldest first (NotFound for an unknown actor)."""
+def list_scans(session: Session, actor_id: str, *, tenant: str | None = None,
+               after: Sequence[str] | None = None, limit: int | None = None) -> list[Scan]:
+    """The actor's scans, oldest first (NotFound for an unknown actor); a page of them with
+    ``after``/``limit`` (:func:`~models_store.registry.paging.after_key`)."""
     get_actor(session, actor_id, tenant=tenant)
-    return list(session.scalars(select(Scan).where(Scan.actor_id == actor_id)
-                                .order_by(Scan.created_at, Scan.id)))
+    return list(session.scalars(after_key(select(Scan).where(Scan.actor_id == actor_id)
+                                          .order_by(Scan.created_at, Scan.id), Scan, after, limit)))
 
 
 def read_scan(session: Session, blobs: BlobStore, scan_id: str, *,

@@ -25,6 +25,7 @@ import numpy as np
 from annotated_types import Len
 from pydantic import BaseModel, ConfigDict, Field
 
+from models_store.schema import Scan as ScanRow
 from models_store import registry
 from service.app import schemas
 from service.app.operations import submit
@@ -165,11 +166,11 @@ def add_scan(services: Services, actor_id: str, data: bytes, name: str | None) -
         return Scan.model_validate(row)
 
 
-def list_scans(services: Services, actor_id: str) -> ScanList:
-    """The actor's scans, oldest first."""
+def list_scans(services: Services, actor_id: str, page) -> ScanList:
+    """The actor's scans, oldest first, one ``page`` (``service.api.query.Page``) of them."""
     with services.session() as session:
-        return ScanList(items=[Scan.model_validate(s)
-                               for s in registry.list_scans(session, actor_id)])
+        rows, cursor = page.rows(registry.list_scans(session, actor_id, **page.fetch(ScanRow)))
+        return ScanList(items=[Scan.model_validate(s) for s in rows], next_cursor=cursor)
 
 
 def get_scan(services: Services, actor_id: str, scan_id: str) -> Scan:

@@ -8,6 +8,7 @@ from fastapi import APIRouter, Body, Depends, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from service.api import bodies
+from service.api.query import PageDep
 from service.api.deps import ServicesDep, SubmitDep
 from service.api.routes import body, problems, set_job_location
 from service.app import scans, schemas, uploads
@@ -36,9 +37,9 @@ async def add_scan(actor_id: str, request: Request, services: ServicesDep,
 
 @router.get("/scans", response_model=scans.ScanList, summary="List an actor's scans",
             responses=problems(404))
-async def list_scans(actor_id: str, services: ServicesDep) -> scans.ScanList:
-    """The actor's scans, oldest first."""
-    return await run_in_threadpool(scans.list_scans, services, actor_id)
+async def list_scans(actor_id: str, services: ServicesDep, page: PageDep) -> scans.ScanList:
+    """The actor's scans, oldest first, a page at a time (`limit`, `cursor`)."""
+    return await run_in_threadpool(scans.list_scans, services, actor_id, page)
 
 
 @router.get("/scans/{scan_id}", response_model=scans.Scan, summary="Get a scan",
