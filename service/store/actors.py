@@ -242,6 +242,25 @@ def clip_from_blob(data: bytes, name: str) -> Clip:
 
 
 # ---------------------------------------------------------------------------- the store
+def load_neutral_arrays(session: Session, blobs: BlobStore, actor_id: str,
+                        needed_for: str = "") -> Mapping[str, np.ndarray]:
+    """The arrays of the actor's stored neutral (:func:`neutral_npz`).
+
+    Raises
+    ------
+    NotFound       unknown actor
+    InvalidInput   the actor has no neutral yet (``needed_for`` says what wanted it)
+    """
+    try:
+        return open_npz(registry.read_neutral(session, blobs, actor_id), "the stored neutral")
+    except NotFound as error:
+        if error.kind == "actor":
+            raise
+        why = f" ({needed_for} needs it)" if needed_for else ""
+        raise InvalidInput(f"actor {actor_id!r} has no neutral yet{why}; upload it "
+                           "first") from None
+
+
 def load_actor_data(session: Session, blobs: BlobStore, actor_id: str) -> ActorData:
     """The stored actor as :class:`ActorData`.
 

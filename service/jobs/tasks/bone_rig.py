@@ -30,7 +30,7 @@ from service.jobs.tasks.train import jsonable
 from service.methods.bone_rig.decomposition import decompose
 from service.methods.bone_rig.params import BoneRigParams
 from service.methods.inputs import InvalidInput
-from service.store.actors import clip_from_blob, open_npz
+from service.store.actors import clip_from_blob, load_neutral_arrays, open_npz
 
 #: the job kind
 BONE_RIG_JOB = "bone_rig"
@@ -56,14 +56,7 @@ def bone_rig(job: RunningJob) -> dict[str, Any]:
         raise InvalidInput(f"invalid bone_rig parameters: {error}") from None
     job.progress(0.0, "loading the performance")
     with store.sessions() as session:
-        try:
-            neutral = open_npz(registry.read_neutral(session, store.blobs, job.actor_id),
-                               "the stored neutral")
-        except NotFound as error:
-            if error.kind == "actor":
-                raise
-            raise InvalidInput(f"actor {job.actor_id!r} has no neutral yet; upload it "
-                               "first") from None
+        neutral = load_neutral_arrays(session, store.blobs, job.actor_id, "the bone rig")
         frames, fps = read_performance(session, store.blobs, payload, job.actor_id)
     rest, faces = neutral["vertices"].astype(np.float64), neutral["faces"].astype(np.int64)
     if frames.shape[1:] != rest.shape:

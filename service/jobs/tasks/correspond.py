@@ -50,7 +50,7 @@ from service.jobs.running import RunningJob
 from service.methods.correspondence import (CorrespondenceParams, blendshape_vertices,
                                             correspond)
 from service.methods.inputs import InvalidInput
-from service.store.actors import open_npz
+from service.store.actors import load_neutral_arrays, open_npz
 
 # the job's progress: loading, the correspondence, then storing the artifacts
 LOADED, CORRESPONDED = 0.05, 0.85
@@ -75,13 +75,7 @@ def correspond_scans(job: RunningJob) -> dict[str, Any]:
         target = _read_scan(session, store.blobs, payload["target_scan_id"], job.actor_id)
         neutral = None
         if payload.get("artist_uv"):
-            try:
-                neutral = open_npz(registry.read_neutral(session, store.blobs, job.actor_id),
-                                   "the stored neutral")
-            except NotFound as error:
-                if error.kind == "actor":
-                    raise
-                raise InvalidInput("artist_uv needs the actor's neutral; upload it first") from None
+            neutral = load_neutral_arrays(session, store.blobs, job.actor_id, "artist_uv")
     scan_uv = vertex_uv(neutral) if neutral is not None else None
     seconds = {"load": time.perf_counter() - t0}
     result = correspond(source, target, np.asarray(payload["landmarks"], np.float64), params,

@@ -19,7 +19,7 @@ from typing import Any
 
 from models_store import registry
 from models_store.errors import NotFound
-from service.store.actors import open_npz
+from service.store.actors import load_neutral_arrays
 from service.io.mesh import read_npz
 from service.jobs.running import RunningJob
 from service.methods.inputs import InvalidInput
@@ -43,13 +43,8 @@ def register(job: RunningJob) -> dict[str, Any]:
         with store.sessions() as session:
             rig = registry.get_input_rig_by_id(session, rig_id)
             mesh = read_npz(store.blobs.read_bytes(rig.mesh_blob, rig.mesh_sha256))
-            try:
-                neutral = open_npz(registry.read_neutral(session, store.blobs, rig.actor_id),
-                                    "the stored neutral")
-            except NotFound as error:
-                if error.kind == "actor":
-                    raise
-                raise InvalidInput("the actor has no neutral yet; upload it first") from None
+            neutral = load_neutral_arrays(session, store.blobs, rig.actor_id,
+                                          "registering an input rig")
         landmarks = job.payload.get("landmarks") or []
         result = register_rig(mesh.vertices, mesh.faces, neutral["vertices"], neutral["faces"],
                               landmarks, job.sub_progress(LOADED, REGISTERED))
