@@ -29,6 +29,7 @@ Examples
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import inspect
 import os
@@ -78,7 +79,7 @@ class _Shortcut:
         return getattr(getattr(client, self.resource), self.method)
 
 
-class _Api:
+class _Api(abc.ABC):
     """What :class:`Client` and :class:`AsyncClient` share: configuration, the resources and
     the service routes (health, readiness, metrics). Subclasses supply ``_run`` (and
     ``_iterate``)."""
@@ -116,11 +117,13 @@ class _Api:
         self.artifacts = Artifacts(self)
         self.scans = Scans(self)
 
-    def _run(self, op: Op) -> Any:  # pragma: no cover - supplied by subclasses
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _run(self, op: Op) -> Any:
+        """Run one request-building operation (sync: to its result; async: a coroutine)."""
 
-    def _iterate(self, op: Op) -> Any:  # pragma: no cover - supplied by subclasses
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _iterate(self, op: Op) -> Any:
+        """Run a paged or streamed operation (sync: an iterator; async: an async iterator)."""
 
     @property
     def max_retries(self) -> int:
