@@ -46,12 +46,34 @@ class LoadedModel:
     kind : Kind       its kind (``kind.input`` says whether it takes markers or meshes)
     model : object    the loaded model (``synthesize(frames, outputs, clamp) -> dict``)
     actor_id : str    the actor it was trained for (whose input rigs and clips it can use)
+    stream : object   what the gRPC server synthesizes with: the model, or for marker-driven
+                      kinds a :class:`UnitCheckedModel` of it
     """
 
     id: str
     kind: Kind
     model: Any
     actor_id: str | None = None
+    stream: Any = None
+
+
+@dataclass(frozen=True)
+class UnitCheckedModel:
+    """A marker-driven model whose ``synthesize`` first refuses marker frames in another
+    unit than the actor's layout (:mod:`service.app.marker_units`, a 422 / INVALID_ARGUMENT
+    naming the likely unit); every other attribute is the model's."""
+
+    model: Any
+    reference: MarkerReference | None
+
+    def synthesize(self, markers: np.ndarray, outputs: Any = ("mesh", "displacement"),
+                   clamp: bool = True) -> dict[str, np.ndarray]:
+        if self.reference is not None:
+            self.reference.check(np.asarray(markers, np.float64))
+        return self.model.synthesize(markers, outputs, clamp)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.model, name)
 
 
 @dataclass
@@ -106,8 +128,10 @@ class Services:
         return self.store.session()
 
     def load_model(self, model_id: str) -> Any:
-        """The loaded model ``model_id`` (for the gRPC server: the model object itself)."""
-        return self.loaded_model(model_id).model
+        """The loaded model ``model_id`` for the gRPC server: the model object, its marker
+        frames checked for the actor's unit first when it takes markers
+        (:class:`UnitCheckedModel`, as ``/synthesize`` checks them)."""
+        return self.loaded_model(model_id).stream
 
     def loaded_model(self, model_id: str) -> LoadedModel:
         """A ready model from the cache, loading it (checksums verified) on a miss.
@@ -131,7 +155,10 @@ class Services:
             def load() -> LoadedModel:
                 path = registry.model_dir(session, self.blobs, model_id)
                 log.info("loading model %s (%s, %d bytes)", model_id, kind.name, size)
-                return LoadedModel(model_id, kind, kind.load(path), actor_id)
+                model = kind.load(path)
+                stream = (UnitCheckedModel(model, self.marker_reference(actor_id))
+                          if kind.input == "markers" else model)
+                return LoadedModel(model_id, kind, model, actor_id, stream)
 
             # weighed by what the model holds in memory (arrays, operators, factorizations),
             # which can be several times its files (a shape-space model's prefactored solves)

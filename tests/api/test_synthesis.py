@@ -419,3 +419,15 @@ def test_a_usd_synthesis_job_through_the_api_is_a_zip_of_the_cache_and_its_maps(
     resolved = texture.GetInput("file").GetAttr().Get(1).resolvedPath
     np.testing.assert_array_equal(read_map(open(resolved, "rb").read()),
                                   expected["displacement"][1])
+
+
+def test_the_grpc_path_refuses_markers_in_another_unit(ready):
+    """issue 22 item 11 on the stream: metres sent to a millimetre model are refused with
+    the likely unit named, as /synthesize refuses them."""
+    from service.methods.inputs import InvalidInput
+
+    client, _, model_id, markers, _ = ready
+    model = client.app.state.services.load_model(model_id)
+    assert model.synthesize(markers[:1], ["mesh"])["vertices"].shape == (1, model.n_vertices, 3)
+    with pytest.raises(InvalidInput, match="metres"):
+        model.synthesize(markers[:1] / 1000.0, ["mesh"])
