@@ -68,8 +68,11 @@ class UnitCheckedModel:
 
     def synthesize(self, markers: np.ndarray, outputs: Any = ("mesh", "displacement"),
                    clamp: bool = True) -> dict[str, np.ndarray]:
-        if self.reference is not None:
-            self.reference.check(np.asarray(markers, np.float64))
+        frames = np.asarray(markers, np.float64)
+        frames = frames[None] if frames.ndim == 2 else frames
+        # a wrong marker count is the model's to name ("model expects 150 markers, got 149")
+        if self.reference is not None and frames.shape[1:] == self.reference.rest.shape:
+            self.reference.check(frames)
         return self.model.synthesize(markers, outputs, clamp)
 
     def __getattr__(self, name: str) -> Any:
