@@ -38,6 +38,7 @@ from service.errors import (
     Conflict, Corrupt, FacesynthError, InsufficientStorage, InvalidInput, NotAcceptable, NotFound,
     PayloadTooLarge, Unavailable,
 )
+from models_store.errors import storage_error
 
 log = logging.getLogger(__name__)
 
@@ -125,9 +126,13 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
             yield from self._replies(request_iterator)
         except StreamError as e:
             context.abort(e.code, e.details)
-        except Exception:
+        except Exception as e:
             if not context.is_active():          # the client went away: nothing to answer
                 return
+            meaning = storage_error(e)           # a full or read-only disk, by meaning
+            if meaning is not None:
+                log.warning("StreamSynthesize: storage fault: %s", meaning)
+                context.abort(code_of(meaning), str(meaning))
             log.exception("StreamSynthesize failed")
             context.abort(grpc.StatusCode.INTERNAL, "internal error while synthesizing (see the server log)")
 

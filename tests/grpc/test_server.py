@@ -163,3 +163,18 @@ def test_each_call_is_scoped_to_its_tokens_tenant(load_model, heldout_markers):
         assert len(list(stream_synthesize(ch, MODEL_ID, heldout_markers[:1], token="tok-o"))) == 1
     assert seen == ["studio-a", "studio-b", None]
     assert TENANT_SCOPE.get() is None
+
+
+@pytest.mark.parametrize("errno_, code", [
+    (28, grpc.StatusCode.RESOURCE_EXHAUSTED),   # ENOSPC: the data disk is full
+    (30, grpc.StatusCode.UNAVAILABLE),          # EROFS: it is read-only
+])
+def test_a_storage_fault_is_a_status_by_meaning_without_paths(heldout_markers, errno_, code):
+    """issue 16: a full or read-only data disk ends a stream as the HTTP API answers it
+    (507 / 503 there), never INTERNAL, and names no server path."""
+    def load(model_id: str):
+        raise OSError(errno_, "storage fault", "/srv/facesynth/blobs/models/x/model.npz")
+
+    with running(load) as channel:
+        e = _status(stream_synthesize(channel, MODEL_ID, heldout_markers[:1]))
+    assert e.code() == code and "/srv" not in e.details()
