@@ -21,7 +21,7 @@ from service.app.operations import submit
 from service.app.services import Services, Submit
 from service.errors import Conflict, InvalidInput
 from service.jobs.tasks.transfer import TRANSFER_JOB, TRANSFER_KINDS, TransferParams
-from service.methods.pose_space.transfer import MIN_LANDMARKS
+from service.methods.pose_space.transfer import MIN_LANDMARKS, check_landmarks
 
 Pair = Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]
 
@@ -75,7 +75,8 @@ def submit_transfer(services: Services, submit_job: Submit, model_id: str,
             if blob is None:
                 raise Conflict(f"actor {target.id!r} has no {what} yet; PUT "
                                f"/v1/actors/{target.id}/{put} before transferring to it")
-        landmarks = check_landmarks(body.landmarks, source_actor.vertex_count, target.vertex_count)
+        landmarks = check_landmarks(body.landmarks, source_actor.vertex_count,
+                                    target.vertex_count).tolist()
         weights = body.params.pose_weights
         if weights is not None:
             if len(weights) != target.marker_count:
@@ -90,21 +91,3 @@ def submit_transfer(services: Services, submit_job: Submit, model_id: str,
                      "params": body.params.model_dump(mode="json")})
         submit(session, submit_job, job)
         return schemas.ModelAccepted(model_id=model.id, job_id=job.id)
-
-
-def check_landmarks(pairs: list[list[int]], n_source: int, n_target: int) -> list[list[int]]:
-    """The landmark pairs as plain ints, or InvalidInput naming the first pair out of range
-    (source vertices in [0, ``n_source``), target vertices in [0, ``n_target``)) or a
-    repeated vertex."""
-    L = np.asarray(pairs, np.int64).reshape(-1, 2)
-    if len(L) < MIN_LANDMARKS:
-        raise InvalidInput(f"need at least {MIN_LANDMARKS} landmark pairs, got {len(L)}")
-    for col, n, who in ((0, n_source, "source"), (1, n_target, "target")):
-        bad = np.flatnonzero((L[:, col] < 0) | (L[:, col] >= n))
-        if len(bad):
-            raise InvalidInput(f"landmarks[{bad[0]}]: {who} vertex {L[bad[0], col]} is out of "
-                               f"range; the {who} neutral has {n} vertices")
-        values, counts = np.unique(L[:, col], return_counts=True)
-        if (counts > 1).any():
-            raise InvalidInput(f"landmarks repeat {who} vertex {values[counts > 1][0]}")
-    return L.tolist()

@@ -48,7 +48,10 @@ MIN_LANDMARKS = 4
 PAD_TEXELS = 4
 
 
-def _check_landmarks(landmarks, n_source: int, n_target: int) -> np.ndarray:
+def check_landmarks(landmarks, n_source: int, n_target: int) -> np.ndarray:
+    """Landmark pairs (L,2) int64 [source vertex, target vertex], or :class:`InvalidInput`
+    for a wrong shape, fewer than :data:`MIN_LANDMARKS` pairs, a vertex out of range of its
+    neutral or a repeated vertex (each named)."""
     L = np.asarray(landmarks)
     if L.ndim != 2 or L.shape[1] != 2 or not np.issubdtype(L.dtype, np.integer):
         raise InvalidInput(f"landmarks must be (L,2) integer vertex pairs (source, target), got "
@@ -58,9 +61,11 @@ def _check_landmarks(landmarks, n_source: int, n_target: int) -> np.ndarray:
     for col, n, who in ((0, n_source, "source"), (1, n_target, "target")):
         bad = np.flatnonzero((L[:, col] < 0) | (L[:, col] >= n))
         if len(bad):
-            raise InvalidInput(f"landmark {bad[0]}: {who} vertex {L[bad[0], col]} is out of range [0, {n})")
-        if len(np.unique(L[:, col])) < len(L):
-            raise InvalidInput(f"landmarks repeat a {who} vertex")
+            raise InvalidInput(f"landmarks[{bad[0]}]: {who} vertex {L[bad[0], col]} is out of "
+                               f"range; the {who} neutral has {n} vertices")
+        values, counts = np.unique(L[:, col], return_counts=True)
+        if (counts > 1).any():
+            raise InvalidInput(f"landmarks repeat {who} vertex {values[counts > 1][0]}")
     return L.astype(np.int64)
 
 
@@ -107,7 +112,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     s = model.data
     Vs, Fs = s.neutral, s.faces
     Vt, Ft = np.asarray(target.vertices, np.float64), np.asarray(target.faces, np.int64)
-    L = _check_landmarks(landmarks, len(Vs), len(Vt))
+    L = check_landmarks(landmarks, len(Vs), len(Vt))
     progress(0.0, "rigid pre-alignment and shell fit")
     # 1-2: rigid pre-alignment, then the shell fit of the source to the target landmarks
     rigid = rigid_align(Vs[L[:, 0]], Vt[L[:, 1]])
