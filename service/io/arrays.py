@@ -44,7 +44,7 @@ KINDS = {"f": "floating point", "iu": "integers", "fiu": "real numbers", "b": "b
          "biu": "bool or integers"}
 
 #: bytes of one block when values are checked or copied a block at a time
-BLOCK_BYTES = 8 << 20
+BLOCK_BYTES = 1 << 20
 
 Dims = Sequence["str | int"]
 

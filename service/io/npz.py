@@ -24,7 +24,7 @@ from typing import Any, BinaryIO, Iterator, Mapping
 
 import numpy as np
 
-from service.io.arrays import blocks
+from service.io.arrays import BLOCK_BYTES, blocks
 
 #: what numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)
 ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error,
@@ -140,7 +140,7 @@ def _read_exact(f: BinaryIO, size: int) -> bytes:
 
 
 def write_npz(target: BinaryIO, arrays: Mapping[str, Any],
-              dtypes: Mapping[str, Any] | None = None, max_bytes: int = 8 << 20) -> None:
+              dtypes: Mapping[str, Any] | None = None, max_bytes: int = BLOCK_BYTES) -> None:
     """Write an uncompressed ``.npz`` (what ``np.savez`` writes) a block at a time.
 
     Parameters
