@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import argparse
 import io
-import os
 import shutil
-import subprocess
 import sys
 import threading
 import time
@@ -29,20 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
+from harness import free_port, start_server, stop_server
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 OUT = ROOT / "benchmarks" / "out"
 NPZ = {"Content-Type": "application/x-npz"}
 SIDE = 100                      # grid side: 10 000 vertices
 MiB = 1 << 20
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def status_kb(pid: int, key: str) -> int:
@@ -86,28 +78,6 @@ def write_clip(path: Path, V: np.ndarray, mib: int) -> int:
     return path.stat().st_size
 
 
-def start_server(repo: Path, work: Path, port: int) -> subprocess.Popen:
-    import httpx
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
-    env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
-                "FACESYNTH_GRPC_PORT": str(free_port()), "FACESYNTH_WORKERS": "0",
-                "PYTHONPATH": str(repo)})
-    log = open(work / "server.log", "ab")
-    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=repo, env=env,
-                              stdout=log, stderr=log, stdin=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while True:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                return server
-        except httpx.TransportError:
-            pass
-        if server.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"the server did not start; see {work / 'server.log'}")
-        time.sleep(0.3)
-
-
 def upload(base: str, actor: str, body: Path, results: list) -> None:
     import httpx
 
@@ -131,7 +101,7 @@ def run(repo: Path, work: Path, mib: int, concurrent: int) -> list[dict]:
     np.savez(neutral, vertices=V, faces=F, uv=uv)
     port = free_port()
     base = f"http://127.0.0.1:{port}"
-    server = start_server(repo, work, port)
+    server = start_server(work, port, {"FACESYNTH_WORKERS": "0"}, repo)
     rows = []
     try:
         with httpx.Client(base_url=base, timeout=120) as client:
@@ -157,11 +127,7 @@ def run(repo: Path, work: Path, mib: int, concurrent: int) -> list[dict]:
                          "seconds": max(r[1] for r in results),
                          "errors": "; ".join(r[2] for r in results if r[2])})
     finally:
-        server.terminate()
-        try:
-            server.wait(30)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_server(server)
     return rows
 
 
