@@ -19,7 +19,11 @@ Accepted media types:
 
 NPZ archives are read without unpickling (object arrays are refused), and their array
 headers are checked (names, shapes, dtypes, total decompressed size at most
-``NPZ_EXPANSION`` × ``max_body_bytes``) before any array data is decompressed.
+``NPZ_EXPANSION`` × ``max_body_bytes``) before any array data is decompressed, with the one
+array dialect of :mod:`service.io.arrays` (:class:`~service.io.arrays.ArraySpec`). An
+archive is read from bytes or from the spool file of a large body; a clip's arrays are then
+read a block of frames at a time while they are checked and written to their canonical
+blob, so a clip upload never holds its arrays whole in memory (issue 16, defect 11).
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from service.geometry.closest_point import resolve_marker_layout, surface_points
 from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
-from service.io.arrays import AXES, ArraySpec, Axes  # noqa: F401 (AXES, ArraySpec: the upload specs' vocabulary)
+from service.io.arrays import ArraySpec, Axes
 from service.io.npz import ZIP_ERRORS, NpyMember, npz_arrays
 from service.errors import InvalidInput, MalformedInput
 
@@ -161,17 +165,17 @@ class NpzUpload:
                 raise FormatError(f"cannot read '{key}' in the {self.what} .npz: {error}") from None
         return arrays
 
-    def members(self) -> dict[str, "_Checked"]:
+    def members(self) -> dict[str, "_UploadedArray"]:
         """Every array as an array still in the archive, read in blocks along axis 0 by
         :func:`service.io.arrays.blocks` (a read error is this format's error)."""
-        return {key: _Checked(member, self.what) for key, member in self._members.items()}
+        return {key: _UploadedArray(member, self.what) for key, member in self._members.items()}
 
     def close(self) -> None:
         """Close the archive (and the spool file it reads)."""
         self._zip.close()
 
 
-class _Checked:
+class _UploadedArray:
     """An :class:`NpyMember` whose read errors are :class:`FormatError` naming the upload."""
 
     def __init__(self, member: NpyMember, what: str):

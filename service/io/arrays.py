@@ -216,6 +216,8 @@ def check_finite(values: Any, name: str, labels: Sequence[str], allow_nan: bool 
     count, first, ndim = 0, None, lead
     for start, block in blocks(values):
         ndim = block.ndim
+        if block.size == 0:
+            continue
         bad = np.isinf(block) if allow_nan else ~np.isfinite(block)
         if block.ndim > lead:
             bad = bad.reshape(bad.shape[:lead] + (-1,)).any(axis=-1)
