@@ -13,7 +13,7 @@ import numpy as np
 from service.app.limits import DEGENERATE_AREA_RTOL
 from service.geometry.laplacian import triangle_areas
 from service.geometry.topology import edge_face_counts
-from service.io.arrays import check_finite
+from service.io.arrays import OCCLUDED_NOTE, check_finite
 from service.io.mesh import Mesh
 from service.io.triangle_mesh import NO_UV
 from service.methods.inputs import InvalidInput
@@ -100,8 +100,8 @@ def check_finite_frames(values: np.ndarray, what: str, element: str,
     allow_nan : bool         NaN is allowed (an occluded marker), infinity is not
     """
     labels = ("frame", element) if len(values.shape) >= 3 else (element,)
-    note = "; NaN marks an occluded marker, infinity is not allowed" if allow_nan else ""
-    check_finite(values, what, labels, allow_nan=allow_nan, note=note)
+    check_finite(values, what, labels, allow_nan=allow_nan,
+                 note=OCCLUDED_NOTE if allow_nan else "")
 
 
 def check_text(value: str, what: str) -> str:

@@ -43,6 +43,9 @@ AXES = {"F": "frames", "V": "vertices", "M": "markers", "T": "triangles",
 KINDS = {"f": "floating point", "iu": "integers", "fiu": "real numbers", "b": "bool",
          "biu": "bool or integers"}
 
+#: the finite check's note for marker positions, where NaN is allowed (:func:`check_finite`)
+OCCLUDED_NOTE = "; NaN marks an occluded marker, infinity is not allowed"
+
 #: bytes of one block when values are checked or copied a block at a time
 BLOCK_BYTES = 1 << 20
 

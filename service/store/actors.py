@@ -44,7 +44,7 @@ from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from service.geometry.marker_layout import BARYCENTRIC_TOLERANCE  # the layout readers' (1e-4)
-from service.io.arrays import Axes, as_array, check_finite, check_indices, checked
+from service.io.arrays import OCCLUDED_NOTE, Axes, as_array, check_finite, check_indices, checked
 from service.io.npz import npz_arrays, npz_bytes, write_npz
 from service.methods.inputs import ActorData, Clip, InvalidInput, check_clips
 
@@ -64,10 +64,6 @@ def open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
         return npz_arrays(data)
     except (ValueError, OSError, EOFError) as error:
         raise InvalidInput(f"{what} is not a readable .npz: {error}") from None
-
-
-#: what an occluded marker is, for the finite check's message
-_NAN_NOTE = "; NaN marks an occluded marker, infinity is not allowed"
 
 
 # ---------------------------------------------------------------------------- writers
@@ -188,7 +184,7 @@ def write_clip(target: BinaryIO, vertices: Any, markers: Any, *, displacement: A
     if albedo is not None:
         arrays["albedo"] = checked(albedo, "clip albedo", ("F", "H", "W", 3), axes=Axes(F=frames))
     check_finite(V, "clip", ("frame", "vertex"))
-    check_finite(P, "clip", ("frame", "marker"), allow_nan=True, note=_NAN_NOTE)
+    check_finite(P, "clip", ("frame", "marker"), allow_nan=True, note=OCCLUDED_NOTE)
     for key in ("displacement", "albedo"):
         if key in arrays:
             check_finite(arrays[key], f"clip {key}", ("frame",))
