@@ -388,3 +388,49 @@ if __name__ == "__main__":
         print(json.dumps(train_pdm(Path(sys.argv[2]), sys.argv[3], Path(sys.argv[4]))))
     else:
         sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR (the reports' worker)")
+
+
+# ---------------------------------------------------------------------------- servers
+def free_port() -> int:
+    """A free TCP port on the loopback interface."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(work: Path, port: int, env: dict[str, str], repo: Path = ROOT
+                 ) -> subprocess.Popen:
+    """A ``facesynth serve`` of the checkout ``repo`` on ``port`` with its data in
+    ``work/data`` (log: ``work/server.log``; one embedded worker unless ``env`` says
+    otherwise), once ``/readyz`` answers 200 (RuntimeError after 120 s)."""
+    import httpx
+
+    full = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
+    full.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
+                 "FACESYNTH_GRPC_PORT": str(free_port()), "FACESYNTH_WORKERS": "1",
+                 "PYTHONPATH": str(repo), **env})
+    log = open(work / "server.log", "ab")
+    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=repo, env=full,
+                              stdout=log, stderr=log, stdin=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                return server
+        except httpx.TransportError:
+            pass
+        if server.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"the server did not start; see {work / 'server.log'}")
+        time.sleep(0.3)
+
+
+def stop_server(server: subprocess.Popen, seconds: float = 60) -> None:
+    """Terminate a server of :func:`start_server`; kill it if it is not gone in ``seconds``."""
+    server.terminate()
+    try:
+        server.wait(seconds)
+    except subprocess.TimeoutExpired:
+        server.kill()
+        server.wait()

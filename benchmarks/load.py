@@ -28,13 +28,14 @@ from __future__ import annotations
 import argparse
 import os
 import socket
-import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+
+from harness import free_port, start_server, stop_server
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,33 +48,6 @@ CLIENTS = 16
 SLOW = 100
 SLOW_EVERY = 5.0
 NPZ = {"Content-Type": "application/x-npz"}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(work: Path, port: int, env: dict[str, str]) -> subprocess.Popen:
-    full = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
-    full.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
-                 "FACESYNTH_GRPC_PORT": str(free_port()), "FACESYNTH_WORKERS": "1", **env})
-    log = open(work / "server.log", "ab")
-    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=full,
-                              stdout=log, stderr=log, stdin=subprocess.DEVNULL)
-    import httpx
-
-    deadline = time.monotonic() + 120
-    while True:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                return server
-        except httpx.TransportError:
-            pass
-        if server.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"the server did not start; see {work / 'server.log'}")
-        time.sleep(0.3)
 
 
 def prepare(work: Path, base: str) -> tuple[str, np.ndarray]:
@@ -248,11 +222,7 @@ def main() -> int:
                 lines.append(f"| {r['kind']} | {r['connections']} | {r['refused_503']} | "
                              f"{r['closed']} | {r['still_open']} | {r['longest_open_s']:.1f} |")
     finally:
-        server.terminate()
-        try:
-            server.wait(60)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_server(server)
     text = "\n".join(lines) + "\n"
     print(text)
     (OUT / "load.md").write_text("# Load benchmark (benchmarks/load.py)\n\n" + text)

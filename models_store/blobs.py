@@ -56,6 +56,21 @@ MAX_KEY_LENGTH = 512
 _SEGMENT = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
+class ScratchFile(os.PathLike):
+    """A finished file in the store's scratch space (:meth:`BlobStore.scratch_dir`), given
+    as a blob's content: the registry moves it into place (``put_file(..., move=True)``)
+    instead of copying it, so a large upload is written once (issue 16, defect 11)."""
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self.path = Path(path)
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+    def __repr__(self) -> str:
+        return f"ScratchFile({str(self.path)!r})"
+
+
 @dataclass(frozen=True)
 class BlobInfo:
     """What was stored: the key, the sha256 hex digest and the size in bytes.
@@ -150,10 +165,28 @@ class BlobStore:
         """Store ``data`` as a file blob."""
         return self._put_stream(key, io.BytesIO(data))
 
-    def put_file(self, key: str, source: str | os.PathLike[str]) -> BlobInfo:
-        """Store a copy of the file ``source`` as a file blob."""
+    def put_file(self, key: str, source: str | os.PathLike[str], move: bool = False) -> BlobInfo:
+        """Store a copy of the file ``source`` as a file blob; with ``move``, store the file
+        itself: it is fsynced, hashed (read in chunks) and renamed into place, so a file
+        already written in the store's scratch space (:meth:`scratch_dir`, the same
+        filesystem) is stored without a second copy (it is copied if it is elsewhere)."""
+        if not move:
+            with open(source, "rb") as stream:
+                return self._put_stream(key, stream)
+        final = self._vacant(key)
         with open(source, "rb") as stream:
-            return self._put_stream(key, stream)
+            os.fchmod(stream.fileno(), FILE_MODE)
+            os.fsync(stream.fileno())
+            sha256, size = _digest(stream)
+        try:
+            os.rename(source, final)
+        except OSError as error:
+            if error.errno != errno.EXDEV:
+                raise
+            with open(source, "rb") as stream:
+                return self._put_stream(key, stream)
+        _fsync_dir(final.parent)
+        return BlobInfo(key, sha256, size)
 
     def put_dir(self, key: str, source: str | os.PathLike[str]) -> BlobInfo:
         """Store a copy of the directory tree ``source`` as a directory blob.
@@ -432,6 +465,16 @@ def _walk_files(top: Path) -> Iterator[tuple[Path, str]]:
         for name in sorted(filenames):
             path = Path(dirpath, name)
             yield path, path.relative_to(top).as_posix()
+
+
+def _digest(source: BinaryIO) -> tuple[str, int]:
+    """(sha256, size) of a stream, read in chunks."""
+    h = hashlib.sha256()
+    size = 0
+    while block := source.read(CHUNK):
+        h.update(block)
+        size += len(block)
+    return h.hexdigest(), size
 
 
 def _copy(source: BinaryIO, target: BinaryIO) -> tuple[str, int]:

@@ -11,13 +11,14 @@ from sqlalchemy import update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from models_store.blobs import BlobInfo, BlobStore
+from models_store.blobs import BlobInfo, BlobStore, ScratchFile
 from models_store.errors import Conflict, NotFound
 from models_store.ids import is_valid_id
 from models_store.schema import DEFAULT_TENANT, Base, Model
 
 Row = TypeVar("Row", bound=Base)
-#: blob content: bytes in memory, or the path of a file to copy
+#: blob content: bytes in memory, the path of a file to copy, or a
+#: :class:`~models_store.blobs.ScratchFile` to move into place
 Data = bytes | bytearray | memoryview | os.PathLike
 
 
@@ -74,10 +75,10 @@ def owned(row: Row, kind: str, actor_id: str | None) -> Row:
 
 
 def put_blob(blobs: BlobStore, key: str, data: Data) -> BlobInfo:
-    """Store bytes or a file's content under ``key``."""
+    """Store bytes or a file's content under ``key`` (a :class:`ScratchFile` is moved)."""
     if isinstance(data, (bytes, bytearray, memoryview)):
         return blobs.put_bytes(key, bytes(data))
-    return blobs.put_file(key, data)
+    return blobs.put_file(key, data, move=isinstance(data, ScratchFile))
 
 
 def commit(session: Session, blobs: BlobStore | None = None, new_keys: Iterable[str] = (),

@@ -4,9 +4,14 @@ and the body-size limit enforced while a body streams in (the parsing of what wa
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+import contextlib
+import hashlib
+import os
+from pathlib import Path
+from typing import Any, AsyncIterator, Sequence
 
 from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -31,48 +36,59 @@ def require_media_type(request: Request, allowed: Sequence[str]) -> str:
     return kind
 
 
-async def read_body(request: Request, allowed: Sequence[str]) -> tuple[str, bytes]:
-    """The media type (one of ``allowed``) and the whole, non-empty body.
+@contextlib.asynccontextmanager
+async def body_source(request: Request, allowed: Sequence[str]
+                      ) -> AsyncIterator[tuple[str, bytes | Path]]:
+    """The media type (one of ``allowed``) and the non-empty body: its bytes, or — for a
+    body larger than ``spool_body_bytes`` — the path of its spool file, which lives until
+    the block ends.
 
     The size limit is enforced while the body streams in (:class:`BodyLimitMiddleware`). A
-    body larger than ``spool_body_bytes`` is not gathered in memory chunk by chunk: it is
-    written to a hidden spool file in the blob store (its filesystem has the room, and the
-    sweep removes what a killed process leaves) while its sha256 is computed, then read back
-    once (one copy of the body in memory instead of the chunks plus their join) and the file
-    removed; its digest is ``request.state.body_sha256``.
+    large body is never gathered in memory: it is written, chunk by chunk as it arrives, to
+    a hidden scratch directory of the blob store (its filesystem has the room, the sweep
+    removes what a killed process leaves, and the canonical blob written beside it is moved
+    into place) while its sha256 is computed (``request.state.body_sha256``); the directory
+    is removed when the block ends, however it ends (issue 16, defect 11). Routes whose
+    parser reads a file (:class:`~service.app.uploads.NpzUpload`) pass the path on, inside
+    the block.
     """
     kind = require_media_type(request, allowed)
     services = getattr(request.app.state, "services", None)
     declared = request.headers.get("content-length", "")
     threshold = services.settings.spool_body_bytes if services is not None else None
-    if threshold is not None and (not declared.isdigit() or int(declared) > threshold):
-        data = await _spooled(request, services.blobs)
-    else:
+    if threshold is None or (declared.isdigit() and int(declared) <= threshold):
         data = await request.body()
-    if not data:
-        raise MalformedInput(f"the request body is empty; send a {kind} body")
-    return kind, data
-
-
-async def _spooled(request: Request, blobs: Any) -> bytes:
-    """The body, streamed into a hidden spool file while hashing, read back once."""
-    import hashlib
-    import os
-
-    from fastapi.concurrency import run_in_threadpool
-
-    digest = hashlib.sha256()
-    with blobs.scratch_dir("upload") as directory:
+        if not data:
+            raise MalformedInput(f"the request body is empty; send a {kind} body")
+        yield kind, data
+        return
+    with services.blobs.scratch_dir("upload") as directory:
         path = directory / "body"
-        with open(path, "wb") as spool:
-            async for chunk in request.stream():
-                if chunk:
-                    digest.update(chunk)
-                    await run_in_threadpool(spool.write, chunk)
-        size = os.path.getsize(path)
-        data = await run_in_threadpool(path.read_bytes) if size else b""
-    request.state.body_sha256 = digest.hexdigest()
-    return data
+        request.state.body_sha256 = await _spool(request, path)
+        if not os.path.getsize(path):
+            raise MalformedInput(f"the request body is empty; send a {kind} body")
+        yield kind, path
+
+
+async def read_body(request: Request, allowed: Sequence[str]) -> tuple[str, bytes]:
+    """The media type (one of ``allowed``) and the whole, non-empty body in memory (a large
+    body is spooled as :func:`body_source` does, then read back once: for the routes whose
+    parser needs bytes; the uploads that can be large take :func:`body_source`)."""
+    async with body_source(request, allowed) as (kind, data):
+        if isinstance(data, Path):
+            data = await run_in_threadpool(data.read_bytes)
+        return kind, data
+
+
+async def _spool(request: Request, path: Path) -> str:
+    """Stream the body into the new file ``path``; its sha256 hex digest."""
+    digest = hashlib.sha256()
+    with open(path, "wb") as spool:
+        async for chunk in request.stream():
+            if chunk:
+                digest.update(chunk)
+                await run_in_threadpool(spool.write, chunk)
+    return digest.hexdigest()
 
 
 class LargeUploadLimiter:

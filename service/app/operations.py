@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -21,6 +22,7 @@ from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
 from models_store import registry
+from models_store.blobs import ScratchFile
 from models_store.ids import new_token
 from models_store.schema import Actor, Job
 from service.app import schemas
@@ -87,7 +89,8 @@ def delete_actor(services: Services, actor_id: str, cascade: bool) -> None:
         services.forget_model(model_id)
 
 
-def put_neutral(services: Services, actor_id: str, kind: str, data: bytes) -> schemas.NeutralInfo:
+def put_neutral(services: Services, actor_id: str, kind: str,
+                data: bytes | os.PathLike) -> schemas.NeutralInfo:
     """Validate and store an actor's neutral.
 
     Replacing a neutral that clips or a marker layout already refer to must keep its vertex
@@ -137,32 +140,41 @@ def put_markers(services: Services, actor_id: str, data: bytes) -> schemas.Marke
 
 
 # ---------------------------------------------------------------------------- clips
-def add_clip(services: Services, actor_id: str, kind: str, data: bytes | uploads.ClipForm,
-             name: str | None) -> schemas.ClipAdded:
-    """Validate a clip (NPZ bytes or a multipart :class:`~service.app.uploads.ClipForm`)
-    against the actor's neutral and layout, and store it; the stored clip and the marker
-    reader's notes."""
+def add_clip(services: Services, actor_id: str, kind: str,
+             data: bytes | os.PathLike | uploads.ClipForm, name: str | None) -> schemas.ClipAdded:
+    """Validate a clip (NPZ bytes, the spool file of a large NPZ body, or a multipart
+    :class:`~service.app.uploads.ClipForm`) against the actor's neutral and layout, and store
+    it; the stored clip and the marker reader's notes.
+
+    The canonical blob is written, a block of frames at a time as it is validated, into a
+    scratch directory of the blob store and moved into place
+    (:class:`~models_store.blobs.ScratchFile`): no array of the body is held whole in memory,
+    and a failure at any point (a full disk: 507) leaves no blob (issue 16, defect 11).
+    """
     if name is not None:
         check_text(name, "the clip name")
     with services.session() as session:
         actor = _actor_with(session, actor_id, neutral=True, markers=True, doing="adding clips")
         names = (uploads.layout_names(registry.read_markers(session, services.blobs, actor_id))
                  if isinstance(data, uploads.ClipForm) else None)
-    if isinstance(data, uploads.ClipForm):
-        clip = uploads.parse_clip_form(data, services.settings, actor.vertex_count, names)
-    else:
-        clip = uploads.parse_clip_npz(data, services.settings, actor.vertex_count,
-                                      actor.marker_count)
-    with services.session() as session:
-        row = registry.add_clip(session, services.blobs, actor_id, clip.blob, frames=clip.frames,
-                                name=name)
-        added = schemas.ClipAdded.model_validate(row)
+    with services.blobs.scratch_dir("clip") as scratch:
+        target = scratch / "clip.npz"
+        if isinstance(data, uploads.ClipForm):
+            clip = uploads.parse_clip_form(data, services.settings, actor.vertex_count, names,
+                                           target)
+        else:
+            clip = uploads.parse_clip_npz(data, services.settings, actor.vertex_count,
+                                          actor.marker_count, target)
+        with services.session() as session:
+            row = registry.add_clip(session, services.blobs, actor_id, ScratchFile(target),
+                                    frames=clip.frames, name=name)
+            added = schemas.ClipAdded.model_validate(row)
     return added.model_copy(update={"notes": list(clip.notes)})
 
 
 # ---------------------------------------------------------------------------- input rigs
 def put_input_rig(services: Services, submit_job: Submit, actor_id: str, name: str, kind: str,
-                  data: bytes, landmarks: str | None) -> schemas.RigAccepted:
+                  data: bytes | os.PathLike, landmarks: str | None) -> schemas.RigAccepted:
     """Store an input rig's mesh and queue its registration to the actor's neutral (a
     registration of the same rig still queued or running is cancelled first).
 

@@ -19,14 +19,18 @@ Accepted media types:
 
 NPZ archives are read without unpickling (object arrays are refused), and their array
 headers are checked (names, shapes, dtypes, total decompressed size at most
-``NPZ_EXPANSION`` × ``max_body_bytes``) before any array data is decompressed.
+``NPZ_EXPANSION`` × ``max_body_bytes``) before any array data is decompressed, with the one
+array dialect of :mod:`service.io.arrays` (:class:`~service.io.arrays.ArraySpec`). An
+archive is read from bytes or from the spool file of a large body; a clip's arrays are then
+read a block of frames at a time while they are checked and written to their canonical
+blob, so a clip upload never holds its arrays whole in memory (issue 16, defect 11).
 """
 
 from __future__ import annotations
 
 import io
 import json
-import math
+import os
 import re
 import zipfile
 from dataclasses import dataclass, field
@@ -36,13 +40,14 @@ import numpy as np
 
 from service.store import actors as actor_store
 from service.app.limits import (FACES_PER_VERTEX, NPZ_EXPANSION, NPZ_MAX_MEMBERS)
-from service.app.validation import check_finite_frames, check_triangles, check_uv_tile
+from service.app.validation import check_triangles, check_uv_tile
 from service.config import Settings
 from service.geometry.closest_point import resolve_marker_layout, surface_points
 from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
-from service.io.npz import ZIP_ERRORS, npy_header, npz_arrays
+from service.io.arrays import ArraySpec, Axes
+from service.io.npz import ZIP_ERRORS, NpyMember, npz_arrays
 from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
@@ -72,46 +77,24 @@ def parse_json(data: bytes) -> Any:
 
 
 # ---------------------------------------------------------------------------- NPZ
-#: names of the symbolic axes of :class:`ArraySpec`, for messages
-AXES = {"F": "frames", "V": "vertices", "M": "markers", "T": "triangles", "K": "uv coordinates",
-        "H": "texels per side", "A": "texels per side", "P": "pairs"}
-
-
-@dataclass(frozen=True)
-class ArraySpec:
-    """What one array of an uploaded NPZ must look like.
-
-    Attributes
-    ----------
-    dims : tuple        per axis an int (that exact length) or a symbol of :data:`AXES`;
-                        arrays sharing a symbol must agree on its length
-    kinds : str         allowed dtype kinds (``"f"`` float, ``"i"``/``"u"`` integer, ``"b"`` bool)
-    required : bool
-    """
-
-    dims: tuple[str | int, ...]
-    kinds: str = "fiu"
-    required: bool = True
-
-    def describe(self) -> str:
-        return "(" + ",".join(map(str, self.dims)) + ")"
-
-
 @dataclass
 class NpzUpload:
-    """An uploaded NPZ whose headers passed their :class:`ArraySpec` (nothing decompressed
-    yet): ``shapes`` and ``dims`` (symbol → length) are known, :meth:`load` reads the data.
+    """An uploaded NPZ whose headers passed their :class:`~service.io.arrays.ArraySpec`
+    (nothing decompressed yet): ``shapes`` and ``dims`` (symbol → length) are known,
+    :meth:`load` reads the data into memory, :meth:`members` gives it as
+    :class:`~service.io.npz.NpyMember` arrays read in blocks (so a spooled body of hundreds
+    of MiB is checked and rewritten holding a few MiB of it: issue 16, defect 11).
 
     Parameters
     ----------
-    data : bytes                     the archive
+    data : bytes or path             the archive, in memory or in a (spool) file
     specs : name → ArraySpec         the arrays it may hold
     max_bytes : int                  bound on the summed decompressed size of its arrays
     prefixes : prefix → ArraySpec    specs for families of names (``region_<name>``)
     what : str                       the upload's name in messages, e.g. ``"clip"``
     """
 
-    data: bytes
+    data: bytes | os.PathLike
     specs: Mapping[str, ArraySpec]
     max_bytes: int
     prefixes: Mapping[str, ArraySpec] = field(default_factory=dict)
@@ -120,15 +103,16 @@ class NpzUpload:
     dims: dict[str, int] = field(init=False)
 
     def __post_init__(self) -> None:
+        source = io.BytesIO(self.data) if isinstance(self.data, (bytes, bytearray)) else self.data
         try:
-            self._zip = zipfile.ZipFile(io.BytesIO(self.data))
+            self._zip = zipfile.ZipFile(source)
             members = self._zip.infolist()
         except ZIP_ERRORS as error:
             raise FormatError(f"the {self.what} is not a readable .npz archive: {error}") from None
         if len(members) > NPZ_MAX_MEMBERS:
             raise SizeLimitError("arrays", len(members), NPZ_MAX_MEMBERS)
-        self.shapes, self.dims, self._members = {}, {}, {}
-        owner: dict[str, tuple[str, int]] = {}
+        self.shapes, self._members = {}, {}
+        axes = Axes()
         total = 0
         for info in members:
             if not info.filename.endswith(".npy"):
@@ -136,27 +120,13 @@ class NpzUpload:
                                   "an array (.npy)")
             key = info.filename[:-4]
             spec = self._spec(key)
-            shape, dtype = self._header(info)
-            if dtype.kind not in spec.kinds:
-                raise FormatError(f"'{key}' has dtype {dtype}; expected "
-                                  f"{_kinds_text(spec.kinds)}")
-            if len(shape) != len(spec.dims):
-                raise FormatError(f"'{key}' has shape {shape}, expected {spec.describe()}")
-            for axis, (size, dim) in enumerate(zip(shape, spec.dims)):
-                if isinstance(dim, int):
-                    if size != dim:
-                        raise FormatError(f"'{key}' has shape {shape}, expected {spec.describe()}")
-                elif dim in self.dims and self.dims[dim] != size:
-                    first, first_axis = owner[dim]
-                    raise InvalidInput(
-                        f"'{key}' has {size} {AXES.get(dim, dim)} (axis {axis}) but '{first}' "
-                        f"has {self.dims[dim]} (axis {first_axis})")
-                else:
-                    self.dims[dim], owner[dim] = size, (key, axis)
-            total += math.prod(shape) * dtype.itemsize
+            member = self._header(info)
+            shape = spec.check(f"'{key}'", member.shape, member.dtype, axes, FormatError)
+            total += member.nbytes
             if total > self.max_bytes:
                 raise SizeLimitError("bytes of decompressed array data", total, self.max_bytes)
-            self.shapes[key], self._members[key] = shape, info
+            self.shapes[key], self._members[key] = shape, member
+        self.dims = axes.lengths
         missing = [k for k, s in self.specs.items() if s.required and k not in self.shapes]
         if missing:
             raise FormatError(f"the {self.what} .npz lacks {', '.join(repr(k) for k in missing)}; "
@@ -173,33 +143,62 @@ class NpzUpload:
         raise FormatError(f"unexpected array '{key}' in the {self.what} .npz; allowed: "
                           f"{', '.join(allowed)}")
 
-    def _header(self, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
+    def _header(self, info: zipfile.ZipInfo) -> NpyMember:
         key = info.filename[:-4]
         try:
-            shape, dtype = npy_header(self._zip, info)
+            member = NpyMember(self._zip, info)
         except ZIP_ERRORS as error:
             raise FormatError(f"cannot read the header of '{key}' in the {self.what} .npz: "
                               f"{error}") from None
-        if dtype.hasobject:
+        if member.dtype.hasobject:
             raise FormatError(f"'{key}' holds Python objects; only numeric arrays are accepted "
                               "(pickles are never loaded)")
-        return shape, dtype
+        return member
 
     def load(self) -> dict[str, np.ndarray]:
-        """Every array, read without unpickling."""
+        """Every array, read into memory without unpickling."""
         arrays = {}
-        for key, info in self._members.items():
+        for key, member in self._members.items():
             try:
-                with self._zip.open(info) as member:
-                    arrays[key] = np.lib.format.read_array(member, allow_pickle=False)
+                arrays[key] = member.read()
             except ZIP_ERRORS as error:
                 raise FormatError(f"cannot read '{key}' in the {self.what} .npz: {error}") from None
         return arrays
 
+    def members(self) -> dict[str, "_UploadedArray"]:
+        """Every array as an array still in the archive, read in blocks along axis 0 by
+        :func:`service.io.arrays.blocks` (a read error is this format's error)."""
+        return {key: _UploadedArray(member, self.what) for key, member in self._members.items()}
 
-def _kinds_text(kinds: str) -> str:
-    names = {"f": "float", "i": "integer", "u": "unsigned integer", "b": "bool"}
-    return " or ".join(names[k] for k in kinds)
+    def close(self) -> None:
+        """Close the archive (and the spool file it reads)."""
+        self._zip.close()
+
+
+class _UploadedArray:
+    """An :class:`NpyMember` whose read errors are :class:`FormatError` naming the upload."""
+
+    def __init__(self, member: NpyMember, what: str):
+        self.member, self.what = member, what
+        self.shape, self.dtype, self.ndim = member.shape, member.dtype, member.ndim
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def read(self) -> np.ndarray:
+        try:
+            return self.member.read()
+        except ZIP_ERRORS as error:
+            raise self._error(error) from None
+
+    def blocks(self, max_bytes: int):
+        try:
+            yield from self.member.blocks(max_bytes)
+        except ZIP_ERRORS as error:
+            raise self._error(error) from None
+
+    def _error(self, error: BaseException) -> FormatError:
+        return FormatError(f"cannot read '{self.member.name}' in the {self.what} .npz: {error}")
 
 
 def npz_limit(settings: Settings) -> int:
@@ -237,14 +236,14 @@ class MeshUpload:
         return len(self.mesh.seam_vertices())
 
 
-def parse_mesh(kind: str, data: bytes, settings: Settings, what: str,
+def parse_mesh(kind: str, data: bytes | os.PathLike, settings: Settings, what: str,
                regions: bool = False) -> MeshUpload:
     """Read an uploaded mesh (.npz or .obj, per ``kind``) and check its triangles.
 
     Parameters
     ----------
     kind : str        the media type (one of :data:`MESH_TYPES`)
-    data : bytes      the body
+    data : bytes or path   the body, in memory or its spool file
     settings : the limits (``max_vertices``; triangles up to ``FACES_PER_VERTEX`` × that)
     what : str        the mesh's name in messages (``"neutral"``, ``"input rig"``)
     regions : bool    accept ``region_<name>`` (V,) arrays in an NPZ
@@ -262,7 +261,10 @@ def parse_mesh(kind: str, data: bytes, settings: Settings, what: str,
                                     ("T", max_faces, "triangles")):
             if upload.dims.get(symbol, 0) > limit:
                 raise SizeLimitError(name, upload.dims[symbol], limit)
-        arrays = upload.load()
+        try:
+            arrays = upload.load()
+        finally:
+            upload.close()
         found = {k[len(actor_store.REGION_PREFIX):]: v.astype(bool) for k, v in arrays.items()
                  if k.startswith(actor_store.REGION_PREFIX)}
         try:
@@ -276,7 +278,7 @@ def parse_mesh(kind: str, data: bytes, settings: Settings, what: str,
     return MeshUpload(mesh, found, split)
 
 
-def parse_neutral(kind: str, data: bytes, settings: Settings) -> tuple[MeshUpload, bytes]:
+def parse_neutral(kind: str, data: bytes | os.PathLike, settings: Settings) -> tuple[MeshUpload, bytes]:
     """The neutral upload and its canonical blob (:func:`service.store.actors.neutral_npz`);
     the neutral needs UVs in the unit tile."""
     upload = parse_mesh(kind, data, settings, "neutral", regions=True)
@@ -286,7 +288,7 @@ def parse_neutral(kind: str, data: bytes, settings: Settings) -> tuple[MeshUploa
                                            upload.regions)
 
 
-def parse_rig_mesh(kind: str, data: bytes, settings: Settings) -> tuple[MeshUpload, bytes]:
+def parse_rig_mesh(kind: str, data: bytes | os.PathLike, settings: Settings) -> tuple[MeshUpload, bytes]:
     """An input rig's mesh and the NPZ to store (:func:`service.io.mesh.write_npz`, readable
     by :func:`service.io.mesh.read_npz`)."""
     upload = parse_mesh(kind, data, settings, "input rig")
@@ -388,41 +390,62 @@ CLIP_SPECS = {
 
 @dataclass(frozen=True)
 class ClipUpload:
-    """A validated clip: its canonical blob, frame count, and the marker reader's notes
+    """A validated clip: its canonical blob (bytes, or the file it was written to), frame
+    count, and the marker reader's notes
     (:attr:`~service.io.marker_sequence.MarkerSequence.notes`: what it accepted that the
     user should hear of, e.g. a TRC ``NumFrames`` that disagrees with its rows)."""
 
-    blob: bytes
+    blob: bytes | os.PathLike
     frames: int
     notes: tuple[str, ...] = ()
 
 
-def _check_clip(vertices: np.ndarray, markers: np.ndarray, n_markers: int) -> None:
-    check_finite_frames(vertices, "clip", "vertex")
-    check_finite_frames(markers, "clip", "marker", allow_nan=True)
-    if markers.shape[1] != n_markers:
-        raise InvalidInput(f"the clip has {markers.shape[1]} markers per frame, the marker "
+def _check_clip(frames: int, marker_frames: int, markers: int, n_markers: int) -> None:
+    """The counts of a clip against each other and the layout (from the headers; the
+    values are checked by :func:`service.store.actors.write_clip` as it writes them)."""
+    if markers != n_markers:
+        raise InvalidInput(f"the clip has {markers} markers per frame, the marker "
                            f"layout has {n_markers}")
-    if len(markers) != len(vertices):
-        raise InvalidInput(f"the clip has {len(vertices)} mesh frames but {len(markers)} "
+    if marker_frames != frames:
+        raise InvalidInput(f"the clip has {frames} mesh frames but {marker_frames} "
                            "marker frames")
 
 
-def parse_clip_npz(data: bytes, settings: Settings, n_vertices: int, n_markers: int) -> ClipUpload:
+def _write_clip(target: os.PathLike | None, vertices, markers, **maps) -> bytes | os.PathLike:
+    """The canonical clip written to the file ``target`` (returned), or as bytes without one."""
+    if target is None:
+        return actor_store.clip_npz(vertices, markers, **maps)
+    with open(target, "wb") as out:
+        actor_store.write_clip(out, vertices, markers, **maps)
+    return target
+
+
+def parse_clip_npz(data: bytes | os.PathLike, settings: Settings, n_vertices: int, n_markers: int,
+                   target: os.PathLike | None = None) -> ClipUpload:
     """A clip NPZ (``vertices`` (F,V,3), ``markers`` (F,M,3), optional ``displacement``
-    (F,H,H), ``albedo`` (F,A,A,3), ``fps``) checked against the actor."""
+    (F,H,H), ``albedo`` (F,A,A,3), ``fps``) checked against the actor.
+
+    ``data`` is the body in memory or its spool file. The arrays are checked from their
+    headers, then read a block of frames at a time while their values are checked and the
+    canonical blob is written to ``target`` (a new file, e.g. in a scratch directory of the
+    blob store: ``blob`` is then that path), so no array of the body is held whole in
+    memory; without ``target`` the blob is returned as bytes.
+    """
     upload = NpzUpload(data, CLIP_SPECS, npz_limit(settings), what="clip")
-    if upload.dims["F"] == 0:
-        raise InvalidInput("the clip has no frames")
-    if upload.dims["V"] != n_vertices:
-        raise InvalidInput(f"the clip's frames have {upload.dims['V']} vertices, the neutral "
-                           f"has {n_vertices} (frames must be in vertex correspondence with it)")
-    arrays = upload.load()
-    _check_clip(arrays["vertices"], arrays["markers"], n_markers)
-    fps = float(arrays["fps"]) if "fps" in arrays else 30.0
-    blob = actor_store.clip_npz(arrays["vertices"], arrays["markers"],
-                                displacement=arrays.get("displacement"),
-                                albedo=arrays.get("albedo"), fps=fps)
+    try:
+        if upload.dims["F"] == 0:
+            raise InvalidInput("the clip has no frames")
+        if upload.dims["V"] != n_vertices:
+            raise InvalidInput(f"the clip's frames have {upload.dims['V']} vertices, the neutral "
+                               f"has {n_vertices} (frames must be in vertex correspondence with it)")
+        arrays = upload.members()
+        _check_clip(upload.dims["F"], upload.shapes["markers"][0], upload.dims["M"], n_markers)
+        fps = float(arrays["fps"].read()) if "fps" in arrays else 30.0
+        blob = _write_clip(target, arrays["vertices"], arrays["markers"],
+                           displacement=arrays.get("displacement"), albedo=arrays.get("albedo"),
+                           fps=fps)
+    finally:
+        upload.close()
     return ClipUpload(blob, upload.dims["F"])
 
 
@@ -443,8 +466,9 @@ class ClipForm:
 
 
 def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
-                    names: Sequence[str]) -> ClipUpload:
-    """A multipart clip (per-frame OBJ files and a marker file) checked against the actor."""
+                    names: Sequence[str], target: os.PathLike | None = None) -> ClipUpload:
+    """A multipart clip (per-frame OBJ files and a marker file) checked against the actor
+    (the blob written to ``target`` as :func:`parse_clip_npz` does)."""
     vertices = np.empty((len(form.frames), n_vertices, 3), np.float32)
     for k, (filename, data) in enumerate(form.frames):
         try:
@@ -460,8 +484,8 @@ def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
     suffix = "." + filename.rsplit(".", 1)[-1].lower() if "." in filename else ""
     sequence = read_markers(data, suffix)
     markers, fps = markers_in_layout_order(sequence, names), sequence.fps
-    _check_clip(vertices, markers, len(names))
-    blob = actor_store.clip_npz(vertices, markers, fps=form.fps or fps or 30.0)
+    _check_clip(len(vertices), len(markers), markers.shape[1], len(names))
+    blob = _write_clip(target, vertices, markers, fps=form.fps or fps or 30.0)
     return ClipUpload(blob, len(vertices), sequence.notes)
 
 

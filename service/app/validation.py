@@ -13,6 +13,7 @@ import numpy as np
 from service.app.limits import DEGENERATE_AREA_RTOL
 from service.geometry.laplacian import triangle_areas
 from service.geometry.topology import edge_face_counts
+from service.io.arrays import OCCLUDED_NOTE, check_finite
 from service.io.mesh import Mesh
 from service.io.triangle_mesh import NO_UV
 from service.methods.inputs import InvalidInput
@@ -88,21 +89,19 @@ def check_uv_tile(mesh: Mesh, what: str = "neutral") -> None:
 
 def check_finite_frames(values: np.ndarray, what: str, element: str,
                         allow_nan: bool = False) -> None:
-    """Refuse non-finite values in (F,N,3) frames, naming the first frame and element.
+    """Refuse non-finite values in (F,N,3) frames (or one (N,3) frame), naming the first
+    frame and element (:func:`service.io.arrays.check_finite`).
 
     Parameters
     ----------
-    values : (F,N,3) float   e.g. clip vertices or markers
+    values : (F,N,3) float   e.g. clip vertices or markers (in memory or in a file)
     what : str               e.g. ``"clip"``; messages read "clip frame 3 vertex 17 ..."
     element : str            what the N axis holds, e.g. ``"vertex"``, ``"marker"``
     allow_nan : bool         NaN is allowed (an occluded marker), infinity is not
     """
-    bad = (np.isinf(values) if allow_nan else ~np.isfinite(values)).any(axis=-1)
-    if bad.any():
-        f, k = np.unravel_index(int(np.argmax(bad)), bad.shape)
-        note = "; NaN marks an occluded marker, infinity is not allowed" if allow_nan else ""
-        raise InvalidInput(f"{what} frame {f} {element} {k} has a non-finite coordinate "
-                           f"({int(bad.sum())} such entries in all{note})")
+    labels = ("frame", element) if len(values.shape) >= 3 else (element,)
+    check_finite(values, what, labels, allow_nan=allow_nan,
+                 note=OCCLUDED_NOTE if allow_nan else "")
 
 
 def check_text(value: str, what: str) -> str:

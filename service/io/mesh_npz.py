@@ -10,6 +10,7 @@ import zipfile
 
 import numpy as np
 
+from service.io.arrays import check_dtype, check_shape
 from service.io.errors import MeshFormatError, SizeLimitError
 from service.io.npz import ZIP_ERRORS, npy_header
 from service.io.sources import Source, Target, read_source, write_target
@@ -74,16 +75,10 @@ def read_npz(
         }
         for key in archive.files:
             shape, dtype = _npy_header(archive.zip, key)
-            if key in _NPZ_COORDINATES and dtype.kind in "iub":
-                raise MeshFormatError(
-                    f"'{key}' has dtype {dtype}, expected floating point (float32 or float64); "
-                    "integer coordinates are refused, not cast"
-                )
-            expected = _NPZ_SHAPES[key]
-            if len(shape) != len(expected) or shape[1:] != expected[1:]:
-                raise MeshFormatError(
-                    f"'{key}' has shape {shape}, expected ({', '.join(map(str, expected))})"
-                )
+            if key in _NPZ_COORDINATES:
+                check_dtype(f"'{key}'", dtype, "f", MeshFormatError,
+                            " (float32 or float64); integer coordinates are refused, not cast")
+            check_shape(f"'{key}'", shape, _NPZ_SHAPES[key], MeshFormatError)
             what, limit = limits[key]
             if shape[0] > limit:
                 raise SizeLimitError(what, shape[0], limit)

@@ -1,20 +1,30 @@
-"""Reading ``.npz`` archives that came from outside: array headers before any data.
+"""Reading ``.npz`` archives that came from outside: array headers before any data, then
+the data in blocks; writing ``.npz`` archives a block at a time.
 
 Both the mesh reader and the API's upload parser decide from the headers (shape, dtype)
 whether to read an array at all, so nothing is allocated for a declared size that breaks a
-limit and no pickle is ever loaded. :func:`npz_arrays` and :func:`npz_bytes` are the plain
+limit and no pickle is ever loaded. An upload's arrays are then read as :class:`NpyMember`
+blocks along axis 0 (stored or deflated members alike, through :mod:`zipfile`, so the
+member's CRC is still checked) and written back with :func:`write_npz`, which takes arrays in
+memory or in a file: an archive of hundreds of MiB is validated and rewritten holding a few
+MiB of it (issue 16, defect 11). :func:`npz_arrays` and :func:`npz_bytes` are the plain
 in-memory round trip for trusted data (stored models, results).
 """
 
 from __future__ import annotations
 
 import io
+import math
 import struct
 import tokenize
 import zipfile
 import zlib
 
+from typing import Any, BinaryIO, Iterator, Mapping
+
 import numpy as np
+
+from service.io.arrays import BLOCK_BYTES, blocks
 
 #: what numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)
 ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error,
@@ -34,19 +44,131 @@ def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple
     :data:`ZIP_ERRORS` of a corrupt member; callers turn them into their format's error.
     """
     with archive.open(member) as f:
-        version = np.lib.format.read_magic(f)
-        if version not in ((1, 0), (2, 0)):
-            raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
-        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                else np.lib.format.read_array_header_2_0)
-        try:
-            shape, _, dtype = read(f)
-        except _HEADER_ERRORS as error:
-            # numpy tokenizes the header (a Python literal) before its own checks
-            raise ValueError(f"malformed .npy header: {error}") from None
+        shape, _, dtype = _read_header(f)
+    return shape, dtype
+
+
+def _read_header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """(shape, fortran_order, dtype) of the ``.npy`` stream ``f``, left at its first data byte."""
+    version = np.lib.format.read_magic(f)
+    if version not in ((1, 0), (2, 0)):
+        raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
+    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+            else np.lib.format.read_array_header_2_0)
+    try:
+        shape, fortran_order, dtype = read(f)
+    except _HEADER_ERRORS as error:
+        # numpy tokenizes the header (a Python literal) before its own checks
+        raise ValueError(f"malformed .npy header: {error}") from None
     if any(int(n) < 0 for n in shape):
         raise ValueError(f"malformed .npy header: negative dimension in shape {shape}")
-    return tuple(int(s) for s in shape), dtype
+    return tuple(int(s) for s in shape), bool(fortran_order), dtype
+
+
+class NpyMember:
+    """One ``.npy`` member of an open ``.npz`` archive, known from its header; its data read
+    on demand, whole (:meth:`read`) or in blocks along axis 0 (:meth:`blocks`), never
+    unpickled.
+
+    Attributes
+    ----------
+    name : str            the member's array name (its file name without ``.npy``)
+    shape : tuple of int
+    dtype : np.dtype      not an object dtype (the caller refused those from the header)
+    fortran_order : bool
+
+    A read error (a truncated member, a bad CRC, a corrupt deflate stream) raises one of
+    :data:`ZIP_ERRORS`; callers turn it into their format's error.
+    """
+
+    def __init__(self, archive: zipfile.ZipFile, info: zipfile.ZipInfo):
+        self.archive, self.info = archive, info
+        self.name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+        with archive.open(info) as f:
+            self.shape, self.fortran_order, self.dtype = _read_header(f)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def nbytes(self) -> int:
+        return math.prod(self.shape) * self.dtype.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def read(self) -> np.ndarray:
+        """The whole array."""
+        with self.archive.open(self.info) as f:
+            return np.lib.format.read_array(f, allow_pickle=False)
+
+    def blocks(self, max_bytes: int) -> Iterator[tuple[int, np.ndarray]]:
+        """``(first row, block)`` along axis 0, each of about ``max_bytes`` (at least one row),
+        read in order from the member (a 0-d or Fortran-ordered array comes as one block: its
+        rows are not contiguous in the file)."""
+        if self.ndim == 0 or (self.fortran_order and self.ndim > 1) or self.nbytes == 0:
+            yield 0, self.read()
+            return
+        row_shape = self.shape[1:]
+        row = math.prod(row_shape) * self.dtype.itemsize
+        step = max(1, max_bytes // max(row, 1))
+        with self.archive.open(self.info) as f:
+            _read_header(f)
+            for start in range(0, self.shape[0], step):
+                n = min(step, self.shape[0] - start)
+                data = _read_exact(f, n * row)
+                yield start, np.frombuffer(data, self.dtype).reshape((n,) + row_shape)
+            if f.read(1):
+                raise ValueError(f"'{self.name}' holds more data than its header declares")
+
+
+def _read_exact(f: BinaryIO, size: int) -> bytes:
+    """``size`` bytes of ``f`` (EOFError if it ends first)."""
+    data = f.read(size)
+    if len(data) == size:
+        return data
+    parts = [data]
+    got = len(data)
+    while got < size:
+        more = f.read(size - got)
+        if not more:
+            raise EOFError(f"the member ends after {got} of {size} bytes")
+        parts.append(more)
+        got += len(more)
+    return b"".join(parts)
+
+
+def write_npz(target: BinaryIO, arrays: Mapping[str, Any],
+              dtypes: Mapping[str, Any] | None = None, max_bytes: int = BLOCK_BYTES) -> None:
+    """Write an uncompressed ``.npz`` (what ``np.savez`` writes) a block at a time.
+
+    Parameters
+    ----------
+    target : seekable binary file
+    arrays : name → array in memory, or in a file (an object with ``shape``, ``dtype`` and
+             ``blocks(max_bytes)``, e.g. :class:`NpyMember`), written in C order
+    dtypes : name → dtype to cast to while writing (default: each array's own)
+    max_bytes : int   about how much of an array is held at a time
+    """
+    dtypes = dtypes or {}
+    with zipfile.ZipFile(target, mode="w", compression=zipfile.ZIP_STORED,
+                         allowZip64=True) as archive:
+        for name, values in arrays.items():
+            if not (hasattr(values, "blocks") and hasattr(values, "shape")):
+                values = np.asarray(values)
+            dtype = np.dtype(dtypes.get(name, values.dtype))
+            if dtype.hasobject:
+                raise ValueError(f"'{name}' holds Python objects; .npz blobs hold numbers only")
+            header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                      "shape": tuple(values.shape)}
+            with archive.open(name + ".npy", "w", force_zip64=True) as member:
+                try:
+                    np.lib.format.write_array_header_1_0(member, header)
+                except ValueError:  # a header over 64 KiB (a very long shape or dtype)
+                    np.lib.format.write_array_header_2_0(member, header)
+                for _, block in blocks(values, max_bytes):
+                    member.write(np.ascontiguousarray(block, dtype=dtype).reshape(-1).view(np.uint8))
 
 
 def npz_arrays(data: bytes) -> dict[str, np.ndarray]:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.io.arrays import Axes, as_array, check_finite, check_indices
 from service.io.errors import MeshFormatError, SizeLimitError
 
 MAX_VERTICES = 5_000_000
@@ -50,7 +51,8 @@ class Mesh:
     Raises
     ------
     MeshFormatError
-        If the arrays have the wrong shape or dtype, an index is out of range, a coordinate is
+        (checked with :mod:`service.io.arrays`, the one array dialect) If the arrays have the
+        wrong shape or dtype, an index is out of range, a coordinate is
         not finite, or `quad_split` does not describe fans of consecutive triangles.
     """
 
@@ -61,26 +63,23 @@ class Mesh:
     quad_split: np.ndarray | None = None
 
     def __post_init__(self):
-        vertices = _float_array(self.vertices, "vertices", 3)
-        faces = _index_array(self.faces, "faces", 3)
+        axes, error = Axes(), MeshFormatError
+        vertices = as_array(self.vertices, "vertices", ("V", 3), "fiu", np.float64, error, axes)
+        faces = as_array(self.faces, "faces", ("T", 3), "iu", np.int64, error, axes)
         if len(vertices) == 0:
             raise MeshFormatError("the mesh has no vertices")
         if len(faces) == 0:
             raise MeshFormatError("the mesh has no faces")
-        _check_finite(vertices, "vertex")
-        _check_range(faces, len(vertices), "vertex", "vertices")
+        check_finite(vertices, "", ("vertex",), error=error)
+        check_indices(faces, len(vertices), "face", "vertex", "mesh", "vertices", error)
         uv = uv_faces = quad_split = None
         if self.uv is not None:
-            uv = _float_array(self.uv, "uv", 2)
-            _check_finite(uv, "uv")
+            uv = as_array(self.uv, "uv", ("K", 2), "fiu", np.float64, error)
+            check_finite(uv, "", ("uv",), error=error)
         if self.uv_faces is not None:
             if uv is None:
                 raise MeshFormatError("uv_faces given without uv")
-            uv_faces = _index_array(self.uv_faces, "uv_faces", 3)
-            if uv_faces.shape != faces.shape:
-                raise MeshFormatError(
-                    f"uv_faces has shape {uv_faces.shape} but faces has shape {faces.shape}"
-                )
+            uv_faces = as_array(self.uv_faces, "uv_faces", ("T", 3), "iu", np.int64, error, axes)
             untextured = uv_faces == NO_UV
             partial = np.flatnonzero(untextured.any(axis=1) & ~untextured.all(axis=1))
             if len(partial):
@@ -88,14 +87,16 @@ class Mesh:
                     f"uv_faces row {partial[0]} is {uv_faces[partial[0]].tolist()}; a triangle "
                     f"has uv at every corner or none ({NO_UV} at all three)"
                 )
-            _check_range(np.where(untextured, 0, uv_faces), len(uv), "uv", "uv coordinates")
+            check_indices(uv_faces, len(uv), "face", "uv", "mesh", "uv coordinates", error,
+                          skip=NO_UV)
         elif uv is not None and len(uv) != len(vertices):
             raise MeshFormatError(
                 f"uv has {len(uv)} rows but the mesh has {len(vertices)} vertices "
                 "(per-corner uv needs uv_faces)"
             )
         if self.quad_split is not None:
-            quad_split = _index_array(self.quad_split, "quad_split", None)
+            quad_split = as_array(self.quad_split, "quad_split", ("T",), "iu", np.int64, error,
+                                  axes)
             _check_fans(quad_split, faces, uv_faces)
         for name, value in zip(
             ("vertices", "faces", "uv", "uv_faces", "quad_split"),
@@ -150,48 +151,6 @@ class Mesh:
 # ---------------------------------------------------------------------------- validation
 
 
-def _float_array(values, name: str, columns: int) -> np.ndarray:
-    array = np.asarray(values)
-    if array.dtype.kind not in "fiu":
-        raise MeshFormatError(f"{name} must be real numbers, got dtype {array.dtype}")
-    if array.ndim != 2 or array.shape[1] != columns:
-        raise MeshFormatError(f"{name} must have shape (N,{columns}), got {array.shape}")
-    return np.ascontiguousarray(array, dtype=np.float64)
-
-
-def _index_array(values, name: str, columns: int | None) -> np.ndarray:
-    array = np.asarray(values)
-    if array.dtype.kind not in "iu":
-        raise MeshFormatError(f"{name} must be integers, got dtype {array.dtype}")
-    if columns is None and array.ndim != 1:
-        raise MeshFormatError(f"{name} must have shape (T,), got {array.shape}")
-    if columns is not None and (array.ndim != 2 or array.shape[1] != columns):
-        raise MeshFormatError(
-            f"{name} must have shape (T,{columns}) (triangles), got {array.shape}"
-        )
-    return np.ascontiguousarray(array, dtype=np.int64)
-
-
-def _check_finite(values: np.ndarray, what: str) -> None:
-    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
-    if len(bad):
-        row = bad[0]
-        raise MeshFormatError(
-            f"{what} {row} has a non-finite coordinate {tuple(values[row].tolist())}"
-        )
-
-
-def _check_range(faces: np.ndarray, count: int, what: str, plural: str) -> None:
-    bad = np.flatnonzero(((faces < 0) | (faces >= count)).any(axis=1))
-    if len(bad):
-        face = bad[0]
-        index = faces[face][(faces[face] < 0) | (faces[face] >= count)][0]
-        raise MeshFormatError(
-            f"face {face} references {what} {index} but the mesh has {count} {plural} "
-            "(indices are 0-based)"
-        )
-
-
 def _fan_starts(quad_split: np.ndarray) -> np.ndarray:
     """(T,) bool: the triangle is the first of its polygon's fan."""
     starts = np.ones(len(quad_split), bool)
@@ -200,10 +159,6 @@ def _fan_starts(quad_split: np.ndarray) -> np.ndarray:
 
 
 def _check_fans(quad_split: np.ndarray, faces: np.ndarray, uv_faces: np.ndarray | None) -> None:
-    if len(quad_split) != len(faces):
-        raise MeshFormatError(
-            f"quad_split has {len(quad_split)} entries but the mesh has {len(faces)} triangles"
-        )
     steps = np.diff(quad_split)
     if quad_split[0] != 0 or ((steps != 0) & (steps != 1)).any():
         raise MeshFormatError(

@@ -24,16 +24,18 @@ so the loader passes it through. The sample actor's files hold it relative to th
 surface instead; :func:`service.samples.uploads.sample_actor_uploads` converts them with
 :func:`service.samples.dataset.load_clip`, the one place that conversion lives.
 
-Writers validate what they are given and raise :class:`InvalidInput` naming the problem;
+Writers validate what they are given with the one array dialect of :mod:`service.io.arrays`
+and raise :class:`InvalidInput` naming the problem;
 loaders raise :class:`InvalidInput` for a missing neutral or layout, a blob that is not in
 the canonical form, or a clip that does not match the actor.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import re
-from typing import Mapping, Sequence
+from typing import Any, BinaryIO, Mapping, Sequence
 
 import numpy as np
 from sqlalchemy.orm import Session
@@ -42,7 +44,8 @@ from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
 from service.geometry.marker_layout import BARYCENTRIC_TOLERANCE  # the layout readers' (1e-4)
-from service.io.npz import npz_arrays, npz_bytes
+from service.io.arrays import OCCLUDED_NOTE, Axes, as_array, check_finite, check_indices, checked
+from service.io.npz import npz_arrays, npz_bytes, write_npz
 from service.methods.inputs import ActorData, Clip, InvalidInput, check_clips
 
 #: prefix of the neutral NPZ's region keys (``region_<name>``)
@@ -63,40 +66,6 @@ def open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
         raise InvalidInput(f"{what} is not a readable .npz: {error}") from None
 
 
-def _floats(value, what: str, shape: tuple[int | None, ...], dtype=np.float64) -> np.ndarray:
-    """``value`` as a finite float array whose shape matches ``shape`` (None: any length)."""
-    array = np.asarray(value)
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise InvalidInput(f"{what} must be numeric, got dtype {array.dtype}")
-    _check_shape(array, what, shape)
-    return array.astype(dtype, copy=False)
-
-
-def _indices(value, what: str, shape: tuple[int | None, ...], bound: int, plural: str) -> np.ndarray:
-    """``value`` as an int64 array of indices in [0, bound)."""
-    array = np.asarray(value)
-    if not np.issubdtype(array.dtype, np.integer):
-        raise InvalidInput(f"{what} must be integer indices, got dtype {array.dtype}")
-    _check_shape(array, what, shape)
-    if array.size and (array.min() < 0 or array.max() >= bound):
-        raise InvalidInput(f"{what} index {int(array.max() if array.max() >= bound else array.min())} "
-                           f"is out of range: there are {bound} {plural}")
-    return array.astype(np.int64, copy=False)
-
-
-def _check_shape(array: np.ndarray, what: str, shape: tuple[int | None, ...]) -> None:
-    if array.ndim != len(shape) or any(s is not None and a != s for a, s in zip(array.shape, shape)):
-        expected = ",".join("*" if s is None else str(s) for s in shape)
-        raise InvalidInput(f"{what} must have shape ({expected}), got {array.shape}")
-
-
-def _check_finite(array: np.ndarray, what: str, allow_nan: bool = False) -> None:
-    bad = np.isinf(array) if allow_nan else ~np.isfinite(array)
-    if bad.any():
-        raise InvalidInput(f"{what} has non-finite values (first at index "
-                           f"{np.unravel_index(np.argmax(bad), array.shape)})")
-
-
 # ---------------------------------------------------------------------------- writers
 def neutral_npz(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
                 uv_faces: np.ndarray | None = None,
@@ -115,25 +84,27 @@ def neutral_npz(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
     -------
     bytes   NPZ (see the module docstring)
     """
-    V = _floats(vertices, "neutral vertices", (None, 3))
-    _check_finite(V, "neutral vertices")
+    axes = Axes()
+    V = as_array(vertices, "neutral vertices", ("V", 3), "fiu", np.float64, axes=axes)
+    check_finite(V, "neutral", ("vertex",))
     n = len(V)
-    F = _indices(faces, "neutral faces", (None, 3), n, "vertices")
-    UV = _floats(uv, "neutral uv", (None, 2))
-    _check_finite(UV, "neutral uv")
+    F = as_array(faces, "neutral faces", ("T", 3), "iu", np.int64, axes=axes)
+    check_indices(F, n, "face", "vertex", "neutral", "vertices")
+    UV = as_array(uv, "neutral uv", ("K", 2), "fiu", np.float64)
+    check_finite(UV, "neutral", ("uv",))
     if uv_faces is None:
         if len(UV) != n:
             raise InvalidInput(f"per-vertex uv must have one row per vertex ({n}), got {len(UV)}; "
                                "give uv_faces for per-corner UVs")
         uv_faces = F
-    UVF = _indices(uv_faces, "neutral uv_faces", (len(F), 3), len(UV), "uv coordinates")
+    UVF = as_array(uv_faces, "neutral uv_faces", ("T", 3), "iu", np.int64, axes=axes)
+    check_indices(UVF, len(UV), "uv face", "uv", "neutral", "uv coordinates")
     arrays = {"vertices": V, "faces": F, "uv": UV, "uv_faces": UVF}
     for name, mask in (regions or {}).items():
         if not _REGION_NAME.fullmatch(name):
             raise InvalidInput(f"region name {name!r} must be 1-64 characters of [A-Za-z0-9_]")
-        mask = np.asarray(mask)
-        _check_shape(mask, f"region '{name}'", (n,))
-        arrays[REGION_PREFIX + name] = mask.astype(bool)
+        arrays[REGION_PREFIX + name] = as_array(mask, f"region '{name}'", ("V",), "biu", bool,
+                                                axes=axes)
     return npz_bytes(**arrays)
 
 
@@ -155,12 +126,10 @@ def layout_json(names: Sequence[str], triangle: np.ndarray, barycentric: np.ndar
         if name in seen:
             raise InvalidInput(f"marker name '{name}' appears more than once")
         seen.add(name)
-    tri = np.asarray(triangle)
-    if not np.issubdtype(tri.dtype, np.integer):
-        raise InvalidInput(f"marker triangles must be integers, got dtype {tri.dtype}")
-    _check_shape(tri, "marker triangles", (M,))
-    bary = _floats(barycentric, "marker barycentric coordinates", (M, 3))
-    _check_finite(bary, "marker barycentric coordinates")
+    tri = as_array(triangle, "marker triangles", ("M",), "iu", np.int64, axes=Axes(M=M))
+    bary = as_array(barycentric, "marker barycentric coordinates", ("M", 3), "fiu", np.float64,
+                    axes=Axes(M=M))
+    check_finite(bary, "the layout", ("marker",))
     bad = np.flatnonzero((bary < -BARYCENTRIC_TOLERANCE).any(axis=1)
                          | (np.abs(bary.sum(axis=1) - 1) > BARYCENTRIC_TOLERANCE))
     if len(bad):
@@ -172,36 +141,55 @@ def layout_json(names: Sequence[str], triangle: np.ndarray, barycentric: np.ndar
 
 def clip_npz(vertices: np.ndarray, markers: np.ndarray, *, displacement: np.ndarray | None = None,
              albedo: np.ndarray | None = None, fps: float = 30.0) -> bytes:
-    """The canonical clip blob.
+    """The canonical clip blob, in memory: :func:`write_clip` into bytes."""
+    buffer = io.BytesIO()
+    write_clip(buffer, vertices, markers, displacement=displacement, albedo=albedo, fps=fps)
+    return buffer.getvalue()
+
+
+def write_clip(target: BinaryIO, vertices: Any, markers: Any, *, displacement: Any = None,
+               albedo: Any = None, fps: float = 30.0) -> None:
+    """Validate a clip and write its canonical blob to ``target``, a block of frames at a time.
+
+    The arrays may be in memory or still in the uploaded archive (anything
+    :func:`service.io.arrays.blocks` reads, e.g. :class:`service.io.npz.NpyMember`): they
+    are checked and cast to float32 block by block, so a clip of hundreds of MiB is written
+    holding a few MiB of it (issue 16, defect 11).
 
     Parameters
     ----------
+    target : seekable binary file
     vertices : (F,n,3) float        high-resolution frames, in vertex correspondence with
                                     the neutral
     markers : (F,M,3) float         markers in layout order, NaN where occluded
-    displacement : (F,H,H) float    fine detail along the normal relative to ``vertices``
-    albedo : (F,Ha,Ha,3) float      linear RGB
+    displacement : (F,H,W) float    fine detail along the normal relative to ``vertices``
+    albedo : (F,H,W,3) float        linear RGB
     fps : float                     frame rate (> 0)
+
+    Raises
+    ------
+    InvalidInput   naming the array, what is wrong and what was expected
     """
-    V = _floats(vertices, "clip vertices", (None, None, 3), np.float32)
+    V = checked(vertices, "clip vertices", ("F", "V", 3))
     frames = len(V)
     if frames == 0:
         raise InvalidInput("a clip needs at least one frame")
-    _check_finite(V, "clip vertices")
-    P = _floats(markers, "clip markers", (frames, None, 3), np.float32)
-    _check_finite(P, "clip markers", allow_nan=True)
+    P = checked(markers, "clip markers", ("F", "M", 3), axes=Axes(F=frames))
     if not np.isfinite(fps) or fps <= 0:
         raise InvalidInput(f"fps must be a positive number, got {fps}")
-    arrays = {"vertices": V, "markers": P, "fps": np.float64(fps)}
+    arrays = {"vertices": V, "markers": P}
     if displacement is not None:
-        D = _floats(displacement, "clip displacement", (frames, None, None), np.float32)
-        _check_finite(D, "clip displacement")
-        arrays["displacement"] = D
+        arrays["displacement"] = checked(displacement, "clip displacement", ("F", "H", "W"),
+                                         axes=Axes(F=frames))
     if albedo is not None:
-        A = _floats(albedo, "clip albedo", (frames, None, None, 3), np.float32)
-        _check_finite(A, "clip albedo")
-        arrays["albedo"] = A
-    return npz_bytes(**arrays)
+        arrays["albedo"] = checked(albedo, "clip albedo", ("F", "H", "W", 3), axes=Axes(F=frames))
+    check_finite(V, "clip", ("frame", "vertex"))
+    check_finite(P, "clip", ("frame", "marker"), allow_nan=True, note=OCCLUDED_NOTE)
+    for key in ("displacement", "albedo"):
+        if key in arrays:
+            check_finite(arrays[key], f"clip {key}", ("frame",))
+    arrays["fps"] = np.float64(fps)
+    write_npz(target, arrays, dtypes={key: np.float32 for key in arrays if key != "fps"})
 
 
 # ---------------------------------------------------------------------------- readers
@@ -216,9 +204,9 @@ def actor_from_blobs(neutral: bytes, layout: bytes) -> ActorData:
         names, triangle, barycentric = body["names"], body["triangle"], body["barycentric"]
     except (ValueError, TypeError, KeyError) as error:
         raise InvalidInput(f"the stored marker layout is not in the canonical form: {error!r}") from None
-    n_faces = len(arrays["faces"])
-    tri = _indices(np.asarray(triangle, dtype=np.int64), "marker triangle", (len(names),),
-                   n_faces, "triangles of the neutral")
+    tri = as_array(np.asarray(triangle, dtype=np.int64), "marker triangles", ("M",), "iu",
+                   np.int64, axes=Axes(M=len(names)))
+    check_indices(tri, len(arrays["faces"]), "marker", "triangle", "neutral", "triangles")
     regions = {key[len(REGION_PREFIX):]: value.astype(bool) for key, value in arrays.items()
                if key.startswith(REGION_PREFIX)}
     return ActorData(arrays["vertices"].astype(np.float64), arrays["faces"].astype(np.int64),

@@ -24,23 +24,25 @@ def test_a_large_body_is_spooled_hashed_and_leaves_no_file(tmp_path):
     with make_client(settings, Recorder()) as client:
         import service.api.bodies as bodies
 
-        real = bodies._spooled
+        real = bodies._spool
 
-        async def spy(request, blobs):
-            data = await real(request, blobs)
-            seen["sha256"] = request.state.body_sha256
-            seen["files"] = sorted(p.name for p in blobs.root.iterdir())
-            return data
+        async def spy(request, path):
+            digest = await real(request, path)
+            seen["spooled"], seen["sha256"] = path.read_bytes() == body, digest
+            return digest
 
-        bodies._spooled = spy
+        bodies._spool = spy
         try:
             actor = client.post("/v1/actors", json={"name": "Ada"}).json()["id"]
             response = client.put(f"/v1/actors/{actor}/neutral", content=body, headers=NPZ)
         finally:
-            bodies._spooled = real
+            bodies._spool = real
         assert response.status_code == 200, response.text
+        assert response.json()["vertex_count"] == 900
+        files = sorted(p.name for p in client.app.state.services.blobs.root.iterdir())
+    assert seen["spooled"]
     assert seen["sha256"] == hashlib.sha256(body).hexdigest()
-    assert not [n for n in seen["files"] if n.startswith(".upload-")]   # removed once read
+    assert not [n for n in files if n.startswith(".upload-")]   # removed once the request ends
 
 
 def test_concurrent_large_uploads_wait_their_turn_then_503():

@@ -100,11 +100,11 @@ def test_per_vertex_uv_becomes_uv_faces():
 
 
 @pytest.mark.parametrize("change, message", [
-    (dict(faces=np.array([[0, 1, 3]])), "index 3 is out of range: there are 3 vertices"),
+    (dict(faces=np.array([[0, 1, 3]])), "face 0 references vertex 3 but the neutral has 3 vertices"),
     (dict(vertices=np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0.]])), "non-finite"),
     (dict(uv=np.zeros((2, 2))), "per-vertex uv must have one row per vertex (3)"),
     (dict(regions={"bad name": np.ones(3, bool)}), "region name 'bad name'"),
-    (dict(regions={"lips": np.ones(4, bool)}), "region 'lips' must have shape (3)"),
+    (dict(regions={"lips": np.ones(4, bool)}), "region 'lips' has 4 vertices (axis 0) but neutral vertices has 3"),
 ])
 def test_neutral_npz_rejects_bad_meshes(change, message):
     args = dict(vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.]]), faces=np.array([[0, 1, 2]]),
@@ -117,7 +117,7 @@ def test_neutral_npz_rejects_bad_meshes(change, message):
 @pytest.mark.parametrize("names, bary, message", [
     (["A", "A"], [[1, 0, 0], [0, 1, 0]], "marker name 'A' appears more than once"),
     (["A", "B"], [[1, 0, 0], [0.5, 0.6, 0]], "marker 'B' has barycentric"),
-    (["A", "B"], [[1, 0, 0]], r"must have shape \(2,3\)"),
+    (["A", "B"], [[1, 0, 0]], r"has shape \(1, 3\), expected \(2, 3\)"),
 ])
 def test_layout_json_rejects_bad_layouts(names, bary, message):
     with pytest.raises(InvalidInput, match=message):
@@ -129,11 +129,11 @@ def test_clip_npz_keeps_nan_markers_and_rejects_inconsistent_frames():
     P[1, 2] = np.nan
     clip = actor_store.clip_from_blob(actor_store.clip_npz(V, P, fps=24.0), "c")
     assert np.isnan(clip.markers[1, 2]).all() and clip.fps == 24.0 and clip.displacement is None
-    with pytest.raises(InvalidInput, match=r"clip markers must have shape \(2,\*,3\)"):
+    with pytest.raises(InvalidInput, match=r"clip markers has shape \(1, 5, 3\), expected \(2, M, 3\)"):
         actor_store.clip_npz(V, P[:1])
-    with pytest.raises(InvalidInput, match="clip displacement must have shape"):
+    with pytest.raises(InvalidInput, match=r"clip displacement has shape \(3, 8, 8\), expected \(2, H, W\)"):
         actor_store.clip_npz(V, P, displacement=np.zeros((3, 8, 8)))
-    with pytest.raises(InvalidInput, match="clip vertices has non-finite"):
+    with pytest.raises(InvalidInput, match="clip frame 0 vertex 0 has a non-finite coordinate"):
         actor_store.clip_npz(np.full((1, 4, 3), np.inf), P[:1])
 
 

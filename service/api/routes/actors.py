@@ -66,8 +66,8 @@ async def put_neutral(actor_id: str, request: Request, services: ServicesDep) ->
     range, degenerate (zero-area) triangles, edges shared by more than two triangles, no UVs
     or UVs outside [0,1]². With clips or a marker layout, only the positions may change (409).
     """
-    kind, data = await bodies.read_body(request, uploads.MESH_TYPES)
-    return await run_in_threadpool(operations.put_neutral, services, actor_id, kind, data)
+    async with bodies.body_source(request, uploads.MESH_TYPES) as (kind, source):
+        return await run_in_threadpool(operations.put_neutral, services, actor_id, kind, source)
 
 
 @router.put(

@@ -45,9 +45,10 @@ async def add_clip(actor_id: str, request: Request, services: ServicesDep,
     kind = bodies.require_media_type(request, uploads.NPZ_TYPES + (uploads.MULTIPART,))
     if kind == uploads.MULTIPART:
         data = await bodies.read_clip_form(request)
-    else:
-        _, data = await bodies.read_body(request, uploads.NPZ_TYPES)
-    return await run_in_threadpool(operations.add_clip, services, actor_id, kind, data, name)
+        return await run_in_threadpool(operations.add_clip, services, actor_id, kind, data, name)
+    async with bodies.body_source(request, uploads.NPZ_TYPES) as (_, source):
+        return await run_in_threadpool(operations.add_clip, services, actor_id, kind, source,
+                                       name)
 
 
 @router.get("", response_model=schemas.ClipList, summary="List an actor's clips",

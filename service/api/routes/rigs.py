@@ -38,13 +38,14 @@ async def put_input_rig(actor_id: str, rig: RigName, request: Request, services:
     """Store (or replace) the input rig ``rig`` and queue its registration to the actor's
     neutral; answers 202 with the job (``Location: /v1/jobs/{job_id}``)."""
     kind = bodies.require_media_type(request, uploads.MESH_TYPES + (uploads.MULTIPART,))
-    landmarks = None
     if kind == uploads.MULTIPART:
         kind, data, landmarks = await bodies.read_rig_form(request)
+        accepted = await run_in_threadpool(operations.put_input_rig, services, submit, actor_id,
+                                           rig, kind, data, landmarks)
     else:
-        _, data = await bodies.read_body(request, uploads.MESH_TYPES)
-    accepted = await run_in_threadpool(operations.put_input_rig, services, submit, actor_id, rig,
-                                       kind, data, landmarks)
+        async with bodies.body_source(request, uploads.MESH_TYPES) as (_, source):
+            accepted = await run_in_threadpool(operations.put_input_rig, services, submit,
+                                               actor_id, rig, kind, source, None)
     set_job_location(response, accepted.job_id)
     return accepted
 
