@@ -18,7 +18,8 @@ Layout (DESIGN.md "Data and storage"):
   sha256 of every file.
 
 Every array is stored in the dtype the model holds in memory, so a load reproduces the
-model bit for bit; the prefactored solvers are rebuilt from the stored arrays. Every file
+:class:`~.data.ShapeSpaceData` bit for bit; the evaluator (prefactored solvers, operators)
+is rebuilt from it. Every file
 is written atomically, the manifest last; a load verifies every checksum before it parses
 a byte.
 """
@@ -33,24 +34,25 @@ import numpy as np
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.methods.shape_space.data import ShapeSpaceData
 from service.methods.shape_space.maps import DatabaseMaps
 from service.methods.shape_space.markers import MarkerDatabase
 from service.methods.shape_space.params import ShapeSpaceParams
 
 KIND = "shape_space"
 FORMAT_VERSION = 2
-#: arrays of model.npz (attribute names of ShapeSpaceModel)
-#: maps.npz names → ShapeSpaceModel attributes (:mod:`.maps`)
+#: maps.npz names → ShapeSpaceData attributes (:mod:`.maps`)
 MAP_FIELDS = {"displacement": "fine_maps", "albedo": "albedo_maps"}
 MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches", "tri_patch",
                 "shapes", "region_vertices", "region_weights", "patch_weights", "gram",
                 "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
                 "marker_weights", "uv", "uv_faces")
+"""arrays of model.npz (attribute names of :class:`~.data.ShapeSpaceData`)"""
 
 
-def write_model(model, path) -> dict:
-    """Write a :class:`~service.methods.shape_space.model.ShapeSpaceModel` into directory
-    ``path`` (created); returns the manifest."""
+def write_model(model: ShapeSpaceData, path) -> dict:
+    """Write a model's stored data ``model`` into directory ``path`` (created); returns the
+    manifest."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {
@@ -81,9 +83,9 @@ def write_model(model, path) -> dict:
     return manifest
 
 
-def read_model(path) -> dict:
-    """The :class:`~service.methods.shape_space.model.ShapeSpaceModel` fields stored by
-    :func:`write_model` in ``path`` (checksums verified first, shapes checked)."""
+def read_model(path) -> ShapeSpaceData:
+    """The stored data written by :func:`write_model` in ``path`` (checksums verified first,
+    shapes checked)."""
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"))
     a = npz_arrays(data["model.npz"])
@@ -116,4 +118,4 @@ def read_model(path) -> dict:
         raise ModelCorrupt(f"{path}: markers.npz has shapes {md.shapes.shape}, gram {md.gram.shape}, "
                            f"corrections {md.corrections.shape} for a model of shapes "
                            f"{a['shapes'].shape} and {vertices} vertices")
-    return fields
+    return ShapeSpaceData(**fields)
