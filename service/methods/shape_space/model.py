@@ -67,6 +67,7 @@ from service.geometry.deformation_gradient import (
 )
 from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
+from service.geometry.normal_map import NormalMapper
 from service.geometry.normals import vertex_normals
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
@@ -95,8 +96,9 @@ from service.methods.shape_space import store
 from service.methods.shape_space.simplex_qp import solve_simplex_qp
 from service.methods.shape_space.temporal import retime as retime_sequence
 
-#: outputs of :meth:`ShapeSpaceModel.enhance`
-OUTPUTS = ("mesh", "displacement", "albedo", "colors")
+#: outputs of :meth:`ShapeSpaceModel.enhance`: every output of the service
+#: (:data:`service.methods.outputs.OUTPUTS`) and per-vertex ``colors``
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "colors")
 
 
 #: the stored fields the evaluator is derived from (a change of any other field, e.g. the
@@ -121,9 +123,12 @@ class ShapeSpaceEvaluator:
     omega_hat : (R,m) float64             normalized region weights per triangle (§5.4 eq. 4)
     vertex_omega_hat : (R,n) float64      the same per vertex (colours, corrections, maps, timing)
     map_operator : (H²,n) CSR             vertex values → the ``map_resolution`` UV map
+    normal_mapper : NormalMapper          tangent-space normal maps at ``map_resolution``
     shell : MarkerShell | None            the linear thin shell of marker input (None: no markers)
-    frame_field : FrameField | None       tangent frames of deformed poses (marker corrections)
-    fine_maps, albedo_maps : MapBlender | None   the database's maps, ready to blend
+    frame_field : FrameField              tangent frames of deformed poses (marker corrections,
+                                          normal maps)
+    fine_maps, albedo_maps : MapBlender | None   the database's maps, ready to blend (the fine
+                                          maps also sampled at the vertices: ``mesh_detailed``)
     """
 
     separator: FrequencySeparator
@@ -133,8 +138,9 @@ class ShapeSpaceEvaluator:
     omega_hat: np.ndarray
     vertex_omega_hat: np.ndarray
     map_operator: sp.csr_matrix
+    normal_mapper: NormalMapper
     shell: MarkerShell | None
-    frame_field: FrameField | None
+    frame_field: FrameField
     fine_maps: MapBlender | None
     albedo_maps: MapBlender | None
 
@@ -146,11 +152,10 @@ class ShapeSpaceEvaluator:
             vertex_region_weights(d.faces, d.region_weights, d.n_vertices))
         H = p.map_resolution
         raster = rasterize_uv(d.uv, d.uv_faces, H, H)
-        shell = frame_field = None
+        shell = None
         if d.n_markers:
             shell = MarkerShell.build(d.neutral, d.faces, d.marker_triangle, d.marker_barycentric,
                                       d.marker_weights)
-            frame_field = FrameField.build(d.neutral, d.faces, d.uv, d.uv_faces)
         return cls(
             separator=FrequencySeparator(d.faces, p.lam_dt, p.smoothing, rest=d.neutral),
             poisson=PoissonReconstruction(d.smooth_neutral, d.faces, boundary_weight=p.boundary_weight),
@@ -160,7 +165,8 @@ class ShapeSpaceEvaluator:
             omega_hat=normalize_region_weights(d.region_weights),
             vertex_omega_hat=vertex_omega_hat,
             map_operator=interpolation_matrix(raster, d.faces, d.n_vertices),
-            shell=shell, frame_field=frame_field,
+            normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, d.n_vertices),
+            shell=shell, frame_field=FrameField.build(d.neutral, d.faces, d.uv, d.uv_faces),
             **cls.map_blenders(d, vertex_omega_hat, raster.mask))
 
     @staticmethod
@@ -172,7 +178,8 @@ class ShapeSpaceEvaluator:
         resolution = {"fine_maps": d.params.map_resolution, "albedo_maps": None}
         return {name: None if getattr(d, name) is None else
                 MapBlender.build(getattr(d, name), d.uv, d.uv_faces, d.faces, vertex_omega_hat,
-                                 resolution[name], covered if resolution[name] else None)
+                                 resolution[name], covered if resolution[name] else None,
+                                 vertex_sampler=name == "fine_maps")
                 for name in MAP_FIELDS}
 
 
@@ -297,13 +304,19 @@ class ShapeSpaceModel:
         frames : (F,n,3) float   vertices on the neutral's topology (e.g. a rig propagated to
                  it, or a medium-resolution surface), world pose, mm; or (F,M,3) markers
                  (NaN when occluded), carried to the neutral by the linear thin shell
-        outputs : subset of ``mesh`` (always computed), ``displacement``, ``albedo``, ``colors``
+        outputs : subset of :data:`OUTPUTS`: ``mesh`` (always computed), ``mesh_detailed``,
+                  ``displacement``, ``albedo``, ``normal_map``, ``colors``
         input_kind : "auto" | "vertices" | "markers"   how to read ``frames`` (auto: by count)
 
         Returns
         -------
         dict with
         ``vertices`` (F,n,3) float32   enhanced meshes in the input's world pose, mm;
+        ``vertices_detailed`` (F,n,3) float32  (``mesh_detailed``) ``vertices`` with the
+                                        blended fine maps (below) sampled at the vertices and
+                                        added along the vertex normals; ``vertices`` itself
+                                        for a model without fine maps (its detail is all in
+                                        the mesh);
         ``faces`` (m,3) int32;
         ``weights`` (F,R,N) float32    the convex weights per region (§5.3);
         ``nonzero`` (F,R) int32        weights above :data:`~.params.WEIGHT_EPS` per region;
@@ -322,6 +335,9 @@ class ShapeSpaceModel:
                                         ``(x − a) · n_a``;
         ``albedo`` (F,Ha,Wa,3) float32  (if asked; the model needs albedo maps) the
                                         database's albedo maps blended with the same weights;
+        ``normal_map`` (F,H,H,3) float32  (if asked) the tangent-space normal map of
+                                        ``displacement`` on the input surface (what renders
+                                        the input mesh with the enhanced detail);
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
         ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface;
         ``corrected_input`` (F,n,3) float32  for marker input to a model with
@@ -359,9 +375,13 @@ class ShapeSpaceModel:
             "match_error": np.empty((nf, R), np.float32),
             "region_names": np.array(self.data.region_names),
         })
-        fine = "displacement" in outputs and self.data.fine_maps is not None
-        if "displacement" in outputs:
+        want = set(outputs)
+        disp = bool(want & {"displacement", "normal_map"})          # the displacement is computed
+        fine = bool(want & {"displacement", "normal_map", "mesh_detailed"}) and self.data.fine_maps is not None
+        if disp:
             out["vertex_displacement"] = np.empty((nf, n), np.float32)
+        if "mesh_detailed" in want:
+            out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
         ev = self.evaluator
         texel_maps = {"fine_displacement": ev.fine_maps if fine else None,
                       "albedo": ev.albedo_maps if "albedo" in outputs else None}
@@ -388,20 +408,33 @@ class ShapeSpaceModel:
             out["weights"][f] = W
             out["nonzero"][f] = m["nonzero"]
             out["match_error"][f] = m["error"]
-            if "displacement" in outputs:
+            if disp:
                 normals = vertex_normals(frames[f], self.data.faces)
                 out["vertex_displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
             for maps, values in texel_maps.values():
                 values[f] = maps.blend(W)
+            if "mesh_detailed" in want:
+                detailed = world
+                if fine:
+                    h = ev.fine_maps.vertex_sampler @ texel_maps["fine_displacement"][1][f][:, 0]
+                    detailed = world + h[:, None] * vertex_normals(world, self.data.faces)
+                out["vertices_detailed"][f] = detailed
             if "colors" in outputs:
                 out["colors"][f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W)
-        if "displacement" in outputs:
+        if disp:
             out["displacement"] = self.vertex_map(out["vertex_displacement"])
         for key, (maps, values) in texel_maps.items():
             out[key] = maps.image(values)
-        if fine:
+        if fine and disp:
             out["displacement"] += ev.fine_maps.image(texel_maps["fine_displacement"][1],
                                                         self.data.params.map_resolution)
+        if "normal_map" in want:
+            out["normal_map"] = np.stack([
+                ev.normal_mapper.normal_map(h, V, ev.frame_field.frames(V))
+                for h, V in zip(out["displacement"], frames)])
+        if "displacement" not in want:        # computed for the normal map or the detailed mesh
+            for key in ("displacement", "vertex_displacement", "fine_displacement"):
+                out.pop(key, None)
         return out
 
     def vertex_map(self, values: np.ndarray) -> np.ndarray:
@@ -475,9 +508,7 @@ class ShapeSpaceModel:
         return self.encode(enc["transforms"][0].inverse().apply(corrected)[None], shape=False)
 
     def frame_field(self) -> FrameField:
-        """Per-vertex tangent frames of deformed poses (:mod:`.markers`; models with markers)."""
-        if self.evaluator.frame_field is None:
-            raise InvalidInput("this model has no marker layout; it has no marker corrections")
+        """Per-vertex tangent frames of deformed poses (:mod:`.markers`, normal maps)."""
         return self.evaluator.frame_field
 
     # ------------------------------------------------------------------ temporal
@@ -610,13 +641,18 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
                                  albedo); by default sampled from the clips' albedo maps
                                  when every clip has them, else the model has no colours
 
+    Clips may differ in which maps they carry: the fine displacement and albedo maps of the
+    clips that have them are kept and blended over those frames (:mod:`.maps`, "Clips
+    without maps"), and ``metrics["maps_partial"]`` names the clips without and the rule.
+    Per-vertex colours sampled from albedo need albedo in every clip.
+
     Raises
     ------
     InvalidInput   clips that do not match the actor, a database of fewer than 2 frames,
                    missing actor regions with ``regions="actor"``, regions that cannot be derived
     """
     clips = list(clips)
-    check_clips(actor, clips)
+    check_clips(actor, clips, mixed_maps=True)
     p = params
     F = np.asarray(actor.faces, dtype=np.int64)
     d0 = np.asarray(actor.vertices, dtype=np.float64)
@@ -703,6 +739,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             "marker_database": bool(p.marker_correction and actor.n_markers),
             "maps": {k: list(m.shape) for k, m in (("displacement", fine_maps), ("albedo", albedo_maps))
                      if m is not None},
+            **_partial_maps(clips, p.frame_stride, N),
             "params": p.model_dump(mode="json"),
         },
         fine_maps=fine_maps, albedo_maps=albedo_maps,
@@ -715,6 +752,21 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             lambda x: progress(0.9 + 0.1 * x, "marker shells and corrections")))
     progress(1.0, "done")
     return model
+
+
+def _partial_maps(clips: Sequence[Clip], stride: int, N: int) -> dict:
+    """``{"maps_partial": {kind: {...}}}`` for the map kinds only some clips carry (else
+    ``{}``): how many database frames have them, the clips without, and the rule used."""
+    out = {}
+    for kind in ("displacement", "albedo"):
+        without = [c.name for c in clips if getattr(c, kind) is None]
+        if without and len(without) < len(clips):
+            frames = sum(len(range(0, c.frames, stride)) for c in clips if getattr(c, kind) is not None)
+            out[kind] = {
+                "database_frames_with_maps": frames, "database_frames": N, "clips_without": without,
+                "rule": "maps are blended over the frames that have them; a region's weight on "
+                        "frames without maps goes to the mean map of those that have them"}
+    return {"maps_partial": out} if out else {}
 
 
 def _gram_matrices(shapes: np.ndarray, patch_weights: np.ndarray) -> np.ndarray:

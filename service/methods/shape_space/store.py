@@ -10,7 +10,8 @@ Layout (DESIGN.md "Data and storage"):
 * ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
 * ``maps.npz``    per map kind (``displacement``, ``albedo``) the maps (N,P,C) float16 at the
   covered texels with ``<kind>_texels`` (P,) and ``<kind>_shape`` (2,) (:mod:`.maps`), only
-  if the database had maps;
+  if the database had maps; when only some of its clips had them, the maps are (K,P,C) and
+  ``<kind>_frames`` (K,) names their database frames;
 * ``markers.npz`` the :class:`~.markers.MarkerDatabase`: ``shapes`` (N,9P) and ``gram``
   (R,N,N) of the database frames' marker shells, ``corrections`` (N,n,3) float32
   (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
@@ -70,6 +71,8 @@ def write_model(model: ShapeSpaceData, path) -> dict:
         if dm is not None:
             maps.update({name: dm.maps, f"{name}_texels": dm.texels,
                          f"{name}_shape": np.array(dm.shape, np.int64)})
+            if dm.frames is not None:
+                maps[f"{name}_frames"] = dm.frames
     if maps:
         files["maps.npz"] = write_npz(path / "maps.npz", maps)
     manifest = {
@@ -96,7 +99,8 @@ def read_model(path) -> ShapeSpaceData:
     colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
     marker_database = MarkerDatabase(**npz_arrays(data["markers.npz"])) if "markers.npz" in data else None
     m = npz_arrays(data["maps.npz"]) if "maps.npz" in data else {}
-    maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]))
+    maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]),
+                               m.get(f"{name}_frames"))
             for name, attr in MAP_FIELDS.items() if name in m}
     fields = dict(params=ShapeSpaceParams(**manifest["params"]), detail=detail, colors=colors,
                   marker_database=marker_database, **maps,
@@ -109,9 +113,12 @@ def read_model(path) -> ShapeSpaceData:
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
                            f"({frames},{triangles},9)")
     for attr, dm in maps.items():
-        if dm.maps.shape[:2] != (frames, len(dm.texels)):
+        count = frames if dm.frames is None else len(dm.frames)
+        if dm.maps.shape[:2] != (count, len(dm.texels)) or (
+                dm.frames is not None and len(dm.frames) and not (
+                    np.all(np.diff(dm.frames) > 0) and 0 <= dm.frames[0] and dm.frames[-1] < frames)):
             raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.shape} for "
-                               f"{frames} frames and {len(dm.texels)} texels")
+                               f"{count} of {frames} frames and {len(dm.texels)} texels")
     md = marker_database
     if md is not None and (md.corrections.shape != (frames, vertices, 3)
                            or md.shapes.shape != a["shapes"].shape or md.gram.shape != a["gram"].shape):

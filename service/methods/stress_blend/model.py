@@ -42,7 +42,8 @@ import scipy.sparse as sp
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normal_map import NormalMapper
 from service.geometry.tangent_frames import FrameField
-from service.geometry.uv_raster import interpolation_matrix, rasterize_uv, splat
+from service.geometry.normals import vertex_normals
+from service.geometry.uv_raster import interpolation_matrix, rasterize_uv, sampling_matrix, splat
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.outputs import check_outputs
 from service.methods.stress_blend import store
@@ -52,8 +53,10 @@ from service.methods.stress_blend.regions import RegionFit, engine_weights, regi
 from service.methods.stress_blend.stress import StressField
 from service.methods.stress_blend.weights import shepard_weights
 
-#: outputs of :meth:`StressBlendModel.synthesize` (``mesh`` is the input mesh, passed through)
-OUTPUTS = ("mesh", "displacement", "albedo", "normal_map", "wrinkle_weights", "blend_weights")
+#: outputs of :meth:`StressBlendModel.synthesize` (``mesh`` is the input mesh, passed through;
+#: ``mesh_detailed`` the input mesh with the blended displacement baked in)
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "wrinkle_weights",
+           "blend_weights")
 DEFAULT_OUTPUTS = ("displacement", "albedo", "normal_map", "wrinkle_weights")
 
 
@@ -107,8 +110,9 @@ class MapBand:
 class StressBlendEvaluator:
     """What synthesis reuses, derived once from :class:`StressBlendData`: the stress operator
     ``field``, the texel bands of the scans' maps (``albedo_band`` None without albedo), the
-    engine's ``region_fit``, and the normal-map machinery (``normal_mapper`` at the
-    displacement resolution, ``frame_field`` the tangent frames of deformed poses)."""
+    engine's ``region_fit``, the normal-map machinery (``normal_mapper`` at the
+    displacement resolution, ``frame_field`` the tangent frames of deformed poses) and
+    ``disp_sampler`` (n,P) the displacement band's texels → vertices (``mesh_detailed``)."""
 
     field: StressField
     disp_band: MapBand
@@ -116,6 +120,7 @@ class StressBlendEvaluator:
     region_fit: RegionFit
     frame_field: FrameField
     normal_mapper: NormalMapper
+    disp_sampler: sp.csr_matrix
 
     @classmethod
     def build(cls, d: StressBlendData) -> "StressBlendEvaluator":
@@ -128,7 +133,8 @@ class StressBlendEvaluator:
             albedo_band=None if d.albedo is None else MapBand.build(d.uv, d.uv_faces, d.faces, n, d.albedo),
             region_fit=RegionFit.build(d.masks, d.importance, vertex_areas(d.neutral, d.faces)),
             frame_field=FrameField.build(d.neutral, d.faces, d.uv, d.uv_faces),
-            normal_mapper=NormalMapper(rasterize_uv(d.uv, d.uv_faces, H, H), d.faces, d.uv, d.uv_faces, n))
+            normal_mapper=NormalMapper(rasterize_uv(d.uv, d.uv_faces, H, H), d.faces, d.uv, d.uv_faces, n),
+            disp_sampler=sampling_matrix(d.uv, d.uv_faces, d.faces, n, disp_band.mask())[:, disp_band.index].tocsr())
 
 
 class StressBlendModel:
@@ -191,7 +197,9 @@ class StressBlendModel:
         weights are a partition of unity, so no blend leaves the scans' range.
 
         Returns (as asked in ``outputs``): ``vertices`` (F,n,3) float32 the input meshes
-        (``mesh``); ``displacement`` (F,H,H) mm along the normal,
+        (``mesh``); ``vertices_detailed`` (F,n,3) float32 the input meshes with the blended
+        displacement sampled at the vertices and added along the vertex normals
+        (``mesh_detailed``); ``displacement`` (F,H,H) mm along the normal,
         relative to the input mesh; ``albedo`` (F,Ha,Ha,3) linear RGB; ``normal_map``
         (F,H,H,3) tangent space; ``wrinkle_weights`` (F,R,K) the engine's per-region
         expression weights (:mod:`.regions`); ``blend_weights`` (F,n,S) float32; always
@@ -207,8 +215,14 @@ class StressBlendModel:
         want = set(outputs)
         if "mesh" in want:
             out["vertices"] = X.astype(np.float32)
-        if want & {"displacement", "normal_map"}:
-            disp = np.stack([self.disp_band.image(self.disp_band.blend(self.disp_band.interp @ w)) for w in W])
+        if want & {"displacement", "normal_map", "mesh_detailed"}:
+            band = self.disp_band
+            texels = [band.blend(band.interp @ w) for w in W]                 # (P,1) each
+            disp = np.stack([band.image(t) for t in texels])
+            if "mesh_detailed" in want:
+                h = np.stack([self.evaluator.disp_sampler @ t[:, 0] for t in texels])   # (F,n)
+                out["vertices_detailed"] = (X + h[..., None] * vertex_normals(X, self.data.faces)
+                                            ).astype(np.float32)
             if "displacement" in want:
                 out["displacement"] = disp
             if "normal_map" in want:

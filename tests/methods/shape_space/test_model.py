@@ -209,7 +209,7 @@ def test_invalid_input_is_rejected(shape_space_model):
     with pytest.raises(InvalidInput, match="frames must be"):
         m.enhance(np.zeros((1, 17, 3)))
     with pytest.raises(InvalidInput, match="unknown outputs"):
-        m.enhance(m.neutral, outputs=("mesh", "normal_map"))
+        m.enhance(m.neutral, outputs=("mesh", "wrinkle_weights"))   # normal_map is an output now
     with pytest.raises(InvalidInput, match="no albedo maps"):
         m.replace(albedo_maps=None).enhance(m.neutral, outputs=("mesh", "albedo"))
     with pytest.raises(InvalidInput, match="non-finite"):
