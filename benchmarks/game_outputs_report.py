@@ -52,7 +52,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import harness  # noqa: E402  (the reports' shared data, metric and workers)
-import pdm_report as pr  # noqa: E402  (its cached PDM models and figure helpers)
 
 OUT = ROOT / "benchmarks" / "out"
 FIGURES = OUT / "game_outputs"
@@ -321,7 +320,7 @@ def plot_blended_maps(model, gt, frames, store, pdm_maps, path: Path, tex) -> No
     """Displacement maps (face box) for a few held-out frames: truth, blend, engine, PDM."""
     import matplotlib.pyplot as plt
 
-    box = pr._face_box(tex)
+    box = harness.face_box(tex)
     H = tex.H
     tracked = store["tracked"]
     truth = [tex.image(store["truth_relative"][i], only_face=False) for i in frames]
@@ -535,10 +534,10 @@ def main() -> None:
         from service.methods.stress_blend.model import StressBlendModel
         from service.samples.dataset import load_actor
 
-        print("PDM (pdm_report's training worker)", file=sys.stderr)
-        pr.MODELS.mkdir(parents=True, exist_ok=True)
-        pr.train_models(ACTOR_L1, ["biquadratic"], reuse=True)
-        pdm = PdmModel.load(pr.MODELS / "biquadratic")
+        print("PDM (harness's training worker, pdm_report's models)", file=sys.stderr)
+        harness.PDM_MODELS.mkdir(parents=True, exist_ok=True)
+        harness.train_pdm_models(ACTOR_L1, ["biquadratic"], reuse=True)
+        pdm = PdmModel.load(harness.PDM_MODELS / "biquadratic")
         actor = load_actor(ACTOR_L1)
         clips = harness.training_clips(ACTOR_L1, actor)
         print("stress blend", file=sys.stderr)
@@ -552,12 +551,12 @@ def main() -> None:
             sys.exit(f"stress-blend maps are {model.disp_band.resolution}², the PDM's fine band {tex.H}²")
         sb = {"scans": model.scan_names, "train": train_rec, "repro": repro, "H": tex.H, "sigma": sigma,
               "regions": int(model.masks.shape[1]), "accuracy": {}, "albedo": {}}
-        limit = pr.QUICK_FRAMES if args.quick else None
+        limit = harness.QUICK_FRAMES if args.quick else None
         amask_face = None
         for perf in harness.HELDOUT:
             gt = harness.load_heldout(ACTOR_L1, perf, limit)
             store: dict = {}
-            keep = pr.strong_frames(gt, FIGURE_FRAMES, pr.FIGURE_SEPARATION) if perf == harness.HELDOUT[0] else []
+            keep = harness.strong_frames(gt, FIGURE_FRAMES, harness.FIGURE_SEPARATION) if perf == harness.HELDOUT[0] else []
             r = harness.evaluate_performance(gt, stress_methods(model, pdm, gt, tex, store), tex, actor, keep)
             r.pop("figure"), r.pop("extra")
             r["frames"] = len(gt.frames)

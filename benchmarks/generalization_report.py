@@ -59,8 +59,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers)
-import shape_space_report as ss  # noqa: E402  (cached shape-space model, rig registration)
+import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers, cached builds)
 
 OUT = ROOT / "benchmarks" / "out" / "generalization"
 MODELS = OUT / "models"
@@ -95,7 +94,7 @@ def pdm_models(actor_dir: Path, retrain: bool) -> dict:
     from service.samples.dataset import performance_names
 
     files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
-    key = ss.actor_files_key(actor_dir, *files)
+    key = pdm.actor_files_key(actor_dir, *files)
     models = {}
     for order in ORDERS:
         model_dir = MODELS / f"pdm_{order}-{key}"
@@ -149,19 +148,19 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
     del clips
-    ss_dir, _ = ss.shape_space_model(actor_dir, ShapeSpaceParams(), retrain)
+    ss_dir, _ = pdm.shape_space_model(actor_dir, ShapeSpaceParams(), retrain)
     shape = ShapeSpaceModel.load(ss_dir)
-    reg, _ = ss.rig_registration(actor_dir, retrain)
+    reg, _ = pdm.rig_registration(actor_dir, retrain)
 
     def shape_space(V_or_markers, kind):
-        out = shape.enhance(V_or_markers, ss.SS_OUTPUTS, input_kind=kind)
+        out = shape.enhance(V_or_markers, pdm.SS_OUTPUTS, input_kind=kind)
         D = (np.stack([tex.texels(m) for m in out["fine_displacement"]])
              if "fine_displacement" in out else None)
         return out["vertices"].astype(np.float64), D, None
 
     rows, worst = {}, None
     for rname, perf in RANGES.items():
-        gt_clean = ss.heldout_frames(actor_dir, perf, frames)
+        gt_clean = pdm.heldout_frames(actor_dir, perf, frames)
         with np.load(actor_dir / "performances" / f"{perf}.npz") as d:
             lowres = d["lowres"][gt_clean.frames].astype(np.float64)
         for cname, suffix in CONDITIONS.items():
@@ -282,7 +281,7 @@ def main() -> None:
     t0 = time.perf_counter()
     OUT.mkdir(parents=True, exist_ok=True)
     MODELS.mkdir(parents=True, exist_ok=True)
-    ss.MODELS.mkdir(parents=True, exist_ok=True)
+    pdm.SHAPE_SPACE_MODELS.mkdir(parents=True, exist_ok=True)
     frames = args.frames or None
     results = {}
     for family, actor_dir in actors.items():

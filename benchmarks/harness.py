@@ -1,9 +1,12 @@
 """What the benchmark reports share: the sample actor's data, fresh-process workers with
-peak-memory measurement, the fine-detail metric at the map texels, the PDM baseline, and
-figure helpers. Each report imports this module (``import harness``). Two reports still
-reuse another report's cached model builds, whose workers live in that script:
-``generalization_report`` (``shape_space_report``'s shape-space models) and
-``game_outputs_report`` (``pdm_report``'s PDM models and figure layout).
+peak-memory measurement, the cached model builds (PDM per order, shape-space model per
+parameter set, input-rig registration) and their workers, the fine-detail metric at the map
+texels, the PDM baseline, and figure helpers. Each report imports this module (``import
+harness``); no report imports another.
+
+Workers (fresh processes, :func:`run_worker`): ``python benchmarks/harness.py train-pdm
+ACTOR ORDER MODEL_DIR``, ``train-shape-space ACTOR PARAMS_JSON MODEL_DIR``,
+``register-rig ACTOR OUT_NPZ``; each prints its JSON record as the last line.
 
 Peak memory: a worker resets the resident-set high-water mark (``echo 5 >
 /proc/self/clear_refs``) and reports ``VmHWM − VmRSS`` at the reset, the peak resident
@@ -12,11 +15,13 @@ memory the measured step added (C allocations included).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
 import sys
 import time
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +37,14 @@ BASIC_OUTPUTS = ("mesh", "displacement")
 NEUTRAL_CLIP = "train_brow_raise"      # its frame 0 gives the static neutral map
 SCORED_REGIONS = (FACE, "narrow_face") # ... and the marker-covered part of it (region 0)
 GT_ROW = "ground truth (mesh + relative map)"
+OUT = ROOT / "benchmarks" / "out"
+PDM_MODELS = OUT / "pdm" / "models"    # pdm_report's models, one per order (also game_outputs_report's)
+SHAPE_SPACE_MODELS = OUT / "shape_space" / "models"   # shape-space models, PDM, rig registrations
+SHAPE_SPACE_LIBRARY = ROOT / "service" / "methods" / "shape_space"
+DATABASE = "database"                  # the shape-space database performance
+SS_OUTPUTS = ("mesh", "displacement")  # displacement: the blended fine maps (database with maps)
+QUICK_FRAMES = 6                       # held-out map frames per performance in quick runs
+FIGURE_SEPARATION = 20                 # strong-expression figure frames at least this far apart
 
 
 def ensure_actor(actor_dir: Path, seed: int = SEED, level: int = LEVEL) -> None:
@@ -383,12 +396,219 @@ def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path) -> dict:
     return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir))
 
 
-if __name__ == "__main__":
-    if len(sys.argv) == 5 and sys.argv[1] == "train-pdm":
-        print(json.dumps(train_pdm(Path(sys.argv[2]), sys.argv[3], Path(sys.argv[4]))))
-    else:
-        sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR (the reports' worker)")
+def train_pdm_models(actor_dir: Path, orders, reuse: bool, models: Path = PDM_MODELS) -> dict[str, dict]:
+    """Train (or with ``reuse`` keep) one PDM per order under ``models`` (``<order>/`` and its
+    record ``<order>.train.json``), each in a fresh process; the training records."""
+    stats = {}
+    for order in orders:
+        model_dir, record = models / order, models / f"{order}.train.json"
+        if reuse and (model_dir / "manifest.json").is_file() and record.is_file():
+            stats[order] = json.loads(record.read_text())
+            print(f"  reusing {order} model", file=sys.stderr)
+            continue
+        print(f"  training {order} ...", file=sys.stderr)
+        stats[order] = pdm_in_fresh_process(actor_dir, order, model_dir)
+        record.write_text(json.dumps(stats[order]))
+        print(f"  {order}: {stats[order]['train_s']:.1f} s", file=sys.stderr)
+    return stats
 
+
+def strong_frames(gt: Heldout, count: int, separation: int) -> list[int]:
+    """Frame numbers of the ``count`` strongest expressions, greedily ≥ ``separation`` apart."""
+    chosen: list[int] = []
+    for i in np.argsort(-gt.strength, kind="stable"):
+        f = int(gt.frames[i])
+        if all(abs(f - c) >= separation for c in chosen):
+            chosen.append(f)
+        if len(chosen) == count:
+            break
+    return sorted(chosen)
+
+
+def face_box(tex: DetailTexels, pad: int = 8) -> tuple[slice, slice]:
+    """Rows and columns of the map around the face texels (``pad`` texels of margin)."""
+    r, c = np.divmod(tex.index[tex.face], tex.H)
+    return (slice(max(r.min() - pad, 0), min(r.max() + pad + 1, tex.H)),
+            slice(max(c.min() - pad, 0), min(c.max() + pad + 1, tex.H)))
+
+
+# --------------------------------------------------------------------------------------
+# cache keys and the shape-space builds
+
+def sha(data: bytes | str, n: int = 10) -> str:
+    return hashlib.sha256(data.encode() if isinstance(data, str) else data).hexdigest()[:n]
+
+
+def library_fingerprint() -> str:
+    """sha256 (10 hex) of the shape-space library sources (another engineer edits them)."""
+    h = hashlib.sha256()
+    for f in sorted(SHAPE_SPACE_LIBRARY.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
+def actor_files_key(actor_dir: Path, *files: str) -> str:
+    """Key of an actor's files from its manifest's sha256 (level and seed included)."""
+    manifest = json.loads((actor_dir / "manifest.json").read_text())
+    parts = [f"l{manifest['level']}s{manifest['seed']}"] + [manifest["files"][f]["sha256"] for f in files]
+    return f"l{manifest['level']}-" + sha("|".join(parts))
+
+
+def actor_level(actor_dir: Path) -> int:
+    return int(json.loads((actor_dir / "manifest.json").read_text())["level"])
+
+
+def params_json(params) -> str:
+    """Method parameters (a pydantic :class:`~service.methods.params.MethodParams`) as sorted JSON."""
+    return json.dumps(params.model_dump(mode="json"), sort_keys=True)
+
+
+def load_database(actor_dir: Path, actor):
+    """The ``database`` performance as a Clip: with its maps (relative to its meshes) where
+    the actor has them (levels 0–1), else float32 vertices only (the library converts them;
+    at level 2 a float64 copy would cost 2.7 GB)."""
+    from service.methods.inputs import Clip
+    from service.samples.dataset import load_clip
+
+    with np.load(actor_dir / "performances" / f"{DATABASE}.npz") as d:
+        if "displacement" in d.files:
+            return load_clip(actor_dir, DATABASE, actor)
+        return Clip(DATABASE, d["vertices"], d["markers"].astype(np.float64), fps=float(d["fps"]))
+
+
+def train_shape_space(actor_dir: Path, params: str, model_dir: Path) -> dict:
+    """Build a shape-space model from the database (``params`` JSON overrides of
+    ShapeSpaceParams); wall time and peak RSS of ``train`` (run it in a fresh process)."""
+    from service.methods.shape_space import ShapeSpaceParams, train
+    from service.samples.dataset import load_actor
+
+    actor = load_actor(actor_dir)
+    clip = load_database(actor_dir, actor)
+    p = ShapeSpaceParams(**json.loads(params))
+    stages = {}
+    load0 = os.getloadavg()[0]
+    rss0 = reset_peak()
+    t0 = time.perf_counter()
+
+    def progress(fraction, stage):
+        stages.setdefault(stage, time.perf_counter() - t0)
+        print(f"    [shape-space {p.smoothing}] {fraction:4.0%} {stage} ({time.perf_counter() - t0:.0f} s)",
+              file=sys.stderr)
+
+    model = train(actor, [clip], p, progress)
+    res = {"train_s": time.perf_counter() - t0, "peak_rss_mb": peak_mb(rss0),
+           "load_average": [load0, os.getloadavg()[0]],
+           "stages_s": stages, "frames": clip.frames, "vertices": actor.n_vertices,
+           "metrics": {k: model.metrics[k] for k in ("database_frames", "patches", "regions", "detail_bytes")
+                       if k in model.metrics},
+           "params": json.loads(params), "library": library_fingerprint()}
+    model.save(model_dir)
+    return res
+
+
+def register_input_rig(actor_dir: Path, out: Path) -> dict:
+    """Register ``input_rig.npz`` to the neutral (no landmarks) into ``out``; time and
+    residual stats (run it in a fresh process)."""
+    from service.methods.shape_space.registration import register_rig
+
+    with np.load(actor_dir / "input_rig.npz") as r, np.load(actor_dir / "neutral.npz") as n:
+        rig_v, rig_f = r["vertices"].astype(np.float64), r["faces"].astype(np.int64)
+        V, F = n["vertices"].astype(np.float64), n["faces"].astype(np.int64)
+    rss0 = reset_peak()
+    t0 = time.perf_counter()
+    reg = register_rig(rig_v, rig_f, V, F)
+    res = {"register_s": time.perf_counter() - t0, "peak_rss_mb": peak_mb(rss0),
+           "stats": {k: float(v) for k, v in reg.stats.items()}, "rig_vertices": len(rig_v),
+           "library": library_fingerprint()}
+    out.write_bytes(reg.save())
+    return res
+
+
+def cached(record: Path, ready: bool, retrain: bool, build) -> dict:
+    """The build record at ``record`` if the build is ``ready`` (and not ``retrain``), else
+    ``build()``'s, written there; ``reused`` says which."""
+    if ready and record.is_file() and not retrain:
+        rec = json.loads(record.read_text())
+        rec["reused"] = True
+        return rec
+    rec = build()
+    record.write_text(json.dumps(rec))
+    rec["reused"] = False
+    return rec
+
+
+def shape_space_paths(actor_dir: Path, params) -> tuple[Path, Path]:
+    """The cached model directory of ``params`` on the actor's database and its build record."""
+    key = f"{actor_files_key(actor_dir, 'neutral.npz', 'markers.json', f'performances/{DATABASE}.npz')}" \
+          f"-{params.smoothing}-{sha(params_json(params))}"
+    return SHAPE_SPACE_MODELS / f"shape_space-{key}", SHAPE_SPACE_MODELS / f"shape_space-{key}.train.json"
+
+
+def shape_space_loadable(model_dir: Path) -> bool:
+    """A model directory whose manifest has the library's current format (the store's format
+    changes while the library is being worked on; an older model cannot be loaded)."""
+    from service.methods.shape_space.store import FORMAT_VERSION
+
+    try:
+        return json.loads((model_dir / "manifest.json").read_text())["format_version"] == FORMAT_VERSION
+    except (OSError, KeyError, ValueError):
+        return False
+
+
+def shape_space_cached(actor_dir: Path, params) -> bool:
+    model_dir, record = shape_space_paths(actor_dir, params)
+    return shape_space_loadable(model_dir) and record.is_file()
+
+
+def shape_space_model(actor_dir: Path, params, retrain: bool) -> tuple[Path, dict]:
+    """The model directory of ``params`` on the actor's database (built in a fresh process
+    unless cached) and its build record."""
+    model_dir, record = shape_space_paths(actor_dir, params)
+
+    def build():
+        print(f"  building shape-space model {model_dir.name} (fresh process) ...", file=sys.stderr)
+        return run_worker(__file__, "train-shape-space", str(actor_dir), params_json(params), str(model_dir))
+
+    SHAPE_SPACE_MODELS.mkdir(parents=True, exist_ok=True)
+    rec = cached(record, shape_space_loadable(model_dir), retrain, build)
+    print(f"  shape-space {params.smoothing}: {'reused' if rec['reused'] else 'built'}, "
+          f"build {rec['train_s']:.0f} s", file=sys.stderr)
+    return model_dir, rec
+
+
+def rig_registration(actor_dir: Path, retrain: bool):
+    """The actor's ``input_rig.npz`` registered to its neutral (in a fresh process unless
+    cached): the RigRegistration and its build record."""
+    from service.methods.shape_space.registration import RigRegistration
+
+    key = actor_files_key(actor_dir, "neutral.npz", "input_rig.npz")
+    path = SHAPE_SPACE_MODELS / f"rig_registration-{key}.npz"
+    record = SHAPE_SPACE_MODELS / f"rig_registration-{key}.json"
+
+    def build():
+        print("  registering input_rig.npz to the neutral (fresh process) ...", file=sys.stderr)
+        return run_worker(__file__, "register-rig", str(actor_dir), str(path))
+
+    SHAPE_SPACE_MODELS.mkdir(parents=True, exist_ok=True)
+    rec = cached(record, path.is_file(), retrain, build)
+    return RigRegistration.load(path.read_bytes()), rec
+
+
+def heldout_frames(actor_dir: Path, name: str, limit: int | None) -> Heldout:
+    """``limit`` map frames of a held-out performance, evenly spaced between (not at) its ends
+    (the performances start and end near the neutral)."""
+    gt = load_heldout(actor_dir, name, None)
+    if limit is None or limit >= len(gt.frames):
+        return gt
+    keep = np.unique(np.round(np.linspace(0, len(gt.frames) - 1, limit + 2)[1:-1]).astype(np.int64))
+    return Heldout(name, *(getattr(gt, f.name)[keep] for f in dataclasses.fields(gt)[1:]))
+
+
+WORKERS = {
+    "train-pdm": lambda actor, order, model: train_pdm(Path(actor), order, Path(model)),
+    "train-shape-space": lambda actor, params, model: train_shape_space(Path(actor), params, Path(model)),
+    "register-rig": lambda actor, out: register_input_rig(Path(actor), Path(out)),
+}
 
 # ---------------------------------------------------------------------------- servers
 def free_port() -> int:
@@ -434,3 +654,11 @@ def stop_server(server: subprocess.Popen, seconds: float = 60) -> None:
     except subprocess.TimeoutExpired:
         server.kill()
         server.wait()
+
+
+if __name__ == "__main__":
+    worker = WORKERS.get(sys.argv[1] if len(sys.argv) > 1 else "")
+    if worker is None or len(sys.argv) - 2 != worker.__code__.co_argcount:
+        sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR | train-shape-space ACTOR_DIR "
+                 "PARAMS_JSON MODEL_DIR | register-rig ACTOR_DIR OUT_NPZ (the reports' workers)")
+    print(json.dumps(worker(*sys.argv[2:])))

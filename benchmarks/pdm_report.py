@@ -74,22 +74,19 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from harness import (  # noqa: E402  (the reports' shared harness, beside this file)
-    BASIC_OUTPUTS, FACE, GT_ROW, HELDOUT, LEVEL, ROOT, SEED, Baselines, DetailTexels,
-    evaluate_performance, Heldout, camera, ensure_actor, git_state,
-    load_heldout, pdm_prediction, peak_mb, plot_grazing, reset_peak, run_worker, train_pdm,
-    training_clips, zoom_centre,
+    BASIC_OUTPUTS, FACE, FIGURE_SEPARATION, GT_ROW, HELDOUT, LEVEL, OUT, PDM_MODELS, QUICK_FRAMES,
+    SEED, Baselines, DetailTexels, Heldout, evaluate_performance, camera, ensure_actor, face_box, git_state,
+    load_heldout, pdm_prediction, peak_mb, plot_grazing, reset_peak, run_worker, strong_frames,
+    train_pdm_models, training_clips, zoom_centre,
 )
-OUT = ROOT / "benchmarks" / "out"
 FIGURES = OUT / "pdm"
-MODELS = FIGURES / "models"
+MODELS = PDM_MODELS
 
 ORDERS = ("linear", "biquadratic", "bicubic")
 QUICK_ORDERS = ("linear", "biquadratic")
-QUICK_FRAMES = 6                       # held-out map frames per performance with --quick
 SPEED_FRAMES = 20                      # synthesis timing: frames, one per call
 WARMUP_FRAMES = 2
 FIGURE_FRAMES = 3                      # strong in-range expressions in the figures
-FIGURE_SEPARATION = 20                 # ... at least this many frames apart
 TRAIN_BUDGET_S = 120.0
 SYNTH_BUDGET_MS = 50.0
 ALL_OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
@@ -141,37 +138,9 @@ def worker_synth(actor_dir: Path, model_dir: Path, mode: str) -> dict:
     return res
 
 
-def train_models(actor_dir: Path, orders, reuse: bool) -> dict[str, dict]:
-    """Train (or with ``reuse`` keep) one model per order under MODELS; training measurements."""
-    stats = {}
-    for order in orders:
-        model_dir, record = MODELS / order, MODELS / f"{order}.train.json"
-        if reuse and (model_dir / "manifest.json").is_file() and record.is_file():
-            stats[order] = json.loads(record.read_text())
-            print(f"  reusing {order} model", file=sys.stderr)
-            continue
-        print(f"  training {order} ...", file=sys.stderr)
-        stats[order] = run_worker(__file__, "--worker", "train", "--actor", str(actor_dir), "--order", order,
-                                  "--model", str(model_dir))
-        record.write_text(json.dumps(stats[order]))
-        print(f"  {order}: {stats[order]['train_s']:.1f} s", file=sys.stderr)
-    return stats
-
 
 # --------------------------------------------------------------------------------------
 # metrics
-
-def strong_frames(gt: Heldout, count: int, separation: int) -> list[int]:
-    """Frame numbers of the ``count`` strongest expressions, greedily ≥ ``separation`` apart."""
-    chosen: list[int] = []
-    for i in np.argsort(-gt.strength, kind="stable"):
-        f = int(gt.frames[i])
-        if all(abs(f - c) >= separation for c in chosen):
-            chosen.append(f)
-        if len(chosen) == count:
-            break
-    return sorted(chosen)
-
 
 def compression(clips, actor_dir: Path, orders) -> dict:
     """Bytes of the training arrays (float32), of the training npz files and of each model
@@ -328,17 +297,11 @@ def report(results: dict, meta: dict) -> str:
 # --------------------------------------------------------------------------------------
 # figures
 
-def _face_box(tex: DetailTexels, pad: int = 8) -> tuple[slice, slice]:
-    r, c = np.divmod(tex.index[tex.face], tex.H)
-    return (slice(max(r.min() - pad, 0), min(r.max() + pad + 1, tex.H)),
-            slice(max(c.min() - pad, 0), min(c.max() + pad + 1, tex.H)))
-
-
 def plot_detail_maps(fig_data, tex: DetailTexels, frames, path: Path, rows) -> None:
     """(a) high-passed detail heights in UV (face tile, row 0 = top of the map), one colour scale."""
     import matplotlib.pyplot as plt
 
-    box = _face_box(tex)
+    box = face_box(tex)
     gt = [fig_data["gt_hp"][f] for f in frames]
     lim = float(np.percentile(np.abs(np.concatenate([g[tex.face] for g in gt])), 99.5))
     panels = [("ground truth", gt)] + [(name, [fig_data["hp"][(name, f)] for f in frames]) for name in rows]
@@ -438,14 +401,10 @@ def main() -> None:
                         help=f"{QUICK_FRAMES} held-out frames per performance, linear and biquadratic only")
     parser.add_argument("--reuse", action="store_true",
                         help="reuse trained models (and their training measurements) in benchmarks/out/pdm/models")
-    parser.add_argument("--worker", choices=("train", "synth-basic", "synth-all"), help=argparse.SUPPRESS)
-    parser.add_argument("--order", help=argparse.SUPPRESS)
+    parser.add_argument("--worker", choices=("synth-basic", "synth-all"), help=argparse.SUPPRESS)
     parser.add_argument("--model", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     actor_dir = args.actor.resolve()
-    if args.worker == "train":
-        print(json.dumps(train_pdm(actor_dir, args.order, args.model)))
-        return
     if args.worker:
         print(json.dumps(worker_synth(actor_dir, args.model, args.worker.split("-")[1])))
         return
@@ -465,7 +424,7 @@ def main() -> None:
 
     # ---- fresh-process measurements first, while this process is idle
     print("training (one fresh process per order)", file=sys.stderr)
-    results: dict = {"train": train_models(actor_dir, orders, args.reuse)}
+    results: dict = {"train": train_pdm_models(actor_dir, orders, args.reuse)}
     print("synthesis speed (fresh processes)", file=sys.stderr)
     results["synth"] = {mode: run_worker(__file__, "--worker", f"synth-{mode}", "--actor", str(actor_dir),
                                          "--model", str(MODELS / "biquadratic"))

@@ -87,8 +87,6 @@ Run: ``python benchmarks/shape_space_report.py [--actor DIR] [--frames K] [--par
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import hashlib
 import json
 import os
 import sys
@@ -102,20 +100,21 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import harness  # noqa: E402  (the reports' shared data loading, detail metric, workers, PDM baseline)
+from harness import (  # noqa: E402  (the cached model builds, shared with generalization_report)
+    DATABASE, SS_OUTPUTS, actor_files_key, actor_level, cached, heldout_frames, library_fingerprint,
+    params_json, rig_registration, shape_space_cached, shape_space_model, shape_space_paths,
+)
 
 OUT = ROOT / "benchmarks" / "out" / "shape_space"
-MODELS = OUT / "models"
-LIBRARY = ROOT / "service" / "methods" / "shape_space"
+MODELS = harness.SHAPE_SPACE_MODELS
 
 HELDOUT = harness.HELDOUT
-DATABASE = "database"
 INPUTS = ("rig", "markers")
 FACE = harness.FACE
 HEAD = "head"                          # rigid back of the head: alignment for the retiming
 DEFAULT_FRAMES = 10                    # held-out map frames per performance (evenly spaced)
 DETAIL_THRESHOLD_MM = 0.01             # ground truth "has detail": |vertices − vertices_medium| above
 PDM_ORDER = "biquadratic"
-SS_OUTPUTS = ("mesh", "displacement")  # displacement: the blended fine maps (database with maps)
 INPUT_ROW, PDM_ROW, PDM_FREE_ROW, SS_ROW = ("input alone", "PDM biquadratic",
                                             "PDM biquadratic, no clamp", "shape-space")
 # (the evaluated shape-space model is SS_ROW; a cached model with the other smoothing is scored
@@ -131,96 +130,7 @@ TILE = 300                             # rendered tiles, pixels
 
 
 # --------------------------------------------------------------------------------------
-# cache keys and provenance
-
-def _sha(data: bytes | str, n: int = 10) -> str:
-    return hashlib.sha256(data.encode() if isinstance(data, str) else data).hexdigest()[:n]
-
-
-def library_fingerprint() -> str:
-    """sha256 (10 hex) of the shape-space library sources (another engineer edits them)."""
-    h = hashlib.sha256()
-    for f in sorted(LIBRARY.glob("*.py")):
-        h.update(f.name.encode() + f.read_bytes())
-    return h.hexdigest()[:10]
-
-
-def actor_files_key(actor_dir: Path, *files: str) -> str:
-    """Key of an actor's files from its manifest's sha256 (level and seed included)."""
-    manifest = json.loads((actor_dir / "manifest.json").read_text())
-    parts = [f"l{manifest['level']}s{manifest['seed']}"] + [manifest["files"][f]["sha256"] for f in files]
-    return f"l{manifest['level']}-" + _sha("|".join(parts))
-
-
-def actor_level(actor_dir: Path) -> int:
-    return int(json.loads((actor_dir / "manifest.json").read_text())["level"])
-
-
-def params_json(params) -> str:
-    return json.dumps(dataclasses.asdict(params), sort_keys=True)
-
-
-# --------------------------------------------------------------------------------------
-# workers (fresh processes)
-
-def load_database(actor_dir: Path, actor):
-    """The ``database`` performance as a Clip: with its maps (relative to its meshes) where
-    the actor has them (levels 0–1), else float32 vertices only (the library converts them;
-    at level 2 a float64 copy would cost 2.7 GB)."""
-    from service.methods.inputs import Clip
-    from service.samples.dataset import load_clip
-
-    with np.load(actor_dir / "performances" / f"{DATABASE}.npz") as d:
-        if "displacement" in d.files:
-            return load_clip(actor_dir, DATABASE, actor)
-        return Clip(DATABASE, d["vertices"], d["markers"].astype(np.float64), fps=float(d["fps"]))
-
-
-def worker_train(actor_dir: Path, params: str, model_dir: Path) -> dict:
-    """Build a shape-space model from the database; wall time and peak RSS of ``train``."""
-    from service.methods.shape_space import ShapeSpaceParams, train
-    from service.samples.dataset import load_actor
-
-    actor = load_actor(actor_dir)
-    clip = load_database(actor_dir, actor)
-    p = ShapeSpaceParams(**json.loads(params))
-    stages = {}
-    load0 = os.getloadavg()[0]
-    rss0 = harness.reset_peak()
-    t0 = time.perf_counter()
-
-    def progress(fraction, stage):
-        stages.setdefault(stage, time.perf_counter() - t0)
-        print(f"    [shape-space {p.smoothing}] {fraction:4.0%} {stage} ({time.perf_counter() - t0:.0f} s)",
-              file=sys.stderr)
-
-    model = train(actor, [clip], p, progress)
-    res = {"train_s": time.perf_counter() - t0, "peak_rss_mb": harness.peak_mb(rss0),
-           "load_average": [load0, os.getloadavg()[0]],
-           "stages_s": stages, "frames": clip.frames, "vertices": actor.n_vertices,
-           "metrics": {k: model.metrics[k] for k in ("database_frames", "patches", "regions", "detail_bytes")
-                       if k in model.metrics},
-           "params": json.loads(params), "library": library_fingerprint()}
-    model.save(model_dir)
-    return res
-
-
-def worker_register(actor_dir: Path, out: Path) -> dict:
-    """Register ``input_rig.npz`` to the neutral (no landmarks); time and residual stats."""
-    from service.methods.shape_space.registration import register_rig
-
-    with np.load(actor_dir / "input_rig.npz") as r, np.load(actor_dir / "neutral.npz") as n:
-        rig_v, rig_f = r["vertices"].astype(np.float64), r["faces"].astype(np.int64)
-        V, F = n["vertices"].astype(np.float64), n["faces"].astype(np.int64)
-    rss0 = harness.reset_peak()
-    t0 = time.perf_counter()
-    reg = register_rig(rig_v, rig_f, V, F)
-    res = {"register_s": time.perf_counter() - t0, "peak_rss_mb": harness.peak_mb(rss0),
-           "stats": {k: float(v) for k, v in reg.stats.items()}, "rig_vertices": len(rig_v),
-           "library": library_fingerprint()}
-    out.write_bytes(reg.save())
-    return res
-
+# workers (fresh processes; the model builds' workers are harness's)
 
 def worker_speed(actor_dir: Path, model_dir: Path) -> dict:
     """Load a model, enhance one frame per call (vertices, then markers); times and peak RSS."""
@@ -251,56 +161,7 @@ def worker_speed(actor_dir: Path, model_dir: Path) -> dict:
 
 
 # --------------------------------------------------------------------------------------
-# cached builds
-
-def _cached(record: Path, ready: bool, retrain: bool, build) -> dict:
-    if ready and record.is_file() and not retrain:
-        rec = json.loads(record.read_text())
-        rec["reused"] = True
-        return rec
-    rec = build()
-    record.write_text(json.dumps(rec))
-    rec["reused"] = False
-    return rec
-
-
-def _shape_space_paths(actor_dir: Path, params) -> tuple[Path, Path]:
-    key = f"{actor_files_key(actor_dir, 'neutral.npz', 'markers.json', f'performances/{DATABASE}.npz')}" \
-          f"-{params.smoothing}-{_sha(params_json(params))}"
-    return MODELS / f"shape_space-{key}", MODELS / f"shape_space-{key}.train.json"
-
-
-def _loadable(model_dir: Path) -> bool:
-    """A model directory whose manifest has the library's current format (the store's format
-    changes while the library is being worked on; an older model cannot be loaded)."""
-    from service.methods.shape_space.store import FORMAT_VERSION
-
-    try:
-        return json.loads((model_dir / "manifest.json").read_text())["format_version"] == FORMAT_VERSION
-    except (OSError, KeyError, ValueError):
-        return False
-
-
-def shape_space_cached(actor_dir: Path, params) -> bool:
-    model_dir, record = _shape_space_paths(actor_dir, params)
-    return _loadable(model_dir) and record.is_file()
-
-
-def shape_space_model(actor_dir: Path, params, retrain: bool) -> tuple[Path, dict]:
-    """The model directory of ``params`` on the actor's database (built unless cached) and
-    its build record."""
-    model_dir, record = _shape_space_paths(actor_dir, params)
-
-    def build():
-        print(f"  building shape-space model {model_dir.name} (fresh process) ...", file=sys.stderr)
-        return harness.run_worker(__file__, "--worker", "train", "--actor", str(actor_dir), "--model", str(model_dir),
-                          "--params", params_json(params))
-
-    rec = _cached(record, _loadable(model_dir), retrain, build)
-    print(f"  shape-space {params.smoothing}: {'reused' if rec['reused'] else 'built'}, "
-          f"build {rec['train_s']:.0f} s", file=sys.stderr)
-    return model_dir, rec
-
+# cached builds (the shape-space models and rig registration: harness)
 
 def pdm_model(actor_dir: Path, retrain: bool) -> tuple[Path, dict]:
     from service.samples.dataset import performance_names
@@ -311,24 +172,10 @@ def pdm_model(actor_dir: Path, retrain: bool) -> tuple[Path, dict]:
 
     def build():
         print(f"  training the PDM ({PDM_ORDER}, fresh process) ...", file=sys.stderr)
-        return harness.run_worker(__file__, "--worker", "pdm-train", "--actor", str(actor_dir), "--model", str(model_dir))
+        return harness.pdm_in_fresh_process(actor_dir, PDM_ORDER, model_dir)
 
-    rec = _cached(record, (model_dir / "manifest.json").is_file(), retrain, build)
+    rec = cached(record, (model_dir / "manifest.json").is_file(), retrain, build)
     return model_dir, rec
-
-
-def rig_registration(actor_dir: Path, retrain: bool):
-    from service.methods.shape_space.registration import RigRegistration
-
-    key = actor_files_key(actor_dir, "neutral.npz", "input_rig.npz")
-    path, record = MODELS / f"rig_registration-{key}.npz", MODELS / f"rig_registration-{key}.json"
-
-    def build():
-        print("  registering input_rig.npz to the neutral (fresh process) ...", file=sys.stderr)
-        return harness.run_worker(__file__, "--worker", "register", "--actor", str(actor_dir), "--model", str(path))
-
-    rec = _cached(record, path.is_file(), retrain, build)
-    return RigRegistration.load(path.read_bytes()), rec
 
 
 # --------------------------------------------------------------------------------------
@@ -363,16 +210,6 @@ class Accumulator:
             out[f"{k}_r"] = float(cov / np.sqrt(vx * vy)) if vx > 0 and vy > 0 else float("nan")
             out[f"{k}_rms_mm"] = float(np.sqrt(max(sxx - 2 * sxy + syy, 0.0) / n))
         return out
-
-
-def heldout_frames(actor_dir: Path, name: str, limit: int | None):
-    """``limit`` map frames of a held-out performance, evenly spaced between (not at) its ends
-    (the performances start and end near the neutral), as :class:`pdm_report.Heldout`."""
-    gt = harness.load_heldout(actor_dir, name, None)
-    if limit is None or limit >= len(gt.frames):
-        return gt
-    keep = np.unique(np.round(np.linspace(0, len(gt.frames) - 1, limit + 2)[1:-1]).astype(np.int64))
-    return harness.Heldout(name, *(getattr(gt, f.name)[keep] for f in dataclasses.fields(gt)[1:]))
 
 
 def evaluate(actor, actor_dir: Path, model, bq, reg, tex, limit: int | None, extra: dict | None = None) -> dict:
@@ -863,20 +700,10 @@ def main() -> None:
                         help="do not build the model with the other smoothing (report it only if cached)")
     parser.add_argument("--no-speed", action="store_true",
                         help="skip the speed section (builds only the evaluated model; for quick runs)")
-    parser.add_argument("--worker", choices=("train", "pdm-train", "register", "speed"), help=argparse.SUPPRESS)
+    parser.add_argument("--worker", choices=("speed",), help=argparse.SUPPRESS)
     parser.add_argument("--model", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     actor_dir = args.actor.resolve()
-    if args.worker == "train":
-        print(json.dumps(worker_train(actor_dir, args.params, args.model)))
-        return
-    if args.worker == "pdm-train":
-        res = harness.train_pdm(actor_dir, PDM_ORDER, args.model)
-        print(json.dumps(res))
-        return
-    if args.worker == "register":
-        print(json.dumps(worker_register(actor_dir, args.model)))
-        return
     if args.worker == "speed":
         print(json.dumps(worker_speed(actor_dir, args.model)))
         return
@@ -893,7 +720,7 @@ def main() -> None:
         params = ShapeSpaceParams(**json.loads(args.params))
     except (TypeError, ValueError) as error:
         sys.exit(f"--params: {error}")
-    other = dataclasses.replace(params, smoothing="rest" if params.smoothing == "per_frame" else "per_frame")
+    other = params.model_copy(update={"smoothing": "rest" if params.smoothing == "per_frame" else "per_frame"})
     harness.ensure_actor(actor_dir)
     actor = load_actor(actor_dir)
     meta = {"actor": str(args.actor), "level": actor_level(actor_dir), "vertices": actor.n_vertices,
@@ -930,7 +757,7 @@ def main() -> None:
     meta.update(database_frames=model.n_frames, sigma_texels=sigma, sigma_mm=sigma * mean_texel_size(actor, tex.H))
     extra = {}
     if shape_space_cached(actor_dir, other):
-        extra[f"{SS_ROW}, smoothing={other.smoothing}"] = ShapeSpaceModel.load(_shape_space_paths(actor_dir, other)[0])
+        extra[f"{SS_ROW}, smoothing={other.smoothing}"] = ShapeSpaceModel.load(shape_space_paths(actor_dir, other)[0])
     acc = evaluate(actor, actor_dir, model, bq, reg, tex, args.frames or None, extra)
     del extra
 

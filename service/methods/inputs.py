@@ -93,8 +93,13 @@ class Clip:
         return len(self.markers)
 
 
-def check_clips(actor: ActorData, clips: list[Clip]) -> None:
-    """Raise :class:`InvalidInput` unless every clip matches the actor and the others."""
+def check_clips(actor: ActorData, clips: list[Clip], mixed_maps: bool = False) -> None:
+    """Raise :class:`InvalidInput` unless every clip matches the actor and the others.
+
+    The clips that carry displacement (or albedo) maps must agree in their size; unless
+    ``mixed_maps``, either every clip carries a kind of map or none does (a method that
+    uses maps where clips have them, e.g. shape space, passes ``mixed_maps=True``).
+    """
     if not clips:
         raise InvalidInput("training needs at least one clip")
     n, M = actor.n_vertices, actor.n_markers
@@ -113,7 +118,7 @@ def check_clips(actor: ActorData, clips: list[Clip]) -> None:
                 raise InvalidInput(f"clip '{c.name}': {key} has {len(x)} frames, markers {c.frames}")
     for key, ndim in (("displacement", 3), ("albedo", 4)):
         given = [getattr(c, key) is not None for c in clips]
-        if any(given) and not all(given):
+        if not mixed_maps and any(given) and not all(given):
             raise InvalidInput(f"{key} maps must be given for every clip or for none "
                                f"(missing in '{clips[given.index(False)].name}')")
         shapes = {getattr(c, key).shape[1:] for c in clips if getattr(c, key) is not None}

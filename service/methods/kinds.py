@@ -31,6 +31,7 @@ from service.methods.pdm.params import PdmParams
 from service.methods.pose_space.model import OUTPUTS as POSE_SPACE_OUTPUTS
 from service.methods.pose_space.model import PoseSpaceModel, train as pose_space_train
 from service.methods.pose_space.params import PsdParams, WpsdParams
+from service.methods.shape_space.model import OUTPUTS as SHAPE_SPACE_OUTPUTS
 from service.methods.shape_space.model import ShapeSpaceModel, train as shape_space_train
 from service.methods.shape_space.params import ShapeSpaceParams
 from service.methods.stress_blend.model import OUTPUTS as STRESS_BLEND_OUTPUTS
@@ -119,10 +120,12 @@ SHAPE_SPACE_KIND = Kind(
         "Sorkine-Hornung, Pfister, Sumner, Bickel, Gross: 'Facial performance enhancement "
         "using dynamic shape space analysis', ACM TOG 33(2), 2014). Input: meshes on the "
         "actor's topology or on a registered input rig (/enhance), or markers; output: "
-        "enhanced high-resolution meshes."),
+        "enhanced high-resolution meshes (with the database's fine maps baked in for "
+        "mesh_detailed), the detail over the input as displacement and normal maps, and the "
+        "database's blended albedo."),
     params=ShapeSpaceParams,
     input="meshes",
-    outputs=("mesh", "displacement", "albedo"),
+    outputs=tuple(o for o in SHAPE_SPACE_OUTPUTS if o in OUTPUTS),
     train=shape_space_train,
     load=ShapeSpaceModel.load,
 )

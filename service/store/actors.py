@@ -278,12 +278,13 @@ def load_clips(session: Session, blobs: BlobStore, clip_ids: Sequence[str],
     ------
     NotFound       unknown clip
     InvalidInput   a clip that does not match the actor or the others
-                   (:func:`~service.methods.inputs.check_clips`)
+                   (:func:`~service.methods.inputs.check_clips`; whether every clip must
+                   carry maps when some do is the method's rule, checked when it trains)
     """
     clips = []
     for clip_id in clip_ids:
         row = registry.get_clip(session, clip_id)
         data = registry.read_clip(session, blobs, clip_id)
         clips.append(clip_from_blob(data, row.name or row.id))
-    check_clips(actor, clips)
+    check_clips(actor, clips, mixed_maps=True)
     return clips

@@ -304,3 +304,23 @@ def test_enhance_takes_markers_instead_of_vertices(tiny):
     np.testing.assert_array_equal(load_npz(response.content)["vertices"], expected["vertices"])
     assert_problem(enhance(tiny, npz(markers=markers[:, :3])), 422, "model expects 4 markers, got 3")
     assert_problem(enhance(tiny, npz(fps=np.float64(30.0))), 422, "neither 'vertices'", "'markers'")
+
+
+def test_enhance_answers_every_output_of_synthesize(tiny):
+    """API.md: /enhance's "response as for synthesize" — mesh_detailed and normal_map too
+    (issue 17 item 6: they were refused as unknown outputs)."""
+    V, _, _ = sheet(16, 13)
+    frames = sheet_motion(V, 2, 0.6)
+    response = enhance(tiny, npz(vertices=frames),
+                       outputs="mesh,mesh_detailed,displacement,normal_map")
+    assert response.status_code == 200, response.text
+    out = load_npz(response.content)
+    expected = tiny.model.enhance(frames, ("mesh", "mesh_detailed", "displacement", "normal_map"))
+    assert {"vertices", "vertices_detailed", "displacement", "normal_map"} <= set(out)
+    for key in ("vertices", "vertices_detailed", "displacement", "normal_map"):
+        np.testing.assert_array_equal(out[key], expected[key], err_msg=key)
+    # the tiny database has no fine maps: its detail is all in the enhanced mesh
+    np.testing.assert_array_equal(out["vertices_detailed"], out["vertices"])
+    assert out["normal_map"].shape == (2, 32, 32, 3)
+    lengths = np.linalg.norm(out["normal_map"], axis=-1)
+    np.testing.assert_allclose(lengths, 1.0, atol=1e-5)

@@ -165,3 +165,21 @@ def test_a_corrupt_clip_blob_is_invalid_input():
         buffer = io.BytesIO()
         np.savez(buffer, vertices=np.zeros((1, 3, 3)))
         actor_store.clip_from_blob(buffer.getvalue(), "y")
+
+
+def test_load_clips_takes_clips_with_and_without_maps(store, uploads):
+    """Whether every clip must carry maps when some do is the method's rule (shape space
+    uses maps where clips have them; issue 17 item 6), not the loader's."""
+    from service.methods.inputs import check_clips
+
+    session, blobs = store
+    neutral, layout, clips = uploads
+    c = _npz(clips["train_smile"])
+    bare = actor_store.clip_npz(c["vertices"], c["markers"])
+    actor_id, clip_ids = _upload(session, blobs, neutral, layout,
+                                 {"train_smile": clips["train_smile"], "bare": bare})
+    actor = actor_store.load_actor_data(session, blobs, actor_id)
+    loaded = actor_store.load_clips(session, blobs, clip_ids, actor)
+    assert loaded[0].albedo is not None and loaded[1].albedo is None
+    with pytest.raises(InvalidInput, match="every clip or for none"):
+        check_clips(actor, loaded)                     # the strict rule of the other methods

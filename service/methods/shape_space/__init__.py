@@ -6,10 +6,12 @@ Modules: :mod:`.params` (parameters, constants), :mod:`.alignment` (head motion)
 :mod:`.encoding` (frequency separation, rotation/stretch encoding), :mod:`.patches`
 (seed-and-grow compression), :mod:`.regions` (voluntary regions and soft weights),
 :mod:`.simplex_qp` (convex matching), :mod:`.blending` (eq. 4), :mod:`.temporal` (§6),
-:mod:`.model` (train / enhance / retime), :mod:`.store` (model directory).
+:mod:`.data` (the stored data), :mod:`.model` (train; the evaluator; enhance / retime),
+:mod:`.store` (model directory).
 """
 
-from service.methods.shape_space.model import ShapeSpaceModel, train
+from service.methods.shape_space.data import ShapeSpaceData
+from service.methods.shape_space.model import ShapeSpaceEvaluator, ShapeSpaceModel, train
 from service.methods.shape_space.params import ShapeSpaceParams
 
-__all__ = ["ShapeSpaceModel", "ShapeSpaceParams", "train"]
+__all__ = ["ShapeSpaceData", "ShapeSpaceEvaluator", "ShapeSpaceModel", "ShapeSpaceParams", "train"]

@@ -21,6 +21,11 @@ result aligned to the input and put back in its pose; colours blended likewise.
 
 Temporal retiming (:meth:`ShapeSpaceModel.retime`, §6) lives in :mod:`.temporal`.
 
+The model is its stored data (:class:`~.data.ShapeSpaceData`, frozen, what :mod:`.store`
+round-trips) and a :class:`ShapeSpaceEvaluator` derived from it once (the frequency filter,
+the prefactored Poisson solve, the patch averager, the normalized region weights, the map
+operators and blenders, the marker shell); enhancement reads both and changes neither.
+
 Departures and choices (beyond those of the modules):
 
 * the Poisson solve's boundary term targets the 1D Laplacian of the *input* frame's
@@ -50,16 +55,19 @@ Departures and choices (beyond those of the modules):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
+import scipy.sparse as sp
 
 from service.geometry.deformation_gradient import (
     PoissonReconstruction, deformation_gradients, rest_frames_inverse,
 )
 from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
+from service.geometry.normal_map import NormalMapper
 from service.geometry.normals import vertex_normals
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
@@ -70,7 +78,8 @@ from service.methods.shape_space.blending import blend
 from service.methods.shape_space.encoding import (
     FrequencySeparator, compose, detail_encoding, shape_encoding,
 )
-from service.methods.shape_space.maps import DatabaseMaps
+from service.methods.shape_space.data import ShapeSpaceData
+from service.methods.shape_space.maps import DatabaseMaps, MapBlender
 from service.methods.shape_space.markers import (
     MIN_VISIBLE_MARKERS, MarkerDatabase, MarkerShell, corrected_input,
 )
@@ -87,126 +96,147 @@ from service.methods.shape_space import store
 from service.methods.shape_space.simplex_qp import solve_simplex_qp
 from service.methods.shape_space.temporal import retime as retime_sequence
 
-#: outputs of :meth:`ShapeSpaceModel.enhance`
-OUTPUTS = ("mesh", "displacement", "albedo", "colors")
+#: outputs of :meth:`ShapeSpaceModel.enhance`: every output of the service
+#: (:data:`service.methods.outputs.OUTPUTS`) and per-vertex ``colors``
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "colors")
 
 
-@dataclass
-class ShapeSpaceModel:
-    """A trained shape-space model (bermano2014). Build with :func:`train` or :meth:`load`.
+#: the stored fields the evaluator is derived from (a change of any other field, e.g. the
+#: colours or the marker database, keeps the evaluator; :meth:`ShapeSpaceModel.replace`)
+DERIVED_FROM = frozenset({"params", "faces", "neutral", "smooth_neutral", "patches", "tri_patch",
+                          "region_weights", "marker_triangle", "marker_barycentric",
+                          "marker_weights", "uv", "uv_faces"})
+#: the stored maps and their blenders (:class:`ShapeSpaceEvaluator` attributes of the same name)
+MAP_FIELDS = ("fine_maps", "albedo_maps")
 
-    Attributes
+
+@dataclass(frozen=True)
+class ShapeSpaceEvaluator:
+    """What enhancement reuses, derived once from :class:`~.data.ShapeSpaceData` (bermano2014 §5).
+
+    Attributes (n vertices, m triangles, R regions)
     ----------
-    (n vertices, m triangles, N database frames, P patches, R regions, M markers)
-
-    params : ShapeSpaceParams
-    faces : (m,3) int64
-    neutral : (n,3) float64           d0, mm
-    smooth_neutral : (n,3) float64    f(d0), the rest mesh of the encoding and reconstruction
-    align_weights : (n,) float64      per-vertex weights of the rigid alignment
-    patches : (n,) int64              vertex patch labels; ``tri_patch`` (m,) the triangles'
-    tri_patch : (m,) int64
-    shapes : (N,9P) float64           compressed low-frequency shape vectors (D̃ᵀ), patch-major
-    detail : (N,m,9) float32          high-frequency detail d_h per frame and triangle
-    region_names : tuple of R str
-    region_vertices : (R,n) bool      the regions' vertex sets
-    region_weights : (R,m) float64    ω_r per triangle (1 inside, Gaussian fall-off outside)
-    patch_weights : (R,P) float64     ω_r averaged over the patches (the diagonal of Ω_r)
-    gram : (R,N,N) float64            ``D̃ᵀ Ω_r D̃``
-    frame_clip, frame_index : (N,) int64   source clip and frame of every database frame
-    clip_names : tuple of str;  clip_fps : tuple of float   the clips' frame rates
-    colors : (N,n,C) float32 | None   per-vertex colours of the database frames
-    marker_triangle, marker_barycentric : (M,), (M,3)   the actor's markers (M may be 0)
-    marker_weights : (M,) float64     head-alignment weights of the markers
-    marker_database : MarkerDatabase | None   the database frames' marker shells, compressed,
-                                      and what they miss (:mod:`.markers`; None: marker input
-                                      is matched against the frames and not corrected)
-    fine_maps, albedo_maps : DatabaseMaps | None   the database frames' fine displacement and
-                                      albedo maps (None: the database had none; :mod:`.maps`)
-    uv : (K,2) float64;  uv_faces : (m,3) int64   the neutral's UV layout (displacement maps)
-    metrics : dict
+    separator : FrequencySeparator        the frequency filter f(·) (§4.2 eq. 1)
+    poisson : PoissonReconstruction       prefactored on f(d0), with the boundary term (§5.5)
+    averager : PatchAverager              triangle values → patch means (§4.2)
+    rest_inverse : (m,3,3) float64        inverse rest frames of f(d0)
+    omega_hat : (R,m) float64             normalized region weights per triangle (§5.4 eq. 4)
+    vertex_omega_hat : (R,n) float64      the same per vertex (colours, corrections, maps, timing)
+    map_operator : (H²,n) CSR             vertex values → the ``map_resolution`` UV map
+    normal_mapper : NormalMapper          tangent-space normal maps at ``map_resolution``
+    shell : MarkerShell | None            the linear thin shell of marker input (None: no markers)
+    frame_field : FrameField              tangent frames of deformed poses (marker corrections,
+                                          normal maps)
+    fine_maps, albedo_maps : MapBlender | None   the database's maps, ready to blend (the fine
+                                          maps also sampled at the vertices: ``mesh_detailed``)
     """
 
-    params: ShapeSpaceParams
-    faces: np.ndarray
-    neutral: np.ndarray
-    smooth_neutral: np.ndarray
-    align_weights: np.ndarray
-    patches: np.ndarray
-    tri_patch: np.ndarray
-    shapes: np.ndarray
-    detail: np.ndarray
-    region_names: tuple[str, ...]
-    region_vertices: np.ndarray
-    region_weights: np.ndarray
-    patch_weights: np.ndarray
-    gram: np.ndarray
-    frame_clip: np.ndarray
-    frame_index: np.ndarray
-    clip_names: tuple[str, ...]
-    clip_fps: tuple[float, ...]
-    colors: np.ndarray | None
-    marker_triangle: np.ndarray
-    marker_barycentric: np.ndarray
-    marker_weights: np.ndarray
-    uv: np.ndarray
-    uv_faces: np.ndarray
-    metrics: dict = field(default_factory=dict)
-    marker_database: MarkerDatabase | None = None  # :mod:`.markers`
-    fine_maps: DatabaseMaps | None = None          # the database's maps, :mod:`.maps`
-    albedo_maps: DatabaseMaps | None = None
-    # derived (not stored), built by prepare()
-    _separator: FrequencySeparator | None = field(default=None, repr=False)
-    _poisson: PoissonReconstruction | None = field(default=None, repr=False)
-    _averager: PatchAverager | None = field(default=None, repr=False)
-    _omega_hat: np.ndarray | None = field(default=None, repr=False)
-    _vertex_omega_hat: np.ndarray | None = field(default=None, repr=False)
-    _shell: MarkerShell | None = field(default=None, repr=False)
-    _frame_field: FrameField | None = field(default=None, repr=False)
-    _rest_inverse: np.ndarray | None = field(default=None, repr=False)
-    _map_operator: object = field(default=None, repr=False)
+    separator: FrequencySeparator
+    poisson: PoissonReconstruction
+    averager: PatchAverager
+    rest_inverse: np.ndarray
+    omega_hat: np.ndarray
+    vertex_omega_hat: np.ndarray
+    map_operator: sp.csr_matrix
+    normal_mapper: NormalMapper
+    shell: MarkerShell | None
+    frame_field: FrameField
+    fine_maps: MapBlender | None
+    albedo_maps: MapBlender | None
+
+    @classmethod
+    def build(cls, d: ShapeSpaceData) -> "ShapeSpaceEvaluator":
+        """Precompute everything of the class docstring from the stored data ``d``."""
+        p = d.params
+        vertex_omega_hat = normalize_region_weights(
+            vertex_region_weights(d.faces, d.region_weights, d.n_vertices))
+        H = p.map_resolution
+        raster = rasterize_uv(d.uv, d.uv_faces, H, H)
+        shell = None
+        if d.n_markers:
+            shell = MarkerShell.build(d.neutral, d.faces, d.marker_triangle, d.marker_barycentric,
+                                      d.marker_weights)
+        return cls(
+            separator=FrequencySeparator(d.faces, p.lam_dt, p.smoothing, rest=d.neutral),
+            poisson=PoissonReconstruction(d.smooth_neutral, d.faces, boundary_weight=p.boundary_weight),
+            averager=PatchAverager(d.tri_patch, triangle_areas(d.smooth_neutral, d.faces),
+                                   int(d.patches.max()) + 1),
+            rest_inverse=rest_frames_inverse(d.smooth_neutral, d.faces),
+            omega_hat=normalize_region_weights(d.region_weights),
+            vertex_omega_hat=vertex_omega_hat,
+            map_operator=interpolation_matrix(raster, d.faces, d.n_vertices),
+            normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, d.n_vertices),
+            shell=shell, frame_field=FrameField.build(d.neutral, d.faces, d.uv, d.uv_faces),
+            **cls.map_blenders(d, vertex_omega_hat, raster.mask))
+
+    @staticmethod
+    def map_blenders(d: ShapeSpaceData, vertex_omega_hat: np.ndarray,
+                     covered: np.ndarray | None = None) -> dict[str, MapBlender | None]:
+        """The :class:`~.maps.MapBlender` of each of ``d``'s maps (None where it has none); the
+        fine maps resample to ``map_resolution`` (they are added to the displacement;
+        ``covered`` the layout's texels at that size, if rasterized already)."""
+        resolution = {"fine_maps": d.params.map_resolution, "albedo_maps": None}
+        return {name: None if getattr(d, name) is None else
+                MapBlender.build(getattr(d, name), d.uv, d.uv_faces, d.faces, vertex_omega_hat,
+                                 resolution[name], covered if resolution[name] else None,
+                                 vertex_sampler=name == "fine_maps")
+                for name in MAP_FIELDS}
+
+
+class ShapeSpaceModel:
+    """A trained shape-space model (bermano2014): the stored :class:`~.data.ShapeSpaceData` and
+    its :class:`ShapeSpaceEvaluator`. Build with :func:`train` or :meth:`load`.
+
+    The stored fields read through: ``model.detail`` is ``model.data.detail`` (the
+    attributes of :class:`~.data.ShapeSpaceData`). Neither part changes after construction;
+    :meth:`replace` gives a model with other stored fields.
+    """
+
+    def __init__(self, data: ShapeSpaceData, evaluator: ShapeSpaceEvaluator | None = None):
+        self.data = data
+        self.evaluator = evaluator or ShapeSpaceEvaluator.build(data)
+
+    def __getattr__(self, name: str):
+        # only reached for names that are not the model's own: the stored fields
+        if name in _DATA_FIELDS and "data" in self.__dict__:
+            return getattr(self.data, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def replace(self, **changes) -> "ShapeSpaceModel":
+        """A model with some stored fields changed (e.g. ``marker_database=None``). The
+        evaluator is kept when no field it is derived from changes (:data:`DERIVED_FROM`;
+        changed maps rebuild only their blenders)."""
+        data = dataclasses.replace(self.data, **changes)
+        if changes.keys() & DERIVED_FROM:
+            return ShapeSpaceModel(data)
+        evaluator = self.evaluator
+        if changes.keys() & set(MAP_FIELDS):
+            blenders = ShapeSpaceEvaluator.map_blenders(data, evaluator.vertex_omega_hat)
+            evaluator = dataclasses.replace(evaluator, **{k: blenders[k] for k in changes.keys() & set(MAP_FIELDS)})
+        return ShapeSpaceModel(data, evaluator)
 
     # ------------------------------------------------------------------ sizes
     @property
     def n_vertices(self) -> int:
-        return len(self.neutral)
+        return self.data.n_vertices
 
     @property
     def n_frames(self) -> int:
-        return len(self.shapes)
+        return self.data.n_frames
 
     @property
     def n_patches(self) -> int:
-        return len(self.patch_weights[0])
+        return self.data.n_patches
 
     @property
     def n_markers(self) -> int:
-        return len(self.marker_triangle)
-
-    def prepare(self) -> "ShapeSpaceModel":
-        """Build what enhancement reuses (after train or load): the frequency filter, the
-        prefactored Poisson reconstruction on f(d0) (§5.5), the patch averager and the
-        normalized region weights."""
-        p = self.params
-        self._separator = FrequencySeparator(self.faces, p.lam_dt, p.smoothing, rest=self.neutral)
-        self._poisson = PoissonReconstruction(self.smooth_neutral, self.faces,
-                                              boundary_weight=p.boundary_weight)
-        self._averager = PatchAverager(self.tri_patch, triangle_areas(self.smooth_neutral, self.faces),
-                                       int(self.patches.max()) + 1)
-        self._rest_inverse = rest_frames_inverse(self.smooth_neutral, self.faces)
-        self._omega_hat = normalize_region_weights(self.region_weights)
-        self._vertex_omega_hat = normalize_region_weights(
-            vertex_region_weights(self.faces, self.region_weights, self.n_vertices))
-        for maps in (self.fine_maps, self.albedo_maps):
-            if maps is not None:
-                maps.prepare(self.uv, self.uv_faces, self.faces, self._vertex_omega_hat)
-        return self
+        return self.data.n_markers
 
     def component_weights(self, region: int | None) -> np.ndarray:
         """Ω_r (9P,): region r's patch weights repeated over the 9 components (None: all 1)."""
         if region is None:
-            return np.ones(self.shapes.shape[1])
-        return np.repeat(self.patch_weights[region], COMPONENTS)
+            return np.ones(self.data.shapes.shape[1])
+        return np.repeat(self.data.patch_weights[region], COMPONENTS)
 
     # ------------------------------------------------------------------ encoding
     def encode(self, frames: np.ndarray, shape: bool = True) -> dict[str, np.ndarray | list]:
@@ -226,17 +256,17 @@ class ShapeSpaceModel:
         f(d0) → f(ā) and ``shape`` (F,9P) the compressed vectors ã (None without ``shape``)
         """
         frames = self._check_vertices(frames)
-        aligned, transforms = align_frames(frames, self.neutral, self.align_weights)
-        low = self._separator(aligned)
+        aligned, transforms = align_frames(frames, self.data.neutral, self.data.align_weights)
+        low = self.evaluator.separator(aligned)
         if not shape:
-            G_low = deformation_gradients(self.smooth_neutral, low, self.faces, self._rest_inverse)
+            G_low = deformation_gradients(self.data.smooth_neutral, low, self.data.faces, self.evaluator.rest_inverse)
             return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
                     "shape": None}
-        G_low = np.empty((len(frames), len(self.faces), 3, 3))
-        vectors = np.empty((len(frames), self.shapes.shape[1]))
+        G_low = np.empty((len(frames), len(self.data.faces), 3, 3))
+        vectors = np.empty((len(frames), self.data.shapes.shape[1]))
         for f in range(len(frames)):
-            G_low[f], x = shape_encoding(self.smooth_neutral, low[f], self.faces, self._rest_inverse)
-            vectors[f] = self._averager(x).ravel()
+            G_low[f], x = shape_encoding(self.data.smooth_neutral, low[f], self.data.faces, self.evaluator.rest_inverse)
+            vectors[f] = self.evaluator.averager(x).ravel()
         return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
                 "shape": vectors}
 
@@ -252,8 +282,8 @@ class ShapeSpaceModel:
         (weights above :data:`~.params.WEIGHT_EPS`) and ``error`` (R,) float, the
         Ω_r-weighted RMS of ``D̃ w_r − ã`` per component (rad / dimensionless)
         """
-        R, N = len(self.region_names), self.n_frames
-        space = self.marker_database if markers and self.marker_database is not None else self
+        R, N = len(self.data.region_names), self.n_frames
+        space = self.data.marker_database if markers and self.data.marker_database is not None else self.data
         W = np.empty((R, N))
         err = np.empty(R)
         for r in range(R):
@@ -274,13 +304,19 @@ class ShapeSpaceModel:
         frames : (F,n,3) float   vertices on the neutral's topology (e.g. a rig propagated to
                  it, or a medium-resolution surface), world pose, mm; or (F,M,3) markers
                  (NaN when occluded), carried to the neutral by the linear thin shell
-        outputs : subset of ``mesh`` (always computed), ``displacement``, ``albedo``, ``colors``
+        outputs : subset of :data:`OUTPUTS`: ``mesh`` (always computed), ``mesh_detailed``,
+                  ``displacement``, ``albedo``, ``normal_map``, ``colors``
         input_kind : "auto" | "vertices" | "markers"   how to read ``frames`` (auto: by count)
 
         Returns
         -------
         dict with
         ``vertices`` (F,n,3) float32   enhanced meshes in the input's world pose, mm;
+        ``vertices_detailed`` (F,n,3) float32  (``mesh_detailed``) ``vertices`` with the
+                                        blended fine maps (below) sampled at the vertices and
+                                        added along the vertex normals; ``vertices`` itself
+                                        for a model without fine maps (its detail is all in
+                                        the mesh);
         ``faces`` (m,3) int32;
         ``weights`` (F,R,N) float32    the convex weights per region (§5.3);
         ``nonzero`` (F,R) int32        weights above :data:`~.params.WEIGHT_EPS` per region;
@@ -299,6 +335,9 @@ class ShapeSpaceModel:
                                         ``(x − a) · n_a``;
         ``albedo`` (F,Ha,Wa,3) float32  (if asked; the model needs albedo maps) the
                                         database's albedo maps blended with the same weights;
+        ``normal_map`` (F,H,H,3) float32  (if asked) the tangent-space normal map of
+                                        ``displacement`` on the input surface (what renders
+                                        the input mesh with the enhanced detail);
         ``colors`` (F,n,C) float32     (if asked; the model needs colours) blended colours;
         ``input_vertices`` (F,n,3) float32  for marker input: the thin-shell surface;
         ``corrected_input`` (F,n,3) float32  for marker input to a model with
@@ -312,39 +351,44 @@ class ShapeSpaceModel:
         InvalidInput   wrong shapes, unknown outputs, colours asked of a model without them
         """
         check_outputs(outputs, OUTPUTS)
-        if "colors" in outputs and self.colors is None:
+        if "colors" in outputs and self.data.colors is None:
             raise InvalidInput("this model was trained without colours; 'colors' is not available")
-        if "albedo" in outputs and self.albedo_maps is None:
+        if "albedo" in outputs and self.data.albedo_maps is None:
             raise InvalidInput("this model's database had no albedo maps; 'albedo' is not available")
         frames = np.asarray(frames, dtype=np.float64)
         if frames.ndim == 2:
             frames = frames[None]
         kind = self._input_kind(frames, input_kind)
         out: dict[str, np.ndarray] = {}
-        correct = kind == "markers" and self.marker_database is not None
+        correct = kind == "markers" and self.data.marker_database is not None
         if kind == "markers":
             frames = self.markers_to_vertices(frames)
             out["input_vertices"] = frames.astype(np.float32)
             if correct:
                 out["corrected_input"] = np.empty(frames.shape, np.float32)
-        nf, n, R, N = len(frames), self.n_vertices, len(self.region_names), self.n_frames
+        nf, n, R, N = len(frames), self.n_vertices, len(self.data.region_names), self.n_frames
         out.update({
             "vertices": np.empty((nf, n, 3), np.float32),
-            "faces": self.faces.astype(np.int32),
+            "faces": self.data.faces.astype(np.int32),
             "weights": np.empty((nf, R, N), np.float32),
             "nonzero": np.empty((nf, R), np.int32),
             "match_error": np.empty((nf, R), np.float32),
-            "region_names": np.array(self.region_names),
+            "region_names": np.array(self.data.region_names),
         })
-        fine = "displacement" in outputs and self.fine_maps is not None
-        if "displacement" in outputs:
+        want = set(outputs)
+        disp = bool(want & {"displacement", "normal_map"})          # the displacement is computed
+        fine = bool(want & {"displacement", "normal_map", "mesh_detailed"}) and self.data.fine_maps is not None
+        if disp:
             out["vertex_displacement"] = np.empty((nf, n), np.float32)
-        texel_maps = {"fine_displacement": self.fine_maps if fine else None,
-                      "albedo": self.albedo_maps if "albedo" in outputs else None}
+        if "mesh_detailed" in want:
+            out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
+        ev = self.evaluator
+        texel_maps = {"fine_displacement": ev.fine_maps if fine else None,
+                      "albedo": ev.albedo_maps if "albedo" in outputs else None}
         texel_maps = {k: (m, np.empty((nf,) + m.maps.shape[1:], np.float32))
                       for k, m in texel_maps.items() if m is not None}
         if "colors" in outputs:
-            out["colors"] = np.empty((nf, n, self.colors.shape[2]), np.float32)
+            out["colors"] = np.empty((nf, n, self.data.colors.shape[2]), np.float32)
         for f in range(nf):
             enc = self.encode(frames[f:f + 1])
             m = self.match(enc["shape"][0], markers=kind == "markers")
@@ -353,47 +397,55 @@ class ShapeSpaceModel:
                 enc = self._pose_space_correction(enc, W)
                 out["corrected_input"][f] = enc["transforms"][0].inverse().apply(enc["aligned"][0])
             aligned = enc["aligned"][0]
-            bh = blend(self.detail, self._omega_hat, W)                     # (m,9)
+            bh = blend(self.data.detail, self.evaluator.omega_hat, W)                     # (m,9)
             G = compose(bh, enc["G_low"][0])
-            X = self._poisson.solve(G, boundary_reference=aligned)
+            X = self.evaluator.poisson.solve(G, boundary_reference=aligned)
             X = rigid_align(X, aligned).apply(X)
-            if self.params.restore_low_frequencies:
-                X = X + enc["low"][0] - self._separator(X)
+            if self.data.params.restore_low_frequencies:
+                X = X + enc["low"][0] - self.evaluator.separator(X)
             world = enc["transforms"][0].inverse().apply(X)
             out["vertices"][f] = world
             out["weights"][f] = W
             out["nonzero"][f] = m["nonzero"]
             out["match_error"][f] = m["error"]
-            if "displacement" in outputs:
-                normals = vertex_normals(frames[f], self.faces)
+            if disp:
+                normals = vertex_normals(frames[f], self.data.faces)
                 out["vertex_displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
             for maps, values in texel_maps.values():
                 values[f] = maps.blend(W)
+            if "mesh_detailed" in want:
+                detailed = world
+                if fine:
+                    h = ev.fine_maps.vertex_sampler @ texel_maps["fine_displacement"][1][f][:, 0]
+                    detailed = world + h[:, None] * vertex_normals(world, self.data.faces)
+                out["vertices_detailed"][f] = detailed
             if "colors" in outputs:
-                out["colors"][f] = blend(self.colors, self._vertex_omega_hat, W)
-        if "displacement" in outputs:
+                out["colors"][f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W)
+        if disp:
             out["displacement"] = self.vertex_map(out["vertex_displacement"])
         for key, (maps, values) in texel_maps.items():
             out[key] = maps.image(values)
-        if fine:
-            out["displacement"] += self.fine_maps.image(texel_maps["fine_displacement"][1],
-                                                        self.params.map_resolution)
+        if fine and disp:
+            out["displacement"] += ev.fine_maps.image(texel_maps["fine_displacement"][1],
+                                                        self.data.params.map_resolution)
+        if "normal_map" in want:
+            out["normal_map"] = np.stack([
+                ev.normal_mapper.normal_map(h, V, ev.frame_field.frames(V))
+                for h, V in zip(out["displacement"], frames)])
+        if "displacement" not in want:        # computed for the normal map or the detailed mesh
+            for key in ("displacement", "vertex_displacement", "fine_displacement"):
+                out.pop(key, None)
         return out
 
     def vertex_map(self, values: np.ndarray) -> np.ndarray:
         """Per-vertex values (F,n) as UV maps (F,H,H) float32 over the neutral's layout.
 
         Barycentric interpolation into every texel a triangle covers (0 elsewhere), at
-        ``params.map_resolution`` texels per side; the sparse (H², n) operator is built on
-        first use.
+        ``params.map_resolution`` texels per side (the evaluator's sparse (H², n) operator).
         """
-        if self._map_operator is None:
-            H = self.params.map_resolution
-            raster = rasterize_uv(self.uv, self.uv_faces, H, H)
-            self._map_operator = interpolation_matrix(raster, self.faces, self.n_vertices)
-        H = self.params.map_resolution
+        H = self.data.params.map_resolution
         values = np.asarray(values, dtype=np.float64)
-        maps = (self._map_operator @ values.T).T                            # (F,H²)
+        maps = (self.evaluator.map_operator @ values.T).T                   # (F,H²)
         return maps.reshape(len(values), H, H).astype(np.float32)
 
     def synthesize(self, frames: np.ndarray, outputs: Sequence[str] = ("mesh",),
@@ -435,12 +487,9 @@ class ShapeSpaceModel:
     def markers_to_vertices(self, markers: np.ndarray) -> np.ndarray:
         """The neutral deformed to markers (F,M,3) by the linear thin shell, (F,n,3) world
         vertices (bickel2008 §4; bermano2014 §5.1 "marker" input; :class:`.markers.MarkerShell`)."""
-        if self.n_markers == 0:
+        if self.evaluator.shell is None:
             raise InvalidInput("this model has no marker layout; give vertices")
-        if self._shell is None:
-            self._shell = MarkerShell.build(self.neutral, self.faces, self.marker_triangle,
-                                            self.marker_barycentric, self.marker_weights)
-        return self._shell(markers)
+        return self.evaluator.shell(markers)
 
     def _pose_space_correction(self, enc: dict, weights: np.ndarray) -> dict:
         """The encoding (:meth:`encode`) of a shell input's corrected surface
@@ -454,15 +503,13 @@ class ShapeSpaceModel:
         leaves a database frame's own markers 0.028 mm RMS, 0.36 mm at worst, off the frame
         on the level-0 actor.)
         """
-        c = blend(self.marker_database.corrections, self._vertex_omega_hat, weights)  # (n,3)
+        c = blend(self.data.marker_database.corrections, self.evaluator.vertex_omega_hat, weights)  # (n,3)
         corrected = corrected_input(self.frame_field(), enc["aligned"][0], c)
         return self.encode(enc["transforms"][0].inverse().apply(corrected)[None], shape=False)
 
     def frame_field(self) -> FrameField:
-        """Per-vertex tangent frames of deformed poses (built on first use; :mod:`.markers`)."""
-        if self._frame_field is None:
-            self._frame_field = FrameField.build(self.neutral, self.faces, self.uv, self.uv_faces)
-        return self._frame_field
+        """Per-vertex tangent frames of deformed poses (:mod:`.markers`, normal maps)."""
+        return self.evaluator.frame_field
 
     # ------------------------------------------------------------------ temporal
     def sequences(self) -> list[np.ndarray]:
@@ -470,14 +517,14 @@ class ShapeSpaceModel:
         cut into windows of ``sequence_seconds`` with 50 % overlap when set (at least 3 kept
         frames a window)."""
         out = []
-        for c in range(len(self.clip_names)):
-            idx = np.flatnonzero(self.frame_clip == c)
+        for c in range(len(self.data.clip_names)):
+            idx = np.flatnonzero(self.data.frame_clip == c)
             if len(idx) < 2:
                 continue
             win = 0
-            if self.params.sequence_seconds > 0:
-                win = max(3, int(round(self.params.sequence_seconds * self.clip_fps[c]
-                                       / self.params.frame_stride)) + 1)
+            if self.data.params.sequence_seconds > 0:
+                win = max(3, int(round(self.data.params.sequence_seconds * self.data.clip_fps[c]
+                                       / self.data.params.frame_stride)) + 1)
             if win and len(idx) > win:
                 step = max(1, win // 2)
                 starts = list(range(0, len(idx) - win + 1, step))
@@ -515,13 +562,13 @@ class ShapeSpaceModel:
         if not isinstance(length, (int, np.integer)) or length < 2:
             raise InvalidInput(f"length must be an integer >= 2, got {length!r}")
         shape = self.encode(keyframes)["shape"]
-        seqs = [self.shapes[idx] for idx in self.sequences()]
-        R = len(self.region_names)
+        seqs = [self.data.shapes[idx] for idx in self.sequences()]
+        R = len(self.data.region_names)
         whole = retime_sequence(shape[0], shape[1], seqs, int(length), None, extend)
         per = [retime_sequence(shape[0], shape[1], seqs, int(length), self.component_weights(r), extend)
                for r in range(R)]
         S = np.stack([p.progress for p in per])                               # (R,m)
-        s_v = S.T @ self._vertex_omega_hat                                    # (m,n)
+        s_v = S.T @ self.evaluator.vertex_omega_hat                                    # (m,n)
         V = keyframes[0] + s_v[..., None] * (keyframes[1] - keyframes[0])
         return {
             "vertices": V.astype(np.float32),
@@ -530,18 +577,18 @@ class ShapeSpaceModel:
             "region_progress": S,
             "region_sequences": np.array([p.sequence for p in per]),
             "region_spans": np.array([p.span for p in per]),
-            "region_names": np.array(self.region_names),
+            "region_names": np.array(self.data.region_names),
         }
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
         """Write the model directory (manifest.json + npz files); see :mod:`.store`."""
-        return store.write_model(self, path)
+        return store.write_model(self.data, path)
 
     @classmethod
     def load(cls, path) -> "ShapeSpaceModel":
         """Read a model directory written by :meth:`save`, verifying checksums."""
-        return cls(**store.read_model(path)).prepare()
+        return cls(store.read_model(path))
 
 
 # ---------------------------------------------------------------------- training
@@ -594,13 +641,18 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
                                  albedo); by default sampled from the clips' albedo maps
                                  when every clip has them, else the model has no colours
 
+    Clips may differ in which maps they carry: the fine displacement and albedo maps of the
+    clips that have them are kept and blended over those frames (:mod:`.maps`, "Clips
+    without maps"), and ``metrics["maps_partial"]`` names the clips without and the rule.
+    Per-vertex colours sampled from albedo need albedo in every clip.
+
     Raises
     ------
     InvalidInput   clips that do not match the actor, a database of fewer than 2 frames,
                    missing actor regions with ``regions="actor"``, regions that cannot be derived
     """
     clips = list(clips)
-    check_clips(actor, clips)
+    check_clips(actor, clips, mixed_maps=True)
     p = params
     F = np.asarray(actor.faces, dtype=np.int64)
     d0 = np.asarray(actor.vertices, dtype=np.float64)
@@ -665,7 +717,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     fine_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "displacement")
     albedo_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "albedo")
     sizes = np.bincount(labels, minlength=P)
-    model = ShapeSpaceModel(
+    data = ShapeSpaceData(
         params=p, faces=F, neutral=d0, smooth_neutral=smooth0, align_weights=align_w,
         patches=labels, tri_patch=tri_patch, shapes=shapes, detail=detail,
         region_names=tuple(names), region_vertices=region_vertices, region_weights=omega,
@@ -687,18 +739,34 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             "marker_database": bool(p.marker_correction and actor.n_markers),
             "maps": {k: list(m.shape) for k, m in (("displacement", fine_maps), ("albedo", albedo_maps))
                      if m is not None},
+            **_partial_maps(clips, p.frame_stride, N),
             "params": p.model_dump(mode="json"),
         },
         fine_maps=fine_maps, albedo_maps=albedo_maps,
     )
     progress(0.9, "prepare")
-    model.prepare()
+    model = ShapeSpaceModel(data)
     if p.marker_correction and actor.n_markers:
-        model.marker_database = _marker_database(
+        model = model.replace(marker_database=_marker_database(
             model, clips, frame_clip, frame_index,
-            lambda x: progress(0.9 + 0.1 * x, "marker shells and corrections"))
+            lambda x: progress(0.9 + 0.1 * x, "marker shells and corrections")))
     progress(1.0, "done")
     return model
+
+
+def _partial_maps(clips: Sequence[Clip], stride: int, N: int) -> dict:
+    """``{"maps_partial": {kind: {...}}}`` for the map kinds only some clips carry (else
+    ``{}``): how many database frames have them, the clips without, and the rule used."""
+    out = {}
+    for kind in ("displacement", "albedo"):
+        without = [c.name for c in clips if getattr(c, kind) is None]
+        if without and len(without) < len(clips):
+            frames = sum(len(range(0, c.frames, stride)) for c in clips if getattr(c, kind) is not None)
+            out[kind] = {
+                "database_frames_with_maps": frames, "database_frames": N, "clips_without": without,
+                "rule": "maps are blended over the frames that have them; a region's weight on "
+                        "frames without maps goes to the mean map of those that have them"}
+    return {"maps_partial": out} if out else {}
 
 
 def _gram_matrices(shapes: np.ndarray, patch_weights: np.ndarray) -> np.ndarray:
@@ -755,4 +823,8 @@ def _marker_weights(actor: ActorData, clips: Sequence[Clip], frame_clip: np.ndar
     return marker_stability(aligned, rest)
 
 
-__all__ = ["OUTPUTS", "ShapeSpaceModel", "ShapeSpaceParams", "train"]
+#: the stored fields a model reads through to its data
+_DATA_FIELDS = frozenset(f.name for f in dataclasses.fields(ShapeSpaceData))
+
+__all__ = ["OUTPUTS", "ShapeSpaceData", "ShapeSpaceEvaluator", "ShapeSpaceModel", "ShapeSpaceParams",
+           "train"]

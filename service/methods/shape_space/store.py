@@ -10,7 +10,8 @@ Layout (DESIGN.md "Data and storage"):
 * ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
 * ``maps.npz``    per map kind (``displacement``, ``albedo``) the maps (N,P,C) float16 at the
   covered texels with ``<kind>_texels`` (P,) and ``<kind>_shape`` (2,) (:mod:`.maps`), only
-  if the database had maps;
+  if the database had maps; when only some of its clips had them, the maps are (K,P,C) and
+  ``<kind>_frames`` (K,) names their database frames;
 * ``markers.npz`` the :class:`~.markers.MarkerDatabase`: ``shapes`` (N,9P) and ``gram``
   (R,N,N) of the database frames' marker shells, ``corrections`` (N,n,3) float32
   (:mod:`.markers`), only for a model trained with ``marker_correction`` and markers;
@@ -18,7 +19,8 @@ Layout (DESIGN.md "Data and storage"):
   sha256 of every file.
 
 Every array is stored in the dtype the model holds in memory, so a load reproduces the
-model bit for bit; the prefactored solvers are rebuilt from the stored arrays. Every file
+:class:`~.data.ShapeSpaceData` bit for bit; the evaluator (prefactored solvers, operators)
+is rebuilt from it. Every file
 is written atomically, the manifest last; a load verifies every checksum before it parses
 a byte.
 """
@@ -33,24 +35,25 @@ import numpy as np
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.methods.shape_space.data import ShapeSpaceData
 from service.methods.shape_space.maps import DatabaseMaps
 from service.methods.shape_space.markers import MarkerDatabase
 from service.methods.shape_space.params import ShapeSpaceParams
 
 KIND = "shape_space"
 FORMAT_VERSION = 2
-#: arrays of model.npz (attribute names of ShapeSpaceModel)
-#: maps.npz names → ShapeSpaceModel attributes (:mod:`.maps`)
+#: maps.npz names → ShapeSpaceData attributes (:mod:`.maps`)
 MAP_FIELDS = {"displacement": "fine_maps", "albedo": "albedo_maps"}
 MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches", "tri_patch",
                 "shapes", "region_vertices", "region_weights", "patch_weights", "gram",
                 "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
                 "marker_weights", "uv", "uv_faces")
+"""arrays of model.npz (attribute names of :class:`~.data.ShapeSpaceData`)"""
 
 
-def write_model(model, path) -> dict:
-    """Write a :class:`~service.methods.shape_space.model.ShapeSpaceModel` into directory
-    ``path`` (created); returns the manifest."""
+def write_model(model: ShapeSpaceData, path) -> dict:
+    """Write a model's stored data ``model`` into directory ``path`` (created); returns the
+    manifest."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {
@@ -68,6 +71,8 @@ def write_model(model, path) -> dict:
         if dm is not None:
             maps.update({name: dm.maps, f"{name}_texels": dm.texels,
                          f"{name}_shape": np.array(dm.shape, np.int64)})
+            if dm.frames is not None:
+                maps[f"{name}_frames"] = dm.frames
     if maps:
         files["maps.npz"] = write_npz(path / "maps.npz", maps)
     manifest = {
@@ -81,9 +86,9 @@ def write_model(model, path) -> dict:
     return manifest
 
 
-def read_model(path) -> dict:
-    """The :class:`~service.methods.shape_space.model.ShapeSpaceModel` fields stored by
-    :func:`write_model` in ``path`` (checksums verified first, shapes checked)."""
+def read_model(path) -> ShapeSpaceData:
+    """The stored data written by :func:`write_model` in ``path`` (checksums verified first,
+    shapes checked)."""
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"))
     a = npz_arrays(data["model.npz"])
@@ -94,7 +99,8 @@ def read_model(path) -> dict:
     colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
     marker_database = MarkerDatabase(**npz_arrays(data["markers.npz"])) if "markers.npz" in data else None
     m = npz_arrays(data["maps.npz"]) if "maps.npz" in data else {}
-    maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]))
+    maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]),
+                               m.get(f"{name}_frames"))
             for name, attr in MAP_FIELDS.items() if name in m}
     fields = dict(params=ShapeSpaceParams(**manifest["params"]), detail=detail, colors=colors,
                   marker_database=marker_database, **maps,
@@ -107,13 +113,16 @@ def read_model(path) -> dict:
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "
                            f"({frames},{triangles},9)")
     for attr, dm in maps.items():
-        if dm.maps.shape[:2] != (frames, len(dm.texels)):
+        count = frames if dm.frames is None else len(dm.frames)
+        if dm.maps.shape[:2] != (count, len(dm.texels)) or (
+                dm.frames is not None and len(dm.frames) and not (
+                    np.all(np.diff(dm.frames) > 0) and 0 <= dm.frames[0] and dm.frames[-1] < frames)):
             raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.shape} for "
-                               f"{frames} frames and {len(dm.texels)} texels")
+                               f"{count} of {frames} frames and {len(dm.texels)} texels")
     md = marker_database
     if md is not None and (md.corrections.shape != (frames, vertices, 3)
                            or md.shapes.shape != a["shapes"].shape or md.gram.shape != a["gram"].shape):
         raise ModelCorrupt(f"{path}: markers.npz has shapes {md.shapes.shape}, gram {md.gram.shape}, "
                            f"corrections {md.corrections.shape} for a model of shapes "
                            f"{a['shapes'].shape} and {vertices} vertices")
-    return fields
+    return ShapeSpaceData(**fields)

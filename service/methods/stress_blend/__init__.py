@@ -5,6 +5,6 @@ run time"), with the per-region wrinkle-map weights a real-time engine plays bac
 
 Modules: :mod:`.params` (the one parameter model), :mod:`.stress` (per-vertex surface
 stress from deformation gradients), :mod:`.weights` (stress similarity → blend weights),
-:mod:`.regions` (wrinkle masks and per-frame region weights), :mod:`.model` (training and
-synthesis), :mod:`.store` (model directories).
+:mod:`.regions` (wrinkle masks and per-frame region weights), :mod:`.data` (the stored
+data), :mod:`.model` (training, the evaluator, synthesis), :mod:`.store` (model directories).
 """

@@ -32,7 +32,8 @@ issue asks (smooth, partition of unity, exact at the scans).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -41,21 +42,25 @@ import scipy.sparse as sp
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normal_map import NormalMapper
 from service.geometry.tangent_frames import FrameField
-from service.geometry.uv_raster import interpolation_matrix, rasterize_uv, splat
+from service.geometry.normals import vertex_normals
+from service.geometry.uv_raster import interpolation_matrix, rasterize_uv, sampling_matrix, splat
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.outputs import check_outputs
 from service.methods.stress_blend import store
+from service.methods.stress_blend.data import StressBlendData
 from service.methods.stress_blend.params import StressBlendParams
 from service.methods.stress_blend.regions import RegionFit, engine_weights, region_masks
 from service.methods.stress_blend.stress import StressField
 from service.methods.stress_blend.weights import shepard_weights
 
-#: outputs of :meth:`StressBlendModel.synthesize` (``mesh`` is the input mesh, passed through)
-OUTPUTS = ("mesh", "displacement", "albedo", "normal_map", "wrinkle_weights", "blend_weights")
+#: outputs of :meth:`StressBlendModel.synthesize` (``mesh`` is the input mesh, passed through;
+#: ``mesh_detailed`` the input mesh with the blended displacement baked in)
+OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "wrinkle_weights",
+           "blend_weights")
 DEFAULT_OUTPUTS = ("displacement", "albedo", "normal_map", "wrinkle_weights")
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapBand:
     """The scans' maps of one kind at their covered texels.
 
@@ -101,54 +106,68 @@ class MapBand:
         return out[..., 0] if out.shape[2] == 1 else out
 
 
-@dataclass
+@dataclass(frozen=True)
+class StressBlendEvaluator:
+    """What synthesis reuses, derived once from :class:`StressBlendData`: the stress operator
+    ``field``, the texel bands of the scans' maps (``albedo_band`` None without albedo), the
+    engine's ``region_fit``, the normal-map machinery (``normal_mapper`` at the
+    displacement resolution, ``frame_field`` the tangent frames of deformed poses) and
+    ``disp_sampler`` (n,P) the displacement band's texels → vertices (``mesh_detailed``)."""
+
+    field: StressField
+    disp_band: MapBand
+    albedo_band: MapBand | None
+    region_fit: RegionFit
+    frame_field: FrameField
+    normal_mapper: NormalMapper
+    disp_sampler: sp.csr_matrix
+
+    @classmethod
+    def build(cls, d: StressBlendData) -> "StressBlendEvaluator":
+        n = d.n_vertices
+        disp_band = MapBand.build(d.uv, d.uv_faces, d.faces, n, d.displacement)
+        H = disp_band.resolution
+        return cls(
+            field=StressField.build(d.neutral, d.faces, d.uv, d.uv_faces, d.params.stress_smoothing),
+            disp_band=disp_band,
+            albedo_band=None if d.albedo is None else MapBand.build(d.uv, d.uv_faces, d.faces, n, d.albedo),
+            region_fit=RegionFit.build(d.masks, d.importance, vertex_areas(d.neutral, d.faces)),
+            frame_field=FrameField.build(d.neutral, d.faces, d.uv, d.uv_faces),
+            normal_mapper=NormalMapper(rasterize_uv(d.uv, d.uv_faces, H, H), d.faces, d.uv, d.uv_faces, n),
+            disp_sampler=sampling_matrix(d.uv, d.uv_faces, d.faces, n, disp_band.mask())[:, disp_band.index].tocsr())
+
+
 class StressBlendModel:
-    """A trained stress-blend model; :meth:`synthesize` turns meshes into blended maps.
+    """A trained stress-blend model: its stored :class:`StressBlendData` and the
+    :class:`StressBlendEvaluator` derived from it; :meth:`synthesize` turns meshes into
+    blended maps. The stored fields read through (``model.masks`` is ``model.data.masks``);
+    neither part changes after construction."""
 
-    Arrays: neutral (n,3) mm, faces (m,3), uv (K,2), uv_faces (m,3); scan_stress (S,n,3)
-    float64 (scan 0 the neutral); displacement (S,H,H) float32 and albedo (S,Ha,Ha,3) or
-    None, the scans' maps; masks (n,R) the wrinkle regions; importance (K,n) per-expression
-    map change at the vertices; scan_names (S,) e.g. "train_smile:9".
-    """
+    def __init__(self, data: StressBlendData, evaluator: StressBlendEvaluator | None = None):
+        self.data = data
+        self.evaluator = evaluator or StressBlendEvaluator.build(data)
 
-    params: StressBlendParams
-    neutral: np.ndarray
-    faces: np.ndarray
-    uv: np.ndarray
-    uv_faces: np.ndarray
-    scan_names: list
-    scan_stress: np.ndarray
-    displacement: np.ndarray
-    albedo: np.ndarray | None
-    masks: np.ndarray
-    importance: np.ndarray
-    metrics: dict = field(default_factory=dict)
-    # derived by prepare()
-    field: StressField | None = None
-    disp_band: MapBand | None = None
-    albedo_band: MapBand | None = None
-    region_fit: RegionFit | None = None
-    frame_field: FrameField | None = None
-    normal_mapper: NormalMapper | None = None
+    def __getattr__(self, name: str):
+        # only reached for names that are not the model's own: the stored fields
+        if name in _DATA_FIELDS and "data" in self.__dict__:
+            return getattr(self.data, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     @property
     def n_vertices(self) -> int:
-        return len(self.neutral)
+        return self.data.n_vertices
 
     @property
     def n_scans(self) -> int:
-        return len(self.scan_stress)
+        return self.data.n_scans
 
-    def prepare(self) -> "StressBlendModel":
-        """Derive the stress operator, the texel bands and the region fit (after train/load)."""
-        n = self.n_vertices
-        self.field = StressField.build(self.neutral, self.faces, self.uv, self.uv_faces,
-                                       self.params.stress_smoothing)
-        self.disp_band = MapBand.build(self.uv, self.uv_faces, self.faces, n, self.displacement)
-        if self.albedo is not None:
-            self.albedo_band = MapBand.build(self.uv, self.uv_faces, self.faces, n, self.albedo)
-        self.region_fit = RegionFit.build(self.masks, self.importance, vertex_areas(self.neutral, self.faces))
-        return self
+    @property
+    def disp_band(self) -> MapBand:
+        return self.evaluator.disp_band
+
+    @property
+    def albedo_band(self) -> MapBand | None:
+        return self.evaluator.albedo_band
 
     # ------------------------------------------------------------------ synthesis
     def check_frames(self, vertices) -> np.ndarray:
@@ -167,8 +186,8 @@ class StressBlendModel:
     def blend_weights(self, vertices) -> np.ndarray:
         """Per-vertex blend weights (F,n,S) of frames (F,n,3) (scan 0 the neutral)."""
         X = self.check_frames(vertices)
-        return shepard_weights(self.field.stress(X), self.scan_stress, self.params.power,
-                               self.params.global_weight)
+        return shepard_weights(self.evaluator.field.stress(X), self.data.scan_stress, self.data.params.power,
+                               self.data.params.global_weight)
 
     def synthesize(self, vertices, outputs: Sequence[str] = DEFAULT_OUTPUTS,
                    clamp: bool = True) -> dict[str, np.ndarray]:
@@ -178,7 +197,9 @@ class StressBlendModel:
         weights are a partition of unity, so no blend leaves the scans' range.
 
         Returns (as asked in ``outputs``): ``vertices`` (F,n,3) float32 the input meshes
-        (``mesh``); ``displacement`` (F,H,H) mm along the normal,
+        (``mesh``); ``vertices_detailed`` (F,n,3) float32 the input meshes with the blended
+        displacement sampled at the vertices and added along the vertex normals
+        (``mesh_detailed``); ``displacement`` (F,H,H) mm along the normal,
         relative to the input mesh; ``albedo`` (F,Ha,Ha,3) linear RGB; ``normal_map``
         (F,H,H,3) tangent space; ``wrinkle_weights`` (F,R,K) the engine's per-region
         expression weights (:mod:`.regions`); ``blend_weights`` (F,n,S) float32; always
@@ -188,14 +209,20 @@ class StressBlendModel:
         if "albedo" in outputs and self.albedo_band is None:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         X = self.check_frames(vertices)
-        W = shepard_weights(self.field.stress(X), self.scan_stress, self.params.power,
-                               self.params.global_weight)   # (F,n,S)
-        out: dict[str, np.ndarray] = {"faces": self.faces.astype(np.int32)}
+        W = shepard_weights(self.evaluator.field.stress(X), self.data.scan_stress, self.data.params.power,
+                               self.data.params.global_weight)   # (F,n,S)
+        out: dict[str, np.ndarray] = {"faces": self.data.faces.astype(np.int32)}
         want = set(outputs)
         if "mesh" in want:
             out["vertices"] = X.astype(np.float32)
-        if want & {"displacement", "normal_map"}:
-            disp = np.stack([self.disp_band.image(self.disp_band.blend(self.disp_band.interp @ w)) for w in W])
+        if want & {"displacement", "normal_map", "mesh_detailed"}:
+            band = self.disp_band
+            texels = [band.blend(band.interp @ w) for w in W]                 # (P,1) each
+            disp = np.stack([band.image(t) for t in texels])
+            if "mesh_detailed" in want:
+                h = np.stack([self.evaluator.disp_sampler @ t[:, 0] for t in texels])   # (F,n)
+                out["vertices_detailed"] = (X + h[..., None] * vertex_normals(X, self.data.faces)
+                                            ).astype(np.float32)
             if "displacement" in want:
                 out["displacement"] = disp
             if "normal_map" in want:
@@ -204,19 +231,15 @@ class StressBlendModel:
             b = self.albedo_band
             out["albedo"] = np.stack([b.image(b.blend(b.interp @ w)) for w in W])
         if "wrinkle_weights" in want:
-            out["wrinkle_weights"] = self.region_fit.fit(W).astype(np.float32)
+            out["wrinkle_weights"] = self.evaluator.region_fit.fit(W).astype(np.float32)
         if "blend_weights" in want:
             out["blend_weights"] = W.astype(np.float32)
         return out
 
     def normal_maps(self, displacement: np.ndarray, X: np.ndarray) -> np.ndarray:
         """Tangent-space normal maps (F,H,H,3) of displacement maps (F,H,H) on meshes (F,n,3)."""
-        H = self.disp_band.resolution
-        if self.normal_mapper is None:
-            self.normal_mapper = NormalMapper(rasterize_uv(self.uv, self.uv_faces, H, H), self.faces,
-                                              self.uv, self.uv_faces, self.n_vertices)
-            self.frame_field = FrameField.build(self.neutral, self.faces, self.uv, self.uv_faces)
-        return np.stack([self.normal_mapper.normal_map(d, V, self.frame_field.frames(V))
+        ev = self.evaluator
+        return np.stack([ev.normal_mapper.normal_map(d, V, ev.frame_field.frames(V))
                          for d, V in zip(displacement, X)])
 
     def engine_maps(self, wrinkle_weights: np.ndarray, kind: str = "displacement") -> np.ndarray:
@@ -225,25 +248,25 @@ class StressBlendModel:
         band = self.disp_band if kind == "displacement" else self.albedo_band
         if band is None:
             raise InvalidInput(f"this model has no {kind} maps")
-        tm = band.interp @ self.masks                                      # (P,R)
+        tm = band.interp @ self.data.masks                                      # (P,R)
         Wt = engine_weights(tm, np.asarray(wrinkle_weights, np.float64))  # (F,P,S)
         return np.stack([band.image(band.blend(w)) for w in Wt])
 
     def texel_masks(self) -> np.ndarray:
         """The region masks (R,H,H) at the displacement resolution (what an engine samples)."""
-        tm = self.disp_band.interp @ self.masks
+        tm = self.disp_band.interp @ self.data.masks
         return np.moveaxis(self.disp_band.image(tm.astype(np.float32)).reshape(
             self.disp_band.resolution, self.disp_band.resolution, -1), -1, 0)
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
         """Write the model directory (see :mod:`.store`)."""
-        return store.write_model(self, path)
+        return store.write_model(self.data, self.texel_masks(), path)
 
     @classmethod
     def load(cls, path) -> "StressBlendModel":
         """Read a model directory written by :meth:`save`, verifying checksums."""
-        return cls(**store.read_model(path)).prepare()
+        return cls(store.read_model(path))
 
 
 def vertex_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -298,18 +321,18 @@ def train(actor: ActorData, clips: Sequence[Clip], params: StressBlendParams = S
         imp = imp + _importance(actor, alb)
     masks = region_masks(actor.vertices, F, scan_stress[1:], params.regions,
                          params.region_stress_scale_mm, params.mask_smoothing, params.seed, imp)
-    model = StressBlendModel(params, np.asarray(actor.vertices, np.float64), F,
-                             np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64),
-                             names, scan_stress, disp, alb, masks, imp)
+    data = StressBlendData(params, np.asarray(actor.vertices, np.float64), F,
+                           np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64),
+                           names, scan_stress, disp, alb, masks, imp)
     progress(0.85, "prepare")
-    model.prepare()
+    model = StressBlendModel(data)
     # the defining property, measured on the training scans themselves
     scans = np.stack([clips[c].vertices[f] for c, f in picks])
     out = model.synthesize(scans, ("displacement", "wrinkle_weights"))
     cover = model.disp_band.mask()
     dev = np.abs(out["displacement"] - disp)[:, cover].max(axis=1)
     eng = model.engine_maps(out["wrinkle_weights"])
-    model.metrics = {
+    metrics = {
         "scans": names,
         "scan_mean_stress": [float(flat[g])] + [float(lv.max()) for lv in level],
         "scan_reproduction_max_abs_mm": float(dev.max()),
@@ -319,4 +342,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: StressBlendParams = S
         "params": params.model_dump(),
     }
     progress(1.0, "done")
-    return model
+    return StressBlendModel(dataclasses.replace(data, metrics=metrics), model.evaluator)
+
+
+#: the stored fields a model reads through to its data
+_DATA_FIELDS = frozenset(f.name for f in dataclasses.fields(StressBlendData))

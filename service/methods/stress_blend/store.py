@@ -21,14 +21,17 @@ from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.methods.stress_blend.data import StressBlendData
 from service.methods.stress_blend.params import StressBlendParams
 
 KIND = "stress_blend"
 FORMAT_VERSION = 1
 
 
-def write_model(model, path) -> dict:
-    """Write ``model`` into directory ``path`` (created); returns the manifest."""
+def write_model(model: StressBlendData, texel_masks: np.ndarray, path) -> dict:
+    """Write a model's stored data ``model`` and its region masks at the displacement
+    resolution ``texel_masks`` (R,H,H) (for engines) into directory ``path`` (created);
+    returns the manifest."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {}
@@ -38,7 +41,7 @@ def write_model(model, path) -> dict:
         write_exr(path / "albedo.exr", {f"s{k}.{c}": m[..., i] for k, m in enumerate(model.albedo)
                                         for i, c in enumerate("RGB")})
         files["albedo.exr"] = sha256_file(path / "albedo.exr")
-    write_exr(path / "masks.exr", {f"m{r}": m for r, m in enumerate(model.texel_masks())})
+    write_exr(path / "masks.exr", {f"m{r}": m for r, m in enumerate(texel_masks)})
     files["masks.exr"] = sha256_file(path / "masks.exr")
     files["model.npz"] = write_npz(path / "model.npz", {
         "neutral": model.neutral, "faces": model.faces, "uv": model.uv, "uv_faces": model.uv_faces,
@@ -50,9 +53,8 @@ def write_model(model, path) -> dict:
     return manifest
 
 
-def read_model(path) -> dict:
-    """The :class:`~service.methods.stress_blend.model.StressBlendModel` fields stored by
-    :func:`write_model` in ``path`` (checksums verified first)."""
+def read_model(path) -> StressBlendData:
+    """The stored data written by :func:`write_model` in ``path`` (checksums verified first)."""
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, required=("model.npz", "displacement.exr"))
     params = StressBlendParams.model_validate(manifest["params"])
@@ -67,7 +69,7 @@ def read_model(path) -> dict:
             alb = np.stack([np.stack([ch[f"s{k}.{c}"] for c in "RGB"], axis=-1) for k in range(S)])
     except KeyError as e:
         raise ModelCorrupt(f"{path}: a map lacks channel {e}") from None
-    return dict(params=params, neutral=a["neutral"], faces=a["faces"], uv=a["uv"],
-                uv_faces=a["uv_faces"], scan_names=list(manifest["scans"]),
-                scan_stress=a["scan_stress"], displacement=disp, albedo=alb, masks=a["masks"],
-                importance=a["importance"], metrics=manifest["metrics"])
+    return StressBlendData(params=params, neutral=a["neutral"], faces=a["faces"], uv=a["uv"],
+                           uv_faces=a["uv_faces"], scan_names=list(manifest["scans"]),
+                           scan_stress=a["scan_stress"], displacement=disp, albedo=alb,
+                           masks=a["masks"], importance=a["importance"], metrics=manifest["metrics"])

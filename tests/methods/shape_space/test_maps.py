@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.methods.inputs import ActorData, Clip, InvalidInput
-from service.methods.shape_space.maps import DatabaseMaps
+from service.methods.shape_space.maps import DatabaseMaps, MapBlender
 from service.methods.shape_space.regions import normalize_region_weights
 from tests.methods.shape_space.conftest import grid_mesh
 
@@ -23,7 +23,7 @@ def sheet_maps():
     clip = Clip("db", np.repeat(V[None], 3, axis=0), np.zeros((3, 0, 3)), displacement=maps)
     left = (V[:, 0] < 20.0).astype(float)
     omega_hat = normalize_region_weights(np.stack([left, 1.0 - left]))        # (2,n)
-    fm = DatabaseMaps.from_clips(actor, [clip], stride=1).prepare(uv, F, F, omega_hat)
+    fm = MapBlender.build(DatabaseMaps.from_clips(actor, [clip], stride=1), uv, F, F, omega_hat)
     return fm, maps, actor, omega_hat
 
 
@@ -42,7 +42,7 @@ def test_blend_follows_the_region_weights_per_texel(sheet_maps):
     W = np.array([[1.0, 0.0, 0.0], [0.0, 0.25, 0.75]])     # region 0: frame 0; region 1: a mix
     m = fm.blend(W)[:, 0]
     flat = maps.reshape(3, -1)[:, fm.texels].astype(np.float16).astype(np.float64)
-    a = fm._omega_hat                                        # (2,P), columns sum to 1
+    a = fm.omega_hat                                         # (2,P), columns sum to 1
     np.testing.assert_allclose(a.sum(axis=0), 1.0, atol=1e-12)
     expected = a[0] * flat[0] + a[1] * (0.25 * flat[1] + 0.75 * flat[2])
     np.testing.assert_allclose(m, expected, atol=1e-5)
@@ -75,7 +75,8 @@ def test_albedo_maps_keep_their_channels(sheet_maps):
     fm, _, actor, omega_hat = sheet_maps
     rgb = np.random.default_rng(4).uniform(0, 1, (2, 16, 16, 3)).astype(np.float32)
     clip = Clip("db", np.repeat(actor.vertices[None], 2, axis=0), np.zeros((2, 0, 3)), albedo=rgb)
-    am = DatabaseMaps.from_clips(actor, [clip], 1, "albedo").prepare(actor.uv, actor.faces, actor.faces, omega_hat)
+    am = MapBlender.build(DatabaseMaps.from_clips(actor, [clip], 1, "albedo"), actor.uv, actor.faces,
+                          actor.faces, omega_hat)
     assert am.maps.shape == (2, len(am.texels), 3) and am.shape == (16, 16)
     img = am.image(am.blend(np.array([[0.0, 1.0], [0.0, 1.0]]))[None])
     assert img.shape == (1, 16, 16, 3)

@@ -1,8 +1,6 @@
 """Tests for service.methods.shape_space.model on the level-0 sample actor: a model trained on
 every 10th frame of the 630-frame database performance (fixture ``shape_space_model``)."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -70,7 +68,7 @@ def test_database_frame_gets_weight_one_and_its_detail_back(shape_space_model, s
     np.testing.assert_allclose(out["fine_displacement"][0][covered], own[covered], atol=2e-4)
     H = m.params.map_resolution
     assert out["displacement"].shape == (1, H, H) and out["displacement"].dtype == np.float32
-    resampled = m.fine_maps.image(m.fine_maps.blend(out["weights"][0])[None], H)
+    resampled = m.evaluator.fine_maps.image(m.evaluator.fine_maps.blend(out["weights"][0])[None], H)
     assert np.abs(out["displacement"][0] - resampled).max() <= np.abs(out["vertex_displacement"][0]).max() + 1e-6
 
 
@@ -138,7 +136,7 @@ def test_marker_input_goes_through_the_thin_shell_and_its_pose_space_correction(
     assert rms["corrected_input"] < 0.5 * rms["input_vertices"]            # measured 0.266 / 0.633
     assert rms["vertices"] < rms["corrected_input"] + 0.01
     # without corrections the shell itself is enhanced (the paper), and nothing is corrected
-    plain = dataclasses.replace(shape_space_model, marker_database=None).enhance(markers[1:])
+    plain = shape_space_model.replace(marker_database=None).enhance(markers[1:])
     assert "corrected_input" not in plain
     np.testing.assert_array_equal(plain["input_vertices"], out["input_vertices"][1:])
     e_plain = np.linalg.norm(plain["vertices"] - truth[1:], axis=-1)
@@ -165,13 +163,13 @@ def test_colors_are_blended_with_the_matching_weights(shape_space_model, shape_s
     _, clip, _ = shape_space_data
     colors = np.broadcast_to(np.arange(m.n_frames, dtype=np.float32)[:, None, None],
                              (m.n_frames, m.n_vertices, 2)).copy()
-    colored = dataclasses.replace(m, colors=colors)
+    colored = m.replace(colors=colors)
     k = 20
     out = colored.enhance(clip.vertices[m.frame_index[k]], outputs=("colors",))
     np.testing.assert_allclose(out["colors"][0], k, atol=1e-4)
     assert m.colors.shape == (m.n_frames, m.n_vertices, 3)             # sampled from the albedo maps
     with pytest.raises(InvalidInput, match="without colours"):
-        dataclasses.replace(m, colors=None).enhance(clip.vertices[0], outputs=("colors",))
+        m.replace(colors=None).enhance(clip.vertices[0], outputs=("colors",))
 
 
 def test_retime_interpolates_the_keyframes_with_database_timing(shape_space_model, shape_space_data):
@@ -211,9 +209,9 @@ def test_invalid_input_is_rejected(shape_space_model):
     with pytest.raises(InvalidInput, match="frames must be"):
         m.enhance(np.zeros((1, 17, 3)))
     with pytest.raises(InvalidInput, match="unknown outputs"):
-        m.enhance(m.neutral, outputs=("mesh", "normal_map"))
+        m.enhance(m.neutral, outputs=("mesh", "wrinkle_weights"))   # normal_map is an output now
     with pytest.raises(InvalidInput, match="no albedo maps"):
-        dataclasses.replace(m, albedo_maps=None).enhance(m.neutral, outputs=("mesh", "albedo"))
+        m.replace(albedo_maps=None).enhance(m.neutral, outputs=("mesh", "albedo"))
     with pytest.raises(InvalidInput, match="non-finite"):
         m.enhance(np.full((1, m.n_vertices, 3), np.nan))
     with pytest.raises(InvalidInput, match="two keyframes"):
@@ -227,10 +225,11 @@ def test_memory_footprint_counts_the_detail_store_and_the_prefactored_solve(shap
     arrays = (m.detail.nbytes + m.gram.nbytes + m.shapes.nbytes + m.neutral.nbytes
               + m.colors.nbytes + sum(a.nbytes for a in vars(m.marker_database).values()) + m.fine_maps.maps.nbytes
               + m.albedo_maps.maps.nbytes)
-    factor = FACTOR_ENTRY_BYTES * m._poisson._factor.fill
-    # operators built on first use by the other tests: the (H², n) vertex → map operator and
-    # the fine maps' resampling to map_resolution (sparse, ~12 bytes per entry)
-    lazy = sum(nbytes(x) for x in (m._map_operator, m.fine_maps._resample, m.albedo_maps._resample, m._shell))
+    ev = m.evaluator
+    factor = FACTOR_ENTRY_BYTES * ev.poisson._factor.fill
+    # the evaluator's operators: the (H², n) vertex → map operator, the fine maps'
+    # resampling to map_resolution (sparse, ~12 bytes per entry) and the marker shell
+    lazy = sum(nbytes(x) for x in (ev.map_operator, ev.fine_maps.resample, ev.albedo_maps.resample, ev.shell))
     assert arrays + factor + lazy <= nbytes(m) < 2 * (arrays + factor) + lazy
 
 

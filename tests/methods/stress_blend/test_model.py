@@ -4,7 +4,7 @@ import pytest
 from service.methods.inputs import InvalidInput
 from service.methods.stress_blend.model import StressBlendModel, train
 from service.methods.stress_blend.params import StressBlendParams
-from tests.methods.stress_blend.synthetic import clips
+from tests.methods.stress_blend.synthetic import H, clips
 
 PARAMS = StressBlendParams(regions=3, stress_smoothing=2, mask_smoothing=2)
 
@@ -98,3 +98,27 @@ def test_region_masks_separate_the_two_expressions():
     a = np.argmax(model.masks[left_bottom], axis=1)
     b = np.argmax(model.masks[right_top], axis=1)
     assert len(set(a)) == 1 and len(set(b)) == 1 and a[0] != b[0]
+
+
+def test_mesh_detailed_is_the_input_mesh_with_the_blended_displacement_along_the_normals(trained):
+    """/enhance answers ``mesh_detailed`` as /synthesize does (issue 17 item 6): at a scan's
+    own frame the blend is that scan's map, sampled bilinearly at the vertices' UVs."""
+    from service.geometry.normals import vertex_normals
+    from service.geometry.uv_raster import map_to_vertices
+
+    actor, cl, model = trained
+    c, f = cl[1], 2
+    out = model.synthesize(c.vertices[f:f + 1], ("mesh_detailed",))
+    assert set(out) == {"faces", "vertices_detailed"}
+    X = c.vertices[f]
+    normals = vertex_normals(X, actor.faces)
+    offset = out["vertices_detailed"][0].astype(np.float64) - X
+    h = np.einsum("nd,nd->n", offset, normals)
+    np.testing.assert_allclose(offset, h[:, None] * normals, atol=1e-5)     # along the normals
+    expected = map_to_vertices(c.displacement[f].astype(np.float64), actor.uv, actor.uv_faces,
+                               actor.faces, actor.n_vertices)
+    # away from the chart's border, where every texel of the bilinear footprint is covered
+    inner = np.all((actor.uv > 0.05 + 2 / H) & (actor.uv < 0.95 - 2 / H), axis=1)
+    assert inner.sum() > 50
+    np.testing.assert_allclose(h[inner], expected[inner], atol=1e-5)
+    assert np.abs(h).max() > 0.05                                          # the map's noise, 0.1 mm
