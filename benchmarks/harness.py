@@ -3,7 +3,8 @@ peak-memory measurement, the fine-detail metric at the map texels, the PDM basel
 figure helpers. Each report imports this module (``import harness``). Two reports still
 reuse another report's cached model builds, whose workers live in that script:
 ``generalization_report`` (``shape_space_report``'s shape-space models) and
-``game_outputs_report`` (``pdm_report``'s PDM models and figure layout).
+``game_outputs_report`` (``pdm_report``'s figure layout, ``shape_space_report``'s shape-space
+models with ``--shape-space``, and the WPSD models ``pose_space_report`` saved).
 
 Peak memory: a worker resets the resident-set high-water mark (``echo 5 >
 /proc/self/clear_refs``) and reports ``VmHWM − VmRSS`` at the reset, the peak resident
