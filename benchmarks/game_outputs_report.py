@@ -1,9 +1,10 @@
 """Game-engine outputs report: stress-driven expression-map blending and the bone rig.
 
-Part 1, stress blend (Digital Ira course 2014, "Real-Time Rendering"): a ``stress_blend``
-model is built from the level-1 sample actor's 8 training clips (their neutral and peak
-frames are the scans) and evaluated on the map frames (every 5th) of ``heldout_in_range``
-and ``heldout_out_of_range`` with the fine-detail metric of ``benchmarks/pdm_report.py``
+Part 1, stress blend (Digital Ira course 2014, "Real-Time Rendering"), per actor family
+(default a = ``/work/data/a-l0``, b = ``/work/data/b-l0``; ``--actor FAMILY=DIR``): a
+``stress_blend`` model is built from the family's training clips (their neutral and peak
+frames are the scans) and evaluated on the map frames of ``heldout_in_range``,
+``heldout_combinations`` and ``heldout_amplified`` with the fine-detail metric of ``benchmarks/pdm_report.py``
 (imported: high-passed detail heights ``n·(P V − P V_gt,medium) + d`` against the ground
 truth's, Pearson r and RMS over the face texels; *relative error* = RMS / RMS of the ground
 truth's high band), next to the biquadratic PDM trained by that report's own worker. Rows:
@@ -14,7 +15,12 @@ truth's high band), next to the biquadratic PDM trained by that report's own wor
   the same information as the PDM row; the map is blended from that mesh's stress;
 * *engine: masks × weights*: the tracked-mesh row's per-region wrinkle weights replayed as
   an engine would (``M_0 + Σ_k (Σ_r mask_r ω_rk)(M_k − M_0)``);
-* *static neutral map*: the neutral scan's map on the tracked mesh (no blending).
+* *static neutral map*: the neutral scan's map on the tracked mesh (no blending);
+* *pose space WPSD (markers)*: bickel2008's default WPSD (the model pose_space_report.py
+  saved for the actor, else trained here) from the markers; *shape space (markers)* with
+  ``--shape-space``: bermano2014 on the family's database (shape_space_report's cached build).
+
+The PDM is trained here with its defaults and the fine band at the actor's map size.
 
 A frame equal to a scan must blend to that scan: measured on every scan (max |Δ| of the
 displacement and albedo maps over covered texels), after a save/load round trip.
@@ -56,8 +62,13 @@ import harness  # noqa: E402  (the reports' shared data, metric and workers)
 OUT = ROOT / "benchmarks" / "out"
 FIGURES = OUT / "game_outputs"
 DATA = Path("/work/data")
-ACTOR_L1 = DATA / "actor1-l1"
-ACTOR_L0 = DATA / "actor1-l0"
+#: the actor families of part 1 (``--actor a=DIR``), the actor of part 2
+FAMILIES = {"a": DATA / "a-l0", "b": DATA / "b-l0"}
+ACTOR_L0 = DATA / "a-l0"
+#: held-out performances of part 1 (as generalization_report.py: in range, combinations
+#: no training clip shows, every expression 25–40 % beyond its peak)
+PERFORMANCES = ("heldout_in_range", "heldout_combinations", "heldout_amplified")
+WPSD_ROW, SS_ROW = "pose space WPSD (markers)", "shape space (markers)"
 RIG_PERFORMANCE = "heldout_in_range"
 RIG_BONES, RIG_INFLUENCES, RIG_ITERATIONS = 70, 4, 10
 CRASH_TIMEOUT_S = 300
@@ -185,11 +196,11 @@ def run_worker(*args: str, timeout: float | None = None) -> dict:
 # --------------------------------------------------------------------------------------
 # stress blend
 
-def stress_blend_model(actor, clips, reuse: bool):
+def stress_blend_model(actor, clips, reuse: bool, family: str):
     from service.methods.stress_blend.model import StressBlendModel, train
     from service.methods.stress_blend.params import StressBlendParams
 
-    path = FIGURES / "models" / "stress_blend"
+    path = FIGURES / "models" / family / "stress_blend"
     if reuse and (path / "manifest.json").is_file():
         rec = json.loads((path.parent / "stress_blend.train.json").read_text())
         return StressBlendModel.load(path), rec
@@ -220,8 +231,9 @@ def scan_reproduction(model, clips) -> dict:
             "min_own_weight": wmin}
 
 
-def stress_methods(model, pdm, gt, tex, store: dict):
-    """name → callable(markers) → (V, maps at the texels, None), as pdm_report's evaluation wants."""
+def stress_methods(model, pdm, gt, tex, store: dict, others: dict):
+    """name → callable(markers) → (V, maps at the texels, None), as pdm_report's evaluation wants;
+    ``others``: further marker-driven rows (name → callable)."""
     def tracked(_markers):
         out = model.synthesize(gt.vertices, ("displacement", "wrinkle_weights"))
         store["tracked"] = out
@@ -239,7 +251,7 @@ def stress_methods(model, pdm, gt, tex, store: dict):
         d = tex.texels(model.displacement[0])
         return gt.vertices, np.broadcast_to(d, (len(gt.frames), len(d))), None
 
-    return {"PDM biquadratic": lambda m: harness.pdm_prediction(pdm, m, tex),
+    return {"PDM biquadratic": lambda m: harness.pdm_prediction(pdm, m, tex), **others,
             "stress blend (tracked mesh)": tracked,
             "engine: masks × weights (tracked mesh)": engine,
             "stress blend (PDM mesh)": on_pdm,
@@ -337,20 +349,33 @@ def plot_blended_maps(model, gt, frames, store, pdm_maps, path: Path, tex) -> No
             axes[r, j].imshow(m.reshape(H, H)[box], cmap="RdBu_r", vmin=-lim, vmax=lim)
             axes[r, j].set_title(f"{name}\nframe {gt.frames[f]} (±{lim:.2f} mm)", fontsize=9)
             axes[r, j].set_xticks([]), axes[r, j].set_yticks([])
-    fig.suptitle("Blended displacement maps, heldout_in_range (UV, face region)")
+    fig.suptitle(f"Blended displacement maps, {gt.name} (UV, face region)")
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
-def plot_albedo(model, tracked_albedo, gt_albedo, frames, path: Path) -> None:
+def plot_albedo(model, tracked_albedo, gt_albedo, frames, path: Path, title: str = "") -> None:
+    """Target (ground-truth) albedo, the scans' albedo warped into the frame by the stress
+    blend, and |warped − target| (luminance, ×10 scale bar in the title), for a few frames."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(frames), figsize=(4 * len(frames), 8), squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(3, len(frames), figsize=(4 * len(frames), 12), squeeze=False, layout="constrained")
+    m = model.albedo_band.mask()
     for j, i in enumerate(frames):
-        for r, (name, img) in enumerate((("ground truth", gt_albedo[j]), ("stress blend", tracked_albedo[j]))):
+        diff = np.abs(np.asarray(tracked_albedo[j], np.float64) - gt_albedo[j]).mean(axis=-1)
+        lim = max(float(np.percentile(diff[m], 99.5)), 1e-6)
+        for r, (name, img) in enumerate((("target (ground truth)", gt_albedo[j]),
+                                         ("stress blend (scans warped to the frame)", tracked_albedo[j]))):
             axes[r, j].imshow(np.clip(img, 0, 1) ** (1 / 2.2))
             axes[r, j].set_title(f"{name} albedo, frame {i}", fontsize=9)
             axes[r, j].axis("off")
+        im = axes[2, j].imshow(np.where(m, diff, np.nan), cmap="magma", vmin=0, vmax=lim)
+        axes[2, j].set_title(f"|warped − target| (mean over RGB), frame {i}\nmean {diff[m].mean():.4f}, "
+                             f"p99.5 {lim:.3f}", fontsize=9)
+        axes[2, j].axis("off")
+        fig.colorbar(im, ax=axes[2, j], shrink=0.7)
+    if title:
+        fig.suptitle(title)
     fig.savefig(path, dpi=80)
     plt.close(fig)
 
@@ -415,9 +440,8 @@ def report(res: dict, meta: dict) -> str:
     L = ["# Game-engine outputs: stress-blended expression maps and the bone rig", "",
          f"Machine: {meta['cpus']} CPUs shared (load {meta['load']}), NumPy {np.__version__}. "
          f"Code: {meta['git']}.", ""]
-    sb = res.get("stress")
-    if sb:
-        L += ["## 1. Stress blend (level-1 sample actor)", "",
+    for fam, sb in (res.get("stress") or {}).items():
+        L += [f"## 1{fam}. Stress blend, family {fam} ({sb['actor']})", "",
               f"Scans: {', '.join(sb['scans'])}. Training {sb['train']['train_s']:.0f} s, model "
               f"{sb['train']['size_mb']:.0f} MB. Map {sb['H']}², high-pass σ = {sb['sigma']:.1f} texels "
               "(the PDM's).", "",
@@ -431,7 +455,8 @@ def report(res: dict, meta: dict) -> str:
                   "| method | input | fine r | fine RMS mm | relative error | medium mean mm |",
                   "|---|---|---:|---:|---:|---:|"]
             for name, s in r["scores"][harness.FACE].items():
-                inp = ("markers" if name.startswith("PDM") else "markers (PDM mesh)" if "PDM mesh" in name
+                inp = ("markers" if name.startswith("PDM") or name in (WPSD_ROW, SS_ROW)
+                       else "markers (PDM mesh)" if "PDM mesh" in name
                        else "GT mesh + GT map" if name == harness.GT_ROW else "tracked mesh")
                 L.append(f"| {name} | {inp} | {s['fine_r']:.3f} | {s['fine_rms_mm']:.3f} | "
                          f"{s['fine_rms_mm'] / sig:.3f} | {s['medium_mean_mm']:.3f} |")
@@ -448,9 +473,12 @@ def report(res: dict, meta: dict) -> str:
         L += ["### Engine form: masks × per-region weights vs the full per-texel blend", "",
               f"{sb['regions']} masks; {e['weights_per_frame']} weights per frame (regions × expressions). "
               f"Relative RMS of (engine − full blend) / (full blend − neutral map) over "
-              f"heldout_in_range map frames: displacement {e['displacement']:.3f}, albedo {e['albedo']:.3f}.", "",
+              f"{PERFORMANCES[0]} map frames: displacement {e['displacement']:.3f}, albedo {e['albedo']:.3f}.", "",
               "Synthesis speed, ms/frame (median, one frame per call): " +
-              ", ".join(f"{k} {v:.0f}" for k, v in sb["speed"].items()) + ".", ""]
+              ", ".join(f"{k} {v:.0f}" for k, v in sb["speed"].items()) + ".", "",
+              f"Figures: a_blended_maps_{fam}.png, b_warped_vs_target_{fam}.png (target albedo, the "
+              f"scans' albedo warped into the frame by the blend, |warped − target|), "
+              f"d_wrinkle_masks_{fam}.png.", ""]
     rg = res.get("rig")
     if rg:
         f, d = rg["facesynth"], rg["dem"]
@@ -491,11 +519,129 @@ def _save_part(path: Path, key: str, value) -> None:
     path.write_text(json.dumps(res, indent=1))
 
 
+def pose_space_model(actor, clips, actor_dir: Path, reuse: bool, family: str):
+    """The default WPSD (bickel2008) of the family: the one pose_space_report.py saved for this
+    actor if there is one, else trained here (and cached)."""
+    from service.methods.pose_space import PoseSpaceModel, WpsdParams, train
+
+    for saved in (OUT / f"pose_space_{family}" / "models" / actor_dir.name / "WPSD",
+                  OUT / "pose_space" / "models" / actor_dir.name / "WPSD",
+                  FIGURES / "models" / family / "wpsd"):
+        if (saved / "manifest.json").is_file() and (reuse or saved.parent.name != family):
+            m = PoseSpaceModel.load(saved)
+            if m.params == WpsdParams() and m.data.n_vertices == actor.n_vertices:
+                return m
+    model = train(actor, clips, WpsdParams())
+    model.save(FIGURES / "models" / family / "wpsd")
+    return model
+
+
+def pdm_model(actor, clips, H: int, reuse: bool, family: str):
+    """The biquadratic PDM (defaults, fine band at the actor's map size), cached."""
+    from service.methods.pdm.model import PdmModel, PdmParams, train
+
+    path = FIGURES / "models" / family / "pdm"
+    if reuse and (path / "manifest.json").is_file():
+        return PdmModel.load(path)
+    model = train(actor, clips, PdmParams(fine_resolution=H))
+    model.save(path)
+    return PdmModel.load(path)
+
+
+def stress_family(family: str, actor_dir: Path, args) -> dict:
+    """Part 1 on one actor family: accuracy rows, scan reproduction, engine form, figures."""
+    from service.methods.stress_blend.model import StressBlendModel
+    from service.samples.dataset import load_actor
+
+    actor = load_actor(actor_dir)
+    clips = harness.training_clips(actor_dir, actor)
+    H = json.loads((actor_dir / "manifest.json").read_text())["map_resolution"]
+    print(f"[{family}] PDM", file=sys.stderr)
+    pdm = pdm_model(actor, clips, H, args.reuse, family)
+    print(f"[{family}] pose space (WPSD)", file=sys.stderr)
+    wpsd = pose_space_model(actor, clips, actor_dir, args.reuse, family)
+    print(f"[{family}] stress blend", file=sys.stderr)
+    model, train_rec = stress_blend_model(actor, clips, args.reuse, family)
+    model = StressBlendModel.load(FIGURES / "models" / family / "stress_blend")
+    repro = scan_reproduction(model, clips)
+    del clips
+    sigma = pdm.metrics["highpass_sigma_texels"]
+    tex = harness.DetailTexels.build(actor, pdm.fine.resolution, sigma)
+    if model.disp_band.resolution != tex.H:
+        sys.exit(f"stress-blend maps are {model.disp_band.resolution}², the PDM's fine band {tex.H}²")
+    others = {WPSD_ROW: lambda m: _pose_space_prediction(wpsd, m, tex)}
+    if args.shape_space:
+        others[SS_ROW] = _shape_space_method(actor_dir, tex)
+    sb = {"actor": str(actor_dir), "scans": model.scan_names, "train": train_rec, "repro": repro, "H": tex.H,
+          "sigma": sigma, "regions": int(model.masks.shape[1]), "accuracy": {}, "albedo": {}}
+    limit = pr.QUICK_FRAMES if args.quick else None
+    amask_face = None
+    for perf in PERFORMANCES:
+        if not (actor_dir / "performances" / f"{perf}.npz").is_file():
+            continue
+        print(f"[{family}]   {perf}", file=sys.stderr)
+        gt = harness.load_heldout(actor_dir, perf, limit)
+        store: dict = {}
+        keep = pr.strong_frames(gt, FIGURE_FRAMES, pr.FIGURE_SEPARATION) if perf == PERFORMANCES[0] else []
+        r = harness.evaluate_performance(gt, stress_methods(model, pdm, gt, tex, store, others), tex, actor, keep)
+        r.pop("figure"), r.pop("extra")
+        r["frames"] = len(gt.frames)
+        r["maps"] = map_scores(model, gt, tex, actor, store)
+        sb["accuracy"][perf] = r
+        if amask_face is None:
+            from service.geometry.uv_raster import rasterize_uv
+            Ha = model.albedo_band.resolution
+            ra = rasterize_uv(actor.uv, actor.uv_faces, Ha, Ha)
+            amask_face = ra.mask & np.asarray(actor.regions[harness.FACE])[actor.faces[np.maximum(ra.triangle, 0), 0]]
+        sb["albedo"][perf] = albedo_errors(model, pdm, actor_dir, perf, gt.frames, gt.vertices,
+                                           gt.markers, amask_face)
+        if perf == PERFORMANCES[0]:
+            sb["engine"] = engine_vs_blend(model, gt.vertices)
+            sb["speed"] = synth_speed(model, gt.vertices)
+            idx = [int(np.flatnonzero(gt.frames == f)[0]) for f in keep]
+            pdm_maps = pdm.synthesize(gt.markers[idx], ("displacement",))["displacement"]
+            plot_blended_maps(model, gt, idx, store, {i: m for i, m in zip(idx, pdm_maps)},
+                              FIGURES / f"a_blended_maps_{family}.png", tex)
+            with np.load(actor_dir / "performances" / f"{perf}.npz") as d:
+                slot = {int(f): i for i, f in enumerate(d["map_frames"])}
+                gta = d["albedo"][[slot[f] for f in keep]].astype(np.float32)
+            plot_albedo(model, model.synthesize(gt.vertices[idx], ("albedo",))["albedo"], gta, keep,
+                        FIGURES / f"b_warped_vs_target_{family}.png",
+                        f"family {family} ({actor_dir.name}), {perf}: target vs warped albedo")
+    plot_masks_weights(model, FIGURES / f"d_wrinkle_masks_{family}.png")
+    return sb
+
+
+def _pose_space_prediction(model, markers, tex):
+    out = model.synthesize(markers, ("mesh", "displacement"))
+    return out["vertices"].astype(np.float64), tex.texels(out["displacement"]), out["clamped"]
+
+
+def _shape_space_method(actor_dir: Path, tex):
+    """bermano2014 on the family's database, marker input (the harness's cached build)."""
+    from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
+
+    ss_dir, _ = harness.shape_space_model(actor_dir, ShapeSpaceParams(), False)
+    shape = ShapeSpaceModel.load(ss_dir)
+
+    def run(markers):
+        out = shape.enhance(markers, harness.SS_OUTPUTS, input_kind="markers")
+        D = (np.stack([tex.texels(m) for m in out["fine_displacement"]])
+             if "fine_displacement" in out else None)
+        return out["vertices"].astype(np.float64), D, None
+    return run
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reuse", action="store_true", help="reuse models and rig results in benchmarks/out")
     parser.add_argument("--quick", action="store_true", help="6 held-out frames per performance")
     parser.add_argument("--part", choices=("all", "stress", "rig"), default="all")
+    parser.add_argument("--actor", action="append", metavar="FAMILY=DIR",
+                        help="actor family of part 1 (default a=/work/data/a-l0, b=/work/data/b-l0)")
+    parser.add_argument("--shape-space", action="store_true",
+                        help="also the shape-space row (builds bermano2014 on each family's database "
+                             "through shape_space_report's cache: long)")
     parser.add_argument("--worker", choices=("rig", "crash"), help=argparse.SUPPRESS)
     parser.add_argument("--which", help=argparse.SUPPRESS)
     parser.add_argument("--case", help=argparse.SUPPRESS)
@@ -530,60 +676,19 @@ def main() -> None:
             plot_bone_weights(ACTOR_L0, FIGURES / "rig" / "rig.npz", FIGURES / "c_bone_weights.png")
 
     if args.part in ("all", "stress"):
-        from service.methods.pdm.model import PdmModel
-        from service.methods.stress_blend.model import StressBlendModel
-        from service.samples.dataset import load_actor
-
-        print("PDM (harness's training worker, pdm_report's models)", file=sys.stderr)
-        harness.PDM_MODELS.mkdir(parents=True, exist_ok=True)
-        harness.train_pdm_models(ACTOR_L1, ["biquadratic"], reuse=True)
-        pdm = PdmModel.load(harness.PDM_MODELS / "biquadratic")
-        actor = load_actor(ACTOR_L1)
-        clips = harness.training_clips(ACTOR_L1, actor)
-        print("stress blend", file=sys.stderr)
-        model, train_rec = stress_blend_model(actor, clips, args.reuse)
-        model = StressBlendModel.load(FIGURES / "models" / "stress_blend")
-        repro = scan_reproduction(model, clips)
-        del clips
-        sigma = pdm.metrics["highpass_sigma_texels"]
-        tex = harness.DetailTexels.build(actor, pdm.fine.resolution, sigma)
-        if model.disp_band.resolution != tex.H:
-            sys.exit(f"stress-blend maps are {model.disp_band.resolution}², the PDM's fine band {tex.H}²")
-        sb = {"scans": model.scan_names, "train": train_rec, "repro": repro, "H": tex.H, "sigma": sigma,
-              "regions": int(model.masks.shape[1]), "accuracy": {}, "albedo": {}}
-        limit = harness.QUICK_FRAMES if args.quick else None
-        amask_face = None
-        for perf in harness.HELDOUT:
-            gt = harness.load_heldout(ACTOR_L1, perf, limit)
-            store: dict = {}
-            keep = harness.strong_frames(gt, FIGURE_FRAMES, harness.FIGURE_SEPARATION) if perf == harness.HELDOUT[0] else []
-            r = harness.evaluate_performance(gt, stress_methods(model, pdm, gt, tex, store), tex, actor, keep)
-            r.pop("figure"), r.pop("extra")
-            r["frames"] = len(gt.frames)
-            r["maps"] = map_scores(model, gt, tex, actor, store)
-            sb["accuracy"][perf] = r
-            if amask_face is None:
-                from service.geometry.uv_raster import rasterize_uv
-                Ha = model.albedo_band.resolution
-                ra = rasterize_uv(actor.uv, actor.uv_faces, Ha, Ha)
-                amask_face = ra.mask & np.asarray(actor.regions[harness.FACE])[actor.faces[np.maximum(ra.triangle, 0), 0]]
-            sb["albedo"][perf] = albedo_errors(model, pdm, ACTOR_L1, perf, gt.frames, gt.vertices,
-                                               gt.markers, amask_face)
-            if perf == harness.HELDOUT[0]:
-                sb["engine"] = engine_vs_blend(model, gt.vertices)
-                sb["speed"] = synth_speed(model, gt.vertices)
-                idx = [int(np.flatnonzero(gt.frames == f)[0]) for f in keep]
-                pdm_maps = pdm.synthesize(gt.markers[idx], ("displacement",))["displacement"]
-                plot_blended_maps(model, gt, idx, store, {i: m for i, m in zip(idx, pdm_maps)},
-                                  FIGURES / "a_blended_maps.png", tex)
-                with np.load(ACTOR_L1 / "performances" / f"{perf}.npz") as d:
-                    slot = {int(f): i for i, f in enumerate(d["map_frames"])}
-                    gta = d["albedo"][[slot[f] for f in keep]].astype(np.float32)
-                plot_albedo(model, model.synthesize(gt.vertices[idx], ("albedo",))["albedo"], gta, keep,
-                            FIGURES / "b_blended_albedo.png")
-        plot_masks_weights(model, FIGURES / "d_wrinkle_masks.png")
-        res["stress"] = sb
-        _save_part(results_path, "stress", sb)
+        families = dict(FAMILIES)
+        for spec in args.actor or []:
+            fam, _, d = spec.partition("=")
+            families[fam] = Path(d)
+        stress = res.get("stress", {}) if args.reuse else {}
+        stress = {k: v for k, v in stress.items() if isinstance(v, dict) and "accuracy" in v}
+        for fam, actor_dir in families.items():
+            if not (actor_dir / "manifest.json").is_file():
+                print(f"family {fam}: {actor_dir} has no manifest.json, skipped", file=sys.stderr)
+                continue
+            stress[fam] = stress_family(fam, actor_dir.resolve(), args)
+            _save_part(results_path, "stress", stress)
+        res["stress"] = stress
     res = json.loads(results_path.read_text()) if results_path.is_file() else res
 
     meta["total_s"] = time.perf_counter() - t_start

@@ -17,10 +17,17 @@ Per actor:
   basis meshes interpolated per vertex with the locally supported metric (3), §6.1), PSD and
   WPSD, each with exact interpolation of the P poses and least squares over the 100 frames.
   Basis poses by the greedy selection of §5.2 (λ = 0), per method and fit; the blend shapes
-  use the WPSD sequences. The thin shell (P = 0) is the reference line.
-* **held-out accuracy** — every ``heldout_*`` performance at its map frames, with clean
-  markers, noisy markers (Gaussian σ = 0.3 mm per coordinate, seeded) and occluded markers
-  (10 % of the markers of every frame set to NaN, seeded). Methods: *thin shell* (no
+  use the WPSD sequences. The thin shell (P = 0) is the reference line. PSD and WPSD with
+  their defaults: PSD eq. 2 as printed, WPSD with the local linear polynomial term
+  (``service/methods/pose_space/polynomial.py``); one more series, WPSD (LSq) without it
+  (eq. 5 as printed), shows what the term changes.
+* **held-out accuracy** — the held-out performances *in range* (``heldout_in_range``),
+  *combinations* (``heldout_combinations``: combinations no training clip shows) and *out of
+  range* (``heldout_amplified``: every training expression 25–40 % beyond its peak) at their
+  map frames, with clean markers, noisy markers and occluded markers: the actor's stored
+  ``_noisy`` (σ = 0.3 mm per coordinate) and ``_occluded`` (NaN bursts) variants, as
+  ``generalization_report.py``, or where an actor has none, our own (σ 0.3 mm / 10 % of the
+  markers of every frame NaN, seeded). Methods: *thin shell* (no
   detail: the detailed neutral deformed to the markers), *nearest training frame* (its
   correction and fine map on the held-out shell), *PDM* (biquadratic, defaults; fine band at the training maps' size), *PSD* and
   *WPSD* (defaults: least squares, P = 12, smoothing by validation). Metrics exactly as
@@ -68,7 +75,12 @@ LANDMARKS = 40
 SPEED_FRAMES = 20
 SPEED_WARMUP = 2
 FACE = "face"
-CONDITIONS = ("clean", "noisy", "occluded")
+#: held-out ranges and marker conditions: the sample actors' performances and their stored
+#: marker variants (as benchmarks/generalization_report.py: σ 0.3 mm noise, NaN bursts)
+RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations",
+          "out of range": "heldout_amplified"}
+CONDITIONS = {"clean": "", "noisy": "_noisy", "occluded": "_occluded"}
+WPSD_NO_POLY = "WPSD (LSq, eq. 5 as printed: no polynomial)"
 
 
 # --------------------------------------------------------------------------------------
@@ -81,9 +93,8 @@ def training_clips(actor_dir: Path, actor):
 
 
 def heldout_names(actor_dir: Path) -> list[str]:
-    from service.samples.dataset import performance_names
-
-    return performance_names(actor_dir, "heldout_")
+    """The actor's held-out performances of :data:`RANGES` (clean markers)."""
+    return [p for p in RANGES.values() if (actor_dir / "performances" / f"{p}.npz").is_file()]
 
 
 def perturb(markers: np.ndarray, condition: str, rng) -> np.ndarray:
@@ -120,7 +131,8 @@ def fig4_study(actor, clips, max_p: int) -> dict:
     from service.methods.pose_space import rbf
     from service.methods.pose_space.corrections import corrections, large_scale_surface
     from service.methods.pose_space.feature_graph import automatic_graph
-    from service.methods.pose_space.model import _even_sample, _phi, _targets, node_operator, select_basis
+    from service.methods.pose_space.model import (
+        _even_sample, _phi, _poly, _targets, node_operator, select_basis, support)
     from service.methods.pose_space.params import PsdParams, WpsdParams
     from service.methods.pose_space.weighting import edge_weights
     from service.methods.shape_space.simplex_qp import simplex_least_squares
@@ -147,10 +159,14 @@ def fig4_study(actor, clips, max_p: int) -> dict:
     alpha = edge_weights(actor.vertices, node_rest, graph)
     first = int(np.argmin(np.linalg.norm(F, axis=1)))
     sample = _even_sample(n, wp.selection_vertices)
+    sup = support(alpha, graph.n_edges, wp)                                   # WPSD's polynomial
     seq = {}
     for fit in ("exact", "least_squares"):
         p = wp.model_copy(update={"fit": fit})
-        seq[("wpsd", fit)], _ = select_basis(F, _targets(C, sample, True), alpha[sample], p, 0.0, first)
+        seq[("wpsd", fit)], _ = select_basis(F, _targets(C, sample, True), alpha[sample], p, 0.0, first,
+                                             _poly(F, sup, sample))
+        if fit == "least_squares":
+            seq[("wpsd0", fit)], _ = select_basis(F, _targets(C, sample, True), alpha[sample], p, 0.0, first)
         K = np.zeros((T, T))
         for v0 in range(0, n, 4096):
             Cv = C[:, v0:v0 + 4096].reshape(T, -1).astype(np.float64)
@@ -160,7 +176,7 @@ def fig4_study(actor, clips, max_p: int) -> dict:
     face = np.flatnonzero(actor.regions[FACE])
     count = T * len(face)
     sq = {k: np.zeros(max_p) for k in ("global blend shapes", "local blend shapes", "local blend shapes (LSq)",
-                                       "PSD", "PSD (LSq)", "WPSD", "WPSD (LSq)")}
+                                       "PSD", "PSD (LSq)", "WPSD", "WPSD (LSq)", WPSD_NO_POLY)}
     # PSD: one system for all face vertices
     Cf = _targets(C, face, False)
     for fit, name in (("exact", "PSD"), ("least_squares", "PSD (LSq)")):
@@ -177,10 +193,17 @@ def fig4_study(actor, clips, max_p: int) -> dict:
                               ("least_squares", "WPSD (LSq)", "local blend shapes (LSq)")):
             sel = seq[("wpsd", fit)]
             Phi = _phi(F, F[sel], alpha[vs])
+            Q = _poly(F, sup, vs)
             for P in range(1, len(sel) + 1):
-                for D, key in ((Dc, name), (Du, bs)):
-                    W = rbf.fit_basis(Phi[:, :, :P], D, sel[:P], 0.0, fit == "exact")
-                    sq[key][P - 1] += rbf.residual_sq(Phi[:, :, :P], D, W).sum()
+                W = rbf.fit_basis(Phi[:, :, :P], Dc, sel[:P], 0.0, fit == "exact", Q)
+                sq[name][P - 1] += rbf.residual_sq(rbf.columns(Phi[:, :, :P], Q), Dc, W).sum()
+                W = rbf.fit_basis(Phi[:, :, :P], Du, sel[:P], 0.0, fit == "exact")   # blend shapes
+                sq[bs][P - 1] += rbf.residual_sq(Phi[:, :, :P], Du, W).sum()
+        sel = seq[("wpsd0", "least_squares")]
+        Phi = _phi(F, F[sel], alpha[vs])
+        for P in range(1, len(sel) + 1):
+            W = rbf.fit_basis(Phi[:, :, :P], Dc, sel[:P], 0.0, False)
+            sq[WPSD_NO_POLY][P - 1] += rbf.residual_sq(Phi[:, :, :P], Dc, W).sum()
     # global blend shapes: convex weights matching the features, the basis meshes blended
     sel = seq[("wpsd", "least_squares")]
     Uf = U[:, face].astype(np.float64)
@@ -198,10 +221,11 @@ def fig4_study(actor, clips, max_p: int) -> dict:
 def plot_fig4(study: dict, path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 5.2), layout="constrained")
+    fig, ax = plt.subplots(figsize=(11, 5.2), layout="constrained")
     style = {"global blend shapes": ("#7f7f7f", "-"), "local blend shapes": ("#bcbd22", "-"),
              "local blend shapes (LSq)": ("#bcbd22", "--"), "PSD": ("#1f77b4", "-"),
-             "PSD (LSq)": ("#1f77b4", "--"), "WPSD": ("#d62728", "-"), "WPSD (LSq)": ("#d62728", "--")}
+             "PSD (LSq)": ("#1f77b4", "--"), "WPSD": ("#d62728", "-"), "WPSD (LSq)": ("#d62728", "--"),
+             WPSD_NO_POLY: ("#ff9896", ":")}
     for name, rms in study["rms_mm"].items():
         c, ls = style[name]
         ax.plot(study["P"], rms, ls, color=c, marker="o", ms=3, label=name)
@@ -211,7 +235,7 @@ def plot_fig4(study: dict, path: Path, title: str) -> None:
     ax.set_ylabel(f"L2 (RMS) vertex error over the face, {study['frames']} training frames, mm")
     ax.set_xticks(study["P"])
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8, ncols=2)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.set_title(title, fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -274,18 +298,23 @@ def speed(model, markers: np.ndarray) -> dict:
             model.synthesize(markers[f:f + 1], outs)
             t.append(time.perf_counter() - t0)
         res["+".join(outs)] = 1e3 * float(np.median(t))
+    from service.methods.pose_space import polynomial
+
     ev, d = model.evaluator, model.data
+    poly = ((lambda f: polynomial.evaluate(d.poly_const, ev.poly_linear, f)) if ev.poly_linear is not None
+            else (lambda f: 0.0))
     _, u = ev.deformation(markers)
     feats = ev.features(u)
     # ours: the fine-scale evaluation alone (distances + weighted sum), per frame
     t = []
     for f in feats[SPEED_WARMUP:]:
         t0 = time.perf_counter()
-        ev.corrections(ev.sq_distances(f[None]))
+        ev.corrections(ev.sq_distances(f[None]), f[None])
         t.append(time.perf_counter() - t0)
     res["ours_fine_ms"] = 1e3 * float(np.median(t))
     fb = d.basis_features
-    values = ev.corrections(ev.sq_distances(fb))                               # (P,n,3) at the centres
+    kern = lambda f: ev.corrections(ev.sq_distances(f), f) - poly(f)          # the RBF sum alone
+    values = kern(fb)                                                          # (P,n,3) at the centres
     n = d.n_vertices
     if ev.alpha is None:
         interp = RBFInterpolator(fb, values.reshape(len(fb), -1), kernel="linear", degree=-1)
@@ -295,7 +324,7 @@ def speed(model, markers: np.ndarray) -> dict:
             got = interp(f[None])
             t.append(time.perf_counter() - t0)
         res["scipy_fine_ms"] = 1e3 * float(np.median(t))
-        res["scipy_max_diff_mm"] = float(np.abs(got.reshape(n, 3) - ev.corrections(ev.sq_distances(feats[-1:]))[0]).max())
+        res["scipy_max_diff_mm"] = float(np.abs(got.reshape(n, 3) - kern(feats[-1:])[0]).max())
         res["scipy_vertices_timed"] = n
     else:
         # one interpolator per vertex in the scaled features sqrt(α_v)·f (Euclidean = eq. 3)
@@ -314,7 +343,7 @@ def speed(model, markers: np.ndarray) -> dict:
             got = [it(f[idx][None] * s) for idx, s, it in interps]
             t.append(time.perf_counter() - t0)
         res["scipy_fine_ms"] = 1e3 * float(np.median(t)) * n / k
-        mine = ev.corrections(ev.sq_distances(feats[SPEED_WARMUP + 4:SPEED_WARMUP + 5]))[0][vs]
+        mine = kern(feats[SPEED_WARMUP + 4:SPEED_WARMUP + 5])[0][vs]
         res["scipy_max_diff_mm"] = float(np.abs(np.concatenate(got) - mine).max())
         res["scipy_vertices_timed"] = k
     res["ratio_scipy_over_ours"] = res["scipy_fine_ms"] / res["ours_fine_ms"]
@@ -326,14 +355,41 @@ def storage(model) -> dict:
     d = model.data
     n, P, M = d.n_vertices, d.basis_size, d.n_markers
     a = 0.0 if d.alpha is None else d.alpha.nnz / n
-    floats = M + 3 * P + a + 3                     # B row, RBF weights, α, rest position
-    return {"floats_per_vertex": floats, "ints_per_vertex": a,
+    q = 0.0 if d.poly_linear is None else d.poly_linear.nnz / n                 # linear term
+    floats = M + 3 * P + a + 3 + q + (3 if q else 0)   # B row, RBF weights, α, rest position, polynomial
+    return {"floats_per_vertex": floats, "ints_per_vertex": a + q,
             "floats_per_texel": P if d.map_resolution else 0,
             "texels_per_vertex": len(d.map_index) / n,
-            "layout": f"B row {M} + weights 3P = {3 * P} + α {a:.1f} + rest position 3; ints: α columns {a:.1f}"}
+            "layout": f"B row {M} + weights 3P = {3 * P} + α {a:.1f} + rest position 3"
+                      + (f" + polynomial 3 + {q:.1f}" if q else "") + f"; ints: α columns {a:.1f}"
+                      + (f" + polynomial columns {q:.1f}" if q else "")}
 
 
 # --------------------------------------------------------------------------------------
+
+def identity_overlap(source_dir: Path, target_dir: Path, tex) -> dict:
+    """How much of the target's own detail any transfer could reproduce (§5.4 transfers the
+    *source's* detail): per training clip both identities have, the Pearson r over the
+    target's face texels (high-passed as the metric) between the two identities' maps of the
+    neutral frame (static detail: pores, creases) and of the peak frame minus the neutral
+    (the expression's wrinkles). Both identities come from one rig, so their UV layouts agree."""
+    from service.samples.dataset import performance_names
+
+    def maps(d: Path, name: str):
+        with np.load(d / "performances" / f"{name}.npz") as z:
+            w = z["weights"][z["map_frames"]].sum(axis=1)
+            D = z["displacement"]
+            return tex.highpass(tex.texels(D[0])), tex.highpass(tex.texels(D[int(np.argmax(w))]))
+
+    out = {}
+    common = sorted(set(performance_names(source_dir, "train_")) & set(performance_names(target_dir, "train_")))
+    for name in common:
+        (s0, sp_), (t0, tp) = maps(source_dir, name), maps(target_dir, name)
+        f = tex.face
+        out[name] = {"static_r": float(np.corrcoef(s0[f], t0[f])[0, 1]),
+                     "wrinkle_r": float(np.corrcoef((sp_ - s0)[f], (tp - t0)[f])[0, 1])}
+    return out
+
 
 def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
@@ -345,16 +401,31 @@ def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     return np.array(idx)
 
 
-def run_speed(actor_dir: Path) -> dict:
-    """Only the speed section, with the models a previous run saved (``--speed-only``)."""
-    from service.methods.pose_space import PoseSpaceModel
+SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20}}
+
+
+def run_speed(actor_dir: Path, train_missing: bool = False) -> dict:
+    """Only the speed section, with the models a previous run saved (``--speed-only``), or
+    with ``train_missing`` those of :data:`SPEED_MODELS` not saved yet trained first (defaults,
+    ``map_resolution`` as the clips)."""
+    from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
+    from service.samples.dataset import load_actor
 
     models = OUT / "models" / actor_dir.name
+    models.mkdir(parents=True, exist_ok=True)
     with np.load(actor_dir / "performances" / f"{heldout_names(actor_dir)[0]}.npz") as d:
         mk = d["markers"][: SPEED_WARMUP + SPEED_FRAMES].astype(np.float64)
     out = {}
-    for label in ("PSD", "WPSD", "WPSD P=6", "WPSD P=20"):
+    actor = clips = None
+    for label in SPEED_MODELS:
         path = models / label.replace(" ", "_").replace("=", "")
+        if train_missing and not (path / "manifest.json").is_file():
+            if clips is None:
+                actor = load_actor(actor_dir)
+                clips = training_clips(actor_dir, actor)
+            cls = PsdParams if label == "PSD" else WpsdParams
+            print(f"[{actor_dir.name}] training {label} for the speed section", file=sys.stderr, flush=True)
+            cached_model(path, False, lambda: train(actor, clips, cls(**SPEED_MODELS[label])), PoseSpaceModel.load)
         if (path / "manifest.json").is_file():
             model = PoseSpaceModel.load(path)
             out[label] = speed(model, mk)
@@ -424,16 +495,24 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     if "WPSD P=20" in ps:
         methods["WPSD P=20"] = lambda m: pose_space_prediction(ps["WPSD P=20"], m, tex)
     res["heldout"] = {}
-    for perf in heldout_names(actor_dir):
+    for rname, perf in RANGES.items():
+        if not (actor_dir / "performances" / f"{perf}.npz").is_file():
+            continue
         gt = pr.load_heldout(actor_dir, perf, 6 if quick else None)
-        for cond in CONDITIONS:
-            rng = np.random.default_rng(SEED)
-            clean = gt.markers
-            gt.markers = perturb(clean, cond, rng)
-            log(f"  {perf} / {cond}")
-            res["heldout"][f"{perf} / {cond}"] = evaluate(gt, methods, tex, actor)
-            res["heldout"][f"{perf} / {cond}"]["frames"] = len(gt.frames)
-            gt.markers = clean
+        clean = gt.markers
+        for cond, suffix in CONDITIONS.items():
+            variant = actor_dir / "performances" / f"{perf}{suffix}.npz"
+            if suffix and variant.is_file():       # the actor's stored marker variant
+                with np.load(variant) as z:
+                    gt.markers = z["markers"][gt.frames].astype(np.float64)
+            else:                                  # or our own (σ 0.3 mm / 10 % NaN, seeded)
+                gt.markers = perturb(clean, cond, np.random.default_rng(SEED))
+            log(f"  {rname} / {cond}")
+            key = f"{rname} / {cond}"
+            res["heldout"][key] = evaluate(gt, methods, tex, actor)
+            res["heldout"][key]["frames"] = len(gt.frames)
+            res["heldout"][key]["performance"] = perf + suffix
+        gt.markers = clean
     del baselines
 
     if target_dir is not None:
@@ -454,6 +533,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
                     "WPSD trained on the target": lambda m: pose_space_prediction(own, m, ttex)}
         res["transfer"] = {"target": str(target_dir), "landmarks": LANDMARKS, "seconds": transfer_s,
                            "target_train_s": own_s, "correspondence": moved.metrics["transfer"], "scores": {}}
+        res["transfer"]["identity_overlap"] = identity_overlap(actor_dir, target_dir, ttex)
         for perf in heldout_names(target_dir):
             gt = pr.load_heldout(target_dir, perf, 6 if quick else None)
             log(f"  target {perf}")
@@ -501,6 +581,10 @@ def report(results: list[dict], meta: dict) -> str:
             best = int(np.argmin(vals))
             L.append(f"| {P} | " + " | ".join(("**%.4f**" if j == best else "%.4f") % v
                                              for j, v in enumerate(vals)) + " |")
+        P_, rms_ = r["fig4"]["P"], r["fig4"]["rms_mm"]
+        lowest = [P for i, P in enumerate(P_) if min(rms_, key=lambda k: rms_[k][i]).startswith("WPSD")]
+        L += ["", f"WPSD (either fit) lowest at P = {', '.join(map(str, lowest)) or 'none'} "
+              f"(of {P_[0]}–{P_[-1]})."]
         L += ["", "### Held-out performances", "",
               "Vertex error |V − V_gt| over the face region (mean, max, mm); fine detail: high-passed "
               "detail heights at the face texels (pdm_report's metric): Pearson r and relative error "
@@ -548,6 +632,13 @@ def report(results: list[dict], meta: dict) -> str:
                 for m, s in ev["methods"].items():
                     L.append(f"| {perf} | {ev['frames']} | {m} | {_f(s['medium_mean_mm'])} | {_f(s['max_mm'], 2)} | "
                              f"{_f(s['fine_r'])} | {_f(s['fine_rel'])} | {_f(s['confidence'])} |")
+            ov = t.get("identity_overlap") or {}
+            if ov:
+                L += ["", "What a transfer can reach: Pearson r between the source's and the target's own "
+                      "maps (high-passed, target face texels) of the same training clip — the neutral frame "
+                      "(static detail) and peak − neutral (the expression's wrinkles):", "",
+                      "| clip | static r | wrinkle r |", "|---|---|---|"]
+                L += [f"| {k} | {v['static_r']:.3f} | {v['wrinkle_r']:.3f} |" for k, v in ov.items()]
         L += ["", f"### Speed ({meta['cpus']} cores, one frame per call, median of {SPEED_FRAMES})", "",
               "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | scipy RBFInterpolator ms "
               "(same interpolation) | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
@@ -564,6 +655,7 @@ def report(results: list[dict], meta: dict) -> str:
 
 
 def main() -> None:
+    global OUT
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("actors", nargs="+", type=Path, help="actor directories (sample-actor layout)")
     parser.add_argument("--target", type=Path, help="second identity for the transfer (sample-actor layout)")
@@ -571,10 +663,14 @@ def main() -> None:
     parser.add_argument("--reuse", action="store_true", help="reuse models saved under benchmarks/out/pose_space/models")
     parser.add_argument("--speed-only", action="store_true",
                         help="only the speed section, with the models of a previous run (report_speed.md)")
+    parser.add_argument("--train-missing", action="store_true",
+                        help="with --speed-only: train the speed section's models that are not saved yet")
+    parser.add_argument("--out", type=Path, help="output directory (default benchmarks/out/pose_space)")
     args = parser.parse_args()
+    OUT = args.out.resolve() if args.out else OUT
     OUT.mkdir(parents=True, exist_ok=True)
     if args.speed_only:
-        res = {a.name: run_speed(a.resolve()) for a in args.actors}
+        res = {a.name: run_speed(a.resolve(), args.train_missing) for a in args.actors}
         lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})", ""]
         for name, sp_ in res.items():
             lines += [f"## {name}", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "

@@ -35,6 +35,10 @@ class PoseSpaceData:
     map_resolution int              0: no map band
     map_index (Pt,) int64           covered texels (row-major) of the map
     map_weights (Pt,P) float32      per-texel weights of the fine displacement
+    poly_const (n,3) float32 | None     constant of the polynomial term (:mod:`.polynomial`)
+    poly_linear (3n,E) CSR float32 | None   its linear coefficients, row 3v + c
+    map_poly_const (Pt,) float32 | None, map_poly_linear (Pt,E) CSR float32 | None   the same
+                                    for the fine map's texels
     feature_low, feature_high (E,) float64   training range of every feature
     confidence_scale float          δ₀ of the confidence (module docstring)
     basis_names tuple of str        the basis poses as "clip:frame"
@@ -64,6 +68,10 @@ class PoseSpaceData:
     confidence_scale: float
     basis_names: tuple[str, ...] = ()
     metrics: dict = field(default_factory=dict)
+    poly_const: np.ndarray | None = None
+    poly_linear: sp.csr_matrix | None = None
+    map_poly_const: np.ndarray | None = None
+    map_poly_linear: sp.csr_matrix | None = None
 
     @property
     def kind(self) -> str:

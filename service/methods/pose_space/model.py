@@ -14,7 +14,10 @@ Training (:func:`train`), from clips of high-resolution frames with their marker
 6. smoothing λ (if not given) by validation on held-out training frames (below);
 7. basis: greedy selection (§5.2) from the frame of smallest strain (the rest pose);
 8. weights: exact interpolation of the basis or least squares over all frames (§5.2),
-   per vertex with the vertex's metric for WPSD (eq. 5), shared for PSD (eq. 2).
+   per vertex with the vertex's metric for WPSD (eq. 5), shared for PSD (eq. 2), with the
+   linear polynomial term of the biharmonic spline where ``params.polynomial`` is
+   ``"linear"`` (WPSD's default: local, over the vertex's α support; :mod:`.polynomial`
+   has the form, the reason and the measured effect).
 
 Synthesis (:meth:`PoseSpaceModel.synthesize`, §5.3 "at run-time"): markers → head pose →
 handle displacements (occluded completed) → shell ``X = 𝓕 + B u_H`` → features → per-vertex
@@ -69,7 +72,7 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
     BaseSurface, HeadPose, TooFewMarkers, head_alignment, training_head_pose,
 )
-from service.methods.pose_space import rbf, store
+from service.methods.pose_space import polynomial, rbf, store
 from service.methods.pose_space.data import PoseSpaceData
 from service.methods.pose_space.corrections import apply_corrections, corrections, large_scale_surface
 from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs
@@ -122,6 +125,8 @@ class PoseSpaceEvaluator:
         self.weights = np.ascontiguousarray(data.weights)
         if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
             self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
+        self.poly_linear = None if data.poly_linear is None else data.poly_linear.tocsr()
+        self.map_poly_linear = None if data.map_poly_linear is None else data.map_poly_linear.tocsr()
         self.map_interp = self.map_sampler = None
         self.normal_mapper: NormalMapper | None = None
         if data.map_resolution:
@@ -175,24 +180,35 @@ class PoseSpaceEvaluator:
             return np.einsum("fpe,fpe->fp", g, g)[None]
         return weighted_sq_distances(self.alpha, f, fb)
 
-    def corrections(self, D2: np.ndarray) -> np.ndarray:
-        """Corrections c (F,n,3) in the tangent frames, from :meth:`sq_distances` (eq. 2, 5)."""
+    def corrections(self, D2: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """Corrections c (F,n,3) in the tangent frames, from :meth:`sq_distances` of features
+        f (F,E) (eq. 2, 5, plus the polynomial term of :mod:`.polynomial` if stored)."""
         phi = rbf.kernel(np.sqrt(D2))
         if self.alpha is None:      # per frame W.T @ φ: a GEMV (a (1,P)@(P,3n) GEMM is ~100x
             Wt = self.weights.T       # slower in OpenBLAS when the cores are busy)
-            return np.stack([Wt @ p for p in phi[0].astype(np.float32)]).reshape(len(phi[0]), -1, 3)
-        return np.einsum("nfp,npc->fnc", phi, self.weights, optimize=True)
+            c = np.stack([Wt @ p for p in phi[0].astype(np.float32)]).reshape(len(phi[0]), -1, 3)
+        else:
+            c = np.einsum("nfp,npc->fnc", phi, self.weights, optimize=True)
+        if self.poly_linear is not None:
+            c = c + polynomial.evaluate(self.data.poly_const, self.poly_linear, f)
+        return c
 
-    def fine_map(self, D2: np.ndarray) -> np.ndarray:
-        """Fine displacement (F,Pt) float32 at the map texels (module docstring: the map band)."""
+    def fine_map(self, D2: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """Fine displacement (F,Pt) float32 at the map texels of features f (F,E) (module
+        docstring: the map band)."""
         W = self.data.map_weights
         if self.alpha is None:
-            return (rbf.kernel(np.sqrt(D2[0])) @ W.T).astype(np.float32)
-        n, F, P = D2.shape
-        t2 = self.map_interp32 @ D2.reshape(n, F * P).astype(np.float32)      # (Pt,F·P)
-        np.maximum(t2, 0.0, out=t2)
-        phi = rbf.kernel(np.sqrt(t2, out=t2)).reshape(-1, F, P)
-        return np.matmul(phi, W[:, :, None])[..., 0].T                         # (F,Pt)
+            out = (rbf.kernel(np.sqrt(D2[0])) @ W.T).astype(np.float32)
+        else:
+            n, F, P = D2.shape
+            t2 = self.map_interp32 @ D2.reshape(n, F * P).astype(np.float32)      # (Pt,F·P)
+            np.maximum(t2, 0.0, out=t2)
+            phi = rbf.kernel(np.sqrt(t2, out=t2)).reshape(-1, F, P)
+            out = np.matmul(phi, W[:, :, None])[..., 0].T                         # (F,Pt)
+        if self.map_poly_linear is not None:
+            out = out + polynomial.evaluate(self.data.map_poly_const[:, None], self.map_poly_linear,
+                                            f)[..., 0].astype(np.float32)
+        return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -274,12 +290,12 @@ class PoseSpaceModel:
             f, out["clamped"][sl] = ev.limit(f, margin)
             X = ev.base.deform(u_H)
             D2 = ev.sq_distances(f)
-            medium = apply_corrections(ev.base, X, ev.corrections(D2))
+            medium = apply_corrections(ev.base, X, ev.corrections(D2, f))
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if not want & {"mesh_detailed", "displacement", "normal_map"}:
                 continue
-            disp = ev.fine_map(D2)                                               # (f,Pt)
+            disp = ev.fine_map(D2, f)                                            # (f,Pt)
             if "displacement" in out:
                 out["displacement"][sl].reshape(len(disp), -1)[:, d.map_index] = disp
             if want & {"mesh_detailed", "normal_map"}:
@@ -318,6 +334,14 @@ def _phi(rows: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix | None) -> np
     return rbf.kernel(np.sqrt(weighted_sq_distances(alpha, rows, basis)))
 
 
+def _row_argmax(M: sp.csr_matrix) -> np.ndarray:
+    """Column of the largest entry of every row (B,) of a CSR matrix without empty rows."""
+    M = M.tocsr()
+    r = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
+    order = np.lexsort((-M.data, r))
+    return M.indices[order[M.indptr[:-1]]]
+
+
 def _even_sample(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(np.int64))
 
@@ -328,19 +352,39 @@ def _targets(C: np.ndarray, verts: np.ndarray, wpsd: bool) -> np.ndarray:
     return c.transpose(1, 0, 2) if wpsd else c.reshape(len(C), 1, -1).transpose(1, 0, 2)
 
 
+def support(alpha: sp.csr_matrix | None, n_edges: int, params: Params):
+    """The polynomial's support (idx, mask) (B,w) (:func:`.polynomial.support_index`): WPSD the
+    rows of ``alpha``, PSD one row of all ``n_edges`` features; None without a polynomial."""
+    if params.polynomial == "none":
+        return None
+    if alpha is None:
+        return np.arange(n_edges)[None], np.ones((1, n_edges), bool)
+    return polynomial.support_index(alpha)
+
+
+def _poly(F: np.ndarray, sup, rows=slice(None)) -> np.ndarray | None:
+    """Polynomial columns (B,T,1+w) of features F (T,E) for the support rows ``rows``."""
+    if sup is None:
+        return None
+    idx, mask = sup
+    return polynomial.design(F, idx[rows], mask[rows])
+
+
 def select_basis(F: np.ndarray, D: np.ndarray, alpha: sp.csr_matrix | None, params: Params,
-                 smoothing: float, first: int) -> tuple[list[int], list[float]]:
+                 smoothing: float, first: int, Q: np.ndarray | None = None) -> tuple[list[int], list[float]]:
     """Greedy basis (§5.2) over training features F (T,E) and targets D (B,T,C)
-    (WPSD: alpha (B,E) of the B vertices; PSD: alpha None, B = 1)."""
+    (WPSD: alpha (B,E) of the B vertices; PSD: alpha None, B = 1), fitted with the
+    polynomial columns Q (B,T,q) if given."""
     return rbf.greedy_basis(lambda j: _phi(F, F[j:j + 1], alpha)[:, :, 0], D, params.basis_size,
-                            first, smoothing, params.fit == "exact", params.error_threshold)
+                            first, smoothing, params.fit == "exact", params.error_threshold, Q)
 
 
 def validate_smoothing(F: np.ndarray, F_noisy: np.ndarray, D: np.ndarray, alpha, params: Params,
-                       first: int) -> tuple[float, list[dict]]:
+                       first: int, sup=None) -> tuple[float, list[dict]]:
     """λ from ``params.smoothing_grid`` by held-out training frames (module docstring).
 
-    F (T,E) clean features, F_noisy (T,E) features from noisy markers, D (B,T,C) targets.
+    F (T,E) clean features, F_noisy (T,E) features from noisy markers, D (B,T,C) targets,
+    sup the polynomial's support of the B rows (:func:`support`) or None.
     Returns the chosen λ and the table [{smoothing, rms}] (rms in the targets' unit).
     """
     T = len(F)
@@ -349,13 +393,14 @@ def validate_smoothing(F: np.ndarray, F_noisy: np.ndarray, D: np.ndarray, alpha,
     held[first] = False
     fit, val = np.flatnonzero(~held), np.flatnonzero(held)
     # one greedy selection (at the ridge floor); every λ refits that basis
-    sel, _ = select_basis(F[fit], D[:, fit], alpha, params, 0.0, int(np.searchsorted(fit, first)))
+    Q, Q_val = _poly(F[fit], sup), _poly(F_noisy[val], sup)
+    sel, _ = select_basis(F[fit], D[:, fit], alpha, params, 0.0, int(np.searchsorted(fit, first)), Q)
     basis = F[fit][sel]
     Phi, Phi_val = _phi(F[fit], basis, alpha), _phi(F_noisy[val], basis, alpha)
     table = []
     for lam in params.smoothing_grid:
-        W = rbf.fit_basis(Phi, D[:, fit], sel, lam, params.fit == "exact")
-        err = rbf.residual_sq(Phi_val, D[:, val], W)
+        W = rbf.fit_basis(Phi, D[:, fit], sel, lam, params.fit == "exact", Q)
+        err = rbf.residual_sq(rbf.columns(Phi_val, Q_val), D[:, val], W)
         table.append({"smoothing": float(lam), "rms": float(np.sqrt(err.sum() / (D[:, val].size)))})
     best = min(table, key=lambda r: r["rms"])
     return best["smoothing"], table
@@ -443,6 +488,9 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
     first = int(np.argmin(np.linalg.norm(F, axis=1)))
     sample = _even_sample(n, params.selection_vertices)
     alpha_s = None if alpha is None else alpha[sample]
+    E = graph.n_edges
+    sup = support(alpha, E, params)                                           # polynomial
+    sup_s = sup if sup is None or not wpsd else (sup[0][sample], sup[1][sample])
     D_s = _targets(C, sample, wpsd)
     table = None
     smoothing = params.smoothing
@@ -452,17 +500,18 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         noisy = markers + rng.normal(0.0, params.validation_noise_mm, markers.shape)
         pn = head_alignment(noisy, rest, pose_weights)
         F_noisy = shell_features(base.handle_displacements(pn.remove(noisy)))
-        smoothing, table = validate_smoothing(F, F_noisy, D_s, alpha_s, params, first)
+        smoothing, table = validate_smoothing(F, F_noisy, D_s, alpha_s, params, first, sup_s)
 
     progress(0.45, "basis selection")
     if wpsd:
-        sel, sel_errors = select_basis(F, D_s, alpha_s, params, smoothing, first)
+        sel, sel_errors = select_basis(F, D_s, alpha_s, params, smoothing, first, _poly(F, sup_s))
     else:
         K = np.zeros((T, T))
         for v0 in range(0, n, FIT_CHUNK):
             Cv = C[:, v0:v0 + FIT_CHUNK].reshape(T, -1).astype(np.float64)
             K += Cv @ Cv.T
-        sel, sel_errors = select_basis(F, rbf.gram_factor(K)[None], None, params, smoothing, first)
+        sel, sel_errors = select_basis(F, rbf.gram_factor(K)[None], None, params, smoothing, first,
+                                       _poly(F, sup))
     basis = F[sel]
     P = len(sel)
     exact = params.fit == "exact"
@@ -470,26 +519,41 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
     progress(0.55, "weights")
     weights = np.empty((n, P, 3), np.float32)
     fit_sq = np.zeros(n)
+    poly_parts = []                                   # (const (c,3), linear CSR (3c,E)) per chunk
     if wpsd:
         for v0 in range(0, n, FIT_CHUNK):
             vs = np.arange(v0, min(v0 + FIT_CHUNK, n))
             Phi = _phi(F, basis, alpha[vs])
+            Q = _poly(F, sup, vs)
             Dv = _targets(C, vs, True)
-            W = rbf.fit_basis(Phi, Dv, sel, smoothing, exact)
-            weights[vs] = W
-            R = Dv - np.einsum("btp,bpc->btc", Phi, W)
+            W = rbf.fit_basis(Phi, Dv, sel, smoothing, exact, Q)
+            weights[vs] = W[:, :P]
+            if Q is not None:
+                poly_parts.append(polynomial.to_sparse(W[:, P:], sup[0][vs], sup[1][vs], E))
+            R = Dv - rbf.columns(Phi, Q) @ W
             fit_sq[vs] = np.einsum("btc,btc->b", R, R)
     else:
         Phi = _phi(F, basis, None)
-        S = rbf.fit_basis(Phi, np.eye(T)[None], sel, smoothing, exact)[0]      # (P,T): W = S D
+        Q = _poly(F, sup)
+        X = rbf.columns(Phi, Q)[0]
+        S = rbf.fit_basis(Phi, np.eye(T)[None], sel, smoothing, exact, Q)[0]   # (P+q,T): W = S D
         for v0 in range(0, n, FIT_CHUNK):
             Cv = C[:, v0:v0 + FIT_CHUNK].astype(np.float64)                     # (T,c,3)
             W = np.einsum("pt,tvc->vpc", S, Cv)
-            weights[v0:v0 + FIT_CHUNK] = W
-            R = Cv - np.einsum("tp,vpc->tvc", Phi[0], W)
+            weights[v0:v0 + FIT_CHUNK] = W[:, :P]
+            if Q is not None:
+                c = len(W)
+                poly_parts.append(polynomial.to_sparse(W[:, P:], np.tile(sup[0], (c, 1)),
+                                                       np.tile(sup[1], (c, 1)), E))
+            R = Cv - np.einsum("tp,vpc->tvc", X, W)
             fit_sq[v0:v0 + FIT_CHUNK] = np.einsum("tvc,tvc->v", R, R)
+    poly_const = poly_linear = None
+    if poly_parts:
+        poly_const = np.concatenate([c for c, _ in poly_parts]).astype(np.float32)
+        poly_linear = sp.vstack([a for _, a in poly_parts], format="csr").astype(np.float32)
 
     map_weights = np.zeros((len(map_index), P), np.float32)
+    map_poly_const = map_poly_linear = None
     map_rms = None
     if maps is not None:
         progress(0.75, "map weights")
@@ -497,19 +561,36 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
             interp = interpolation_matrix(raster, actor.faces, n)[map_index].tocsr()
             G = ((F[:, None, :] - basis[None]) ** 2).reshape(T * P, -1).T        # (E,T·P)
             sq = 0.0
+            # the polynomial of a texel: its nearest vertex's support (polynomial.py)
+            nearest = _row_argmax(interp) if sup is not None else None
+            parts = []
             for t0 in range(0, len(map_index), TEXEL_CHUNK):
                 rows = interp[t0:t0 + TEXEL_CHUNK]
                 verts = np.unique(rows.indices)
                 D2 = np.asarray(alpha[verts] @ G)                                 # (|v|,T·P)
                 Phi = rbf.kernel(np.sqrt(np.maximum(rows[:, verts] @ D2, 0.0))).reshape(-1, T, P)
                 Dt = maps[:, t0:t0 + TEXEL_CHUNK].T[..., None].astype(np.float64)
-                W = rbf.fit_basis(Phi, Dt, sel, smoothing, exact)
-                map_weights[t0:t0 + TEXEL_CHUNK] = W[..., 0]
-                sq += rbf.residual_sq(Phi, Dt, W).sum()
+                Q = None if sup is None else _poly(F, sup, nearest[t0:t0 + TEXEL_CHUNK])
+                W = rbf.fit_basis(Phi, Dt, sel, smoothing, exact, Q)
+                map_weights[t0:t0 + TEXEL_CHUNK] = W[:, :P, 0]
+                if Q is not None:
+                    nv = nearest[t0:t0 + TEXEL_CHUNK]
+                    parts.append(polynomial.to_sparse(W[:, P:], sup[0][nv], sup[1][nv], E))
+                sq += rbf.residual_sq(rbf.columns(Phi, Q), Dt, W).sum()
+            if parts:
+                map_poly_const = np.concatenate([c[:, 0] for c, _ in parts]).astype(np.float32)
+                map_poly_linear = sp.vstack([a for _, a in parts], format="csr").astype(np.float32)
         else:
-            map_weights[:] = (S @ maps.astype(np.float64)).T
-            R = maps - Phi[0] @ map_weights.T.astype(np.float64)
+            Wm = (S @ maps.astype(np.float64)).T                                  # (Pt,P+q)
+            map_weights[:] = Wm[:, :P]
+            R = maps - X @ Wm.T
             sq = float(np.einsum("tp,tp->", R, R))
+            if Q is not None:
+                Pt = len(map_index)
+                map_poly_const, map_poly_linear = polynomial.to_sparse(
+                    Wm[:, P:, None], np.tile(sup[0], (Pt, 1)), np.tile(sup[1], (Pt, 1)), E)
+                map_poly_const = map_poly_const[:, 0].astype(np.float32)
+                map_poly_linear = map_poly_linear.astype(np.float32)
         map_rms = float(np.sqrt(sq / maps.size))
 
     progress(0.95, "metrics")
@@ -537,6 +618,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         "map_fit_rms_mm": map_rms,
         "map_signal_rms_mm": None if maps is None else float(np.sqrt(np.mean(maps.astype(np.float64) ** 2))),
         "alpha_nonzero_per_vertex": None if alpha is None else float(alpha.nnz / n),
+        "polynomial": params.polynomial,
     }
     data = PoseSpaceData(
         params=params, faces=np.asarray(actor.faces, np.int64), uv=np.asarray(actor.uv, np.float64),
@@ -549,7 +631,9 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         map_resolution=int(H), map_index=map_index, map_weights=map_weights,
         feature_low=F.min(axis=0), feature_high=F.max(axis=0),
         confidence_scale=float(max(np.median(norms), 1e-9)),
-        basis_names=tuple(names[j] for j in sel), metrics=metrics)
+        basis_names=tuple(names[j] for j in sel), metrics=metrics,
+        poly_const=poly_const, poly_linear=poly_linear,
+        map_poly_const=map_poly_const, map_poly_linear=map_poly_linear)
     progress(1.0, "done")
     return PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
 

@@ -90,12 +90,24 @@ class PsdParams(PoseSpaceParams):
     """Pose-space deformation with one feature distance per pose (bickel2008 §5.2, eq. 2)."""
 
     method: Literal["psd"] = Field(default="psd", description="Global pose-space deformation.")
+    polynomial: Literal["none", "linear"] = Field(
+        default="none",
+        description="Polynomial term of the biharmonic RBF ([CBC*01]; polynomial.py): 'none' "
+                    "is eq. 2 as printed; 'linear' adds a constant and a linear term in all E "
+                    "features (E + 1 unknowns per coordinate: with fewer training frames than "
+                    "features it interpolates the training set).")
 
 
 class WpsdParams(PoseSpaceParams):
     """Weighted pose-space deformation (bickel2008 §5.3, eq. 3-5)."""
 
     method: Literal["wpsd"] = Field(default="wpsd", description="Per-vertex weighted PSD.")
+    polynomial: Literal["none", "linear"] = Field(
+        default="linear",
+        description="Polynomial term of the biharmonic RBF ([CBC*01]; polynomial.py): "
+                    "'linear' adds per vertex a constant and a linear term in the features of "
+                    "the vertex's α support (local, like the distance); 'none' is eq. 5 as "
+                    "printed.")
     alpha_threshold: float = Field(
         default=0.025, gt=0.0, lt=1.0,
         description="Discard edge weights ᾱ below this value (§5.3: 0.025).")

@@ -48,10 +48,11 @@ def solve_weights(Phi: np.ndarray, D: np.ndarray, smoothing: float = 0.0,
     Phi : (B,T,P) float   kernel values φ(‖f_t − f_j‖) of T fitted poses and P basis poses
     D : (B,T,C) float     targets at the T poses (C = 3 per vertex, 1 per texel, 3n for PSD)
     smoothing : float     relative ridge λ (module docstring), ≥ 0
-    exact : bool          T == P and the basis poses are interpolated: with λ = 0 the
-                          square system is solved as it is (no normal equations); a
-                          singular one (a single pose: φ(0) = 0 makes it [0]) falls back
-                          to the ridge floor
+    exact : bool          T ≤ P and the basis poses are interpolated: with λ = 0 the
+                          square system is solved as it is (no normal equations), a wide
+                          one (T < P: kernel plus polynomial columns, :mod:`.polynomial`)
+                          by its minimum-norm solution Φᵀ(ΦΦᵀ)⁻¹D; a singular one (a
+                          single pose: φ(0) = 0 makes it [0]) falls back to the ridge floor
 
     Returns
     -------
@@ -59,10 +60,14 @@ def solve_weights(Phi: np.ndarray, D: np.ndarray, smoothing: float = 0.0,
     """
     Phi = np.asarray(Phi, dtype=np.float64)
     D = np.asarray(D, dtype=np.float64)
-    P = Phi.shape[2]
+    T, P = Phi.shape[1:]
     if exact and smoothing == 0:
         try:
-            return np.linalg.solve(Phi, D)
+            if T == P:
+                return np.linalg.solve(Phi, D)
+            if T < P:                       # with the polynomial: the minimum-norm interpolant
+                Xt = Phi.transpose(0, 2, 1)
+                return Xt @ np.linalg.solve(Phi @ Xt, D)
         except np.linalg.LinAlgError:       # one pose (φ(0) = 0) or duplicated poses
             pass
     PhiT = Phi.transpose(0, 2, 1)
@@ -78,18 +83,29 @@ def residual_sq(Phi: np.ndarray, D: np.ndarray, W: np.ndarray) -> np.ndarray:
     return np.einsum("btc,btc->t", R, R)
 
 
-def fit_basis(Phi: np.ndarray, D: np.ndarray, selected, smoothing: float, exact: bool) -> np.ndarray:
-    """Weights (B,P,C) for the basis ``selected`` (P,) — columns of Phi (B,T,P) in that order —
-    by exact interpolation of the selected frames or least squares over all T frames."""
+def columns(Phi: np.ndarray, Q: np.ndarray | None) -> np.ndarray:
+    """The design matrix (B,T,P+q): kernel columns Phi (B,T,P) and polynomial columns Q
+    (B or 1,T,q) (:func:`.polynomial.design`), or Phi alone."""
+    if Q is None:
+        return Phi
+    return np.concatenate([Phi, np.broadcast_to(Q, Phi.shape[:2] + Q.shape[2:])], axis=2)
+
+
+def fit_basis(Phi: np.ndarray, D: np.ndarray, selected, smoothing: float, exact: bool,
+              Q: np.ndarray | None = None) -> np.ndarray:
+    """Weights (B,P+q,C) for the basis ``selected`` (P,) — columns of Phi (B,T,P) in that order —
+    and the polynomial columns Q (B,T,q) if given, by exact interpolation of the selected
+    frames or least squares over all T frames."""
+    X = columns(Phi, Q)
     if exact:
         sel = np.asarray(selected)
-        return solve_weights(Phi[:, sel], D[:, sel], smoothing, exact=True)
-    return solve_weights(Phi, D, smoothing)
+        return solve_weights(X[:, sel], D[:, sel], smoothing, exact=True)
+    return solve_weights(X, D, smoothing)
 
 
 def greedy_basis(column: Callable[[int], np.ndarray], D: np.ndarray, size: int, first: int,
                  smoothing: float = 0.0, exact: bool = False,
-                 threshold: float = 0.0) -> tuple[list[int], list[float]]:
+                 threshold: float = 0.0, Q: np.ndarray | None = None) -> tuple[list[int], list[float]]:
     """Greedy basis selection of §5.2 ([CBC*01]).
 
     Parameters
@@ -101,6 +117,7 @@ def greedy_basis(column: Callable[[int], np.ndarray], D: np.ndarray, size: int, 
     first : int            the first basis pose (the rest pose)
     smoothing, exact       as :func:`solve_weights`
     threshold : float      stop once the relative RMS error ``‖R‖/‖D‖`` is ≤ this
+    Q : (B,T,q) or None    polynomial columns fitted with every basis (:mod:`.polynomial`)
 
     Returns
     -------
@@ -117,8 +134,8 @@ def greedy_basis(column: Callable[[int], np.ndarray], D: np.ndarray, size: int, 
     for p in range(size):
         Phi[:, :, p] = column(j)
         selected.append(j)
-        W = fit_basis(Phi[:, :, :p + 1], D, selected, smoothing, exact)
-        err = residual_sq(Phi[:, :, :p + 1], D, W)
+        W = fit_basis(Phi[:, :, :p + 1], D, selected, smoothing, exact, Q)
+        err = residual_sq(columns(Phi[:, :, :p + 1], Q), D, W)
         errors.append(float(np.sqrt(err.sum() / total)))
         if errors[-1] <= threshold or p + 1 == size:
             break

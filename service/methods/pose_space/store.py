@@ -3,7 +3,8 @@
 * ``model.npz``  every array of :class:`~.model.PoseSpaceData` in the dtype the model holds
   (the rest mesh and layout, handles, rest markers, pose weights, feature nodes and graph,
   basis features, per-vertex RBF weights (n,P,3) float32, α as CSR arrays ``alpha_data``
-  float32 / ``alpha_indices`` / ``alpha_indptr`` (WPSD), the map band's texels and weights,
+  float32 / ``alpha_indices`` / ``alpha_indptr`` (WPSD), the polynomial term (``poly_*``,
+  ``map_poly_*``: the linear parts as CSR arrays like α), the map band's texels and weights,
   the training feature range); a load reproduces the model bit for bit;
 * ``cache.npz``  the thin-shell basis (n,M) float32 and handle energy: derived (a load
   without it recomputes them), listed under ``derived`` and checksummed like the rest;
@@ -33,6 +34,9 @@ CACHE = "cache.npz"
 ARRAYS = ("faces", "uv", "uv_faces", "neutral", "handles", "rest_markers", "pose_weights",
           "node_triangle", "node_barycentric", "edges", "rest_length", "basis_features", "weights",
           "map_index", "map_weights", "feature_low", "feature_high")
+#: CSR arrays (``NAME_data`` / ``_indices`` / ``_indptr`` / ``_shape``) and optional dense arrays
+SPARSE = ("alpha", "poly_linear", "map_poly_linear")
+OPTIONAL = ("poly_const", "map_poly_const")
 
 
 def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
@@ -41,9 +45,14 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     arrays = {k: getattr(d, k) for k in ARRAYS}
-    if d.alpha is not None:
-        arrays.update(alpha_data=d.alpha.data, alpha_indices=d.alpha.indices,
-                      alpha_indptr=d.alpha.indptr, alpha_shape=np.array(d.alpha.shape))
+    for name in SPARSE:
+        m = getattr(d, name)
+        if m is not None:
+            arrays.update({f"{name}_data": m.data, f"{name}_indices": m.indices,
+                           f"{name}_indptr": m.indptr, f"{name}_shape": np.array(m.shape)})
+    for name in OPTIONAL:
+        if getattr(d, name) is not None:
+            arrays[name] = getattr(d, name)
     files = {"model.npz": write_npz(path / "model.npz", arrays)}
     derived = {CACHE: write_npz(path / CACHE, {"basis": base.basis, "energy": base.energy})}
     manifest = {
@@ -72,14 +81,13 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     missing = [k for k in ARRAYS if k not in a]
     if missing:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
-    alpha = None
-    if "alpha_data" in a:
-        alpha = sp.csr_matrix((a["alpha_data"], a["alpha_indices"], a["alpha_indptr"]),
-                              shape=tuple(int(x) for x in a["alpha_shape"]))
+    sparse = {name: sp.csr_matrix((a[f"{name}_data"], a[f"{name}_indices"], a[f"{name}_indptr"]),
+                                  shape=tuple(int(x) for x in a[f"{name}_shape"]))
+              if f"{name}_data" in a else None for name in SPARSE}
     params = parse_params(manifest["params"])
     if params.method != kind:
         raise ModelCorrupt(f"{path}: params are for {params.method}, the manifest says {kind}")
-    d = PoseSpaceData(params=params, alpha=alpha, map_resolution=int(manifest["map_resolution"]),
+    d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL}, map_resolution=int(manifest["map_resolution"]),
                       confidence_scale=float(manifest["confidence_scale"]),
                       basis_names=tuple(manifest["basis_names"]), metrics=manifest["metrics"],
                       **{k: a[k] for k in ARRAYS})

@@ -24,20 +24,24 @@ Departures: the tangent frames of the two faces need not agree (different UV lay
 each transferred weight vector is rotated from the deformed source's frame at the
 corresponding point into the target's frame (one 3×3 per vertex; identity for the same
 layout). The fine map band (texel weights) is transferred by sampling the source's weight
-maps at each target texel's corresponding source UV. Detail amplitudes stay in the
+maps at each target texel's corresponding source UV. The polynomial term (:mod:`.polynomial`)
+moves like the weights: its constant and linear coefficients are interpolated with the
+barycentric correspondence (a sparse product: the union of the supports) and rotated; the
+map's by a sparse bilinear lookup. Detail amplitudes stay in the
 source's millimetres (no scaling by face size).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from service.geometry.closest_point import closest_points, surface_points
 from service.geometry.deformation_gradient import polar_decomposition
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import ThinShellSolver
-from service.geometry.uv_raster import dilate, rasterize_uv, sample_map
+from service.geometry.uv_raster import dilate, rasterize_uv, sample_map, uv_to_texel
 from service.methods.inputs import ActorData, InvalidInput, Progress, no_progress
 from service.methods.pose_space.corrections import large_scale_surface
 from service.methods.pose_space.model import PoseSpaceData, PoseSpaceEvaluator, PoseSpaceModel, node_operator
@@ -88,6 +92,25 @@ def _texel_source_uv(raster, index, Ft, Vt, fitted, Fs, uv_s, uvf_s, cp, H) -> n
     return out
 
 
+def _bilinear_matrix(uv: np.ndarray, H: int, covered: np.ndarray) -> sp.csr_matrix:
+    """(K,H·H) sparse bilinear lookup at UV points (``sample_map``'s convention) restricted to
+    the ``covered`` (H·H,) texels: uncovered corners are dropped and the rest renormalized (the
+    sparse counterpart of dilating the map before ``sample_map``); a point with no covered
+    corner gets an empty row."""
+    xy = uv_to_texel(uv, H, H)
+    x, y = np.clip(xy[:, 0], 0.0, H - 1), np.clip(xy[:, 1], 0.0, H - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(H - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
+    fx, fy = x - x0, y - y0
+    cols = np.stack([y0 * H + x0, y0 * H + x0 + 1, (y0 + 1) * H + x0, (y0 + 1) * H + x0 + 1], axis=1)
+    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    w = w * covered[cols]
+    tot = w.sum(axis=1, keepdims=True)
+    w = np.divide(w, tot, out=np.zeros_like(w), where=tot > 0)
+    K = len(uv)
+    return sp.csr_matrix((w.ravel(), (np.repeat(np.arange(K), 4), cols.ravel())), shape=(K, H * H))
+
+
 def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
              pose_weights: np.ndarray | None = None, progress: Progress = no_progress) -> PoseSpaceModel:
     """A pose-space model of the same kind for ``target``, from ``model``'s details (§5.4).
@@ -135,6 +158,14 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     W = (C @ s.weights.reshape(len(Vs), -1).astype(np.float64)).reshape(n_t, P, 3)
     W = np.einsum("tij,tpj->tpi", rot, W).astype(np.float32)
     alpha = None if s.alpha is None else (C @ s.alpha.astype(np.float64)).tocsr().astype(np.float32)
+    poly_const = poly_linear = None
+    if s.poly_linear is not None:                # the polynomial term, interpolated and rotated
+        poly_const = np.einsum("tij,tj->ti", rot, C @ s.poly_const.astype(np.float64)).astype(np.float32)
+        A = s.poly_linear.astype(np.float64).tocsr()
+        moved = [C @ A[c::3] for c in range(3)]                                 # (n_t,E) each
+        rows = [sum(sp.diags(rot[:, i, j]) @ moved[j] for j in range(3)) for i in range(3)]
+        perm = np.arange(3 * n_t).reshape(3, n_t).T.ravel()                   # row 3t + i
+        poly_linear = sp.vstack(rows, format="csr")[perm].astype(np.float32)
     src_nodes = surface_points(fitted, Fs, s.node_triangle, s.node_barycentric)
     nodes = closest_points(Vt, Ft, src_nodes)
     node_rest = surface_points(Vt, Ft, nodes.triangle, nodes.barycentric)
@@ -144,6 +175,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
                            "check the landmarks")
     # the fine map band, sampled at each target texel's corresponding source UV
     map_index, map_weights = np.zeros(0, np.int64), np.zeros((0, P), np.float32)
+    map_poly_const = map_poly_linear = None
     H = s.map_resolution
     if H:
         img = np.zeros((H * H, P))
@@ -155,6 +187,10 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
         map_index = np.flatnonzero(raster.mask.ravel())
         texel_uv = _texel_source_uv(raster, map_index, Ft, Vt, fitted, Fs, s.uv, s.uv_faces, cp, H)
         map_weights = sample_map(img, texel_uv).reshape(len(map_index), P).astype(np.float32)
+        if s.map_poly_linear is not None:
+            Sm = _bilinear_matrix(texel_uv, H, mask)[:, s.map_index]            # (Pt_t,Pt_s)
+            map_poly_const = (Sm @ s.map_poly_const.astype(np.float64)).astype(np.float32)
+            map_poly_linear = (Sm @ s.map_poly_linear.astype(np.float64)).tocsr().astype(np.float32)
     progress(0.8, "target thin shell")
     base = large_scale_surface(target)
     M = target.n_markers
@@ -178,7 +214,8 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
         basis_features=s.basis_features, weights=W, alpha=alpha, map_resolution=H,
         map_index=map_index, map_weights=map_weights, feature_low=s.feature_low,
         feature_high=s.feature_high, confidence_scale=s.confidence_scale,
-        basis_names=s.basis_names, metrics=metrics)
+        basis_names=s.basis_names, metrics=metrics, poly_const=poly_const, poly_linear=poly_linear,
+        map_poly_const=map_poly_const, map_poly_linear=map_poly_linear)
     model = PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
     progress(1.0, "done")
     return model
