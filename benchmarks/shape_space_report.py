@@ -157,7 +157,7 @@ def actor_level(actor_dir: Path) -> int:
 
 
 def params_json(params) -> str:
-    return json.dumps(dataclasses.asdict(params), sort_keys=True)
+    return json.dumps(params.model_dump(mode="json"), sort_keys=True)
 
 
 # --------------------------------------------------------------------------------------

@@ -439,7 +439,8 @@ class ShapeSpaceModel:
             raise InvalidInput("this model has no marker layout; give vertices")
         if self._shell is None:
             self._shell = MarkerShell.build(self.neutral, self.faces, self.marker_triangle,
-                                            self.marker_barycentric, self.marker_weights)
+                                            self.marker_barycentric, self.marker_weights).with_marker_noise(
+                self.params.marker_noise_mm, self.metrics.get("marker_prior_scale_mm"))
         return self._shell(markers)
 
     def _pose_space_correction(self, enc: dict, weights: np.ndarray) -> dict:
@@ -693,6 +694,11 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     )
     progress(0.9, "prepare")
     model.prepare()
+    if actor.n_markers:                # the shell prior of marker_noise_mm, from the database
+        shell = MarkerShell.build(d0, F, model.marker_triangle, model.marker_barycentric, marker_weights)
+        tau = model.metrics["marker_prior_scale_mm"] = shell.prior_scale(np.stack(
+            [clips[c].markers[f] for c, f in zip(frame_clip, frame_index)]))
+        model._shell = shell.with_marker_noise(p.marker_noise_mm, tau)
     if p.marker_correction and actor.n_markers:
         model.marker_database = _marker_database(
             model, clips, frame_clip, frame_index,
