@@ -101,15 +101,16 @@ def peak_mb(rss0_kb: int) -> float:
     return (status_kb("VmHWM") - rss0_kb) / 1024
 
 
-def train_pdm(actor_dir: Path, order: str, model_dir: Path) -> dict:
-    """Train a PDM of ``order`` on the actor's training clips and save it into ``model_dir``;
-    wall time and peak RSS of ``train`` (run it in a fresh process: :func:`run_worker`)."""
+def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0) -> dict:
+    """Train a PDM of ``order`` (and ``marker_noise_mm``) on the actor's training clips and
+    save it into ``model_dir``; wall time and peak RSS of ``train`` (run it in a fresh
+    process: :func:`run_worker`)."""
     from service.methods.pdm.model import PdmParams, train
     from service.samples.dataset import load_actor
 
     actor = load_actor(actor_dir)
     clips = training_clips(actor_dir, actor)
-    params = PdmParams(order=order)
+    params = PdmParams(order=order, marker_noise_mm=marker_noise_mm)
     rss0 = reset_peak()
     t0 = time.perf_counter()
     model = train(actor, clips, params,
@@ -378,13 +379,14 @@ def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, k
             "extra": extra}
 
 
-def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path) -> dict:
+def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0) -> dict:
     """:func:`train_pdm` run in a fresh process (its own peak memory); the training record."""
-    return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir))
+    return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir), str(marker_noise_mm))
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 5 and sys.argv[1] == "train-pdm":
-        print(json.dumps(train_pdm(Path(sys.argv[2]), sys.argv[3], Path(sys.argv[4]))))
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "train-pdm":
+        print(json.dumps(train_pdm(Path(sys.argv[2]), sys.argv[3], Path(sys.argv[4]),
+                                   float(sys.argv[5]) if len(sys.argv) == 6 else 0.0)))
     else:
         sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR (the reports' worker)")
