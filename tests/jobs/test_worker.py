@@ -87,7 +87,8 @@ def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, traine
 
     model_id, _ = trained
     markers = _markers(pdm_actor_dir, 12)
-    markers = markers + np.random.default_rng(0).normal(0, 0.3, markers.shape)
+    # float32-exact, as the job's stored input is
+    markers = (markers + np.random.default_rng(0).normal(0, 0.3, markers.shape)).astype(np.float32).astype(np.float64)
     _, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
                                        outputs=["mesh"], marker_filter_frames=2.0)
     expected = kinds.get_kind("pdm").load(path).synthesize(filter_markers(markers, 2.0), ("mesh",))
