@@ -110,13 +110,13 @@ def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0) -> 
 
 def _variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float = 0.0) -> np.ndarray:
     """The performance's markers at ``frames``; with ``filter_frames`` > 0 the whole
-    performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_markers`,
+    performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_performance`,
     as the synthesis job's ``marker_filter_frames`` does)."""
-    from service.geometry.marker_filter import filter_markers
+    from service.geometry.marker_filter import filter_performance
 
     with np.load(actor_dir / "performances" / f"{name}.npz") as d:
         markers = d["markers"].astype(np.float64)
-    return (filter_markers(markers, filter_frames) if filter_frames else markers)[frames]
+    return (filter_performance(markers, filter_frames) if filter_frames else markers)[frames]
 
 
 def _guard(method):

@@ -36,7 +36,7 @@ WINDOWS = (0.0, 1.0, 2.0, 3.0)
 
 
 def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS) -> list[tuple]:
-    from service.geometry.marker_filter import filter_markers
+    from service.geometry.marker_filter import filter_performance
     from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handle_operator, soft_handles
     from service.methods.pdm.base_surface import BaseSurface, handle_vertices, head_alignment, training_head_pose
     from service.samples.dataset import load_actor, performance_names
@@ -63,7 +63,7 @@ def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS) -> list[tuple]
         gt = p_clean.remove(truth)
         for cname, m in (("clean", clean), ("noisy", noisy)):
             for s in windows:
-                mf = filter_markers(m, s) if s else m
+                mf = filter_performance(m, s) if s else m
                 p = head_alignment(mf, rest, weights)
                 a = p.remove(mf) - rest
                 for sig in sigmas:

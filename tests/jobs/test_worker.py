@@ -83,7 +83,7 @@ def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker,
 def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, trained, start_worker,
                                                               pdm_actor_dir):
     """``marker_filter_frames``: the job synthesizes the temporally filtered performance."""
-    from service.geometry.marker_filter import filter_markers
+    from service.geometry.marker_filter import filter_performance
 
     model_id, _ = trained
     markers = _markers(pdm_actor_dir, 12)
@@ -91,7 +91,7 @@ def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, traine
     markers = (markers + np.random.default_rng(0).normal(0, 0.3, markers.shape)).astype(np.float32).astype(np.float64)
     _, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
                                        outputs=["mesh"], marker_filter_frames=2.0)
-    expected = kinds.get_kind("pdm").load(path).synthesize(filter_markers(markers, 2.0), ("mesh",))
+    expected = kinds.get_kind("pdm").load(path).synthesize(filter_performance(markers, 2.0), ("mesh",))
     np.testing.assert_array_equal(npz_arrays(data)["vertices"], expected["vertices"])
 
 

@@ -37,7 +37,7 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
-from service.geometry.marker_filter import filter_markers
+from service.geometry.marker_filter import filter_performance
 from service.io.npz import npz_arrays
 from service.jobs.frame_npz import STATIC_KEYS, FrameNpzWriter
 from service.jobs.formats import artifact_type, check_result_format, usd_is_zip
@@ -79,7 +79,7 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     registration = read_registration(store.blobs, payload) if payload.get("rig_id") else None
     if payload.get("marker_filter_frames") and key == "markers":
         # the whole performance at once: the filter looks ahead and behind (geometry/marker_filter.py)
-        inputs = filter_markers(inputs, float(payload["marker_filter_frames"]))
+        inputs = filter_performance(inputs, float(payload["marker_filter_frames"]))
     if registration is not None and key != "vertices":
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)
