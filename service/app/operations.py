@@ -317,7 +317,7 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     ``{"rig_id", "rig", "registration_blob", "registration_sha256"}`` and the job
     propagates the frames with exactly that registration. ``marker_filter_frames`` > 0 (σ in
     frames, marker-driven kinds only) adds ``"marker_filter_frames"``: the job smooths the
-    markers in time first (:func:`service.geometry.marker_filter.filter_markers`).
+    markers in time first (:func:`service.geometry.marker_filter.filter_performance`).
     """
     check_result_format(result_format, outputs)
     with services.session() as session:

@@ -160,7 +160,8 @@ async def submit_synthesis_job(
             ge=0, le=MAX_SIGMA_FRAMES, allow_inf_nan=False, description=(
                 "Smooth the markers in time before synthesis (marker-driven kinds): σ in "
                 "frames of a Gaussian-weighted local quadratic fit over the whole "
-                "performance, robust to occlusion (a gap of up to ⌈σ⌉ frames is filled, a "
+                "performance, in a head-aligned frame (each frame's pose is kept), robust to "
+                "occlusion (a gap of up to ⌈σ⌉ frames is filled, a "
                 "longer one left to the thin shell's completion). 0 (default) is off; 3 "
                 "frames at 30 fps cut σ = 0.3 mm marker noise reaching the surface by more "
                 "than half at < 2 % cost on clean markers. Not for mesh input."))] = 0.0,
