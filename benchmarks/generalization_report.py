@@ -38,7 +38,8 @@ shape-space model and rig registration in shape_space_report's cache, all keyed 
 actor's files. A method that fails on an input (e.g. occluded markers) gets a row saying so.
 
 Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
-[--frames K] [--retrain]``; default actors (built when missing, seed 1, level 0):
+[--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA]``; default actors (built
+when missing, seed 1, level 0):
 ``benchmarks/out/generalization/actor-{a,b}-l0``. Writes the table to stdout and
 ``benchmarks/out/generalization/report.md``, figures beside it.
 """
@@ -88,8 +89,9 @@ def ensure_actor(family: str, actor_dir: Path) -> None:
         build_family_b(actor_dir, seed=1, level=0, with_tracking=False)
 
 
-def pdm_models(actor_dir: Path, retrain: bool) -> dict:
-    """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached)."""
+def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0) -> dict:
+    """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached),
+    trained with ``marker_noise_mm``."""
     from service.methods.pdm.model import PdmModel
     from service.samples.dataset import performance_names
 
@@ -97,17 +99,23 @@ def pdm_models(actor_dir: Path, retrain: bool) -> dict:
     key = pdm.actor_files_key(actor_dir, *files)
     models = {}
     for order in ORDERS:
-        model_dir = MODELS / f"pdm_{order}-{key}"
+        model_dir = MODELS / (f"pdm_{order}-{key}" + (f"-noise{marker_noise_mm:g}" if marker_noise_mm else ""))
         if retrain or not (model_dir / "manifest.json").is_file():
             print(f"  training PDM {order} (fresh process) ...", file=sys.stderr)
-            pdm.pdm_in_fresh_process(actor_dir, order, model_dir)
+            pdm.pdm_in_fresh_process(actor_dir, order, model_dir, marker_noise_mm)
         models[order] = PdmModel.load(model_dir)
     return models
 
 
-def _variant_markers(actor_dir: Path, name: str, frames: np.ndarray) -> np.ndarray:
+def _variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float = 0.0) -> np.ndarray:
+    """The performance's markers at ``frames``; with ``filter_frames`` > 0 the whole
+    performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_performance`,
+    as the synthesis job's ``marker_filter_frames`` does)."""
+    from service.geometry.marker_filter import filter_performance
+
     with np.load(actor_dir / "performances" / f"{name}.npz") as d:
-        return d["markers"][frames].astype(np.float64)
+        markers = d["markers"].astype(np.float64)
+    return (filter_performance(markers, filter_frames) if filter_frames else markers)[frames]
 
 
 def _guard(method):
@@ -124,13 +132,14 @@ class MethodFailed(Exception):
     pass
 
 
-def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool) -> dict:
+def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
+                    marker_filter: float = 0.0, marker_noise_mm: float = 0.0) -> dict:
     """Rows {(range, condition, method): metrics} and the worst frame's data of one family."""
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
 
     actor = load_actor(actor_dir)
-    models = pdm_models(actor_dir, retrain)
+    models = pdm_models(actor_dir, retrain, marker_noise_mm)
     bq = models["biquadratic"]
     # scored at the actor's map resolution (a level-0 actor's maps are 512², the PDM's fine
     # band 1024²: its maps are box-filtered down, its band split's σ scaled with them)
@@ -148,7 +157,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
     del clips
-    ss_dir, _ = pdm.shape_space_model(actor_dir, ShapeSpaceParams(), retrain)
+    ss_dir, _ = pdm.shape_space_model(actor_dir, ShapeSpaceParams(marker_noise_mm=marker_noise_mm), retrain)
     shape = ShapeSpaceModel.load(ss_dir)
     reg, _ = pdm.rig_registration(actor_dir, retrain)
 
@@ -165,7 +174,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
             lowres = d["lowres"][gt_clean.frames].astype(np.float64)
         for cname, suffix in CONDITIONS.items():
             gt = dataclasses.replace(gt_clean, name=perf + suffix,
-                                     markers=_variant_markers(actor_dir, perf + suffix, gt_clean.frames))
+                                     markers=_variant_markers(actor_dir, perf + suffix, gt_clean.frames, marker_filter))
             methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
             methods.update({f"PDM {o}": (lambda m, model=model: pdm_prediction(model, m))
@@ -270,6 +279,12 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                         help=f"held-out map frames per performance (default {DEFAULT_FRAMES}; 0 = all)")
     parser.add_argument("--retrain", action="store_true", help="rebuild the cached models")
+    parser.add_argument("--marker-filter", type=float, default=0.0, metavar="S",
+                        help="smooth every performance's markers in time first (σ = S frames, "
+                             "the synthesis job's marker_filter_frames; default 0: off)")
+    parser.add_argument("--marker-noise", type=float, default=0.0, metavar="SIGMA",
+                        help="train the PDMs and the shape-space model with marker_noise_mm = "
+                             "SIGMA (soft marker constraints; default 0: exact interpolation)")
     args = parser.parse_args()
     defaults = {"a": OUT / "actor-a-l0", "b": OUT / "actor-b-l0"}
     actors = {} if args.actor else defaults
@@ -288,7 +303,8 @@ def main() -> None:
         actor_dir = actor_dir.resolve()
         ensure_actor(family, actor_dir)
         print(f"family {family}: {actor_dir}", file=sys.stderr)
-        results[family] = evaluate_family(family, actor_dir, frames, args.retrain)
+        results[family] = evaluate_family(family, actor_dir, frames, args.retrain, args.marker_filter,
+                                          args.marker_noise)
         plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)
     print(text)

@@ -411,3 +411,156 @@ def complete_handles(G: np.ndarray, u_H: np.ndarray) -> np.ndarray:
     rhs = -G[np.ix_(unknown, known)] @ u[known]
     u[unknown] = np.linalg.solve(G_UU, rhs)
     return u
+
+
+# ---------------------------------------------------------------------- soft handle constraints
+def _as_batch(u_H: np.ndarray, h: int) -> tuple[np.ndarray, bool]:
+    """(F,h,3) float64 copy of (h,3) or (F,h,3) handle values (NaN allowed), and whether batched."""
+    u = np.array(u_H, dtype=np.float64)
+    if u.ndim == 2 and u.shape == (h, 3):
+        return u[None], False
+    if u.ndim == 3 and u.shape[1:] == (h, 3):
+        return u, True
+    raise ValueError(f"handle displacements must be ({h},3) or (frames,{h},3), got {u.shape}")
+
+
+def marker_noise_ratio(noise_mm: float, prior_scale_mm: float) -> float:
+    """λ = σ² / τ²: the weight of the shell prior against the marker data (MAP, see below).
+
+    Parameters
+    ----------
+    noise_mm : float        σ ≥ 0, the markers' noise per coordinate, mm (0: interpolate)
+    prior_scale_mm : float  τ > 0, the shell prior's scale, mm (:func:`shell_prior_scale`)
+    """
+    if not (noise_mm >= 0 and np.isfinite(noise_mm)):
+        raise ValueError(f"marker noise must be finite and >= 0 mm, got {noise_mm}")
+    if not (prior_scale_mm > 0 and np.isfinite(prior_scale_mm)):
+        raise ValueError(f"the prior scale must be finite and > 0 mm, got {prior_scale_mm}")
+    return float(noise_mm) ** 2 / float(prior_scale_mm) ** 2
+
+
+def shell_prior_scale(G: np.ndarray, u_H: np.ndarray) -> float:
+    """Scale τ (mm) of the shell prior ``p(u_H) ∝ exp(−u_Hᵀ G u_H / 2τ²)`` from samples.
+
+    Empirical Bayes: for u_H drawn from that Gaussian (per coordinate, on the range of G),
+    ``E[u_Hᵀ G u_H] = τ² · rank(G)``, so ``τ² = mean_t Σ_xyz u_tᵀ G u_t / (3 rank G)`` over
+    sample displacements (e.g. the aligned training frames' handles; frames with a missing
+    handle are skipped).
+
+    Parameters
+    ----------
+    G : (h,h) float             :func:`handle_energy_matrix`
+    u_H : (F,h,3) float         sample handle displacements, mm
+
+    Returns
+    -------
+    tau : float, mm             > 0 (a floor of 1e-6 mm when the samples carry no energy)
+
+    Raises
+    ------
+    ValueError   no complete sample frame
+    """
+    G = np.asarray(G, dtype=np.float64)
+    u, _ = _as_batch(u_H, len(G))
+    u = u[np.isfinite(u).all(axis=(1, 2))]
+    if not len(u):
+        raise ValueError("no sample frame has every handle; cannot estimate the shell prior")
+    ev = np.linalg.eigvalsh(G)
+    rank = int(np.count_nonzero(ev > ev.max() * 1e-10)) if ev.max() > 0 else 0
+    energy = np.einsum("fid,ij,fjd->", u, G, u) / len(u)
+    return float(np.sqrt(max(energy / (3 * max(rank, 1)), 1e-12)))
+
+
+def soft_handle_operator(G: np.ndarray, ratio: float) -> np.ndarray:
+    """Precomputed soft solve of fully visible handles: ``P = (I + λ G)⁻¹`` (h,h).
+
+    The MAP estimate of the true handle displacements u from noisy marker displacements m
+    with Gaussian noise σ (mm, per coordinate) and the shell prior of
+    :func:`shell_prior_scale` (scale τ) minimizes, per coordinate,
+
+        u ᵀ G u / τ²  +  |u − m|² / σ²        ⇔    u ᵀ G u + w |u − m|²,  w = τ²/σ² = 1/λ,
+
+    i.e. the thin-shell energy of bickel2008 §4 (eq. 1, as a quadratic form in the handles)
+    plus a spring of stiffness w from each handle to its marker: ``u = w (G + w I)⁻¹ m =
+    (I + λG)⁻¹ m``. λ = 0 is the paper's exact interpolation (P = I). G's null space (rigid
+    translation, ``G 1 = 0``) passes unchanged: the filter only removes shell energy.
+
+    Parameters
+    ----------
+    G : (h,h) float   :func:`handle_energy_matrix`
+    ratio : float     λ = σ²/τ² ≥ 0 (:func:`marker_noise_ratio`)
+
+    Returns
+    -------
+    P : (h,h) float64  symmetric, eigenvalues in (0, 1]
+    """
+    G = np.asarray(G, dtype=np.float64)
+    if not (ratio >= 0 and np.isfinite(ratio)):
+        raise ValueError(f"need a finite ratio >= 0, got {ratio}")
+    h = len(G)
+    P = np.linalg.solve(np.eye(h) + ratio * G, np.eye(h))
+    return 0.5 * (P + P.T)
+
+
+def soft_handles(G: np.ndarray, u_H: np.ndarray, ratio: float,
+                 operator: np.ndarray | None = None) -> np.ndarray:
+    """Handle displacements denoised by soft constraints (MAP of :func:`soft_handle_operator`).
+
+    Visible rows (finite) are springs to their markers, missing rows (NaN) drop out of the
+    data term: ``min u ᵀ G u + w Σ_visible |u_i − m_i|²``. With V the visible and U the
+    missing handles the normal equations split into ``u_U = −G_UU⁻¹ G_UV u_V`` (the
+    minimum-energy completion of :func:`complete_handles`) and
+
+        (I + λ S) u_V = m_V,      S = G_VV − G_VU G_UU⁻¹ G_UV  (the Schur complement),
+
+    the energy of the visible handles with the missing ones eliminated. This form is exact at
+    λ = 0 (the hard solve: ``u_V = m_V``, then completion) and stable for every λ, unlike
+    solving ``(G + wD) u = w D m`` with a large w.
+
+    Parameters
+    ----------
+    G : (h,h) float                   :func:`handle_energy_matrix`
+    u_H : (h,3) or (F,h,3) float      marker displacements at the handles, mm; NaN rows missing
+    ratio : float                     λ = σ²/τ² ≥ 0 (:func:`marker_noise_ratio`)
+    operator : (h,h) float, optional  :func:`soft_handle_operator` ``(G, ratio)``, for the
+                                      frames with every handle visible (precomputed once)
+
+    Returns
+    -------
+    u : same shape, float64, complete  (a copy)
+
+    Raises
+    ------
+    ValueError   a frame with no visible handle
+    """
+    G = np.asarray(G, dtype=np.float64)
+    h = len(G)
+    u, batched = _as_batch(u_H, h)
+    missing = ~np.isfinite(u).all(axis=2)                                 # (F,h)
+    full = ~missing.any(axis=1)
+    if ratio == 0:
+        out = u
+    else:
+        P = soft_handle_operator(G, ratio) if operator is None else operator
+        out = u.copy()
+        if full.any():
+            out[full] = np.einsum("ij,fjd->fid", P, u[full])
+    # frames with missing handles, grouped by their visibility pattern (one Schur solve each)
+    if (~full).any():
+        patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
+        frames = np.flatnonzero(~full)
+        for p, miss in enumerate(patterns):
+            sel = frames[which.ravel() == p]
+            vis = ~miss
+            if not vis.any():
+                raise ValueError("all handles are unknown; at least one is needed")
+            G_UU, G_UV = G[np.ix_(miss, miss)], G[np.ix_(miss, vis)]
+            C = np.linalg.solve(G_UU, G_UV)                                # (|U|,|V|)
+            mV = u[np.ix_(sel, vis)]                                       # (k,|V|,3)
+            if ratio:
+                S = G[np.ix_(vis, vis)] - G_UV.T @ C
+                S = 0.5 * (S + S.T)
+                mV = np.einsum("ij,fjd->fid", np.linalg.inv(np.eye(int(vis.sum())) + ratio * S), mV)
+            out[np.ix_(sel, vis)] = mV
+            out[np.ix_(sel, miss)] = -np.einsum("ij,fjd->fid", C, mV)
+    return out if batched else out[0]

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.errors import InvalidInput, field_errors
 
@@ -54,3 +54,24 @@ class MethodParams(BaseModel):
     # pydantic calls a custom __init__ from model_validate too; marked as the base one, it is
     # used for construction only, so model_validate keeps raising ValidationError per field
     __init__.__pydantic_base_init__ = True  # type: ignore[attr-defined]
+
+
+#: default ``marker_noise_mm`` (see :class:`MarkerParams`)
+MARKER_NOISE_MM = 0.0
+
+
+class MarkerParams(MethodParams):
+    """Parameters of every method driven by markers: the base of their params models, so the
+    marker-noise field is declared once (issue 17)."""
+
+    marker_noise_mm: float = Field(
+        default=MARKER_NOISE_MM, ge=0, le=5, allow_inf_nan=False,
+        description="Assumed noise of the input markers, σ per coordinate in the actor's unit "
+                    "(mm). 0 (default) interpolates the markers exactly, as the papers do; "
+                    "σ > 0 makes them soft constraints of the thin shell: the handles are the "
+                    "MAP estimate under the shell energy as a prior (its scale estimated on "
+                    "the training frames) and Gaussian marker noise σ, and every feature is "
+                    "computed from the denoised markers. Used in training and synthesis alike. "
+                    "For whole performances, see also the synthesis job's "
+                    "`marker_filter_frames`.",
+        examples=[0.0, 0.3])

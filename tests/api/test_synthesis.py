@@ -233,6 +233,25 @@ def test_synthesis_job_from_npz_and_marker_files(ready):
     assert response.status_code == 202, response.text
 
 
+def test_synthesis_job_marker_filter_option_reaches_the_payload(ready):
+    client, _, model_id, markers, _ = ready
+    url = f"/v1/models/{model_id}/synthesis-jobs"
+    services = client.app.state.services
+
+    def payload(**params):
+        response = client.post(url, content=npz(markers=markers), headers=NPZ, params=params)
+        assert response.status_code == 202, response.text
+        with services.session() as session:
+            return registry.get_job(session, response.json()["job_id"]).payload
+
+    assert "marker_filter_frames" not in payload()
+    assert payload(marker_filter_frames=3)["marker_filter_frames"] == 3.0
+    assert_problem(client.post(url, content=npz(markers=markers), headers=NPZ,
+                               params={"marker_filter_frames": -1}), 422)
+    assert_problem(client.post(url, content=npz(markers=markers), headers=NPZ,
+                               params={"marker_filter_frames": 1000}), 422)
+
+
 def _layout_key(services, actor_id):
     with services.session() as session:
         actor = registry.get_actor(session, actor_id)

@@ -232,3 +232,88 @@ def test_completing_missing_handles_equals_solving_without_them(basis):
     np.testing.assert_allclose(apply_basis(basis, filled), reference, atol=1e-7)
     with pytest.raises(ValueError, match="at least one"):
         complete_handles(G, np.full_like(u_H, np.nan))
+
+
+# ---------------------------------------------------------------------- soft handle constraints
+from service.geometry.thin_shell import (  # noqa: E402
+    marker_noise_ratio, shell_prior_scale, soft_handle_operator, soft_handles,
+)
+
+
+@pytest.fixture(scope="module")
+def energy(basis):
+    return handle_energy_matrix(V0, F0, basis)
+
+
+def prior_fields(G: np.ndarray, k: int, tau: float, seed: int) -> np.ndarray:
+    """k handle fields (k,h,3), mm, drawn from the shell prior N(0, τ² G⁺) (no translation)."""
+    ev, Q = np.linalg.eigh(G)
+    keep = ev > ev.max() * 1e-10
+    z = np.random.default_rng(seed).normal(size=(k, int(keep.sum()), 3)) / np.sqrt(ev[keep])[None, :, None]
+    return np.einsum("hk,fkd->fhd", Q[:, keep], tau * z)
+
+
+def test_soft_handles_approach_the_hard_solve_as_the_weight_grows(energy):
+    """w → ∞ (λ → 0) is the exact interpolation, missing handles completed (1e-9)."""
+    rng = np.random.default_rng(5)
+    u_H = rng.normal(0, 2.0, size=(3, len(HANDLES), 3))
+    u_H[1, rng.choice(len(HANDLES), 9, replace=False)] = np.nan
+    hard = np.stack([complete_handles(energy, u) for u in u_H])
+    np.testing.assert_allclose(soft_handles(energy, u_H, 0.0), hard, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(soft_handles(energy, u_H, 1e-13), hard, atol=1e-9)
+    P = soft_handle_operator(energy, 0.0)
+    np.testing.assert_allclose(P, np.eye(len(HANDLES)), atol=1e-12)
+
+
+def test_soft_handles_satisfy_the_map_normal_equations(energy):
+    """u minimizes uᵀGu + w Σ_visible |u − m|²: G u + w D (u − m) = 0, NaN rows dropped."""
+    rng = np.random.default_rng(6)
+    m = rng.normal(0, 2.0, size=(len(HANDLES), 3))
+    m[rng.choice(len(HANDLES), 5, replace=False)] = np.nan
+    lam = 0.02
+    u = soft_handles(energy, m, lam)
+    D = np.isfinite(m).all(axis=1)
+    grad = energy @ u + (1 / lam) * np.where(D[:, None], u - np.nan_to_num(m), 0.0)
+    np.testing.assert_allclose(grad, 0.0, atol=1e-8 * np.abs(energy @ u).max() + 1e-10)
+    # fully visible: the precomputed operator w (G + wI)⁻¹ of the docstring
+    m2 = np.nan_to_num(m)
+    w = 1 / lam
+    expected = w * np.linalg.solve(energy + w * np.eye(len(energy)), m2)
+    np.testing.assert_allclose(soft_handles(energy, m2, lam, soft_handle_operator(energy, lam)),
+                               expected, atol=1e-10)
+    # rigid translations carry no shell energy and pass unchanged
+    t = np.broadcast_to([1.0, -2.0, 0.5], m2.shape)
+    np.testing.assert_allclose(soft_handles(energy, t, lam), t, atol=1e-6)
+    with pytest.raises(ValueError, match="at least one"):
+        soft_handles(energy, np.full_like(m, np.nan), lam)
+
+
+def test_marker_noise_ratio_and_prior_scale(energy):
+    assert marker_noise_ratio(0.3, 2.0) == pytest.approx(0.0225)
+    assert marker_noise_ratio(0.0, 2.0) == 0.0
+    with pytest.raises(ValueError):
+        marker_noise_ratio(-0.1, 2.0)
+    # samples drawn from the prior N(0, τ² G⁺) give back τ (empirical Bayes, 600 draws)
+    assert shell_prior_scale(energy, prior_fields(energy, 600, 1.5, seed=7)) == pytest.approx(1.5, rel=0.02)
+
+
+def test_soft_handles_denoise_a_surface_of_the_prior(basis, energy):
+    """Surfaces drawn from the shell prior (τ = 0.5 mm) + seeded σ = 0.3 mm marker noise, 9
+    markers missing on one frame: the MAP surface (τ re-estimated from 200 other clean draws)
+    is at least 1.5× closer to the truth than the exact interpolation, over all vertices
+    (measured 1.62×).
+    (On real faces the gain is far smaller, ~10 %: their detail is not that smooth; see
+    benchmarks/marker_denoise.py.)"""
+    truth = prior_fields(energy, 6, 0.5, seed=8)
+    tau = shell_prior_scale(energy, prior_fields(energy, 200, 0.5, seed=9))
+    rng = np.random.default_rng(10)
+    sigma = 0.3
+    noisy = truth + rng.normal(0, sigma, truth.shape)
+    noisy[2, rng.choice(len(HANDLES), 9, replace=False)] = np.nan
+    lam = marker_noise_ratio(sigma, tau)
+    exact = apply_basis(basis, soft_handles(energy, noisy, 0.0))
+    soft = apply_basis(basis, soft_handles(energy, noisy, lam, soft_handle_operator(energy, lam)))
+    ref = apply_basis(basis, truth)
+    e_exact = np.linalg.norm(exact - ref, axis=-1).mean()
+    e_soft = np.linalg.norm(soft - ref, axis=-1).mean()
+    assert e_soft < e_exact / 1.5, (e_soft, e_exact)

@@ -80,6 +80,21 @@ def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker,
     np.testing.assert_array_equal(result["faces"], expected["faces"])
 
 
+def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, trained, start_worker,
+                                                              pdm_actor_dir):
+    """``marker_filter_frames``: the job synthesizes the temporally filtered performance."""
+    from service.geometry.marker_filter import filter_performance
+
+    model_id, _ = trained
+    markers = _markers(pdm_actor_dir, 12)
+    # float32-exact, as the job's stored input is
+    markers = (markers + np.random.default_rng(0).normal(0, 0.3, markers.shape)).astype(np.float32).astype(np.float64)
+    _, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
+                                       outputs=["mesh"], marker_filter_frames=2.0)
+    expected = kinds.get_kind("pdm").load(path).synthesize(filter_performance(markers, 2.0), ("mesh",))
+    np.testing.assert_array_equal(npz_arrays(data)["vertices"], expected["vertices"])
+
+
 def test_training_job_on_the_redis_queue(deployment, redis_server, start_worker):
     settings = deployment.settings.model_copy(update={
         "queue_url": redis_server, "queue_name": f"facesynth_test_{secrets.token_hex(4)}"})

@@ -7,6 +7,7 @@ Payload::
        | "markers_blob": "<key>", "markers_sha256": "<hex>",   # … or a blob of the store
      "outputs": ["mesh", "displacement"],          # optional (API.md's outputs)
      "clamp": true,                                # optional: the extrapolation limit
+     "marker_filter_frames": 3.0,                  # optional: temporal marker filter σ, frames
      "format": "npz"}                              # optional: "npz", "obj-exr-zip", "usd"
 
 A mesh-driven model (``shape_space``) takes ``vertices`` instead of ``markers``
@@ -36,6 +37,7 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.errors import NotFound
+from service.geometry.marker_filter import filter_performance
 from service.io.npz import npz_arrays
 from service.jobs.frame_npz import STATIC_KEYS, FrameNpzWriter
 from service.jobs.formats import artifact_type, check_result_format, usd_is_zip
@@ -75,6 +77,9 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
         path = registry.model_dir(session, store.blobs, model_id)
         inputs, fps = read_frames(session, store.blobs, payload, key)
     registration = read_registration(store.blobs, payload) if payload.get("rig_id") else None
+    if payload.get("marker_filter_frames") and key == "markers":
+        # the whole performance at once: the filter looks ahead and behind (geometry/marker_filter.py)
+        inputs = filter_performance(inputs, float(payload["marker_filter_frames"]))
     if registration is not None and key != "vertices":
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)

@@ -23,10 +23,18 @@ Choices where the paper is silent:
   expression, do not drag the head estimate (:func:`stability_weights`);
 * a marker's handle is the vertex of its triangle nearest to it; missing (NaN) markers
   drop their constraints exactly (:func:`~service.geometry.thin_shell.complete_handles`).
+
+Marker noise (issue 17): with ``marker_noise_mm`` σ > 0 the handles are no longer
+interpolated exactly but are the MAP estimate under the shell prior
+(:func:`~service.geometry.thin_shell.soft_handles`, weight λ = σ²/τ² with the prior scale τ
+estimated on the training frames, :meth:`BaseSurface.with_marker_noise`), and the marker
+positions every feature is computed from are the denoised ones
+(:meth:`BaseSurface.denoised_markers`), in training and synthesis alike.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -37,7 +45,8 @@ from service.geometry.curvature_flow import LAMBDA_DT, frequency_separation
 from service.geometry.rigid import MIN_POINTS, rigid_align, stability_weights_from_rms
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
-    KB, KS, apply_basis, complete_handles, handle_energy_matrix, thin_shell_basis,
+    KB, KS, apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale,
+    soft_handle_operator, soft_handles, thin_shell_basis,
 )
 
 #: a frame needs at least this many visible markers (rigid fit and thin shell)
@@ -169,6 +178,10 @@ class BaseSurface:
     basis : (n,M) float32      thin-shell basis B (Fortran order)
     energy : (M,M) float64     handle energy G = BᵀKB, for exact completion of missing markers
     frame_field : FrameField   per-pose tangent frames (weights from X̄)
+    noise_mm : float           assumed marker noise σ per coordinate, mm (0: interpolation)
+    prior_scale_mm : float     shell prior scale τ, mm (:func:`shell_prior_scale`; NaN unset)
+    soft_operator : (M,M)      ``(I + λG)⁻¹``, λ = σ²/τ², for frames with every marker
+                               (None when σ = 0)
     """
 
     smooth: np.ndarray
@@ -178,6 +191,9 @@ class BaseSurface:
     basis: np.ndarray
     energy: np.ndarray
     frame_field: FrameField
+    noise_mm: float = 0.0
+    prior_scale_mm: float = float("nan")
+    soft_operator: np.ndarray | None = None
 
     @classmethod
     def build(cls, V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
@@ -201,13 +217,52 @@ class BaseSurface:
         return cls(smooth, F, np.asarray(handles, np.int64), np.asarray(rest_markers, np.float64),
                    B, G, FrameField.build(smooth, F, uv, uv_faces))
 
+    @property
+    def noise_ratio(self) -> float:
+        """λ = σ²/τ² of the soft marker constraints (0: the paper's exact interpolation)."""
+        return 0.0 if self.noise_mm == 0 else marker_noise_ratio(self.noise_mm, self.prior_scale_mm)
+
+    def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None = None,
+                          samples: np.ndarray | None = None) -> "BaseSurface":
+        """This base with soft marker constraints for noise σ = ``noise_mm`` (mm).
+
+        The prior scale τ is ``prior_scale_mm`` (a stored model's) or estimated from
+        ``samples``, aligned training markers (F,M,3) (:func:`shell_prior_scale` of their
+        exactly interpolated handle displacements). σ = 0 gives the exact interpolation.
+
+        Raises
+        ------
+        ValueError   σ > 0 without a prior scale or samples; σ negative
+        """
+        if prior_scale_mm is None or not np.isfinite(prior_scale_mm):
+            if samples is None:
+                if noise_mm:
+                    raise ValueError("soft marker constraints need the prior scale or samples")
+                prior_scale_mm = float("nan")
+            else:
+                exact = dataclasses.replace(self, noise_mm=0.0, soft_operator=None)
+                prior_scale_mm = shell_prior_scale(self.energy, exact.handle_displacements(samples))
+        out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=float(prior_scale_mm),
+                                  soft_operator=None)
+        if out.noise_ratio > 0:
+            out.soft_operator = soft_handle_operator(self.energy, out.noise_ratio)
+        return out
+
     def handle_displacements(self, aligned: np.ndarray) -> np.ndarray:
-        """u_H (F,M,3) of aligned markers (F,M,3); missing rows completed by minimum energy."""
+        """u_H (F,M,3) of aligned markers (F,M,3): the markers' displacements, missing rows
+        completed by minimum energy; with marker noise σ > 0 the MAP estimate of the soft
+        constraints (:func:`~service.geometry.thin_shell.soft_handles`)."""
         u = np.asarray(aligned, dtype=np.float64) - self.rest_markers
-        missing = ~np.isfinite(u).all(axis=2)
-        for f in np.flatnonzero(missing.any(axis=1)):
-            u[f] = complete_handles(self.energy, np.where(missing[f, :, None], np.nan, u[f]))
-        return u
+        return soft_handles(self.energy, u, self.noise_ratio, self.soft_operator)
+
+    def denoised_markers(self, aligned: np.ndarray, u_H: np.ndarray) -> np.ndarray:
+        """Aligned marker positions (F,M,3) the features are computed from: ``P_ref + u_H``
+        where a marker is visible in ``aligned`` (F,M,3), NaN where it is occluded (so it
+        drops out of strains as before); ``aligned`` itself when σ = 0."""
+        if self.noise_ratio == 0:
+            return aligned
+        visible = np.isfinite(np.asarray(aligned)).all(axis=-1, keepdims=True)
+        return np.where(visible, self.rest_markers + u_H, np.nan)
 
     def deform(self, u_H: np.ndarray) -> np.ndarray:
         """Base surfaces ``X̄ + B u_H`` (F,n,3) float64 for complete handle displacements (F,M,3)."""

@@ -235,7 +235,7 @@ class PdmModel:
         pose = head_alignment(markers, self.base.rest_markers, self.pose_weights)
         aligned = pose.remove(markers)
         u_H = self.base.handle_displacements(aligned)
-        return pose, u_H, deformation_vectors(self.mesh, aligned, offsets=u_H)
+        return pose, u_H, deformation_vectors(self.mesh, self.base.denoised_markers(aligned, u_H), offsets=u_H)
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
                    clamp: bool = True) -> dict[str, np.ndarray]:
@@ -390,12 +390,12 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
 
     progress(0.05, "base surface")
     base = BaseSurface.build(actor.vertices, F, actor.uv, actor.uv_faces, handles, rest,
-                             lam_dt=params.smoothing_lam_dt)
+                             lam_dt=params.smoothing_lam_dt).with_marker_noise(params.marker_noise_mm, samples=aligned)
     u_H = base.handle_displacements(aligned)
 
     progress(0.15, "deformation space")
     mesh = marker_mesh(actor.marker_uv(), rest, marker_axes(actor))
-    S = deformation_vectors(mesh, aligned, offsets=u_H)
+    S = deformation_vectors(mesh, base.denoised_markers(aligned, u_H), offsets=u_H)
     axes = deformation_axes(mesh, S, params.axis_threshold_deg)
 
     T = len(markers)

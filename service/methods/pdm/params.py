@@ -1,5 +1,5 @@
 """Training parameters of a PDM (ma2008 §4), declared once for the library, the API and
-OpenAPI (:class:`~service.methods.params.MethodParams`)."""
+OpenAPI (:class:`~service.methods.params.MarkerParams`)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from typing import Literal
 from pydantic import Field
 
 from service.geometry.curvature_flow import LAMBDA_DT
-from service.methods.params import MethodParams
+from service.methods.params import MarkerParams
 
 
-class PdmParams(MethodParams):
+class PdmParams(MarkerParams):
     """Training parameters of a ``pdm`` model (API.md: ``POST /models`` with ``kind: pdm``).
 
     Notes

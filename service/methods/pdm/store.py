@@ -69,6 +69,7 @@ def write_model(model, path) -> dict:
         "q": ax.q, "r": ax.r, "scale": ax.scale, "energy": ax.energy,
         "pose_weights": model.pose_weights, "S_train": model.S_train,
         "neutral_offset": model.neutral_offset,
+        "marker_prior_scale_mm": np.float64(base.prior_scale_mm),
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
     }
@@ -118,7 +119,8 @@ def read_model(path) -> tuple[dict, dict[str, np.ndarray]]:
     """
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION)
-    params = PdmParams(**manifest["params"])
+    # a model stored before marker_noise_mm existed interpolated its markers exactly
+    params = PdmParams(**{"marker_noise_mm": 0.0, **manifest["params"]})
     a = npz_arrays(data["model.npz"])
     F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
     K = polynomial.ORDERS[params.order]
@@ -146,6 +148,7 @@ def read_model(path) -> tuple[dict, dict[str, np.ndarray]]:
     cache = npz_arrays(data[CACHE]) if CACHE in data else {}
     base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"],
                                    basis=cache.get("basis"), energy=cache.get("energy"))
+    base = base.with_marker_noise(params.marker_noise_mm, float(a.get("marker_prior_scale_mm", np.nan)))
     limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}
     fields = dict(params=params, faces=F, uv=uv, uv_faces=uvf, base=base, mesh=mesh, axes=axes,
                   pose_weights=a["pose_weights"], S_train=a["S_train"],

@@ -450,7 +450,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
     pose, pose_weights = training_head_pose(markers, rest, names)
 
     progress(0.05, "large-scale shell")
-    base = large_scale_surface(actor)
+    base = large_scale_surface(actor).with_marker_noise(params.marker_noise_mm, samples=pose.remove(markers))
     u_H = base.handle_displacements(pose.remove(markers))
     graph = (graph_from_pairs(params.feature_edges, actor.marker_names, rest) if params.feature_edges
              else automatic_graph(actor.marker_uv(), rest, params.max_edge_ratio, params.min_angle_deg))

@@ -12,7 +12,7 @@ from typing import Literal, Union
 
 from pydantic import Field
 
-from service.methods.params import MethodParams
+from service.methods.params import MarkerParams
 
 #: relative ridge always added to least-squares normal equations (x mean diagonal): keeps
 #: nearly dependent basis columns solvable; changes well-posed fits by ~1e-10 relative
@@ -23,7 +23,7 @@ SMOOTHING_GRID = (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
 VALIDATION_SEED = 0
 
 
-class PoseSpaceParams(MethodParams):
+class PoseSpaceParams(MarkerParams):
     """Parameters shared by PSD and WPSD (bickel2008 §5.1-5.2)."""
 
     fit: Literal["least_squares", "exact"] = Field(

@@ -59,6 +59,7 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
         "kind": d.kind, "format_version": FORMAT_VERSION, "params": d.params.model_dump(mode="json"),
         "metrics": d.metrics, "map_resolution": d.map_resolution,
         "confidence_scale": d.confidence_scale, "basis_names": list(d.basis_names),
+        "marker_prior_scale_mm": _finite_or_none(base.prior_scale_mm),
         "files": files, "derived": derived,
         "size_bytes": sum((path / f).stat().st_size for f in files),
     }
@@ -84,7 +85,8 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     sparse = {name: sp.csr_matrix((a[f"{name}_data"], a[f"{name}_indices"], a[f"{name}_indptr"]),
                                   shape=tuple(int(x) for x in a[f"{name}_shape"]))
               if f"{name}_data" in a else None for name in SPARSE}
-    params = parse_params(manifest["params"])
+    # a model stored before marker_noise_mm existed interpolated its markers exactly
+    params = parse_params({"marker_noise_mm": 0.0, **manifest["params"]})
     if params.method != kind:
         raise ModelCorrupt(f"{path}: params are for {params.method}, the manifest says {kind}")
     d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL}, map_resolution=int(manifest["map_resolution"]),
@@ -94,4 +96,9 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     cache = npz_arrays(data[CACHE]) if CACHE in data else {}
     base = BaseSurface.from_smooth(d.neutral, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
                                    basis=cache.get("basis"), energy=cache.get("energy"))
-    return d, base
+    scale = manifest.get("marker_prior_scale_mm")
+    return d, base.with_marker_noise(params.marker_noise_mm, None if scale is None else float(scale))
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None

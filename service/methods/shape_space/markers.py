@@ -33,6 +33,7 @@ a first-class input; the database needs the markers of its frames, which every
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,8 @@ from service.geometry.closest_point import surface_points
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
-    apply_basis, complete_handles, handle_energy_matrix, thin_shell_basis,
+    apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, soft_handle_operator,
+    soft_handles, thin_shell_basis,
 )
 from service.methods.inputs import InvalidInput
 from service.methods.pdm.base_surface import MIN_VISIBLE_MARKERS, handle_vertices
@@ -58,6 +60,11 @@ class MarkerShell:
     energy : (M,M) float64    ``Bᵀ K B`` (missing markers are completed at minimum energy)
     rest : (M,3) float64      the markers on the neutral, mm
     weights : (M,) float64    head-alignment weights of the markers
+    noise_mm : float          assumed marker noise σ, mm: soft marker constraints when > 0
+                              (the same MAP solve as the PDM's base surface,
+                              :func:`~service.geometry.thin_shell.soft_handles`)
+    prior_scale_mm : float    the shell prior's scale τ, mm (:meth:`prior_scale`)
+    operator : (M,M) or None  ``(I + λG)⁻¹`` for fully visible frames, λ = σ²/τ²
     """
 
     neutral: np.ndarray
@@ -65,6 +72,9 @@ class MarkerShell:
     energy: np.ndarray
     rest: np.ndarray
     weights: np.ndarray
+    noise_mm: float = 0.0
+    prior_scale_mm: float = float("nan")
+    operator: np.ndarray | None = None
 
     @classmethod
     def build(cls, neutral: np.ndarray, faces: np.ndarray, marker_triangle: np.ndarray,
@@ -80,11 +90,45 @@ class MarkerShell:
     def n_markers(self) -> int:
         return len(self.rest)
 
+    @property
+    def noise_ratio(self) -> float:
+        """λ = σ²/τ² (0: exact interpolation)."""
+        return 0.0 if self.noise_mm == 0 else marker_noise_ratio(self.noise_mm, self.prior_scale_mm)
+
+    def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None) -> "MarkerShell":
+        """This shell with soft marker constraints for noise σ = ``noise_mm`` and prior scale
+        τ = ``prior_scale_mm`` (mm); σ = 0 interpolates exactly (τ may then be None)."""
+        tau = float("nan") if prior_scale_mm is None else float(prior_scale_mm)
+        if noise_mm and not np.isfinite(tau):
+            raise ValueError("soft marker constraints need the shell prior's scale")
+        out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=tau, operator=None)
+        if out.noise_ratio > 0:
+            out = dataclasses.replace(out, operator=soft_handle_operator(self.energy, out.noise_ratio))
+        return out
+
+    def _handles(self, P: np.ndarray, T) -> np.ndarray:
+        """Handle displacements (M,3) of world markers P (M,3) under head pose T."""
+        visible = np.isfinite(P).all(axis=1)
+        u = np.where(visible[:, None], T.apply(P) - self.rest, np.nan)
+        return soft_handles(self.energy, u, self.noise_ratio, self.operator)
+
+    def prior_scale(self, markers: np.ndarray) -> float:
+        """The shell prior's scale τ (mm) from sample world markers (F,M,3), e.g. the
+        database's (:func:`~service.geometry.thin_shell.shell_prior_scale` of their exactly
+        interpolated, head-aligned handle displacements; frames with a missing marker skipped)."""
+        markers = np.asarray(markers, dtype=np.float64)
+        full = markers[np.isfinite(markers).all(axis=(1, 2))]
+        if not len(full):
+            raise InvalidInput("no frame has every marker visible; cannot estimate the shell prior")
+        u = np.stack([rigid_align(P, self.rest, self.weights).apply(P) - self.rest for P in full])
+        return shell_prior_scale(self.energy, u)
+
     def __call__(self, markers: np.ndarray) -> np.ndarray:
         """Shell surfaces (F,n,3) float64 in the markers' world pose for markers (F,M,3).
 
         Per frame: head pose by weighted Kabsch of the visible markers onto the rest
-        markers, handle displacements (NaN markers completed, :func:`complete_handles`),
+        markers, handle displacements (NaN markers completed at minimum energy; soft
+        constraints when ``noise_mm`` > 0, :func:`soft_handles`),
         ``neutral + B u_H``, and the pose put back.
 
         Raises
@@ -102,8 +146,7 @@ class MarkerShell:
                 raise InvalidInput(f"frame {f} has {int(visible.sum())} visible markers, at least "
                                    f"{MIN_VISIBLE_MARKERS} are needed")
             T = rigid_align(P, self.rest, self.weights)
-            u = complete_handles(self.energy, np.where(visible[:, None], T.apply(P) - self.rest, np.nan))
-            out[f] = T.inverse().apply(self.neutral + apply_basis(self.basis, u))
+            out[f] = T.inverse().apply(self.neutral + apply_basis(self.basis, self._handles(P, T)))
         return out
 
 

@@ -155,7 +155,8 @@ class ShapeSpaceEvaluator:
         shell = None
         if d.n_markers:
             shell = MarkerShell.build(d.neutral, d.faces, d.marker_triangle, d.marker_barycentric,
-                                      d.marker_weights)
+                                      d.marker_weights).with_marker_noise(
+                p.marker_noise_mm, d.metrics.get("marker_prior_scale_mm"))
         return cls(
             separator=FrequencySeparator(d.faces, p.lam_dt, p.smoothing, rest=d.neutral),
             poisson=PoissonReconstruction(d.smooth_neutral, d.faces, boundary_weight=p.boundary_weight),
@@ -717,6 +718,12 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     fine_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "displacement")
     albedo_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "albedo")
     sizes = np.bincount(labels, minlength=P)
+    prior = {}
+    if actor.n_markers:                # the shell prior of marker_noise_mm, from the database
+        shell = MarkerShell.build(d0, F, np.asarray(actor.marker_triangle, np.int64),
+                                  np.asarray(actor.marker_barycentric, np.float64), marker_weights)
+        prior["marker_prior_scale_mm"] = shell.prior_scale(np.stack(
+            [clips[c].markers[f] for c, f in zip(frame_clip, frame_index)]))
     data = ShapeSpaceData(
         params=p, faces=F, neutral=d0, smooth_neutral=smooth0, align_weights=align_w,
         patches=labels, tri_patch=tri_patch, shapes=shapes, detail=detail,
@@ -739,7 +746,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
             "marker_database": bool(p.marker_correction and actor.n_markers),
             "maps": {k: list(m.shape) for k, m in (("displacement", fine_maps), ("albedo", albedo_maps))
                      if m is not None},
-            **_partial_maps(clips, p.frame_stride, N),
+            **_partial_maps(clips, p.frame_stride, N), **prior,
             "params": p.model_dump(mode="json"),
         },
         fine_maps=fine_maps, albedo_maps=albedo_maps,

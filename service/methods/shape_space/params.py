@@ -14,7 +14,7 @@ from pydantic import Field, model_validator
 
 from service.geometry.curvature_flow import LAMBDA_DT
 from service.geometry.deformation_gradient import BOUNDARY_WEIGHT
-from service.methods.params import MethodParams
+from service.methods.params import MarkerParams
 
 #: the four voluntary regions of bermano2014 §4.3 (Figure 4), in this order everywhere
 VOLUNTARY_REGIONS = ("mouth_left", "mouth_right", "brow_left", "brow_right")
@@ -40,7 +40,7 @@ WEIGHT_EPS = 1e-9
 REGION_WEIGHT_FLOOR = 1e-12
 
 
-class ShapeSpaceParams(MethodParams):
+class ShapeSpaceParams(MarkerParams):
     """Parameters of :func:`service.methods.shape_space.model.train` (bermano2014 §4).
 
     Notes

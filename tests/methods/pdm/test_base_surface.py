@@ -94,3 +94,36 @@ def test_frame_field_rotates_with_the_surface_and_matches_tangent_frames(rig_mes
     ref = tangent_frames(V, F, uv, F)
     angle = np.degrees(np.arccos(np.clip(np.sum(fr[:, 2] * ref[:, 2], axis=1), -1, 1)))
     assert np.median(angle) < 0.5 and np.percentile(angle, 95) < 5.0
+
+
+def test_marker_noise_softens_the_handles_and_denoises_the_feature_markers(rig_mesh):
+    """σ = 0 is the exact interpolation; σ > 0 is soft_handles with τ from the samples;
+    denoised_markers puts P_ref + u_H on visible markers and keeps occluded ones NaN."""
+    from service.geometry.thin_shell import shell_prior_scale, soft_handles
+
+    V, F = rig_mesh
+    rng = np.random.default_rng(1)
+    handles = rng.choice(len(V), 30, replace=False)
+    uv = (V[:, :2] - V[:, :2].min(0)) / np.ptp(V[:, :2], axis=0).max()
+    exact = bs.BaseSurface.build(V, F, uv, F, handles, V[handles])
+    samples = V[handles] + rng.normal(scale=1.0, size=(12, 30, 3))
+    with pytest.raises(ValueError, match="prior scale"):
+        exact.with_marker_noise(0.3)
+    soft = exact.with_marker_noise(0.3, samples=samples)
+    tau = shell_prior_scale(exact.energy, samples - V[handles])
+    assert soft.prior_scale_mm == pytest.approx(tau)
+    assert soft.noise_ratio == pytest.approx(0.09 / tau ** 2)
+    aligned = samples[:3].copy()
+    aligned[1, [4, 9]] = np.nan
+    u = soft.handle_displacements(aligned)
+    np.testing.assert_allclose(u, soft_handles(exact.energy, aligned - V[handles], 0.09 / tau ** 2), atol=1e-12)
+    assert np.abs(u - np.nan_to_num(aligned - V[handles])).max() > 0.05      # not interpolated
+    P = soft.denoised_markers(aligned, u)
+    np.testing.assert_allclose(P[0], V[handles] + u[0])
+    assert np.isnan(P[1, [4, 9]]).all() and np.isfinite(np.delete(P[1], [4, 9], axis=0)).all()
+    # σ = 0 (also as restored from a stored model's τ) is the paper's interpolation
+    zero = soft.with_marker_noise(0.0, soft.prior_scale_mm)
+    np.testing.assert_allclose(zero.handle_displacements(aligned[:1]), aligned[:1] - V[handles], atol=1e-12)
+    assert zero.denoised_markers(aligned, u) is aligned
+    again = exact.with_marker_noise(0.3, soft.prior_scale_mm)
+    np.testing.assert_allclose(again.soft_operator, soft.soft_operator)

@@ -189,7 +189,8 @@ class Synthesis(Resource):
     def submit_job(self, model_id: str, performance: Any = None, *, markers: Any = None,
                    vertices: Any = None, fps: float | None = None,
                    outputs: str | Sequence[str] | None = None, format: str = "npz",
-                   clamp: bool = True, rig: str | None = None) -> JobAccepted:
+                   clamp: bool = True, rig: str | None = None,
+                   marker_filter_frames: float = 0.0) -> JobAccepted:
         """Queue the synthesis of a whole performance (a job; its result is an artifact).
 
         Parameters
@@ -207,6 +208,9 @@ class Synthesis(Resource):
                         and the EXR maps it references when maps are among the outputs;
                         needs ``mesh`` or ``mesh_detailed``)
         rig : str, optional
+        marker_filter_frames : float   σ in frames of the server's temporal marker filter
+                                       (marker-driven kinds; 0: off, 3 at 30 fps for
+                                       ordinary mocap noise)
 
         Returns
         -------
@@ -220,7 +224,8 @@ class Synthesis(Resource):
         >>> client.download_artifact(job.artifact_ids[0], "take7.npz")       # doctest: +SKIP
         """
         params = {"outputs": outputs_param(outputs), "format": format, "rig": rig,
-                  "clamp": None if clamp else "false"}
+                  "clamp": None if clamp else "false",
+                  "marker_filter_frames": marker_filter_frames or None}
         path = f"/v1/models/{model_id}/synthesis-jobs"
         if performance is not None:
             if isinstance(performance, (bytes, bytearray)):
