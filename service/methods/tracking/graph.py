@@ -181,7 +181,9 @@ def vote(table: np.ndarray, hat_slope: float = 0.04, stop_fraction: float = 0.2,
         C -= height[None, :, None] * hat[None, None, :]
         C[s, :, t] = -np.inf                        # an edge is added once
     if ground is not None and all(s != ground for s, _ in chosen):
-        mean = np.nanmean(np.where(np.isfinite(table[ground]), table[ground], np.nan), axis=0)
+        g = np.where(np.isfinite(table[ground]), table[ground], 0.0)
+        count = np.isfinite(table[ground]).sum(axis=0)
+        mean = np.where(count > 0, g.sum(axis=0) / np.maximum(count, 1), np.nan)
         if np.isfinite(mean).any():
             chosen.append((int(ground), int(np.nanargmax(mean))))
     return chosen
