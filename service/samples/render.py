@@ -1,46 +1,24 @@
-"""A small z-buffer rasterizer (Lambert-shaded) and the sample actor's camera images.
+"""Lambert-shaded renders of the sample actor through its cameras.
 
-Cameras are pinhole, OpenCV convention: a world point X maps to camera coordinates
-``x = R X + t`` (x right, y down, z forward) and to pixel ``(u, v) = (K x)[:2] / x_z``,
-pixel centres at integer + 0.5.
+The cameras and the z-buffer rasterizer are :mod:`service.geometry.camera` (OpenCV
+convention, pixel centres at integer + 0.5); they are re-exported here.
 """
 
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from service.geometry.camera import Camera, rasterize  # noqa: F401  (re-exported: the renders' API)
 from service.geometry.normals import vertex_normals
-from service.geometry.scan_convert import scan_convert
+from service.geometry.optical_flow import sample
 from service.io.atomic import atomic_open, sha256_file, write_bytes, write_npz
 
 IMAGE_SIZE = 384
-
-
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole camera: K (3,3) intrinsics in pixels, R (3,3), t (3,) world→camera (mm)."""
-
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    width: int
-    height: int
-
-    def project(self, X: np.ndarray) -> np.ndarray:
-        """Pixel coordinates and depth (n,3) = (u, v, z_mm) of world points X (n,3)."""
-        x = X @ self.R.T + self.t
-        uv = x @ self.K.T
-        return np.column_stack([uv[:, :2] / uv[:, 2:3], x[:, 2]])
-
-    def to_json(self) -> dict:
-        return {"K": self.K.tolist(), "R": self.R.tolist(), "t": self.t.tolist(),
-                "width": self.width, "height": self.height}
 
 
 def face_cameras(target: np.ndarray, distance: float = 520.0, size: int = IMAGE_SIZE,
@@ -57,33 +35,6 @@ def face_cameras(target: np.ndarray, distance: float = 520.0, size: int = IMAGE_
     return cams
 
 
-def rasterize(camera: Camera, V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Visible triangle (H,W) int (−1 for background) and barycentrics (H,W,3) per pixel.
-
-    Z-buffer over :func:`~service.geometry.scan_convert.scan_convert`: triangles wholly in
-    front of the camera and facing it (counter-clockwise in the world is clockwise on the
-    y-down image) are scan-converted, and per pixel the nearest covering triangle wins
-    (ties to the lowest triangle index). Barycentrics are in image space, which is what a
-    z-buffer samples at this scale.
-    """
-    W, H = camera.width, camera.height
-    p = camera.project(V)
-    tri = p[F]                                              # (m,3,3): u, v, depth
-    e1, e2 = tri[:, 1, :2] - tri[:, 0, :2], tri[:, 2, :2] - tri[:, 0, :2]
-    facing = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] < 0
-    keep = np.flatnonzero(facing & (tri[:, :, 2].min(axis=1) > 0))
-    cover = scan_convert(tri[keep, :, :2] - 0.5, H, W)     # pixel centres at integer + 0.5
-    t = keep[cover.triangle]
-    depth = np.einsum("pk,pk->p", cover.barycentric, tri[t, :, 2])
-    order = np.lexsort((t, depth, cover.pixel))
-    first = order[np.diff(cover.pixel[order], prepend=-1) != 0]     # nearest per pixel
-    triangle = np.full(H * W, -1, dtype=np.int64)
-    bary = np.zeros((H * W, 3))
-    triangle[cover.pixel[first]] = t[first]
-    bary[cover.pixel[first]] = cover.barycentric[first]
-    return triangle.reshape(H, W), bary.reshape(H, W, 3)
-
-
 def shade(camera: Camera, V: np.ndarray, F: np.ndarray, albedo: np.ndarray,
           light_dir=(0.3, 0.5, 1.0), ambient: float = 0.15,
           background: float = 0.0) -> np.ndarray:
@@ -92,12 +43,39 @@ def shade(camera: Camera, V: np.ndarray, F: np.ndarray, albedo: np.ndarray,
     The light is directional, given in world coordinates (toward the light).
     """
     triangle, bary = rasterize(camera, V, F)
-    N = vertex_normals(V, F, weighting="area")
     fg = triangle >= 0
     corners = F[triangle[fg]]
-    n = np.einsum("pk,pkd->pd", bary[fg], N[corners])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
     alb = np.einsum("pk,pkd->pd", bary[fg], albedo[corners])
+    return _lambert(V, F, triangle, bary, alb, light_dir, ambient, background)
+
+
+def shade_textured(camera: Camera, V: np.ndarray, F: np.ndarray, uv: np.ndarray,
+                   uv_faces: np.ndarray, texture: np.ndarray, light_dir=(0.3, 0.5, 1.0),
+                   ambient: float = 0.15, background: float = 0.0) -> np.ndarray:
+    """Lambert-shaded linear RGB image (H,W,3) of a mesh with an albedo texture.
+
+    Parameters
+    ----------
+    uv : (u,2) float in [0,1]², uv_faces : (m,3) int   the mesh's texture coordinates
+    texture : (h,w,3) float   linear albedo; row 0 is v = 1 (the maps' convention:
+                              texel (r, c) has uv ((c + 0.5)/w, 1 − (r + 0.5)/h))
+    light_dir, ambient, background : as :func:`shade`
+    """
+    triangle, bary = rasterize(camera, V, F)
+    fg = triangle >= 0
+    t = np.einsum("pk,pkd->pd", bary[fg], uv[uv_faces[triangle[fg]]])
+    h, w = texture.shape[:2]
+    xy = np.column_stack([t[:, 0] * w - 0.5, (1.0 - t[:, 1]) * h - 0.5])
+    alb = sample(texture, xy)
+    return _lambert(V, F, triangle, bary, alb.astype(np.float64), light_dir, ambient, background)
+
+
+def _lambert(V, F, triangle, bary, alb, light_dir, ambient, background) -> np.ndarray:
+    """Shade the foreground pixels' albedo (p,3) by the interpolated vertex normals."""
+    N = vertex_normals(V, F, weighting="area")
+    fg = triangle >= 0
+    n = np.einsum("pk,pkd->pd", bary[fg], N[F[triangle[fg]]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
     light = np.asarray(light_dir, dtype=np.float64)
     light /= np.linalg.norm(light)
     img = np.full(triangle.shape + (3,), background)
