@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/correspondence_report.py
 	$(BIN)/python benchmarks/generalization_report.py
 	$(BIN)/python benchmarks/load.py
+	$(BIN)/python benchmarks/realtime.py --profile
 
 ## constraints: rewrite constraints.txt from the versions installed in .venv (after
 ## changing a dependency in pyproject.toml: install it, then run this)
