@@ -292,7 +292,8 @@ class PdmModel:
                                    f"least {e.required} are needed") from None
             X = self.base.deform(u_H)
             d1, d2, out["clamped"][sl] = self.vertex_band.parameters(S, margin)
-            medium = X + self.base.to_world(X, self.medium_offsets(d1, d2))
+            # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
+            medium = X + self.base.frame_field.to_world(X, self.medium_offsets(d1, d2), np.float32)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if fine:                            # mesh only: the fine band is not evaluated
@@ -300,7 +301,7 @@ class PdmModel:
             if "displacement" in out:          # straight into the (zeroed) output maps
                 out["displacement"][sl].reshape(len(disp), -1)[:, self.fine.index] = disp
             if want & {"mesh_detailed", "normal_map"}:
-                mframes = self.base.frames(medium)
+                mframes = self.base.frame_field.frames(medium, np.float32)
             if "mesh_detailed" in want:
                 h = (self.fine_sampler @ disp.T).T                           # (f,n)
                 out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
