@@ -44,6 +44,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/tracking_report.py /work/data/a-l0 /work/data/b-l0
 	$(BIN)/python benchmarks/load.py
 	$(BIN)/python benchmarks/upload_memory.py
+	$(BIN)/python benchmarks/realtime.py --profile
 
 ## constraints: rewrite constraints.txt from the versions installed in .venv (after
 ## changing a dependency in pyproject.toml: install it, then run this)

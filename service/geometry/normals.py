@@ -41,7 +41,7 @@ def _normalize(X: np.ndarray) -> np.ndarray:
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a × b`` for (...,3) arrays, written out (np.cross is several times slower)."""
-    c = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    c = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b, np.float32))
     c[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
     c[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
     c[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]

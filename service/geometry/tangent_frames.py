@@ -36,6 +36,7 @@ Seams and mirrored charts
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -186,12 +187,22 @@ class FrameField:
     du : (n,n) sparse           vertices ↦ accumulated dP/du at the vertices
     edges : (2m,n) sparse       vertices ↦ the edges e1 = P1 − P0 (rows :m), e2 = P2 − P0
                                 (a sparse product is several times faster than gathering)
+    du_edges : (n,2m) sparse    edges ↦ the same accumulated dP/du (``du = du_edges @ edges``
+                                up to rounding), for the float32 path
+
+    Precision: float64 by default. ``dtype=np.float32`` (:meth:`frames`, :meth:`to_world`;
+    the per-frame synthesis path) differences the edges in float64 (vertices far from the
+    origin; one cheap sparse product) and runs everything after on float32 copies of the
+    operators, with dP/du accumulated from the edges (``du_edges``) rather than from the
+    positions, whose large cancelling coefficients (1/det of small UV triangles) would
+    lose ~1e-3 of T in float32. Frames then agree with float64 to ~1e-6 (tests bound it).
     """
 
     faces: np.ndarray
     incidence: sp.csr_matrix
     du: sp.csr_matrix
     edges: sp.csr_matrix
+    du_edges: sp.csr_matrix | None = None
 
     @classmethod
     def build(cls, V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray) -> "FrameField":
@@ -213,42 +224,65 @@ class FrameField:
         du = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
         incidence = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))),
                                   shape=(n, m))
+        # the same sum on the edges: [dP/du]_f = cb e1 + cc e2
+        du_edges = sp.csr_matrix((np.concatenate([w.ravel() * np.repeat(cb, 3), w.ravel() * np.repeat(cc, 3)]),
+                                  (np.tile(F.ravel(), 2), np.concatenate([np.repeat(np.arange(m), 3),
+                                                                          m + np.repeat(np.arange(m), 3)]))),
+                                 shape=(n, 2 * m))
         rows = np.repeat(np.arange(2 * m), 2)
         cols = np.stack([np.column_stack([F[:, 1], F[:, 0]]), np.column_stack([F[:, 2], F[:, 0]])]).ravel()
         edges = sp.csr_matrix((np.tile([1.0, -1.0], 2 * m), (rows, cols)), shape=(2 * m, n))
-        return cls(F, incidence, du, edges)
+        return cls(F, incidence, du, edges, du_edges)
 
-    def frames(self, V: np.ndarray) -> np.ndarray:
-        """Frames (n,3,3) or (frames,n,3,3), rows (T, B, N), of poses V (n,3) or (frames,n,3)."""
-        T, B, N, has_n, lead = self._rows(V)
+    def frames(self, V: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """Frames (n,3,3) or (frames,n,3,3) of ``dtype`` (float64 or float32, see the class
+        notes), rows (T, B, N), of poses V (n,3) or (frames,n,3)."""
+        T, B, N, has_n, lead = self._rows(V, dtype)
         frames = np.stack([T, B, N], axis=-2)
         frames[~has_n] = np.eye(3)
         return frames.reshape(*lead, T.shape[1], 3, 3)
 
-    def to_world(self, V: np.ndarray, C: np.ndarray) -> np.ndarray:
+    def to_world(self, V: np.ndarray, C: np.ndarray, dtype=np.float64) -> np.ndarray:
         """Frame coordinates C (…,n,3) of poses V (…,n,3) as world vectors ``Σ_j C_j row_j``.
 
-        Equal to ``einsum("...nji,...nj->...ni", frames(V), C)`` without forming the frames.
+        Equal to ``einsum("...nji,...nj->...ni", frames(V), C)`` without forming the frames;
+        ``dtype`` float32 computes the frames and the sum in float32 (class notes).
         """
-        T, B, N, has_n, lead = self._rows(V)
-        C = np.asarray(C).reshape(T.shape)
+        T, B, N, has_n, lead = self._rows(V, dtype)
+        C = (np.asarray(C) if np.dtype(dtype) == np.float64 else np.asarray(C, dtype)).reshape(T.shape)
         out = C[..., 0:1] * T
         out += C[..., 1:2] * B
         out += C[..., 2:3] * N
         out[~has_n] = C[~has_n]                     # identity frames
         return out.reshape(*lead, T.shape[1], 3)
 
-    def _rows(self, V: np.ndarray):
-        """T, B, N (b,n,3), has_n (b,n) and the leading shape of poses V."""
+    @cached_property
+    def _float32(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """(incidence, du_edges) as float32 (made on the first float32 call)."""
+        if self.du_edges is None:
+            raise ValueError("this FrameField has no du_edges (build it with FrameField.build)")
+        return self.incidence.astype(np.float32), self.du_edges.astype(np.float32)
+
+    def _rows(self, V: np.ndarray, dtype=np.float64):
+        """T, B, N (b,n,3) of ``dtype``, has_n (b,n) and the leading shape of poses V."""
         Vb, lead = _flatten_frames(V)
         nb, n = Vb.shape[:2]
         m = len(self.faces)
+        if np.dtype(dtype) not in (np.float64, np.float32):
+            raise ValueError(f"dtype must be float64 or float32, got {dtype}")
         # vertex-major (n, 3·b) throughout: sparse products instead of gathers, no copies for b = 1
         Vn = Vb.transpose(1, 0, 2).reshape(n, 3 * nb)
-        e = (self.edges @ Vn).reshape(2, m, nb, 3)
+        e = self.edges @ Vn                                                        # (2m, 3b)
+        if np.dtype(dtype) == np.float64:
+            incidence = self.incidence
+            T = (self.du @ Vn).reshape(n, nb, 3)
+        else:                                                                      # class notes
+            incidence, du_edges = self._float32
+            e = e.astype(np.float32)
+            T = (du_edges @ e).reshape(n, nb, 3)
+        e = e.reshape(2, m, nb, 3)
         fn = _cross(e[0], e[1])                                                    # (m,b,3)
-        N = _normalize((self.incidence @ fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
-        T = (self.du @ Vn).reshape(n, nb, 3)
+        N = _normalize((incidence @ fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
         T -= np.einsum("nbd,nbd->nb", T, N)[..., None] * N
         has_n = np.einsum("nbd,nbd->nb", N, N) > 0.25
         tn = np.sqrt(np.einsum("nbd,nbd->nb", T, T))

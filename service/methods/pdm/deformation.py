@@ -411,22 +411,57 @@ class ParameterField:
 
     def __call__(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """d1, d2 (T,P) float32 for deformation vectors S (T,M,5)."""
+        g = self.element_terms(S)
+        if self.runs is None:
+            return self._combine(g[:, :, self.element], self.mono)
+        return self.combine(g, 0, len(self.markers))
+
+    def element_terms(self, S: np.ndarray) -> np.ndarray:
+        """The six symmetric terms of d1 and of d2 per coarse element, (T,12,E) float32."""
         X = np.nan_to_num(np.asarray(S, dtype=np.float64) * self.scale)[:, self.markers]   # (T,E,3,5)
         terms = []
         for axis in (self.q, self.r):
             G = np.einsum("teak,ebk->teab", X, axis[self.markers])                      # (T,E,3,3)
             terms += [G[..., 0, 0], G[..., 1, 1], G[..., 2, 2], G[..., 0, 1] + G[..., 1, 0],
                       G[..., 0, 2] + G[..., 2, 0], G[..., 1, 2] + G[..., 2, 1]]
-        g = np.stack(terms, axis=1).astype(np.float32)                                  # (T,12,E)
-        g = np.repeat(g, self.runs, axis=2) if self.runs is not None else g[:, :, self.element]
-        d = np.empty((2, len(S), self.n_points), np.float32)
+        return np.stack(terms, axis=1).astype(np.float32)                               # (T,12,E)
+
+    def combine(self, g: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """d1, d2 (T,p) of the points of elements ``a:b`` (sorted points: ``runs`` set),
+        for :meth:`element_terms` g (T,12,E): the points' slice is ``run_starts[a]:run_starts[b]``.
+        The same arithmetic, in the same order, as the whole field (bit-identical)."""
+        starts = self.run_starts
+        s, e = starts[a], starts[b]
+        return self._combine(np.repeat(g[:, :, a:b], self.runs[a:b], axis=2), self.mono[:, s:e])
+
+    @staticmethod
+    def _combine(g: np.ndarray, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """d1, d2 (T,p) from the terms at the points g (T,12,p) and their monomials (6,p)."""
+        d = np.empty((2, g.shape[0], g.shape[2]), np.float32)
         tmp = np.empty(d.shape[1:], np.float32)
         for i in range(2):
-            np.multiply(g[:, 6 * i], self.mono[0], out=d[i])
+            np.multiply(g[:, 6 * i], mono[0], out=d[i])
             for k in range(1, 6):
-                np.multiply(g[:, 6 * i + k], self.mono[k], out=tmp)
+                np.multiply(g[:, 6 * i + k], mono[k], out=tmp)
                 d[i] += tmp
         return d[0], d[1]
+
+    @property
+    def run_starts(self) -> np.ndarray:
+        """(E+1,) first point of each element's run (sorted points), and P."""
+        return np.concatenate([[0], np.cumsum(self.runs)])
+
+    def blocks(self, target: int) -> list[tuple[int, int]]:
+        """Element ranges ``(a, b)`` of about ``target`` points each (whole runs; an element
+        with more points is a block of its own), covering all elements in order."""
+        starts = self.run_starts
+        out, a, E = [], 0, len(self.markers)
+        while a < E:
+            b = int(np.searchsorted(starts, starts[a] + target, side="right")) - 1
+            b = min(max(b, a + 1), E)
+            out.append((a, b))
+            a = b
+        return out
 
 
 def pdm_parameters(axes: DeformationAxes, S: np.ndarray, W: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:

@@ -161,7 +161,7 @@ class PdmModel:
     vertex_band: TexelBand | None = None          # the medium PDM at the mesh's K UV points
     seam_average: sp.csr_matrix | None = None     # (n,K) UV points → vertices (seam mean)
     fine_sampler: sp.csr_matrix | None = None     # (n,Pf) fine map → vertices
-    normal_mapper: NormalMapper | None = None     # built on the first normal_map request
+    normal_mapper: NormalMapper | None = None     # the fine map's normal mapper (built by prepare)
 
     @property
     def n_vertices(self) -> int:
@@ -201,6 +201,10 @@ class PdmModel:
                 band.limit = _limits(band.field, self.S_train)
         self.fine_sampler = sampling_matrix(self.uv, self.uv_faces, self.faces, self.n_vertices,
                                             self.fine.mask())[:, self.fine.index].tocsr()
+        if self.normal_mapper is None:      # at load, not on the first normal_map request
+            Hf = self.fine.resolution
+            self.normal_mapper = NormalMapper(rasterize_uv(self.uv, self.uv_faces, Hf, Hf),
+                                              self.faces, self.uv, self.uv_faces, self.n_vertices)
         return self
 
     def evaluated_bands(self) -> dict[str, TexelBand]:
@@ -245,7 +249,10 @@ class PdmModel:
         scale in the input's world pose, ``vertices_detailed`` (F,n,3) with the fine map
         baked along the normals, ``displacement`` (F,H,H) fine-scale normal displacement,
         ``albedo`` (F,Ha,Ha,3), ``normal_map`` (F,H,H,3) tangent space; always ``faces`` and
-        ``clamped`` (F,) the fraction of texels whose d1/d2 hit the extrapolation limit.
+        ``clamped`` (F,) the fraction of points whose d1/d2 hit the extrapolation limit: of
+        the fine map's texels when a fine-scale output (``displacement``, ``normal_map``,
+        ``mesh_detailed``) is asked, else of the mesh's UV points (the medium band, which
+        is all such a call evaluates: the fine band is not computed for it).
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -270,14 +277,12 @@ class PdmModel:
         if want & {"displacement", "normal_map"}:
             out["displacement"] = np.zeros((nf, Hf, Hf), np.float32)
         if "normal_map" in want:
-            if self.normal_mapper is None:
-                self.normal_mapper = NormalMapper(rasterize_uv(self.uv, self.uv_faces, Hf, Hf),
-                                                  self.faces, self.uv, self.uv_faces, n)
             out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
         if "albedo" in want:
             Ha = self.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
         margin = self.params.extrapolation_margin if clamp else None
+        fine = bool(want & {"displacement", "normal_map", "mesh_detailed"})
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             try:
@@ -286,15 +291,17 @@ class PdmModel:
                 raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
                                    f"least {e.required} are needed") from None
             X = self.base.deform(u_H)
-            d1, d2, _ = self.vertex_band.parameters(S, margin)
-            medium = X + self.base.to_world(X, self.medium_offsets(d1, d2))
+            d1, d2, out["clamped"][sl] = self.vertex_band.parameters(S, margin)
+            # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
+            medium = X + self.base.frame_field.to_world(X, self.medium_offsets(d1, d2), np.float32)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
-            disp, out["clamped"][sl] = self._fine_band(S, margin)
+            if fine:                            # mesh only: the fine band is not evaluated
+                disp, out["clamped"][sl] = self._fine_band(S, margin)
             if "displacement" in out:          # straight into the (zeroed) output maps
                 out["displacement"][sl].reshape(len(disp), -1)[:, self.fine.index] = disp
             if want & {"mesh_detailed", "normal_map"}:
-                mframes = self.base.frames(medium)
+                mframes = self.base.frame_field.frames(medium, np.float32)
             if "mesh_detailed" in want:
                 h = (self.fine_sampler @ disp.T).T                           # (f,n)
                 out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
@@ -303,17 +310,16 @@ class PdmModel:
                     out["normal_map"][s + k] = self.normal_mapper.normal_map(
                         out["displacement"][s + k], medium[k], mframes[k])
             if "albedo" in want:
-                a1, a2, _ = self.albedo.parameters(S, margin)
                 out["albedo"][sl] = self.albedo.image(
-                    np.maximum(self.albedo.evaluate(a1, a2), 0.0), channels=True)
+                    np.maximum(self.albedo.synthesize(S, margin)[0], 0.0), channels=True)
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
 
     def _fine_band(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
         """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,)."""
-        d1, d2, frac = self.fine.parameters(S, margin)
-        return self.fine.evaluate(d1, d2)[..., 0], frac
+        values, frac = self.fine.synthesize(S, margin)
+        return values[..., 0], frac
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:

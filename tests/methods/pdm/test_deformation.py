@@ -214,3 +214,25 @@ def test_holes_are_bridged_for_the_parameters_only():
     assert np.diff(edge.indptr).max() == 2                   # the hole's edge: 2 markers
     assert np.abs(edge @ f - (centre @ [2.0, -3.0] + 1.0)).max() > 0.1
     assert np.diff(bridged.indptr).max() == 3
+
+
+def test_parameter_field_blocks_cover_the_runs_and_combine_bit_for_bit():
+    mesh, P = _grid()
+    rng = np.random.default_rng(6)
+    M = len(P)
+    axes = dm.DeformationAxes(rng.normal(size=(M, 5)), rng.normal(size=(M, 5)),
+                              np.ones((M, 5)), np.ones((M, 5)), 0, 0.0)
+    W = dm.barycentric_operator(mesh, rng.uniform(-0.1, 0.7, size=(400, 2)))
+    field = dm.ParameterField.build(axes, W[dm.ParameterField.element_order(W)])
+    S = rng.normal(size=(3, M, 5))
+    d1, d2 = field(S)
+    blocks = field.blocks(37)
+    starts = field.run_starts
+    # consecutive whole runs, every element once; a block passes 37 points only when one run does
+    assert blocks[0][0] == 0 and blocks[-1][1] == len(field.markers)
+    assert all(a < b and b == c for (a, b), (c, _) in zip(blocks, blocks[1:] + [(blocks[-1][1], 0)]))
+    assert all(starts[b] - starts[a] <= 37 or b == a + 1 for a, b in blocks)
+    g = field.element_terms(S)
+    parts = [field.combine(g, a, b) for a, b in blocks]
+    assert np.array_equal(np.concatenate([p[0] for p in parts], axis=1), d1)
+    assert np.array_equal(np.concatenate([p[1] for p in parts], axis=1), d2)

@@ -132,3 +132,42 @@ def test_check_clips_names_what_is_wrong(pdm_data):
         check_clips(actor, [c, Clip("bare", c.vertices, c.markers)])
     with pytest.raises(InvalidInput, match="order must be one of"):
         PdmParams(order="cubic")
+
+
+def test_mesh_only_skips_the_fine_band_and_reports_the_mesh_clamp(pdm_model, pdm_data, monkeypatch):
+    _, clips = pdm_data
+    rest = pdm_model.base.rest_markers
+    peak = clips[3].markers[[10]]
+    pose = pdm_model.deformation(peak)[0]
+    far = pose.restore(rest + 2.5 * (pose.remove(peak) - rest))
+    full = pdm_model.synthesize(far, outputs=("mesh", "displacement"))
+    calls = []
+    monkeypatch.setattr(type(pdm_model.fine), "synthesize",
+                        lambda self, *a: calls.append(1) or (_ for _ in ()).throw(AssertionError))
+    mesh = pdm_model.synthesize(far, outputs=("mesh",))
+    assert not calls                                             # the fine band is not evaluated
+    assert np.array_equal(mesh["vertices"], full["vertices"])   # and the mesh is unchanged
+    _, _, S = pdm_model.deformation(far)
+    vertex_frac = pdm_model.vertex_band.parameters(S, pdm_model.params.extrapolation_margin)[2]
+    assert mesh["clamped"][0] == np.float32(vertex_frac[0]) > 0.05
+    assert full["clamped"][0] != mesh["clamped"][0]             # the fine texels' fraction
+
+
+def test_the_normal_mapper_is_built_at_load(pdm_model, tmp_path):
+    pdm_model.save(tmp_path / "m")
+    loaded = type(pdm_model).load(tmp_path / "m")
+    assert loaded.normal_mapper is not None and loaded.normal_mapper.shape == (128, 128)
+
+
+def test_float32_frames_keep_the_mesh_within_a_micrometre_of_float64(pdm_model, pdm_data):
+    _, clips = pdm_data
+    markers = clips[2].markers[[0, 7, 15]]
+    out = pdm_model.synthesize(markers, outputs=("mesh", "mesh_detailed", "displacement"))
+    pose, u_H, S = pdm_model.deformation(markers)
+    X = pdm_model.base.deform(u_H)
+    d1, d2, _ = pdm_model.vertex_band.parameters(S, pdm_model.params.extrapolation_margin)
+    medium = X + pdm_model.base.to_world(X, pdm_model.medium_offsets(d1, d2))      # float64 frames
+    assert np.abs(out["vertices"] - pose.restore(medium)).max() < 1e-3          # mm; measured 1.5e-5
+    h = (pdm_model.fine_sampler @ out["displacement"].reshape(3, -1)[:, pdm_model.fine.index].T).T
+    detailed = pose.restore(medium + h[..., None] * pdm_model.base.frames(medium)[..., 2, :])
+    assert np.abs(out["vertices_detailed"] - detailed).max() < 1e-3

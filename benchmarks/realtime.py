@@ -1,0 +1,390 @@
+"""The real-time path (issue 23): one PDM frame in-process, over HTTP and over the gRPC stream.
+
+The same trained PDM model (default parameters: medium 512², fine 1024², biquadratic) of a
+sample actor answers one frame of held-out markers at a time, for two output sets:
+
+* ``mesh`` — the medium-scale mesh only;
+* ``mesh + displacement + normal map`` — the mesh and both fine-scale maps.
+
+Paths, each a median over ``--calls`` calls (frames cycle through the first 50 of
+``heldout_in_range``):
+
+1. **in-process**: ``PdmModel.synthesize(markers, outputs)`` on a loaded model;
+2. **HTTP**: ``POST /v1/models/{id}/synthesize`` (one frame, NPZ body, keep-alive httpx
+   client) against a real ``facesynth serve`` — the round trip includes the server's
+   encoding and the client's ``np.load`` of every array; variants: float32 with the
+   triangles (the contract's default), and ``half=true&topology=false`` (half-precision
+   maps, triangles left out: the client fetched them once); with uvicorn's pure-Python h11
+   parser and, when installed, its httptools parser on uvloop (``FACESYNTH_HTTP``), each
+   in its own server of the same run;
+3. **gRPC stream**: ``StreamSynthesize`` through the SDK's ``StreamingClient`` with
+   ``max_in_flight`` 4, time per frame = wall time / frames (the reciprocal of the
+   throughput), float32 and half-precision maps.
+
+Every row is also a ratio against in-process measured in the same run, and the load
+average (``os.getloadavg()``) is recorded beside each row: the machine is shared, so only
+ratios within one run compare. ``--profile`` adds a cProfile breakdown of the in-process
+frame (top functions by own time) per output set.
+
+Run: ``python benchmarks/realtime.py [--actor DIR] [--calls 100] [--paths inproc,http,grpc]
+[--profile]`` (``make bench``). The model is trained once into
+``benchmarks/out/realtime/model-<actor>`` (a fresh process, minutes at level 1) and
+reused; the server's data directory is ``benchmarks/out/realtime/work-<actor>``. Writes the
+table to stdout and ``benchmarks/out/realtime.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import pstats
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import harness  # noqa: E402
+
+ROOT = harness.ROOT
+OUT = ROOT / "benchmarks" / "out"
+WORK = OUT / "realtime"
+SHARED_L1 = Path("/work/data/a-l1")
+PERFORMANCE = "heldout_in_range"
+TRAIN_CLIP = "train_smile"        # the clip the server's model row names (never trained there)
+FRAMES = 50                       # distinct frames cycled through
+WARMUP = 3
+IN_FLIGHT = 4
+OUTPUT_SETS = {"mesh": ("mesh",),
+               "mesh + displacement + normal map": ("mesh", "displacement", "normal_map")}
+#: issue 23's targets at level 1: ms per in-process frame, and HTTP / in-process ratios
+TARGET_MS = {"mesh": 15.0, "mesh + displacement + normal map": 40.0}
+TARGET_HTTP = {"mesh": 1.15, "mesh + displacement + normal map": 1.25}
+TARGET_FPS = {"mesh": 60.0, "mesh + displacement + normal map": 30.0}
+NPZ = {"Content-Type": "application/x-npz"}
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def median_ms(fn, calls: int) -> float:
+    for k in range(WARMUP):
+        fn(k)
+    times = []
+    for k in range(calls):
+        t0 = time.perf_counter()
+        fn(k)
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+# ---------------------------------------------------------------------- model and data
+def ensure_model(actor_dir: Path) -> Path:
+    """The benchmark's PDM model of ``actor_dir`` (default parameters), trained once."""
+    model_dir = WORK / f"model-{actor_dir.name}"
+    if not (model_dir / "manifest.json").is_file():
+        print(f"training the PDM of {actor_dir} into {model_dir} ...", file=sys.stderr, flush=True)
+        code = ("import sys, json; sys.path.insert(0, %r); import harness; from pathlib import Path; "
+                "print(json.dumps(harness.train_pdm(Path(%r), 'biquadratic', Path(%r))))"
+                % (str(Path(__file__).parent), str(actor_dir), str(model_dir)))
+        subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True)
+    return model_dir
+
+
+def heldout_markers(actor_dir: Path) -> np.ndarray:
+    with np.load(actor_dir / "performances" / f"{PERFORMANCE}.npz") as d:
+        return d["markers"][:FRAMES].astype(np.float32)
+
+
+# ---------------------------------------------------------------------- in-process
+def in_process(model, markers: np.ndarray, outputs, calls: int) -> float:
+    return median_ms(lambda k: model.synthesize(markers[k % len(markers)][None], outputs), calls)
+
+
+def profile(model, markers: np.ndarray, outputs, calls: int, top: int = 14) -> str:
+    """cProfile of ``calls`` in-process frames: the functions with the most own time."""
+    prof = cProfile.Profile()
+    prof.enable()
+    for k in range(calls):
+        model.synthesize(markers[k % len(markers)][None], outputs)
+    prof.disable()
+    buf = io.StringIO()
+    stats = pstats.Stats(prof, stream=buf)
+    rows = []
+    for (file, line, name), (_, ncalls, tottime, cumtime, _) in stats.stats.items():
+        rows.append((tottime, cumtime, ncalls, f"{Path(file).name}:{line}({name})"))
+    rows.sort(reverse=True)
+    lines = ["| function | own ms/frame | cumulative ms/frame | calls/frame |", "|---|---:|---:|---:|"]
+    for tottime, cumtime, ncalls, where in rows[:top]:
+        lines.append(f"| `{where}` | {1e3 * tottime / calls:.2f} | {1e3 * cumtime / calls:.2f} | "
+                     f"{ncalls / calls:.0f} |")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- server
+def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str]:
+    """A ``facesynth serve`` on free ports (no job workers); its HTTP base URL and gRPC address."""
+    port, grpc_port = harness_free_port(), harness_free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
+    env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
+                "FACESYNTH_GRPC_PORT": str(grpc_port), "FACESYNTH_WORKERS": "0",
+                "FACESYNTH_HTTP": http_impl})
+    log = open(work / "server.log", "ab")
+    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
+                              stdout=log, stderr=log, stdin=subprocess.DEVNULL)
+    import httpx
+
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
+                return server, base, f"127.0.0.1:{grpc_port}"
+        except httpx.TransportError:
+            pass
+        if server.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"the server did not start; see {work / 'server.log'}")
+        time.sleep(0.3)
+
+
+def stop_server(server: subprocess.Popen) -> None:
+    server.terminate()
+    try:
+        server.wait(60)
+    except subprocess.TimeoutExpired:
+        server.kill()
+
+
+def harness_free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def register_model(base: str, work: Path, actor_dir: Path, model_dir: Path) -> str:
+    """Upload the actor and one clip through the API, create a PDM model row, and mark it
+    ready with the benchmark's trained directory (the same model as in-process); reused
+    from ``work`` on later runs."""
+    import httpx
+
+    from models_store import registry
+    from service.config import Settings
+    from service.samples.uploads import sample_actor_uploads
+    from service.store.container import get_store
+
+    record = work / "model_id"
+    with httpx.Client(base_url=base, timeout=600) as client:
+        if record.is_file():
+            model_id = record.read_text().strip()
+            if client.get(f"/v1/models/{model_id}").json().get("status") == "ready":
+                return model_id
+        neutral, layout, clips = sample_actor_uploads(actor_dir, (TRAIN_CLIP,))
+        canonical = json.loads(layout)
+        body = {"markers": [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
+                            zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]}
+        actor_id = client.post("/v1/actors", json={"name": "realtime"}).json()["id"]
+        client.put(f"/v1/actors/{actor_id}/neutral", content=neutral, headers=NPZ).raise_for_status()
+        client.put(f"/v1/actors/{actor_id}/markers", json=body).raise_for_status()
+        clip = client.post(f"/v1/actors/{actor_id}/clips", content=clips[TRAIN_CLIP], headers=NPZ,
+                           params={"name": TRAIN_CLIP})
+        clip.raise_for_status()
+        accepted = client.post(f"/v1/actors/{actor_id}/models",
+                               json={"kind": "pdm", "clips": [clip.json()["clip_id"]]})
+        accepted.raise_for_status()
+        model_id = accepted.json()["model_id"]
+    store = get_store(Settings(data_dir=work / "data"))
+    metrics = json.loads((model_dir / "manifest.json").read_text()).get("metrics", {})
+    with store.session() as session:
+        registry.mark_model_ready(session, store.blobs, model_id, model_dir, metrics=metrics)
+    record.write_text(model_id)
+    return model_id
+
+
+def http_ms(base: str, model_id: str, markers: np.ndarray, outputs, calls: int,
+            params: dict) -> tuple[float, int]:
+    """Median round trip (ms) of one-frame syntheses, the response decoded; body bytes."""
+    import httpx
+
+    from service.io.npz import npz_bytes
+
+    bodies = [npz_bytes(markers=m[None]) for m in markers]
+    size = [0]
+    with httpx.Client(base_url=base, timeout=300) as client:
+        def call(k: int) -> None:
+            r = client.post(f"/v1/models/{model_id}/synthesize", content=bodies[k % len(bodies)],
+                            headers=NPZ, params={"outputs": ",".join(outputs), **params})
+            r.raise_for_status()
+            with np.load(io.BytesIO(r.content)) as d:
+                for key in d.files:
+                    d[key]
+            size[0] = len(r.content)
+        return median_ms(call, calls), size[0]
+
+
+def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int,
+            half: bool) -> float:
+    """Wall time per frame (ms) of a ``calls``-frame stream at ``IN_FLIGHT`` frames ahead."""
+    from facesynth_client import StreamingClient
+
+    frames = [markers[k % len(markers)] for k in range(calls)]
+    kwargs = {"half": True} if half else {}
+    with StreamingClient(target) as stream:
+        for _ in stream.synthesize(model_id, frames[:WARMUP], outputs, max_in_flight=1, **kwargs):
+            pass
+        t0 = time.perf_counter()
+        n = sum(1 for _ in stream.synthesize(model_id, frames, outputs, max_in_flight=IN_FLIGHT,
+                                             **kwargs))
+        seconds = time.perf_counter() - t0
+    assert n == calls
+    return 1e3 * seconds / calls
+
+
+def http_impls() -> list[str]:
+    impls = ["h11"]
+    try:
+        import httptools  # noqa: F401
+        import uvloop  # noqa: F401
+        impls.append("httptools")
+    except ImportError:
+        print("httptools/uvloop not installed: HTTP with h11 only", file=sys.stderr)
+    return impls
+
+
+def supports(flag: str) -> bool:
+    """Whether this tree's HTTP route has the query flag (rows of older trees are skipped)."""
+    from service.api.routes import synthesis
+
+    import inspect
+    return flag in inspect.signature(synthesis.synthesize).parameters
+
+
+def grpc_supports_half() -> bool:
+    import inspect
+
+    from facesynth_client import StreamingClient
+    return "half" in inspect.signature(StreamingClient.synthesize).parameters
+
+
+# ---------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--actor", type=Path, default=None,
+                        help="sample actor directory (default /work/data/a-l1 if built, else "
+                             "benchmarks/out/actor-l1, built if missing)")
+    parser.add_argument("--calls", type=int, default=100, help="calls per median (default 100)")
+    parser.add_argument("--paths", default="inproc,http,grpc")
+    parser.add_argument("--profile", action="store_true", help="add a cProfile breakdown")
+    args = parser.parse_args(argv)
+    actor_dir = args.actor
+    if actor_dir is None:
+        actor_dir = SHARED_L1 if (SHARED_L1 / "manifest.json").is_file() else OUT / "actor-l1"
+        harness.ensure_actor(actor_dir)
+    paths = set(args.paths.split(","))
+    WORK.mkdir(parents=True, exist_ok=True)
+    model_dir = ensure_model(actor_dir)
+    markers = heldout_markers(actor_dir)
+
+    from service.methods.pdm.model import PdmModel
+
+    meta = {"load_start": load(), "cpus": os.cpu_count()}
+    t0 = time.perf_counter()
+    model = PdmModel.load(model_dir)
+    meta["load_s"] = time.perf_counter() - t0
+    meta["vertices"], meta["fine"] = model.n_vertices, model.fine.resolution
+    rows: list[dict] = []
+    base_ms: dict[str, float] = {}
+    profiles: dict[str, str] = {}
+    for name, outputs in OUTPUT_SETS.items():
+        base_ms[name] = in_process(model, markers, outputs, args.calls)
+        rows.append({"outputs": name, "path": "in-process", "ms": base_ms[name], "load": load()})
+        print(rows[-1], file=sys.stderr, flush=True)
+        if args.profile:
+            profiles[name] = profile(model, markers, outputs, min(args.calls, 30))
+
+    if paths & {"http", "grpc"}:
+        work = WORK / f"work-{actor_dir.name}"
+        work.mkdir(parents=True, exist_ok=True)
+        variants = [("float32, with faces", {})]
+        if supports("topology"):
+            variants.append(("half maps, topology=false", {"half": "true", "topology": "false"}))
+        for impl in http_impls():
+            server, base, target = start_server(work, impl)
+            try:
+                model_id = register_model(base, work, actor_dir, model_dir)
+                for name, outputs in OUTPUT_SETS.items():
+                    # in-process again beside each server: the ratio is within the same minute
+                    ref = in_process(model, markers, outputs, args.calls)
+                    if "http" in paths:
+                        for label, params in variants:
+                            ms, size = http_ms(base, model_id, markers, outputs, args.calls, params)
+                            rows.append({"outputs": name, "path": f"HTTP {impl}, {label}", "ms": ms,
+                                         "ref": ref, "bytes": size, "load": load()})
+                            print(rows[-1], file=sys.stderr, flush=True)
+                    if "grpc" in paths and impl == "h11":
+                        for half in (False, True) if grpc_supports_half() else (False,):
+                            ms = grpc_ms(target, model_id, markers, outputs, args.calls, half)
+                            rows.append({"outputs": name, "path": f"gRPC stream, {IN_FLIGHT} in flight"
+                                         + (", half maps" if half else ""), "ms": ms, "ref": ref,
+                                         "load": load()})
+                            print(rows[-1], file=sys.stderr, flush=True)
+            finally:
+                stop_server(server)
+    meta["load_end"] = load()
+    text = report(rows, base_ms, meta, actor_dir, args.calls, profiles)
+    print(text)
+    (OUT / "realtime.md").write_text(text)
+    return 0
+
+
+def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
+    import numpy
+    lines = [
+        "# The real-time path (issue 23): one PDM frame in-process, over HTTP, over gRPC",
+        "",
+        f"Actor {actor_dir} ({meta['vertices']:,} vertices, fine map {meta['fine']}²), the same "
+        f"model on every path (loaded in {meta['load_s']:.1f} s). Medians over {calls} calls; "
+        f"gRPC: wall time per frame of a {calls}-frame stream. {meta['cpus']} CPUs, NumPy "
+        f"{numpy.__version__}; load average (1, 5, 15 min) {meta['load_start']} at the start, "
+        f"{meta['load_end']} at the end. Ratio: against in-process in the same run (for the "
+        "transports, measured again beside each server).",
+        "",
+        "| outputs | path | ms/frame | frames/s | × in-process | body bytes | load average |",
+        "|---|---|---:|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        ref = r.get("ref", base_ms[r["outputs"]])
+        lines.append(f"| {r['outputs']} | {r['path']} | {r['ms']:.1f} | {1e3 / r['ms']:.1f} | "
+                     f"{r['ms'] / ref:.2f}× | {r.get('bytes', '–')} | {r['load']} |")
+    lines += ["", "Targets (level 1):", ""]
+    for name in OUTPUT_SETS:
+        got = base_ms[name]
+        lines.append(f"- in-process {name} ≤ {TARGET_MS[name]:g} ms: "
+                     f"**{'met' if got <= TARGET_MS[name] else 'missed'}** ({got:.1f} ms)")
+        http = [r for r in rows if r["outputs"] == name and r["path"].startswith("HTTP")]
+        if http:
+            best = min(http, key=lambda r: r["ms"] / r["ref"])
+            ratio = best["ms"] / best["ref"]
+            lines.append(f"- HTTP {name} ≤ {TARGET_HTTP[name]:g}× in-process: "
+                         f"**{'met' if ratio <= TARGET_HTTP[name] else 'missed'}** "
+                         f"({ratio:.2f}×, {best['path']})")
+        grpc = [r for r in rows if r["outputs"] == name and r["path"].startswith("gRPC")]
+        if grpc:
+            fps = 1e3 / min(r["ms"] for r in grpc)
+            lines.append(f"- gRPC {name} ≥ {TARGET_FPS[name]:g} frames/s: "
+                         f"**{'met' if fps >= TARGET_FPS[name] else 'missed'}** ({fps:.1f} frames/s)")
+    for name, table in profiles.items():
+        lines += ["", f"cProfile, in-process, {name} (top functions by own time):", "", table]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,22 @@
+"""Tests for service.methods.pdm.texel_band: the blocked per-frame evaluation."""
+
+import numpy as np
+
+from service.methods.pdm import texel_band
+
+
+def test_blocked_synthesis_is_parameters_then_evaluate_bit_for_bit(pdm_model, pdm_data, monkeypatch):
+    _, clips = pdm_data
+    band = pdm_model.fine
+    rest = pdm_model.base.rest_markers
+    peak = clips[3].markers[[10, 12]]
+    pose = pdm_model.deformation(peak)[0]
+    far = pose.restore(rest + 2.5 * (pose.remove(peak) - rest))     # beyond the trained range
+    _, _, S = pdm_model.deformation(far)
+    monkeypatch.setattr(texel_band, "BLOCK_POINTS", 700)            # many blocks at 128²
+    assert len(band.field.blocks(texel_band.BLOCK_POINTS)) > 5
+    for margin in (pdm_model.params.extrapolation_margin, None):
+        d1, d2, frac = band.parameters(S, margin)
+        values, got = band.synthesize(S, margin)
+        assert np.array_equal(values, band.evaluate(d1, d2)) and np.array_equal(got, frac)
+    assert frac.min() == 0 and band.parameters(S, pdm_model.params.extrapolation_margin)[2].min() > 0.05
