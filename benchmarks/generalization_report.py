@@ -125,7 +125,8 @@ class MethodFailed(Exception):
     pass
 
 
-def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool) -> dict:
+def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
+                    shape_space_rows: bool = True) -> dict:
     """Rows {(range, condition, method): metrics} and the worst frame's data of one family."""
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
@@ -149,9 +150,10 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
     del clips
-    ss_dir, _ = ss.shape_space_model(actor_dir, ShapeSpaceParams(), retrain)
-    shape = ShapeSpaceModel.load(ss_dir)
-    reg, _ = ss.rig_registration(actor_dir, retrain)
+    if shape_space_rows:
+        ss_dir, _ = ss.shape_space_model(actor_dir, ShapeSpaceParams(), retrain)
+        shape = ShapeSpaceModel.load(ss_dir)
+        reg, _ = ss.rig_registration(actor_dir, retrain)
 
     def shape_space(V_or_markers, kind):
         out = shape.enhance(V_or_markers, ss.SS_OUTPUTS, input_kind=kind)
@@ -171,8 +173,9 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
             methods.update({f"PDM {o}": (lambda m, model=model: pdm_prediction(model, m))
                             for o, model in models.items()})
-            methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
-            if cname == "clean":
+            if shape_space_rows:
+                methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
+            if shape_space_rows and cname == "clean":
                 methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
             for name, method in methods.items():
                 t0 = time.perf_counter()
@@ -201,7 +204,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                                  "lowres": lowres[k:k + 1]}
     # the worst frame, every method
     errors = {}
-    for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic", SS_MARKERS):
+    for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic") + (
+            (SS_MARKERS,) if shape_space_rows else ()):
         fn = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
               "PDM linear": lambda m: pdm_prediction(models["linear"], m),
               "PDM biquadratic": lambda m: pdm_prediction(bq, m),
@@ -271,6 +275,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                         help=f"held-out map frames per performance (default {DEFAULT_FRAMES}; 0 = all)")
     parser.add_argument("--retrain", action="store_true", help="rebuild the cached models")
+    parser.add_argument("--pdm-only", action="store_true",
+                        help="only the baselines and the PDM rows (no shape-space model)")
     args = parser.parse_args()
     defaults = {"a": OUT / "actor-a-l0", "b": OUT / "actor-b-l0"}
     actors = {} if args.actor else defaults
@@ -289,7 +295,7 @@ def main() -> None:
         actor_dir = actor_dir.resolve()
         ensure_actor(family, actor_dir)
         print(f"family {family}: {actor_dir}", file=sys.stderr)
-        results[family] = evaluate_family(family, actor_dir, frames, args.retrain)
+        results[family] = evaluate_family(family, actor_dir, frames, args.retrain, not args.pdm_only)
         plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)
     print(text)

@@ -71,6 +71,8 @@ from service.methods.pdm.extrapolation import training_limit
 from service.methods.outputs import check_outputs
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import TexelBand
+from service.methods.pdm.validity import Validity, training_envelope, training_hull
+from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
@@ -162,6 +164,7 @@ class PdmModel:
     seam_average: sp.csr_matrix | None = None     # (n,K) UV points → vertices (seam mean)
     fine_sampler: sp.csr_matrix | None = None     # (n,Pf) fine map → vertices
     normal_mapper: NormalMapper | None = None     # built on the first normal_map request
+    validity: Validity | None = None              # where the polynomial holds (:mod:`.validity`)
 
     @property
     def n_vertices(self) -> int:
@@ -201,7 +204,24 @@ class PdmModel:
                 band.limit = _limits(band.field, self.S_train)
         self.fine_sampler = sampling_matrix(self.uv, self.uv_faces, self.faces, self.n_vertices,
                                             self.fine.mask())[:, self.fine.index].tocsr()
+        self.validity = self._validity()
         return self
+
+    def _validity(self) -> Validity | None:
+        """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
+        when ``params.validity_width`` is None (the extrapolation limit applies instead)."""
+        if self.params.validity_width is None:
+            return None
+        pf, S = self.vertex_band.field, self.S_train
+        hull = training_hull(lambda: (pf(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK)))
+        bands = {k: (b.resolution, b.index) for k, b in (("fine", self.fine), ("albedo", self.albedo))
+                 if b is not None}
+        envelope = {k: training_envelope(b.coeffs, lambda b=b: (b.field(S[t:t + FRAME_CHUNK])
+                                                                for t in range(0, len(S), FRAME_CHUNK)),
+                                         Validity.fallback(k, b.coeffs))
+                    for k, b in self.evaluated_bands().items()}
+        return Validity.build(hull, envelope, self.params.validity_width, self.params.validity_slope, self.uv,
+                              self.uv_faces, self.seam_average, self.base.smooth, self.faces, bands)
 
     def evaluated_bands(self) -> dict[str, TexelBand]:
         """The bands synthesis evaluates per frame: the medium PDM at the UV points
@@ -222,9 +242,12 @@ class PdmModel:
         return TexelBand(0, np.arange(len(self.uv)), coeffs.astype(np.float32),
                          ParameterField.build(self.axes, W))
 
-    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-        """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV points."""
+    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None) -> np.ndarray:
+        """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
+        points; with ρ (F,K) (:mod:`.validity`), continued and faded outside the hull."""
         c = self.vertex_band.evaluate(d1, d2)                                   # (F,K,3)
+        if rho is not None:
+            c = self.validity.apply("vertex", self.vertex_band.coeffs, c, d1, d2, rho)
         F, K = c.shape[:2]
         c = (self.seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
         return c.transpose(1, 0, 2) + self.neutral_offset
@@ -244,8 +267,12 @@ class PdmModel:
         Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
         scale in the input's world pose, ``vertices_detailed`` (F,n,3) with the fine map
         baked along the normals, ``displacement`` (F,H,H) fine-scale normal displacement,
-        ``albedo`` (F,Ha,Ha,3), ``normal_map`` (F,H,H,3) tangent space; always ``faces`` and
-        ``clamped`` (F,) the fraction of texels whose d1/d2 hit the extrapolation limit.
+        ``albedo`` (F,Ha,Ha,3), ``normal_map`` (F,H,H,3) tangent space; always ``faces``,
+        ``clamped`` (F,) the fraction of fine texels outside their validity hull (or, with
+        ``validity_width`` None, whose d1/d2 hit the extrapolation limit), ``confidence``
+        (F,) and ``confidence_vertices`` (F,n) (:mod:`service.methods.confidence`,
+        :meth:`.validity.Validity.confidence`). With ``clamp`` the detail outside the hull is
+        continued and faded to the neutral's (:mod:`.validity`); without, the raw polynomial.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -260,7 +287,9 @@ class PdmModel:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
         out: dict[str, np.ndarray] = {"faces": self.faces.astype(np.int32),
-                                      "clamped": np.zeros(nf, np.float32)}
+                                      "clamped": np.zeros(nf, np.float32),
+                                      CONFIDENCE: np.ones(nf, np.float32),
+                                      VERTEX_CONFIDENCE: np.ones((nf, n), np.float32)}
         want = set(outputs)
         if want & {"mesh", "mesh_detailed"}:
             out["vertices"] = np.empty((nf, n, 3), np.float32)
@@ -277,7 +306,8 @@ class PdmModel:
         if "albedo" in want:
             Ha = self.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
-        margin = self.params.extrapolation_margin if clamp else None
+        valid = self.validity
+        margin = self.params.extrapolation_margin if clamp and valid is None else None
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             try:
@@ -287,10 +317,14 @@ class PdmModel:
                                    f"least {e.required} are needed") from None
             X = self.base.deform(u_H)
             d1, d2, _ = self.vertex_band.parameters(S, margin)
-            medium = X + self.base.to_world(X, self.medium_offsets(d1, d2))
+            rho = None if valid is None else valid.gauge(d1, d2)
+            if rho is not None:
+                out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
+            rho = rho if clamp else None
+            medium = X + self.base.to_world(X, self.medium_offsets(d1, d2, rho))
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
-            disp, out["clamped"][sl] = self._fine_band(S, margin)
+            disp, out["clamped"][sl] = self._fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
                 out["displacement"][sl].reshape(len(disp), -1)[:, self.fine.index] = disp
             if want & {"mesh_detailed", "normal_map"}:
@@ -304,16 +338,25 @@ class PdmModel:
                         out["displacement"][s + k], medium[k], mframes[k])
             if "albedo" in want:
                 a1, a2, _ = self.albedo.parameters(S, margin)
-                out["albedo"][sl] = self.albedo.image(
-                    np.maximum(self.albedo.evaluate(a1, a2), 0.0), channels=True)
+                a = self.albedo.evaluate(a1, a2)
+                if rho is not None:
+                    a = valid.apply("albedo", self.albedo.coeffs, a, a1, a2, valid.texels("albedo", rho))
+                out["albedo"][sl] = self.albedo.image(np.maximum(a, 0.0), channels=True)
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
 
-    def _fine_band(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,)."""
+    def _fine_band(self, S: np.ndarray, margin: float | None,
+                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,); with ρ
+        (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`)."""
         d1, d2, frac = self.fine.parameters(S, margin)
-        return self.fine.evaluate(d1, d2)[..., 0], frac
+        D = self.fine.evaluate(d1, d2)
+        if rho is not None:
+            rho_f = self.validity.texels("fine", rho)
+            D = self.validity.apply("fine", self.fine.coeffs, D, d1, d2, rho_f)
+            frac = np.mean(rho_f > 1, axis=-1)
+        return D[..., 0], frac
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
