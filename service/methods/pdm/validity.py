@@ -18,7 +18,7 @@ only clamps), nor a nearest-sample distance separates those points. So two guard
 
 1. **star-shaped validity region** per UV point: the radius function
    ``h_k = max_t r_t κ(θ_t − θ_k)`` over K angular sectors of the training parameters
-   (r, θ polar; κ a tent of half-width ``REACH`` sectors), floored at ``HULL_FLOOR`` ×
+   (r, θ polar; κ = 1 within one sector, 0 beyond ``REACH`` sectors), floored at ``HULL_FLOOR`` ×
    its maximum, so directions between trained rays (combinations) are outside. The gauge
    ``ρ(d) = r / h(θ)`` (h linear between sectors) is positively homogeneous: ``d_b = d / ρ``
    is the exit point of d's ray;
@@ -69,7 +69,9 @@ from service.methods.pdm.polynomial import TERM_POWERS
 
 #: angular sectors of the star-shaped validity region
 DIRECTIONS = 32
-#: angular half-width of a training sample's reach, in sectors (its radius falls linearly to 0)
+#: angular reach of a training sample, in sectors: its full radius up to one sector away
+#: (so both sectors that bracket it hold it, and a training sample has ρ ≤ 1), falling
+#: linearly to 0 at ``REACH`` sectors
 REACH = 2.0
 #: radius in a direction no training frame moved along, relative to the largest radius
 HULL_FLOOR = 0.05
@@ -83,7 +85,8 @@ def directions(K: int = DIRECTIONS) -> np.ndarray:
 def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
                   K: int = DIRECTIONS, reach: float = REACH, floor: float = HULL_FLOOR) -> np.ndarray:
     """Radius function (K,P) float32 of the training parameters (module docstring):
-    ``h_k = max_t r_t κ(θ_t − θ_k)``, κ(Δ) = max(0, 1 − |Δ| K / (2π reach)), floored.
+    ``h_k = max_t r_t κ(θ_t − θ_k)``, κ(Δ) = clip((reach − |Δ| K / 2π) / (reach − 1), 0, 1),
+    floored.
 
     ``chunks()`` yields (d1, d2) pairs of (t,P) arrays covering all training frames.
     """
@@ -96,7 +99,7 @@ def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
             h = np.zeros((K, d1.shape[1]))
         for k, t in enumerate(theta):
             delta = np.abs((a - t + np.pi) % (2 * np.pi) - np.pi)                  # (t,P) in [0, π]
-            kappa = np.maximum(0.0, 1.0 - delta * K / (2 * np.pi * reach))
+            kappa = np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
             h[k] = np.maximum(h[k], (r * kappa).max(axis=0))
     return np.maximum(h, floor * h.max(axis=0, keepdims=True) + 1e-12).astype(np.float32)
 
@@ -144,12 +147,11 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
         mono *= 1 + slope * powers.sum(axis=1) * (r - 1)[:, None]
         values[f, p] = np.einsum("nck,nk->nc", coeffs[p].astype(np.float64), mono).astype(values.dtype)
     const = np.ascontiguousarray(fallback, dtype=values.dtype)                   # (P,C)
-    values -= const
-    norm = np.sqrt(np.einsum("fpc,fpc->fp", values, values))
-    cap = (1 + margin) * envelope
-    w = np.minimum(1.0, cap / np.maximum(norm, 1e-30)) * falloff(rho - 1.0, width)
-    values *= w[..., None].astype(values.dtype)
-    values += const
+    detail = values - const
+    norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
+    w = np.minimum(1.0, (1 + margin) * envelope / np.maximum(norm, 1e-30)) * falloff(rho - 1.0, width)
+    f, p = np.nonzero(w < 1)                      # the others stay bit-identical to D
+    values[f, p] = const[p] + w[f, p, None].astype(values.dtype) * detail[f, p]
     return values
 
 
