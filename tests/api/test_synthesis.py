@@ -447,7 +447,6 @@ def test_synthesize_answers_the_per_frame_confidence_in_a_header_and_the_npz(rea
     out = load_npz(response.content)
     np.testing.assert_allclose(out["confidence"], expected, atol=0)
     assert out["confidence_vertices"].shape == (2, pdm_model.n_vertices)
-    assert header[1] < header[0]
     spec = client.get("/openapi.json").json()
     ok = spec["paths"]["/v1/models/{model_id}/synthesize"]["post"]["responses"]["200"]
     assert "X-Facesynth-Confidence" in ok["headers"]
