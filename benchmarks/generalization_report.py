@@ -133,7 +133,8 @@ class MethodFailed(Exception):
 
 
 def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
-                    marker_filter: float = 0.0, marker_noise_mm: float = 0.0) -> dict:
+                    marker_filter: float = 0.0, marker_noise_mm: float = 0.0,
+                    shape_space_rows: bool = True) -> dict:
     """Rows {(range, condition, method): metrics} and the worst frame's data of one family."""
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
@@ -157,9 +158,10 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
     del clips
-    ss_dir, _ = pdm.shape_space_model(actor_dir, ShapeSpaceParams(marker_noise_mm=marker_noise_mm), retrain)
-    shape = ShapeSpaceModel.load(ss_dir)
-    reg, _ = pdm.rig_registration(actor_dir, retrain)
+    if shape_space_rows:
+        ss_dir, _ = pdm.shape_space_model(actor_dir, ShapeSpaceParams(marker_noise_mm=marker_noise_mm), retrain)
+        shape = ShapeSpaceModel.load(ss_dir)
+        reg, _ = pdm.rig_registration(actor_dir, retrain)
 
     def shape_space(V_or_markers, kind):
         out = shape.enhance(V_or_markers, pdm.SS_OUTPUTS, input_kind=kind)
@@ -179,8 +181,9 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
             methods.update({f"PDM {o}": (lambda m, model=model: pdm_prediction(model, m))
                             for o, model in models.items()})
-            methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
-            if cname == "clean":
+            if shape_space_rows:
+                methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
+            if shape_space_rows and cname == "clean":
                 methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
             for name, method in methods.items():
                 t0 = time.perf_counter()
@@ -209,7 +212,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                                  "lowres": lowres[k:k + 1]}
     # the worst frame, every method
     errors = {}
-    for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic", SS_MARKERS):
+    for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic") + (
+            (SS_MARKERS,) if shape_space_rows else ()):
         fn = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
               "PDM linear": lambda m: pdm_prediction(models["linear"], m),
               "PDM biquadratic": lambda m: pdm_prediction(bq, m),
@@ -285,6 +289,8 @@ def main() -> None:
     parser.add_argument("--marker-noise", type=float, default=0.0, metavar="SIGMA",
                         help="train the PDMs and the shape-space model with marker_noise_mm = "
                              "SIGMA (soft marker constraints; default 0: exact interpolation)")
+    parser.add_argument("--pdm-only", action="store_true",
+                        help="only the baselines and the PDM rows (no shape-space model)")
     args = parser.parse_args()
     defaults = {"a": OUT / "actor-a-l0", "b": OUT / "actor-b-l0"}
     actors = {} if args.actor else defaults
@@ -304,7 +310,7 @@ def main() -> None:
         ensure_actor(family, actor_dir)
         print(f"family {family}: {actor_dir}", file=sys.stderr)
         results[family] = evaluate_family(family, actor_dir, frames, args.retrain, args.marker_filter,
-                                          args.marker_noise)
+                                          args.marker_noise, not args.pdm_only)
         plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)
     print(text)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import OpenEXR
+import numpy as np
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
@@ -40,6 +41,7 @@ from service.io.exr import read_exr, write_exr
 from service.io.npz import npz_bytes
 from service.jobs.formats import check_result_format
 from service.errors import BlobCorrupt, Conflict, InvalidInput, NotFound, Unavailable
+from service.methods.confidence import CONFIDENCE
 from service.methods.kinds import get_kind
 from service.methods.shape_space.temporal import retime_keyframes
 
@@ -278,11 +280,27 @@ def half_exr(file: Path) -> bytes:
 # ---------------------------------------------------------------------------- synthesis
 @dataclass(frozen=True)
 class Synthesized:
-    """A synthesis response: media type, body, frame count."""
+    """A synthesis response: media type, body, frame count, and the per-frame confidence
+    (:mod:`service.methods.confidence`) as the ``X-Facesynth-Confidence`` header's value
+    (None: the model reports none)."""
 
     media_type: str
     body: bytes
     frames: int
+    confidence: str | None = None
+
+
+#: response header of the per-frame confidence of a synchronous synthesis (API.md)
+CONFIDENCE_HEADER = "X-Facesynth-Confidence"
+
+
+def confidence_header(result: dict) -> str | None:
+    """The per-frame ``confidence`` (F,) of a synthesis result as comma-separated values
+    (4 decimals, frame order), or None when the result has none."""
+    values = result.get(CONFIDENCE)
+    if values is None:
+        return None
+    return ",".join(f"{float(v):.4f}" for v in np.asarray(values).ravel())
 
 
 def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind: str,
@@ -311,7 +329,8 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
         request = replace(request, frames=loaded_rig.propagate(request.frames))
     check_response_request(media, request)
     result = synthesizer.run(loaded, request)
-    return Synthesized(media, encode(media, result, loaded, request, half), len(request.frames))
+    return Synthesized(media, encode(media, result, loaded, request, half), len(request.frames),
+                       confidence_header(result))
 
 
 def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, kind: str,

@@ -44,6 +44,7 @@ import numpy as np
 
 from service.io.triangle_mesh import Mesh
 from service.io.usd import write_usd_cache
+from service.methods.confidence import CONFIDENCE
 from service.jobs.frame_zip import FrameZipWriter
 
 #: output array → the cache's file name
@@ -95,7 +96,7 @@ class FrameUsdWriter:
                 target = self._points[key] = np.lib.format.open_memmap(
                     self.directory / f"{key}.npy", mode="w+", dtype=np.float32, shape=shape)
             target[start:start + count] = arrays[key]
-        maps = {k: arrays[k] for k in (*TEXTURES, "clamped") if k in arrays}
+        maps = {k: arrays[k] for k in (*TEXTURES, "clamped", CONFIDENCE) if k in arrays}
         if self._maps is not None and maps:
             self._maps.write(start, maps)
             for key in TEXTURES:

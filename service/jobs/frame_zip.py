@@ -10,13 +10,15 @@ file per frame: for frame ``i`` (zero-padded to the digits of the frame count)
     frame_0000_normal_map.exr    ``R``, ``G``, ``B``, tangent space
 
 (as asked in the job's outputs), plus ``clamped.csv`` (frame, fraction of texels at the
-extrapolation limit) when the model reports it. Members are stored uncompressed (EXR is
+extrapolation limit) and ``confidence.json`` (``{"frame": [...], "confidence": [...]}``, the
+per-frame confidence of :mod:`service.methods.confidence`) when the model reports them. Members are stored uncompressed (EXR is
 compressed already) and appended as the frames come, so memory stays bounded.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import zipfile
 from pathlib import Path
 from typing import Mapping
@@ -25,6 +27,10 @@ import numpy as np
 
 from service.io.exr import write_map
 from service.io.mesh import Mesh, write_obj
+from service.methods.confidence import CONFIDENCE
+
+#: the zip member of the per-frame confidence
+CONFIDENCE_MEMBER = "confidence.json"
 
 #: output array → member suffix and writer kind
 MEMBERS = {
@@ -53,6 +59,7 @@ class FrameZipWriter:
         self._digits = max(4, len(str(self.frames - 1)))
         self._zip = zipfile.ZipFile(self.target, "w", zipfile.ZIP_STORED, allowZip64=True)
         self._clamped: list[str] = []
+        self._confidence: list[tuple[int, float]] = []
         self._written = 0
 
     def write(self, start: int, arrays: Mapping[str, np.ndarray]) -> None:
@@ -72,6 +79,8 @@ class FrameZipWriter:
                 self._zip.writestr(self.member(start + k, key), buffer.getvalue())
             if "clamped" in arrays:
                 self._clamped.append(f"{start + k},{float(arrays['clamped'][k]):.6g}")
+            if CONFIDENCE in arrays:
+                self._confidence.append((start + k, float(arrays[CONFIDENCE][k])))
         self._written += count
 
     def member(self, frame: int, key: str) -> str:
@@ -91,5 +100,9 @@ class FrameZipWriter:
             raise ValueError(f"got {self._written} of {self.frames} frames")
         if self._clamped:
             self._zip.writestr("clamped.csv", "frame,clamped\n" + "\n".join(self._clamped) + "\n")
+        if self._confidence:
+            frames, values = zip(*sorted(self._confidence))
+            self._zip.writestr(CONFIDENCE_MEMBER, json.dumps({"frame": list(frames),
+                                                              "confidence": list(values)}))
         self._zip.close()
         return self.target

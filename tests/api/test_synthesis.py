@@ -450,3 +450,22 @@ def test_the_grpc_path_refuses_markers_in_another_unit(ready):
     assert model.synthesize(markers[:1], ["mesh"])["vertices"].shape == (1, model.n_vertices, 3)
     with pytest.raises(InvalidInput, match="metres"):
         model.synthesize(markers[:1] / 1000.0, ["mesh"])
+
+
+def test_synthesize_answers_the_per_frame_confidence_in_a_header_and_the_npz(ready, pdm_model):
+    client, _, model_id, markers, _ = ready
+    rest = pdm_model.base.rest_markers
+    pose = pdm_model.deformation(markers[:1])[0]
+    far = pose.restore(rest + 6.0 * (pose.remove(markers[:1]) - rest))      # 6× the expression
+    frames = np.concatenate([markers[:1], far])
+    response = synth(client, model_id, npz(markers=frames))
+    assert response.status_code == 200, response.text
+    expected = pdm_model.synthesize(frames, ("mesh", "displacement"))["confidence"]
+    header = [float(x) for x in response.headers["X-Facesynth-Confidence"].split(",")]
+    np.testing.assert_allclose(header, expected, atol=5e-5)
+    out = load_npz(response.content)
+    np.testing.assert_allclose(out["confidence"], expected, atol=0)
+    assert out["confidence_vertices"].shape == (2, pdm_model.n_vertices)
+    spec = client.get("/openapi.json").json()
+    ok = spec["paths"]["/v1/models/{model_id}/synthesize"]["post"]["responses"]["200"]
+    assert "X-Facesynth-Confidence" in ok["headers"]

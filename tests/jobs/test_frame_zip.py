@@ -48,3 +48,15 @@ def test_missing_frames_are_an_error(tmp_path):
     writer.write(0, _frames(np.random.default_rng(0), 0, 3))
     with pytest.raises(ValueError, match="got 3 of 4 frames"):
         writer.finish()
+
+
+def test_the_per_frame_confidence_is_a_json_member_beside_the_frames(tmp_path):
+    import json
+
+    rng = np.random.default_rng(4)
+    writer = FrameZipWriter(tmp_path / "c.zip", 3)
+    conf = np.array([1.0, 0.75, 0.125], np.float32)
+    writer.write(0, {**_frames(rng, 0, 2), "confidence": conf[:2]})
+    writer.write(2, {**_frames(rng, 2, 1), "confidence": conf[2:]})
+    with zipfile.ZipFile(writer.finish()) as z:
+        assert json.loads(z.read("confidence.json")) == {"frame": [0, 1, 2], "confidence": [1.0, 0.75, 0.125]}

@@ -35,9 +35,19 @@ _RESPONSES = {
         "`application/x-npz` (default): `vertices` (F,V,3) in the input's world pose, "
         "`vertices_detailed` (F,V,3) for `mesh_detailed`, `faces` (T,3), the asked maps "
         "(`displacement` (F,H,W), `albedo` (F,H,W,3), `normal_map` (F,H,W,3)) and `clamped` "
-        "(F,) the fraction of texels held at the extrapolation limit. `Accept: model/obj`: one "
+        "(F,) the fraction of texels held at the extrapolation limit; models that report a "
+        "confidence add `confidence` (F,) in [0, 1] (1: the frame's deformation lies inside "
+        "the training data) and, for `pdm`, `confidence_vertices` (F,V). `Accept: model/obj`: one "
         "frame as OBJ with UVs; `Accept: image/x-exr` with one map output: that map as EXR.")),
     **problems(400, 404, 406, 409, 413, 415, 422, 503)}
+_RESPONSES[200]["headers"] = {
+    operations.CONFIDENCE_HEADER: {
+        "description": "Per-frame confidence in [0, 1], comma-separated in frame order (4 "
+                       "decimals), for models that report one (`pdm`, `psd`, `wpsd`): how far "
+                       "the frame's deformation lies outside what the model was trained on (1: "
+                       "inside). A `pdm` fades its detail toward the thin shell and the static "
+                       "neutral map where it is low (with `clamp`).",
+        "schema": {"type": "string", "example": "1.0000,0.9731"}}}
 
 
 async def _synthesize(model_id: str, request: Request, services: ServicesDep, outputs: list[str] | None,
@@ -54,9 +64,11 @@ async def _synthesize(model_id: str, request: Request, services: ServicesDep, ou
 
 def _answer(answer: operations.Synthesized, name: str) -> Response:
     suffix = {NPZ: "npz", OBJ: "obj", EXR: "exr"}[answer.media_type]
-    return Response(answer.body, media_type=answer.media_type, headers={
-        "Content-Disposition": f'attachment; filename="{name}.{suffix}"',
-        "X-Frames": str(answer.frames)})
+    headers = {"Content-Disposition": f'attachment; filename="{name}.{suffix}"',
+               "X-Frames": str(answer.frames)}
+    if answer.confidence is not None:
+        headers[operations.CONFIDENCE_HEADER] = answer.confidence
+    return Response(answer.body, media_type=answer.media_type, headers=headers)
 
 
 @router.post(

@@ -71,6 +71,8 @@ from service.methods.pdm.extrapolation import training_limit
 from service.methods.outputs import check_outputs
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import TexelBand
+from service.methods.pdm.validity import Validity, training_envelope, training_hull
+from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
@@ -162,6 +164,7 @@ class PdmModel:
     seam_average: sp.csr_matrix | None = None     # (n,K) UV points → vertices (seam mean)
     fine_sampler: sp.csr_matrix | None = None     # (n,Pf) fine map → vertices
     normal_mapper: NormalMapper | None = None     # the fine map's normal mapper (built by prepare)
+    validity: Validity | None = None              # where the polynomial holds (:mod:`.validity`)
 
     @property
     def n_vertices(self) -> int:
@@ -205,7 +208,24 @@ class PdmModel:
             Hf = self.fine.resolution
             self.normal_mapper = NormalMapper(rasterize_uv(self.uv, self.uv_faces, Hf, Hf),
                                               self.faces, self.uv, self.uv_faces, self.n_vertices)
+        self.validity = self._validity()
         return self
+
+    def _validity(self) -> Validity | None:
+        """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
+        when ``params.validity_width`` is None (the extrapolation limit applies instead)."""
+        if self.params.validity_width is None:
+            return None
+        pf, S = self.vertex_band.field, self.S_train
+        hull = training_hull(lambda: (pf(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK)))
+        bands = {k: (b.resolution, b.index) for k, b in (("fine", self.fine), ("albedo", self.albedo))
+                 if b is not None}
+        envelope = {k: training_envelope(b.coeffs, lambda b=b: (b.field(S[t:t + FRAME_CHUNK])
+                                                                for t in range(0, len(S), FRAME_CHUNK)),
+                                         Validity.fallback(k, b.coeffs))
+                    for k, b in self.evaluated_bands().items()}
+        return Validity.build(hull, envelope, self.params.validity_width, self.params.validity_slope, self.uv,
+                              self.uv_faces, self.seam_average, self.base.smooth, self.faces, bands)
 
     def evaluated_bands(self) -> dict[str, TexelBand]:
         """The bands synthesis evaluates per frame: the medium PDM at the UV points
@@ -226,9 +246,12 @@ class PdmModel:
         return TexelBand(0, np.arange(len(self.uv)), coeffs.astype(np.float32),
                          ParameterField.build(self.axes, W))
 
-    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-        """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV points."""
+    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None) -> np.ndarray:
+        """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
+        points; with ρ (F,K) (:mod:`.validity`), continued and faded outside the hull."""
         c = self.vertex_band.evaluate(d1, d2)                                   # (F,K,3)
+        if rho is not None:
+            c = self.validity.apply("vertex", self.vertex_band.coeffs, c, d1, d2, rho)
         F, K = c.shape[:2]
         c = (self.seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
         return c.transpose(1, 0, 2) + self.neutral_offset
@@ -248,11 +271,15 @@ class PdmModel:
         Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
         scale in the input's world pose, ``vertices_detailed`` (F,n,3) with the fine map
         baked along the normals, ``displacement`` (F,H,H) fine-scale normal displacement,
-        ``albedo`` (F,Ha,Ha,3), ``normal_map`` (F,H,H,3) tangent space; always ``faces`` and
-        ``clamped`` (F,) the fraction of points whose d1/d2 hit the extrapolation limit: of
-        the fine map's texels when a fine-scale output (``displacement``, ``normal_map``,
-        ``mesh_detailed``) is asked, else of the mesh's UV points (the medium band, which
-        is all such a call evaluates: the fine band is not computed for it).
+        ``albedo`` (F,Ha,Ha,3), ``normal_map`` (F,H,H,3) tangent space; always ``faces``,
+        ``clamped`` (F,) the fraction of points outside their validity hull (or, with
+        ``validity_width`` None, whose d1/d2 hit the extrapolation limit): of the fine map's
+        texels when a fine-scale output (``displacement``, ``normal_map``, ``mesh_detailed``)
+        is asked, else of the mesh's UV points (the fine band is not computed for such a
+        call); ``confidence`` (F,) and ``confidence_vertices`` (F,n)
+        (:mod:`service.methods.confidence`, :meth:`.validity.Validity.confidence`). With
+        ``clamp`` the detail outside the hull is continued and faded to the neutral's
+        (:mod:`.validity`); without, the raw polynomial.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -267,7 +294,9 @@ class PdmModel:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
         out: dict[str, np.ndarray] = {"faces": self.faces.astype(np.int32),
-                                      "clamped": np.zeros(nf, np.float32)}
+                                      "clamped": np.zeros(nf, np.float32),
+                                      CONFIDENCE: np.ones(nf, np.float32),
+                                      VERTEX_CONFIDENCE: np.ones((nf, n), np.float32)}
         want = set(outputs)
         if want & {"mesh", "mesh_detailed"}:
             out["vertices"] = np.empty((nf, n, 3), np.float32)
@@ -281,7 +310,8 @@ class PdmModel:
         if "albedo" in want:
             Ha = self.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
-        margin = self.params.extrapolation_margin if clamp else None
+        valid = self.validity
+        margin = self.params.extrapolation_margin if clamp and valid is None else None
         fine = bool(want & {"displacement", "normal_map", "mesh_detailed"})
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
@@ -291,13 +321,19 @@ class PdmModel:
                 raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
                                    f"least {e.required} are needed") from None
             X = self.base.deform(u_H)
-            d1, d2, out["clamped"][sl] = self.vertex_band.parameters(S, margin)
+            d1, d2, clamped = self.vertex_band.parameters(S, margin)
+            rho = None if valid is None else valid.gauge(d1, d2)
+            if rho is not None:
+                out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
+                clamped = np.mean(rho > 1, axis=-1)
+            rho = rho if clamp else None
+            out["clamped"][sl] = clamped
             # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
-            medium = X + self.base.frame_field.to_world(X, self.medium_offsets(d1, d2), np.float32)
+            medium = X + self.base.frame_field.to_world(X, self.medium_offsets(d1, d2, rho), np.float32)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if fine:                            # mesh only: the fine band is not evaluated
-                disp, out["clamped"][sl] = self._fine_band(S, margin)
+                disp, out["clamped"][sl] = self._fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
                 out["displacement"][sl].reshape(len(disp), -1)[:, self.fine.index] = disp
             if want & {"mesh_detailed", "normal_map"}:
@@ -310,16 +346,28 @@ class PdmModel:
                     out["normal_map"][s + k] = self.normal_mapper.normal_map(
                         out["displacement"][s + k], medium[k], mframes[k])
             if "albedo" in want:
-                out["albedo"][sl] = self.albedo.image(
-                    np.maximum(self.albedo.synthesize(S, margin)[0], 0.0), channels=True)
+                if rho is None:
+                    a = self.albedo.synthesize(S, margin)[0]
+                else:
+                    a1, a2, _ = self.albedo.parameters(S, margin)
+                    a = valid.apply("albedo", self.albedo.coeffs, self.albedo.evaluate(a1, a2), a1, a2,
+                                    valid.texels("albedo", rho))
+                out["albedo"][sl] = self.albedo.image(np.maximum(a, 0.0), channels=True)
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
 
-    def _fine_band(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,)."""
-        values, frac = self.fine.synthesize(S, margin)
-        return values[..., 0], frac
+    def _fine_band(self, S: np.ndarray, margin: float | None,
+                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,); with ρ
+        (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`)."""
+        if rho is None:                 # blocked evaluation (:meth:`.texel_band.TexelBand.synthesize`)
+            values, frac = self.fine.synthesize(S, margin)
+            return values[..., 0], frac
+        d1, d2, _ = self.fine.parameters(S, margin)
+        rho_f = self.validity.texels("fine", rho)
+        D = self.validity.apply("fine", self.fine.coeffs, self.fine.evaluate(d1, d2), d1, d2, rho_f)
+        return D[..., 0], np.mean(rho_f > 1, axis=-1)
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:

@@ -53,6 +53,21 @@ class PdmParams(MarkerParams):
                     "data keep the most extreme trained detail instead of growing "
                     "polynomially; null disables the limit.",
         examples=[0.25, None])
+    validity_width: float | None = Field(
+        default=3.0, ge=0, allow_inf_nan=False,
+        description="Validity of the polynomial (issue 17): outside the hull of the (d1, d2) "
+                    "each point was trained on, the detail is continued from the hull's "
+                    "boundary and faded to the neutral's (the thin shell and the static "
+                    "neutral map), reaching it at this relative distance beyond the hull "
+                    "(3: four times the training range; chosen on family a's held-out "
+                    "combinations and out-of-range performances, see validity.py). It "
+                    "replaces the extrapolation_margin limit; null uses that limit instead.",
+        examples=[3.0, None])
+    validity_slope: float = Field(
+        default=1.0, ge=0, le=1, allow_inf_nan=False,
+        description="Order of the continuation outside the hull: 1 continues the polynomial "
+                    "linearly along the expression's direction, 0 holds the boundary's detail.",
+        examples=[1.0])
     fine_highpass_mm: float = Field(
         default=2.0, ge=0, allow_inf_nan=False,
         description="σ on the surface, in the actor's unit, of the Gaussian whose complement "

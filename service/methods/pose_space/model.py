@@ -67,6 +67,7 @@ from service.geometry.normal_map import NormalMapper
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
 )
+from service.methods.confidence import exponential
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
@@ -168,7 +169,7 @@ class PoseSpaceEvaluator:
         """exp(−δ/δ₀) (F,) of features f (F,E) (module docstring)."""
         d = self.data
         excess = np.maximum(0.0, np.maximum(f - d.feature_high, d.feature_low - f))
-        return np.exp(-np.linalg.norm(excess, axis=-1) / d.confidence_scale)
+        return exponential(np.linalg.norm(excess, axis=-1), d.confidence_scale)
 
     # -- fine scale
     def sq_distances(self, f: np.ndarray) -> np.ndarray:

@@ -1,0 +1,219 @@
+"""Where a PDM's polynomial is valid, and what it becomes outside (issue 17, failure modes 1, 3).
+
+ma2008 fits eq. 1 per texel to the (d1, d2) its training frames visited and is silent about
+any other (d1, d2). A biquadratic there is not constrained by data: where a texel's
+training parameters lie on a few rays from the neutral (one per training expression that
+moves it), the quadratic form vanishing on those rays, ``(d·a⊥)(d·b⊥)``, is a null
+direction of the fit that only the γ rows of §4.2 hold down, and it is largest exactly
+between and beyond the rays, where an expression *combination* puts the texel.
+
+Measured first (family a, level 0, biquadratic, ``heldout_combinations``): the worst
+vertices (41 mm against the thin shell's 3.3 mm) have parameters *inside* the convex hull
+of their training (d1, d2) (gauge 0.55–1.2) and within 10 % of the training radius of a
+training sample; at one of them (vertex 5891) the training parameters lie on a ray
+(d2/d1 ≈ 0.34), the frame's 9° off it, and the polynomial answers (1.4, 5.2, −6.3) mm
+where its training values never exceed 2.9 mm: the off-ray null direction of the fit,
+amplified by |d| ≈ 13. Neither a convex hull, nor an ellipse (the former limit, which
+only clamps), nor a nearest-sample distance separates those points. So two guards:
+
+1. **star-shaped validity region** per UV point: the radius function
+   ``h_k = max_t r_t κ(θ_t − θ_k)`` over K angular sectors of the training parameters
+   (r, θ polar; κ = 1 within one sector, 0 beyond ``REACH`` sectors), floored at ``HULL_FLOOR`` ×
+   its maximum, so directions between trained rays (combinations) are outside. The gauge
+   ``ρ(d) = r / h(θ)`` (h linear between sectors) is positively homogeneous: ``d_b = d / ρ``
+   is the exit point of d's ray;
+2. **training envelope** per point: ``E = max_t ‖D(d_t) − fallback‖`` over the training
+   frames; the detail is limited to ``(1 + margin) E`` in norm.
+
+Then, with the method's safe *fallback* (0 for the medium PDM: the thin shell of the
+neutral, its static detail kept; the constant term a5 for the fine and albedo PDMs: the
+static neutral map)
+
+    D̃(d) = fallback + w(ρ) · s · (L(d) − fallback),
+    L(d) = D(d) for ρ ≤ 1,   Σ_k a_k m_k(d_b) (1 + slope · deg_k · (ρ − 1)) for ρ > 1,
+    s = min(1, (1 + margin) E / ‖L(d) − fallback‖),
+    w(ρ) = :func:`service.methods.confidence.falloff` (ρ − 1, width)   (1 at ρ ≤ 1, 0 at ρ ≥ 1 + width)
+
+``L`` with ``slope = 1`` is the first-order Taylor expansion of D at d_b along the ray (by
+Euler's theorem a monomial of degree k has ray derivative k·m_k): the polynomial continued
+by a *linear* one; ``slope = 0`` holds the boundary's detail. D̃ equals D inside the region
+wherever D stays within its envelope, and equals the fallback for ρ ≥ 1 + width. ``w`` is
+also the point's confidence (:mod:`service.methods.confidence`).
+
+The fine and albedo texels take ρ interpolated from the UV points (barycentric through the
+UV triangle that covers them): the validity is a property of a region of the face, and a
+per-texel region of a 1024² map would cost T × 1024² × K per model load. Everything is
+derived from ``S_train`` when the model is prepared (nothing new is stored; about 9 s of a
+level-0 model's load, mostly the fine band's envelope).
+
+Measured with the defaults (width 1, slope 1, margin 0.25) on family a's combinations
+(13 frames, face): max vertex error 41.3 → 10.7 mm (thin shell 7.0), mean 0.47 → 0.36 mm
+(thin shell 0.39); the benchmark tables are in ``benchmarks/generalization_report.py``'s
+report.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Iterable
+
+import numpy as np
+
+from dataclasses import dataclass
+
+import scipy.sparse as sp
+
+from service.geometry.laplacian import triangle_areas
+from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
+from service.methods.confidence import falloff, frame_confidence
+from service.methods.pdm.polynomial import TERM_POWERS
+
+#: angular sectors of the star-shaped validity region
+DIRECTIONS = 32
+#: angular reach of a training sample, in sectors: its full radius up to one sector away
+#: (so both sectors that bracket it hold it, and a training sample has ρ ≤ 1), falling
+#: linearly to 0 at ``REACH`` sectors
+REACH = 2.0
+#: radius in a direction no training frame moved along, relative to the largest radius
+HULL_FLOOR = 0.05
+
+
+def directions(K: int = DIRECTIONS) -> np.ndarray:
+    """Angles θ_k (K,) = 2πk/K of the sectors."""
+    return 2 * np.pi * np.arange(K) / K
+
+
+def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
+                  K: int = DIRECTIONS, reach: float = REACH, floor: float = HULL_FLOOR) -> np.ndarray:
+    """Radius function (K,P) float32 of the training parameters (module docstring):
+    ``h_k = max_t r_t κ(θ_t − θ_k)``, κ(Δ) = clip((reach − |Δ| K / 2π) / (reach − 1), 0, 1),
+    floored.
+
+    ``chunks()`` yields (d1, d2) pairs of (t,P) arrays covering all training frames.
+    """
+    theta = directions(K)
+    h = np.zeros((K, 0))
+    for d1, d2 in chunks():
+        d1, d2 = np.asarray(d1, np.float64), np.asarray(d2, np.float64)
+        r, a = np.hypot(d1, d2), np.arctan2(d2, d1)
+        if h.shape[1] == 0:
+            h = np.zeros((K, d1.shape[1]))
+        for k, t in enumerate(theta):
+            delta = np.abs((a - t + np.pi) % (2 * np.pi) - np.pi)                  # (t,P) in [0, π]
+            kappa = np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
+            h[k] = np.maximum(h[k], (r * kappa).max(axis=0))
+    return np.maximum(h, floor * h.max(axis=0, keepdims=True) + 1e-12).astype(np.float32)
+
+
+def gauge(d1: np.ndarray, d2: np.ndarray, hull: np.ndarray) -> np.ndarray:
+    """ρ (…,P) = r / h(θ) of parameters d1, d2 (…,P) in the radius functions (K,P), h linear
+    between the sectors: ≤ 1 inside, d/ρ on the boundary."""
+    K = len(hull)
+    d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
+    x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
+    k0 = np.floor(x).astype(np.int64) % K
+    t = (x - np.floor(x)).astype(np.float32)
+    cols = np.broadcast_to(np.arange(d1.shape[-1]), d1.shape)
+    h = (1 - t) * hull[k0, cols] + t * hull[(k0 + 1) % K, cols]
+    return (np.hypot(d1, d2) / h).astype(np.float32)
+
+
+def training_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
+                      fallback: np.ndarray) -> np.ndarray:
+    """Envelope (P,) float32: the largest ‖D(d_t) − fallback‖ (over channels) of the band's
+    polynomial (P,C,K) on its training parameters (chunks of (t,P) d1, d2); ``fallback`` (P,C)."""
+    from service.methods.pdm.polynomial import evaluate
+
+    a = np.asarray(coeffs, np.float32)
+    env = np.zeros(len(a), np.float32)
+    for d1, d2 in chunks():
+        D = evaluate(a, np.asarray(d1, np.float32), np.asarray(d2, np.float32)) - fallback
+        np.maximum(env, np.sqrt(np.einsum("tpc,tpc->tp", D, D)).max(axis=0), out=env)
+    return env
+
+
+def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.ndarray,
+                 rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray, width: float,
+                 slope: float, margin: float = 0.25) -> np.ndarray:
+    """D̃ (F,P,C) from ``values`` = D(d1, d2) (F,P,C) (module docstring): points of ρ > 1
+    continued from the hull's boundary, every point's detail ``D − a5`` limited to
+    ``(1 + margin)`` × its training ``envelope`` (P,) in norm, and faded by w(ρ) to the
+    ``fallback`` (P,C). ``coeffs`` (P,C,K) of the band; d1, d2, rho (F,P). Modifies ``values``."""
+    f, p = np.nonzero(rho > 1)
+    if len(f):
+        powers = np.array(next(t for t in TERM_POWERS.values() if len(t) == coeffs.shape[-1]))
+        r = rho[f, p].astype(np.float64)
+        b1, b2 = d1[f, p] / r, d2[f, p] / r
+        mono = b1[:, None] ** powers[:, 0] * b2[:, None] ** powers[:, 1]           # (N,K)
+        mono *= 1 + slope * powers.sum(axis=1) * (r - 1)[:, None]
+        values[f, p] = np.einsum("nck,nk->nc", coeffs[p].astype(np.float64), mono).astype(values.dtype)
+    const = np.ascontiguousarray(fallback, dtype=values.dtype)                   # (P,C)
+    detail = values - const
+    norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
+    w = np.minimum(1.0, (1 + margin) * envelope / np.maximum(norm, 1e-30)) * falloff(rho - 1.0, width)
+    f, p = np.nonzero(w < 1)                      # the others stay bit-identical to D
+    values[f, p] = const[p] + w[f, p, None].astype(values.dtype) * detail[f, p]
+    return values
+
+
+@dataclass
+class Validity:
+    """The validity regions of one PDM model and their use in synthesis (module docstring).
+
+    hull : (K,Q) float32          radius function at the Q UV points of the medium PDM
+    envelope : dict name → (P,)   the bands' training envelopes (:func:`training_envelope`)
+    width, slope : float          the falloff's width in ρ − 1 and the continuation's order
+    texel_rho : dict name → (P,Q) sparse   UV points → a texel band's points (barycentric)
+    vertex_rho : (n,Q) sparse     UV points → vertices (seam mean)
+    vertex_weight : (n,) float    vertex areas (the per-frame confidence's weights)
+    """
+
+    hull: np.ndarray
+    envelope: dict
+    width: float
+    slope: float
+    texel_rho: dict
+    vertex_rho: sp.csr_matrix
+    vertex_weight: np.ndarray
+
+    @classmethod
+    def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
+              uv_faces: np.ndarray, seam_average: sp.csr_matrix, vertices: np.ndarray,
+              faces: np.ndarray, bands: dict) -> "Validity":
+        """``bands``: name → (resolution, index (P,)) of the texel bands that take ρ from the
+        UV points; ``vertices`` (n,3), ``faces`` (m,3) the mesh whose areas weigh the frame."""
+        texel_rho = {}
+        for name, (H, index) in bands.items():
+            raster = rasterize_uv(uv, uv_faces, H, H)
+            texel_rho[name] = interpolation_matrix(raster, uv_faces, len(uv))[index].tocsr()
+        area = np.bincount(np.asarray(faces).ravel(), np.repeat(triangle_areas(vertices, faces), 3),
+                           minlength=len(vertices)) / 3
+        return cls(np.asarray(hull, np.float32), envelope, float(width), float(slope), texel_rho,
+                   seam_average.tocsr(), area)
+
+    def gauge(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        """ρ (F,Q) at the UV points for their parameters d1, d2 (F,Q)."""
+        return gauge(d1, d2, self.hull)
+
+    def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
+        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
+        return np.ascontiguousarray((self.texel_rho[name] @ rho.T).T, dtype=np.float32)
+
+    def apply(self, name: str, coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray,
+              d2: np.ndarray, rho: np.ndarray) -> np.ndarray:
+        """D̃ (F,P,C) of band ``name`` from D (F,P,C) (:func:`valid_values`)."""
+        return valid_values(coeffs, values, d1, d2, rho, self.envelope[name], self.fallback(name, coeffs),
+                            self.width, self.slope)
+
+    @staticmethod
+    def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
+        """The safe fallback (P,C) of band ``name``: 0 for the medium PDM (``vertex``: the thin
+        shell of the neutral), the constant term a5 otherwise (the static neutral map)."""
+        return np.zeros(coeffs.shape[:2], np.float32) if name == "vertex" else coeffs[:, :, -1]
+
+    def confidence(self, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame (F,) and per-vertex (F,n) float32 confidence of ρ (F,Q) at the UV points:
+        the falloff weight w(ρ) (:mod:`service.methods.confidence`), seam-averaged to the
+        vertices, and its area-weighted mean."""
+        w = falloff(np.asarray(rho, np.float64) - 1, self.width)                 # (F,Q)
+        cv = np.asarray(self.vertex_rho @ w.T).T                                # (F,n)
+        return frame_confidence(cv, self.vertex_weight).astype(np.float32), cv.astype(np.float32)

@@ -1,0 +1,70 @@
+"""The PDM's validity region, envelope and falloff (service/methods/pdm/validity.py), by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.methods.pdm.validity import (
+    DIRECTIONS, HULL_FLOOR, gauge, training_envelope, training_hull, valid_values,
+)
+
+# one point, one channel, biquadratic a0 d1² + a1 d2² + a2 d1 d2 + a3 d1 + a4 d2 + a5
+COEFFS = np.array([[[1.0, 0.0, 0.0, 2.0, 0.0, 0.5]]], np.float32)        # (P=1,C=1,K=6)
+
+
+def D(d1, d2):
+    return d1 * d1 + 2 * d1 + 0.5
+
+
+def _apply(d1, d2, rho, width=2.0, slope=1.0, envelope=1e9, fallback=0.5):
+    d1, d2, rho = (np.array([[x]], np.float32) for x in (d1, d2, rho))
+    values = np.array([[[D(d1[0, 0], d2[0, 0])]]], np.float32)
+    return valid_values(COEFFS, values, d1, d2, rho, np.array([envelope], np.float32),
+                        np.array([[fallback]], np.float32), width, slope)[0, 0, 0]
+
+
+def test_inside_the_region_is_exactly_the_polynomial():
+    assert _apply(0.7, 0.2, 0.9) == np.float32(D(np.float32(0.7), np.float32(0.2)))
+
+
+def test_between_the_linear_continuation_is_faded_by_the_smoothstep():
+    # d = (2, 0) at ρ = 2: d_b = (1, 0); L = a0·(1 + 2·1) + a3·(1 + 1·1) + a5 = 3 + 4 + 0.5;
+    # w = falloff(1, width 2) = 1 − (3·0.25 − 2·0.125) = 0.5; fallback a5 = 0.5 + 0.5·7
+    assert _apply(2.0, 0.0, 2.0) == pytest.approx(4.0, abs=1e-6)
+    # slope 0 holds the boundary's detail: L = 1 + 2 + 0.5, 0.5 + 0.5·3
+    assert _apply(2.0, 0.0, 2.0, slope=0.0) == pytest.approx(2.0, abs=1e-6)
+
+
+def test_far_outside_is_exactly_the_fallback():
+    assert _apply(3.0, 0.0, 3.0) == pytest.approx(0.5, abs=0)
+    assert _apply(30.0, 5.0, 31.0) == pytest.approx(0.5, abs=0)
+
+
+def test_detail_is_limited_to_its_training_envelope():
+    # inside, D − fallback = 0.49 + 1.4 = 1.89 > 1.25 × envelope 1: scaled to 1.25
+    assert _apply(0.7, 0.0, 0.5, envelope=1.0) == pytest.approx(0.5 + 1.25, abs=1e-6)
+
+
+def test_training_envelope_is_the_largest_detail_of_the_training_frames():
+    d1 = np.array([[0.0], [1.0], [-1.0]], np.float32)
+    env = training_envelope(COEFFS, lambda: iter([(d1, np.zeros_like(d1))]),
+                            np.array([[0.5]], np.float32))
+    assert env == pytest.approx([3.0])                     # D(1, 0) − 0.5 = 1 + 2
+
+
+def test_star_region_of_one_ray_and_its_gauge():
+    r = np.linspace(0, 2, 5, dtype=np.float32)[:, None]   # training frames on the +d1 ray
+    hull = training_hull(lambda: iter([(r, np.zeros_like(r))]))
+    assert hull.shape == (DIRECTIONS, 1)
+    rho = gauge(np.array([[1.0, 2.0, 4.0, 0.0]], np.float32), np.array([[0.0, 0.0, 0.0, 1.0]], np.float32),
+                np.repeat(hull, 4, axis=1))
+    # on the ray: r / 2; across it (a combination): the floor 0.05 · 2
+    assert rho[0] == pytest.approx([0.5, 1.0, 2.0, 1.0 / (HULL_FLOOR * 2)], rel=1e-5)
+
+
+def test_every_training_sample_lies_in_its_region():
+    rng = np.random.default_rng(0)
+    d1, d2 = rng.normal(size=(2, 50, 7)).astype(np.float32)
+    hull = training_hull(lambda: iter([(d1, d2)]))
+    assert gauge(d1, d2, hull).max() <= 1 + 1e-5
