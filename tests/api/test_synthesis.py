@@ -421,7 +421,7 @@ def test_a_usd_synthesis_job_through_the_api_is_a_zip_of_the_cache_and_its_maps(
         assert results[fmt].status_code == 200
     assert results["usd"].headers["content-type"] == "application/zip"
     with zipfile.ZipFile(io.BytesIO(results["usd"].content)) as z:
-        assert sorted(z.namelist()) == ["clamped.csv", "frame_0000_displacement.exr",
+        assert sorted(z.namelist()) == ["clamped.csv", "confidence.json", "frame_0000_displacement.exr",
                                         "frame_0001_displacement.exr", "performance.usd"]
         z.extractall(tmp_path)
     expected = load_npz(results["npz"].content)

@@ -177,7 +177,7 @@ def test_a_script_uploads_the_actor_folder_trains_and_synthesizes(server, actor_
     for outputs, files, frame_2 in (
             ("mesh", ["take.usd"], ["take.usd"]),
             ("mesh,displacement",
-             ["clamped.csv", "performance.usd"] + [f"frame_{k:04d}_displacement.exr"
+             ["clamped.csv", "confidence.json", "performance.usd"] + [f"frame_{k:04d}_displacement.exr"
                                                    for k in range(5)],
              ["performance.usd", "frame_0002_displacement.exr"])):
         out = tmp_path / f"usd-{len(files)}"

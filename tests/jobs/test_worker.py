@@ -275,7 +275,7 @@ def test_synthesis_job_writes_per_frame_obj_and_exr_into_a_zip(deployment, train
     assert artifact.media_type == "application/zip" and artifact.filename.endswith(".zip")
     expected = kinds.get_kind("pdm").load(path).synthesize(markers, ("mesh", "displacement"))
     with zipfile.ZipFile(io.BytesIO(data)) as z:
-        assert sorted(z.namelist()) == ["clamped.csv"] + [
+        assert sorted(z.namelist()) == ["clamped.csv", "confidence.json"] + [
             f"frame_{i:04d}{s}" for i in range(3) for s in (".obj", "_displacement.exr")]
         mesh = read_obj(io.BytesIO(z.read("frame_0002.obj")))
         np.testing.assert_array_equal(mesh.vertices.astype(np.float32), expected["vertices"][2])

@@ -148,7 +148,8 @@ def test_mesh_only_skips_the_fine_band_and_reports_the_mesh_clamp(pdm_model, pdm
     assert not calls                                             # the fine band is not evaluated
     assert np.array_equal(mesh["vertices"], full["vertices"])   # and the mesh is unchanged
     _, _, S = pdm_model.deformation(far)
-    vertex_frac = pdm_model.vertex_band.parameters(S, pdm_model.params.extrapolation_margin)[2]
+    d1, d2, _ = pdm_model.vertex_band.parameters(S, None)      # outside the validity region
+    vertex_frac = np.mean(pdm_model.validity.gauge(d1, d2) > 1, axis=-1)
     assert mesh["clamped"][0] == np.float32(vertex_frac[0]) > 0.05
     assert full["clamped"][0] != mesh["clamped"][0]             # the fine texels' fraction
 
