@@ -216,13 +216,15 @@ class PdmModel:
         when ``params.validity_width`` is None (the extrapolation limit applies instead)."""
         if self.params.validity_width is None:
             return None
-        pf, S = self.vertex_band.field, self.S_train
-        hull = training_hull(lambda: (pf(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK)))
+        S = self.S_train
+
+        def over_training(field):      # the field's (d1, d2) of the training S, a chunk at a time
+            return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
+
+        hull = training_hull(over_training(self.vertex_band.field))
         bands = {k: (b.resolution, b.index) for k, b in (("fine", self.fine), ("albedo", self.albedo))
                  if b is not None}
-        envelope = {k: training_envelope(b.coeffs, lambda b=b: (b.field(S[t:t + FRAME_CHUNK])
-                                                                for t in range(0, len(S), FRAME_CHUNK)),
-                                         Validity.fallback(k, b.coeffs))
+        envelope = {k: training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
                     for k, b in self.evaluated_bands().items()}
         return Validity.build(hull, envelope, self.params.validity_width, self.params.validity_slope, self.uv,
                               self.uv_faces, self.seam_average, self.base.smooth, self.faces, bands)
