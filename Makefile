@@ -41,7 +41,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/game_outputs_report.py
 	$(BIN)/python benchmarks/correspondence_report.py
 	$(BIN)/python benchmarks/generalization_report.py
-	$(BIN)/python benchmarks/tracking_report.py /work/data/a-l0 /work/data/b-l0
+	$(BIN)/python benchmarks/tracking_report.py
 	$(BIN)/python benchmarks/load.py
 	$(BIN)/python benchmarks/upload_memory.py
 	$(BIN)/python benchmarks/realtime.py --profile

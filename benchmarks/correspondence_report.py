@@ -2,7 +2,7 @@
 known correspondence, the pipeline's stages and the OpenCV peers, speed, figures.
 
 Scans: :func:`service.samples.uv_scans.build_uv_scans` of each actor directory given (default
-``/work/data/actor1-l1``; a second family's directory works the same way): the neutral
+the level-1 sample actor ``benchmarks/out/actor-l1``, built if missing; a second family's directory works the same way): the neutral
 (target) and the peak frame of every ``train_*`` performance (sources), each as albedo and
 position maps in its own cylindrical UV layout, with 32 clicked landmarks off by 0.3 mm.
 
@@ -298,7 +298,7 @@ def blend_table(blend):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("actors", nargs="*", default=["/work/data/actor1-l1"])
+    ap.add_argument("actors", nargs="*", default=[])
     ap.add_argument("--resolutions", type=int, nargs="+", default=[1024, 2048])
     ap.add_argument("--expressions", type=int, default=8, help="expressions per actor at ≤ 1024²")
     ap.add_argument("--expressions-2048", type=int, default=3,
@@ -324,6 +324,11 @@ def main(argv=None):
               f"{args.cores} cores (OpenCV threads {cv2.getNumThreads()}), opencv "
               f"{cv2.__version__}; scans from `service.samples.uv_scans`, 32 landmarks "
               "clicked with 0.3 mm noise.", ""]
+    if not args.actors:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        import harness
+
+        args.actors = [str(harness.sample_actor("a", 1))]
     for actor_dir in args.actors:
         actor_dir = Path(actor_dir)
         tag = actor_dir.name

@@ -1,7 +1,7 @@
 """Game-engine outputs report: stress-driven expression-map blending and the bone rig.
 
 Part 1, stress blend (Digital Ira course 2014, "Real-Time Rendering"), per actor family
-(default a = ``/work/data/a-l0``, b = ``/work/data/b-l0``; ``--actor FAMILY=DIR``): a
+(default ``benchmarks/out/actor-{a,b}-l0``, built if missing; ``--actor FAMILY=DIR``): a
 ``stress_blend`` model is built from the family's training clips (their neutral and peak
 frames are the scans) and evaluated on the map frames of ``heldout_in_range``,
 ``heldout_combinations`` and ``heldout_amplified`` with the fine-detail metric of ``benchmarks/pdm_report.py``
@@ -61,10 +61,9 @@ import harness  # noqa: E402  (the reports' shared data, metric and workers)
 
 OUT = ROOT / "benchmarks" / "out"
 FIGURES = OUT / "game_outputs"
-DATA = Path("/work/data")
 #: the actor families of part 1 (``--actor a=DIR``), the actor of part 2
-FAMILIES = {"a": DATA / "a-l0", "b": DATA / "b-l0"}
-ACTOR_L0 = DATA / "a-l0"
+FAMILIES = {"a": harness.actor_dir("a", 0), "b": harness.actor_dir("b", 0)}
+ACTOR_L0 = FAMILIES["a"]
 #: held-out performances of part 1 (as generalization_report.py: in range, combinations
 #: no training clip shows, every expression 25–40 % beyond its peak)
 PERFORMANCES = ("heldout_in_range", "heldout_combinations", "heldout_amplified")
@@ -638,7 +637,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="6 held-out frames per performance")
     parser.add_argument("--part", choices=("all", "stress", "rig"), default="all")
     parser.add_argument("--actor", action="append", metavar="FAMILY=DIR",
-                        help="actor family of part 1 (default a=/work/data/a-l0, b=/work/data/b-l0)")
+                        help="actor family of part 1 (default a, b: benchmarks/out/actor-{a,b}-l0, built if missing)")
     parser.add_argument("--shape-space", action="store_true",
                         help="also the shape-space row (builds bermano2014 on each family's database "
                              "through shape_space_report's cache: long)")

@@ -74,21 +74,6 @@ WORST_OF = "PDM biquadratic"
 HEAT_MM = 2.0                     # heat-map colour range, mm
 
 
-def ensure_actor(family: str, actor_dir: Path) -> None:
-    """Build a level-0, seed-1 actor of ``family`` into ``actor_dir`` unless it is there."""
-    if (actor_dir / "manifest.json").is_file():
-        return
-    print(f"building family {family} (level 0) into {actor_dir}", file=sys.stderr)
-    if family == "a":
-        from service.samples.actor import build_sample_actor
-
-        build_sample_actor(actor_dir, seed=1, level=0, with_tracking=False)
-    else:
-        from service.samples.family_b.actor import build_family_b
-
-        build_family_b(actor_dir, seed=1, level=0, with_tracking=False)
-
-
 def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0) -> dict:
     """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached),
     trained with ``marker_noise_mm``."""
@@ -292,7 +277,7 @@ def main() -> None:
     parser.add_argument("--pdm-only", action="store_true",
                         help="only the baselines and the PDM rows (no shape-space model)")
     args = parser.parse_args()
-    defaults = {"a": OUT / "actor-a-l0", "b": OUT / "actor-b-l0"}
+    defaults = {"a": pdm.actor_dir("a", 0), "b": pdm.actor_dir("b", 0)}
     actors = {} if args.actor else defaults
     for item in args.actor:                      # given: only those families
         family, _, path = item.partition("=")
@@ -307,7 +292,7 @@ def main() -> None:
     results = {}
     for family, actor_dir in actors.items():
         actor_dir = actor_dir.resolve()
-        ensure_actor(family, actor_dir)
+        pdm.ensure_actor(actor_dir, level=0, family=family, with_tracking=False)
         print(f"family {family}: {actor_dir}", file=sys.stderr)
         results[family] = evaluate_family(family, actor_dir, frames, args.retrain, args.marker_filter,
                                           args.marker_noise, not args.pdm_only)

@@ -47,14 +47,33 @@ QUICK_FRAMES = 6                       # held-out map frames per performance in 
 FIGURE_SEPARATION = 20                 # strong-expression figure frames at least this far apart
 
 
-def ensure_actor(actor_dir: Path, seed: int = SEED, level: int = LEVEL) -> None:
-    """Build the sample actor (default level 1, seed 1) into ``actor_dir`` unless it is there."""
+def actor_dir(family: str = "a", level: int = LEVEL) -> Path:
+    """Where every report keeps the seed-1 sample actor of ``family`` at ``level``."""
+    return OUT / (f"actor-{family}-l{level}" if family != "a" or level != LEVEL else "actor-l1")
+
+
+def ensure_actor(actor_dir: Path, seed: int = SEED, level: int = LEVEL, family: str = "a",
+                 with_tracking: bool = True) -> None:
+    """Build a sample actor of ``family`` (default a, level 1, seed 1) into ``actor_dir``
+    unless it is there."""
     if (actor_dir / "manifest.json").is_file():
         return
-    from service.samples.actor import build_sample_actor
+    print(f"building family {family} (level {level}) into {actor_dir} (a few minutes)", file=sys.stderr)
+    if family == "a":
+        from service.samples.actor import build_sample_actor
 
-    print(f"building the sample actor into {actor_dir} (a few minutes)", file=sys.stderr)
-    build_sample_actor(actor_dir, seed=seed, level=level)
+        build_sample_actor(actor_dir, seed=seed, level=level, with_tracking=with_tracking)
+    else:
+        from service.samples.family_b.actor import build_family_b
+
+        build_family_b(actor_dir, seed=seed, level=level, with_tracking=with_tracking)
+
+
+def sample_actor(family: str = "a", level: int = LEVEL, with_tracking: bool = True) -> Path:
+    """The directory of the seed-1 sample actor of ``family`` at ``level``, built if missing."""
+    path = actor_dir(family, level)
+    ensure_actor(path, level=level, family=family, with_tracking=with_tracking)
+    return path
 
 
 def training_clips(actor_dir: Path, actor):

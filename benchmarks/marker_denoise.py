@@ -16,7 +16,7 @@ shell``: the noise that reaches the surface), averaged over the in-range, combin
 out-of-range performances. It needs no trained model, so it runs in a minute per family:
 the place to choose ``marker_noise_mm``'s default (on family a, confirmed on family b).
 
-Run: ``python benchmarks/marker_denoise.py --actor a=/work/data/a-l0 [--actor b=DIR]``.
+Run: ``python benchmarks/marker_denoise.py --actor a=benchmarks/out/actor-a-l0 [--actor b=DIR]``.
 """
 
 from __future__ import annotations

@@ -55,7 +55,6 @@ import harness  # noqa: E402
 ROOT = harness.ROOT
 OUT = ROOT / "benchmarks" / "out"
 WORK = OUT / "realtime"
-SHARED_L1 = Path("/work/data/a-l1")
 PERFORMANCE = "heldout_in_range"
 TRAIN_CLIP = "train_smile"        # the clip the server's model row names (never trained there)
 FRAMES = 50                       # distinct frames cycled through
@@ -278,7 +277,7 @@ def grpc_supports_half() -> bool:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--actor", type=Path, default=None,
-                        help="sample actor directory (default /work/data/a-l1 if built, else "
+                        help="sample actor directory (default "
                              "benchmarks/out/actor-l1, built if missing)")
     parser.add_argument("--calls", type=int, default=100, help="calls per median (default 100)")
     parser.add_argument("--paths", default="inproc,http,grpc")
@@ -286,8 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     actor_dir = args.actor
     if actor_dir is None:
-        actor_dir = SHARED_L1 if (SHARED_L1 / "manifest.json").is_file() else OUT / "actor-l1"
-        harness.ensure_actor(actor_dir)
+        actor_dir = harness.sample_actor("a", 1)
     paths = set(args.paths.split(","))
     WORK.mkdir(parents=True, exist_ok=True)
     model_dir = ensure_model(actor_dir)
