@@ -573,7 +573,7 @@ def stress_family(family: str, actor_dir: Path, args) -> dict:
         others[SS_ROW] = _shape_space_method(actor_dir, tex)
     sb = {"actor": str(actor_dir), "scans": model.scan_names, "train": train_rec, "repro": repro, "H": tex.H,
           "sigma": sigma, "regions": int(model.masks.shape[1]), "accuracy": {}, "albedo": {}}
-    limit = pr.QUICK_FRAMES if args.quick else None
+    limit = harness.QUICK_FRAMES if args.quick else None
     amask_face = None
     for perf in PERFORMANCES:
         if not (actor_dir / "performances" / f"{perf}.npz").is_file():
@@ -581,7 +581,7 @@ def stress_family(family: str, actor_dir: Path, args) -> dict:
         print(f"[{family}]   {perf}", file=sys.stderr)
         gt = harness.load_heldout(actor_dir, perf, limit)
         store: dict = {}
-        keep = pr.strong_frames(gt, FIGURE_FRAMES, pr.FIGURE_SEPARATION) if perf == PERFORMANCES[0] else []
+        keep = harness.strong_frames(gt, FIGURE_FRAMES, harness.FIGURE_SEPARATION) if perf == PERFORMANCES[0] else []
         r = harness.evaluate_performance(gt, stress_methods(model, pdm, gt, tex, store, others), tex, actor, keep)
         r.pop("figure"), r.pop("extra")
         r["frames"] = len(gt.frames)
