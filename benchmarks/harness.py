@@ -311,11 +311,11 @@ class Baselines:
     def build(cls, actor, clips, model, tex: DetailTexels) -> "Baselines":
         from service.methods.pdm.base_surface import BaseSurface
 
-        base = model.base
+        base = model.evaluator.base
         detailed = BaseSurface.from_smooth(actor.vertices, actor.faces, actor.uv, actor.uv_faces,
                                            base.handles, base.rest_markers)
         markers = np.concatenate([c.markers for c in clips])
-        pose, u_H, _ = model.deformation(markers)
+        pose, u_H, _ = model.evaluator.deformation(markers)
         V = np.concatenate([c.vertices for c in clips])
         c = np.empty(V.shape, np.float32)
         for t in range(len(V)):
@@ -326,7 +326,7 @@ class Baselines:
         return cls(model, detailed, tex.texels(neutral.displacement[0]), pose.remove(markers), c, maps)
 
     def no_detail(self, markers):
-        pose, u_H, _ = self.model.deformation(markers)
+        pose, u_H, _ = self.model.evaluator.deformation(markers)
         return pose.restore(self.detailed.deform(u_H)), None, None
 
     def static_neutral_map(self, markers):
@@ -335,8 +335,8 @@ class Baselines:
 
     def nearest(self, markers) -> tuple[np.ndarray, np.ndarray, None, np.ndarray]:
         """Also returns the chosen training frame (k,) (global index)."""
-        base = self.model.base
-        pose, u_H, _ = self.model.deformation(markers)
+        base = self.model.evaluator.base
+        pose, u_H, _ = self.model.evaluator.deformation(markers)
         a = pose.remove(markers)
         d2 = np.nansum((a[:, None] - self.train_aligned[None]) ** 2, axis=(2, 3))    # (k,T)
         t = np.argmin(d2, axis=1)

@@ -16,25 +16,63 @@ from service.methods.pdm.extrapolation import limit_parameters
 BLOCK_POINTS = 65536
 
 
-@dataclass
-class TexelBand:
-    """One PDM over the covered texels of an H×H map.
-
-    resolution : int;  index : (P,) flat indices of the covered texels (0 and the vertex
-                       indices for the medium PDM sampled at the vertices)
-    coeffs : (P,C,K) float32   polynomial coefficients (§4.2)
-    field : ParameterField     d1, d2 at the texel centres
-    limit : (4,P) float32      extrapolation limit per texel (:func:`service.methods.pdm.model._limits`): the inverse
-                               second moment (i11, i12, i22) of the training (d1, d2) and the
-                               largest training Mahalanobis radius R
-    """
+@dataclass(frozen=True)
+class CoveredTexels:
+    """The covered texels of an H×H map: resolution H and their flat indices ``index`` (P,)
+    (0 and the UV point indices for the medium PDM sampled at the mesh's UV points)."""
 
     resolution: int
     index: np.ndarray
+
+    def mask(self) -> np.ndarray:
+        """(H,W) bool: the covered texels."""
+        m = np.zeros(self.resolution ** 2, bool)
+        m[self.index] = True
+        return m.reshape(self.resolution, self.resolution)
+
+    def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
+        """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
+        values = np.asarray(values)
+        lead = values.shape[:-2] if channels else values.shape[:-1]
+        C = values.shape[-1] if channels else 1
+        H = self.resolution
+        out = np.zeros(lead + (H * H, C), np.float32)
+        out[..., self.index, :] = values.reshape(lead + (len(self.index), C))
+        return out.reshape(lead + (H, H) + ((C,) if channels else ()))
+
+
+@dataclass(frozen=True)
+class CoefficientMap(CoveredTexels):
+    """A stored PDM (:class:`~service.methods.pdm.data.PdmData`): the polynomial coefficients
+    ``coeffs`` (P,C,K) float32 (§4.2) of the covered texels, row-major."""
+
     coeffs: np.ndarray
-    field: ParameterField | None = None
-    limit: np.ndarray | None = None
-    _terms: np.ndarray | None = dataclasses.field(default=None, repr=False)   # (K,C,P) layout
+
+
+@dataclass(frozen=True)
+class TexelBand(CoveredTexels):
+    """One PDM as synthesis evaluates it (built by :meth:`build`, unchanged afterwards).
+
+    index : (P,)               the points, in evaluation order (grouped by coarse element
+                               for the fine and albedo texels)
+    coeffs : (P,C,K) float32   polynomial coefficients (§4.2); ``terms`` (K,C,P) the same
+                               term-major (contiguous per term)
+    field : ParameterField     d1, d2 at the points
+    limit : (4,P) float32      extrapolation limit per point (:func:`service.methods.pdm.model._limits`):
+                               the inverse second moment (i11, i12, i22) of the training
+                               (d1, d2) and the largest training Mahalanobis radius R (None:
+                               the band is not limited)
+    """
+
+    coeffs: np.ndarray
+    field: ParameterField
+    limit: np.ndarray | None
+    terms: np.ndarray = dataclasses.field(repr=False)
+
+    @classmethod
+    def build(cls, resolution: int, index: np.ndarray, coeffs: np.ndarray, field: ParameterField,
+              limit: np.ndarray | None = None) -> "TexelBand":
+        return cls(resolution, index, coeffs, field, limit, np.ascontiguousarray(coeffs.transpose(2, 1, 0)))
 
     def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """d1, d2 (F,P) for S (F,M,5), limited to ``(1 + margin)`` × the training radius
@@ -48,13 +86,6 @@ class TexelBand:
     def evaluate(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
         return np.ascontiguousarray(polynomial.evaluate(self.terms.transpose(2, 1, 0), d1, d2))
-
-    @property
-    def terms(self) -> np.ndarray:
-        """The coefficients term-major (K,C,P): contiguous per term (made on first use)."""
-        if self._terms is None:
-            self._terms = np.ascontiguousarray(self.coeffs.transpose(2, 1, 0))
-        return self._terms
 
     def synthesize(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
         """The PDM (F,P,C) float32 at the parameters of S (F,M,5), and the fraction (F,) of
@@ -86,19 +117,3 @@ class TexelBand:
             out[:, s:e] = polynomial.evaluate(terms[..., s:e].transpose(2, 1, 0), d1, d2)
         frac = over / max(P, 1) if margin is not None else np.zeros(T)
         return out, frac
-
-    def mask(self) -> np.ndarray:
-        """(H,W) bool: the covered texels."""
-        m = np.zeros(self.resolution ** 2, bool)
-        m[self.index] = True
-        return m.reshape(self.resolution, self.resolution)
-
-    def image(self, values: np.ndarray, channels: bool = False) -> np.ndarray:
-        """Covered-texel values (…,P) or, with ``channels``, (…,P,C) → maps (…,H,W[,C]) float32; 0 elsewhere."""
-        values = np.asarray(values)
-        lead = values.shape[:-2] if channels else values.shape[:-1]
-        C = values.shape[-1] if channels else 1
-        H = self.resolution
-        out = np.zeros(lead + (H * H, C), np.float32)
-        out[..., self.index, :] = values.reshape(lead + (len(self.index), C))
-        return out.reshape(lead + (H, H) + ((C,) if channels else ()))

@@ -155,7 +155,7 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
     return values
 
 
-@dataclass
+@dataclass(frozen=True)
 class Validity:
     """The validity regions of one PDM model and their use in synthesis (module docstring).
 

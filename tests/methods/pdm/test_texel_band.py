@@ -7,12 +7,12 @@ from service.methods.pdm import texel_band
 
 def test_blocked_synthesis_is_parameters_then_evaluate_bit_for_bit(pdm_model, pdm_data, monkeypatch):
     _, clips = pdm_data
-    band = pdm_model.fine
-    rest = pdm_model.base.rest_markers
+    band = pdm_model.evaluator.fine
+    rest = pdm_model.evaluator.base.rest_markers
     peak = clips[3].markers[[10, 12]]
-    pose = pdm_model.deformation(peak)[0]
+    pose = pdm_model.evaluator.deformation(peak)[0]
     far = pose.restore(rest + 2.5 * (pose.remove(peak) - rest))     # beyond the trained range
-    _, _, S = pdm_model.deformation(far)
+    _, _, S = pdm_model.evaluator.deformation(far)
     monkeypatch.setattr(texel_band, "BLOCK_POINTS", 700)            # many blocks at 128²
     assert len(band.field.blocks(texel_band.BLOCK_POINTS)) > 5
     for margin in (pdm_model.params.extrapolation_margin, None):
