@@ -12,6 +12,7 @@ import numpy as np
 from service.methods.pdm.deformation import DeformationAxes, MarkerMesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap
+from service.methods.pdm.validity import ValidityData
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,8 @@ class PdmData:
     fine : CoefficientMap            C = 1 (normal), mm
     albedo : CoefficientMap | None   C = 3 (linear RGB)
     metrics : dict
+    validity : ValidityData | None   the training data's validity regions (None: trained with
+                                     ``validity_width`` None, or stored before they were kept)
 
     The maps' texels are in row-major order (as the EXR files hold them).
     """
@@ -57,6 +60,7 @@ class PdmData:
     fine: CoefficientMap
     albedo: CoefficientMap | None
     metrics: dict = field(default_factory=dict)
+    validity: ValidityData | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -74,19 +78,14 @@ class PdmDerived:
     basis : (n,M) float32 | None;  energy : (M,M) float64 | None   the thin shell's basis and
                                      handle energy (:class:`~.base_surface.BaseSurface`)
     limits : dict name → (4,P) float32   extrapolation limits of the evaluated bands
-    hull : (D,K) float32 | None      the validity region's radius function at the UV points
-    envelope : dict name → (P,) float32   the bands' training envelopes (:mod:`.validity`)
-
-    Per-point arrays are in the evaluator's point order (``PdmEvaluator.orders``: the fine
-    and albedo texels grouped by coarse element, a function of the data alone); names are
-    those of ``PdmEvaluator.bands`` (``vertex``, ``fine``, ``albedo``).
+                                     (``vertex``, ``fine``, ``albedo``), in the evaluator's
+                                     point order (``PdmEvaluator.orders``: the fine and albedo
+                                     texels grouped by coarse element, a function of the data)
     """
 
     basis: np.ndarray | None = None
     energy: np.ndarray | None = None
     limits: dict = field(default_factory=dict)
-    hull: np.ndarray | None = None
-    envelope: dict = field(default_factory=dict)
 
 
 __all__ = ["PdmData", "PdmDerived"]

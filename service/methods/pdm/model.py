@@ -73,7 +73,7 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
-from service.methods.pdm.validity import Validity, training_envelope, training_hull
+from service.methods.pdm.validity import Validity, ValidityData, training_envelope, training_hull
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
@@ -227,7 +227,7 @@ class PdmEvaluator:
             orders=orders, seam_average=seam,
             fine_sampler=sampling_matrix(d.uv, d.uv_faces, d.faces, n, fine.mask())[:, fine.index].tocsr(),
             normal_mapper=NormalMapper(rasterize_uv(d.uv, d.uv_faces, Hf, Hf), d.faces, d.uv, d.uv_faces, n),
-            validity=_validity(d, base, bands, seam, derived))
+            validity=_validity(d, base, bands, orders, seam))
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -239,10 +239,16 @@ class PdmEvaluator:
 
     def derived(self) -> PdmDerived:
         """What a load of the data would recompute (the store's optional files)."""
-        v = self.validity
         return PdmDerived(basis=self.base.basis, energy=self.base.energy,
-                          limits={k: b.limit for k, b in self.bands.items()},
-                          hull=None if v is None else v.hull, envelope={} if v is None else dict(v.envelope))
+                          limits={k: b.limit for k, b in self.bands.items()})
+
+    def validity_data(self) -> ValidityData | None:
+        """The validity regions as stored (:class:`~.validity.ValidityData`: the envelopes in
+        the data's point order), None without validity."""
+        v = self.validity
+        if v is None:
+            return None
+        return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()})
 
     def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
         """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers."""
@@ -277,22 +283,26 @@ class PdmEvaluator:
                                    self.validity.texels("albedo", rho))
 
 
-def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], seam: sp.csr_matrix,
-              derived: PdmDerived) -> Validity | None:
+def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
+              seam: sp.csr_matrix) -> Validity | None:
     """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
-    when ``params.validity_width`` is None (the extrapolation limit applies instead); the
-    hull and envelopes of ``derived`` where given."""
+    when ``params.validity_width`` is None (the extrapolation limit applies instead): the
+    stored ``d.validity`` (its envelopes put in the bands' order ``orders``), or, for a model
+    stored without it, derived from ``d.S_train`` (seconds)."""
     if d.params.validity_width is None:
         return None
-    S = d.S_train
+    if d.validity is not None:
+        hull = d.validity.hull
+        envelope = {k: d.validity.envelope[k][orders[k]] for k in bands}
+    else:
+        S = d.S_train
 
-    def over_training(field):      # the field's (d1, d2) of the training S, a chunk at a time
-        return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
+        def over_training(field):      # the field's (d1, d2) of the training S, a chunk at a time
+            return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
 
-    hull = derived.hull if derived.hull is not None else training_hull(over_training(bands["vertex"].field))
-    envelope = {k: derived.envelope[k] if k in derived.envelope else
-                training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
-                for k, b in bands.items()}
+        hull = training_hull(over_training(bands["vertex"].field))
+        envelope = {k: training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
+                    for k, b in bands.items()}
     texels = {k: (b.resolution, b.index) for k, b in bands.items() if k != "vertex"}
     return Validity.build(hull, envelope, d.params.validity_width, d.params.validity_slope, d.uv,
                           d.uv_faces, seam, base.smooth, d.faces, texels)
@@ -608,7 +618,10 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
                    mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics)
     progress(0.95, "prepare")
-    model = PdmModel(data, PdmEvaluator.build(data, base))
+    evaluator = PdmEvaluator.build(data, base)
+    # the validity regions of the training data are stored with the model (a load reads them)
+    data = dataclasses.replace(data, validity=evaluator.validity_data())
+    model = PdmModel(data, dataclasses.replace(evaluator, data=data))
     progress(1.0, "done")
     return model
 

@@ -111,9 +111,10 @@ def remap_model(model: PdmModel, triangle: np.ndarray, barycentric: np.ndarray,
 
     base = BaseSurface.from_smooth(d.smooth, F, d.uv, d.uv_faces, handles, rest)
     data = replace(d, handles=handles, rest_markers=rest, mesh=mesh, axes=axes, pose_weights=W @ d.pose_weights,
-                   metrics={**d.metrics, "remapped_markers": len(triangle)})
-    # same texels, same coefficients, limits and validity; only the parameter fields (and so
-    # the texels' grouping by coarse element) change
+                   metrics={**d.metrics, "remapped_markers": len(triangle)},
+                   validity=ev.validity_data())      # a model stored without them: the derived ones
+    # same texels, same coefficients, limits and validity regions (stored in texel order);
+    # only the parameter fields (and so the texels' grouping by coarse element) change
     orders = {name: np.arange(len(d.uv)) if name == "vertex" else
               element_field(mesh, axes, getattr(d, name).index, getattr(d, name).resolution)[0]
               for name in ev.orders}
@@ -123,7 +124,5 @@ def remap_model(model: PdmModel, triangle: np.ndarray, barycentric: np.ndarray,
         stored[..., ev.orders[name]] = values
         return stored[..., orders[name]]
 
-    kept = ev.derived()
-    derived = PdmDerived(limits={k: regroup(k, v) for k, v in kept.limits.items()}, hull=kept.hull,
-                         envelope={k: regroup(k, v) for k, v in kept.envelope.items()})
+    derived = PdmDerived(limits={k: regroup(k, b.limit) for k, b in ev.bands.items()})
     return PdmModel(data, PdmEvaluator.build(data, base, derived))

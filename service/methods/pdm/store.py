@@ -11,6 +11,10 @@ Layout (DESIGN.md "Data and storage"):
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived);
+* ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
+  ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
+  order); written when the model has them; a model directory without it (stored before
+  they were kept) derives them from ``S_train`` at load (seconds);
 * ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
   basis and handle energy, the extrapolation limits per texel): listed under
   ``derived`` in the manifest, checksummed like the rest, and optional (a model directory
@@ -41,6 +45,7 @@ from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap
+from service.methods.pdm.validity import ValidityData
 
 KIND = "pdm"
 FORMAT_VERSION = 1
@@ -49,6 +54,8 @@ PAD_TEXELS = 4
 COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b")}
 #: what load would otherwise recompute (thin-shell basis, extrapolation limits): seconds saved
 CACHE = "cache.npz"
+#: the validity regions of the training data (optional: older model directories lack it)
+VALIDITY = "validity.npz"
 
 
 def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
@@ -76,6 +83,9 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
     }
     files["model.npz"] = write_npz(path / "model.npz", arrays)
     files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
+    if model.validity is not None:
+        files[VALIDITY] = write_npz(path / VALIDITY, {"hull": model.validity.hull, **{
+            f"{name}_envelope": e for name, e in model.validity.envelope.items()}})
     cache = {"basis": derived.basis, "energy": derived.energy}
     for name, limit in derived.limits.items():
         cache[f"{name}_limit"] = limit
@@ -142,11 +152,15 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
     cache = npz_arrays(data[CACHE]) if CACHE in data else {}
+    validity = None
+    if VALIDITY in data:
+        v = npz_arrays(data[VALIDITY])
+        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")})
     model = PdmData(params=params, faces=F, uv=uv, uv_faces=uvf, smooth=a["smooth"], handles=a["handles"],
                     rest_markers=a["rest_markers"], prior_scale_mm=float(a.get("marker_prior_scale_mm", np.nan)),
                     mesh=mesh, axes=axes, pose_weights=a["pose_weights"], S_train=a["S_train"],
                     neutral_offset=a["neutral_offset"], medium=bands["medium"], fine=bands["fine"],
-                    albedo=bands["albedo"], metrics=manifest["metrics"])
+                    albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity)
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
                          limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")})
     return model, derived

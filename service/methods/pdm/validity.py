@@ -43,8 +43,9 @@ also the point's confidence (:mod:`service.methods.confidence`).
 The fine and albedo texels take ρ interpolated from the UV points (barycentric through the
 UV triangle that covers them): the validity is a property of a region of the face, and a
 per-texel region of a 1024² map would cost T × 1024² × K per model load. Everything is
-derived from ``S_train`` when the model is prepared (nothing new is stored; about 9 s of a
-level-0 model's load, mostly the fine band's envelope).
+derived from ``S_train`` when the model is trained and stored with it (:class:`ValidityData`;
+a model stored without it derives it at load: about 9 s of a level-0 model's load, mostly
+the fine band's envelope).
 
 Measured with the defaults (width 1, slope 1, margin 0.25) on family a's combinations
 (13 frames, face): max vertex error 41.3 → 10.7 mm (thin shell 7.0), mean 0.47 → 0.36 mm
@@ -153,6 +154,21 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
     f, p = np.nonzero(w < 1)                      # the others stay bit-identical to D
     values[f, p] = const[p] + w[f, p, None].astype(values.dtype) * detail[f, p]
     return values
+
+
+@dataclass(frozen=True)
+class ValidityData:
+    """What the validity regions keep of the training data (stored with the model,
+    ``validity.npz``; derived from the training S at load for models stored without it).
+
+    hull : (D,Q) float32          radius function (:func:`training_hull`) at the Q UV points
+    envelope : dict name → (P,)   training envelope (:func:`training_envelope`) of each
+                                  evaluated band (``vertex``, ``fine``, ``albedo``), float32,
+                                  in the stored band's point order (row-major texels)
+    """
+
+    hull: np.ndarray
+    envelope: dict
 
 
 @dataclass(frozen=True)
