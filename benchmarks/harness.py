@@ -153,6 +153,18 @@ def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: flo
     return res
 
 
+def median_ms(fn, calls: int, warmup: int = 3) -> float:
+    """Median wall time (ms) of ``calls`` calls ``fn(k)`` (k = 0, 1, …) after ``warmup``."""
+    for k in range(warmup):
+        fn(k)
+    times = []
+    for k in range(calls):
+        t0 = time.perf_counter()
+        fn(k)
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
 def run_worker(script: str, *args: str, cores: int | None = None) -> dict:
     """Run ``script`` (a report's own file) as a worker in a fresh process; its JSON result
     (last stdout line). ``cores``: pinned to that many CPUs, thread pools to match."""

@@ -10,7 +10,8 @@ to measure, e.g. a ``git archive`` of the commit before the change for "before")
   every array of ``synthesize`` for mesh + mesh_detailed + displacement + normal_map + albedo,
   clamp on and off, of held-out frames, the same frames exaggerated 3× (outside the
   validity region) and with occluded (NaN) markers. ``--load DIR`` instead loads the models
-  saved by an earlier run (an older library's model directories) and synthesizes from them.
+  saved by an earlier run (an older library's model directories) and synthesizes from them;
+  ``--block N`` sets the blocked evaluation's points per block (many blocks on small maps).
 * ``compare A.npz B.npz``: ``np.array_equal`` per array (and the max abs difference of any
   that differ); exit status 1 when any differs.
 * ``timing MODEL_DIR ACTOR_DIR``: load time (median of ``--loads``) and in-process ms/frame
@@ -30,7 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, os.getcwd())
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import harness  # noqa: E402
+
+sys.path.insert(0, os.getcwd())      # the library measured: the current directory's
 
 TRAINING = ("train_brow_raise", "train_brow_furrow", "train_smile", "train_surprise",
             "train_sneer", "train_pucker")
@@ -53,8 +57,12 @@ def check_markers(actor_dir: Path, actor) -> np.ndarray:
     return np.concatenate([m, far, occ])
 
 
-def bits(out: Path, load: Path | None) -> int:
+def bits(out: Path, load: Path | None, block: int | None) -> int:
+    from service.methods.pdm import texel_band
     from service.methods.pdm.model import PdmModel, PdmParams, train
+
+    if block:
+        texel_band.BLOCK_POINTS = block
     from service.samples import dataset
     from service.samples.actor import build_sample_actor
 
@@ -102,17 +110,6 @@ def compare(a: Path, b: Path) -> int:
     return 1 if bad else 0
 
 
-def median_ms(fn, calls: int) -> float:
-    for k in range(3):
-        fn(k)
-    times = []
-    for k in range(calls):
-        t0 = time.perf_counter()
-        fn(k)
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
-
-
 def timing(model_dir: Path, actor_dir: Path, loads: int, calls: int) -> int:
     from service.methods.pdm.model import PdmModel
 
@@ -125,15 +122,12 @@ def timing(model_dir: Path, actor_dir: Path, loads: int, calls: int) -> int:
         load_s.append(time.perf_counter() - t0)
     rec = {"load_s": float(np.median(load_s)), "loads": load_s, "loadavg": os.getloadavg()}
     for name, outputs in OUTPUT_SETS.items():
-        rec[name] = median_ms(lambda k: model.synthesize(markers[k % len(markers)][None], outputs), calls)
+        rec[name] = harness.median_ms(lambda k: model.synthesize(markers[k % len(markers)][None], outputs), calls)
     print(json.dumps(rec))
     return 0
 
 
 def train_default(actor_dir: Path, model_dir: Path) -> int:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import harness
-
     print(json.dumps(harness.train_pdm(actor_dir, "biquadratic", model_dir)))
     return 0
 
@@ -144,6 +138,7 @@ def main(argv=None) -> int:
     b = sub.add_parser("bits")
     b.add_argument("out", type=Path)
     b.add_argument("--load", type=Path, default=None)
+    b.add_argument("--block", type=int, default=None, help="texel_band.BLOCK_POINTS (default: the library's)")
     c = sub.add_parser("compare")
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
@@ -157,7 +152,7 @@ def main(argv=None) -> int:
     r.add_argument("model", type=Path)
     a = p.parse_args(argv)
     if a.cmd == "bits":
-        return bits(a.out, a.load)
+        return bits(a.out, a.load, a.block)
     if a.cmd == "compare":
         return compare(a.a, a.b)
     if a.cmd == "timing":

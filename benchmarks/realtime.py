@@ -74,14 +74,7 @@ def load() -> str:
 
 
 def median_ms(fn, calls: int) -> float:
-    for k in range(WARMUP):
-        fn(k)
-    times = []
-    for k in range(calls):
-        t0 = time.perf_counter()
-        fn(k)
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+    return harness.median_ms(fn, calls, WARMUP)
 
 
 # ---------------------------------------------------------------------- model and data

@@ -73,7 +73,7 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
-from service.methods.pdm.validity import Validity, ValidityData, training_envelope, training_hull
+from service.methods.pdm.validity import BandValidity, Validity, ValidityData, training_envelope, training_hull
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
@@ -266,21 +266,15 @@ class PdmEvaluator:
                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,); with ρ
         (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`)."""
-        if rho is None:                 # blocked evaluation (:meth:`.texel_band.TexelBand.synthesize`)
-            values, frac = self.fine.synthesize(S, margin)
-            return values[..., 0], frac
-        d1, d2, _ = self.fine.parameters(S, margin)
-        rho_f = self.validity.texels("fine", rho)
-        D = self.validity.apply("fine", self.fine.coeffs, self.fine.evaluate(d1, d2), d1, d2, rho_f)
-        return D[..., 0], np.mean(rho_f > 1, axis=-1)
+        values, frac = self.fine.synthesize(S, margin, self._band_validity(self.fine, "fine", rho))
+        return values[..., 0], frac
 
     def albedo_band(self, S: np.ndarray, margin: float | None, rho: np.ndarray | None = None) -> np.ndarray:
         """Albedo (F,Pa,3) at the albedo texels; with ρ (F,K) valid as :meth:`fine_band`."""
-        if rho is None:
-            return self.albedo.synthesize(S, margin)[0]
-        a1, a2, _ = self.albedo.parameters(S, margin)
-        return self.validity.apply("albedo", self.albedo.coeffs, self.albedo.evaluate(a1, a2), a1, a2,
-                                   self.validity.texels("albedo", rho))
+        return self.albedo.synthesize(S, margin, self._band_validity(self.albedo, "albedo", rho))[0]
+
+    def _band_validity(self, band: TexelBand, name: str, rho: np.ndarray | None) -> BandValidity | None:
+        return None if rho is None else self.validity.band(name, band.coeffs, rho)
 
 
 def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
@@ -324,6 +318,20 @@ class PdmModel:
     @property
     def params(self) -> PdmParams:
         return self.data.params
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(m,3) the mesh's triangles (with ``uv`` (K,2), ``uv_faces`` (m,3): the layout the
+        service writes meshes and maps with)."""
+        return self.data.faces
+
+    @property
+    def uv(self) -> np.ndarray:
+        return self.data.uv
+
+    @property
+    def uv_faces(self) -> np.ndarray:
+        return self.data.uv_faces
 
     @property
     def n_vertices(self) -> int:

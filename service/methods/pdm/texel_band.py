@@ -10,6 +10,7 @@ import numpy as np
 from service.methods.pdm import polynomial
 from service.methods.pdm.deformation import ParameterField
 from service.methods.pdm.extrapolation import limit_parameters
+from service.methods.pdm.validity import BandValidity
 
 #: points per block of :meth:`TexelBand.synthesize` (about 0.25 MB per float32 row: the
 #: block's temporaries stay in the cache between the passes)
@@ -55,8 +56,8 @@ class TexelBand(CoveredTexels):
 
     index : (P,)               the points, in evaluation order (grouped by coarse element
                                for the fine and albedo texels)
-    coeffs : (P,C,K) float32   polynomial coefficients (§4.2); ``terms`` (K,C,P) the same
-                               term-major (contiguous per term)
+    coeffs : (P,C,K) float32   polynomial coefficients (§4.2), a view of ``terms`` (K,C,P),
+                               the same term-major (contiguous per term; one copy in memory)
     field : ParameterField     d1, d2 at the points
     limit : (4,P) float32      extrapolation limit per point (:func:`service.methods.pdm.model._limits`):
                                the inverse second moment (i11, i12, i22) of the training
@@ -72,7 +73,8 @@ class TexelBand(CoveredTexels):
     @classmethod
     def build(cls, resolution: int, index: np.ndarray, coeffs: np.ndarray, field: ParameterField,
               limit: np.ndarray | None = None) -> "TexelBand":
-        return cls(resolution, index, coeffs, field, limit, np.ascontiguousarray(coeffs.transpose(2, 1, 0)))
+        terms = np.ascontiguousarray(np.asarray(coeffs).transpose(2, 1, 0))
+        return cls(resolution, index, terms.transpose(2, 1, 0), field, limit, terms)
 
     def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """d1, d2 (F,P) for S (F,M,5), limited to ``(1 + margin)`` × the training radius
@@ -87,26 +89,34 @@ class TexelBand(CoveredTexels):
         """The PDM (…,P,C), C-contiguous, at parameters d1, d2 (…,P) (ma2008 eq. 1)."""
         return np.ascontiguousarray(polynomial.evaluate(self.terms.transpose(2, 1, 0), d1, d2))
 
-    def synthesize(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
+    def synthesize(self, S: np.ndarray, margin: float | None,
+                   validity: BandValidity | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The PDM (F,P,C) float32 at the parameters of S (F,M,5), and the fraction (F,) of
-        points limited: ``evaluate(*parameters(S, margin)[:2])`` bit for bit, block by block.
+        points limited: ``evaluate(*parameters(S, margin)[:2])`` bit for bit, block by block;
+        with ``validity`` (:meth:`.validity.Validity.band`, ``margin`` then None), the
+        values continued and faded outside the validity region
+        (:func:`.validity.valid_values` of the whole band, bit for bit) and the fraction of
+        points outside it.
 
         Points sorted by coarse element (``field.runs``) are done in blocks of about
-        ``BLOCK_POINTS`` whole element runs: parameters (eq. 3), extrapolation limit and
-        polynomial (eq. 1) of one block are computed while its temporaries are in the
-        cache, instead of each pass streaming arrays of all P points (on the 715k texels of
-        a 1024² fine map: 12.1 → 9.2 ms of CPU per frame, measured with other jobs running).
-        The element terms are computed once for all blocks, and each block runs the same
-        elementwise arithmetic in the same order as the whole-band path.
+        ``BLOCK_POINTS`` whole element runs: parameters (eq. 3), extrapolation limit or
+        validity and polynomial (eq. 1) of one block are computed while its temporaries
+        are in the cache, instead of each pass streaming arrays of all P points (on the
+        715k texels of a 1024² fine map: 12.1 → 9.2 ms of CPU per frame, measured with other
+        jobs running). The element terms are computed once for all blocks, and each block
+        runs the same elementwise arithmetic in the same order as the whole-band path.
         """
+        T, P = len(S), len(self.index)
         if self.field.runs is None:
             d1, d2, frac = self.parameters(S, margin)
-            return self.evaluate(d1, d2), frac
+            values = self.evaluate(d1, d2)
+            if validity is None:
+                return values, frac
+            return validity.apply(values, d1, d2), validity.outside() / max(P, 1)
         g = self.field.element_terms(S)
         starts = self.field.run_starts
         terms = self.terms
-        T, P, C = len(S), len(self.index), terms.shape[1]
-        out = np.empty((T, P, C), np.float32)
+        out = np.empty((T, P, terms.shape[1]), np.float32)
         over = np.zeros(T, np.int64)
         for a, b in self.field.blocks(BLOCK_POINTS):
             s, e = starts[a], starts[b]
@@ -114,6 +124,10 @@ class TexelBand(CoveredTexels):
             if margin is not None:
                 d1, d2, hit = limit_parameters(d1, d2, self.limit[:, s:e], margin)
                 over += np.count_nonzero(hit, axis=-1)
-            out[:, s:e] = polynomial.evaluate(terms[..., s:e].transpose(2, 1, 0), d1, d2)
-        frac = over / max(P, 1) if margin is not None else np.zeros(T)
+            values = polynomial.evaluate(terms[..., s:e].transpose(2, 1, 0), d1, d2)
+            if validity is not None:          # in the whole band's (contiguous) layout
+                values = validity.apply(np.ascontiguousarray(values), d1, d2, s, e)
+                over += validity.outside(s, e)
+            out[:, s:e] = values
+        frac = over / max(P, 1) if margin is not None or validity is not None else np.zeros(T)
         return out, frac
