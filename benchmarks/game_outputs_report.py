@@ -565,7 +565,7 @@ def stress_family(family: str, actor_dir: Path, args) -> dict:
     repro = scan_reproduction(model, clips)
     del clips
     sigma = pdm.metrics["highpass_sigma_texels"]
-    tex = harness.DetailTexels.build(actor, pdm.fine.resolution, sigma)
+    tex = harness.DetailTexels.build(actor, pdm.data.fine.resolution, sigma)
     if model.disp_band.resolution != tex.H:
         sys.exit(f"stress-blend maps are {model.disp_band.resolution}², the PDM's fine band {tex.H}²")
     others = {WPSD_ROW: lambda m: _pose_space_prediction(wpsd, m, tex)}

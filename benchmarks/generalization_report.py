@@ -130,7 +130,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     # scored at the actor's map resolution (a level-0 actor's maps are 512², the PDM's fine
     # band 1024²: its maps are box-filtered down, its band split's σ scaled with them)
     H = json.loads((actor_dir / "manifest.json").read_text())["map_resolution"]
-    tex = pdm.DetailTexels.build(actor, H, bq.metrics["highpass_sigma_texels"] * H / bq.fine.resolution)
+    tex = pdm.DetailTexels.build(actor, H, bq.metrics["highpass_sigma_texels"] * H / bq.data.fine.resolution)
 
     def pdm_prediction(model, markers):
         out = model.synthesize(markers, pdm.BASIC_OUTPUTS)

@@ -153,6 +153,18 @@ def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: flo
     return res
 
 
+def median_ms(fn, calls: int, warmup: int = 3) -> float:
+    """Median wall time (ms) of ``calls`` calls ``fn(k)`` (k = 0, 1, …) after ``warmup``."""
+    for k in range(warmup):
+        fn(k)
+    times = []
+    for k in range(calls):
+        t0 = time.perf_counter()
+        fn(k)
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
 def run_worker(script: str, *args: str, cores: int | None = None) -> dict:
     """Run ``script`` (a report's own file) as a worker in a fresh process; its JSON result
     (last stdout line). ``cores``: pinned to that many CPUs, thread pools to match."""
@@ -311,11 +323,11 @@ class Baselines:
     def build(cls, actor, clips, model, tex: DetailTexels) -> "Baselines":
         from service.methods.pdm.base_surface import BaseSurface
 
-        base = model.base
+        base = model.evaluator.base
         detailed = BaseSurface.from_smooth(actor.vertices, actor.faces, actor.uv, actor.uv_faces,
                                            base.handles, base.rest_markers)
         markers = np.concatenate([c.markers for c in clips])
-        pose, u_H, _ = model.deformation(markers)
+        pose, u_H, _ = model.evaluator.deformation(markers)
         V = np.concatenate([c.vertices for c in clips])
         c = np.empty(V.shape, np.float32)
         for t in range(len(V)):
@@ -326,7 +338,7 @@ class Baselines:
         return cls(model, detailed, tex.texels(neutral.displacement[0]), pose.remove(markers), c, maps)
 
     def no_detail(self, markers):
-        pose, u_H, _ = self.model.deformation(markers)
+        pose, u_H, _ = self.model.evaluator.deformation(markers)
         return pose.restore(self.detailed.deform(u_H)), None, None
 
     def static_neutral_map(self, markers):
@@ -335,8 +347,8 @@ class Baselines:
 
     def nearest(self, markers) -> tuple[np.ndarray, np.ndarray, None, np.ndarray]:
         """Also returns the chosen training frame (k,) (global index)."""
-        base = self.model.base
-        pose, u_H, _ = self.model.deformation(markers)
+        base = self.model.evaluator.base
+        pose, u_H, _ = self.model.evaluator.deformation(markers)
         a = pose.remove(markers)
         d2 = np.nansum((a[:, None] - self.train_aligned[None]) ** 2, axis=(2, 3))    # (k,T)
         t = np.argmin(d2, axis=1)

@@ -437,7 +437,7 @@ def main() -> None:
     results["fit"] = {o: m.metrics for o, m in models.items()}
     results["pca_energy"] = bq.metrics["pca_energy"]
     sigma = bq.metrics["highpass_sigma_texels"]
-    tex = DetailTexels.build(actor, bq.fine.resolution, sigma)
+    tex = DetailTexels.build(actor, bq.data.fine.resolution, sigma)
     clips = training_clips(actor_dir, actor)
     meta.update(train_frames=sum(c.frames for c in clips), train_clips=len(clips), sigma_texels=sigma,
                 sigma_mm=sigma * mean_texel_size(actor, tex.H))
@@ -475,7 +475,7 @@ def main() -> None:
     fig_data = results["accuracy"][HELDOUT[0]]["figure"]
     plot_detail_maps(fig_data, tex, figure_frames, FIGURES / "a_detail_maps.png",
                      ["PDM biquadratic", "static neutral map"])
-    pose, _, _ = bq.deformation(in_range.markers)
+    pose, _, _ = bq.evaluator.deformation(in_range.markers)
     plot_vertex_errors(fig_data, in_range, pose, actor, figure_frames, FIGURES / "b_vertex_error.png",
                        ["no detail", "PDM biquadratic"])
     plot_accuracy(results["accuracy"], FIGURES / "c_accuracy.png")

@@ -483,7 +483,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
 
     log("held-out accuracy")
     sigma = pdm.metrics["highpass_sigma_texels"]
-    tex = pr.DetailTexels.build(actor, pdm.fine.resolution, sigma)
+    tex = pr.DetailTexels.build(actor, pdm.data.fine.resolution, sigma)
     baselines = pr.Baselines.build(actor, clips, pdm, tex)
     methods = {
         "thin shell (no detail)": lambda m: baselines.no_detail(m)[:2] + (None,),

@@ -74,14 +74,7 @@ def load() -> str:
 
 
 def median_ms(fn, calls: int) -> float:
-    for k in range(WARMUP):
-        fn(k)
-    times = []
-    for k in range(calls):
-        t0 = time.perf_counter()
-        fn(k)
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+    return harness.median_ms(fn, calls, WARMUP)
 
 
 # ---------------------------------------------------------------------- model and data
@@ -297,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     model = PdmModel.load(model_dir)
     meta["load_s"] = time.perf_counter() - t0
-    meta["vertices"], meta["fine"] = model.n_vertices, model.fine.resolution
+    meta["vertices"], meta["fine"] = model.n_vertices, model.data.fine.resolution
     rows: list[dict] = []
     base_ms: dict[str, float] = {}
     profiles: dict[str, str] = {}

@@ -753,7 +753,7 @@ def main() -> None:
     model = ShapeSpaceModel.load(speed[meta["level"]]["model_dir"])
     bq = PdmModel.load(pdm_dir)
     sigma = bq.metrics["highpass_sigma_texels"]
-    tex = harness.DetailTexels.build(actor, bq.fine.resolution, sigma)
+    tex = harness.DetailTexels.build(actor, bq.data.fine.resolution, sigma)
     meta.update(database_frames=model.n_frames, sigma_texels=sigma, sigma_mm=sigma * mean_texel_size(actor, tex.H))
     extra = {}
     if shape_space_cached(actor_dir, other):

@@ -18,8 +18,9 @@ from service.geometry.sparse_solve import Factor
 
 #: bytes per stored entry of a SuperLU factor (float64 value + int32 row index)
 FACTOR_ENTRY_BYTES = 12
-#: nesting depth followed into attributes, containers and their items
-MAX_DEPTH = 6
+#: nesting depth followed into attributes, containers and their items (a served PDM: the
+#: stream's unit check → model → evaluator → validity → texel operators → CSR → arrays)
+MAX_DEPTH = 8
 
 
 def nbytes(obj: Any) -> int:

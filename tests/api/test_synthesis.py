@@ -454,8 +454,8 @@ def test_the_grpc_path_refuses_markers_in_another_unit(ready):
 
 def test_synthesize_answers_the_per_frame_confidence_in_a_header_and_the_npz(ready, pdm_model):
     client, _, model_id, markers, _ = ready
-    rest = pdm_model.base.rest_markers
-    pose = pdm_model.deformation(markers[:1])[0]
+    rest = pdm_model.evaluator.base.rest_markers
+    pose = pdm_model.evaluator.deformation(markers[:1])[0]
     far = pose.restore(rest + 6.0 * (pose.remove(markers[:1]) - rest))      # 6× the expression
     frames = np.concatenate([markers[:1], far])
     response = synth(client, model_id, npz(markers=frames))

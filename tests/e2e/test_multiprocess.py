@@ -178,8 +178,8 @@ def no_detail(deployment: Deployment, model_id: str, actor, markers: np.ndarray)
         model = get_kind("pdm").load(path)
     finally:
         sessions.kw["bind"].dispose()
-    pose, u_H, _ = model.deformation(markers)
-    base = model.base
+    pose, u_H, _ = model.evaluator.deformation(markers)
+    base = model.evaluator.base
     return pose.restore(actor.vertices + (base.deform(u_H) - base.smooth))
 
 

@@ -18,7 +18,7 @@ ALL = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
 
 def _shapes(model) -> dict[str, tuple[int, ...]]:
     """Per-frame array shapes of all outputs: (V,3) meshes, (Hf,Hf) fine maps, (Ha,Ha,3) albedo."""
-    V, Hf, Ha = model.n_vertices, model.fine.resolution, model.albedo.resolution
+    V, Hf, Ha = model.n_vertices, model.data.fine.resolution, model.data.albedo.resolution
     return {"vertices": (V, 3), "vertices_detailed": (V, 3), "displacement": (Hf, Hf),
             "albedo": (Ha, Ha, 3), "normal_map": (Hf, Hf, 3)}
 

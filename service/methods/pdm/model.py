@@ -43,8 +43,9 @@ Departures and choices (the paper is silent or differs):
 
 from __future__ import annotations
 
+import dataclasses
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -69,9 +70,10 @@ from service.methods.pdm.deformation import (
 )
 from service.methods.pdm.extrapolation import training_limit
 from service.methods.outputs import check_outputs
+from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.params import PdmParams
-from service.methods.pdm.texel_band import TexelBand
-from service.methods.pdm.validity import Validity, training_envelope, training_hull
+from service.methods.pdm.texel_band import CoefficientMap, TexelBand
+from service.methods.pdm.validity import BandValidity, Validity, ValidityData, training_envelope, training_hull
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
@@ -80,9 +82,10 @@ FRAME_CHUNK = 8
 WORKERS = 2
 
 
-def _element_field(mesh: MarkerMesh, axes: DeformationAxes, index: np.ndarray,
-                   H: int) -> tuple[np.ndarray, ParameterField]:
-    """The texels' order grouped by coarse element, and their parameter field in that order."""
+def element_field(mesh: MarkerMesh, axes: DeformationAxes, index: np.ndarray,
+                  H: int) -> tuple[np.ndarray, ParameterField]:
+    """The texels (flat indices ``index`` (P,) of an H×H map) grouped by coarse element: the
+    permutation (P,) of ``index`` and the parameter field of the texels in that order."""
     W = barycentric_operator(mesh, texel_uv(index, H))
     order = ParameterField.element_order(W)
     return order, ParameterField.build(axes, W[order])
@@ -137,135 +140,213 @@ class BandFilter:
         return values - self.lowpass(values) if self.sigma > 0 else values
 
 
-@dataclass
-class PdmModel:
-    """A trained PDM model (ma2008); :meth:`synthesize` turns markers into meshes and maps.
+def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: DeformationAxes) -> TexelBand:
+    """The medium PDM at the mesh's K UV points (uv (K,2)): coefficients sampled there
+    (bilinear, covered texels only) and d1, d2 at the same points. A seam vertex has one UV
+    per chart, and d1, d2 jump across seams (they live in texture space), so each chart's
+    coefficients are evaluated with that chart's parameters, and :func:`medium_offsets`
+    averages the results."""
+    S = uv_sampling_matrix(uv, medium.mask())[:, medium.index]
+    coeffs = (S @ medium.coeffs.reshape(len(medium.index), -1)).reshape(len(uv), 3, -1)
+    W = barycentric_operator(mesh, uv)
+    return TexelBand.build(0, np.arange(len(uv)), coeffs.astype(np.float32), ParameterField.build(axes, W))
 
-    Build with :func:`train` or :meth:`load`. Arrays as documented on the fields.
+
+def medium_offsets(vertex: TexelBand, seam_average: sp.csr_matrix, neutral_offset: np.ndarray,
+                   d1: np.ndarray, d2: np.ndarray, validity: Validity | None = None,
+                   rho: np.ndarray | None = None) -> np.ndarray:
+    """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
+    points of the band ``vertex`` (:func:`vertex_band`), seam-averaged ((n,K)) onto the
+    vertices plus the neutral's static ``neutral_offset`` (n,3); with ρ (F,K)
+    (:mod:`.validity`), continued and faded outside the hull."""
+    c = vertex.evaluate(d1, d2)                                                 # (F,K,3)
+    if rho is not None:
+        c = validity.apply("vertex", vertex.coeffs, c, d1, d2, rho)
+    F, K = c.shape[:2]
+    c = (seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
+    return c.transpose(1, 0, 2) + neutral_offset
+
+
+@dataclass(frozen=True)
+class PdmEvaluator:
+    """What synthesis evaluates per frame, derived once from :class:`~.data.PdmData` by
+    :meth:`build` (ma2008 §5) and unchanged afterwards.
+
+    Attributes (n vertices, K UV points, Pf fine texels)
+    ----------
+    base : BaseSurface              head pose weights' rest markers, thin-shell basis, frames
+    vertex_band : TexelBand         the medium PDM at the K UV points (:func:`vertex_band`)
+    fine : TexelBand                the fine PDM, texels grouped by coarse element
+    albedo : TexelBand | None       the albedo PTM, grouped the same way (None: no albedo)
+    orders : dict name → (P,) int   each band's points as indices into the data's band
+                                    (row-major texels; the UV points for ``vertex``)
+    seam_average : (n,K) CSR        UV points → vertices (seam mean)
+    fine_sampler : (n,Pf) CSR       fine texels → vertices (``mesh_detailed``)
+    normal_mapper : NormalMapper    tangent-space normal maps at the fine resolution
+    validity : Validity | None      where the polynomial holds (:mod:`.validity`; None when
+                                    ``validity_width`` is None)
     """
 
-    params: PdmParams
-    faces: np.ndarray                 # (m,3)
-    uv: np.ndarray                    # (K,2)
-    uv_faces: np.ndarray              # (m,3)
+    data: PdmData = dataclasses.field(repr=False)
     base: BaseSurface
-    mesh: MarkerMesh
-    axes: DeformationAxes
-    pose_weights: np.ndarray          # (M,) head-pose weights
-    S_train: np.ndarray               # (T,M,5) deformation vectors of the training frames
-    neutral_offset: np.ndarray        # (n,3) float32 the neutral's medium detail in the smooth
-                                      # neutral's tangent frames (static part, per vertex)
-    medium: TexelBand                 # C = 3 (tangent, bitangent, normal), mm
-    fine: TexelBand                   # C = 1 (normal), mm
-    albedo: TexelBand | None          # C = 3 (linear RGB)
-    metrics: dict = field(default_factory=dict)
-    # derived at build/load time (not stored)
-    vertex_band: TexelBand | None = None          # the medium PDM at the mesh's K UV points
-    seam_average: sp.csr_matrix | None = None     # (n,K) UV points → vertices (seam mean)
-    fine_sampler: sp.csr_matrix | None = None     # (n,Pf) fine map → vertices
-    normal_mapper: NormalMapper | None = None     # the fine map's normal mapper (built by prepare)
-    validity: Validity | None = None              # where the polynomial holds (:mod:`.validity`)
+    vertex_band: TexelBand
+    fine: TexelBand
+    albedo: TexelBand | None
+    orders: dict
+    seam_average: sp.csr_matrix
+    fine_sampler: sp.csr_matrix
+    normal_mapper: NormalMapper
+    validity: Validity | None
+
+    @classmethod
+    def build(cls, d: PdmData, base: BaseSurface | None = None,
+              derived: PdmDerived = PdmDerived()) -> "PdmEvaluator":
+        """Precompute everything of the class docstring from ``d``; ``base`` (the training's)
+        and the arrays of ``derived`` (a stored model's cache) are used instead of their
+        computation where given (the rest is derived from ``d.S_train``)."""
+        if base is None:
+            base = BaseSurface.from_smooth(d.smooth, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
+                                           basis=derived.basis, energy=derived.energy)
+            base = base.with_marker_noise(d.params.marker_noise_mm, d.prior_scale_mm)
+        n, K = d.n_vertices, len(d.uv)
+        bands, orders = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes)}, {"vertex": np.arange(K)}
+        for name in ("fine", "albedo"):
+            m = getattr(d, name)
+            if m is not None:
+                order, fld = element_field(d.mesh, d.axes, m.index, m.resolution)
+                orders[name] = order
+                bands[name] = TexelBand.build(m.resolution, m.index[order], m.coeffs[order], fld)
+        for name, band in bands.items():
+            limit = derived.limits.get(name)
+            bands[name] = dataclasses.replace(band, limit=_limits(band.field, d.S_train) if limit is None else limit)
+        seam = seam_average_matrix(d.uv_faces, d.faces, n, K)
+        fine = bands["fine"]
+        Hf = fine.resolution
+        return cls(
+            data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
+            orders=orders, seam_average=seam,
+            fine_sampler=sampling_matrix(d.uv, d.uv_faces, d.faces, n, fine.mask())[:, fine.index].tocsr(),
+            normal_mapper=NormalMapper(rasterize_uv(d.uv, d.uv_faces, Hf, Hf), d.faces, d.uv, d.uv_faces, n),
+            validity=_validity(d, base, bands, orders, seam))
 
     @property
-    def n_vertices(self) -> int:
-        return len(self.base.smooth)
-
-    @property
-    def n_markers(self) -> int:
-        return len(self.base.handles)
-
-    def neutral(self) -> np.ndarray:
-        """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset."""
-        frames = self.base.frames(self.base.smooth)
-        return self.base.smooth + np.einsum("nji,nj->ni", frames, self.neutral_offset)
-
-    # ------------------------------------------------------------------ preparation
-    def prepare(self, limits: dict | None = None) -> "PdmModel":
-        """Derive what synthesis evaluates per frame (after train or load): the parameter
-        fields of the fine and albedo texels (grouped by coarse element) and of the UV points,
-        their extrapolation limits, and the samplers.
-
-        ``limits`` maps the names of :meth:`evaluated_bands` to stored limits
-        (:func:`_limits`, in the element order this method produces); missing ones are
-        recomputed from ``S_train``.
-        """
-        limits = limits or {}
-        for band in (self.fine, self.albedo):
-            if band is not None and band.field is None:
-                order, band.field = _element_field(self.mesh, self.axes, band.index, band.resolution)
-                band.index, band.coeffs, band._terms = band.index[order], band.coeffs[order], None
-        self.seam_average = seam_average_matrix(self.uv_faces, self.faces, self.n_vertices, len(self.uv))
-        if self.vertex_band is None:
-            self.vertex_band = self._vertex_band()
-        for name, band in self.evaluated_bands().items():
-            if name in limits:
-                band.limit = limits[name]
-            elif band.limit is None:
-                band.limit = _limits(band.field, self.S_train)
-        self.fine_sampler = sampling_matrix(self.uv, self.uv_faces, self.faces, self.n_vertices,
-                                            self.fine.mask())[:, self.fine.index].tocsr()
-        if self.normal_mapper is None:      # at load, not on the first normal_map request
-            Hf = self.fine.resolution
-            self.normal_mapper = NormalMapper(rasterize_uv(self.uv, self.uv_faces, Hf, Hf),
-                                              self.faces, self.uv, self.uv_faces, self.n_vertices)
-        self.validity = self._validity()
-        return self
-
-    def _validity(self) -> Validity | None:
-        """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
-        when ``params.validity_width`` is None (the extrapolation limit applies instead)."""
-        if self.params.validity_width is None:
-            return None
-        S = self.S_train
-
-        def over_training(field):      # the field's (d1, d2) of the training S, a chunk at a time
-            return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
-
-        hull = training_hull(over_training(self.vertex_band.field))
-        bands = {k: (b.resolution, b.index) for k, b in (("fine", self.fine), ("albedo", self.albedo))
-                 if b is not None}
-        envelope = {k: training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
-                    for k, b in self.evaluated_bands().items()}
-        return Validity.build(hull, envelope, self.params.validity_width, self.params.validity_slope, self.uv,
-                              self.uv_faces, self.seam_average, self.base.smooth, self.faces, bands)
-
-    def evaluated_bands(self) -> dict[str, TexelBand]:
+    def bands(self) -> dict[str, TexelBand]:
         """The bands synthesis evaluates per frame: the medium PDM at the UV points
         (``vertex``), the fine and (if trained) the albedo texels. The medium texel maps
         themselves are only read to build ``vertex`` and written for renderers."""
         return {k: b for k, b in (("vertex", self.vertex_band), ("fine", self.fine),
                                   ("albedo", self.albedo)) if b is not None}
 
-    def _vertex_band(self) -> TexelBand:
-        """The medium PDM at the mesh's UV points: coefficients sampled there (bilinear,
-        covered texels only) and d1, d2 at the same points. A seam vertex has one UV per
-        chart, and d1, d2 jump across seams (they live in texture space), so each chart's
-        coefficients are evaluated with that chart's parameters, and :meth:`medium_offsets`
-        averages the results."""
-        S = uv_sampling_matrix(self.uv, self.medium.mask())[:, self.medium.index]
-        coeffs = (S @ self.medium.coeffs.reshape(len(self.medium.index), -1)).reshape(len(self.uv), 3, -1)
-        W = barycentric_operator(self.mesh, self.uv)
-        return TexelBand(0, np.arange(len(self.uv)), coeffs.astype(np.float32),
-                         ParameterField.build(self.axes, W))
+    def derived(self) -> PdmDerived:
+        """What a load of the data would recompute (the store's optional files)."""
+        return PdmDerived(basis=self.base.basis, energy=self.base.energy,
+                          limits={k: b.limit for k, b in self.bands.items()})
 
-    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None) -> np.ndarray:
-        """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
-        points; with ρ (F,K) (:mod:`.validity`), continued and faded outside the hull."""
-        c = self.vertex_band.evaluate(d1, d2)                                   # (F,K,3)
-        if rho is not None:
-            c = self.validity.apply("vertex", self.vertex_band.coeffs, c, d1, d2, rho)
-        F, K = c.shape[:2]
-        c = (self.seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
-        return c.transpose(1, 0, 2) + self.neutral_offset
+    def validity_data(self) -> ValidityData | None:
+        """The validity regions as stored (:class:`~.validity.ValidityData`: the envelopes in
+        the data's point order), None without validity."""
+        v = self.validity
+        if v is None:
+            return None
+        return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()})
 
-    # ------------------------------------------------------------------ synthesis
     def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
         """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers."""
-        pose = head_alignment(markers, self.base.rest_markers, self.pose_weights)
+        pose = head_alignment(markers, self.base.rest_markers, self.data.pose_weights)
         aligned = pose.remove(markers)
         u_H = self.base.handle_displacements(aligned)
-        return pose, u_H, deformation_vectors(self.mesh, self.base.denoised_markers(aligned, u_H), offsets=u_H)
+        return pose, u_H, deformation_vectors(self.data.mesh, self.base.denoised_markers(aligned, u_H), offsets=u_H)
 
+    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None) -> np.ndarray:
+        """:func:`medium_offsets` (F,n,3) of this model for d1, d2 (F,K); with ρ (F,K), valid."""
+        return medium_offsets(self.vertex_band, self.seam_average, self.data.neutral_offset, d1, d2,
+                              self.validity, rho)
+
+    def fine_band(self, S: np.ndarray, margin: float | None,
+                  rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,); with ρ
+        (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`)."""
+        values, frac = self.fine.synthesize(S, margin, self._band_validity(self.fine, "fine", rho))
+        return values[..., 0], frac
+
+    def albedo_band(self, S: np.ndarray, margin: float | None, rho: np.ndarray | None = None) -> np.ndarray:
+        """Albedo (F,Pa,3) at the albedo texels; with ρ (F,K) valid as :meth:`fine_band`."""
+        return self.albedo.synthesize(S, margin, self._band_validity(self.albedo, "albedo", rho))[0]
+
+    def _band_validity(self, band: TexelBand, name: str, rho: np.ndarray | None) -> BandValidity | None:
+        return None if rho is None else self.validity.band(name, band.coeffs, rho)
+
+
+def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
+              seam: sp.csr_matrix) -> Validity | None:
+    """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
+    when ``params.validity_width`` is None (the extrapolation limit applies instead): the
+    stored ``d.validity`` (its envelopes put in the bands' order ``orders``), or, for a model
+    stored without it, derived from ``d.S_train`` (seconds)."""
+    if d.params.validity_width is None:
+        return None
+    if d.validity is not None:
+        hull = d.validity.hull
+        envelope = {k: d.validity.envelope[k][orders[k]] for k in bands}
+    else:
+        S = d.S_train
+
+        def over_training(field):      # the field's (d1, d2) of the training S, a chunk at a time
+            return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
+
+        hull = training_hull(over_training(bands["vertex"].field))
+        envelope = {k: training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
+                    for k, b in bands.items()}
+    texels = {k: (b.resolution, b.index) for k, b in bands.items() if k != "vertex"}
+    return Validity.build(hull, envelope, d.params.validity_width, d.params.validity_slope, d.uv,
+                          d.uv_faces, seam, base.smooth, d.faces, texels)
+
+
+class PdmModel:
+    """A trained PDM model (ma2008): the stored :class:`~.data.PdmData` and its
+    :class:`PdmEvaluator`; :meth:`synthesize` turns markers into meshes and maps. Build with
+    :func:`train` or :meth:`load`; neither part changes after construction."""
+
+    def __init__(self, data: PdmData, evaluator: PdmEvaluator | None = None):
+        self.data = data
+        self.evaluator = evaluator or PdmEvaluator.build(data)
+
+    @property
+    def metrics(self) -> dict:
+        return self.data.metrics
+
+    @property
+    def params(self) -> PdmParams:
+        return self.data.params
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(m,3) the mesh's triangles (with ``uv`` (K,2), ``uv_faces`` (m,3): the layout the
+        service writes meshes and maps with)."""
+        return self.data.faces
+
+    @property
+    def uv(self) -> np.ndarray:
+        return self.data.uv
+
+    @property
+    def uv_faces(self) -> np.ndarray:
+        return self.data.uv_faces
+
+    @property
+    def n_vertices(self) -> int:
+        return self.data.n_vertices
+
+    @property
+    def n_markers(self) -> int:
+        return self.data.n_markers
+
+    def neutral(self) -> np.ndarray:
+        """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset."""
+        base = self.evaluator.base
+        return base.smooth + np.einsum("nji,nj->ni", base.frames(base.smooth), self.data.neutral_offset)
+
+    # ------------------------------------------------------------------ synthesis
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
                    clamp: bool = True) -> dict[str, np.ndarray]:
         """Meshes and maps for world-space markers (F,M,3), NaN for occluded (ma2008 §5).
@@ -285,6 +366,7 @@ class PdmModel:
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
+        ev, d = self.evaluator, self.data
         markers = np.asarray(markers, dtype=np.float64)
         if markers.ndim == 2:
             markers = markers[None]
@@ -292,10 +374,10 @@ class PdmModel:
         if markers.ndim != 3 or markers.shape[1:] != (M, 3):
             raise InvalidInput(f"model expects markers (F,{M},3), got {markers.shape}")
         check_outputs(outputs)
-        if "albedo" in outputs and self.albedo is None:
+        if "albedo" in outputs and ev.albedo is None:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
-        out: dict[str, np.ndarray] = {"faces": self.faces.astype(np.int32),
+        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32),
                                       "clamped": np.zeros(nf, np.float32),
                                       CONFIDENCE: np.ones(nf, np.float32),
                                       VERTEX_CONFIDENCE: np.ones((nf, n), np.float32)}
@@ -304,26 +386,26 @@ class PdmModel:
             out["vertices"] = np.empty((nf, n, 3), np.float32)
         if "mesh_detailed" in want:
             out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
-        Hf = self.fine.resolution
+        Hf = ev.fine.resolution
         if want & {"displacement", "normal_map"}:
             out["displacement"] = np.zeros((nf, Hf, Hf), np.float32)
         if "normal_map" in want:
             out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
         if "albedo" in want:
-            Ha = self.albedo.resolution
+            Ha = ev.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
-        valid = self.validity
-        margin = self.params.extrapolation_margin if clamp and valid is None else None
+        valid = ev.validity
+        margin = d.params.extrapolation_margin if clamp and valid is None else None
         fine = bool(want & {"displacement", "normal_map", "mesh_detailed"})
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             try:
-                pose, u_H, S = self.deformation(markers[sl])
+                pose, u_H, S = ev.deformation(markers[sl])
             except TooFewMarkers as e:
                 raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
                                    f"least {e.required} are needed") from None
-            X = self.base.deform(u_H)
-            d1, d2, clamped = self.vertex_band.parameters(S, margin)
+            X = ev.base.deform(u_H)
+            d1, d2, clamped = ev.vertex_band.parameters(S, margin)
             rho = None if valid is None else valid.gauge(d1, d2)
             if rho is not None:
                 out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
@@ -331,56 +413,40 @@ class PdmModel:
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
-            medium = X + self.base.frame_field.to_world(X, self.medium_offsets(d1, d2, rho), np.float32)
+            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho), np.float32)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if fine:                            # mesh only: the fine band is not evaluated
-                disp, out["clamped"][sl] = self._fine_band(S, margin, rho)
+                disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
-                out["displacement"][sl].reshape(len(disp), -1)[:, self.fine.index] = disp
+                out["displacement"][sl].reshape(len(disp), -1)[:, ev.fine.index] = disp
             if want & {"mesh_detailed", "normal_map"}:
-                mframes = self.base.frame_field.frames(medium, np.float32)
+                mframes = ev.base.frame_field.frames(medium, np.float32)
             if "mesh_detailed" in want:
-                h = (self.fine_sampler @ disp.T).T                           # (f,n)
+                h = (ev.fine_sampler @ disp.T).T                           # (f,n)
                 out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
             if "normal_map" in want:
                 for k in range(sl.stop - sl.start):
-                    out["normal_map"][s + k] = self.normal_mapper.normal_map(
+                    out["normal_map"][s + k] = ev.normal_mapper.normal_map(
                         out["displacement"][s + k], medium[k], mframes[k])
             if "albedo" in want:
-                if rho is None:
-                    a = self.albedo.synthesize(S, margin)[0]
-                else:
-                    a1, a2, _ = self.albedo.parameters(S, margin)
-                    a = valid.apply("albedo", self.albedo.coeffs, self.albedo.evaluate(a1, a2), a1, a2,
-                                    valid.texels("albedo", rho))
-                out["albedo"][sl] = self.albedo.image(np.maximum(a, 0.0), channels=True)
+                a = ev.albedo_band(S, margin, rho)
+                out["albedo"][sl] = ev.albedo.image(np.maximum(a, 0.0), channels=True)
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
 
-    def _fine_band(self, S: np.ndarray, margin: float | None,
-                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,); with ρ
-        (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`)."""
-        if rho is None:                 # blocked evaluation (:meth:`.texel_band.TexelBand.synthesize`)
-            values, frac = self.fine.synthesize(S, margin)
-            return values[..., 0], frac
-        d1, d2, _ = self.fine.parameters(S, margin)
-        rho_f = self.validity.texels("fine", rho)
-        D = self.validity.apply("fine", self.fine.coeffs, self.fine.evaluate(d1, d2), d1, d2, rho_f)
-        return D[..., 0], np.mean(rho_f > 1, axis=-1)
-
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
-        """Write the model directory (manifest.json, model.npz, *.exr); see :mod:`.store`."""
-        return store.write_model(self, path)
+        """Write the model directory (manifest.json, model.npz, *.exr, the derived cache); see
+        :mod:`.store`."""
+        return store.write_model(self.data, self.evaluator.derived(), path)
 
     @classmethod
     def load(cls, path) -> "PdmModel":
         """Read a model directory written by :meth:`save`, verifying checksums."""
-        fields, limits = store.read_model(path)
-        return cls(**fields).prepare(limits)
+        data, derived = store.read_model(path)
+        return cls(data, PdmEvaluator.build(data, derived=derived))
 
 
 # ---------------------------------------------------------------------- training
@@ -477,28 +543,24 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
         c -= neutral_offset
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
-    medium = TexelBand(Hm, idx_m, None)
     d1, d2 = _parameters(field_m, S)
     progress(0.3, "medium band fit")
-    medium.coeffs = polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32)
+    medium = CoefficientMap(Hm, idx_m, polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32))
     med_rms = polynomial.fit_residual_rms(medium.coeffs, d1, d2, f_med)
     del f_med, d1, d2
 
-    model = PdmModel(params, F, np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64),
-                     base, mesh, axes, weights, S, neutral_offset, medium,
-                     TexelBand(params.fine_resolution, np.zeros(0, np.int64), np.zeros((0, 1, 1), np.float32)),
-                     None)
+    uv, uvf = np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64)
     # the medium result at the vertices, as synthesis computes it (without the clamp)
-    model.seam_average = seam_average_matrix(model.uv_faces, F, n, len(model.uv))
-    model.vertex_band = model._vertex_band()
-    dv1, dv2 = _parameters(model.vertex_band.field, S)
+    seam = seam_average_matrix(uvf, F, n, len(uv))
+    vertex = vertex_band(medium, uv, mesh, axes)
+    dv1, dv2 = _parameters(vertex.field, S)
 
     # ---- fine band (1D along the normal, high-pass residual)
     progress(0.45, "fine band")
     Hf = params.fine_resolution
     raster_f, idx_f, interp_f = _band_raster(actor, Hf)
-    order, field_f = _element_field(mesh, axes, idx_f, Hf)
-    idx_f, interp_f = idx_f[order], interp_f[order]
+    order_f, field_f = element_field(mesh, axes, idx_f, Hf)
+    idx_f_stored, idx_f, interp_f = idx_f, idx_f[order_f], interp_f[order_f]
     sigma = params.fine_highpass_mm / mean_texel_size(actor, Hf)
     split_f = BandFilter.build(Hf, idx_f, sigma)
     uv_f = texel_uv(idx_f, Hf)
@@ -508,7 +570,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         fr = base.frames(X)
-        c = model.medium_offsets(dv1[t0:t1], dv2[t0:t1])
+        c = medium_offsets(vertex, seam, neutral_offset, dv1[t0:t1], dv2[t0:t1])
         result = X + np.einsum("fnji,fnj->fni", fr, c)
         err = pose[t0:t1].remove(world_vertices(t0, t1)) - result
         vert_sq += np.einsum("fnd,fnd->n", err, err)
@@ -522,33 +584,32 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         with ThreadPoolExecutor(WORKERS) as pool:
             cols = list(pool.map(lambda k: split_f.highpass(r[:, k]), range(t1 - t0)))
         f_fine[t0:t1] = np.stack(cols)
-    model.fine = fine = TexelBand(Hf, idx_f, None, field_f)
-    d1, d2 = _parameters(fine.field, S)
+    d1, d2 = _parameters(field_f, S)
     progress(0.6, "fine band fit")
-    fine.coeffs = polynomial.fit(d1, d2, f_fine, params.order, params.gamma).astype(np.float32)
-    fine_rms = polynomial.fit_residual_rms(fine.coeffs, d1, d2, f_fine)[:, 0]
+    coeffs_f = polynomial.fit(d1, d2, f_fine, params.order, params.gamma).astype(np.float32)
+    fine = CoefficientMap(Hf, idx_f_stored, _unpermute(coeffs_f, order_f))
+    fine_rms = polynomial.fit_residual_rms(coeffs_f, d1, d2, f_fine)[:, 0]
     fine_signal = np.sqrt(np.mean(f_fine.astype(np.float64) ** 2, axis=0))
     del f_fine, d1, d2
 
     # ---- albedo PTM (§6)
-    alb_rms = None
+    alb_rms, albedo = None, None
     if clips[0].albedo is not None:
         progress(0.8, "albedo")
         Ha = clips[0].albedo.shape[1]
         _, idx_a, _ = _band_raster(actor, Ha)
-        order, field_a = _element_field(mesh, axes, idx_a, Ha)
-        idx_a = idx_a[order]
-        f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a] for c in clips]).astype(np.float32)
-        model.albedo = alb = TexelBand(Ha, idx_a, None, field_a)
-        d1, d2 = _parameters(alb.field, S)
-        alb.coeffs = polynomial.fit(d1, d2, f_alb, params.order, params.gamma).astype(np.float32)
-        alb_rms = polynomial.fit_residual_rms(alb.coeffs, d1, d2, f_alb)
+        order_a, field_a = element_field(mesh, axes, idx_a, Ha)
+        f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a[order_a]] for c in clips]).astype(np.float32)
+        d1, d2 = _parameters(field_a, S)
+        coeffs_a = polynomial.fit(d1, d2, f_alb, params.order, params.gamma).astype(np.float32)
+        albedo = CoefficientMap(Ha, idx_a, _unpermute(coeffs_a, order_a))
+        alb_rms = polynomial.fit_residual_rms(coeffs_a, d1, d2, f_alb)
         del f_alb, d1, d2
 
     progress(0.9, "metrics")
     regions = {k: np.asarray(v, bool) for k, v in actor.regions.items()}
     tex_region = {k: v[F[raster_f.triangle.ravel()[idx_f], 0]] for k, v in regions.items()}
-    model.metrics = {
+    metrics = {
         "training_frames": T,
         "clips": [c.name for c in clips],
         "medium_fit_rms_mm": float(np.sqrt(np.nanmean(med_rms ** 2))),
@@ -562,10 +623,22 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         "highpass_sigma_texels": float(sigma),
         "params": params.model_dump(mode="json"),
     }
+    data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
+                   mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics)
     progress(0.95, "prepare")
-    model.prepare()
+    evaluator = PdmEvaluator.build(data, base)
+    # the validity regions of the training data are stored with the model (a load reads them)
+    data = dataclasses.replace(data, validity=evaluator.validity_data())
+    model = PdmModel(data, dataclasses.replace(evaluator, data=data))
     progress(1.0, "done")
     return model
+
+
+def _unpermute(values: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Rows of ``values`` (P,…) given in ``order`` (P,) back in the original order."""
+    out = np.empty_like(values)
+    out[order] = values
+    return out
 
 
 def _clip_slices(clips: Sequence[Clip], t0: int, t1: int):

@@ -13,8 +13,9 @@ is different, it will be important to scale the values E^u(t) and E^v(t) accordi
    axes re-orthonormalized); and the strain scale rescaled for the new density: eq. 2's
    absolute strain grows with the neighbourhood's extent, so a new marker's E is multiplied
    by σ_ref(training) / σ_ref(new), the ratio of the rest standard deviations of the two
-   neighbourhoods there, before the training √|N2| scale. The coefficient maps and the
-   extrapolation limits live in texture space and are kept as they are.
+   neighbourhoods there, before the training √|N2| scale. The coefficient maps, the
+   extrapolation limits and the validity regions live in texture space and are kept as
+   they are (regrouped by the new coarse elements).
 """
 
 from __future__ import annotations
@@ -27,11 +28,9 @@ from service.geometry.closest_point import closest_points
 from service.geometry.rigid import RigidTransform, rigid_align
 from service.methods.inputs import ActorData, InvalidInput
 from service.methods.pdm.base_surface import BaseSurface, handle_vertices
-from service.methods.pdm.deformation import (
-    DeformationAxes, ParameterField, barycentric_operator, marker_mesh,
-)
-from service.geometry.uv_raster import texel_uv
-from service.methods.pdm.model import PdmModel, marker_axes
+from service.methods.pdm.data import PdmDerived
+from service.methods.pdm.deformation import DeformationAxes, barycentric_operator, marker_mesh
+from service.methods.pdm.model import PdmEvaluator, PdmModel, element_field, marker_axes
 
 #: ICP stops when the RMS distance changes by less than this (actor units)
 ICP_TOL = 1e-6
@@ -84,12 +83,12 @@ def remap_model(model: PdmModel, triangle: np.ndarray, barycentric: np.ndarray,
     markers of the new layout. Raises :class:`InvalidInput` for layouts whose markers share
     a thin-shell handle.
     """
-    F = model.faces
+    d, ev = model.data, model.evaluator
+    F = d.faces
     triangle = np.asarray(triangle, np.int64)
     barycentric = np.asarray(barycentric, np.float64)
     names = names or tuple(f"M{i:03d}" for i in range(len(triangle)))
-    neutral = model.neutral()
-    actor = ActorData(neutral, F, model.uv, model.uv_faces, triangle, barycentric, names)
+    actor = ActorData(model.neutral(), F, d.uv, d.uv_faces, triangle, barycentric, names)
     rest = actor.marker_positions()
     try:
         handles = handle_vertices(F, triangle, barycentric, names)
@@ -98,24 +97,32 @@ def remap_model(model: PdmModel, triangle: np.ndarray, barycentric: np.ndarray,
     mesh = marker_mesh(actor.marker_uv(), rest, marker_axes(actor))
 
     # training quantities at the new markers, through the training coarse mesh
-    W = barycentric_operator(model.mesh, mesh.uv)                          # (M',M)
-    old = model.mesh
-    q = W @ model.axes.q
+    W = barycentric_operator(d.mesh, mesh.uv)                              # (M',M)
+    old = d.mesh
+    q = W @ d.axes.q
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    r = W @ model.axes.r
+    r = W @ d.axes.r
     r -= np.sum(r * q, axis=1, keepdims=True) * q
     r /= np.linalg.norm(r, axis=1, keepdims=True)
     scale = np.ones((len(triangle), 5))
     density = (W @ old.rest_sigma) / np.maximum(mesh.rest_sigma, 1e-12)      # σ_train / σ_new
     scale[:, 3:] = np.sqrt(W @ old.n2_sizes)[:, None] * density
-    axes = DeformationAxes(q, r, scale, W @ model.axes.energy, 0, float("nan"))
+    axes = DeformationAxes(q, r, scale, W @ d.axes.energy, 0, float("nan"))
 
-    base = BaseSurface.from_smooth(model.base.smooth, F, model.uv, model.uv_faces, handles, rest)
-    out = replace(model, base=base, mesh=mesh, axes=axes, pose_weights=W @ model.pose_weights,
-                  metrics={**model.metrics, "remapped_markers": len(triangle)})
-    # same texels, same coefficients and limits; only the parameter fields change
-    for name, band in model.evaluated_bands().items():
-        points = model.uv if band.resolution == 0 else texel_uv(band.index, band.resolution)
-        setattr(out, "vertex_band" if name == "vertex" else name,
-                replace(band, field=ParameterField.build(axes, barycentric_operator(mesh, points))))
-    return out
+    base = BaseSurface.from_smooth(d.smooth, F, d.uv, d.uv_faces, handles, rest)
+    data = replace(d, handles=handles, rest_markers=rest, mesh=mesh, axes=axes, pose_weights=W @ d.pose_weights,
+                   metrics={**d.metrics, "remapped_markers": len(triangle)},
+                   validity=ev.validity_data())      # a model stored without them: the derived ones
+    # same texels, same coefficients, limits and validity regions (stored in texel order);
+    # only the parameter fields (and so the texels' grouping by coarse element) change
+    orders = {name: np.arange(len(d.uv)) if name == "vertex" else
+              element_field(mesh, axes, getattr(d, name).index, getattr(d, name).resolution)[0]
+              for name in ev.orders}
+
+    def regroup(name: str, values: np.ndarray) -> np.ndarray:      # (…,P) old order → new order
+        stored = np.empty_like(values)
+        stored[..., ev.orders[name]] = values
+        return stored[..., orders[name]]
+
+    derived = PdmDerived(limits={k: regroup(k, b.limit) for k, b in ev.bands.items()})
+    return PdmModel(data, PdmEvaluator.build(data, base, derived))

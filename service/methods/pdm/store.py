@@ -11,6 +11,10 @@ Layout (DESIGN.md "Data and storage"):
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived);
+* ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
+  ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
+  order); written when the model has them; a model directory without it (stored before
+  they were kept) derives them from ``S_train`` at load (seconds);
 * ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
   basis and handle energy, the extrapolation limits per texel): listed under
   ``derived`` in the manifest, checksummed like the rest, and optional (a model directory
@@ -37,10 +41,11 @@ from service.io.exr import read_exr, write_exr
 from service.io.npz import npz_arrays
 from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.pdm import polynomial
-from service.methods.pdm.base_surface import BaseSurface
+from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
 from service.methods.pdm.params import PdmParams
-from service.methods.pdm.texel_band import TexelBand
+from service.methods.pdm.texel_band import CoefficientMap
+from service.methods.pdm.validity import ValidityData
 
 KIND = "pdm"
 FORMAT_VERSION = 1
@@ -49,11 +54,14 @@ PAD_TEXELS = 4
 COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b")}
 #: what load would otherwise recompute (thin-shell basis, extrapolation limits): seconds saved
 CACHE = "cache.npz"
+#: the validity regions of the training data (optional: older model directories lack it)
+VALIDITY = "validity.npz"
 
 
-def write_model(model, path) -> dict:
-    """Write a :class:`~service.methods.pdm.model.PdmModel` into directory ``path``
-    (created); returns the manifest."""
+def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
+    """Write a model's stored data ``model`` and what a load would recompute, ``derived``
+    (the cache; see the module docstring), into directory ``path`` (created); returns the
+    manifest."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {}
@@ -61,35 +69,38 @@ def write_model(model, path) -> dict:
         if band is None:
             continue
         files[f"{name}.exr"] = _write_band(path / f"{name}.exr", band, COMPONENTS[name])
-    m, ax, base = model.mesh, model.axes, model.base
+    m, ax = model.mesh, model.axes
     arrays = {
-        "smooth": base.smooth, "faces": model.faces, "uv": model.uv, "uv_faces": model.uv_faces,
-        "handles": base.handles, "rest_markers": base.rest_markers,
+        "smooth": model.smooth, "faces": model.faces, "uv": model.uv, "uv_faces": model.uv_faces,
+        "handles": model.handles, "rest_markers": model.rest_markers,
         "marker_uv": m.uv, "marker_faces": m.faces, "marker_axes": m.axes,
         "q": ax.q, "r": ax.r, "scale": ax.scale, "energy": ax.energy,
         "pose_weights": model.pose_weights, "S_train": model.S_train,
         "neutral_offset": model.neutral_offset,
-        "marker_prior_scale_mm": np.float64(base.prior_scale_mm),
+        "marker_prior_scale_mm": np.float64(model.prior_scale_mm),
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
     }
     files["model.npz"] = write_npz(path / "model.npz", arrays)
     files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
-    cache = {"basis": base.basis, "energy": base.energy}
-    for name, band in model.evaluated_bands().items():
-        cache[f"{name}_limit"] = band.limit
-    derived = {CACHE: write_npz(path / CACHE, cache)}
+    if model.validity is not None:
+        files[VALIDITY] = write_npz(path / VALIDITY, {"hull": model.validity.hull, **{
+            f"{name}_envelope": e for name, e in model.validity.envelope.items()}})
+    cache = {"basis": derived.basis, "energy": derived.energy}
+    for name, limit in derived.limits.items():
+        cache[f"{name}_limit"] = limit
+    derived_files = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": model.params.model_dump(mode="json"),
-        "metrics": model.metrics, "files": files, "derived": derived,
+        "metrics": model.metrics, "files": files, "derived": derived_files,
         "size_bytes": sum((path / f).stat().st_size for f in files),
-        "derived_bytes": sum((path / f).stat().st_size for f in derived),
+        "derived_bytes": sum((path / f).stat().st_size for f in derived_files),
     }
     write_bytes(path / "manifest.json", json.dumps(manifest, indent=1).encode())
     return manifest
 
 
-def _write_band(file: Path, band: TexelBand, components) -> str:
+def _write_band(file: Path, band: CoefficientMap, components) -> str:
     H = band.resolution
     P, C, K = band.coeffs.shape
     img = np.zeros((H * H, C * K), np.float32)
@@ -99,7 +110,7 @@ def _write_band(file: Path, band: TexelBand, components) -> str:
     return sha256_file(file)
 
 
-def _write_neutral(file: Path, model) -> str:
+def _write_neutral(file: Path, model: PdmData) -> str:
     """The per-vertex neutral offset as an x, y, z map at the medium resolution (for renderers:
     the full constant term is ``x.a<K-1> + x``); not read back."""
     H = model.medium.resolution
@@ -109,14 +120,9 @@ def _write_neutral(file: Path, model) -> str:
     return sha256_file(file)
 
 
-def read_model(path) -> tuple[dict, dict[str, np.ndarray]]:
-    """Read a model written by :func:`write_model` (checksums verified first).
-
-    Returns
-    -------
-    fields : dict   the :class:`~service.methods.pdm.model.PdmModel` fields it stores
-    limits : dict   the stored extrapolation limits (``PdmModel.prepare``'s argument)
-    """
+def read_model(path) -> tuple[PdmData, PdmDerived]:
+    """The stored data and the derived cache (empty where the directory has none) written
+    by :func:`write_model` in ``path`` (checksums verified first)."""
     path = Path(path)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION)
     # a model stored before marker_noise_mm existed interpolated its markers exactly
@@ -138,7 +144,7 @@ def read_model(path) -> tuple[dict, dict[str, np.ndarray]]:
                                for c in comps], axis=1)
         except KeyError as e:
             raise ModelCorrupt(f"{path}: {name}.exr lacks channel {e}") from None
-        bands[name] = TexelBand(res, index, coeffs)
+        bands[name] = CoefficientMap(res, index, coeffs)
     mesh = marker_mesh(a["marker_uv"], a["rest_markers"], a["marker_axes"])
     if not np.array_equal(mesh.faces, a["marker_faces"]):
         raise ModelCorrupt(f"{path}: the coarse marker mesh does not rebuild identically")
@@ -146,12 +152,15 @@ def read_model(path) -> tuple[dict, dict[str, np.ndarray]]:
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
     cache = npz_arrays(data[CACHE]) if CACHE in data else {}
-    base = BaseSurface.from_smooth(a["smooth"], F, uv, uvf, a["handles"], a["rest_markers"],
-                                   basis=cache.get("basis"), energy=cache.get("energy"))
-    base = base.with_marker_noise(params.marker_noise_mm, float(a.get("marker_prior_scale_mm", np.nan)))
-    limits = {k[:-6]: cache[k] for k in cache if k.endswith("_limit")}
-    fields = dict(params=params, faces=F, uv=uv, uv_faces=uvf, base=base, mesh=mesh, axes=axes,
-                  pose_weights=a["pose_weights"], S_train=a["S_train"],
-                  neutral_offset=a["neutral_offset"], medium=bands["medium"],
-                  fine=bands["fine"], albedo=bands["albedo"], metrics=manifest["metrics"])
-    return fields, limits
+    validity = None
+    if VALIDITY in data:
+        v = npz_arrays(data[VALIDITY])
+        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")})
+    model = PdmData(params=params, faces=F, uv=uv, uv_faces=uvf, smooth=a["smooth"], handles=a["handles"],
+                    rest_markers=a["rest_markers"], prior_scale_mm=float(a.get("marker_prior_scale_mm", np.nan)),
+                    mesh=mesh, axes=axes, pose_weights=a["pose_weights"], S_train=a["S_train"],
+                    neutral_offset=a["neutral_offset"], medium=bands["medium"], fine=bands["fine"],
+                    albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity)
+    derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
+                         limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")})
+    return model, derived

@@ -43,8 +43,9 @@ also the point's confidence (:mod:`service.methods.confidence`).
 The fine and albedo texels take ρ interpolated from the UV points (barycentric through the
 UV triangle that covers them): the validity is a property of a region of the face, and a
 per-texel region of a 1024² map would cost T × 1024² × K per model load. Everything is
-derived from ``S_train`` when the model is prepared (nothing new is stored; about 9 s of a
-level-0 model's load, mostly the fine band's envelope).
+derived from ``S_train`` when the model is trained and stored with it (:class:`ValidityData`;
+a model stored without it derives it at load: about 9 s of a level-0 model's load, mostly
+the fine band's envelope).
 
 Measured with the defaults (width 1, slope 1, margin 0.25) on family a's combinations
 (13 frames, face): max vertex error 41.3 → 10.7 mm (thin shell 7.0), mean 0.47 → 0.36 mm
@@ -155,7 +156,22 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
     return values
 
 
-@dataclass
+@dataclass(frozen=True)
+class ValidityData:
+    """What the validity regions keep of the training data (stored with the model,
+    ``validity.npz``; derived from the training S at load for models stored without it).
+
+    hull : (D,Q) float32          radius function (:func:`training_hull`) at the Q UV points
+    envelope : dict name → (P,)   training envelope (:func:`training_envelope`) of each
+                                  evaluated band (``vertex``, ``fine``, ``albedo``), float32,
+                                  in the stored band's point order (row-major texels)
+    """
+
+    hull: np.ndarray
+    envelope: dict
+
+
+@dataclass(frozen=True)
 class Validity:
     """The validity regions of one PDM model and their use in synthesis (module docstring).
 
@@ -204,6 +220,12 @@ class Validity:
         return valid_values(coeffs, values, d1, d2, rho, self.envelope[name], self.fallback(name, coeffs),
                             self.width, self.slope)
 
+    def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
+        """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
+        at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block)."""
+        return BandValidity(self.texels(name, rho), coeffs, self.envelope[name], self.fallback(name, coeffs),
+                            self.width, self.slope)
+
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
         """The safe fallback (P,C) of band ``name``: 0 for the medium PDM (``vertex``: the thin
@@ -217,3 +239,34 @@ class Validity:
         w = falloff(np.asarray(rho, np.float64) - 1, self.width)                 # (F,Q)
         cv = np.asarray(self.vertex_rho @ w.T).T                                # (F,n)
         return frame_confidence(cv, self.vertex_weight).astype(np.float32), cv.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class BandValidity:
+    """The validity of one texel band for a few frames (:meth:`Validity.band`): ρ (F,P) at
+    its points and what :func:`valid_values` needs, applied to any range of points (a block
+    of :meth:`.texel_band.TexelBand.synthesize`, while its values are in the cache).
+
+    rho : (F,P) float32;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
+    """
+
+    rho: np.ndarray
+    coeffs: np.ndarray
+    envelope: np.ndarray
+    fallback: np.ndarray
+    width: float
+    slope: float
+
+    def apply(self, values: np.ndarray, d1: np.ndarray, d2: np.ndarray, s: int = 0,
+              e: int | None = None) -> np.ndarray:
+        """D̃ (F,e−s,C) of points ``s:e`` from their D (F,e−s,C) and d1, d2 (F,e−s): elementwise
+        per point, so any split into ranges gives the whole band's values bit for bit.
+        Modifies ``values``."""
+        p = slice(s, e)
+        return valid_values(self.coeffs[p], values, d1, d2, self.rho[:, p], self.envelope[p],
+                            self.fallback[p], self.width, self.slope)
+
+    def outside(self, s: int = 0, e: int | None = None) -> np.ndarray:
+        """Points ``s:e`` outside their validity region (ρ > 1), counted per frame (F,) int."""
+        return np.count_nonzero(self.rho[:, s:e] > 1, axis=-1)
+

@@ -17,8 +17,8 @@ def _face_error(V, truth, actor):
 def _thin_shell_only(model, actor, markers):
     """The 'no detail' baseline: the detailed neutral deformed to the markers."""
     base = BaseSurface.from_smooth(actor.vertices, actor.faces, actor.uv, actor.uv_faces,
-                                   model.base.handles, model.base.rest_markers)
-    pose, u_H, _ = model.deformation(markers)
+                                   model.evaluator.base.handles, model.evaluator.base.rest_markers)
+    pose, u_H, _ = model.evaluator.deformation(markers)
     return pose.restore(base.deform(u_H))
 
 
@@ -77,9 +77,9 @@ def test_missing_markers_drop_out_and_too_few_is_named(pdm_model, pdm_data):
 
 def test_extrapolation_limit_holds_the_detail_of_the_trained_range(pdm_model, pdm_data):
     _, clips = pdm_data
-    rest = pdm_model.base.rest_markers
+    rest = pdm_model.evaluator.base.rest_markers
     peak = clips[3].markers[10]                        # surprise, near its peak
-    pose = pdm_model.deformation(peak[None])[0]
+    pose = pdm_model.evaluator.deformation(peak[None])[0]
     aligned = pose.remove(peak[None])[0]
     far = pose.restore((rest + 2.5 * (aligned - rest))[None])   # 2.5× the expression
     free = pdm_model.synthesize(far, clamp=False)
@@ -94,7 +94,7 @@ def test_extrapolation_limit_holds_the_detail_of_the_trained_range(pdm_model, pd
 
 def covered(model):
     """(H,W) bool: the fine map's covered texels."""
-    return model.fine.image(np.ones(len(model.fine.index))) > 0
+    return model.evaluator.fine.image(np.ones(len(model.evaluator.fine.index))) > 0
 
 
 def test_outputs_and_bad_requests(pdm_model, pdm_data):
@@ -136,20 +136,20 @@ def test_check_clips_names_what_is_wrong(pdm_data):
 
 def test_mesh_only_skips_the_fine_band_and_reports_the_mesh_clamp(pdm_model, pdm_data, monkeypatch):
     _, clips = pdm_data
-    rest = pdm_model.base.rest_markers
+    rest = pdm_model.evaluator.base.rest_markers
     peak = clips[3].markers[[10]]
-    pose = pdm_model.deformation(peak)[0]
+    pose = pdm_model.evaluator.deformation(peak)[0]
     far = pose.restore(rest + 2.5 * (pose.remove(peak) - rest))
     full = pdm_model.synthesize(far, outputs=("mesh", "displacement"))
     calls = []
-    monkeypatch.setattr(type(pdm_model.fine), "synthesize",
+    monkeypatch.setattr(type(pdm_model.evaluator.fine), "synthesize",
                         lambda self, *a: calls.append(1) or (_ for _ in ()).throw(AssertionError))
     mesh = pdm_model.synthesize(far, outputs=("mesh",))
     assert not calls                                             # the fine band is not evaluated
     assert np.array_equal(mesh["vertices"], full["vertices"])   # and the mesh is unchanged
-    _, _, S = pdm_model.deformation(far)
-    d1, d2, _ = pdm_model.vertex_band.parameters(S, None)      # outside the validity region
-    vertex_frac = np.mean(pdm_model.validity.gauge(d1, d2) > 1, axis=-1)
+    _, _, S = pdm_model.evaluator.deformation(far)
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(S, None)      # outside the validity region
+    vertex_frac = np.mean(pdm_model.evaluator.validity.gauge(d1, d2) > 1, axis=-1)
     assert mesh["clamped"][0] == np.float32(vertex_frac[0]) > 0.05
     assert full["clamped"][0] != mesh["clamped"][0]             # the fine texels' fraction
 
@@ -157,18 +157,18 @@ def test_mesh_only_skips_the_fine_band_and_reports_the_mesh_clamp(pdm_model, pdm
 def test_the_normal_mapper_is_built_at_load(pdm_model, tmp_path):
     pdm_model.save(tmp_path / "m")
     loaded = type(pdm_model).load(tmp_path / "m")
-    assert loaded.normal_mapper is not None and loaded.normal_mapper.shape == (128, 128)
+    assert loaded.evaluator.normal_mapper.shape == (128, 128)
 
 
 def test_float32_frames_keep_the_mesh_within_a_micrometre_of_float64(pdm_model, pdm_data):
     _, clips = pdm_data
     markers = clips[2].markers[[0, 7, 15]]
     out = pdm_model.synthesize(markers, outputs=("mesh", "mesh_detailed", "displacement"))
-    pose, u_H, S = pdm_model.deformation(markers)
-    X = pdm_model.base.deform(u_H)
-    d1, d2, _ = pdm_model.vertex_band.parameters(S, pdm_model.params.extrapolation_margin)
-    medium = X + pdm_model.base.to_world(X, pdm_model.medium_offsets(d1, d2))      # float64 frames
+    pose, u_H, S = pdm_model.evaluator.deformation(markers)
+    X = pdm_model.evaluator.base.deform(u_H)
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(S, pdm_model.params.extrapolation_margin)
+    medium = X + pdm_model.evaluator.base.to_world(X, pdm_model.evaluator.medium_offsets(d1, d2))      # float64 frames
     assert np.abs(out["vertices"] - pose.restore(medium)).max() < 1e-3          # mm; measured 1.5e-5
-    h = (pdm_model.fine_sampler @ out["displacement"].reshape(3, -1)[:, pdm_model.fine.index].T).T
-    detailed = pose.restore(medium + h[..., None] * pdm_model.base.frames(medium)[..., 2, :])
+    h = (pdm_model.evaluator.fine_sampler @ out["displacement"].reshape(3, -1)[:, pdm_model.evaluator.fine.index].T).T
+    detailed = pose.restore(medium + h[..., None] * pdm_model.evaluator.base.frames(medium)[..., 2, :])
     assert np.abs(out["vertices_detailed"] - detailed).max() < 1e-3

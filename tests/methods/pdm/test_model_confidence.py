@@ -21,9 +21,9 @@ def test_confidence_is_one_on_training_frames_and_the_detail_is_the_polynomials(
 def test_confidence_decreases_with_the_distance_beyond_training(pdm_model, pdm_data):
     _, clips = pdm_data
     peak = clips[3].markers[10]                        # surprise, near its peak
-    pose = pdm_model.deformation(peak[None])[0]
+    pose = pdm_model.evaluator.deformation(peak[None])[0]
     aligned = pose.remove(peak[None])[0]
-    rest = pdm_model.base.rest_markers
+    rest = pdm_model.evaluator.base.rest_markers
     frames = np.concatenate([pose.restore((rest + k * (aligned - rest))[None]) for k in (1.0, 2.0, 4.0, 8.0)])
     c = pdm_model.synthesize(frames, ("mesh",))[CONFIDENCE]
     assert c[0] > 0.99 and np.all(np.diff(c) < 0) and c[-1] < 0.5

@@ -76,3 +76,27 @@ def test_the_derived_cache_is_optional_and_changes_nothing(pdm_model, pdm_data, 
     b = PdmModel.load(bare).synthesize(markers, outputs=("mesh", "displacement"))
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_the_validity_regions_are_stored_and_an_older_directory_derives_them(pdm_model, pdm_data, saved, tmp_path):
+    import shutil
+
+    path, manifest = saved
+    assert "validity.npz" in manifest["files"]
+    old = tmp_path / "old"                                  # as stored before validity.npz existed
+    shutil.copytree(path, old)
+    (old / "validity.npz").unlink()
+    m = json.loads((old / "manifest.json").read_text())
+    del m["files"]["validity.npz"]
+    (old / "manifest.json").write_text(json.dumps(m))
+    stored, derived = PdmModel.load(path), PdmModel.load(old)
+    assert stored.data.validity is not None and derived.data.validity is None
+    a, b = stored.evaluator.validity, derived.evaluator.validity
+    assert np.array_equal(a.hull, b.hull) and a.envelope.keys() == b.envelope.keys() == {"vertex", "fine", "albedo"}
+    for k in a.envelope:
+        assert np.array_equal(a.envelope[k], b.envelope[k]), k
+    markers = pdm_data[1][3].markers[[4, 12]]
+    x = stored.synthesize(markers, outputs=("mesh", "displacement", "albedo"))
+    y = derived.synthesize(markers, outputs=("mesh", "displacement", "albedo"))
+    for key in x:
+        np.testing.assert_array_equal(x[key], y[key], err_msg=key)
