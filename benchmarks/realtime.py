@@ -134,7 +134,9 @@ def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
                 "FACESYNTH_GRPC_PORT": str(grpc_port), "FACESYNTH_WORKERS": "0",
-                "FACESYNTH_HTTP": http_impl})
+                "FACESYNTH_HTTP": http_impl,
+                # h11 on the plain asyncio loop (uvicorn without extras); httptools on uvloop
+                "FACESYNTH_LOOP": "asyncio" if http_impl == "h11" else "uvloop"})
     log = open(work / "server.log", "ab")
     server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
                               stdout=log, stderr=log, stdin=subprocess.DEVNULL)

@@ -266,18 +266,25 @@ def cmd_serve(args: argparse.Namespace) -> int:
             workers = start_embedded(settings, settings.workers)
         else:  # reap expired leases and resubmit lost messages even with no worker alive
             workers = start_maintenance(settings)
+        from service.api.connections import protocol_class
+
+        try:
+            http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
+                                  settings.body_rate_grace_seconds,
+                                  settings.max_connections_per_client, http=settings.http)
+            if settings.loop == "uvloop":
+                import uvloop  # noqa: F401
+        except (ValueError, ImportError) as error:
+            return _serve_error(f"{error} (FACESYNTH_HTTP / FACESYNTH_LOOP)")
         log.info("facesynth serving HTTP on http://%s:%d (docs at /docs) and gRPC on %s:%d",
                  settings.host, settings.port, settings.host, settings.grpc_port,
                  extra={"http": f"{settings.host}:{settings.port}",
                         "grpc": f"{settings.host}:{settings.grpc_port}",
-                        "workers": settings.workers})
-        from service.api.connections import protocol_class
-
-        http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
-                              settings.body_rate_grace_seconds,
-                              settings.max_connections_per_client)
+                        "workers": settings.workers, "http_parser": http.__name__,
+                        "loop": settings.loop})
         config = uvicorn.Config(create_app(settings, services=services), host=settings.host,
-                                port=settings.port, log_config=None, access_log=False, http=http)
+                                port=settings.port, log_config=None, access_log=False, http=http,
+                                loop=settings.loop)
         try:
             uvicorn.Server(config).run(sockets=[http_socket])
         except KeyboardInterrupt:  # as uvicorn.run: SIGINT after the graceful shutdown

@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -143,6 +143,15 @@ class Settings(BaseSettings):
         default=32, ge=1,
         description="Most simultaneous HTTP connections from one client address; one more is "
                     "answered 503 and closed.")
+    http: Literal["auto", "h11", "httptools"] = Field(
+        default="auto",
+        description="uvicorn's HTTP parser: h11 (pure Python) or httptools (C, from "
+                    "uvicorn[standard]); auto: httptools when installed. Both hold the "
+                    "header/body timeouts and the per-client bound above.")
+    loop: Literal["auto", "asyncio", "uvloop"] = Field(
+        default="auto",
+        description="The HTTP server's event loop: asyncio, or uvloop (from "
+                    "uvicorn[standard]); auto: uvloop when installed.")
 
     # -- jobs --------------------------------------------------------------------------------
     job_max_retries: int = Field(
