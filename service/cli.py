@@ -212,20 +212,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import logging
     import signal
 
-    import uvicorn
-
-    from service.api.app import create_app
-    from service.logs import configure_logging
-    from service.app.services import Services
+    from service.app.threads import apply_blas_threads
     from service.config import Settings
-    from service.errors import FacesynthError
-    from service.grpc.server import is_loopback, serve
-    from service.jobs.worker import start_embedded, start_maintenance
 
     overrides = {name: getattr(args, name) for name in ("host", "port", "grpc_port", "data_dir",
                                                         "workers")
                  if getattr(args, name) is not None}
     settings = Settings(**overrides)
+    # before NumPy loads: BLAS threads sized with the synthesis slots (service.app.threads)
+    blas_threads = apply_blas_threads(settings.max_concurrent_syntheses, settings.blas_threads)
+
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.logs import configure_logging
+    from service.app.services import Services
+    from service.errors import FacesynthError
+    from service.grpc.server import is_loopback, serve
+    from service.jobs.worker import start_embedded, start_maintenance
     if not settings.tokens and not is_loopback(settings.host):
         print(f"facesynth serve: refusing to listen on {settings.host} without tokens; set "
               "FACESYNTH_TOKENS, or listen on loopback (127.0.0.1)", file=sys.stderr)
@@ -281,7 +285,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                  extra={"http": f"{settings.host}:{settings.port}",
                         "grpc": f"{settings.host}:{settings.grpc_port}",
                         "workers": settings.workers, "http_parser": http.__name__,
-                        "loop": settings.loop})
+                        "loop": settings.loop, "blas_threads": blas_threads})
         config = uvicorn.Config(create_app(settings, services=services), host=settings.host,
                                 port=settings.port, log_config=None, access_log=False, http=http,
                                 loop=settings.loop)

@@ -110,6 +110,13 @@ class Settings(BaseSettings):
         default=None, ge=1,
         description="Synchronous syntheses (and enhancements) run at once; None: one per CPU "
                     "core of the machine.")
+    blas_threads: int | None = Field(
+        default=None, ge=1,
+        description="BLAS/OpenMP threads of each synthesis (OPENBLAS_NUM_THREADS, "
+                    "OMP_NUM_THREADS, MKL_NUM_THREADS of `serve`, set before NumPy loads); "
+                    "None: the CPU cores divided by max_concurrent_syntheses (at least 1), "
+                    "so slots x threads fill the cores without oversubscribing them, unless "
+                    "those variables are already set.")
     synthesis_queue_seconds: float = Field(
         default=30.0, ge=0,
         description="How long a synchronous synthesis waits for a free slot before it is "

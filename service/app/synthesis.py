@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import os
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -20,9 +19,10 @@ import numpy as np
 from pydantic import ValidationError
 
 from service.errors import NotAcceptable, PayloadTooLarge, Unavailable, invalid_fields
-from service.app.limits import (MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS,
-                                SYNTHESIS_QUEUE_DEPTH, SYNTHESIS_WAIT_SECONDS)
+from service.app.limits import (RETRY_AFTER_SECONDS, SYNTHESIS_QUEUE_DEPTH,
+                                SYNTHESIS_WAIT_SECONDS)
 from service.app.marker_units import MarkerReference
+from service.app.threads import synthesis_slots
 from service.app.metrics import Metrics
 from service.app.schemas import SynthesizeBody
 from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
@@ -231,7 +231,7 @@ class Synthesizer:
     def __init__(self, metrics: Metrics, limit: int | None = None,
                  wait_seconds: float = SYNTHESIS_WAIT_SECONDS,
                  max_queue: int = SYNTHESIS_QUEUE_DEPTH):
-        self.limit = int(limit or max(1, os.cpu_count() or MAX_CONCURRENT_SYNTHESES))
+        self.limit = synthesis_slots(limit)
         self.wait_seconds, self.max_queue = float(wait_seconds), int(max_queue)
         self._slots = threading.BoundedSemaphore(self.limit)
         self._metrics = metrics
