@@ -17,6 +17,10 @@ connections against a real ``facesynth serve``.
    ``header_timeout_seconds`` for headers, ``body_rate_grace_seconds`` + a check interval
    for bodies).
 
+``--sizings auto,2x2,1x2`` repeats part 1 in one server per sizing of synthesis slots x BLAS
+threads per synthesis (issue 23: sized together, ``auto``, they fill the cores without
+oversubscribing them; 2x2 on 2 cores is the sizing before it).
+
 Run: ``python benchmarks/load.py`` (``make bench``); ``--work DIR`` keeps the actor and the
 data directory between runs (default ``benchmarks/out/load-work``). Writes the tables to
 stdout and ``benchmarks/out/load.md``. The server runs with SQLite and the embedded queue in
@@ -193,25 +197,49 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=OUT / "load-work")
     parser.add_argument("--skip-slow", action="store_true")
+    parser.add_argument("--sizings", default="auto",
+                        help="comma-separated synthesis slot x BLAS thread sizings, each in its "
+                             "own server: 'auto' (slots = cores, BLAS threads = cores // slots: "
+                             "service.app.threads) or SxT, e.g. 2x2 (the oversubscribed sizing "
+                             "of a 2-core machine before issue 23), 1x2 (default auto)")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     OUT.mkdir(parents=True, exist_ok=True)
     port = free_port()
     env = {"FACESYNTH_HEADER_TIMEOUT_SECONDS": "10", "FACESYNTH_BODY_RATE_GRACE_SECONDS": "10"}
-    server = start_server(args.work, port, env)
     base = f"http://127.0.0.1:{port}"
-    lines = []
+    lines = ["## Single-frame synthesis, level-1 PDM (44,786 vertices, 128²/256² maps)", "",
+             f"{os.cpu_count()} cores; slots x BLAS threads per synthesis "
+             "(`max_concurrent_syntheses` x `blas_threads`; auto: service.app.threads); "
+             "× 1 client: the throughput against one client of the same server", "",
+             "| slots x BLAS threads | clients | requests | errors | 503 | p50 ms | p95 ms | "
+             "frames/s | × 1 client | load average |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    sizings = args.sizings.split(",")
+    server = None
     try:
-        model_id, markers = prepare(args.work, base)
-        synthesis_run(base, model_id, markers, 1)          # warm the model cache
-        runs = [synthesis_run(base, model_id, markers, n) for n in (1, CLIENTS)]
-        lines += ["## Single-frame synthesis, level-1 PDM (44,786 vertices, 128²/256² maps)", "",
-                  f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", "",
-                  "| clients | requests | errors | 503 | p50 ms | p95 ms | frames/s |",
-                  "|---:|---:|---:|---:|---:|---:|---:|"]
-        for r in runs:
-            lines.append(f"| {r['clients']} | {r['requests']} | {r['errors']} | {r['503']} | "
-                         f"{r['p50_ms']:.0f} | {r['p95_ms']:.0f} | {r['frames_per_s']:.1f} |")
+        for k, sizing in enumerate(sizings):
+            sized = dict(env)
+            if sizing != "auto":
+                slots, threads = sizing.split("x")
+                sized.update({"FACESYNTH_MAX_CONCURRENT_SYNTHESES": slots,
+                              "FACESYNTH_BLAS_THREADS": threads})
+            server = start_server(args.work, port, sized)
+            model_id, markers = prepare(args.work, base)
+            synthesis_run(base, model_id, markers, 1)          # warm the model cache
+            runs = []
+            for n in (1, CLIENTS):
+                runs.append(synthesis_run(base, model_id, markers, n))
+                runs[-1]["load"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
+            for r in runs:
+                lines.append(f"| {sizing} | {r['clients']} | {r['requests']} | {r['errors']} | "
+                             f"{r['503']} | {r['p50_ms']:.0f} | {r['p95_ms']:.0f} | "
+                             f"{r['frames_per_s']:.1f} | "
+                             f"{r['frames_per_s'] / runs[0]['frames_per_s']:.2f}× | {r['load']} |")
+            print("\n".join(lines), flush=True)
+            if k < len(sizings) - 1:
+                stop_server(server)
+                server = None
         if not args.skip_slow:
             slow = [slow_run(port, kind, SLOW) for kind in ("headers", "body")]
             lines += ["", f"## Slow connections ({SLOW} each, one byte every {SLOW_EVERY:g} s, "
@@ -222,7 +250,8 @@ def main() -> int:
                 lines.append(f"| {r['kind']} | {r['connections']} | {r['refused_503']} | "
                              f"{r['closed']} | {r['still_open']} | {r['longest_open_s']:.1f} |")
     finally:
-        stop_server(server)
+        if server is not None:
+            stop_server(server)
     text = "\n".join(lines) + "\n"
     print(text)
     (OUT / "load.md").write_text("# Load benchmark (benchmarks/load.py)\n\n" + text)

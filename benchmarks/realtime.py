@@ -127,7 +127,13 @@ def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
                 "FACESYNTH_GRPC_PORT": str(grpc_port), "FACESYNTH_WORKERS": "0",
-                "FACESYNTH_HTTP": http_impl})
+                "FACESYNTH_HTTP": http_impl,
+                # h11 on the plain asyncio loop (uvicorn without extras); httptools on uvloop
+                "FACESYNTH_LOOP": "asyncio" if http_impl == "h11" else "uvloop",
+                # the in-process reference's BLAS threads (one call at a time here; the
+                # server would otherwise size them to cores // synthesis slots)
+                "FACESYNTH_BLAS_THREADS": os.environ.get("OPENBLAS_NUM_THREADS",
+                                                         str(len(os.sched_getaffinity(0))))})
     log = open(work / "server.log", "ab")
     server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
                               stdout=log, stderr=log, stdin=subprocess.DEVNULL)

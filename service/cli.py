@@ -212,20 +212,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import logging
     import signal
 
-    import uvicorn
-
-    from service.api.app import create_app
-    from service.logs import configure_logging
-    from service.app.services import Services
+    from service.app.threads import apply_blas_threads
     from service.config import Settings
-    from service.errors import FacesynthError
-    from service.grpc.server import is_loopback, serve
-    from service.jobs.worker import start_embedded, start_maintenance
 
     overrides = {name: getattr(args, name) for name in ("host", "port", "grpc_port", "data_dir",
                                                         "workers")
                  if getattr(args, name) is not None}
     settings = Settings(**overrides)
+    # before NumPy loads: BLAS threads sized with the synthesis slots (service.app.threads)
+    blas_threads = apply_blas_threads(settings.max_concurrent_syntheses, settings.blas_threads)
+
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.logs import configure_logging
+    from service.app.services import Services
+    from service.errors import FacesynthError
+    from service.grpc.server import is_loopback, serve
+    from service.jobs.worker import start_embedded, start_maintenance
     if not settings.tokens and not is_loopback(settings.host):
         print(f"facesynth serve: refusing to listen on {settings.host} without tokens; set "
               "FACESYNTH_TOKENS, or listen on loopback (127.0.0.1)", file=sys.stderr)
@@ -266,18 +270,25 @@ def cmd_serve(args: argparse.Namespace) -> int:
             workers = start_embedded(settings, settings.workers)
         else:  # reap expired leases and resubmit lost messages even with no worker alive
             workers = start_maintenance(settings)
+        from service.api.connections import protocol_class
+
+        try:
+            http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
+                                  settings.body_rate_grace_seconds,
+                                  settings.max_connections_per_client, http=settings.http)
+            if settings.loop == "uvloop":
+                import uvloop  # noqa: F401
+        except (ValueError, ImportError) as error:
+            return _serve_error(f"{error} (FACESYNTH_HTTP / FACESYNTH_LOOP)")
         log.info("facesynth serving HTTP on http://%s:%d (docs at /docs) and gRPC on %s:%d",
                  settings.host, settings.port, settings.host, settings.grpc_port,
                  extra={"http": f"{settings.host}:{settings.port}",
                         "grpc": f"{settings.host}:{settings.grpc_port}",
-                        "workers": settings.workers})
-        from service.api.connections import protocol_class
-
-        http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
-                              settings.body_rate_grace_seconds,
-                              settings.max_connections_per_client)
+                        "workers": settings.workers, "http_parser": http.__name__,
+                        "loop": settings.loop, "blas_threads": blas_threads})
         config = uvicorn.Config(create_app(settings, services=services), host=settings.host,
-                                port=settings.port, log_config=None, access_log=False, http=http)
+                                port=settings.port, log_config=None, access_log=False, http=http,
+                                loop=settings.loop)
         try:
             uvicorn.Server(config).run(sockets=[http_socket])
         except KeyboardInterrupt:  # as uvicorn.run: SIGINT after the graceful shutdown

@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -110,6 +110,13 @@ class Settings(BaseSettings):
         default=None, ge=1,
         description="Synchronous syntheses (and enhancements) run at once; None: one per CPU "
                     "core of the machine.")
+    blas_threads: int | None = Field(
+        default=None, ge=1,
+        description="BLAS/OpenMP threads of each synthesis (OPENBLAS_NUM_THREADS, "
+                    "OMP_NUM_THREADS, MKL_NUM_THREADS of `serve`, set before NumPy loads); "
+                    "None: the CPU cores divided by max_concurrent_syntheses (at least 1), "
+                    "so slots x threads fill the cores without oversubscribing them, unless "
+                    "those variables are already set.")
     synthesis_queue_seconds: float = Field(
         default=30.0, ge=0,
         description="How long a synchronous synthesis waits for a free slot before it is "
@@ -143,6 +150,15 @@ class Settings(BaseSettings):
         default=32, ge=1,
         description="Most simultaneous HTTP connections from one client address; one more is "
                     "answered 503 and closed.")
+    http: Literal["auto", "h11", "httptools"] = Field(
+        default="auto",
+        description="uvicorn's HTTP parser: h11 (pure Python) or httptools (C, from "
+                    "uvicorn[standard]); auto: httptools when installed. Both hold the "
+                    "header/body timeouts and the per-client bound above.")
+    loop: Literal["auto", "asyncio", "uvloop"] = Field(
+        default="auto",
+        description="The HTTP server's event loop: asyncio, or uvloop (from "
+                    "uvicorn[standard]); auto: uvloop when installed.")
 
     # -- jobs --------------------------------------------------------------------------------
     job_max_retries: int = Field(

@@ -9,6 +9,7 @@ its own database sessions and raises errors by meaning (``NotFound``, ``Conflict
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import logging
@@ -303,11 +304,49 @@ def confidence_header(result: dict) -> str | None:
     return ",".join(f"{float(v):.4f}" for v in np.asarray(values).ravel())
 
 
+@dataclass(frozen=True)
+class Topology:
+    """A model's topology resource (``GET /v1/models/{id}/topology``): an NPZ of its
+    ``faces`` (T,3) int32 and, where the model has them, ``uv`` (K,2) float64 and
+    ``uv_faces`` (T,3) int32; its strong ETag is the sha256 of the arrays' names, dtypes,
+    shapes and bytes (not of the zip, whose member timestamps vary), so it is the same for
+    every request and server process while the model exists."""
+
+    body: bytes
+    etag: str
+
+    @classmethod
+    def of(cls, model: Any) -> "Topology":
+        arrays = {"faces": np.asarray(model.faces, dtype=np.int32)}
+        uv, uv_faces = getattr(model, "uv", None), getattr(model, "uv_faces", None)
+        if uv is not None:
+            arrays["uv"] = np.ascontiguousarray(uv)
+            if uv_faces is not None:
+                arrays["uv_faces"] = np.asarray(uv_faces, dtype=np.int32)
+        digest = hashlib.sha256()
+        for name, values in arrays.items():
+            digest.update(f"{name}:{values.dtype.str}:{values.shape};".encode())
+            digest.update(np.ascontiguousarray(values).tobytes())
+        return cls(npz_bytes(**arrays), f'"{digest.hexdigest()}"')
+
+
+def model_topology(services: Services, model_id: str) -> Topology:
+    """The topology resource of a ready model, built once per loaded model (404 unknown,
+    409 not ready)."""
+    loaded = services.loaded_model(model_id)
+    if loaded.topology is None:
+        loaded.topology = Topology.of(loaded.model)
+    return loaded.topology
+
+
 def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind: str,
                data: bytes, *, accept: str | None, outputs: tuple[str, ...] | None,
-               clamp: bool, half: bool, route_input: str, rig: str | None = None) -> Synthesized:
+               clamp: bool, half: bool, route_input: str, rig: str | None = None,
+               topology: bool = True) -> Synthesized:
     """Run a synchronous synthesis (``/synthesize`` for marker-driven, ``/enhance`` for
-    mesh-driven kinds: ``route_input``) and encode the response ``accept`` asks for.
+    mesh-driven kinds: ``route_input``) and encode the response ``accept`` asks for
+    (``half``: maps in 16-bit floats, EXR and NPZ; ``topology=False``: an NPZ without
+    ``faces``, which :func:`model_topology` serves once).
 
     With ``rig`` (``/enhance``), the frames are vertices (F,v,3) on that ready input rig of
     the model's actor, carried to the actor's topology by its registration first.
@@ -329,8 +368,8 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
         request = replace(request, frames=loaded_rig.propagate(request.frames))
     check_response_request(media, request)
     result = synthesizer.run(loaded, request)
-    return Synthesized(media, encode(media, result, loaded, request, half), len(request.frames),
-                       confidence_header(result))
+    return Synthesized(media, encode(media, result, loaded, request, half, topology),
+                       len(request.frames), confidence_header(result))
 
 
 def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, kind: str,

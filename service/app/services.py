@@ -48,6 +48,7 @@ class LoadedModel:
     actor_id : str    the actor it was trained for (whose input rigs and clips it can use)
     stream : object   what the gRPC server synthesizes with: the model, or for marker-driven
                       kinds a :class:`UnitCheckedModel` of it
+    topology : Topology or None   the topology resource (``service.app.operations``), cached
     """
 
     id: str
@@ -55,6 +56,8 @@ class LoadedModel:
     model: Any
     actor_id: str | None = None
     stream: Any = None
+    #: the model's topology resource (NPZ body, ETag), built on its first request
+    topology: Any = None
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import os
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -20,9 +19,10 @@ import numpy as np
 from pydantic import ValidationError
 
 from service.errors import NotAcceptable, PayloadTooLarge, Unavailable, invalid_fields
-from service.app.limits import (MAX_CONCURRENT_SYNTHESES, RETRY_AFTER_SECONDS,
-                                SYNTHESIS_QUEUE_DEPTH, SYNTHESIS_WAIT_SECONDS)
+from service.app.limits import (RETRY_AFTER_SECONDS, SYNTHESIS_QUEUE_DEPTH,
+                                SYNTHESIS_WAIT_SECONDS)
 from service.app.marker_units import MarkerReference
+from service.app.threads import synthesis_slots
 from service.app.metrics import Metrics
 from service.app.schemas import SynthesizeBody
 from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
@@ -231,7 +231,7 @@ class Synthesizer:
     def __init__(self, metrics: Metrics, limit: int | None = None,
                  wait_seconds: float = SYNTHESIS_WAIT_SECONDS,
                  max_queue: int = SYNTHESIS_QUEUE_DEPTH):
-        self.limit = int(limit or max(1, os.cpu_count() or MAX_CONCURRENT_SYNTHESES))
+        self.limit = synthesis_slots(limit)
         self.wait_seconds, self.max_queue = float(wait_seconds), int(max_queue)
         self._slots = threading.BoundedSemaphore(self.limit)
         self._metrics = metrics
@@ -350,12 +350,40 @@ def check_response_request(media: str, request: SynthesisInput) -> None:
                                f"{list(MAP_OUTPUTS)}>, got {list(request.outputs)}")
 
 
+#: the arrays of a model's topology (``GET /v1/models/{id}/topology``), which a synthesis
+#: response leaves out with ``topology=false``
+TOPOLOGY_KEYS = ("faces", "uv", "uv_faces")
+#: the bound on a map value sent in half precision (``half=true``), relative and absolute:
+#: IEEE 754 binary16 rounds to nearest with an 11-bit significand, so a normal value v comes
+#: back as v(1 + e), |e| <= 2**-11; below 2**-14 (subnormals) the spacing is 2**-24, so the
+#: error is at most 2**-25. Beyond 65504 a value overflows to +-inf.
+HALF_RELATIVE_ERROR = 2.0 ** -11
+HALF_ABSOLUTE_ERROR = 2.0 ** -25
+
+
+def npz_arrays(result: dict[str, np.ndarray], *, half: bool = False,
+               topology: bool = True) -> dict[str, np.ndarray]:
+    """The arrays of an NPZ synthesis response: ``half`` stores the UV-space maps
+    (:data:`~service.methods.outputs.MAP_OUTPUTS` of ndim >= 3) as float16 (meshes stay
+    float32: a half-precision position of a 100 mm face would be off by up to 0.03 mm), and
+    ``topology=False`` leaves out :data:`TOPOLOGY_KEYS` (the client has them from the
+    topology resource). With neither, ``result`` itself (bit-exact float32)."""
+    out = {k: v for k, v in result.items() if topology or k not in TOPOLOGY_KEYS}
+    if half:
+        with np.errstate(over="ignore"):      # beyond the half range is +-inf, as in EXR
+            for name in MAP_OUTPUTS:
+                if name in out and np.ndim(out[name]) >= 3:
+                    out[name] = np.asarray(out[name]).astype(np.float16)
+    return out
+
+
 def encode(media: str, result: dict[str, np.ndarray], loaded: LoadedModel,
-           request: SynthesisInput, half: bool = False) -> bytes:
-    """The response body: NPZ of the arrays, the frame's OBJ (detailed vertices if asked,
+           request: SynthesisInput, half: bool = False, topology: bool = True) -> bytes:
+    """The response body: NPZ of the arrays (:func:`npz_arrays`: ``half`` maps as float16,
+    ``topology=False`` without the triangles), the frame's OBJ (detailed vertices if asked,
     with the model's UVs), or the one map as EXR (``half``: 16-bit floats)."""
     if media == NPZ:
-        return npz_bytes(**result)
+        return npz_bytes(**npz_arrays(result, half=half, topology=topology))
     if media == OBJ:
         key = "vertices_detailed" if "mesh_detailed" in request.outputs else "vertices"
         model = loaded.model

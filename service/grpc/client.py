@@ -26,10 +26,12 @@ def channel_options(max_message_bytes: int = codec.MAX_MESSAGE_BYTES) -> list[tu
 
 
 def _requests(model_id: str, frames: Iterable[np.ndarray], outputs: Sequence[str],
-              clamp: bool | None) -> Iterator[pb.MarkerFrame]:
+              clamp: bool | None, half: bool = False) -> Iterator[pb.MarkerFrame]:
     first = {"model_id": model_id, "outputs": list(outputs)}
     if clamp is not None:
         first["clamp"] = clamp
+    if half:
+        first["half"] = True
     for index, markers in enumerate(frames):
         yield codec.encode_markers(markers, index, **(first if index == 0 else {}))
 
@@ -37,7 +39,7 @@ def _requests(model_id: str, frames: Iterable[np.ndarray], outputs: Sequence[str
 def stream_synthesize(channel: grpc.Channel, model_id: str, frames_iter: Iterable[np.ndarray],
                       outputs: Sequence[str] = STREAM_DEFAULT_OUTPUTS, *, clamp: bool | None = None,
                       token: str | None = None, timeout: float | None = None,
-                      ) -> Iterator[dict[str, np.ndarray | int | float]]:
+                      half: bool = False) -> Iterator[dict[str, np.ndarray | int | float]]:
     """Stream marker frames to the server and yield its results, one per frame, in order.
 
     Parameters
@@ -51,6 +53,7 @@ def stream_synthesize(channel: grpc.Channel, model_id: str, frames_iter: Iterabl
     clamp : limit extrapolated detail (None: the server's default, true)
     token : bearer token, for a server configured with tokens
     timeout : seconds for the whole stream (None: no deadline)
+    half : maps as float16 (see ``synthesis.proto``, MarkerFrame.half)
 
     Yields
     ------
@@ -64,7 +67,7 @@ def stream_synthesize(channel: grpc.Channel, model_id: str, frames_iter: Iterabl
     """
     stub = pb_grpc.SynthesisStub(channel)
     metadata = [("authorization", f"Bearer {token}")] if token else None
-    replies = stub.StreamSynthesize(_requests(model_id, frames_iter, outputs, clamp),
+    replies = stub.StreamSynthesize(_requests(model_id, frames_iter, outputs, clamp, half),
                                     metadata=metadata, timeout=timeout)
     for reply in replies:
         yield codec.decode_reply(reply)

@@ -23,6 +23,7 @@ MESH_FIELDS = {"mesh": "vertices", "mesh_detailed": "vertices_detailed"}
 MAX_MESSAGE_BYTES = 64 * 2**20
 
 F32 = np.dtype("<f4")
+F16 = np.dtype("<f2")
 I32 = np.dtype("<i4")
 
 
@@ -57,22 +58,24 @@ def decode_markers(msg: pb.MarkerFrame) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- MeshFrame
-def encode_map(values: np.ndarray) -> pb.Map:
-    """A Map of a (H,W) or (H,W,C) array."""
-    values = np.asarray(values, dtype=F32)
+def encode_map(values: np.ndarray, half: bool = False) -> pb.Map:
+    """A Map of a (H,W) or (H,W,C) array: float32, or with ``half`` binary16 (rounded to
+    nearest: within 2^-11 relative, 2^-25 absolute, of float32; beyond 65504 is +-inf)."""
+    with np.errstate(over="ignore"):
+        values = np.asarray(values, dtype=F16 if half else F32)
     H, W = values.shape[:2]
     return pb.Map(height=H, width=W, channels=1 if values.ndim == 2 else values.shape[2],
-                  data=values.tobytes())
+                  data=values.tobytes(), half=half)
 
 
 def decode_map(m: pb.Map) -> np.ndarray:
-    """(H,W) float32 for one channel, else (H,W,C)."""
+    """(H,W) for one channel, else (H,W,C); float32, or float16 for a ``half`` map."""
     shape = (m.height, m.width) + ((m.channels,) if m.channels != 1 else ())
-    return np.frombuffer(m.data, F32).reshape(shape)
+    return np.frombuffer(m.data, F16 if m.half else F32).reshape(shape)
 
 
 def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame: int,
-                 faces: bool, index: int = 0) -> pb.MeshFrame:
+                 faces: bool, index: int = 0, half: bool = False) -> pb.MeshFrame:
     """The MeshFrame of frame ``index`` of a ``synthesize`` result.
 
     Parameters
@@ -82,6 +85,7 @@ def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame
                         clamped (F,)
     outputs : names of :data:`~service.methods.outputs.OUTPUTS` to put in the reply (others in ``result`` are left out)
     frame : the client's frame number to echo;  faces : include the triangles
+    half : the maps as binary16 (:func:`encode_map`)
     """
     reply = pb.MeshFrame(frame=frame, clamped=float(result["clamped"][index]))
     for output, key in MESH_FIELDS.items():
@@ -93,7 +97,7 @@ def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame
         reply.faces = np.asarray(result["faces"], dtype=I32).tobytes()
     for key in MAP_OUTPUTS:
         if key in outputs:
-            getattr(reply, key).CopyFrom(encode_map(result[key][index]))
+            getattr(reply, key).CopyFrom(encode_map(result[key][index], half))
     return reply
 
 
@@ -104,7 +108,8 @@ def decode_reply(reply: pb.MeshFrame) -> dict[str, np.ndarray | int | float]:
     -------
     dict with ``frame`` int, ``clamped`` float, ``latency_ms`` float, and as present:
     ``vertices`` / ``vertices_detailed`` (V,3) float32, ``faces`` (T,3) int32,
-    ``displacement`` (H,W) float32, ``albedo`` / ``normal_map`` (H,W,3) float32.
+    ``displacement`` (H,W), ``albedo`` / ``normal_map`` (H,W,3), float32 (float16 for
+    half maps).
     """
     out: dict[str, np.ndarray | int | float] = {
         "frame": reply.frame, "clamped": reply.clamped, "latency_ms": reply.latency_ms}

@@ -12,16 +12,27 @@ by meaning (:data:`CODES`, the most specific class of :mod:`service.errors` winn
 (not ready) → FAILED_PRECONDITION, ``Unavailable`` → UNAVAILABLE, ``Corrupt`` → DATA_LOSS.
 
 Each open stream holds one worker thread for its whole life and frames are synthesized one
-at a time (the model's per-frame work is NumPy, which releases the GIL, so streams on
-different threads overlap). A server runs at most ``max_workers`` streams; one more is
+at a time, in order (the model's per-frame work is NumPy, which releases the GIL, so streams
+on different threads overlap). A server runs at most ``max_workers`` streams; one more is
 refused with RESOURCE_EXHAUSTED rather than queued behind a live stream.
+
+A stream is pipelined (:class:`_Pipeline`): a reader thread takes MarkerFrames off the
+stream and hands them, in order, to the stream's one synthesis thread, which synthesizes
+and encodes each reply while the serving thread sends the previous one; at most
+``pipeline_depth`` frames are in flight (read and their replies not yet handed to gRPC),
+beyond which the reader waits (and gRPC flow control holds the client back). Replies and
+errors come out in the frames' order: frame n's INVALID_ARGUMENT ends the stream after the
+replies of frames 0..n-1.
 """
 
 from __future__ import annotations
 
+import contextvars
 import ipaddress
 import logging
+import queue
 import re
+import threading
 import time
 from concurrent import futures
 from dataclasses import dataclass
@@ -63,6 +74,9 @@ def code_of(error: BaseException) -> grpc.StatusCode:
             return CODES[cls]
     return grpc.StatusCode.NOT_FOUND if isinstance(error, LookupError) else grpc.StatusCode.INTERNAL
 DEFAULT_PORT = 50051
+#: frames of a stream in flight at most (read off the stream, reply not yet handed to gRPC):
+#: the frame being sent and the next one being synthesized
+PIPELINE_DEPTH = 2
 
 
 class StreamModel(Protocol):
@@ -93,6 +107,18 @@ class _Stream:
     model: StreamModel
     outputs: tuple[str, ...]
     clamp: bool
+    half: bool = False
+
+    def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> pb.MeshFrame:
+        """Synthesize and encode one frame (``start``: when it was read, for latency_ms)."""
+        try:
+            markers = codec.decode_markers(msg)
+            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp)
+        except InvalidInput as e:
+            raise _invalid(_name_frame(str(e), where)) from None
+        reply = codec.encode_reply(result, self.outputs, msg.frame, faces=first, half=self.half)
+        reply.latency_ms = (time.perf_counter() - start) * 1e3
+        return reply
 
     def check(self, msg: pb.MarkerFrame, where: str) -> None:
         """Raise INVALID_ARGUMENT if a later message changes what the first one fixed."""
@@ -104,6 +130,81 @@ class _Stream:
                            f"{list(self.outputs)} (outputs are fixed per stream)")
         if msg.HasField("clamp") and msg.clamp != self.clamp:
             raise _invalid(f"{where}: clamp {msg.clamp} differs from the first message's {self.clamp}")
+        if msg.HasField("half") and msg.half != self.half:
+            raise _invalid(f"{where}: half {msg.half} differs from the first message's {self.half}")
+
+
+def _where(msg: pb.MarkerFrame, index: int) -> str:
+    return f"frame {msg.frame}" + (f" (message {index} of the stream)" if msg.frame != index else "")
+
+
+class _Pipeline:
+    """One stream's frames in flight: a reader thread, one synthesis thread, and the replies
+    in order (iterate on the serving thread; :meth:`close` when done).
+
+    Parameters
+    ----------
+    stream : the stream opened from its first message
+    first : that first message; requests : the rest of the stream
+    depth : frames in flight at most (>= 1)
+    """
+
+    _END = object()
+
+    def __init__(self, stream: _Stream, first: pb.MarkerFrame,
+                 requests: Iterator[pb.MarkerFrame], depth: int):
+        self.stream, self.first, self.requests = stream, first, requests
+        self.slots = threading.Semaphore(max(1, int(depth)))
+        self.items: queue.SimpleQueue = queue.SimpleQueue()
+        self.stopped = threading.Event()
+        self.synthesis = futures.ThreadPoolExecutor(1, thread_name_prefix="facesynth-grpc-frame")
+        # the reader and the synthesis thread run in copies of the call's context (the
+        # tenant scope of the registry is a context variable)
+        self.reader = threading.Thread(target=contextvars.copy_context().run,
+                                       args=(self._read,), name="facesynth-grpc-reader",
+                                       daemon=True)
+        self.reader.start()
+
+    def _slot(self) -> bool:
+        while not self.slots.acquire(timeout=0.1):
+            if self.stopped.is_set():
+                return False
+        return not self.stopped.is_set()
+
+    def _read(self) -> None:
+        msg, index = self.first, 0
+        try:
+            while self._slot():
+                if index > 0:
+                    msg = next(self.requests, None)
+                    if msg is None:
+                        break
+                where = _where(msg, index)
+                if index > 0:
+                    self.stream.check(msg, where)
+                start = time.perf_counter()
+                self.items.put(self.synthesis.submit(contextvars.copy_context().run,
+                                                     self.stream.reply, msg, where, start,
+                                                     index == 0))
+                index += 1
+        except BaseException as error:             # a changed stream, or the call ended
+            self.items.put(error)
+        self.items.put(self._END)
+
+    def __iter__(self) -> Iterator[pb.MeshFrame]:
+        while True:
+            item = self.items.get()
+            if item is self._END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            reply = item.result()
+            yield reply
+            self.slots.release()                   # gRPC took the reply: one more may come
+
+    def close(self) -> None:
+        self.stopped.set()
+        self.synthesis.shutdown(wait=False, cancel_futures=True)
 
 
 class SynthesisServicer(pb_grpc.SynthesisServicer):
@@ -117,8 +218,9 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
                  a ``NotReady`` / ``Conflict`` for a model that cannot synthesize yet.
     """
 
-    def __init__(self, load_model: LoadModel):
+    def __init__(self, load_model: LoadModel, pipeline_depth: int = PIPELINE_DEPTH):
         self._load_model = load_model
+        self._depth = int(pipeline_depth)
 
     def StreamSynthesize(self, request_iterator: Iterable[pb.MarkerFrame],
                          context: grpc.ServicerContext) -> Iterator[pb.MeshFrame]:
@@ -137,22 +239,15 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
             context.abort(grpc.StatusCode.INTERNAL, "internal error while synthesizing (see the server log)")
 
     def _replies(self, requests: Iterable[pb.MarkerFrame]) -> Iterator[pb.MeshFrame]:
-        stream = None
-        for index, msg in enumerate(requests):
-            start = time.perf_counter()
-            where = f"frame {msg.frame}" + (f" (message {index} of the stream)" if msg.frame != index else "")
-            if stream is None:
-                stream = self._open(msg)
-            else:
-                stream.check(msg, where)
-            try:
-                markers = codec.decode_markers(msg)
-                result = stream.model.synthesize(markers[None], list(stream.outputs), stream.clamp)
-            except InvalidInput as e:
-                raise _invalid(_name_frame(str(e), where)) from None
-            reply = codec.encode_reply(result, stream.outputs, msg.frame, faces=index == 0)
-            reply.latency_ms = (time.perf_counter() - start) * 1e3
-            yield reply
+        requests = iter(requests)
+        first = next(requests, None)
+        if first is None:
+            return
+        pipeline = _Pipeline(self._open(first), first, requests, self._depth)
+        try:
+            yield from pipeline
+        finally:
+            pipeline.close()
 
     def _open(self, first: pb.MarkerFrame) -> _Stream:
         """The stream's model, outputs and clamp from its first message."""
@@ -163,7 +258,8 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
         except InvalidInput as e:
             raise _invalid(str(e)) from None
         clamp = first.clamp if first.HasField("clamp") else True
-        return _Stream(first.model_id, self._load(first.model_id), outputs, clamp)
+        return _Stream(first.model_id, self._load(first.model_id), outputs, clamp,
+                       first.HasField("half") and first.half)
 
     def _load(self, model_id: str) -> StreamModel:
         try:
@@ -277,7 +373,8 @@ def is_loopback(host: str) -> bool:
 
 
 def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[str] = (),
-                  max_message_bytes: int = codec.MAX_MESSAGE_BYTES) -> grpc.Server:
+                  max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
+                  pipeline_depth: int = PIPELINE_DEPTH) -> grpc.Server:
     """A gRPC server with the Synthesis service, not yet bound or started.
 
     Parameters
@@ -288,6 +385,7 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     tokens : bearer tokens; none: no authentication
     max_message_bytes : int   largest message received or sent, bytes (a reply with a
                               1024² normal map alone is 12 MiB)
+    pipeline_depth : int      frames of a stream in flight at most (see the module docstring)
     """
     options = [("grpc.max_send_message_length", max_message_bytes),
                ("grpc.max_receive_message_length", max_message_bytes),
@@ -295,13 +393,14 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     server = grpc.server(futures.ThreadPoolExecutor(max_workers, thread_name_prefix="facesynth-grpc"),
                          interceptors=[BearerTokenAuth(tokens)] if tokens else None,
                          options=options, maximum_concurrent_rpcs=max_workers)
-    pb_grpc.add_SynthesisServicer_to_server(SynthesisServicer(load_model), server)
+    pb_grpc.add_SynthesisServicer_to_server(SynthesisServicer(load_model, pipeline_depth), server)
     return server
 
 
 def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
           max_workers: int = 4, *, tokens: Sequence[str] = (),
-          max_message_bytes: int = codec.MAX_MESSAGE_BYTES) -> grpc.Server:
+          max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
+          pipeline_depth: int = PIPELINE_DEPTH) -> grpc.Server:
     """Start a Synthesis server on ``host:port`` (plaintext) and return it.
 
     Stop it with ``server.stop(grace)``; ``server.wait_for_termination()`` blocks until then.
@@ -316,7 +415,7 @@ def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PO
     if not tokens and not is_loopback(host):
         raise ValueError(f"refusing to listen on {host} without tokens: "
                          "give tokens, or listen on loopback (127.0.0.1)")
-    server = create_server(load_model, max_workers, tokens, max_message_bytes)
+    server = create_server(load_model, max_workers, tokens, max_message_bytes, pipeline_depth)
     address = f"[{host.strip('[]')}]:{port}" if ":" in host else f"{host}:{port}"
     if server.add_insecure_port(address) == 0:        # older grpcio returns 0, newer raise
         raise RuntimeError(f"cannot listen on {address}")

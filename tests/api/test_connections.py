@@ -10,7 +10,8 @@ import time
 import pytest
 import uvicorn
 
-from service.api.connections import protocol_class
+from service.api.connections import (ConnectionGuard, GuardedH11Protocol,
+                                      GuardedHttpToolsProtocol, protocol_class, resolve_http)
 from tests.servers import free_port
 
 HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT = 1.0, 200.0, 1.0, 4
@@ -31,11 +32,16 @@ async def app(scope, receive, send):
     await send({"type": "http.response.body", "body": body})
 
 
-@pytest.fixture(scope="module")
-def server():
+#: every guarded implementation installed here (httptools with uvicorn[standard])
+IMPLEMENTATIONS = ["h11"] + (["httptools"] if GuardedHttpToolsProtocol is not None else [])
+
+
+@pytest.fixture(scope="module", params=IMPLEMENTATIONS)
+def server(request):
     port = free_port()
-    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
-                            http=protocol_class(HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT),
+    http = protocol_class(HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT, http=request.param)
+    assert issubclass(http, ConnectionGuard)
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, http=http,
                             timeout_keep_alive=5)
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
@@ -86,6 +92,42 @@ def test_a_normal_request_is_answered(server):
             assert chunk, reply
             reply += chunk
         assert reply.startswith(b"HTTP/1.1 200 ")
+
+
+def test_slow_headers_of_a_kept_alive_connection_s_next_request_are_cut_off(server):
+    with connect(server) as s:
+        s.sendall(b"POST / HTTP/1.1\r\nhost: x\r\ncontent-length: 5\r\n\r\nhello")
+        reply = b""
+        while not reply.endswith(b"\r\n\r\n5"):
+            chunk = s.recv(4096)
+            assert chunk, reply
+            reply += chunk
+        took, reply = closed_after(s, b"GET / HTTP/1.1\r\nhost: x\r\n" + b"x" * 100, 0.2, 5)
+    assert HEADER_TIMEOUT <= took < HEADER_TIMEOUT + 1.0
+    assert reply.startswith(b"HTTP/1.1 408 ")
+
+
+def test_a_body_at_a_good_rate_after_the_grace_is_read(server):
+    """1 kB in 20 chunks over ~1.4 s (above GRACE) at ~700 B/s >= MIN_RATE: answered."""
+    with connect(server) as s:
+        s.sendall(b"POST / HTTP/1.1\r\nhost: x\r\ncontent-length: 1000\r\n\r\n")
+        for _ in range(20):
+            s.sendall(b"z" * 50)
+            time.sleep(0.07)
+        reply = b""
+        while not reply.endswith(b"\r\n\r\n1000"):
+            chunk = s.recv(4096)
+            assert chunk, reply
+            reply += chunk
+        assert reply.startswith(b"HTTP/1.1 200 ")
+
+
+def test_the_implementation_setting():
+    assert resolve_http("h11") == "h11"
+    assert resolve_http("auto") == ("httptools" if GuardedHttpToolsProtocol else "h11")
+    assert issubclass(protocol_class(1, 1, 1, 1, http="h11"), GuardedH11Protocol)
+    with pytest.raises(ValueError, match="unknown HTTP implementation 'h2'"):
+        resolve_http("h2")
 
 
 def test_slow_headers_are_cut_off_with_408(server):

@@ -106,6 +106,58 @@ def test_synthesize_obj_and_exr_for_one_frame(ready, pdm_model):
     assert len(half.content) < len(exr.content)
 
 
+def test_half_maps_and_topology_false_against_the_float32_response(ready, pdm_model):
+    """``half=true`` gives float16 maps within the stated bound of the float32 response
+    (|h - f| <= 2^-11 |f| + 2^-25), everything else bit-exact; ``topology=false`` leaves out
+    only ``faces``; the float32 default is bit-exact with the in-process model."""
+    from service.app.synthesis import HALF_ABSOLUTE_ERROR, HALF_RELATIVE_ERROR
+
+    client, _, model_id, markers, _ = ready
+    outputs = "mesh,displacement,normal_map"
+    full = load_npz(synth(client, model_id, npz(markers=markers), outputs=outputs).content)
+    expected = pdm_model.synthesize(markers, outputs.split(","))
+    for key in ("vertices", "faces", "displacement", "normal_map", "clamped"):
+        assert full[key].dtype == expected[key].dtype
+        np.testing.assert_array_equal(full[key], expected[key])     # bit-exact, float32
+    response = synth(client, model_id, npz(markers=markers), outputs=outputs, half="true",
+                     topology="false")
+    assert response.status_code == 200, response.text
+    half = load_npz(response.content)
+    assert set(half) == set(full) - {"faces"}
+    for key in ("displacement", "normal_map"):
+        assert half[key].dtype == np.float16 and half[key].shape == full[key].shape
+        f = full[key].astype(np.float64)
+        error = np.abs(half[key].astype(np.float64) - f)
+        assert np.all(error <= HALF_RELATIVE_ERROR * np.abs(f) + HALF_ABSOLUTE_ERROR)
+        assert error.max() > 0                                     # it is rounded
+    for key in set(half) - {"displacement", "normal_map"}:
+        np.testing.assert_array_equal(half[key], full[key])
+    assert len(response.content) < 0.6 * len(
+        synth(client, model_id, npz(markers=markers), outputs=outputs).content)
+
+
+def test_topology_resource_with_etag_and_304(ready, pdm_model):
+    client, _, model_id, _, _ = ready
+    response = client.get(f"/v1/models/{model_id}/topology")
+    assert response.status_code == 200 and response.headers["content-type"] == "application/x-npz"
+    etag = response.headers["etag"]
+    assert etag.startswith('"') and len(etag) == 66
+    out = load_npz(response.content)
+    np.testing.assert_array_equal(out["faces"], pdm_model.faces)
+    assert out["faces"].dtype == np.int32
+    np.testing.assert_array_equal(out["uv"], pdm_model.uv)
+    np.testing.assert_array_equal(out["uv_faces"], pdm_model.uv_faces)
+    again = client.get(f"/v1/models/{model_id}/topology", headers={"If-None-Match": etag})
+    assert again.status_code == 304 and again.headers["etag"] == etag and not again.content
+    listed = client.get(f"/v1/models/{model_id}/topology",
+                        headers={"If-None-Match": f'"other", W/{etag}'})
+    assert listed.status_code == 304
+    stale = client.get(f"/v1/models/{model_id}/topology", headers={"If-None-Match": '"x"'})
+    assert stale.status_code == 200 and stale.headers["etag"] == etag
+    assert stale.content == response.content
+    assert_problem(client.get("/v1/models/mdl_00000000000000000000000000/topology"), 404)
+
+
 def test_synthesize_refusals(ready, pdm_model):
     client, _, model_id, markers, _ = ready
     M = pdm_model.n_markers

@@ -52,3 +52,13 @@ def test_a_reply_carries_only_the_asked_outputs_and_faces_on_request():
     first = codec.decode_reply(codec.encode_reply(result, ("mesh_detailed",), 0, faces=True))
     assert first["faces"].dtype == np.int32 and first["faces"].tolist() == [[0, 1, 2], [0, 2, 3]]
     assert "vertices" not in first and first["vertices_detailed"].shape == (4, 3)
+
+
+def test_half_maps_round_trip_as_float16():
+    rgb = np.linspace(-2, 2, 60, dtype=np.float32).reshape(4, 5, 3)
+    m = codec.encode_map(rgb, half=True)
+    assert m.half and len(m.data) == rgb.size * 2
+    out = codec.decode_map(m)
+    assert out.dtype == np.float16
+    np.testing.assert_array_equal(out, rgb.astype(np.float16))
+    assert not codec.encode_map(rgb).half

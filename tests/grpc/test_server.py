@@ -178,3 +178,122 @@ def test_a_storage_fault_is_a_status_by_meaning_without_paths(heldout_markers, e
     with running(load) as channel:
         e = _status(stream_synthesize(channel, MODEL_ID, heldout_markers[:1]))
     assert e.code() == code and "/srv" not in e.details()
+
+
+# ---------------------------------------------------------------------- pipelining, half maps
+class _Recording:
+    """A stand-in model: frame k's vertex is (k, 0, 0) (k = the first marker's x); records
+    the order of its calls."""
+
+    def __init__(self):
+        self.calls: list[int] = []
+
+    def synthesize(self, markers, outputs=("mesh",), clamp=True):
+        k = int(markers[0, 0, 0])
+        if markers.shape[1] != 2:
+            from service.errors import InvalidInput
+
+            raise InvalidInput(f"frame 0: model expects 2 markers, got {markers.shape[1]}")
+        self.calls.append(k)
+        return {"vertices": np.array([[[k, 0, 0]]], np.float32), "faces": np.zeros((1, 3), np.int32),
+                "clamped": np.zeros(1)}
+
+
+def _frames(n, bad=None):
+    from service.grpc import codec
+
+    return [codec.encode_markers(np.full((3 if k == bad else 2, 3), k, np.float32), k,
+                                 **({"model_id": "m", "outputs": ["mesh"]} if k == 0 else {}))
+            for k in range(n)]
+
+
+def _pipeline(model, messages, depth):
+    from service.grpc.server import _Pipeline, _Stream
+
+    stream = _Stream("m", model, ("mesh",), True)
+    return _Pipeline(stream, messages[0], iter(messages[1:]), depth)
+
+
+def _wait_for(condition, seconds=2.0):
+    deadline = time.monotonic() + seconds
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_the_pipeline_synthesizes_the_next_frame_while_one_is_held_and_bounds_the_flight():
+    """With depth 2, while reply 0 is held by the serving thread (being sent), frame 1 is
+    synthesized and frame 2 is not read; each reply handed on lets one more frame in."""
+    model = _Recording()
+    pipeline = _pipeline(model, _frames(6), depth=2)
+    replies = iter(pipeline)
+    try:
+        first = next(replies)
+        _wait_for(lambda: len(model.calls) >= 2)
+        time.sleep(0.2)
+        assert model.calls == [0, 1]                     # n+1 done while n is held; no more
+        second = next(replies)
+        _wait_for(lambda: len(model.calls) >= 3)
+        time.sleep(0.2)
+        assert model.calls == [0, 1, 2]
+        rest = list(replies)
+    finally:
+        pipeline.close()
+    got = [first, second, *rest]
+    assert [r.frame for r in got] == list(range(6)) and model.calls == list(range(6))
+    assert [np.frombuffer(r.vertices, np.float32)[0] for r in got] == list(range(6))
+    assert got[0].faces and not any(r.faces for r in got[1:])
+
+
+def test_an_invalid_frame_ends_the_stream_after_the_replies_before_it_in_order():
+    from service.grpc.server import StreamError
+
+    model = _Recording()
+    pipeline = _pipeline(model, _frames(6, bad=3), depth=3)
+    got = []
+    with pytest.raises(StreamError) as e:
+        for reply in pipeline:
+            got.append(reply.frame)
+    pipeline.close()
+    assert got == [0, 1, 2]
+    assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details.startswith("frame 3: model expects 2 markers, got 3")
+
+
+@pytest.mark.parametrize("depth", [1, 4])
+def test_streams_at_any_depth_equal_direct_synthesis_in_order(load_model, pdm_model, heldout_markers,
+                                                              depth):
+    outputs = ("mesh", "displacement")
+    with running(load_model, pipeline_depth=depth) as channel:
+        got = list(stream_synthesize(channel, MODEL_ID, heldout_markers[:6], outputs))
+    assert [g["frame"] for g in got] == list(range(6))
+    for i, g in enumerate(got):
+        d = pdm_model.synthesize(heldout_markers[i:i + 1], outputs, True)
+        np.testing.assert_array_equal(g["vertices"], d["vertices"][0])
+        np.testing.assert_array_equal(g["displacement"], d["displacement"][0])
+
+
+def test_half_maps_are_float16_within_the_bound_and_meshes_stay_exact(channel, pdm_model,
+                                                                      heldout_markers):
+    """MarkerFrame.half: maps as binary16, |h - f| <= 2^-11 |f| + 2^-25; meshes bit-exact."""
+    outputs = ("mesh", "displacement", "normal_map")
+    got = list(stream_synthesize(channel, MODEL_ID, heldout_markers[:3], outputs, half=True))
+    for i, g in enumerate(got):
+        d = pdm_model.synthesize(heldout_markers[i:i + 1], outputs, True)
+        np.testing.assert_array_equal(g["vertices"], d["vertices"][0])
+        for key in ("displacement", "normal_map"):
+            assert g[key].dtype == np.float16 and g[key].shape == d[key][0].shape
+            f = d[key][0].astype(np.float64)
+            error = np.abs(g[key].astype(np.float64) - f)
+            assert np.all(error <= 2.0 ** -11 * np.abs(f) + 2.0 ** -25) and error.max() > 0
+
+
+def test_a_later_message_changing_half_is_invalid_argument(channel, heldout_markers):
+    from service.grpc import codec
+    from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
+
+    messages = [codec.encode_markers(heldout_markers[0], 0, model_id=MODEL_ID, outputs=["mesh"]),
+                codec.encode_markers(heldout_markers[1], 1, half=True)]
+    with pytest.raises(grpc.RpcError) as e:
+        list(pb_grpc.SynthesisStub(channel).StreamSynthesize(iter(messages)))
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "half True differs from the first message's False" in e.value.details()

@@ -217,6 +217,46 @@ def test_synthesize_arrays_json_obj_and_exr(client, sheet_actor, pdm_model):
     assert "max_frames_per_request" in caught.value.detail
 
 
+def test_repeated_synthesis_sends_the_topology_once_and_half_maps(server, sheet_actor, pdm_model):
+    """The second call asks with ``topology=false`` and gets the kept ``faces`` back; the
+    result equals the first call's bit for bit; ``half`` maps are float16 within 2^-11
+    relative (+2^-25) of float32; ``topology()`` revalidates with its ETag (304)."""
+    import httpx
+
+    from facesynth_client import Client
+
+    seen: list[httpx.Request] = []
+    statuses: list[int] = []
+    markers = sheet_actor.motions["rise"][:2, list(SHEET_MARKERS)]
+    outputs = ["mesh", "displacement", "normal_map"]
+    with httpx.Client(timeout=60, event_hooks={
+            "request": [seen.append],
+            "response": [lambda r: statuses.append(r.status_code)]}) as http, \
+            Client(server.url, http_client=http) as fs:
+        first = fs.synthesize(pdm_model, markers, outputs=outputs)
+        second = fs.synthesize(pdm_model, markers, outputs=outputs)
+        assert "topology" not in seen[0].url.params
+        assert seen[1].url.params["topology"] == "false"
+        assert set(first) == set(second)
+        for key in first:
+            np.testing.assert_array_equal(second[key], first[key])
+        half = fs.synthesize(pdm_model, markers, outputs=outputs, half=True)
+        assert seen[-1].url.params["half"] == "true"
+        for key in ("displacement", "normal_map"):
+            assert half[key].dtype == np.float16
+            f = first[key].astype(np.float64)
+            assert np.all(np.abs(half[key] - f) <= 2.0 ** -11 * np.abs(f) + 2.0 ** -25)
+        np.testing.assert_array_equal(half["vertices"], first["vertices"])
+        np.testing.assert_array_equal(half["faces"], first["faces"])
+
+        topology = fs.synthesis.topology(pdm_model)
+        np.testing.assert_array_equal(topology["faces"], first["faces"])
+        assert topology["uv"].shape == (208, 2) and topology["uv_faces"].shape == (360, 3)
+        again = fs.synthesis.topology(pdm_model)
+        assert seen[-1].headers["if-none-match"].startswith('"') and statuses[-1] == 304
+        np.testing.assert_array_equal(again["faces"], topology["faces"])
+
+
 def test_enhance_and_retime(client, sheet_actor, shape_model):
     frames = sheet_actor.motions["fall"][:3]
     out = client.enhance(shape_model, frames)

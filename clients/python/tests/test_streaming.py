@@ -67,6 +67,29 @@ def test_a_stream_gives_what_http_synthesize_gives(client, grpc_target, pdm_mode
     assert all(r["latency_ms"] > 0 for r in results)
 
 
+def test_half_maps_over_the_stream_and_the_async_client(client, grpc_target, pdm_model, take):
+    """``half=True``: float16 maps within 2^-11 relative (+2^-25) of the float32 stream's,
+    meshes bit-exact, in order, sync and async alike."""
+    outputs = ("mesh", "displacement", "normal_map")
+    with StreamingClient(grpc_target) as stream:
+        full = list(stream.synthesize(pdm_model, take[:3], outputs))
+        half = list(stream.synthesize(pdm_model, take[:3], outputs, half=True, max_in_flight=3))
+
+    async def run():
+        async with AsyncStreamingClient(grpc_target) as stream:
+            return [out async for out in stream.synthesize(pdm_model, take[:3], outputs,
+                                                           half=True)]
+
+    for results in (half, asyncio.run(run())):
+        assert [r["frame"] for r in results] == [0, 1, 2]
+        for f, h in zip(full, results):
+            np.testing.assert_array_equal(h["vertices"], f["vertices"])
+            for key in ("displacement", "normal_map"):
+                assert h[key].dtype == np.float16
+                ref = f[key].astype(np.float64)
+                assert np.all(np.abs(h[key] - ref) <= 2.0 ** -11 * np.abs(ref) + 2.0 ** -25)
+
+
 def test_frames_go_ahead_of_the_replies_at_most_max_in_flight(grpc_target, pdm_model, take):
     received = 0
     ahead: list[int] = []          # frames taken and not yet seen answered, at each take

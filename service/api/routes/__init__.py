@@ -78,3 +78,11 @@ def inline_schema(model: type) -> dict[str, Any]:
         return node
 
     return resolve(schema)
+
+
+def etag_matches(header: str | None, etag: str) -> bool:
+    """Whether an ``If-None-Match`` header matches ``etag`` (``*``, lists, weak tags)."""
+    if not header:
+        return False
+    tags = [t.strip().removeprefix("W/") for t in header.split(",")]
+    return "*" in tags or etag in tags

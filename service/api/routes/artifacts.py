@@ -8,7 +8,7 @@ from fastapi.responses import FileResponse
 
 from service.app import operations
 from service.api.deps import ServicesDep
-from service.api.routes import binary_response, problems
+from service.api.routes import binary_response, etag_matches, problems
 
 router = APIRouter(prefix="/v1/artifacts", tags=["artifacts"])
 
@@ -30,10 +30,3 @@ async def get_artifact(artifact_id: str, request: Request, services: ServicesDep
     return FileResponse(path, media_type=artifact.media_type, filename=artifact.filename,
                         headers={"ETag": etag})
 
-
-def etag_matches(header: str | None, etag: str) -> bool:
-    """Whether an ``If-None-Match`` header matches ``etag`` (``*``, lists, weak tags)."""
-    if not header:
-        return False
-    tags = [t.strip().removeprefix("W/") for t in header.split(",")]
-    return "*" in tags or etag in tags

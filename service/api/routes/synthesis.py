@@ -11,7 +11,8 @@ from fastapi.concurrency import run_in_threadpool
 from service.api import bodies
 from service.app import operations, schemas, uploads
 from service.api.deps import ServicesDep, SubmitDep
-from service.api.routes import binary_response, body, inline_schema, problems, set_job_location
+from service.api.routes import (binary_response, body, etag_matches, inline_schema, problems,
+                                set_job_location)
 from service.app.synthesis import EXR, JOB_INPUT_TYPES, NPZ, OBJ, RESPONSE_TYPES, parse_outputs
 from service.geometry.marker_filter import MAX_SIGMA_FRAMES
 from service.methods.outputs import DEFAULT_OUTPUTS
@@ -30,6 +31,15 @@ RigQuery = Annotated[str | None, Query(
                 "registration. 404 for an unknown rig, 409 while it is registering or if its "
                 "registration failed.",
     examples=["game-lod2"])]
+HalfQuery = Annotated[bool, Query(
+    description="16-bit (half) floats for the maps: an EXR with half channels, or in an "
+                "`.npz` the maps `displacement`, `albedo`, `normal_map` as float16 (half the "
+                "bytes; each value within 2⁻¹¹ relative, 2⁻²⁵ absolute, of the float32 one). "
+                "Meshes stay float32.")]
+TopologyQuery = Annotated[bool, Query(
+    description="`false`: leave `faces` out of an `.npz` response (a client that repeats "
+                "calls fetches them once from `GET /v1/models/{model_id}/topology`, "
+                "revalidated with its `ETag`).")]
 _RESPONSES = {
     **binary_response(*RESPONSE_TYPES, description=(
         "`application/x-npz` (default): `vertices` (F,V,3) in the input's world pose, "
@@ -52,13 +62,14 @@ _RESPONSES[200]["headers"] = {
 
 async def _synthesize(model_id: str, request: Request, services: ServicesDep, outputs: list[str] | None,
                       clamp: bool, half: bool, accept: str | None, route_input: str,
-                      rig: str | None = None) -> Response:
+                      rig: str | None = None, topology: bool = True) -> Response:
     kind, data = await bodies.read_body(
         request, uploads.NPZ_TYPES + ((uploads.JSON_TYPE,) if route_input == "markers" else ()))
     answer = await run_in_threadpool(
         lambda: operations.synthesize(services, request.app.state.synthesizer, model_id, kind,
                                       data, accept=accept, outputs=parse_outputs(outputs),
-                                      clamp=clamp, half=half, route_input=route_input, rig=rig))
+                                      clamp=clamp, half=half, route_input=route_input, rig=rig,
+                                      topology=topology))
     return _answer(answer, "synthesis")
 
 
@@ -78,12 +89,13 @@ def _answer(answer: operations.Synthesized, name: str) -> Response:
                        description="`.npz` with `markers` (F,M,3) (NaN: occluded), or JSON."))
 async def synthesize(model_id: str, request: Request, services: ServicesDep,
                      outputs: OutputsQuery = None, clamp: bool = True,
-                     half: Annotated[bool, Query(description="EXR with 16-bit floats")] = False,
+                     half: HalfQuery = False, topology: TopologyQuery = True,
                      accept: Annotated[str | None, Header()] = None) -> Response:
     """For marker-driven kinds (e.g. `pdm`): markers in, detailed meshes and maps out, for
     at most `max_frames_per_request` frames (413 above: use a synthesis job). 409 while the
     model is not ready; 422 for a wrong marker count ("model expects 150 markers, got 149")."""
-    return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "markers")
+    return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "markers",
+                             topology=topology)
 
 
 @router.post(
@@ -94,7 +106,7 @@ async def synthesize(model_id: str, request: Request, services: ServicesDep,
                                                       "rig named by `rig`."))
 async def enhance(model_id: str, request: Request, services: ServicesDep,
                   outputs: OutputsQuery = None, clamp: bool = True,
-                  half: Annotated[bool, Query(description="EXR with 16-bit floats")] = False,
+                  half: HalfQuery = False, topology: TopologyQuery = True,
                   rig: RigQuery = None,
                   accept: Annotated[str | None, Header()] = None) -> Response:
     """For mesh-driven kinds (e.g. `shape_space`): meshes in, detailed meshes and maps out;
@@ -105,7 +117,29 @@ async def enhance(model_id: str, request: Request, services: ServicesDep,
     that registered input rig (422 naming its vertex count if they are not). A
     marker-driven model answers 422."""
     return await _synthesize(model_id, request, services, outputs, clamp, half, accept, "meshes",
-                             rig)
+                             rig, topology)
+
+
+@router.get(
+    "/topology", summary="Get a model's topology (cacheable)", response_class=Response,
+    responses={**binary_response(NPZ, description=(
+        "`application/x-npz`: `faces` (T,3) int32 — the triangles of every synthesis "
+        "response — and, where the model has them, `uv` (K,2) and `uv_faces` (T,3) int32. "
+        "With a strong `ETag` (a hash of the arrays) and `Cache-Control: private, "
+        "no-cache`: revalidate with `If-None-Match`.")),
+        304: {"description": "Not modified (`If-None-Match` matched the ETag)."},
+        **problems(404, 409, 503)})
+async def get_topology(model_id: str, request: Request, services: ServicesDep) -> Response:
+    """The model's triangles (and UVs), which `/synthesize` and `/enhance` leave out with
+    `topology=false`: a client that calls them repeatedly fetches this once, keeps it by
+    its `ETag`, and revalidates with `If-None-Match` (304 while it is unchanged — for a
+    model, as long as it exists). 409 while the model is not ready."""
+    topology = await run_in_threadpool(operations.model_topology, services, model_id)
+    headers = {"ETag": topology.etag, "Cache-Control": "private, no-cache"}
+    if etag_matches(request.headers.get("if-none-match"), topology.etag):
+        return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers=headers)
+    return Response(topology.body, media_type=NPZ, headers={
+        **headers, "Content-Disposition": 'attachment; filename="topology.npz"'})
 
 
 @router.post(

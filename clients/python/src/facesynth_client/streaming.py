@@ -66,6 +66,7 @@ DEFAULT_IN_FLIGHT = 2
 MAX_MESSAGE_BYTES = 64 * 2**20
 
 F32 = np.dtype("<f4")
+F16 = np.dtype("<f2")
 I32 = np.dtype("<i4")
 #: MeshFrame byte fields of mesh outputs, and its Map fields (the output names)
 MESH_FIELDS = ("vertices", "vertices_detailed")
@@ -114,8 +115,8 @@ def decode_reply(reply: pb.MeshFrame) -> dict[str, Any]:
         ``frame`` int, ``clamped`` float, ``latency_ms`` float (the server's time for the
         frame), and as present: ``vertices`` / ``vertices_detailed`` (V,3) float32,
         ``faces`` (T,3) int32 (first reply only), ``displacement`` (H,W) float32,
-        ``albedo`` / ``normal_map`` (H,W,3) float32. Arrays are read-only views of the
-        message's bytes.
+        ``albedo`` / ``normal_map`` (H,W,3) float32 (float16 for a stream with ``half``).
+        Arrays are read-only views of the message's bytes.
     """
     out: dict[str, Any] = {"frame": reply.frame, "clamped": reply.clamped,
                            "latency_ms": reply.latency_ms}
@@ -129,7 +130,7 @@ def decode_reply(reply: pb.MeshFrame) -> dict[str, Any]:
         if reply.HasField(key):
             m = getattr(reply, key)
             shape = (m.height, m.width) + ((m.channels,) if m.channels != 1 else ())
-            out[key] = np.frombuffer(m.data, F32).reshape(shape)
+            out[key] = np.frombuffer(m.data, F16 if m.half else F32).reshape(shape)
     return out
 
 
@@ -144,6 +145,8 @@ class StreamPlan:
     clamp : bool or None       limit extrapolated detail (None: the server's default, true)
     start_frame : int          the number of the first frame (echoed in replies' ``frame``)
     token : str or None        bearer token, sent as ``authorization`` metadata
+    half : bool                maps as float16 (half the bytes; within 2^-11 relative of
+                               float32)
     """
 
     model_id: str
@@ -151,6 +154,7 @@ class StreamPlan:
     clamp: bool | None = None
     start_frame: int = 0
     token: str | None = None
+    half: bool = False
     sent: int = field(default=0, init=False)
 
     @property
@@ -169,6 +173,8 @@ class StreamPlan:
             fields = {"model_id": self.model_id, "outputs": list(self.outputs)}
             if self.clamp is not None:
                 fields["clamp"] = bool(self.clamp)
+            if self.half:
+                fields["half"] = True
         msg = pb.MarkerFrame(frame=self.start_frame + self.sent, markers=values.ravel(),
                              marker_count=len(values), **fields)
         self.sent += 1
@@ -222,7 +228,7 @@ class StreamingClient:
     def synthesize(self, model_id: str, frames: Iterable[Any],
                    outputs: Sequence[str] = DEFAULT_OUTPUTS, *, clamp: bool | None = None,
                    max_in_flight: int = DEFAULT_IN_FLIGHT, start_frame: int = 0,
-                   timeout: float | None = None) -> Iterator[dict[str, Any]]:
+                   timeout: float | None = None, half: bool = False) -> Iterator[dict[str, Any]]:
         """Stream marker frames to the server and yield its results, one per frame, in order.
 
         Parameters
@@ -237,6 +243,8 @@ class StreamingClient:
         max_in_flight : int           frames sent ahead and not yet answered, at most
         start_frame : int             the first frame's number (replies echo it in ``frame``)
         timeout : float, optional     seconds for the whole stream
+        half : bool                   maps as float16 (half the bytes on the wire; each
+                                      value within 2^-11 relative, 2^-25 absolute, of float32)
 
         Yields
         ------
@@ -248,7 +256,7 @@ class StreamingClient:
             the stream's status (see :func:`stream_error`); ``ValueError`` for a frame that
             is not (M,3)
         """
-        plan = StreamPlan(model_id, tuple(outputs), clamp, start_frame, self.token)
+        plan = StreamPlan(model_id, tuple(outputs), clamp, start_frame, self.token, half)
         window = threading.Semaphore(_check_depth(max_in_flight))
         done = threading.Event()
         failure: list[BaseException] = []
@@ -328,10 +336,10 @@ class AsyncStreamingClient:
     async def synthesize(self, model_id: str, frames: Iterable[Any] | AsyncIterable[Any],
                          outputs: Sequence[str] = DEFAULT_OUTPUTS, *,
                          clamp: bool | None = None, max_in_flight: int = DEFAULT_IN_FLIGHT,
-                         start_frame: int = 0, timeout: float | None = None
-                         ) -> AsyncIterator[dict[str, Any]]:
+                         start_frame: int = 0, timeout: float | None = None,
+                         half: bool = False) -> AsyncIterator[dict[str, Any]]:
         """As :meth:`StreamingClient.synthesize`, as an async iterator."""
-        plan = StreamPlan(model_id, tuple(outputs), clamp, start_frame, self.token)
+        plan = StreamPlan(model_id, tuple(outputs), clamp, start_frame, self.token, half)
         window = asyncio.Semaphore(_check_depth(max_in_flight))
         failure: list[BaseException] = []
 

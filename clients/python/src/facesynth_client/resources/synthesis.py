@@ -3,6 +3,7 @@ jobs (``/v1/models/{model_id}/...``)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -23,11 +24,61 @@ def _markers_json(markers: np.ndarray) -> list:
 
 
 class Synthesis(Resource):
-    """``/v1/models/{model_id}/...``: synchronous synthesis and synthesis jobs."""
+    """``/v1/models/{model_id}/...``: synchronous synthesis and synthesis jobs.
+
+    Repeated calls send the triangles once: a model's first ``synthesize``/``enhance``
+    answer carries ``faces``, which this resource keeps per model id (a model's topology
+    never changes), and later calls ask with ``topology=false`` and put the kept ``faces``
+    back into the result, so every result still has them. :meth:`topology` fetches the
+    model's topology resource itself (``faces``, ``uv``, ``uv_faces``), revalidated with its
+    ``ETag`` (a 304 costs no body).
+    """
+
+    def __init__(self, client: Any):
+        super().__init__(client)
+        #: model id → ``faces`` (T,3) int32, from a first answer or the topology resource
+        self._faces: dict[str, np.ndarray] = {}
+        #: model id → (ETag, the topology resource's arrays)
+        self._topology: dict[str, tuple[str, dict[str, np.ndarray]]] = {}
 
     def _arrays(self, call: Call) -> Op:
         content = yield from self._core.call_bytes(call)
         return A.load_npz(content)
+
+    def _frames(self, model_id: str, call: Call, reuse_topology: bool) -> Op:
+        """Send a synthesis ``call``: ``topology=false`` when this model's ``faces`` are
+        kept (then put back into the result), else kept from the answer."""
+        faces = self._faces.get(model_id) if reuse_topology else None
+        if faces is not None:
+            call = replace(call, params={**(call.params or {}), "topology": "false"})
+        out = yield from self._arrays(call)
+        if faces is not None:
+            out["faces"] = faces
+        elif reuse_topology and "faces" in out:
+            self._faces[model_id] = out["faces"]
+        return out
+
+    def topology(self, model_id: str) -> dict[str, np.ndarray]:
+        """The model's topology (``GET /v1/models/{model_id}/topology``): ``faces`` (T,3)
+        int32 and, where the model has them, ``uv`` (K,2) and ``uv_faces`` (T,3). Kept by
+        its ``ETag``: a later call revalidates with ``If-None-Match`` (the server answers
+        304 without a body while it is unchanged)."""
+        return self._run(self._topology_op(model_id))
+
+    def _topology_op(self, model_id: str) -> Op:
+        kept = self._topology.get(model_id)
+        headers = {"Accept": A.NPZ, **({"If-None-Match": kept[0]} if kept else {})}
+        response = yield from self._core.send(Call("GET", f"/v1/models/{model_id}/topology",
+                                                   headers=headers))
+        if response.status_code == 304 and kept is not None:
+            arrays = kept[1]
+        else:
+            arrays = A.load_npz(response.content)
+            etag = response.headers.get("etag")
+            if etag:
+                self._topology[model_id] = (etag, arrays)
+        self._faces[model_id] = arrays["faces"]
+        return dict(arrays)
 
     def _frames_call(self, route: str, model_id: str, arrays: dict[str, Any], *,
                      params: dict[str, Any], accept: str = A.NPZ) -> Call:
@@ -37,7 +88,8 @@ class Synthesis(Resource):
 
     def synthesize(self, model_id: str, markers: Any, *,
                    outputs: str | Sequence[str] | None = None, map_resolution: int | None = None,
-                   clamp: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, half: bool = False,
+                   reuse_topology: bool = True) -> dict[str, np.ndarray]:
         """Detailed meshes and maps from markers, for a marker-driven model (e.g. ``pdm``).
 
         Parameters
@@ -47,6 +99,9 @@ class Synthesis(Resource):
                   ``normal_map`` (default ``mesh``, ``displacement``)
         map_resolution : int, optional     side of the returned maps in texels
         clamp : bool                       limit extrapolation beyond the training data
+        half : bool                        maps as float16 (half the bytes; within 2^-11
+                                           relative of float32); meshes stay float32
+        reuse_topology : bool              send the triangles once per model (see the class)
 
         Returns
         -------
@@ -72,7 +127,8 @@ class Synthesis(Resource):
         if map_resolution is None:
             call = self._frames_call("synthesize", model_id, {"markers": frames},
                                      params={"outputs": outputs_param(outputs),
-                                             "clamp": None if clamp else "false"})
+                                             "clamp": None if clamp else "false",
+                                             "half": "true" if half else None})
         else:
             body: dict[str, Any] = {"markers": _markers_json(frames),
                                     "map_resolution": int(map_resolution), "clamp": clamp}
@@ -80,8 +136,9 @@ class Synthesis(Resource):
                 body["outputs"] = (outputs.split(",") if isinstance(outputs, str)
                                    else list(outputs))
             call = Call("POST", f"/v1/models/{model_id}/synthesize", json=body,
+                        params={"half": "true" if half else None},
                         idempotent=True, headers={"Accept": A.NPZ})
-        return self._run(self._arrays(call))
+        return self._run(self._frames(model_id, call, reuse_topology))
 
     def synthesize_obj(self, model_id: str, markers: Any, *, detailed: bool = False,
                        clamp: bool = True) -> str:
@@ -105,7 +162,8 @@ class Synthesis(Resource):
 
     def enhance(self, model_id: str, vertices: Any = None, *, markers: Any = None,
                 rig: str | None = None, outputs: str | Sequence[str] | None = None,
-                clamp: bool = True) -> dict[str, np.ndarray]:
+                clamp: bool = True, half: bool = False,
+                reuse_topology: bool = True) -> dict[str, np.ndarray]:
         """Detailed meshes from low-resolution meshes, for mesh-driven kinds
         (``shape_space``).
 
@@ -115,7 +173,7 @@ class Synthesis(Resource):
             frames on the actor's topology, or on the registered input rig ``rig``
         markers : (F,M,3) float, optional   instead of vertices, for kinds that take them
         rig : str, optional                 name of a ready input rig of the actor
-        outputs, clamp : as for :meth:`synthesize`
+        outputs, clamp, half, reuse_topology : as for :meth:`synthesize`
 
         Returns
         -------
@@ -136,8 +194,9 @@ class Synthesis(Resource):
             raise TypeError("enhance needs vertices (or markers)")
         call = self._frames_call("enhance", model_id, arrays,
                                  params={"outputs": outputs_param(outputs), "rig": rig,
-                                         "clamp": None if clamp else "false"})
-        return self._run(self._arrays(call))
+                                         "clamp": None if clamp else "false",
+                                         "half": "true" if half else None})
+        return self._run(self._frames(model_id, call, reuse_topology))
 
     def retime(self, model_id: str, keyframes: Any, length: int, *,
                extend_to_full_motion: bool = False, rig: str | None = None) -> dict[str, np.ndarray]:

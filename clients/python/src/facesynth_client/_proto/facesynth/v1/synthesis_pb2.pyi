@@ -7,32 +7,36 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class MarkerFrame(_message.Message):
-    __slots__ = ("model_id", "frame", "markers", "marker_count", "outputs", "clamp")
+    __slots__ = ("model_id", "frame", "markers", "marker_count", "outputs", "clamp", "half")
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     MARKERS_FIELD_NUMBER: _ClassVar[int]
     MARKER_COUNT_FIELD_NUMBER: _ClassVar[int]
     OUTPUTS_FIELD_NUMBER: _ClassVar[int]
     CLAMP_FIELD_NUMBER: _ClassVar[int]
+    HALF_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     frame: int
     markers: _containers.RepeatedScalarFieldContainer[float]
     marker_count: int
     outputs: _containers.RepeatedScalarFieldContainer[str]
     clamp: bool
-    def __init__(self, model_id: _Optional[str] = ..., frame: _Optional[int] = ..., markers: _Optional[_Iterable[float]] = ..., marker_count: _Optional[int] = ..., outputs: _Optional[_Iterable[str]] = ..., clamp: bool = ...) -> None: ...
+    half: bool
+    def __init__(self, model_id: _Optional[str] = ..., frame: _Optional[int] = ..., markers: _Optional[_Iterable[float]] = ..., marker_count: _Optional[int] = ..., outputs: _Optional[_Iterable[str]] = ..., clamp: bool = ..., half: bool = ...) -> None: ...
 
 class Map(_message.Message):
-    __slots__ = ("height", "width", "channels", "data")
+    __slots__ = ("height", "width", "channels", "data", "half")
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     CHANNELS_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
+    HALF_FIELD_NUMBER: _ClassVar[int]
     height: int
     width: int
     channels: int
     data: bytes
-    def __init__(self, height: _Optional[int] = ..., width: _Optional[int] = ..., channels: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
+    half: bool
+    def __init__(self, height: _Optional[int] = ..., width: _Optional[int] = ..., channels: _Optional[int] = ..., data: _Optional[bytes] = ..., half: bool = ...) -> None: ...
 
 class MeshFrame(_message.Message):
     __slots__ = ("frame", "vertex_count", "vertices", "vertices_detailed", "faces", "displacement", "albedo", "normal_map", "clamped", "latency_ms")

@@ -49,6 +49,10 @@ class SynthesisServicer(object):
     def StreamSynthesize(self, request_iterator, context):
         """One MeshFrame per MarkerFrame, strictly in the order the frames were sent.
 
+        The server pipelines a stream: it reads and synthesizes frame n+1 while the reply of
+        frame n is being sent, with a few frames in flight at most (read and not yet sent;
+        beyond that it stops reading, and gRPC flow control holds the client back).
+
         The first MarkerFrame names the model and the outputs; the stream ends when the client
         closes its side (the server then closes its own) or at the first error, with:
         NOT_FOUND            unknown model_id
