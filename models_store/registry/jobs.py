@@ -251,6 +251,34 @@ def finish_job(session: Session, job_id: str, status: str, *, worker: str | None
     return refetch(session, Job, job_id)
 
 
+def park_job(session: Session, job_id: str, *, worker: str) -> Job:
+    """Give a running job back to the queue without counting an attempt: ``queued`` again,
+    its lease dropped, ``attempts`` one less, progress and stage kept.
+
+    For a job that waits for others (a tracking job joining its span jobs): rather than
+    hold a worker slot while it waits, its task ends the current run and the job is queued
+    again (with a delayed queue message, :class:`service.jobs.running.Requeue`); the next
+    claim continues where it stopped. A cancellation requested meanwhile makes it
+    ``cancelled`` at once.
+
+    Raises
+    ------
+    Conflict   the job is not running, or not held by ``worker``
+    """
+    cancel = session.scalar(select(Job.cancel_requested).where(_held(job_id, worker)))
+    values: dict[str, Any] = ({"status": "cancelled", "finished_at": utcnow(),
+                               "error": error_record("cancelled", "cancelled by request")}
+                              if cancel else
+                              {"status": "queued", "attempts": Job.attempts - 1})
+    changed = session.execute(update(Job).where(_held(job_id, worker))
+                              .values(worker=None, lease_expires_at=None, **values)
+                              .execution_options(synchronize_session=False)).rowcount
+    if changed != 1:
+        raise _lost(session, job_id, worker)
+    commit(session)
+    return refetch(session, Job, job_id)
+
+
 @dataclass
 class Reaped:
     """What :func:`reap_expired` did: ids of requeued, failed and cancelled jobs."""
