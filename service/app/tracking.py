@@ -174,6 +174,8 @@ def parse_params(text: str | None) -> TrackingParams:
         return TrackingParams(**value)
     except ValidationError as error:
         raise invalid_fields(error, ("params",)) from None
+    except InvalidInput as error:              # MethodParams names the field itself
+        raise InvalidInput(f"params: {error}", getattr(error, "errors", None)) from None
 
 
 def _suffix(name: str) -> str:

@@ -80,9 +80,11 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
     raw = np.frombuffer(data, np.uint8)
     if len(raw) < 24 or raw[:8].tobytes() != b"\x89PNG\r\n\x1a\n":
         raise FormatError(f"{name}: not a PNG file")
+    if raw[12:16].tobytes() != b"IHDR":
+        raise FormatError(f"{name}: a damaged PNG (no IHDR header chunk)")
     width, height = int.from_bytes(raw[16:20].tobytes(), "big"), int.from_bytes(raw[20:24].tobytes(), "big")
     if width * height > MAX_PIXELS:
-        raise SizeLimitError(f"{name}: {width}×{height} pixels, more than {MAX_PIXELS}")
+        raise SizeLimitError(f"pixels ({name}: {width}×{height})", width * height, MAX_PIXELS)
     image = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise FormatError(f"{name}: the PNG could not be decoded (damaged?)")
@@ -110,7 +112,7 @@ def image_zip(source: str | os.PathLike | BinaryIO, what: str,
         infos = [i for i in archive.infolist() if not i.is_dir()
                  and not any(p.startswith((".", "__MACOSX")) for p in PurePosixPath(i.filename).parts)]
         if len(infos) > max_images:
-            raise SizeLimitError(f"{what} holds {len(infos)} files, more than {max_images}")
+            raise SizeLimitError(f"files ({what})", len(infos), max_images)
         for info in infos:
             path = PurePosixPath(info.filename)
             if path.suffix.lower() not in IMAGE_SUFFIXES:
@@ -120,8 +122,8 @@ def image_zip(source: str | os.PathLike | BinaryIO, what: str,
                 raise FormatError(f"{what}: {info.filename!r} is nested too deep (expected "
                                   "folder/image or image)")
             if info.file_size > 4 * MAX_PIXELS * 4 + (1 << 20):
-                raise SizeLimitError(f"{what}: {info.filename!r} decompresses to "
-                                     f"{info.file_size} bytes")
+                raise SizeLimitError(f"bytes ({what}: {info.filename!r} decompressed)",
+                                     info.file_size, 16 * MAX_PIXELS + (1 << 20))
             folder = path.parts[0] if len(path.parts) == 2 else ""
             try:
                 data = archive.read(info)
@@ -160,10 +162,10 @@ def read_video(path: str | os.PathLike, what: str, max_frames: int = MAX_FRAMES)
             if not ok:
                 break
             if frame.shape[0] * frame.shape[1] > MAX_PIXELS:
-                raise SizeLimitError(f"{what}: {frame.shape[1]}×{frame.shape[0]} pixel frames, "
-                                     f"more than {MAX_PIXELS}")
+                raise SizeLimitError(f"pixels per frame ({what})",
+                                     frame.shape[0] * frame.shape[1], MAX_PIXELS)
             if len(frames) >= max_frames:
-                raise SizeLimitError(f"{what}: more than {max_frames} frames")
+                raise SizeLimitError(f"frames ({what})", len(frames) + 1, max_frames)
             frames.append(_luminance(frame, what))
     finally:
         capture.release()
