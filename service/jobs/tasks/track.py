@@ -56,7 +56,7 @@ from service.geometry.camera import Camera
 from service.io.npz import npz_bytes
 from service.jobs.frame_usd import DEFAULT_FPS, FrameUsdWriter
 from service.jobs.frame_zip import FrameZipWriter
-from service.jobs.running import JobCancelled, Requeue, RunningJob
+from service.jobs.running import JobCancelled, Requeue, RunningJob, worker_name
 from service.jobs.track_stages import overall
 from service.methods.inputs import InvalidInput
 from service.methods.scan_textures import scan_reflectance
@@ -124,8 +124,8 @@ def _keep(store, key: str, data: bytes) -> None:
         store.blobs.put_bytes(key, data)
 
 
-def _graph_npz(graph: FlowGraph) -> bytes:
-    return npz_bytes(frames=np.int64(graph.frames),
+def _graph_npz(graph: FlowGraph, seconds: float) -> bytes:
+    return npz_bytes(seconds=np.float64(seconds), frames=np.int64(graph.frames),
                      static_edges=np.array(graph.static_edges, np.int64).reshape(-1, 2),
                      table=graph.table, initial_max=np.float64(graph.initial_max),
                      candidates=np.int64(graph.candidates), scan_labels=graph.scan_labels)
@@ -172,10 +172,10 @@ def track(job: RunningJob) -> dict[str, Any]:
                 if f >= 1.0:
                     job.progress(overall("graph selection", 0.0), "graph selection")
             graph = build_graph(inp, params, None, graph_progress)
-            _keep(store, f"{prefix}/graph.npz", _graph_npz(graph))
+            _keep(store, f"{prefix}/graph.npz", _graph_npz(graph, time.perf_counter() - t0))
         else:
             graph = _graph_of(stored)
-        seconds["graph"] = time.perf_counter() - t0
+        graph_seconds = float(_read(store, f"{prefix}/graph.npz")["seconds"])
         job.progress(overall("full flows", 0.0), "full flows")
 
         def key_progress(f: float, stage: str) -> None:      # f ∈ [0, 0.5]: the full flows
@@ -187,9 +187,11 @@ def track(job: RunningJob) -> dict[str, Any]:
         _keep(store, f"{prefix}/keyframes.npz", npz_bytes(
             **_states_arrays(solution.states), keyframes=np.array(solution.keyframes, np.int64),
             rigidity=solution.rigidity, static_edges=np.array(graph.static_edges, np.int64).reshape(-1, 2),
-            candidates=np.int64(graph.candidates)))
-        seconds["keyframes"] = time.perf_counter() - t0
+            candidates=np.int64(graph.candidates), graph_seconds=np.float64(graph_seconds),
+            seconds=np.float64(time.perf_counter() - t0)))
         keyframes = _read(store, f"{prefix}/keyframes.npz")
+    seconds["graph"] = float(keyframes["graph_seconds"])
+    seconds["keyframes"] = float(keyframes["seconds"])
     solution = _keyframes_of(keyframes)
     todo = spans(solution.keyframes)
     job.progress(overall("tween solve", 0.0), "tween solve")
@@ -217,6 +219,7 @@ def track(job: RunningJob) -> dict[str, Any]:
     for a, b in todo:
         states.update(_read_states(_read(store, span_key(prefix, a, b))))
     result = _result(inp, states, solution)
+    seconds["spans_total"] = sum(float((children[sp].result or {}).get("seconds", 0.0)) for sp in todo)
     return _outputs(job, inp, extra, result, params, seconds,
                     span_ids=[children[s].id for s in todo],
                     static_edges=keyframes["static_edges"].tolist(),
@@ -346,4 +349,5 @@ def track_span(job: RunningJob) -> dict[str, Any]:
         job.progress(0.95, "tween solve")
         _keep(store, key, npz_bytes(**_states_arrays(states)))
     return {"parent_job_id": payload["parent_job_id"], "span": [a, b], "frames": b - a - 1,
-            "states_blob": key, "seconds": round(time.perf_counter() - t0, 4)}
+            "states_blob": key, "seconds": round(time.perf_counter() - t0, 4),
+            "worker": worker_name()}
