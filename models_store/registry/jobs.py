@@ -265,16 +265,20 @@ def park_job(session: Session, job_id: str, *, worker: str) -> Job:
     ------
     Conflict   the job is not running, or not held by ``worker``
     """
-    cancel = session.scalar(select(Job.cancel_requested).where(_held(job_id, worker)))
-    values: dict[str, Any] = ({"status": "cancelled", "finished_at": utcnow(),
-                               "error": error_record("cancelled", "cancelled by request")}
-                              if cancel else
-                              {"status": "queued", "attempts": Job.attempts - 1})
     changed = session.execute(update(Job).where(_held(job_id, worker))
-                              .values(worker=None, lease_expires_at=None, **values)
+                              .values(status="queued", attempts=Job.attempts - 1, worker=None,
+                                      lease_expires_at=None)
                               .execution_options(synchronize_session=False)).rowcount
     if changed != 1:
         raise _lost(session, job_id, worker)
+    commit(session)
+    # a cancellation flagged while it ran (before the update above) would leave a queued
+    # job no worker may claim: end it now; one requested after it cancels the queued job
+    session.execute(update(Job).where(Job.id == job_id, Job.status == "queued",
+                                      Job.cancel_requested.is_(True))
+                    .values(status="cancelled", finished_at=utcnow(),
+                            error=error_record("cancelled", "cancelled by request"))
+                    .execution_options(synchronize_session=False))
     commit(session)
     return refetch(session, Job, job_id)
 
