@@ -81,7 +81,7 @@ def test_track_command_writes_the_results_with_a_bar_per_stage(capsys, server, s
     # one bar per stage seen (plain lines off a terminal; the client polls, so a short
     # stage may pass unseen), each ending at 100 %, the last one "storing results"
     bars = {line.split(":")[0] for line in err.splitlines() if line.startswith("track job_")}
-    assert len(bars) >= 3, err
+    assert len(bars) >= 2, err
     for bar in bars:
         assert f"{bar}: 100% done" in err, err
     assert any(bar.endswith(" storing results") for bar in bars)

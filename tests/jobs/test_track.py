@@ -149,3 +149,19 @@ def test_cancelling_a_tracking_job_cancels_its_span_jobs(server, scene, start_wo
             children = span_jobs(session, registry.get_job(session, job_id))
     assert all(c.status in FINAL for c in children), [c.status for c in children]
     assert any(c.status == "cancelled" for c in children)
+
+
+def test_park_job_requeues_without_an_attempt_and_honours_a_cancellation(server):
+    settings, client, actor = server
+    store = get_store(settings)
+    with store.sessions() as session:
+        job = registry.create_job(session, "track", actor, payload={})
+        registry.claim_job(session, "w1", lease_seconds=5, max_retries=2, job_id=job.id)
+        registry.update_job_progress(session, job.id, 0.6, "tween solve", worker="w1")
+        parked = registry.park_job(session, job.id, worker="w1")
+        assert (parked.status, parked.attempts, parked.progress, parked.stage) == (
+            "queued", 0, 0.6, "tween solve")
+        assert parked.worker is None and parked.lease_expires_at is None
+        registry.claim_job(session, "w2", lease_seconds=5, max_retries=2, job_id=job.id)
+        registry.request_cancel(session, job.id)          # flagged while it runs
+        assert registry.park_job(session, job.id, worker="w2").status == "cancelled"

@@ -235,6 +235,9 @@ def _join(job: RunningJob, children: dict, todo: list) -> None:
         if child.status == "succeeded":
             done += 1
         elif child.status in ("failed", "cancelled"):
+            with job.store.sessions() as session:    # cancelled with its parent (DELETE)?
+                if registry.get_job(session, job.id).cancel_requested:
+                    raise JobCancelled(job.id)
             error = child.error or {}
             message = (f"span {a}–{b} (job {child.id}) {child.status}: "
                        f"{error.get('message', '')}")
