@@ -87,7 +87,7 @@ def test_a_tracking_job_fans_out_one_job_per_span_and_equals_track(server, scene
     job = wait(client, job_id, until=lambda j: stages.append(j["stage"]) or j["status"] in FINAL)
     assert job["status"] == "succeeded", job
     assert job["kind"] == "track" and job["progress"] == 1.0
-    assert {"graph flows", "tween solve"} <= set(stages)
+    assert "tween solve" in stages          # polled: a short stage may pass unseen
     store = get_store(settings)
     with store.sessions() as session:
         row = registry.get_job(session, job_id)
