@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/correspondence_report.py
 	$(BIN)/python benchmarks/generalization_report.py
 	$(BIN)/python benchmarks/tracking_report.py
+	$(BIN)/python benchmarks/tracking_job.py
 	$(BIN)/python benchmarks/load.py
 	$(BIN)/python benchmarks/upload_memory.py
 	$(BIN)/python benchmarks/realtime.py --profile

@@ -17,6 +17,10 @@
                        [--no-wait]
     facesynth bone-rig ACTOR --clip ID | --artifact ID --out DIR [--params JSON]
                        [--set k=v ...] [--fps F] [--no-wait]
+    facesynth track ACTOR --cameras cams.json --scan neutral.ply --scan smile.obj ...
+                    --scan-images scans.zip --frames frames.zip | --frames v0.mp4 ...
+                    -o OUT [--params JSON] [--set k=v ...] [--scan-maps maps.npz]
+                    [--format npz|obj-exr|usd] [--map-resolution N] [--no-wait]
 
 Every command takes --server URL (FACESYNTH_URL, default http://127.0.0.1:8000) and
 --token T (FACESYNTH_TOKEN), before or after the command's name; every listing and show takes
@@ -877,6 +881,77 @@ def bone_rig(client, args) -> int:
     return EXIT_OK
 
 
+# ---------------------------------------------------------------------------- tracking
+
+def stage_bars(label: str, stream=None, terminal: bool | None = None) -> Callable[[object], None]:
+    """A ``progress`` callback for ``client.wait`` drawing one bar per stage of a tracking
+    job (:data:`service.jobs.track_stages.STAGES`): each bar runs 0–100 % over its stage and
+    is completed when the next stage starts."""
+    from service.jobs.track_stages import STAGES, within
+    from service.progress_bar import progress_bar
+
+    current: dict = {}
+
+    def update(job) -> None:
+        stage = job.stage
+        if stage not in STAGES:                      # queued, or between two runs
+            return
+        if current.get("stage") != stage:
+            if current:
+                current["bar"](1.0, "done")
+            current.update(stage=stage, bar=progress_bar(f"{label} {stage}", stream, terminal))
+        if job.status in ("succeeded",):
+            current["bar"](1.0, "done")
+        elif job.status in ("failed", "cancelled"):
+            current["bar"](within(stage, job.progress), job.status)
+        else:
+            current["bar"](within(stage, job.progress), stage)
+
+    return update
+
+
+def track(client, args) -> int:
+    from facesynth_client import JobCancelled, JobFailed
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: exists and is not a folder")
+    cameras = _file(args.cameras, "camera calibration")
+    try:
+        json.loads(cameras.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise UsageError(f"{cameras}: not JSON ({error})") from None
+    scans = [_file(p, "scan") for p in args.scan]
+    frames = [_file(p, "frames file") for p in args.frames]
+    params = {**_json_arg(args.params, "--params"), **_assignments(args.set)}
+    accepted = client.tracking.submit(
+        args.actor, cameras=cameras, scans=scans, scan_images=_file(args.scan_images, "zip"),
+        frames=frames, scan_maps=_file(args.scan_maps, "npz") if args.scan_maps else None,
+        params=params or None, format=FORMATS[args.format], map_resolution=args.map_resolution)
+    if args.no_wait:
+        print(accepted.job_id)
+        return EXIT_OK
+    try:
+        job = client.wait(accepted, progress=stage_bars(f"track {accepted.job_id}"))
+    except (JobFailed, JobCancelled) as error:
+        _say(f"job {accepted.job_id}: {error}")
+        return EXIT_JOB_FAILED
+    result = job.raw.get("result") or {}
+    artifacts = result.get("artifacts") or {}
+    with _output_dir(out) as stage:
+        for name, artifact_id in artifacts.items():
+            client.download_artifact(artifact_id, stage / name)
+        (stage / "track.json").write_text(json.dumps(
+            {"actor_id": args.actor, "job_id": job.id, "artifacts": artifacts,
+             "span_job_ids": result.get("span_job_ids", []),
+             "metrics": result.get("metrics", {})}, indent=1))
+    metrics = result.get("metrics") or {}
+    _say(f"{metrics.get('frames')} frames tracked ({metrics.get('keyframes')} keyframes, "
+         f"{metrics.get('spans')} span jobs); {', '.join(artifacts)} and track.json in {out}")
+    print(out)
+    return EXIT_OK
+
+
 # ---------------------------------------------------------------------------- parser
 
 def _landmarks_file(path: Path) -> tuple[list, list | None]:
@@ -1140,6 +1215,29 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                                     "max_influences, iterations, ...)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
     p.add_argument("--fps", type=float, help="frame rate of the exported animation")
+
+    p = command(sub, "track", track,
+                "track a performance from video and static scans (a job, one bar per stage) "
+                "and write its results (tracked.npz, weights.npz, maps.npz, scans.npz, "
+                "track.json) to a folder", [waiting])
+    p.add_argument("actor", help="actor id (its neutral is the mesh tracked)")
+    p.add_argument("--cameras", required=True, metavar="JSON",
+                   help='calibration: {"views": [{"name", "K", "R", "t", "width", "height"}]}')
+    p.add_argument("--scan", action="append", required=True, metavar="MESH",
+                   help="a raw static scan (.obj or .ply), once per scan; the neutral first")
+    p.add_argument("--scan-images", required=True, metavar="ZIP",
+                   help="zip of <scan>/<view>.png (or .exr), scan = its mesh's file stem")
+    p.add_argument("--frames", action="append", required=True, metavar="FILE",
+                   help="a zip of <view>/<frame>.png sequences, or one video per view "
+                        "(repeat, in the calibration's order)")
+    p.add_argument("--scan-maps", metavar="NPZ", help="per-scan UV maps to blend per frame")
+    p.add_argument("-o", "--out", required=True, help="output folder (made once the results "
+                                                      "are in)")
+    p.add_argument("--params", help="tracking parameters as a JSON object")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
+    p.add_argument("--format", choices=sorted(FORMATS), default="npz",
+                   help="also write tracked.zip (obj-exr) or tracked.usd (usd)")
+    p.add_argument("--map-resolution", type=int, help="side of the blended maps, texels")
 
 
 def run(func: Callable) -> Callable[[argparse.Namespace], int]:

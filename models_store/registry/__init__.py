@@ -49,7 +49,8 @@ from models_store.registry.artifacts import (add_artifact, get_artifact, list_ar
                                              open_artifact)
 from models_store.registry.clips import add_clip, delete_clip, get_clip, list_clips, read_clip
 from models_store.registry.jobs import (MAX_CLAIM_ROUNDS, Reaped, claim_job, create_job,
-                                        finish_job, get_job, heartbeat, list_jobs, reap_expired,
+                                        finish_job, get_job, heartbeat, list_jobs, park_job,
+                                        reap_expired,
                                         request_cancel, update_job_progress)
 from models_store.registry.models import (create_model, delete_model, get_model, list_models,
                                           mark_model_failed, mark_model_ready, model_dir)
@@ -74,6 +75,7 @@ __all__ = [
     "model_dir", "delete_model",
     # jobs
     "create_job", "get_job", "list_jobs", "update_job_progress", "heartbeat", "request_cancel",
+    "park_job",
     "claim_job", "finish_job", "reap_expired", "Reaped", "MAX_CLAIM_ROUNDS",
     # artifacts
     "add_artifact", "get_artifact", "list_artifacts", "open_artifact",

@@ -251,6 +251,38 @@ def finish_job(session: Session, job_id: str, status: str, *, worker: str | None
     return refetch(session, Job, job_id)
 
 
+def park_job(session: Session, job_id: str, *, worker: str) -> Job:
+    """Give a running job back to the queue without counting an attempt: ``queued`` again,
+    its lease dropped, ``attempts`` one less, progress and stage kept.
+
+    For a job that waits for others (a tracking job joining its span jobs): rather than
+    hold a worker slot while it waits, its task ends the current run and the job is queued
+    again (with a delayed queue message, :class:`service.jobs.running.Requeue`); the next
+    claim continues where it stopped. A cancellation requested meanwhile makes it
+    ``cancelled`` at once.
+
+    Raises
+    ------
+    Conflict   the job is not running, or not held by ``worker``
+    """
+    changed = session.execute(update(Job).where(_held(job_id, worker))
+                              .values(status="queued", attempts=Job.attempts - 1, worker=None,
+                                      lease_expires_at=None)
+                              .execution_options(synchronize_session=False)).rowcount
+    if changed != 1:
+        raise _lost(session, job_id, worker)
+    commit(session)
+    # a cancellation flagged while it ran (before the update above) would leave a queued
+    # job no worker may claim: end it now; one requested after it cancels the queued job
+    session.execute(update(Job).where(Job.id == job_id, Job.status == "queued",
+                                      Job.cancel_requested.is_(True))
+                    .values(status="cancelled", finished_at=utcnow(),
+                            error=error_record("cancelled", "cancelled by request"))
+                    .execution_options(synchronize_session=False))
+    commit(session)
+    return refetch(session, Job, job_id)
+
+
 @dataclass
 class Reaped:
     """What :func:`reap_expired` did: ids of requeued, failed and cancelled jobs."""

@@ -22,7 +22,7 @@ from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
 from service.api.routes import (actors, artifacts, bone_rigs, clips, health, jobs, models, rigs,
-                                scans, synthesis, transfer)
+                                scans, synthesis, tracking, transfer)
 from service.api.schemas import Problem
 from service.app.services import Services
 from service.app.synthesis import Synthesizer
@@ -115,8 +115,8 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app.add_middleware(UrlGuardMiddleware)
     app.add_middleware(RequestContextMiddleware, metrics=app.state.metrics)
     app.include_router(health.router, dependencies=[Depends(check_unless_public)])
-    for module in (actors, clips, rigs, models, transfer, synthesis, bone_rigs, jobs, artifacts,
-                   scans):
+    for module in (actors, clips, rigs, models, transfer, synthesis, bone_rigs, tracking, jobs,
+                   artifacts, scans):
         app.include_router(module.router, dependencies=[Depends(check_bearer)])
     if not settings.public_docs:
         _protected_docs(app)

@@ -17,6 +17,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import BodyTooLarge, problem
 from service.app.limits import MULTIPART_MAX_FIELD_BYTES, MULTIPART_MAX_FILES
+from service.app.tracking import TrackingForm
 from service.app.uploads import JSON_TYPE, MESH_TYPES, NPZ_TYPES, OBJ_TYPES, ClipForm
 from service.errors import InvalidInput, MalformedInput, UnsupportedFormat
 
@@ -243,3 +244,46 @@ async def read_file_part(request: Request, name: str) -> tuple[str, bytes]:
     if not isinstance(part, UploadFile):
         raise InvalidInput(f"the multipart body needs a file part '{name}'")
     return part.filename or "", await part.read()
+
+
+#: the parts of a tracking upload (``POST /v1/actors/{id}/tracking-jobs``)
+TRACKING_PARTS = ("cameras", "scans", "scan_images", "frames", "params", "scan_maps")
+
+
+async def read_tracking_form(request: Request) -> TrackingForm:
+    """A multipart tracking upload (:mod:`service.app.tracking`): its file parts stay in
+    Starlette's spool files (on disk past 1 MiB), read by the operation in the thread pool;
+    ``cameras`` and ``params`` may be file parts or plain fields. An unknown part is a 422
+    naming the known ones."""
+    form = await read_form(request)
+    unknown = sorted(set(form.keys()) - set(TRACKING_PARTS))
+    if unknown:
+        raise InvalidInput(f"unknown part(s) {unknown} in the tracking upload; its parts are "
+                           f"{', '.join(TRACKING_PARTS)}")
+
+    async def text(name: str) -> str | bytes | None:
+        value = form.get(name)
+        if isinstance(value, UploadFile):
+            return await value.read()
+        return value
+
+    def files(name: str) -> list[tuple[str, Any]]:
+        parts = form.getlist(name)
+        loose = [p for p in parts if not isinstance(p, UploadFile)]
+        if loose:
+            raise InvalidInput(f"the '{name}' part must be a file (got a plain field)")
+        return [(p.filename or f"{name}-{k}", p.file) for k, p in enumerate(parts)]
+
+    def one(name: str) -> tuple[str, Any] | None:
+        parts = files(name)
+        if len(parts) > 1:
+            raise InvalidInput(f"send one '{name}' part, got {len(parts)}")
+        return parts[0] if parts else None
+
+    cameras, params = await text("cameras"), await text("params")
+    if isinstance(cameras, str):
+        cameras = cameras.encode()
+    if isinstance(params, bytes):
+        params = params.decode("utf-8", "replace")
+    return TrackingForm(cameras, files("scans"), one("scan_images"), files("frames"), params,
+                        one("scan_maps"))

@@ -143,7 +143,14 @@ def make_queue(settings: Settings) -> JobQueue:
     def run_job(job_id: str) -> None:
         from service.jobs.runner import execute  # the runner imports the tasks and their deps
 
-        execute(settings, job_id, worker_name(), abandon=queue.abandon)
+        def schedule(delay: float) -> None:      # a waiting job's next run (runner.Requeue)
+            if queue.immediate:                  # no scheduler: what it waits for is done
+                queue.run_job(job_id)
+            else:
+                queue.run_job.schedule(args=(job_id,), delay=delay)
+
+        execute(settings, job_id, worker_name(), abandon=queue.abandon, schedule=schedule,
+                enqueue=queue.run_job)
 
     queue.run_job = huey.task(name=RUN_JOB, retries=RUN_JOB_RETRIES,
                               retry_delay=RUN_JOB_RETRY_DELAY)(run_job)

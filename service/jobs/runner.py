@@ -40,7 +40,8 @@ from models_store.errors import Conflict, NotFound
 from service.config import Settings
 from service.store.container import Store, get_store
 from service.methods.inputs import InvalidInput
-from service.jobs.running import JobCancelled, LeaseLost, RunningJob, Task, WorkerStopping
+from service.jobs.running import (JobCancelled, LeaseLost, Requeue, RunningJob, Task,
+                                  WorkerStopping)
 from service.jobs.tasks import TASKS
 from service.logs import job_id_var
 
@@ -160,6 +161,8 @@ def _run_task(running: RunningJob, tasks: Mapping[str, Task]) -> Any:
     except WorkerStopping:
         log.warning("job %s: worker stopping; releasing the job for another worker", running.id)
         return _RELEASE
+    except Requeue as requeue:
+        return requeue
     except InvalidInput as exc:
         return "failed", None, _error("invalid_input", str(exc))
     except NotFound as exc:
@@ -182,8 +185,30 @@ def _run_task(running: RunningJob, tasks: Mapping[str, Task]) -> Any:
         return "failed", None, _error("internal", f"{type(exc).__name__}: {exc}")
 
 
+def _park(store: Store, job_id: str, worker: str, delay: float,
+          schedule: Callable[[float], None] | None) -> None:
+    """Queue a job that waits for others again and have its message sent in ``delay``
+    seconds (:class:`~service.jobs.running.Requeue`) by ``schedule(delay)``; without one
+    the maintenance rounds resubmit it (:func:`service.jobs.worker.resubmit_stale`)."""
+    with store.sessions() as session:
+        try:
+            job = registry.park_job(session, job_id, worker=worker)
+        except Conflict as exc:
+            log.warning("job %s: not requeued: %s", job_id, exc)
+            return None
+    if job.status != "queued":
+        log.info("job %s %s while waiting", job_id, job.status)
+        return None
+    if schedule is not None:
+        schedule(delay)
+    log.debug("job %s waits; requeued for %.1f s", job_id, delay)
+    return None
+
+
 def execute(settings: Settings, job_id: str, worker: str, *,
-            abandon: threading.Event | None = None) -> str | None:
+            abandon: threading.Event | None = None,
+            schedule: Callable[[float], None] | None = None,
+            enqueue: Callable[[str], None] | None = None) -> str | None:
     """Run job ``job_id`` as ``worker`` if it can be claimed.
 
     Parameters
@@ -193,6 +218,10 @@ def execute(settings: Settings, job_id: str, worker: str, *,
     worker : this worker's unique name (``host:pid:thread``)
     abandon : when set (a worker shutting down), the job releases its lease at its next
               progress point instead of running on
+    schedule : ``schedule(delay)`` sends this job's queue message again in ``delay``
+               seconds (for a task that raises :class:`~service.jobs.running.Requeue`)
+    enqueue : ``enqueue(job_id)`` sends another job's queue message (the task's
+              :attr:`~service.jobs.running.RunningJob.enqueue`)
 
     Returns
     -------
@@ -206,13 +235,15 @@ def execute(settings: Settings, job_id: str, worker: str, *,
     """
     token = job_id_var.set(job_id)                 # every log record of the job carries its id
     try:
-        return _execute(settings, job_id, worker, abandon)
+        return _execute(settings, job_id, worker, abandon, schedule, enqueue)
     finally:
         job_id_var.reset(token)
 
 
 def _execute(settings: Settings, job_id: str, worker: str,
-             abandon: threading.Event | None) -> str | None:
+             abandon: threading.Event | None,
+             schedule: Callable[[float], None] | None = None,
+             enqueue: Callable[[str], None] | None = None) -> str | None:
 
     store = get_store(settings)
     with store.sessions() as session:
@@ -228,7 +259,7 @@ def _execute(settings: Settings, job_id: str, worker: str,
         log.info("job %s (%s) claimed by %s, attempt %d", job.id, job.kind, worker, job.attempts)
         reporter = _Reporter(store, job.id, worker, settings.job_lease_seconds, abandon)
         running = RunningJob(job.id, job.kind, job.actor_id, job.model_id, dict(job.payload),
-                             job.attempts, store, reporter)
+                             job.attempts, store, reporter, enqueue)
     heartbeat = _Heartbeat(reporter, settings.job_lease_seconds / HEARTBEATS_PER_LEASE)
     heartbeat.start()
     try:
@@ -238,6 +269,8 @@ def _execute(settings: Settings, job_id: str, worker: str,
     if outcome is _RELEASE:
         reporter.release()
         return None
+    if isinstance(outcome, Requeue):
+        return _park(store, job_id, worker, outcome.delay, schedule)
     if outcome is None:
         return None
     status, result, error = outcome

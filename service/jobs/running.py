@@ -29,6 +29,16 @@ class WorkerStopping(Exception):
     """The worker is shutting down and gives the job back at this progress point."""
 
 
+class Requeue(Exception):
+    """Raised by a task that waits for other jobs: end this run without finishing the job,
+    queue it again (not counted as an attempt, :func:`models_store.registry.park_job`) and
+    run it again in ``delay`` seconds — so a waiting job holds no worker slot."""
+
+    def __init__(self, delay: float, reason: str = ""):
+        super().__init__(reason or f"requeued for {delay} s")
+        self.delay = float(delay)
+
+
 @dataclass
 class RunningJob:
     """What a task function gets: the claimed job's ids and payload, the store, progress.
@@ -40,6 +50,9 @@ class RunningJob:
     attempt : int       1 for the first run, 2 for the first retry, ...
     store : Store       database sessions and blobs
     progress : Progress ``progress(fraction, stage)``; raises :class:`JobCancelled`
+    enqueue : ``enqueue(job_id)`` tells the workers that another (queued) job is waiting —
+              for a task that creates jobs (a tracking job's span jobs); None where the
+              runner was called without a queue
     """
 
     id: str
@@ -50,6 +63,7 @@ class RunningJob:
     attempt: int
     store: Store
     progress: Progress = field(repr=False)
+    enqueue: Callable[[str], None] | None = field(default=None, repr=False)
 
     def sub_progress(self, start: float, end: float) -> Progress:
         """A :data:`Progress` mapping 0..1 onto ``start..end`` of this job's progress."""

@@ -98,9 +98,11 @@ def resubmit_stale(settings: Settings, older_than: float | None = None) -> list[
 
 
 def _pending_job_ids(settings: Settings) -> set[str]:
-    """Job ids of the ``run_job`` messages waiting in the queue."""
+    """Job ids of the ``run_job`` messages waiting in the queue or its schedule (a job
+    waiting for others is requeued with a delayed message, :func:`service.jobs.runner._park`)."""
     ids: set[str] = set()
-    for task in get_queue(settings).huey.pending():
+    huey = get_queue(settings).huey
+    for task in [*huey.pending(), *huey.scheduled()]:
         if task.args:
             ids.add(str(task.args[0]))
     return ids

@@ -18,6 +18,7 @@ from service.api.deps import ServicesDep, SessionDep
 from service.api.query import PageDep
 from service.api.routes import problems
 from service.app.services import Services
+from service.app.tracking import cancel_spans
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -53,6 +54,7 @@ def cancel_job(job_id: str, session: SessionDep, response: Response) -> schemas.
     and becomes `cancelled` at its next progress point (202); a finished job is returned
     unchanged (200)."""
     job = registry.request_cancel(session, job_id)
+    cancel_spans(session, job)          # a tracking job's span jobs end with it
     if job.status not in JOB_FINAL_STATUSES:
         response.status_code = status.HTTP_202_ACCEPTED
     return schemas.Job.model_validate(job)

@@ -14,13 +14,15 @@ from service.jobs.tasks.bone_rig import BONE_RIG_JOB, bone_rig
 from service.jobs.tasks.correspond import correspond_scans
 from service.jobs.tasks.register import register
 from service.jobs.tasks.synthesize import synthesize
+from service.jobs.tasks.track import SPAN_JOB, TRACK_JOB, track, track_span
 from service.jobs.tasks.train import train
 from service.jobs.tasks.transfer import TRANSFER_JOB, transfer
 
 #: job kind → task function
 TASKS: dict[str, Task] = {"train": train, "synthesize": synthesize, "register": register,
                           TRANSFER_JOB: transfer, BONE_RIG_JOB: bone_rig,
-                          "correspond": correspond_scans}
+                          "correspond": correspond_scans, TRACK_JOB: track,
+                          SPAN_JOB: track_span}
 
 __all__ = ["TASKS", "train", "synthesize", "register", "transfer", "bone_rig",
-           "correspond_scans"]
+           "correspond_scans", "track", "track_span"]
