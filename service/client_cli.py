@@ -861,14 +861,14 @@ def bone_rig(client, args) -> int:
         raise UsageError(f"{out}: exists and is not a folder")
     params = {**_json_arg(args.params, "--params"), **_assignments(args.set)}
     accepted = client.bone_rigs.submit(args.actor, clip=args.clip, artifact=args.artifact,
-                                       params=params or None, fps=args.fps)
+                                       params=params or None, fps=args.fps, usd=args.usd)
     code = _wait(client, args, accepted, f"bone-rig {accepted.job_id}")
     if code != EXIT_OK or args.no_wait:
         return code
     job = client.jobs.get(accepted)
     metrics = (job.raw.get("result") or {}).get("metrics") or {}
     with _output_dir(out) as stage:
-        for artifact_id, name in zip(job.artifact_ids, ("rig.npz", "rig.glb")):
+        for artifact_id, name in zip(job.artifact_ids, ("rig.npz", "rig.glb", "rig.usd")):
             client.download_artifact(artifact_id, stage / name)
         (stage / "rig.json").write_text(json.dumps(
             {"actor_id": args.actor, "job_id": job.id, "clip_id": args.clip,
@@ -876,7 +876,7 @@ def bone_rig(client, args) -> int:
     if metrics:
         _say(f"{metrics.get('bones')} bones, reconstruction RMS {metrics.get('rms_mm', 0):.4g}, "
              f"max {metrics.get('max_mm', 0):.4g} (actor units)")
-    _say(f"rig.npz, rig.glb and rig.json in {out}")
+    _say(f"rig.npz, rig.glb{', rig.usd' if args.usd else ''} and rig.json in {out}")
     print(out)
     return EXIT_OK
 
@@ -1215,6 +1215,7 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                                     "max_influences, iterations, ...)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="one parameter")
     p.add_argument("--fps", type=float, help="frame rate of the exported animation")
+    p.add_argument("--usd", action="store_true", help="also write the rig as a UsdSkel stage, rig.usd")
 
     p = command(sub, "track", track,
                 "track a performance from video and static scans (a job, one bar per stage) "

@@ -11,6 +11,7 @@ import pytest
 
 from service.cli import main
 from service.client_cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, UsageError, read_landmarks
+from service.io.usd_skel import skinned_points
 from service.methods.bone_rig.rig import BoneRig
 from tests.api.conftest import layout_body, npz, sheet, sheet_motion
 from tests.servers import serve_app
@@ -75,6 +76,13 @@ def test_transfer_and_bone_rig_commands(capsys, server, tmp_path):
     info = json.loads((out_dir / "rig.json").read_text())
     assert info["metrics"]["rms_mm"] == pytest.approx(
         np.sqrt(np.mean(np.sum((rig.reconstruct() - sheet_motion(V, 12, 0.0)) ** 2, -1))), abs=1e-3)
+    usd_dir = tmp_path / "rig-usd"                         # --usd: the UsdSkel stage too
+    code, _, err = run(capsys, server, "bone-rig", actor, "--clip", clips[0], "--out",
+                       str(usd_dir), "--set", "bones=4", "--set", "iterations=3", "--usd")
+    assert code == EXIT_OK, err
+    assert sorted(p.name for p in usd_dir.iterdir()) == ["rig.glb", "rig.json", "rig.npz", "rig.usd"]
+    usd_rig = BoneRig.load_npz(usd_dir / "rig.npz")
+    assert np.abs(skinned_points(usd_dir / "rig.usd", 11) - usd_rig.reconstruct()[11]).max() < 1e-3
     code, _, err = run(capsys, server, "bone-rig", actor, "--clip", clips[0], "--out",
                        str(tmp_path / "none"), "--set", "bones=9999")
     assert code == EXIT_REJECTED and not (tmp_path / "none").exists()

@@ -44,6 +44,8 @@ class BoneRigBody(BaseModel):
     fps: float | None = Field(None, gt=0, le=1000,
                               description="Frame rate of the exported animation (default: "
                                           "the clip's, else the artifact's `fps`, else 30).")
+    usd: bool = Field(False, description="Also store the rig as a UsdSkel stage (`.usd`: "
+                                         "skeleton, skel animation, skinned mesh).")
 
     @model_validator(mode="after")
     def _one_source(self) -> BoneRigBody:
@@ -87,7 +89,7 @@ def submit_bone_rig(services: Services, submit_job: Submit, actor_id: str,
         if body.params.bones > V:
             raise InvalidInput(f"params.bones = {body.params.bones} exceeds the actor's vertex "
                                f"count {V}")
-        payload = {"params": body.params.model_dump(mode="json")}
+        payload = {"params": body.params.model_dump(mode="json"), "usd": body.usd}
         payload.update({"clip_id": body.clip_id} if body.clip_id is not None
                        else {"artifact_id": body.artifact_id})
         if body.fps is not None:

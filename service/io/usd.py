@@ -159,7 +159,7 @@ def write_usd_cache(
             st.SetIndices(Vt.IntArray.FromNumpy(uv_corners.astype(np.int32)))
     if textures:
         _material(stage, usd_mesh, textures, path.parent, len(points), start_frame)
-    _export(stage, path)
+    export_stage(stage, path)
 
 
 def _material(stage, usd_mesh, textures: dict, directory: Path, frames: int, start: int) -> None:
@@ -215,7 +215,7 @@ def _relative(file: TexturePath, directory: Path) -> str:
     return text if text.startswith(("./", "../")) else f"./{text}"
 
 
-def _export(stage, path: Path) -> None:
+def export_stage(stage, path: Path) -> None:
     """Export the stage to a temporary sibling (same suffix, so the same format), then rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)

@@ -11,6 +11,7 @@ import pygltflib as gl
 import pytest
 
 from models_store import registry
+from service.io.usd_skel import skinned_points
 from service.methods.bone_rig.rig import BoneRig
 from tests.api.conftest import NPZ, assert_problem, npz, sheet, sheet_motion
 from tests.api.test_transfer import app_client, upload_actor  # noqa: F401 (fixture)
@@ -75,6 +76,24 @@ def test_a_bone_rig_job_stores_an_npz_and_a_glb_that_replay_the_same_skinning(
     replayed, faces = replay(tmp_path / "rig.glb")
     np.testing.assert_array_equal(faces, sheet(16, 13)[1])
     assert np.abs(replayed - recon).max() < 1e-3        # float32 storage of ~40 mm positions
+
+
+def test_usd_true_adds_a_usdskel_stage_that_usd_itself_skins_to_the_npz_rig(
+        app_client, actor, tmp_path):
+    actor_id, clip_id, _ = actor
+    response = app_client.post(f"/v1/actors/{actor_id}/bone-rig-jobs",
+                               json={"clip_id": clip_id, "params": PARAMS, "usd": True})
+    assert response.status_code == 202, response.text
+    job = app_client.get(f"/v1/jobs/{response.json()['job_id']}").json()
+    assert job["status"] == "succeeded", job
+    npz_id, _, usd_id = job["result"]["artifact_ids"]
+    (tmp_path / "rig.npz").write_bytes(app_client.get(f"/v1/artifacts/{npz_id}").content)
+    usd = app_client.get(f"/v1/artifacts/{usd_id}")
+    assert usd.status_code == 200 and usd.content[:8] == b"PXR-USDC"     # a binary crate
+    (tmp_path / "rig.usd").write_bytes(usd.content)
+    recon = BoneRig.load_npz(tmp_path / "rig.npz").reconstruct()
+    for f in (0, 5, 9):
+        assert np.abs(skinned_points(tmp_path / "rig.usd", f) - recon[f]).max() < 1e-3
 
 
 def test_an_artifact_performance_and_its_refusals(app_client, actor):

@@ -25,6 +25,7 @@ from pydantic import ValidationError
 
 from models_store import registry
 from models_store.errors import NotFound
+from service.jobs.formats import RESULT_FORMATS
 from service.jobs.running import RunningJob
 from service.jobs.tasks.train import jsonable
 from service.methods.bone_rig.decomposition import decompose
@@ -35,7 +36,8 @@ from service.store.actors import clip_from_blob, load_neutral_arrays, open_npz
 #: the job kind
 BONE_RIG_JOB = "bone_rig"
 #: media types of the two artifacts
-NPZ_MEDIA_TYPE, GLB_MEDIA_TYPE = "application/x-npz", "model/gltf-binary"
+NPZ_MEDIA_TYPE, GLB_MEDIA_TYPE = RESULT_FORMATS["npz"][0], "model/gltf-binary"
+USD_MEDIA_TYPE = RESULT_FORMATS["usd"][0]     # a binary USD crate
 #: frame rate of a performance that states none
 DEFAULT_FPS = 30.0
 # the job's progress: inputs, then the decomposition, then writing the artifacts
@@ -48,7 +50,9 @@ def bone_rig(job: RunningJob) -> dict[str, Any]:
     store = job.store
     with store.sessions() as session:
         done = registry.list_artifacts(session, job.id)
-    if len(done) == 2:                          # a retry after both artifacts were stored
+    formats = (("npz", NPZ_MEDIA_TYPE), ("glb", GLB_MEDIA_TYPE)) + (
+        (("usd", USD_MEDIA_TYPE),) if payload.get("usd") else ())
+    if len(done) == len(formats):               # a retry after every artifact was stored
         return {"artifact_ids": [a.id for a in done]}
     try:
         params = BoneRigParams.model_validate(payload.get("params") or {})
@@ -67,14 +71,15 @@ def bone_rig(job: RunningJob) -> dict[str, Any]:
     del frames
     job.progress(SOLVED, "writing the rig")
     with tempfile.TemporaryDirectory(dir=store.blobs.root, prefix=".bone-rig-") as tmp:
-        npz_path, glb_path = Path(tmp) / "rig.npz", Path(tmp) / "rig.glb"
-        rig.save_npz(npz_path)
-        rig.write_glb(glb_path)
+        writers = {"npz": rig.save_npz, "glb": rig.write_glb, "usd": rig.write_usd}
+        paths = []
+        for suffix, media in formats:
+            paths.append((Path(tmp) / f"rig.{suffix}", media, suffix))
+            writers[suffix](paths[-1][0])
         with store.sessions() as session:
             ids = [registry.add_artifact(session, store.blobs, job.id, path, media_type=media,
                                          filename=f"{job.id}.{suffix}").id
-                   for path, media, suffix in ((npz_path, NPZ_MEDIA_TYPE, "npz"),
-                                               (glb_path, GLB_MEDIA_TYPE, "glb"))]
+                   for path, media, suffix in paths]
     metrics = {key: value for key, value in rig.metrics.items() if key != "params"}
     return {"artifact_ids": ids, "metrics": jsonable(metrics)}
 

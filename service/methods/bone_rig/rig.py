@@ -93,3 +93,11 @@ class BoneRig:
 
         return write_skinned_glb(path, self.rest, self.faces, self.index, self.weight,
                                  self.R, self.t, self.joint_rest(), self.fps)
+
+    def write_usd(self, path) -> None:
+        """Write the rig as a UsdSkel stage (skeleton, animation, skinned mesh;
+        :func:`service.io.usd_skel.write_skinned_usd`)."""
+        from service.io.usd_skel import write_skinned_usd
+
+        write_skinned_usd(path, self.rest, self.faces, self.index, self.weight,
+                          self.R, self.t, self.joint_rest(), self.fps)

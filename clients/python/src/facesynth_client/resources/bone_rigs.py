@@ -17,7 +17,8 @@ class BoneRigs(Resource):
     performance into a linear-blend-skinned bone rig (Le & Deng 2012; a job)."""
 
     def submit(self, actor_id: str, *, clip: Any = None, artifact: Any = None,
-               params: Mapping[str, Any] | None = None, fps: float | None = None) -> JobAccepted:
+               params: Mapping[str, Any] | None = None, fps: float | None = None,
+               usd: bool = False) -> JobAccepted:
         """Queue a bone-rig job for one of the actor's performances.
 
         Parameters
@@ -27,10 +28,12 @@ class BoneRigs(Resource):
         params : dict, optional   ``bones`` (default 70), ``max_influences`` (4),
                                   ``iterations``, ``seed``, ... (``GET /openapi.json``)
         fps : float, optional     the exported animation's frame rate (default: the clip's)
+        usd : bool                also store the rig as a UsdSkel stage (a third artifact)
 
         Returns
         -------
         JobAccepted   wait for it; its ``artifact_ids`` are the rig ``.npz`` and the ``.glb``
+                      (and the ``.usd`` with ``usd=True``)
 
         Examples
         --------
@@ -46,6 +49,8 @@ class BoneRigs(Resource):
             body["params"] = dict(params)
         if fps is not None:
             body["fps"] = float(fps)
+        if usd:
+            body["usd"] = True
         return self._run(self._core.call_accepted(
             Call("POST", f"/v1/actors/{actor_id}/bone-rig-jobs", json=body),
             JobAccepted.from_json))
