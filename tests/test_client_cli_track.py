@@ -16,6 +16,7 @@ from service.client_cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, stage_bars
 from service.jobs.track_stages import STAGES
 from service.samples.tracking_scene import build_tracking_scene, tracking_uploads
 from tests.servers import serve_app
+from tests.test_client_cli import run
 
 PARAMS = {"candidate_stride": 2, "hat_slope": 0.3}
 
@@ -42,11 +43,6 @@ def files(tmp_path, scene):
         paths.setdefault(name, []).append(str(tmp_path / filename))
     return paths
 
-
-def run(capsys, server, *argv: str) -> tuple[int, str, str]:
-    code = main([*argv, "--server", server.url])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def actor_with_neutral(server, scene, name) -> str:

@@ -15,6 +15,7 @@ from service.io.usd_skel import skinned_points
 from service.methods.bone_rig.rig import BoneRig
 from tests.api.conftest import layout_body, npz, sheet, sheet_motion
 from tests.servers import serve_app
+from tests.test_client_cli import run
 
 MARKERS = (0, 7, 15, 48, 56, 64, 100, 104, 110, 150, 160, 167, 192, 200, 207)
 
@@ -25,11 +26,6 @@ def server(tmp_path_factory):
     yield running
     running.stop()
 
-
-def run(capsys, server, *argv: str) -> tuple[int, str, str]:
-    code = main([*argv, "--server", server.url])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_transfer_and_bone_rig_commands(capsys, server, tmp_path):
