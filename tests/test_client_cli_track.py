@@ -11,7 +11,6 @@ import json
 import numpy as np
 import pytest
 
-from service.cli import main
 from service.client_cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, stage_bars
 from service.jobs.track_stages import STAGES
 from service.samples.tracking_scene import build_tracking_scene, tracking_uploads
