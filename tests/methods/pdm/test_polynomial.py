@@ -57,16 +57,35 @@ def test_design_matrix_shapes():
 # --- regularization rows ------------------------------------------------------------------
 
 
-def test_regularization_weights_are_gamma_over_sigma_powers():
-    w = regularization_weights("biquadratic", 2.0, 0.5, 0.1)
-    np.testing.assert_allclose(w, [0.1 / 4, 0.1 / 0.25, 0.1 / 1.0, 0.1 / 2, 0.1 / 0.5, 0.0])
-    w = regularization_weights("linear", np.array([1.0, 4.0]), np.array([2.0, 1.0]), 1.0)
-    np.testing.assert_allclose(w, [[1, 0.5, 0], [0.25, 1, 0]])
+def test_regularization_weights_are_gamma_times_column_norms():
+    w = regularization_weights("biquadratic", np.array([4.0, 0.25, 1.0, 2.0, 0.5, 7.0]), 0.1)
+    np.testing.assert_allclose(w, [0.4, 0.025, 0.1, 0.2, 0.05, 0.0])       # constant: 0
+    w = regularization_weights("linear", np.array([[1.0, 4.0, 9.0], [2.0, 1.0, 3.0]]), 1.0)
+    np.testing.assert_allclose(w, [[1, 4, 0], [2, 1, 0]])
+    with pytest.raises(ValueError, match="column norms"):
+        regularization_weights("linear", np.ones(6), 1.0)
 
 
-def test_regularization_weights_floor_sigma():
-    w = regularization_weights("linear", 0.0, 1.0, 1e-3, sigma_floor=1e-6)
-    np.testing.assert_allclose(w, [1e3, 1e-3, 0.0])
+def test_fit_ridge_is_invariant_to_the_units_and_frame_count():
+    """The issue-17 fix: rescaling d1, d2 (mm → cm, or two actors' different ranges) or
+    repeating every frame leaves the fitted PDM's values unchanged (the paper's γ/σ rows do
+    not: their weight against the data is γ²/(T σ^{4(i+j)}))."""
+    d1, d2, _, f = _exact("biquadratic", T=25, P=30)
+    f = f + np.random.default_rng(7).normal(size=f.shape)
+    c = fit(d1, d2, f, gamma=0.5)
+    c_cm = fit(d1 / 10, d2 / 4, f, gamma=0.5)
+    np.testing.assert_allclose(evaluate(c_cm, d1[3] / 10, d2[3] / 4), evaluate(c, d1[3], d2[3]), atol=1e-9)
+    c_twice = fit(np.tile(d1, (2, 1)), np.tile(d2, (2, 1)), np.tile(f, (2, 1, 1)), gamma=0.5)
+    np.testing.assert_allclose(c_twice, c, atol=1e-9)
+
+
+def test_fit_single_term_shrinks_by_one_over_one_plus_gamma_squared():
+    """Hand-computed: a linear fit of f = 3 d1 with d2 = 0 and d1 of zero mean: the d1
+    normal equation decouples, (1 + γ²) Σd1² a = 3 Σd1², so a = 3 / (1 + γ²)."""
+    d1 = np.array([[-2.0], [-1.0], [1.0], [2.0]])
+    d2 = np.zeros_like(d1)
+    coeffs = fit(d1, d2, 3 * d1, order="linear", gamma=0.5)
+    np.testing.assert_allclose(coeffs[0, 0], [3 / 1.25, 0.0, 0.0], atol=1e-12)
 
 
 # --- 1. exact recovery -------------------------------------------------------------------
@@ -111,25 +130,20 @@ def test_fit_equals_stacked_lstsq_with_regularization_rows():
     gamma = 0.5
     coeffs = fit(d1, d2, f, gamma=gamma)
     for p in (0, 11, 19):
-        w = regularization_weights("biquadratic", d1[:, p].std(), d2[:, p].std(), gamma)
-        A = np.vstack([design_matrix(d1[:, p], d2[:, p]), np.diag(w)[:-1]])   # 5 γ rows
+        Phi = design_matrix(d1[:, p], d2[:, p])
+        w = regularization_weights("biquadratic", np.linalg.norm(Phi, axis=0), gamma)
+        A = np.vstack([Phi, np.diag(w)[:-1]])                                  # 5 γ rows
         b = np.vstack([f[:, p], np.zeros((5, 3))])
         np.testing.assert_allclose(coeffs[p], np.linalg.lstsq(A, b, rcond=None)[0].T, atol=1e-10)
-
-
-def test_fit_default_sigma_is_std_of_parameters_over_frames():
-    d1, d2, _, f = _exact("biquadratic", T=20, P=30)
-    f = f + np.random.default_rng(4).normal(size=f.shape)
-    sigma = np.stack([d1.std(axis=0), d2.std(axis=0)], axis=1)
-    np.testing.assert_allclose(
-        fit(d1, d2, f, gamma=0.3), fit(d1, d2, f, gamma=0.3, sigma=sigma), rtol=1e-12, atol=1e-12
-    )
 
 
 # --- 3. regularization ---------------------------------------------------------------------
 
 
 def test_fit_constant_parameter_terms_go_to_zero():
+    """d2 never varies: its own terms (d2², d2) are absorbed by the unregularized constant;
+    d1 d2 = 0.7 d1 is parallel to d1, and the relative ridge shares the d1 slope between
+    them (a3 + 0.7 a2 = the true a3); the PDM reproduces the data."""
     rng = np.random.default_rng(5)
     T, P = 30, 40
     d1 = rng.uniform(-2, 2, (T, P))
@@ -138,17 +152,16 @@ def test_fit_constant_parameter_terms_go_to_zero():
     f = a0 * d1[..., None] ** 2 + a3 * d1[..., None] + a5         # (T,P,1)
     coeffs = fit(d1, d2, f, gamma=1e-3)
     assert np.all(np.isfinite(coeffs))
-    np.testing.assert_allclose(coeffs[..., [1, 2, 4]], 0, atol=1e-9)   # d2², d1 d2, d2
-    np.testing.assert_allclose(coeffs[..., 0], a0, atol=1e-6)         # d1² still fit
-    np.testing.assert_allclose(coeffs[..., 3], a3, atol=1e-6)         # d1
-    np.testing.assert_allclose(coeffs[..., 5], a5, atol=1e-6)         # constant
+    np.testing.assert_allclose(coeffs[..., [1, 4]], 0, atol=1e-7)      # d2², d2
+    np.testing.assert_allclose(coeffs[..., 3] + 0.7 * coeffs[..., 2], a3, atol=1e-4)
+    np.testing.assert_allclose(evaluate(coeffs, d1, d2), f, atol=1e-4)
 
 
 def test_fit_larger_gamma_shrinks_nonconstant_coefficients_monotonically():
     d1, d2, _, f = _exact("biquadratic", T=30, P=60)
     f = f + np.random.default_rng(6).normal(scale=0.5, size=f.shape)
-    s1, s2 = d1.std(axis=0), d2.std(axis=0)
-    scale = regularization_weights("biquadratic", s1, s2, 1.0)[:, None, :5]   # (P,1,5)
+    norms = np.linalg.norm(design_matrix(d1, d2), axis=0)                       # (P,6)
+    scale = regularization_weights("biquadratic", norms, 1.0)[:, None, :5]      # (P,1,5)
     norms = []
     for gamma in (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0):
         coeffs = fit(d1, d2, f, gamma=gamma)
@@ -202,13 +215,12 @@ def test_fit_ignores_nan_per_channel_and_nan_parameters():
     f_nan[rng.random(f.shape) < 0.2] = np.nan                      # channels differ
     d1_nan = d1.copy()
     d1_nan[3, ::2] = np.nan                                        # parameter missing too
-    sigma = np.ones((20, 2))
-    coeffs = fit(d1_nan, d2, f_nan, gamma=0.1, sigma=sigma)
+    coeffs = fit(d1_nan, d2, f_nan, gamma=0.1)
     for p in (0, 5, 12):
         for c in range(3):
             k = np.isfinite(f_nan[:, p, c]) & np.isfinite(d1_nan[:, p])
             one = np.s_[k, p : p + 1]
-            ref = fit(d1[one], d2[one], f[one][..., c], gamma=0.1, sigma=sigma[:1])
+            ref = fit(d1[one], d2[one], f[one][..., c], gamma=0.1)
             np.testing.assert_allclose(coeffs[p, c], ref[0, 0], rtol=1e-10, atol=1e-12)
 
 
