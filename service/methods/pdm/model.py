@@ -480,7 +480,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     medium = TexelBand(Hm, idx_m, None)
     d1, d2 = _parameters(field_m, S)
     progress(0.3, "medium band fit")
-    medium.coeffs = polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32)
+    medium.coeffs = polynomial.fit(d1, d2, f_med, params.order, ridge=params.ridge,
+                                   gamma=params.gamma).astype(np.float32)
     med_rms = polynomial.fit_residual_rms(medium.coeffs, d1, d2, f_med)
     del f_med, d1, d2
 
@@ -525,7 +526,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     model.fine = fine = TexelBand(Hf, idx_f, None, field_f)
     d1, d2 = _parameters(fine.field, S)
     progress(0.6, "fine band fit")
-    fine.coeffs = polynomial.fit(d1, d2, f_fine, params.order, params.gamma).astype(np.float32)
+    fine.coeffs = polynomial.fit(d1, d2, f_fine, params.order, ridge=params.ridge,
+                                 gamma=params.gamma).astype(np.float32)
     fine_rms = polynomial.fit_residual_rms(fine.coeffs, d1, d2, f_fine)[:, 0]
     fine_signal = np.sqrt(np.mean(f_fine.astype(np.float64) ** 2, axis=0))
     del f_fine, d1, d2
@@ -541,7 +543,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a] for c in clips]).astype(np.float32)
         model.albedo = alb = TexelBand(Ha, idx_a, None, field_a)
         d1, d2 = _parameters(alb.field, S)
-        alb.coeffs = polynomial.fit(d1, d2, f_alb, params.order, params.gamma).astype(np.float32)
+        alb.coeffs = polynomial.fit(d1, d2, f_alb, params.order, ridge=params.ridge,
+                                    gamma=params.gamma).astype(np.float32)
         alb_rms = polynomial.fit_residual_rms(alb.coeffs, d1, d2, f_alb)
         del f_alb, d1, d2
 

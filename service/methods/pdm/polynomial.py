@@ -9,26 +9,31 @@ fitted to the measured displacements ``f_t`` of T training frames by the regular
 least-squares problem of ma2008 §4.2
 
     [ Φ       ] a = [ f ]      Φ_tk = d1_t^i_k d2_t^j_k,
-    [ diag(w) ]     [ 0 ]      w_k = γ ‖Φ_k‖ = γ (Σ_t Φ_tk²)^½,  w_const = 0.
+    [ diag(w) ]     [ 0 ]      w_k = γ / (σ1^i_k σ2^j_k),  w_const = 0,
 
-The γ rows keep a coefficient whose parameter barely varied from blowing up.
+with σ1, σ2 the standard deviations of d1, d2 over the training frames at that texel. The
+γ rows keep a coefficient whose parameter barely varied from blowing up.
 
-Departure from the paper (issue 17, "the fine map is 4× too weak" on family b): ma2008
-writes ``w_k = γ / (σ1^i_k σ2^j_k)`` (σ the standard deviations of d1, d2 at the texel). Those
-rows are not dimensionless: against the data energy ``Σ_t Φ_tk² ≈ T σ^{2(i+j)}`` they weigh
-``γ² / (T σ^{4(i+j)})``, so one γ is a different ridge for every unit of d1, d2, number of
-frames, actor and texel (d1, d2 are in mm here). Measured on the fine band (512², γ = 30,
-median over the face texels of ridge / data energy): family a (T = 160, median σ1, σ2 =
-2.2, 1.1 mm) 0.24 on d1, 3.3 on d2, 0.36 on d2²; family b (T = 260, σ = 1.4, 0.55 mm) 0.93,
-35 and 58, i.e. b's d2 terms were shrunk 35–60× and its fine fit kept only a third of the
-dynamic signal it could fit (dynamic R² 0.34 against 0.59 unregularized). Here each γ
-row is scaled by its own term's RMS over the texel's frames, so ``γ²`` *is* the ridge /
-data energy of every term at every texel — the ridge of the column-normalized (Jacobi-
-scaled) system, ``Â + γ² I`` on the non-constant terms — the same for any unit, frame count
-and actor. It still does what the paper asks of it: a parameter that never varied
+Two ridges (``fit``'s ``gamma`` and ``ridge``): ``gamma`` gives the paper's rows above;
+without it the default is the dimensionless ridge (issue 17, "the fine map is 4× too weak"
+on family b)
+
+    w_k = ρ ‖Φ_k‖ = ρ (Σ_t Φ_tk²)^½,  w_const = 0      (ρ = ``ridge``).
+
+The paper's rows are not dimensionless: against the data energy ``Σ_t Φ_tk² ≈ T σ^{2(i+j)}``
+they weigh ``γ² / (T σ^{4(i+j)})``, so one γ is a different ridge for every unit of d1, d2,
+number of frames, actor and texel (d1, d2 are in mm here). Measured on the fine band (512²,
+γ = 30, median over the face texels of ridge / data energy): family a (T = 160, median σ1,
+σ2 = 2.2, 1.1 mm) 0.24 on d1, 3.3 on d2, 0.36 on d2²; family b (T = 260, σ = 1.4, 0.55 mm)
+0.93, 35 and 58, i.e. b's d2 terms were shrunk 35–60× and its fine fit kept only a third of
+the dynamic signal it could fit (dynamic R² 0.34 against 0.59 unregularized). The ``ridge``
+rows scale each term's row by its own RMS over the texel's frames, so ``ρ²`` *is* the ridge
+/ data energy of every term at every texel — the ridge of the column-normalized (Jacobi-
+scaled) system, ``Â + ρ² I`` on the non-constant terms — the same for any unit, frame count
+and actor. It still does what the paper asks of the γ rows: a parameter that never varied
 contributes a column (nearly) parallel to the constant's, which the unregularized constant
-absorbs while its own coefficient is pulled to 0; a parameter that is 0 in every frame
-gives a zero column, solved in the minimum-norm sense (coefficient 0).
+absorbs while its own coefficient is pulled to 0; a parameter that is 0 in every frame gives
+a zero column, solved in the minimum-norm sense (coefficient 0).
 
 Solved through the normal equations ``(ΦᵀΦ + diag(w²)) a = Φᵀf``, all texels and channels
 at once: ΦᵀΦ is assembled from the distinct monomial moments ``Σ_t d1^a d2^b`` (15 for
@@ -58,6 +63,9 @@ TERM_POWERS: dict[str, tuple[tuple[int, int], ...]] = {
     ),
 }
 
+#: default floor on σ1, σ2 (units of d1, d2): a parameter that never varied is treated as
+#: varying by this much, which makes its γ-row weight huge and drives its terms to 0
+SIGMA_FLOOR = 1e-6
 #: relative eigenvalue cut-off below which an unregularized normal matrix is treated as
 #: singular and solved in the minimum-norm (lstsq) sense
 SINGULAR_RCOND = 1e-12
@@ -99,28 +107,66 @@ def design_matrix(d1: np.ndarray, d2: np.ndarray, order: str = "biquadratic") ->
     return np.stack([d1**i * d2**j for i, j in powers], axis=-1)
 
 
-def regularization_weights(order: str, column_norms: np.ndarray, gamma: float) -> np.ndarray:
-    """Diagonal of the γ rows (module docstring): ``w_k = γ ‖Φ_k‖``, 0 for the constant.
+def regularization_weights(
+    order: str,
+    sigma1: float | np.ndarray,
+    sigma2: float | np.ndarray,
+    gamma: float,
+    sigma_floor: float = SIGMA_FLOOR,
+) -> np.ndarray:
+    """Diagonal of the γ rows of ma2008 §4.2: ``w_k = γ / (σ1^i_k σ2^j_k)``, 0 for the constant.
+
+    Parameters
+    ----------
+    order : str                   a key of ``ORDERS``
+    sigma1, sigma2 : float or (P,) standard deviations of d1, d2 over the training frames
+    gamma : float                 regularization constant γ ≥ 0 (dimensionless: w_k a_k has
+                                  the units of the displacement)
+    sigma_floor : float           σ below this (units of d1, d2), or NaN, is replaced by it
+
+    Returns
+    -------
+    w : (K,) or (P,K) float64
+
+    Notes
+    -----
+    A parameter that never varied (σ → 0) would give an infinite weight; the floor keeps the
+    weight finite but large (γ / floor^i), so that the terms of that parameter are driven to
+    ≈ 0 and the constant absorbs their mean contribution. The constant term is not
+    regularized.
+    """
+    if gamma < 0:
+        raise ValueError(f"gamma must be >= 0, got {gamma}")
+    powers = np.array(_order(order))
+    s1 = np.fmax(np.asarray(sigma1, np.float64), sigma_floor)[..., None]   # NaN → floor
+    s2 = np.fmax(np.asarray(sigma2, np.float64), sigma_floor)[..., None]
+    w = gamma / (s1 ** powers[:, 0] * s2 ** powers[:, 1])
+    return np.where((powers[:, 0] + powers[:, 1]) == 0, 0.0, w)
+
+
+def relative_ridge_weights(order: str, column_norms: np.ndarray, ridge: float) -> np.ndarray:
+    """Diagonal of the dimensionless ridge rows (module docstring): ``w_k = ρ ‖Φ_k‖``, 0 for
+    the constant.
 
     Parameters
     ----------
     order : str                 a key of ``ORDERS``
     column_norms : (..., K)     ``‖Φ_k‖ = (Σ_t Φ_tk²)^½`` over a texel's training frames (units
                                 of d1^i d2^j; the square roots of the normal matrix's diagonal)
-    gamma : float               regularization constant γ ≥ 0, dimensionless: ``γ²`` is the
-                                ridge / data energy of every non-constant term
+    ridge : float               ρ ≥ 0, dimensionless: ``ρ²`` is the ridge / data energy of every
+                                non-constant term
 
     Returns
     -------
     w : (..., K) float64
     """
-    if gamma < 0:
-        raise ValueError(f"gamma must be >= 0, got {gamma}")
+    if ridge < 0:
+        raise ValueError(f"ridge must be >= 0, got {ridge}")
     powers = np.array(_order(order))
     norms = np.asarray(column_norms, np.float64)
     if norms.shape[-1:] != (len(powers),):
         raise ValueError(f"expected column norms (..., {len(powers)}) for order {order!r}, got {norms.shape}")
-    return np.where((powers[:, 0] + powers[:, 1]) == 0, 0.0, gamma * norms)
+    return np.where((powers[:, 0] + powers[:, 1]) == 0, 0.0, ridge * norms)
 
 
 def _moment_index(powers: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -169,8 +215,9 @@ def _solve_normal(
     return x * s[..., :, None]
 
 
-def _fit_chunk(d1, d2, f, order, gamma):
-    """Coefficients (n,C,K) for a chunk: d1, d2 (T,n), f (T,n,C)."""
+def _fit_chunk(d1, d2, f, order, ridge, gamma, sigma, sigma_floor):
+    """Coefficients (n,C,K) for a chunk: d1, d2 (T,n), f (T,n,C), sigma (n,2) or None;
+    ``gamma`` None: the relative ridge ``ridge``, else the paper's γ rows."""
     powers = TERM_POWERS[order]
     T, n, C = f.shape
     K = len(powers)
@@ -183,10 +230,18 @@ def _fit_chunk(d1, d2, f, order, gamma):
     shared = all_valid or bool((valid == valid[..., :1]).all())   # same rows for all channels
     mask = valid[..., :1] if shared else valid                    # (T,n,Cm)
     rows = valid.any(axis=2)                                      # texel measured at frame t
+    ref1 = np.zeros(n)                                            # d at the first measured
+    ref2 = np.zeros(n)                                            # frame: shift for σ
+    paper = gamma is not None
+    if paper and sigma is None:
+        for t in range(T - 1, -1, -1):
+            ref1 = np.where(rows[t], d1[t], ref1)
+            ref2 = np.where(rows[t], d2[t], ref2)
 
     # Σ_t over blocks of frames (a Python loop over frames, vectorized over texels)
     M = np.zeros((len(monomials), n, mask.shape[2]))             # Σ_t m d1^a d2^b
     B = np.zeros((K, n, C))                                       # Σ_t m φ_k f
+    S = np.zeros((2, 2, n))                                       # Σ_t (d - ref), Σ_t (d - ref)²
     nb = min(T, FRAME_BLOCK)
     X = np.empty((deg, nb, n))                                    # d1^a, a < deg
     Y = np.empty((deg, nb, n))                                    # d2^b
@@ -213,11 +268,25 @@ def _fit_chunk(d1, d2, f, order, gamma):
             np.multiply(X[: len(Xf), :b], ft[:, :, c], out=Xf[:, :b])
             for k, (i, j) in enumerate(powers):
                 B[k, :, c] += np.einsum("tn,tn->n", Xf[i, :b], Y[j, :b])
+        if paper and sigma is None:
+            for v, (z, ref) in enumerate(((X[1, :b], ref1), (Y[1, :b], ref2))):
+                dz = z - ref
+                if not all_valid:
+                    dz *= rows[t0:t1]
+                S[v, 0] += np.einsum("tn->n", dz)
+                S[v, 1] += np.einsum("tn,tn->n", dz, dz)
 
     count = np.full((n, 1), T) if all_valid else mask.sum(axis=0)  # (n,Cm) valid rows
-    norms = np.sqrt(np.moveaxis(M[np.diagonal(index)], 0, -1))    # (n,Cm,K) ‖Φ_k‖
-    w = regularization_weights(order, norms, gamma)               # (n,Cm,K)
-    unregularized = (np.delete(w, const, axis=-1) == 0).any(axis=-1)
+    if not paper:                                                 # ρ ‖Φ_k‖
+        norms = np.sqrt(np.moveaxis(M[np.diagonal(index)], 0, -1))  # (n,Cm,K)
+        w = relative_ridge_weights(order, norms, ridge)           # (n,Cm,K)
+    else:                                                         # γ / (σ1^i σ2^j)
+        if sigma is None:
+            nr = np.maximum(T if all_valid else rows.sum(axis=0), 1)  # frames measured
+            sigma = np.sqrt(np.maximum(S[:, 1] / nr - (S[:, 0] / nr) ** 2, 0.0)).T   # (n,2)
+        w = regularization_weights(order, sigma[:, 0], sigma[:, 1], gamma, sigma_floor)[:, None, :]
+
+    unregularized = (np.delete(w, const, axis=-1) == 0).any(axis=-1)   # (n,1) or (n,Cm)
     check = (count < K) | unregularized                           # (n,Cm) may be singular
     coeffs = np.empty((n, C, K))
     for s in range(0, n, SOLVE_BLOCK):                            # bounds the K×K work arrays
@@ -238,14 +307,18 @@ def fit(
     d2: np.ndarray,
     f: np.ndarray,
     order: str = "biquadratic",
-    gamma: float = 1e-3,
+    *,
+    ridge: float = 0.1,
+    gamma: float | None = None,
+    sigma: np.ndarray | None = None,
     chunk: int = 65536,
+    sigma_floor: float = SIGMA_FLOOR,
 ) -> np.ndarray:
     """Regularized least-squares PDM coefficients at every texel (ma2008 §4.2, eq. 1).
 
     Solves per texel and channel ``[Φ; diag(w)] a = [f; 0]`` with ``Φ = design_matrix(d1, d2)``
-    over the training frames and ``w = regularization_weights(order, ‖Φ_k‖, gamma)`` (the
-    module docstring: each term's ridge is γ² times its data energy at the texel).
+    over the training frames and ``w = relative_ridge_weights(order, ‖Φ_k‖, ridge)`` or, when
+    ``gamma`` is given, the paper's ``w = regularization_weights(order, σ1, σ2, gamma)``.
 
     Parameters
     ----------
@@ -254,9 +327,16 @@ def fit(
                              3D medium and 1D fine bands, reflectance for albedo); (T,P)
                              means C = 1
     order : str              ``"linear"``, ``"biquadratic"`` (eq. 1) or ``"bicubic"``
-    gamma : float            regularization constant γ ≥ 0, dimensionless (γ² = ridge /
-                             data energy of each non-constant term; 0: plain least squares)
+    ridge : float            ρ ≥ 0, dimensionless (ρ² = ridge / data energy of each
+                             non-constant term; 0: plain least squares); ignored when
+                             ``gamma`` is given
+    gamma : float or None    the paper's regularization constant γ ≥ 0 (ma2008 §4.2, rows
+                             γ / (σ1^i σ2^j)); None: use ``ridge``
+    sigma : (P,2) or None    σ1, σ2 per texel in units of d1, d2 (anything broadcastable to
+                             (P,2)), ``gamma`` mode only; None: the standard deviation of d1,
+                             d2 over the frames in which the texel was measured
     chunk : int              texels solved per batch, to bound memory (see Notes)
+    sigma_floor : float      σ below this is treated as this (see ``regularization_weights``)
 
     Returns
     -------
@@ -267,9 +347,10 @@ def fit(
     - Inputs may be float32; all arithmetic is float64.
     - Missing data: a NaN in ``f[t,p,c]`` (texel not seen in frame t) or in ``d1[t,p]``,
       ``d2[t,p]`` drops that row from the fit of that texel (and channel): weight 0.
-    - Singular systems: with γ > 0 the normal matrix is positive definite whenever no
-      term's column is all zero. Texels with fewer than K valid rows, with a zero column or
-      with γ = 0 are checked; if their Jacobi-scaled normal matrix is
+    - Singular systems: with γ > 0 the normal matrix is positive definite whenever the texel
+      has at least one valid row; with ρ > 0, whenever no term's column is all zero. Texels
+      with fewer than K valid rows or with an unregularized term (γ or ρ = 0, a zero column)
+      are checked; if their Jacobi-scaled normal matrix is
       numerically singular (eigenvalues below ``SINGULAR_RCOND`` × the largest) they get the
       minimum-norm least-squares solution (pseudo-inverse, like ``np.linalg.lstsq``, in
       Jacobi-scaled coefficients), computed for those texels only; nothing raises. A texel
@@ -290,13 +371,18 @@ def fit(
         )
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    if gamma < 0:
-        raise ValueError(f"gamma must be >= 0, got {gamma}")
+    if ridge < 0:
+        raise ValueError(f"ridge must be >= 0, got {ridge}")
     T, P, C = f.shape
+    if gamma is not None and sigma is not None:
+        sigma = np.broadcast_to(np.asarray(sigma, np.float64), (P, 2))
     coeffs = np.empty((P, C, len(powers)))
     for s in range(0, P, chunk):
         e = min(s + chunk, P)
-        coeffs[s:e] = _fit_chunk(d1[:, s:e], d2[:, s:e], f[:, s:e], order, gamma)
+        coeffs[s:e] = _fit_chunk(
+            d1[:, s:e], d2[:, s:e], f[:, s:e], order, ridge, gamma,
+            None if gamma is None or sigma is None else sigma[s:e], sigma_floor,
+        )
     return coeffs
 
 
