@@ -30,6 +30,10 @@ and the high-passed detail height (mesh + map) against the ground truth's: Pears
 (*detail corr*) and *rel err* = RMS error / RMS of the ground truth's detail (0 perfect,
 1 no better than no detail).
 
+Per-frame confidence (the PDM's ``confidence``, X-Facesynth-Confidence) is ranked against the
+per-frame mean face vertex error: Spearman ρ of ``1 − confidence`` and the error, per input
+range with every marker condition pooled (issue 17: ≥ 0.6 out of range).
+
 Also writes, per family, a heat map PNG of the vertex errors of every method on the worst
 frame (the largest PDM-biquadratic vertex error over all rows).
 
@@ -71,6 +75,7 @@ ORDERS = ("linear", "biquadratic")
 DEFAULT_FRAMES = 8
 SS_MARKERS, SS_RIG = "shape space (markers)", "shape space (rig)"
 WORST_OF = "PDM biquadratic"
+CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the result key)
 HEAT_MM = 2.0                     # heat-map colour range, mm
 
 
@@ -138,7 +143,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
         k = D.shape[-1] // H
         if k > 1:
             D = D.reshape(len(D), H, k, H, k).mean(axis=(2, 4))
-        return out["vertices"].astype(np.float64), tex.texels(D), out["clamped"]
+        return out["vertices"].astype(np.float64), tex.texels(D), out["clamped"], out.get(CONFIDENCE)
 
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
@@ -186,6 +191,9 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                     "corr": s["fine_r"], "rel": s["fine_rms_mm"] / r["signal_rms_mm"][pdm.FACE],
                     "frames": len(gt.frames), "seconds": time.perf_counter() - t0}
                 r_ = rows[(rname, cname, name)]
+                if r["extra"].get(name) is not None:        # per-frame confidence (PDM)
+                    r_["confidence"] = np.asarray(r["extra"][name], np.float64).tolist()
+                    r_["frame_error"] = face_err.mean(axis=1).tolist()
                 print(f"ROW | {family} | {rname} | {cname} | {name} | {r_['mean']:.3f} | {r_['p95']:.3f} "
                       f"| {r_['max']:.2f} | {r_['corr']:.2f} | {r_['rel']:.2f} |", file=sys.stderr, flush=True)
                 if name == WORST_OF:
@@ -237,6 +245,30 @@ def _n(x, d=3):
     return "—" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{d}f}"
 
 
+def confidence_rank(rows: dict) -> dict:
+    """Spearman ρ between ``1 − confidence`` and the mean face vertex error of each frame
+    (issue 17's target: ≥ 0.6 out of range), per method, per input range (its frames of every
+    marker condition pooled) and over all of them: {method: {range or "all": (ρ, frames)}}."""
+    from scipy.stats import spearmanr
+
+    pooled: dict = {}
+    for (rname, _, name), r in rows.items():
+        if "confidence" in r:
+            for key in (rname, "all"):
+                c, e = pooled.setdefault(name, {}).setdefault(key, ([], []))
+                c += r["confidence"]
+                e += r["frame_error"]
+    out = {}
+    for name, ranges in pooled.items():
+        out[name] = {}
+        for key, (c, e) in ranges.items():
+            c, e = np.asarray(c), np.asarray(e)
+            rho = (float(spearmanr(1.0 - c, e).statistic)
+                   if len(c) > 2 and np.ptp(c) > 0 and np.ptp(e) > 0 else float("nan"))
+            out[name][key] = (rho, len(c))
+    return out
+
+
 def report(results: dict, frames: int | None, seconds: float) -> str:
     lines = ["# Generalization report (issue 17)", "",
              f"Face region; {frames or 'all'} held-out map frames per performance; "
@@ -253,6 +285,16 @@ def report(results: dict, frames: int | None, seconds: float) -> str:
                 continue
             lines.append(f"| {rname} | {cname} | {name} | {_n(r['mean'])} | {_n(r['p95'])} | {_n(r['max'], 2)} "
                          f"| {_n(r['corr'], 2)} | {_n(r['rel'], 2)} |")
+        ranks = confidence_rank(res["rows"])
+        if ranks:
+            keys = list(RANGES) + ["all"]
+            lines += ["", "Per-frame confidence against per-frame error: Spearman ρ of 1 − confidence "
+                          "and the frame's mean face vertex error (frames of every marker condition "
+                          "pooled; target ≥ 0.6 out of range; — where the confidence is constant)", "",
+                      "| method | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+            for name, by in ranks.items():
+                lines.append(f"| {name} confidence | " + " | ".join(
+                    f"{_n(by[k][0], 2)} ({by[k][1]} frames)" if k in by else "" for k in keys) + " |")
         lines += ["", f"Worst {WORST_OF} frame: {w['performance']} frame {w['frame']} "
                       f"({w['range']}, {w['condition']}), max {w['max']:.2f} mm: "
                       f"`benchmarks/out/generalization/worst_family_{family}.png`", ""]

@@ -95,7 +95,8 @@ def cmd_pdm_train(args: argparse.Namespace) -> int:
     actor = dataset.load_actor(args.actor)
     names = args.clips or dataset.performance_names(args.actor, "train_")
     clips = [dataset.load_clip(args.actor, name, actor) for name in names]
-    given = {"gamma": args.gamma} if args.gamma is not None else {}   # else the method's default
+    given = {k: v for k, v in (("gamma", args.gamma), ("ridge", args.ridge))
+             if v is not None}                                # else the method's defaults
     if args.margin is not None:
         given["extrapolation_margin"] = None if args.margin < 0 else args.margin
     params = PdmParams(order=args.order, medium_resolution=args.medium_resolution,
@@ -373,7 +374,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--medium-resolution", type=int, default=512)
     p.add_argument("--fine-resolution", type=int, default=1024)
     # defaults: PdmParams' own (not imported here: the method's import would slow every command)
-    p.add_argument("--gamma", type=float, help="regularization γ of ma2008 §4.2 (default: PdmParams')")
+    p.add_argument("--gamma", type=float,
+                   help="the paper's regularization γ of ma2008 §4.2 (rows γ/σ; overrides --ridge)")
+    p.add_argument("--ridge", type=float,
+                   help="dimensionless ridge, used without --gamma (default: PdmParams')")
     p.add_argument("--margin", type=float,
                    help="extrapolation limit: fraction of the training range (negative: none; "
                         "default: PdmParams')")

@@ -10,7 +10,7 @@
     facesynth train ACTOR --kind pdm --clips ID ... [--params JSON] [--set k=v ...] [--no-wait]
     facesynth jobs list [--status S] [--actor ID] [--kind K] | show JOB | watch JOB | cancel JOB
     facesynth synthesize MODEL take.c3d|take.trc|take.csv|take.npz -o OUT [--format obj-exr|npz|usd]
-                         [--pattern 'shot_{frame:04d}'] [--start-frame N]
+                         [--pattern 'shot_{frame:04d}'] [--start-frame N] [--marker-filter FRAMES]
     facesynth enhance MODEL frames.npz -o OUT [--rig NAME] [--format obj-exr|npz|usd] [...]
     facesynth models list ACTOR | show MODEL | delete MODEL | export MODEL -o DIR
     facesynth transfer MODEL --target ACTOR --landmarks FILE [--params JSON] [--set k=v ...]
@@ -204,6 +204,19 @@ def _file(path: str | Path, what: str = "file") -> Path:
     if not os.access(path, os.R_OK):
         raise UsageError(f"{path}: not readable")
     return path
+
+
+def _filter_frames(text: str) -> float:
+    """argparse type of ``--marker-filter``: σ in frames, a finite number ≥ 0 (the server
+    refuses one above its limit)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value >= 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a number of frames >= 0 (e.g. 3; 0 is off)")
+    return value
 
 
 def _frame_pattern(text: str) -> str:
@@ -689,8 +702,9 @@ def _run_performance(client, args, **source: Any) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"{out}: exists and is not a folder")
-    accepted = client.synthesis.submit_job(args.model, outputs=args.outputs,
-                                           format=FORMATS[args.format], **source)
+    accepted = client.synthesis.submit_job(
+        args.model, outputs=args.outputs, format=FORMATS[args.format],
+        marker_filter_frames=getattr(args, "marker_filter", 0.0), **source)
     code = _wait(client, args, accepted, f"{args.command} {accepted.job_id}")
     if code != EXIT_OK or args.no_wait:
         return code
@@ -1161,6 +1175,12 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                             "frames.json (default 0)")
         if name == "enhance":
             p.add_argument("--rig", help="the registered input rig the frames are on")
+        else:
+            p.add_argument("--marker-filter", type=_filter_frames, default=0.0, metavar="FRAMES",
+                           help="smooth the markers in time on the server before synthesis "
+                                "(the job's marker_filter_frames: σ in frames of a local "
+                                "quadratic fit over the whole take; 3 at 30 fps for ordinary "
+                                "mocap noise; default 0: off)")
 
     p = command(sub, "correspond", correspond,
                 "bring a source scan into a target scan's UV space (a correspondence job) "

@@ -1,5 +1,6 @@
 """The pdm-train / pdm-synthesize commands on the level-0 sample actor."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +12,10 @@ def test_pdm_train_and_synthesize_from_the_command_line(pdm_actor_dir, tmp_path,
     model = tmp_path / "model"
     assert main(["pdm-train", "--actor", str(pdm_actor_dir), "--out", str(model), "--clips",
                  "train_smile", "train_brow_raise", "--medium-resolution", "64",
-                 "--fine-resolution", "64", "--order", "linear"]) == 0
+                 "--fine-resolution", "64", "--order", "linear", "--ridge", "0.2"]) == 0
     assert "PCA energy" in capsys.readouterr().out
+    params = json.loads((model / "manifest.json").read_text())["params"]
+    assert (params["ridge"], params["gamma"]) == (0.2, None)     # --gamma: the paper's γ
     with np.load(pdm_actor_dir / "performances" / "heldout_in_range.npz") as d:
         np.savez(tmp_path / "m.npz", markers=d["markers"][:10])
     assert main(["pdm-synthesize", "--model", str(model), "--markers", str(tmp_path / "m.npz"),

@@ -191,3 +191,45 @@ def test_global_server_and_token_come_before_or_after_the_command():
     assert (neither.server, neither.token) == (None, None)
     both = parser.parse_args(["--server", "http://a:1", "jobs", "list", "--server", "http://b:2"])
     assert both.server == "http://b:2"                      # the nearer one wins
+
+
+def test_synthesize_marker_filter_smooths_the_take_on_the_server(capsys, server, files, tmp_path):
+    """``--marker-filter 3`` = the job's ``marker_filter_frames`` 3: the same result as
+    synthesizing the take filtered locally by the server's filter, and not the raw take's."""
+    from service.geometry.marker_filter import filter_performance
+
+    actor = run(capsys, server, "actors", "create", "filtered")[1].strip()
+    run(capsys, server, "upload", "neutral", actor, str(files / "neutral.npz"))
+    run(capsys, server, "upload", "markers", actor, str(files / "markers.json"))
+    clips = [run(capsys, server, "upload", "clip", actor, str(files / f"{n}.npz"))[1].strip()
+             for n in ("rise", "fall")]
+    code, out, err = run(capsys, server, "train", actor, "--kind", "pdm", "--clips", *clips,
+                         "--params", json.dumps(PDM_PARAMS), "--set", "order=linear")
+    assert code == EXIT_OK, err
+    pdm = out.strip()
+    V, _, _ = sheet(16, 13)
+    take = sheet_motion(V, 9, 0.1)[:, list(SHEET_MARKERS)]
+    take += np.random.default_rng(3).normal(scale=0.3, size=take.shape)       # mocap noise, mm
+    (tmp_path / "raw.npz").write_bytes(npz(markers=take, fps=np.float64(30.0)))
+    (tmp_path / "pre.npz").write_bytes(npz(markers=filter_performance(take, 3.0), fps=np.float64(30.0)))
+
+    def result(name, *extra):
+        code, _, err = run(capsys, server, "synthesize", pdm, str(tmp_path / f"{name}.npz"),
+                           "-o", str(tmp_path / f"out-{name}-{len(extra)}"), "--format", "npz", *extra)
+        assert code == EXIT_OK, err
+        with np.load(tmp_path / f"out-{name}-{len(extra)}" / f"{name}.npz") as r:
+            return r["vertices"].astype(np.float64)
+
+    filtered, raw, pre = result("raw", "--marker-filter", "3"), result("raw"), result("pre")
+    assert np.abs(filtered - pre).max() < 1e-4                               # float32 outputs
+    assert np.abs(filtered - raw).max() > 0.05                               # the filter acted
+    # a bad σ is a usage error (exit 2) before anything is sent; one above the server's
+    # limit is the server's 422 (exit 3)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["synthesize", pdm, str(tmp_path / "raw.npz"), "-o", str(tmp_path / "x"),
+              "--marker-filter", "-1", "--server", server.url])
+    assert exit_info.value.code == 2 and "frames >= 0" in capsys.readouterr().err
+    code, _, err = run(capsys, server, "synthesize", pdm, str(tmp_path / "raw.npz"), "-o",
+                       str(tmp_path / "y"), "--marker-filter", "1000")
+    assert code == EXIT_REJECTED and "marker_filter_frames" in err and not (tmp_path / "y").exists()
+    assert run(capsys, server, "actors", "delete", actor, "--cascade")[0] == EXIT_OK

@@ -221,7 +221,7 @@ class Model(BaseModel):
     model_config = ConfigDict(from_attributes=True, json_schema_extra={"examples": [{
         "id": _MODEL_ID, "actor_id": _ACTOR_ID, "kind": "pdm", "status": "ready",
         "params": {"order": "biquadratic", "medium_resolution": 512, "fine_resolution": 1024,
-                   "gamma": 30.0},
+                   "ridge": 0.1},
         "metrics": {"training_frames": 480}, "created_at": _CREATED, "size_bytes": 310000000}]})
 
     id: str

@@ -22,6 +22,8 @@ def test_pdm_parameter_defaults_mirror_the_method():
     ({"medium_resolution": 8}, "medium_resolution"),
     ({"fine_resolution": 9000}, "fine_resolution"),
     ({"gamma": -1}, "gamma"),
+    ({"ridge": -1}, "ridge"),
+    ({"ridge": "inf"}, "ridge"),
     ({"order": "quartic"}, "order"),
     ({"extrapolation_margin": -0.1}, "extrapolation_margin"),
     ({"gama": 3}, "gama"),  # misspelt: refused, not ignored
@@ -30,6 +32,28 @@ def test_pdm_parameters_out_of_bounds_or_unknown_are_refused(params, field):
     with pytest.raises(ValidationError) as info:
         kinds.get_kind("pdm").parse_params(params)
     assert [e["loc"] for e in info.value.errors()] == [(field,)]
+
+
+#: the params a model trained on main before ``ridge`` existed stored in its manifest.json
+_STORED_BEFORE_RIDGE = {
+    "marker_noise_mm": 0.0, "order": "biquadratic", "medium_resolution": 512,
+    "fine_resolution": 1024, "gamma": 30.0, "axis_threshold_deg": 30.0,
+    "extrapolation_margin": 0.25, "validity_width": 3.0, "validity_slope": 1.0,
+    "fine_highpass_mm": 2.0, "smoothing_lam_dt": 125.0,
+}
+
+
+def test_pdm_gamma_keeps_the_paper_meaning_and_ridge_is_the_default():
+    """``gamma`` null → the dimensionless ``ridge`` 0.1; a request or a stored model with
+    ``gamma: 30`` (no ``ridge``) validates unchanged and keeps the paper's γ rows
+    (``polynomial.fit`` ignores ``ridge`` when ``gamma`` is given)."""
+    default = kinds.get_kind("pdm").parse_params(None)
+    assert (default.gamma, default.ridge) == (None, 0.1)
+    sent = kinds.get_kind("pdm").parse_params({"gamma": 30})
+    assert (sent.gamma, sent.ridge) == (30.0, 0.1)
+    stored = PdmParams(**{"marker_noise_mm": 0.0, **_STORED_BEFORE_RIDGE})   # as store.load
+    assert stored.gamma == 30.0
+    assert PdmParams(**stored.model_dump(mode="json")) == stored              # re-saves too
 
 
 def test_pdm_extrapolation_limit_can_be_disabled():

@@ -545,7 +545,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
     d1, d2 = _parameters(field_m, S)
     progress(0.3, "medium band fit")
-    medium = CoefficientMap(Hm, idx_m, polynomial.fit(d1, d2, f_med, params.order, params.gamma).astype(np.float32))
+    ridge = {"ridge": params.ridge, "gamma": params.gamma}         # the fit's regularization
+    medium = CoefficientMap(Hm, idx_m, polynomial.fit(d1, d2, f_med, params.order, **ridge).astype(np.float32))
     med_rms = polynomial.fit_residual_rms(medium.coeffs, d1, d2, f_med)
     del f_med, d1, d2
 
@@ -586,7 +587,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         f_fine[t0:t1] = np.stack(cols)
     d1, d2 = _parameters(field_f, S)
     progress(0.6, "fine band fit")
-    coeffs_f = polynomial.fit(d1, d2, f_fine, params.order, params.gamma).astype(np.float32)
+    coeffs_f = polynomial.fit(d1, d2, f_fine, params.order, **ridge).astype(np.float32)
     fine = CoefficientMap(Hf, idx_f_stored, _unpermute(coeffs_f, order_f))
     fine_rms = polynomial.fit_residual_rms(coeffs_f, d1, d2, f_fine)[:, 0]
     fine_signal = np.sqrt(np.mean(f_fine.astype(np.float64) ** 2, axis=0))
@@ -601,7 +602,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         order_a, field_a = element_field(mesh, axes, idx_a, Ha)
         f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a[order_a]] for c in clips]).astype(np.float32)
         d1, d2 = _parameters(field_a, S)
-        coeffs_a = polynomial.fit(d1, d2, f_alb, params.order, params.gamma).astype(np.float32)
+        coeffs_a = polynomial.fit(d1, d2, f_alb, params.order, **ridge).astype(np.float32)
         albedo = CoefficientMap(Ha, idx_a, _unpermute(coeffs_a, order_a))
         alb_rms = polynomial.fit_residual_rms(coeffs_a, d1, d2, f_alb)
         del f_alb, d1, d2

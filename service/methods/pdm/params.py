@@ -16,11 +16,24 @@ class PdmParams(MarkerParams):
 
     Notes
     -----
-    ``gamma``'s strength depends on the units of d1, d2 (mm here, strains scaled by √|N2|):
-    the γ rows weigh γ/σ² against data of size σ², so the paper's "low values" mean little.
-    Chosen on the sample actor's held-out in-range performance (level 1, biquadratic):
-    γ = 1e-3, 30, 100 gave fine-detail r 0.706, 0.745, 0.745 and medium mean error 0.197,
-    0.194, 0.204 mm; at level 0, 30 was best of 1e-3…3000.
+    Two ridges for the per-texel fit (:mod:`.polynomial`), one used: ``gamma`` given → the
+    paper's rows γ/(σ1^i σ2^j) (ma2008 §4.2), exactly as before ``ridge`` existed (models
+    stored with ``gamma: 30`` load and mean what they meant); ``gamma`` null (the default) →
+    ``ridge``, dimensionless (issue 17): ridge² is the ridge / data energy of every
+    non-constant term at every texel, whatever the units of d1, d2, the number of frames or
+    the actor (the paper's γ/σ rows were not: γ = 30 shrank family b's d2 terms 35–60× and
+    family a's 3×). ``ridge`` chosen on family a (level 0, fine band 512², held-out in
+    range / combinations / out of range, fine detail r): ridge = 0, 0.03, 0.1, 0.3, 1 gave
+    0.694/0.423/0.580, 0.689/0.419/0.578, 0.686/0.420/0.579, 0.682/0.421/0.575,
+    0.676/0.417/0.545 (flat up to 0.3): 0.1 keeps a little shrinkage for texels whose
+    parameters barely varied. Confirmed on family b: fine r 0.708/0.340/0.531 (old γ = 30)
+    → 0.717/0.362/0.594, training fine fit / signal 0.555 → 0.456.
+
+    The paper's γ (old default 30): its strength depends on the units of d1, d2 (mm here,
+    strains scaled by √|N2|): the γ rows weigh γ/σ² against data of size σ². Chosen then on
+    the sample actor's held-out in-range performance (level 1, biquadratic): γ = 1e-3, 30,
+    100 gave fine-detail r 0.706, 0.745, 0.745 and medium mean error 0.197, 0.194, 0.204 mm;
+    at level 0, 30 was best of 1e-3…3000.
     """
 
     order: Literal["linear", "biquadratic", "bicubic"] = Field(
@@ -37,11 +50,20 @@ class PdmParams(MarkerParams):
         description="Texels per side of the 1D fine-band PDM and of the synthesized "
                     "displacement/normal maps (the paper uses 1024).",
         examples=[1024])
-    gamma: float = Field(
-        default=30.0, ge=0, allow_inf_nan=False,
-        description="Regularization constant γ of the per-texel least-squares fit (§4.2); "
-                    "larger values pull the coefficients towards zero.",
+    gamma: float | None = Field(
+        default=None, ge=0, allow_inf_nan=False,
+        description="The paper's regularization constant γ of the per-texel least-squares fit "
+                    "(§4.2): rows γ/(σ1^i σ2^j), σ the standard deviations of the deformation "
+                    "parameters at the texel (units-dependent; the former default was 30). "
+                    "When given, `ridge` is ignored; null (the default) uses `ridge`.",
         examples=[30.0])
+    ridge: float = Field(
+        default=0.1, ge=0, allow_inf_nan=False,
+        description="Dimensionless ridge of the per-texel least-squares fit, used when `gamma` "
+                    "is null (ignored when `gamma` is given): ridge² is each non-constant "
+                    "term's ridge relative to its data energy at the texel (0: plain least "
+                    "squares); larger values pull the coefficients towards zero.",
+        examples=[0.1])
     axis_threshold_deg: float = Field(
         default=30.0, ge=0, le=90,
         description="Axis-smoothing threshold angle of §4.1, in degrees.",

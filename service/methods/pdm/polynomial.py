@@ -14,6 +14,27 @@ least-squares problem of ma2008 §4.2
 with σ1, σ2 the standard deviations of d1, d2 over the training frames at that texel. The
 γ rows keep a coefficient whose parameter barely varied from blowing up.
 
+Two ridges (``fit``'s ``gamma`` and ``ridge``): ``gamma`` gives the paper's rows above;
+without it the default is the dimensionless ridge (issue 17, "the fine map is 4× too weak"
+on family b)
+
+    w_k = ρ ‖Φ_k‖ = ρ (Σ_t Φ_tk²)^½,  w_const = 0      (ρ = ``ridge``).
+
+The paper's rows are not dimensionless: against the data energy ``Σ_t Φ_tk² ≈ T σ^{2(i+j)}``
+they weigh ``γ² / (T σ^{4(i+j)})``, so one γ is a different ridge for every unit of d1, d2,
+number of frames, actor and texel (d1, d2 are in mm here). Measured on the fine band (512²,
+γ = 30, median over the face texels of ridge / data energy): family a (T = 160, median σ1,
+σ2 = 2.2, 1.1 mm) 0.24 on d1, 3.3 on d2, 0.36 on d2²; family b (T = 260, σ = 1.4, 0.55 mm)
+0.93, 35 and 58, i.e. b's d2 terms were shrunk 35–60× and its fine fit kept only a third of
+the dynamic signal it could fit (dynamic R² 0.34 against 0.59 unregularized). The ``ridge``
+rows scale each term's row by its own RMS over the texel's frames, so ``ρ²`` *is* the ridge
+/ data energy of every term at every texel — the ridge of the column-normalized (Jacobi-
+scaled) system, ``Â + ρ² I`` on the non-constant terms — the same for any unit, frame count
+and actor. It still does what the paper asks of the γ rows: a parameter that never varied
+contributes a column (nearly) parallel to the constant's, which the unregularized constant
+absorbs while its own coefficient is pulled to 0; a parameter that is 0 in every frame gives
+a zero column, solved in the minimum-norm sense (coefficient 0).
+
 Solved through the normal equations ``(ΦᵀΦ + diag(w²)) a = Φᵀf``, all texels and channels
 at once: ΦᵀΦ is assembled from the distinct monomial moments ``Σ_t d1^a d2^b`` (15 for
 the biquadratic, not K² = 36 products), accumulated by a Python loop over blocks of frames
@@ -123,6 +144,31 @@ def regularization_weights(
     return np.where((powers[:, 0] + powers[:, 1]) == 0, 0.0, w)
 
 
+def relative_ridge_weights(order: str, column_norms: np.ndarray, ridge: float) -> np.ndarray:
+    """Diagonal of the dimensionless ridge rows (module docstring): ``w_k = ρ ‖Φ_k‖``, 0 for
+    the constant.
+
+    Parameters
+    ----------
+    order : str                 a key of ``ORDERS``
+    column_norms : (..., K)     ``‖Φ_k‖ = (Σ_t Φ_tk²)^½`` over a texel's training frames (units
+                                of d1^i d2^j; the square roots of the normal matrix's diagonal)
+    ridge : float               ρ ≥ 0, dimensionless: ``ρ²`` is the ridge / data energy of every
+                                non-constant term
+
+    Returns
+    -------
+    w : (..., K) float64
+    """
+    if ridge < 0:
+        raise ValueError(f"ridge must be >= 0, got {ridge}")
+    powers = np.array(_order(order))
+    norms = np.asarray(column_norms, np.float64)
+    if norms.shape[-1:] != (len(powers),):
+        raise ValueError(f"expected column norms (..., {len(powers)}) for order {order!r}, got {norms.shape}")
+    return np.where((powers[:, 0] + powers[:, 1]) == 0, 0.0, ridge * norms)
+
+
 def _moment_index(powers: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray]:
     """Distinct monomials (n_mon,2) of the products of two terms, and (K,K) index into them."""
     p = np.array(powers)
@@ -169,8 +215,9 @@ def _solve_normal(
     return x * s[..., :, None]
 
 
-def _fit_chunk(d1, d2, f, order, gamma, sigma, sigma_floor):
-    """Coefficients (n,C,K) for a chunk: d1, d2 (T,n), f (T,n,C), sigma (n,2) or None."""
+def _fit_chunk(d1, d2, f, order, ridge, gamma, sigma, sigma_floor):
+    """Coefficients (n,C,K) for a chunk: d1, d2 (T,n), f (T,n,C), sigma (n,2) or None;
+    ``gamma`` None: the relative ridge ``ridge``, else the paper's γ rows."""
     powers = TERM_POWERS[order]
     T, n, C = f.shape
     K = len(powers)
@@ -185,7 +232,8 @@ def _fit_chunk(d1, d2, f, order, gamma, sigma, sigma_floor):
     rows = valid.any(axis=2)                                      # texel measured at frame t
     ref1 = np.zeros(n)                                            # d at the first measured
     ref2 = np.zeros(n)                                            # frame: shift for σ
-    if sigma is None:
+    paper = gamma is not None
+    if paper and sigma is None:
         for t in range(T - 1, -1, -1):
             ref1 = np.where(rows[t], d1[t], ref1)
             ref2 = np.where(rows[t], d2[t], ref2)
@@ -220,7 +268,7 @@ def _fit_chunk(d1, d2, f, order, gamma, sigma, sigma_floor):
             np.multiply(X[: len(Xf), :b], ft[:, :, c], out=Xf[:, :b])
             for k, (i, j) in enumerate(powers):
                 B[k, :, c] += np.einsum("tn,tn->n", Xf[i, :b], Y[j, :b])
-        if sigma is None:
+        if paper and sigma is None:
             for v, (z, ref) in enumerate(((X[1, :b], ref1), (Y[1, :b], ref2))):
                 dz = z - ref
                 if not all_valid:
@@ -229,18 +277,22 @@ def _fit_chunk(d1, d2, f, order, gamma, sigma, sigma_floor):
                 S[v, 1] += np.einsum("tn,tn->n", dz, dz)
 
     count = np.full((n, 1), T) if all_valid else mask.sum(axis=0)  # (n,Cm) valid rows
-    if sigma is None:
-        nr = np.maximum(T if all_valid else rows.sum(axis=0), 1)  # frames measured
-        sigma = np.sqrt(np.maximum(S[:, 1] / nr - (S[:, 0] / nr) ** 2, 0.0)).T   # (n,2)
-    w = regularization_weights(order, sigma[:, 0], sigma[:, 1], gamma, sigma_floor)  # (n,K)
+    if not paper:                                                 # ρ ‖Φ_k‖
+        norms = np.sqrt(np.moveaxis(M[np.diagonal(index)], 0, -1))  # (n,Cm,K)
+        w = relative_ridge_weights(order, norms, ridge)           # (n,Cm,K)
+    else:                                                         # γ / (σ1^i σ2^j)
+        if sigma is None:
+            nr = np.maximum(T if all_valid else rows.sum(axis=0), 1)  # frames measured
+            sigma = np.sqrt(np.maximum(S[:, 1] / nr - (S[:, 0] / nr) ** 2, 0.0)).T   # (n,2)
+        w = regularization_weights(order, sigma[:, 0], sigma[:, 1], gamma, sigma_floor)[:, None, :]
 
-    unregularized = (np.delete(w, const, axis=1) == 0).any(axis=1)[:, None]
+    unregularized = (np.delete(w, const, axis=-1) == 0).any(axis=-1)   # (n,1) or (n,Cm)
     check = (count < K) | unregularized                           # (n,Cm) may be singular
     coeffs = np.empty((n, C, K))
     for s in range(0, n, SOLVE_BLOCK):                            # bounds the K×K work arrays
         e = min(s + SOLVE_BLOCK, n)
         A = np.moveaxis(M[:, s:e][index], (0, 1), (-2, -1))       # (e-s,Cm,K,K)
-        A[..., np.arange(K), np.arange(K)] += (w[s:e] ** 2)[:, None, :]
+        A[..., np.arange(K), np.arange(K)] += w[s:e] ** 2
         if shared:                                                # channels = right-hand sides
             x = _solve_normal(A[:, 0], np.moveaxis(B[:, s:e], 0, 1), check[s:e, 0])
             coeffs[s:e] = np.moveaxis(x, -1, 1)
@@ -255,7 +307,9 @@ def fit(
     d2: np.ndarray,
     f: np.ndarray,
     order: str = "biquadratic",
-    gamma: float = 1e-3,
+    *,
+    ridge: float = 0.1,
+    gamma: float | None = None,
     sigma: np.ndarray | None = None,
     chunk: int = 65536,
     sigma_floor: float = SIGMA_FLOOR,
@@ -263,7 +317,8 @@ def fit(
     """Regularized least-squares PDM coefficients at every texel (ma2008 §4.2, eq. 1).
 
     Solves per texel and channel ``[Φ; diag(w)] a = [f; 0]`` with ``Φ = design_matrix(d1, d2)``
-    over the training frames and ``w = regularization_weights(order, σ1, σ2, gamma)``.
+    over the training frames and ``w = relative_ridge_weights(order, ‖Φ_k‖, ridge)`` or, when
+    ``gamma`` is given, the paper's ``w = regularization_weights(order, σ1, σ2, gamma)``.
 
     Parameters
     ----------
@@ -272,10 +327,14 @@ def fit(
                              3D medium and 1D fine bands, reflectance for albedo); (T,P)
                              means C = 1
     order : str              ``"linear"``, ``"biquadratic"`` (eq. 1) or ``"bicubic"``
-    gamma : float            regularization constant γ ≥ 0 (ma2008 §4.2: small, e.g. 1e-3)
+    ridge : float            ρ ≥ 0, dimensionless (ρ² = ridge / data energy of each
+                             non-constant term; 0: plain least squares); ignored when
+                             ``gamma`` is given
+    gamma : float or None    the paper's regularization constant γ ≥ 0 (ma2008 §4.2, rows
+                             γ / (σ1^i σ2^j)); None: use ``ridge``
     sigma : (P,2) or None    σ1, σ2 per texel in units of d1, d2 (anything broadcastable to
-                             (P,2)); None: the standard deviation of d1, d2 over the frames
-                             in which the texel was measured
+                             (P,2)), ``gamma`` mode only; None: the standard deviation of d1,
+                             d2 over the frames in which the texel was measured
     chunk : int              texels solved per batch, to bound memory (see Notes)
     sigma_floor : float      σ below this is treated as this (see ``regularization_weights``)
 
@@ -289,8 +348,9 @@ def fit(
     - Missing data: a NaN in ``f[t,p,c]`` (texel not seen in frame t) or in ``d1[t,p]``,
       ``d2[t,p]`` drops that row from the fit of that texel (and channel): weight 0.
     - Singular systems: with γ > 0 the normal matrix is positive definite whenever the texel
-      has at least one valid row. Texels with fewer than K valid rows or with an
-      unregularized term (γ = 0) are checked; if their Jacobi-scaled normal matrix is
+      has at least one valid row; with ρ > 0, whenever no term's column is all zero. Texels
+      with fewer than K valid rows or with an unregularized term (γ or ρ = 0, a zero column)
+      are checked; if their Jacobi-scaled normal matrix is
       numerically singular (eigenvalues below ``SINGULAR_RCOND`` × the largest) they get the
       minimum-norm least-squares solution (pseudo-inverse, like ``np.linalg.lstsq``, in
       Jacobi-scaled coefficients), computed for those texels only; nothing raises. A texel
@@ -311,15 +371,17 @@ def fit(
         )
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
+    if ridge < 0:
+        raise ValueError(f"ridge must be >= 0, got {ridge}")
     T, P, C = f.shape
-    if sigma is not None:
+    if gamma is not None and sigma is not None:
         sigma = np.broadcast_to(np.asarray(sigma, np.float64), (P, 2))
     coeffs = np.empty((P, C, len(powers)))
     for s in range(0, P, chunk):
         e = min(s + chunk, P)
         coeffs[s:e] = _fit_chunk(
-            d1[:, s:e], d2[:, s:e], f[:, s:e], order, gamma,
-            None if sigma is None else sigma[s:e], sigma_floor,
+            d1[:, s:e], d2[:, s:e], f[:, s:e], order, ridge, gamma,
+            None if gamma is None or sigma is None else sigma[s:e], sigma_floor,
         )
     return coeffs
 

@@ -1,5 +1,7 @@
 """Per-texel polynomial fitting of deformation-driven PDMs (ma2008 §4.2, eq. 1)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from service.methods.pdm.polynomial import (
     fit,
     fit_residual_rms,
     regularization_weights,
+    relative_ridge_weights,
 )
 
 
@@ -57,16 +60,35 @@ def test_design_matrix_shapes():
 # --- regularization rows ------------------------------------------------------------------
 
 
-def test_regularization_weights_are_gamma_over_sigma_powers():
-    w = regularization_weights("biquadratic", 2.0, 0.5, 0.1)
-    np.testing.assert_allclose(w, [0.1 / 4, 0.1 / 0.25, 0.1 / 1.0, 0.1 / 2, 0.1 / 0.5, 0.0])
-    w = regularization_weights("linear", np.array([1.0, 4.0]), np.array([2.0, 1.0]), 1.0)
-    np.testing.assert_allclose(w, [[1, 0.5, 0], [0.25, 1, 0]])
+def test_relative_ridge_weights_are_ridge_times_column_norms():
+    w = relative_ridge_weights("biquadratic", np.array([4.0, 0.25, 1.0, 2.0, 0.5, 7.0]), 0.1)
+    np.testing.assert_allclose(w, [0.4, 0.025, 0.1, 0.2, 0.05, 0.0])       # constant: 0
+    w = relative_ridge_weights("linear", np.array([[1.0, 4.0, 9.0], [2.0, 1.0, 3.0]]), 1.0)
+    np.testing.assert_allclose(w, [[1, 4, 0], [2, 1, 0]])
+    with pytest.raises(ValueError, match="column norms"):
+        relative_ridge_weights("linear", np.ones(6), 1.0)
 
 
-def test_regularization_weights_floor_sigma():
-    w = regularization_weights("linear", 0.0, 1.0, 1e-3, sigma_floor=1e-6)
-    np.testing.assert_allclose(w, [1e3, 1e-3, 0.0])
+def test_fit_ridge_is_invariant_to_the_units_and_frame_count():
+    """The issue-17 fix: rescaling d1, d2 (mm → cm, or two actors' different ranges) or
+    repeating every frame leaves the fitted PDM's values unchanged (the paper's γ/σ rows do
+    not: their weight against the data is γ²/(T σ^{4(i+j)}))."""
+    d1, d2, _, f = _exact("biquadratic", T=25, P=30)
+    f = f + np.random.default_rng(7).normal(size=f.shape)
+    c = fit(d1, d2, f, ridge=0.5)
+    c_cm = fit(d1 / 10, d2 / 4, f, ridge=0.5)
+    np.testing.assert_allclose(evaluate(c_cm, d1[3] / 10, d2[3] / 4), evaluate(c, d1[3], d2[3]), atol=1e-9)
+    c_twice = fit(np.tile(d1, (2, 1)), np.tile(d2, (2, 1)), np.tile(f, (2, 1, 1)), ridge=0.5)
+    np.testing.assert_allclose(c_twice, c, atol=1e-9)
+
+
+def test_fit_single_term_shrinks_by_one_over_one_plus_ridge_squared():
+    """Hand-computed: a linear fit of f = 3 d1 with d2 = 0 and d1 of zero mean: the d1
+    normal equation decouples, (1 + ρ²) Σd1² a = 3 Σd1², so a = 3 / (1 + ρ²)."""
+    d1 = np.array([[-2.0], [-1.0], [1.0], [2.0]])
+    d2 = np.zeros_like(d1)
+    coeffs = fit(d1, d2, 3 * d1, order="linear", ridge=0.5)
+    np.testing.assert_allclose(coeffs[0, 0], [3 / 1.25, 0.0, 0.0], atol=1e-12)
 
 
 # --- 1. exact recovery -------------------------------------------------------------------
@@ -75,7 +97,7 @@ def test_regularization_weights_floor_sigma():
 @pytest.mark.parametrize("gamma", [1e-12, 0.0])
 def test_fit_recovers_exact_biquadratic(gamma):
     d1, d2, a, f = _exact("biquadratic")
-    coeffs = fit(d1, d2, f, gamma=gamma)
+    coeffs = fit(d1, d2, f, ridge=gamma)
     assert coeffs.shape == (500, 3, 6) and coeffs.dtype == np.float64
     np.testing.assert_allclose(coeffs, a, atol=1e-6)
     np.testing.assert_allclose(fit_residual_rms(coeffs, d1, d2, f), 0, atol=1e-9)
@@ -83,10 +105,10 @@ def test_fit_recovers_exact_biquadratic(gamma):
 
 def test_fit_accepts_float32_and_single_channel():
     d1, d2, a, f = _exact("biquadratic", C=1)
-    c64 = fit(d1, d2, f[..., 0], gamma=1e-12)
+    c64 = fit(d1, d2, f[..., 0], ridge=1e-12)
     assert c64.shape == (500, 1, 6)
     d1_32, d2_32, f_32 = (x.astype(np.float32) for x in (d1, d2, f[..., 0]))
-    c32 = fit(d1_32, d2_32, f_32, gamma=1e-12)
+    c32 = fit(d1_32, d2_32, f_32, ridge=1e-12)
     assert c32.dtype == np.float64
     # float32 rounding of the inputs (~1e-7 relative), not of the arithmetic
     np.testing.assert_allclose(c32, a, atol=1e-4)
@@ -99,7 +121,7 @@ def test_fit_accepts_float32_and_single_channel():
 def test_fit_small_gamma_equals_lstsq_on_noisy_data(gamma):
     d1, d2, _, f = _exact("biquadratic", T=40, P=50)
     f = f + np.random.default_rng(2).normal(scale=0.3, size=f.shape)
-    coeffs = fit(d1, d2, f, gamma=gamma)
+    coeffs = fit(d1, d2, f, ridge=gamma)
     for p in (0, 7, 19, 33, 49):
         np.testing.assert_allclose(coeffs[p], _lstsq(d1[:, p], d2[:, p], f[:, p]), atol=1e-8)
 
@@ -109,55 +131,49 @@ def test_fit_equals_stacked_lstsq_with_regularization_rows():
     d1, d2, _, f = _exact("biquadratic", T=25, P=20)
     f = f + np.random.default_rng(3).normal(size=f.shape)
     gamma = 0.5
-    coeffs = fit(d1, d2, f, gamma=gamma)
+    coeffs = fit(d1, d2, f, ridge=gamma)
     for p in (0, 11, 19):
-        w = regularization_weights("biquadratic", d1[:, p].std(), d2[:, p].std(), gamma)
-        A = np.vstack([design_matrix(d1[:, p], d2[:, p]), np.diag(w)[:-1]])   # 5 γ rows
+        Phi = design_matrix(d1[:, p], d2[:, p])
+        w = relative_ridge_weights("biquadratic", np.linalg.norm(Phi, axis=0), gamma)
+        A = np.vstack([Phi, np.diag(w)[:-1]])                                  # 5 γ rows
         b = np.vstack([f[:, p], np.zeros((5, 3))])
         np.testing.assert_allclose(coeffs[p], np.linalg.lstsq(A, b, rcond=None)[0].T, atol=1e-10)
-
-
-def test_fit_default_sigma_is_std_of_parameters_over_frames():
-    d1, d2, _, f = _exact("biquadratic", T=20, P=30)
-    f = f + np.random.default_rng(4).normal(size=f.shape)
-    sigma = np.stack([d1.std(axis=0), d2.std(axis=0)], axis=1)
-    np.testing.assert_allclose(
-        fit(d1, d2, f, gamma=0.3), fit(d1, d2, f, gamma=0.3, sigma=sigma), rtol=1e-12, atol=1e-12
-    )
 
 
 # --- 3. regularization ---------------------------------------------------------------------
 
 
 def test_fit_constant_parameter_terms_go_to_zero():
+    """d2 never varies: its own terms (d2², d2) are absorbed by the unregularized constant;
+    d1 d2 = 0.7 d1 is parallel to d1, and the relative ridge shares the d1 slope between
+    them (a3 + 0.7 a2 = the true a3); the PDM reproduces the data."""
     rng = np.random.default_rng(5)
     T, P = 30, 40
     d1 = rng.uniform(-2, 2, (T, P))
     d2 = np.full((T, P), 0.7)                                      # d2 never varies
     a0, a3, a5 = rng.normal(size=(3, P, 1))
     f = a0 * d1[..., None] ** 2 + a3 * d1[..., None] + a5         # (T,P,1)
-    coeffs = fit(d1, d2, f, gamma=1e-3)
+    coeffs = fit(d1, d2, f, ridge=1e-3)
     assert np.all(np.isfinite(coeffs))
-    np.testing.assert_allclose(coeffs[..., [1, 2, 4]], 0, atol=1e-9)   # d2², d1 d2, d2
-    np.testing.assert_allclose(coeffs[..., 0], a0, atol=1e-6)         # d1² still fit
-    np.testing.assert_allclose(coeffs[..., 3], a3, atol=1e-6)         # d1
-    np.testing.assert_allclose(coeffs[..., 5], a5, atol=1e-6)         # constant
+    np.testing.assert_allclose(coeffs[..., [1, 4]], 0, atol=1e-7)      # d2², d2
+    np.testing.assert_allclose(coeffs[..., 3] + 0.7 * coeffs[..., 2], a3, atol=1e-4)
+    np.testing.assert_allclose(evaluate(coeffs, d1, d2), f, atol=1e-4)
 
 
 def test_fit_larger_gamma_shrinks_nonconstant_coefficients_monotonically():
     d1, d2, _, f = _exact("biquadratic", T=30, P=60)
     f = f + np.random.default_rng(6).normal(scale=0.5, size=f.shape)
-    s1, s2 = d1.std(axis=0), d2.std(axis=0)
-    scale = regularization_weights("biquadratic", s1, s2, 1.0)[:, None, :5]   # (P,1,5)
+    norms = np.linalg.norm(design_matrix(d1, d2), axis=0)                       # (P,6)
+    scale = relative_ridge_weights("biquadratic", norms, 1.0)[:, None, :5]      # (P,1,5)
     norms = []
     for gamma in (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0):
-        coeffs = fit(d1, d2, f, gamma=gamma)
+        coeffs = fit(d1, d2, f, ridge=gamma)
         norms.append(np.linalg.norm(scale * coeffs[..., :5], axis=-1))      # (P,C) penalty
     norms = np.array(norms)
     assert np.all(np.diff(norms, axis=0) <= 1e-12)
     assert np.all(norms[-1] < 0.05 * norms[0])
     # the unregularized constant absorbs the mean when everything else is shrunk away
-    np.testing.assert_allclose(fit(d1, d2, f, gamma=1e6)[..., 5], f.mean(axis=0), atol=1e-6)
+    np.testing.assert_allclose(fit(d1, d2, f, ridge=1e6)[..., 5], f.mean(axis=0), atol=1e-6)
 
 
 # --- 4. other orders ------------------------------------------------------------------------
@@ -166,14 +182,14 @@ def test_fit_larger_gamma_shrinks_nonconstant_coefficients_monotonically():
 @pytest.mark.parametrize("order", ["linear", "bicubic"])
 def test_fit_recovers_exact_data_of_its_order(order):
     d1, d2, a, f = _exact(order, T=30, P=200)
-    coeffs = fit(d1, d2, f, order=order, gamma=1e-12)
+    coeffs = fit(d1, d2, f, order=order, ridge=1e-12)
     assert coeffs.shape == (200, 3, ORDERS[order])
     np.testing.assert_allclose(coeffs, a, atol=1e-6)
 
 
 def test_bicubic_fit_of_biquadratic_data_has_no_cubic_terms():
     d1, d2, a, f = _exact("biquadratic", T=30, P=200)
-    coeffs = fit(d1, d2, f, order="bicubic", gamma=1e-12)
+    coeffs = fit(d1, d2, f, order="bicubic", ridge=1e-12)
     np.testing.assert_allclose(coeffs[..., :4], 0, atol=1e-7)        # d1³, d2³, d1²d2, d1d2²
     np.testing.assert_allclose(coeffs[..., 4:], a, atol=1e-6)        # same term order as eq. 1
 
@@ -187,10 +203,10 @@ def test_fit_ignores_nan_rows():
     f = f + rng.normal(scale=0.2, size=f.shape)
     seen = rng.random((30, 40)) > 0.3
     f_nan = np.where(seen[..., None], f, np.nan)
-    coeffs = fit(d1, d2, f_nan, gamma=1e-2)
+    coeffs = fit(d1, d2, f_nan, ridge=1e-2)
     for p in range(0, 40, 7):
         k = seen[:, p]
-        ref = fit(d1[k, p : p + 1], d2[k, p : p + 1], f[k, p : p + 1], gamma=1e-2)
+        ref = fit(d1[k, p : p + 1], d2[k, p : p + 1], f[k, p : p + 1], ridge=1e-2)
         np.testing.assert_allclose(coeffs[p], ref[0], rtol=1e-10, atol=1e-12)
 
 
@@ -202,13 +218,12 @@ def test_fit_ignores_nan_per_channel_and_nan_parameters():
     f_nan[rng.random(f.shape) < 0.2] = np.nan                      # channels differ
     d1_nan = d1.copy()
     d1_nan[3, ::2] = np.nan                                        # parameter missing too
-    sigma = np.ones((20, 2))
-    coeffs = fit(d1_nan, d2, f_nan, gamma=0.1, sigma=sigma)
+    coeffs = fit(d1_nan, d2, f_nan, ridge=0.1)
     for p in (0, 5, 12):
         for c in range(3):
             k = np.isfinite(f_nan[:, p, c]) & np.isfinite(d1_nan[:, p])
             one = np.s_[k, p : p + 1]
-            ref = fit(d1[one], d2[one], f[one][..., c], gamma=0.1, sigma=sigma[:1])
+            ref = fit(d1[one], d2[one], f[one][..., c], ridge=0.1)
             np.testing.assert_allclose(coeffs[p, c], ref[0, 0], rtol=1e-10, atol=1e-12)
 
 
@@ -217,13 +232,13 @@ def test_fit_underdetermined_and_unseen_texels_do_not_crash():
     f = f.copy()
     f[3:, 0] = np.nan                                              # 3 rows < 6 coefficients
     f[:, 1] = np.nan                                               # never seen
-    coeffs = fit(d1, d2, f, gamma=0.0)
+    coeffs = fit(d1, d2, f, ridge=0.0)
     assert np.all(np.isfinite(coeffs))
     np.testing.assert_allclose(evaluate(coeffs, d1[:3], d2[:3])[:, 0], f[:3, 0], atol=1e-9)
     np.testing.assert_array_equal(coeffs[1], 0)                    # no data: zero map
     rms = fit_residual_rms(coeffs, d1, d2, f)
     assert np.isnan(rms[1, 0]) and rms[0, 0] < 1e-9 and rms[2, 0] < 1e-9
-    assert np.all(np.isfinite(fit(d1, d2, f, gamma=1e-3)))
+    assert np.all(np.isfinite(fit(d1, d2, f, ridge=1e-3)))
 
 
 def test_fit_singular_without_regularization_matches_lstsq_prediction():
@@ -231,7 +246,7 @@ def test_fit_singular_without_regularization_matches_lstsq_prediction():
     d1 = rng.uniform(-2, 2, (25, 4))
     d2 = np.full((25, 4), 0.3)                                     # rank-deficient Φ
     f = rng.normal(size=(25, 4, 2))
-    coeffs = fit(d1, d2, f, gamma=0.0)
+    coeffs = fit(d1, d2, f, ridge=0.0)
     assert np.all(np.isfinite(coeffs))
     for p in range(4):
         Phi = design_matrix(d1[:, p], d2[:, p])
@@ -283,3 +298,93 @@ def test_fit_residual_rms_is_nan_aware_rms():
     np.testing.assert_allclose(
         fit_residual_rms(coeffs, d1, d2, f), np.sqrt(np.nanmean(r**2, axis=0)), rtol=1e-12
     )
+
+
+# --- the paper's γ rows (``gamma`` given; the fit of main before ``ridge`` existed) ---------
+
+
+def _paper_problem():
+    """The seeded problem of ``data/paper_gamma30_fit.npy``: (T,P) d1, d2 and (T,P,3) f with
+    NaN rows per channel and in d1, and texels 0-2 with a d2 that never varies."""
+    rng = np.random.default_rng(2008)
+    T, P = 24, 40
+    d1 = rng.normal(scale=2.0, size=(T, P))
+    d2 = rng.normal(scale=0.5, size=(T, P))
+    d2[:, :3] = 0.7
+    f = rng.normal(size=(T, P, 3))
+    f[rng.random(f.shape) < 0.15] = np.nan
+    d1[rng.random(d1.shape) < 0.05] = np.nan
+    return d1, d2, f
+
+
+def test_fit_with_gamma_is_bit_identical_to_the_paper_rows_fit_before_ridge():
+    """``data/paper_gamma30_fit.npy`` was written by main's ``fit(d1, d2, f, "biquadratic",
+    30.0)`` (γ/(σ1^i σ2^j) rows, σ floor): giving ``gamma`` reproduces it exactly, whatever
+    ``ridge`` says, so clients sending ``gamma: 30`` and models stored with it are unchanged."""
+    d1, d2, f = _paper_problem()
+    ref = np.load(Path(__file__).parent / "data" / "paper_gamma30_fit.npy")
+    for ridge in (0.1, 0.0, 5.0):
+        assert np.array_equal(fit(d1, d2, f, "biquadratic", ridge=ridge, gamma=30.0), ref)
+    assert not np.allclose(fit(d1, d2, f, "biquadratic"), ref)        # default: the ridge
+
+
+def test_regularization_weights_are_gamma_over_sigma_powers():
+    w = regularization_weights("biquadratic", 2.0, 0.5, 0.1)
+    np.testing.assert_allclose(w, [0.1 / 4, 0.1 / 0.25, 0.1 / 1.0, 0.1 / 2, 0.1 / 0.5, 0.0])
+    w = regularization_weights("linear", np.array([1.0, 4.0]), np.array([2.0, 1.0]), 1.0)
+    np.testing.assert_allclose(w, [[1, 0.5, 0], [0.25, 1, 0]])
+
+
+def test_regularization_weights_floor_sigma():
+    w = regularization_weights("linear", 0.0, 1.0, 1e-3, sigma_floor=1e-6)
+    np.testing.assert_allclose(w, [1e3, 1e-3, 0.0])
+
+
+def test_fit_gamma_equals_stacked_lstsq_with_paper_rows():
+    """γ > 0: the normal equations solve ma2008 §4.2's stacked system [Φ; diag(w)] a = [f; 0]."""
+    d1, d2, _, f = _exact("biquadratic", T=25, P=20)
+    f = f + np.random.default_rng(3).normal(size=f.shape)
+    coeffs = fit(d1, d2, f, gamma=0.5)
+    for p in (0, 11, 19):
+        w = regularization_weights("biquadratic", d1[:, p].std(), d2[:, p].std(), 0.5)
+        A = np.vstack([design_matrix(d1[:, p], d2[:, p]), np.diag(w)[:-1]])   # 5 γ rows
+        b = np.vstack([f[:, p], np.zeros((5, 3))])
+        np.testing.assert_allclose(coeffs[p], np.linalg.lstsq(A, b, rcond=None)[0].T, atol=1e-10)
+
+
+def test_fit_gamma_single_term_hand_computed():
+    """Linear fit of f = 3 d1, d2 = 0, d1 = (-2, -1, 1, 2): σ1² = 2.5, Σd1² = 10, so the d1
+    equation is (10 + γ²/2.5) a = 30; γ = 5: a = 30 / 20 = 1.5 (the ridge mode with ρ = 0.5
+    gives 3 / 1.25 = 2.4, test above)."""
+    d1 = np.array([[-2.0], [-1.0], [1.0], [2.0]])
+    coeffs = fit(d1, np.zeros_like(d1), 3 * d1, order="linear", gamma=5.0)
+    np.testing.assert_allclose(coeffs[0, 0, [0, 2]], [1.5, 0.0], atol=1e-12)
+
+
+def test_fit_gamma_default_sigma_is_std_of_parameters_over_frames():
+    d1, d2, _, f = _exact("biquadratic", T=20, P=30)
+    f = f + np.random.default_rng(4).normal(size=f.shape)
+    sigma = np.stack([d1.std(axis=0), d2.std(axis=0)], axis=1)
+    np.testing.assert_allclose(
+        fit(d1, d2, f, gamma=0.3), fit(d1, d2, f, gamma=0.3, sigma=sigma), rtol=1e-12, atol=1e-12
+    )
+
+
+def test_fit_gamma_constant_parameter_terms_go_to_zero():
+    rng = np.random.default_rng(5)
+    T, P = 30, 40
+    d1 = rng.uniform(-2, 2, (T, P))
+    d2 = np.full((T, P), 0.7)                                      # d2 never varies: σ floor
+    a0, a3, a5 = rng.normal(size=(3, P, 1))
+    f = a0 * d1[..., None] ** 2 + a3 * d1[..., None] + a5         # (T,P,1)
+    coeffs = fit(d1, d2, f, gamma=1e-3)
+    np.testing.assert_allclose(coeffs[..., [1, 2, 4]], 0, atol=1e-9)   # d2², d1 d2, d2
+    np.testing.assert_allclose(coeffs[..., [0, 3, 5]], np.concatenate([a0, a3, a5], -1)[:, None], atol=1e-6)
+
+
+def test_fit_rejects_negative_ridge_and_gamma():
+    d1, d2, _, f = _exact("linear", T=6, P=2)
+    with pytest.raises(ValueError, match="ridge"):
+        fit(d1, d2, f, "linear", ridge=-0.1)
+    with pytest.raises(ValueError, match="gamma"):
+        fit(d1, d2, f, "linear", gamma=-1.0)
