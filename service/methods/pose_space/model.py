@@ -129,7 +129,7 @@ class PoseSpaceEvaluator:
         self.poly_linear = None if data.poly_linear is None else data.poly_linear.tocsr()
         self.map_poly_linear = None if data.map_poly_linear is None else data.map_poly_linear.tocsr()
         self.map_interp = self.map_sampler = None
-        self.normal_mapper: NormalMapper | None = None
+        self.normal_mapper: NormalMapper | None = None      # built here, never on first use
         if data.map_resolution:
             H = data.map_resolution
             raster = rasterize_uv(data.uv, data.uv_faces, H, H)
@@ -139,7 +139,7 @@ class PoseSpaceEvaluator:
             mask[data.map_index] = True
             self.map_sampler = sampling_matrix(data.uv, data.uv_faces, data.faces, n,
                                                mask.reshape(H, H))[:, data.map_index].tocsr()
-            self._raster = raster
+            self.normal_mapper = NormalMapper(raster, data.faces, data.uv, data.uv_faces, n)
 
     # -- large scale and features
     def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray]:
@@ -279,8 +279,6 @@ class PoseSpaceModel:
         if want & {"displacement", "normal_map"}:
             out["displacement"] = np.zeros((nf, H, H), np.float32)
         if "normal_map" in want:
-            if ev.normal_mapper is None:
-                ev.normal_mapper = NormalMapper(ev._raster, d.faces, d.uv, d.uv_faces, n)
             out["normal_map"] = np.empty((nf, H, H, 3), np.float32)
         margin = d.params.extrapolation_margin if clamp else None
         for s in range(0, nf, FRAME_CHUNK):

@@ -94,3 +94,14 @@ def test_bad_input_is_rejected(wpsd_exact, ps_data):
         wpsd_exact.synthesize(np.full((1, 150, 3), np.nan))
     with pytest.raises(InvalidInput, match="no marker named"):
         train(actor, clips[:1], WpsdParams(feature_edges=(("nope", "x"),)))
+
+
+def test_the_normal_mapper_is_built_with_the_evaluator(wpsd_exact, tmp_path):
+    """No lazy caches in evaluators (issue 15): a loaded model's evaluator already holds the
+    normal mapper at the map's size, before any normal map is asked for."""
+    from service.methods.pose_space import PoseSpaceModel
+
+    wpsd_exact.save(tmp_path / "m")
+    ev = PoseSpaceModel.load(tmp_path / "m").evaluator
+    H = wpsd_exact.data.map_resolution
+    assert ev.normal_mapper is not None and ev.normal_mapper.shape == (H, H)
