@@ -221,7 +221,9 @@ def test_synthesize_marker_filter_smooths_the_take_on_the_server(capsys, server,
             return r["vertices"].astype(np.float64)
 
     filtered, raw, pre = result("raw", "--marker-filter", "3"), result("raw"), result("pre")
-    assert np.abs(filtered - pre).max() < 1e-4                               # float32 outputs
+    # float32 uploads and outputs: the pre-filtered take is rounded to float32 before the
+    # shell solve, the server filters the raw take in float64 (measured 1.3e-4 mm)
+    assert np.abs(filtered - pre).max() < 1e-3
     assert np.abs(filtered - raw).max() > 0.05                               # the filter acted
     # a bad σ is a usage error (exit 2) before anything is sent; one above the server's
     # limit is the server's 422 (exit 3)
