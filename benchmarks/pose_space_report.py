@@ -401,10 +401,29 @@ def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     return np.array(idx)
 
 
+def speed_markers(actor_dir: Path) -> np.ndarray:
+    """The markers (SPEED_WARMUP + SPEED_FRAMES, M, 3) the speed section evaluates: the first
+    held-out performance's first frames, or, for an actor built with training clips only (a
+    level-2 speed actor), frames spread over its training clips."""
+    from service.samples.dataset import performance_names
+
+    k = SPEED_WARMUP + SPEED_FRAMES
+    held = heldout_names(actor_dir)
+    if held:
+        with np.load(actor_dir / "performances" / f"{held[0]}.npz") as d:
+            return d["markers"][:k].astype(np.float64)
+    mk = []
+    for name in performance_names(actor_dir, "train_"):
+        with np.load(actor_dir / "performances" / f"{name}.npz") as d:
+            mk.append(d["markers"].astype(np.float64))
+    mk = np.concatenate(mk)
+    return mk[np.linspace(0, len(mk) - 1, k).round().astype(np.int64)]
+
+
 SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20}}
 
 
-def run_speed(actor_dir: Path, train_missing: bool = False) -> dict:
+def run_speed(actor_dir: Path, train_missing: bool = False, labels: list[str] | None = None) -> dict:
     """Only the speed section, with the models a previous run saved (``--speed-only``), or
     with ``train_missing`` those of :data:`SPEED_MODELS` not saved yet trained first (defaults,
     ``map_resolution`` as the clips)."""
@@ -413,11 +432,10 @@ def run_speed(actor_dir: Path, train_missing: bool = False) -> dict:
 
     models = OUT / "models" / actor_dir.name
     models.mkdir(parents=True, exist_ok=True)
-    with np.load(actor_dir / "performances" / f"{heldout_names(actor_dir)[0]}.npz") as d:
-        mk = d["markers"][: SPEED_WARMUP + SPEED_FRAMES].astype(np.float64)
+    mk = speed_markers(actor_dir)
     out = {}
     actor = clips = None
-    for label in SPEED_MODELS:
+    for label in labels or SPEED_MODELS:
         path = models / label.replace(" ", "_").replace("=", "")
         if train_missing and not (path / "manifest.json").is_file():
             if clips is None:
@@ -430,11 +448,14 @@ def run_speed(actor_dir: Path, train_missing: bool = False) -> dict:
             model = PoseSpaceModel.load(path)
             out[label] = speed(model, mk)
             out[label].update(storage(model), basis_size=model.data.basis_size,
-                              train_s=json.loads(path.with_suffix(".train.json").read_text())["train_s"])
+                              train_s=json.loads(path.with_suffix(".train.json").read_text())["train_s"],
+                              n_vertices=model.data.n_vertices, map_resolution=model.data.map_resolution,
+                              training_frames=model.metrics["training_frames"])
     return out
 
 
-def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool) -> dict:
+def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool, fig4: bool = True,
+              only: list[str] | None = None) -> dict:
     from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
     from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
     from service.methods.pose_space.transfer import transfer
@@ -449,17 +470,18 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
            "train_frames": sum(c.frames for c in clips), "train_clips": len(clips)}
     log = lambda msg: print(f"[{name}] {msg}", file=sys.stderr, flush=True)
 
-    log("Fig. 4 study")
     t0 = time.perf_counter()
     cache = models / f"fig4{'_quick' if quick else ''}.json"
-    if reuse and cache.is_file():
+    if fig4 and reuse and cache.is_file():
         res["fig4"] = json.loads(cache.read_text())
-    else:
+    elif fig4:
+        log("Fig. 4 study")
         res["fig4"] = fig4_study(actor, clips, 8 if quick else FIG4_MAX_P)
         res["fig4"]["seconds"] = time.perf_counter() - t0
         cache.write_text(json.dumps(res["fig4"]))
-    plot_fig4(res["fig4"], OUT / f"fig4_{name}.png",
-              f"bickel2008 Fig. 4 on {name}: L2 error over a {res['fig4']['frames']}-frame training sequence")
+    if fig4:
+        plot_fig4(res["fig4"], OUT / f"fig4_{name}.png",
+                  f"bickel2008 Fig. 4 on {name}: L2 error over a {res['fig4']['frames']}-frame training sequence")
 
     log("training")
     train_s = {}
@@ -470,6 +492,8 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
                 "WPSD P=20": WpsdParams(basis_size=20)}
     if quick:
         variants = {"PSD": PsdParams(), "WPSD": WpsdParams()}
+    if only:
+        variants = {k: v for k, v in variants.items() if k in only}
     ps = {}
     for label, params in variants.items():
         log(f"  {label}")
@@ -541,8 +565,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
             res["transfer"]["scores"][perf]["frames"] = len(gt.frames)
 
     log("speed")
-    with np.load(actor_dir / "performances" / f"{heldout_names(actor_dir)[0]}.npz") as d:
-        mk = d["markers"][: SPEED_WARMUP + SPEED_FRAMES].astype(np.float64)
+    mk = speed_markers(actor_dir)
     res["speed"] = {}
     for label in ("PSD", "WPSD", "WPSD P=6", "WPSD P=20"):
         if label in ps:
@@ -569,22 +592,23 @@ def report(results: list[dict], meta: dict) -> str:
         name = Path(r["actor"]).name
         L += [f"## {name}", "",
               f"{r['actor']}: {r['vertices']:,} vertices, {r['markers']} markers, "
-              f"{r['train_frames']} training frames in {r['train_clips']} clips.", "",
-              "### Fig. 4: L2 error over the training sequence vs basis size", "",
-              f"RMS vertex error (mm) over the face region and the {r['fig4']['frames']} frames of the "
-              f"training sequence; thin shell alone {r['fig4']['thin_shell_rms_mm']:.4f} mm. "
-              f"![Fig. 4](fig4_{name}.png)", ""]
-        names = list(r["fig4"]["rms_mm"])
-        L += ["| P | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
-        for i, P in enumerate(r["fig4"]["P"]):
-            vals = [r["fig4"]["rms_mm"][k][i] for k in names]
-            best = int(np.argmin(vals))
-            L.append(f"| {P} | " + " | ".join(("**%.4f**" if j == best else "%.4f") % v
-                                             for j, v in enumerate(vals)) + " |")
-        P_, rms_ = r["fig4"]["P"], r["fig4"]["rms_mm"]
-        lowest = [P for i, P in enumerate(P_) if min(rms_, key=lambda k: rms_[k][i]).startswith("WPSD")]
-        L += ["", f"WPSD (either fit) lowest at P = {', '.join(map(str, lowest)) or 'none'} "
-              f"(of {P_[0]}–{P_[-1]})."]
+              f"{r['train_frames']} training frames in {r['train_clips']} clips.", ""]
+        if "fig4" in r:
+            L += ["### Fig. 4: L2 error over the training sequence vs basis size", "",
+                  f"RMS vertex error (mm) over the face region and the {r['fig4']['frames']} frames of the "
+                  f"training sequence; thin shell alone {r['fig4']['thin_shell_rms_mm']:.4f} mm. "
+                  f"![Fig. 4](fig4_{name}.png)", ""]
+            names = list(r["fig4"]["rms_mm"])
+            L += ["| P | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+            for i, P in enumerate(r["fig4"]["P"]):
+                vals = [r["fig4"]["rms_mm"][k][i] for k in names]
+                best = int(np.argmin(vals))
+                L.append(f"| {P} | " + " | ".join(("**%.4f**" if j == best else "%.4f") % v
+                                                 for j, v in enumerate(vals)) + " |")
+            P_, rms_ = r["fig4"]["P"], r["fig4"]["rms_mm"]
+            lowest = [P for i, P in enumerate(P_) if min(rms_, key=lambda k: rms_[k][i]).startswith("WPSD")]
+            L += ["", f"WPSD (either fit) lowest at P = {', '.join(map(str, lowest)) or 'none'} "
+                  f"(of {P_[0]}–{P_[-1]})."]
         L += ["", "### Held-out performances", "",
               "Vertex error |V − V_gt| over the face region (mean, max, mm); fine detail: high-passed "
               "detail heights at the face texels (pdm_report's metric): Pearson r and relative error "
@@ -658,22 +682,36 @@ def main() -> None:
     global OUT
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("actors", nargs="+", type=Path, help="actor directories (sample-actor layout)")
-    parser.add_argument("--target", type=Path, help="second identity for the transfer (sample-actor layout)")
+    parser.add_argument("--target", type=Path, help="second identity of the first actor's rig (another seed) for "
+                        "the transfer of the first actor's WPSD (sample-actor layout)")
     parser.add_argument("--quick", action="store_true", help="6 held-out frames, P ≤ 8, two models")
     parser.add_argument("--reuse", action="store_true", help="reuse models saved under benchmarks/out/pose_space/models")
     parser.add_argument("--speed-only", action="store_true",
                         help="only the speed section, with the models of a previous run (report_speed.md)")
     parser.add_argument("--train-missing", action="store_true",
                         help="with --speed-only: train the speed section's models that are not saved yet")
+    parser.add_argument("--speed-models", help="with --speed-only: comma-separated labels of SPEED_MODELS "
+                        f"(default all: {', '.join(SPEED_MODELS)})")
+    parser.add_argument("--no-fig4", action="store_true", help="skip the Fig. 4 study")
+    parser.add_argument("--models", help="comma-separated pose-space models to train and score "
+                        "(default PSD, WPSD, WPSD P=6, WPSD P=20)")
     parser.add_argument("--out", type=Path, help="output directory (default benchmarks/out/pose_space)")
     args = parser.parse_args()
     OUT = args.out.resolve() if args.out else OUT
     OUT.mkdir(parents=True, exist_ok=True)
     if args.speed_only:
-        res = {a.name: run_speed(a.resolve(), args.train_missing) for a in args.actors}
+        labels = None
+        if args.speed_models:
+            labels = [x.strip() for x in args.speed_models.split(",")]
+            unknown = set(labels) - set(SPEED_MODELS)
+            if unknown:
+                parser.error(f"unknown --speed-models {sorted(unknown)}; known: {list(SPEED_MODELS)}")
+        res = {a.name: run_speed(a.resolve(), args.train_missing, labels) for a in args.actors}
         lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})", ""]
         for name, sp_ in res.items():
-            lines += [f"## {name}", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "
+            first = next(iter(sp_.values()), {})
+            lines += [f"## {name}", "", f"{first.get('n_vertices', 0):,} vertices, {first.get('map_resolution', 0)}² "
+                      f"map, trained on {first.get('training_frames', 0)} frames.", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "
                       "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
                       "|---|---|---|---|---|---|---|---|---|---|"]
             for k, s_ in sp_.items():
@@ -690,8 +728,10 @@ def main() -> None:
     git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     meta = {"cpus": os.cpu_count(), "load_before": f"{os.getloadavg()[0]:.1f}", "git": f"commit {git}",
             "quick": args.quick}
-    results = [run_actor(a.resolve(), args.target.resolve() if args.target else None, args.quick, args.reuse)
-               for a in args.actors]
+    # the transfer's landmark pairs are vertex i ↔ vertex i (one rig): only the first actor's
+    results = [run_actor(a.resolve(), args.target.resolve() if args.target and i == 0 else None, args.quick,
+                         args.reuse, not args.no_fig4, args.models and [x.strip() for x in args.models.split(",")])
+               for i, a in enumerate(args.actors)]
     meta["load_after"] = f"{os.getloadavg()[0]:.1f}"
     text = report(results, meta) + f"\nTotal run {time.perf_counter() - t0:.0f} s.\n"
     (OUT / "report.md").write_text(text)

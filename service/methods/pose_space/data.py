@@ -39,6 +39,10 @@ class PoseSpaceData:
     poly_linear (3n,E) CSR float32 | None   its linear coefficients, row 3v + c
     map_poly_const (Pt,) float32 | None, map_poly_linear (Pt,E) CSR float32 | None   the same
                                     for the fine map's texels
+    marker_mean (M,3) float64 | None, marker_modes (r,M,3) float64 | None   the training
+                                    frames' aligned marker displacements: mean and principal
+                                    modes scaled by their standard deviation (occluded markers,
+                                    ``params.marker_completion``); None for a transferred model
     feature_low, feature_high (E,) float64   training range of every feature
     confidence_scale float          δ₀ of the confidence (module docstring)
     basis_names tuple of str        the basis poses as "clip:frame"
@@ -72,6 +76,8 @@ class PoseSpaceData:
     poly_linear: sp.csr_matrix | None = None
     map_poly_const: np.ndarray | None = None
     map_poly_linear: sp.csr_matrix | None = None
+    marker_mean: np.ndarray | None = None
+    marker_modes: np.ndarray | None = None
 
     @property
     def kind(self) -> str:

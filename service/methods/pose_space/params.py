@@ -21,6 +21,8 @@ RIDGE_FLOOR = 1e-10
 SMOOTHING_GRID = (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
 #: seed of the validation's marker noise
 VALIDATION_SEED = 0
+#: seed of the noisy copies of the training frames (``noise_copies``)
+NOISE_COPIES_SEED = 1
 
 
 class PoseSpaceParams(MarkerParams):
@@ -80,6 +82,29 @@ class PoseSpaceParams(MarkerParams):
                     "range widened by this fraction of the range on both sides, so poses "
                     "beyond the training data do not extrapolate the linear kernel without "
                     "bound; null disables the limit.")
+    noise_copies: int = Field(
+        default=0, ge=0, le=8,
+        description="Least squares: the fit also sees this many copies of every training "
+                    "frame whose features come from its markers plus Gaussian noise of "
+                    "validation_noise_mm (seeded), with the frame's own targets — training with "
+                    "noise, so the weights (RBF and polynomial) do not pass marker noise into the "
+                    "detail; 0 fits the clean features only. The smoothing validation fits with "
+                    "the same copies.")
+    marker_completion: Literal["shell", "training"] = Field(
+        default="shell",
+        description="Occluded markers (NaN): 'shell' completes them by the thin shell's "
+                    "minimum energy; 'training' predicts them from the visible ones with the "
+                    "training frames' marker statistics (a Gaussian of the aligned marker "
+                    "displacements, observation noise validation_noise_mm: the MAP of the "
+                    "missing markers) before the shell, so the shell and the features at them "
+                    "follow the expression. A transferred model (other markers) uses 'shell'.")
+    occlusion: Literal["shell", "reweight"] = Field(
+        default="shell",
+        description="Features of edges at occluded markers: 'shell' uses them as the thin "
+                    "shell's minimum-energy completion gives them; 'reweight' weights every "
+                    "edge's term of the feature distance by its visibility (the share of its "
+                    "nodes' shell displacement carried by visible markers) and renormalizes "
+                    "α per vertex (eq. 3), so filled strains count less.")
     selection_vertices: int = Field(
         default=4096, ge=16,
         description="Vertices (an even stride over the mesh) on which WPSD's greedy basis "

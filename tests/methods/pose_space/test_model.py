@@ -105,3 +105,65 @@ def test_the_normal_mapper_is_built_with_the_evaluator(wpsd_exact, tmp_path):
     ev = PoseSpaceModel.load(tmp_path / "m").evaluator
     H = wpsd_exact.data.map_resolution
     assert ev.normal_mapper is not None and ev.normal_mapper.shape == (H, H)
+
+
+def test_noise_copies_without_noise_fit_the_same_weights(ps_data):
+    """K copies of the training rows with σ = 0 add K identical blocks to the normal equations;
+    with the relative ridge (λ · mean diagonal) the weights are unchanged."""
+    actor, clips = ps_data
+    kw = dict(basis_size=4, smoothing=1e-4, selection_vertices=256, validation_noise_mm=0.0)
+    a = train(actor, clips[:2], WpsdParams(**kw))
+    b = train(actor, clips[:2], WpsdParams(noise_copies=2, **kw))
+    assert a.data.basis_names == b.data.basis_names
+    np.testing.assert_allclose(b.data.weights, a.data.weights, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(b.data.poly_linear.toarray(), a.data.poly_linear.toarray(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(b.data.map_weights, a.data.map_weights, rtol=1e-4, atol=1e-6)
+
+
+def test_noise_copies_damp_the_response_to_marker_noise(ps_data):
+    """Fitted on noisy copies of its training frames, the model's corrections move less when
+    0.3 mm noise is added to a training frame's markers (errors in variables)."""
+    actor, clips = ps_data
+    kw = dict(basis_size=4, smoothing=1e-4, selection_vertices=256)
+    a = train(actor, clips[:2], WpsdParams(**kw))
+    b = train(actor, clips[:2], WpsdParams(noise_copies=2, validation_noise_mm=0.3, **kw))
+    m = clips[1].markers[[4, 10, 16]]
+    noisy = m + np.random.default_rng(3).normal(0.0, 0.3, m.shape)
+
+    def response(model):
+        ev = model.evaluator
+        c = []
+        for x in (m, noisy):
+            _, u = ev.deformation(x)
+            f = ev.features(u)
+            c.append(ev.corrections(ev.sq_distances(f), f))
+        return float(np.sqrt(np.mean((c[1] - c[0]) ** 2)))
+
+    assert response(b) < 0.8 * response(a)
+
+
+def test_edge_visibility_and_reweighted_distances(wpsd_exact, ps_data):
+    """ν = 1 on edges between visible markers, ≈ 0 at an occluded one; the reweighted eq. 3 is
+    Σ α ν g² / Σ α ν per vertex, and all-visible frames keep eq. 3."""
+    _, clips = ps_data
+    ev = wpsd_exact.evaluator
+    m = clips[1].markers[[3, 9]].copy()
+    assert ev.edge_visibility(m) is None
+    e = ev.graph.edges
+    hidden = int(e[0, 0])
+    m[0, hidden] = np.nan
+    nu = ev.edge_visibility(m)
+    at = (e == hidden).any(axis=1)
+    assert np.allclose(nu[1], 1.0) and np.all(nu[0][at] < 0.2) and np.all(nu[0][~at] > 0.8)
+    _, u = ev.deformation(m)
+    f = ev.features(u)
+    D2, plain = ev.sq_distances(f, nu), ev.sq_distances(f)
+    np.testing.assert_allclose(D2[:, 1], plain[:, 1], rtol=1e-6)
+    fb = wpsd_exact.data.basis_features
+    A = ev.alpha
+    v = int(np.argmax(A[:, np.flatnonzero(at)].sum(axis=1)))          # a vertex next to the hole
+    row = A[v].toarray()[0]
+    g2 = (f[0][None] - fb) ** 2                                      # (P,E)
+    want = (g2 * row * nu[0]).sum(axis=1) / (row * nu[0]).sum()
+    np.testing.assert_allclose(D2[v, 0], want, rtol=1e-10)
+    assert not np.allclose(D2[v, 0], plain[v, 0])
