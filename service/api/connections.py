@@ -30,13 +30,12 @@ h11's connection states, or the httptools callbacks (``on_message_begin``,
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import logging
 import time
 from collections import Counter
-from typing import Any
-
-from typing import Literal
+from typing import Any, Literal
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -67,7 +66,7 @@ Phase = Literal["headers", "body", "done"]
 HTTP_IMPLEMENTATIONS = ("h11", "httptools")
 
 
-class ConnectionGuard:
+class ConnectionGuard(abc.ABC):
     """Header/body timeouts and a per-client bound for a uvicorn HTTP protocol (see the
     module docstring), mixed in before the protocol class. The limits are class
     attributes, set by :func:`protocol_class`; the protocol supplies :meth:`_phase` and
@@ -90,12 +89,13 @@ class ConnectionGuard:
         self._address: str | None = None
 
     # -- what the parser says ---------------------------------------------------------------
+    @abc.abstractmethod
     def _phase(self) -> Phase:
-        raise NotImplementedError
+        """Where the client's side of the connection is: headers, body or between requests."""
 
+    @abc.abstractmethod
     def _responding(self) -> bool:
         """Whether a request is being answered (not between requests)."""
-        raise NotImplementedError
 
     def _count_body(self, n: int) -> None:
         """``n`` bytes of a chunk received inside a body."""
