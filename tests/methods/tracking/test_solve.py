@@ -13,18 +13,7 @@ from service.methods.tracking.solve import (PoseState, TrackingMesh, corresponde
                                             solve_poses)
 from service.methods.tracking.track import ground_state, unknown_state
 from service.samples.render import face_cameras
-
-
-def _patch(k: int = 16, size: float = 60.0):
-    """A spherical cap (k·k vertices, radius 80 mm) facing +z, counter-clockwise from +z."""
-    u = np.linspace(-size / 2, size / 2, k)
-    x, y = np.meshgrid(u, u)
-    z = np.sqrt(80.0 ** 2 - x ** 2 - y ** 2) - 80.0
-    V = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-    idx = np.arange(k * k).reshape(k, k)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    F = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
-    return V, F
+from service.samples.tracking_scene import cap_mesh
 
 
 def _exact_flow(camera, W0, W1, F):
@@ -53,7 +42,7 @@ def _deformed(V):
 
 
 def test_solver_recovers_a_rigid_plus_smooth_deformation_from_exact_correspondences():
-    V, F = _patch()
+    V, F, _ = cap_mesh(16)
     W1, _ = _deformed(V)
     cams = face_cameras(np.zeros(3), distance=300.0, size=96, yaws_deg=(0.0, -30.0, 30.0),
                         field_mm=90.0)
@@ -84,7 +73,7 @@ def test_solver_recovers_a_rigid_plus_smooth_deformation_from_exact_corresponden
 def test_correspondence_model_is_the_squared_distance_to_the_flowed_ray():
     # monocular, ε → small: the model's value at the true target equals (almost) zero and
     # at a point moved along the ray it stays (almost) zero — the ray's direction is free
-    V, F = _patch(8)
+    V, F, _ = cap_mesh(8)
     W1, _ = _deformed(V)
     cam = face_cameras(np.zeros(3), distance=300.0, size=96, yaws_deg=(0.0,), field_mm=90.0)[0]
     mesh = TrackingMesh.build(V, F)
