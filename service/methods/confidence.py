@@ -27,16 +27,17 @@ CONFIDENCE = "confidence"
 VERTEX_CONFIDENCE = "confidence_vertices"
 
 
-def falloff(excess: np.ndarray, width: float) -> np.ndarray:
+def falloff(excess: np.ndarray, width: float, dtype=np.float64) -> np.ndarray:
     """Compact C¹ falloff (…) in [0, 1]: 1 for excess ≤ 0, 0 for excess ≥ width,
-    ``1 − (3t² − 2t³)`` with ``t = excess / width`` between (a smoothstep).
+    ``1 − (3t² − 2t³)`` with ``t = excess / width`` between (a smoothstep), of ``dtype``
+    (float64, or float32 for a per-texel pass: within 2 ulp of float32 of the float64 value).
 
     ``width = inf`` is 1 everywhere (no fade); ``width = 0`` a step at 0.
     """
-    e = np.asarray(excess, np.float64)
+    e = np.asarray(excess, dtype)
     if width <= 0:
-        return (e <= 0).astype(np.float64)
-    t = np.clip(e / width, 0.0, 1.0)
+        return (e <= 0).astype(dtype)
+    t = np.clip(e / e.dtype.type(width), 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
 
 

@@ -159,9 +159,10 @@ def medium_offsets(vertex: TexelBand, seam_average: sp.csr_matrix, neutral_offse
     points of the band ``vertex`` (:func:`vertex_band`), seam-averaged ((n,K)) onto the
     vertices plus the neutral's static ``neutral_offset`` (n,3); with ρ (F,K)
     (:mod:`.validity`), continued and faded outside the hull."""
-    c = vertex.evaluate(d1, d2)                                                 # (F,K,3)
-    if rho is not None:
-        c = validity.apply("vertex", vertex.coeffs, c, d1, d2, rho)
+    if rho is None:
+        c = vertex.evaluate(d1, d2)                                             # (F,K,3)
+    else:
+        c = validity.evaluate("vertex", vertex.coeffs, d1, d2, rho)
     F, K = c.shape[:2]
     c = (seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
     return c.transpose(1, 0, 2) + neutral_offset

@@ -386,13 +386,23 @@ def fit(
     return coeffs
 
 
-def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
+             slope: float = 1.0) -> np.ndarray:
     """Evaluate the PDM ``D_p(d1, d2) = Σ_k a_k(p) d1^i_k d2^j_k`` (ma2008 eq. 1).
+
+    With ``rho``, the ray continuation of :mod:`service.methods.pdm.validity` in the same
+    pass: at points of ρ > 1 the polynomial is evaluated at the boundary point d/ρ with
+    each term of degree k scaled by ``1 + slope · k · (ρ − 1)`` (its first-order Taylor
+    expansion along the ray), ``L(d) = Σ_k a_k m_k(d/ρ) + slope (ρ − 1) Σ_k k a_k m_k(d/ρ)``;
+    points of ρ ≤ 1 get D(d) bit for bit (the parameters are divided by max(ρ, 1) = 1 and
+    the degree sum is added with weight 0), so one evaluation serves the whole band.
 
     Parameters
     ----------
     coeffs : (P,C,K) float     from ``fit``; K selects the order
     d1, d2 : (P,) or (F,P)     deformation parameters per texel, for one or F frames
+    rho : like d1, optional    validity gauge ρ per point (None: the plain polynomial)
+    slope : float              the continuation's order (1: linear; 0: the boundary's value)
 
     Returns
     -------
@@ -410,6 +420,15 @@ def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         raise ValueError(
             f"expected d1, d2 (P,) or (F,P) with P = {coeffs.shape[0]}, got {d1.shape}"
         )
+    grow = None
+    if rho is not None:
+        rho = np.broadcast_to(np.asarray(rho, dtype), d1.shape)
+        if np.any(rho > 1):
+            r = np.maximum(rho, dtype.type(1))
+            d1, d2 = d1 / r, d2 / r                              # exact where ρ ≤ 1
+            r -= 1
+            r *= dtype.type(slope)
+            grow = r                                             # slope (ρ − 1), 0 inside
     deg = max(max(p) for p in powers) + 1
     X, Y = [None, d1], [None, d2]
     for _ in range(2, deg):
@@ -419,10 +438,18 @@ def evaluate(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     # accumulate as (…,C,P): the innermost loop runs over texels, not over C (often 1)
     out = np.broadcast_to(a[-1], d1.shape[:-1] + a.shape[1:]).copy()   # constant term last
     tmp = np.empty_like(out)
+    degree_sum = None if grow is None else np.zeros_like(out)    # Σ_k k a_k m_k
     for k, (i, j) in enumerate(powers[:-1]):                      # one pass per term
         term = X[i] if j == 0 else Y[j] if i == 0 else X[i] * Y[j]
         np.multiply(term[..., None, :], a[k], out=tmp)
         out += tmp
+        if degree_sum is not None:
+            if i + j != 1:
+                tmp *= dtype.type(i + j)
+            degree_sum += tmp
+    if degree_sum is not None:
+        degree_sum *= grow[..., None, :]
+        out += degree_sum
     return np.swapaxes(out, -1, -2)
 
 

@@ -109,10 +109,9 @@ class TexelBand(CoveredTexels):
         T, P = len(S), len(self.index)
         if self.field.runs is None:
             d1, d2, frac = self.parameters(S, margin)
-            values = self.evaluate(d1, d2)
             if validity is None:
-                return values, frac
-            return validity.apply(values, d1, d2), validity.outside() / max(P, 1)
+                return self.evaluate(d1, d2), frac
+            return validity.evaluate(d1, d2), validity.outside() / max(P, 1)
         g = self.field.element_terms(S)
         starts = self.field.run_starts
         terms = self.terms
@@ -124,10 +123,10 @@ class TexelBand(CoveredTexels):
             if margin is not None:
                 d1, d2, hit = limit_parameters(d1, d2, self.limit[:, s:e], margin)
                 over += np.count_nonzero(hit, axis=-1)
-            values = polynomial.evaluate(terms[..., s:e].transpose(2, 1, 0), d1, d2)
-            if validity is not None:          # in the whole band's (contiguous) layout
-                values = validity.apply(np.ascontiguousarray(values), d1, d2, s, e)
+            if validity is None:
+                out[:, s:e] = polynomial.evaluate(terms[..., s:e].transpose(2, 1, 0), d1, d2)
+            else:
+                out[:, s:e] = validity.evaluate(d1, d2, s, e)
                 over += validity.outside(s, e)
-            out[:, s:e] = values
         frac = over / max(P, 1) if margin is not None or validity is not None else np.zeros(T)
         return out, frac

@@ -66,7 +66,7 @@ import scipy.sparse as sp
 from service.geometry.laplacian import triangle_areas
 from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
 from service.methods.confidence import falloff, frame_confidence
-from service.methods.pdm.polynomial import TERM_POWERS
+from service.methods.pdm import polynomial
 
 #: angular sectors of the star-shaped validity region
 DIRECTIONS = 32
@@ -138,21 +138,56 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
     """D̃ (F,P,C) from ``values`` = D(d1, d2) (F,P,C) (module docstring): points of ρ > 1
     continued from the hull's boundary, every point's detail ``D − a5`` limited to
     ``(1 + margin)`` × its training ``envelope`` (P,) in norm, and faded by w(ρ) to the
-    ``fallback`` (P,C). ``coeffs`` (P,C,K) of the band; d1, d2, rho (F,P). Modifies ``values``."""
-    f, p = np.nonzero(rho > 1)
-    if len(f):
-        powers = np.array(next(t for t in TERM_POWERS.values() if len(t) == coeffs.shape[-1]))
-        r = rho[f, p].astype(np.float64)
-        b1, b2 = d1[f, p] / r, d2[f, p] / r
-        mono = b1[:, None] ** powers[:, 0] * b2[:, None] ** powers[:, 1]           # (N,K)
-        mono *= 1 + slope * powers.sum(axis=1) * (r - 1)[:, None]
-        values[f, p] = np.einsum("nck,nk->nc", coeffs[p].astype(np.float64), mono).astype(values.dtype)
-    const = np.ascontiguousarray(fallback, dtype=values.dtype)                   # (P,C)
+    ``fallback`` (P,C). ``coeffs`` (P,C,K) of the band; d1, d2, rho (F,P). Modifies ``values``.
+
+    Synthesis uses :func:`valid_polynomial` (the continuation inside the polynomial's own
+    pass); this form takes the polynomial's values already evaluated."""
+    outside = rho > 1
+    if np.any(outside):
+        continued = polynomial.evaluate(coeffs, d1, d2, rho, slope)
+        np.copyto(values, continued, where=outside[..., None])
+    return fade_detail(values, rho, envelope, fallback, width, margin)
+
+
+def valid_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray,
+                     envelope: np.ndarray, fallback: np.ndarray, width: float, slope: float,
+                     margin: float = 0.25) -> np.ndarray:
+    """D̃ (F,P,C) float32, C-contiguous, of the polynomial ``coeffs`` (P,C,K) at d1, d2 (F,P)
+    with gauge ρ (F,P) (module docstring): the continued polynomial L
+    (:func:`~service.methods.pdm.polynomial.evaluate` with ``rho``, D(d) bit for bit where
+    ρ ≤ 1), then :func:`fade_detail`. Dense over the points: no gather of the points outside."""
+    values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2, rho, slope))
+    return fade_detail(values, rho, envelope, fallback, width, margin)
+
+
+def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray,
+         width: float, margin: float = 0.25) -> np.ndarray:
+    """``fallback + w · (L − fallback)`` (F,P,C) of the continued values L (F,P,C), in place:
+    ``w = min(1, (1 + margin) E / ‖L − fallback‖) · falloff(ρ − 1, width)`` (module
+    docstring) with E the ``envelope`` (P,), fallback (P,C), ρ (F,P).
+
+    float32 for float32 values: points of ρ ≤ 1 (falloff exactly 1) are the old gathered
+    evaluation bit for bit; at ρ > 1 the falloff is evaluated in float32 (≤ 2 ulp of w).
+    Points of w = 1 keep their values unchanged (bit for bit)."""
+    dtype = values.dtype
+    const = np.ascontiguousarray(fallback, dtype=dtype)                         # (P,C)
     detail = values - const
-    norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
-    w = np.minimum(1.0, (1 + margin) * envelope / np.maximum(norm, 1e-30)) * falloff(rho - 1.0, width)
-    f, p = np.nonzero(w < 1)                      # the others stay bit-identical to D
-    values[f, p] = const[p] + w[f, p, None].astype(values.dtype) * detail[f, p]
+    if detail.shape[-1] == 1:
+        norm = detail[..., 0] * detail[..., 0]
+        np.sqrt(norm, out=norm)
+    else:
+        norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
+    np.maximum(norm, 1e-30, out=norm)
+    w = np.divide((1 + margin) * np.asarray(envelope, dtype), norm, out=norm)
+    np.minimum(w, 1.0, out=w)
+    outside = rho > 1
+    if np.any(outside):
+        w *= np.where(outside, falloff(np.asarray(rho, dtype) - dtype.type(1), width, dtype), dtype.type(1))
+    fading = w < 1                                   # the others stay bit-identical to L
+    if np.any(fading):
+        detail *= w[..., None]
+        detail += const
+        np.copyto(values, detail, where=fading[..., None])
     return values
 
 
@@ -214,11 +249,12 @@ class Validity:
         """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
         return np.ascontiguousarray((self.texel_rho[name] @ rho.T).T, dtype=np.float32)
 
-    def apply(self, name: str, coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray,
-              d2: np.ndarray, rho: np.ndarray) -> np.ndarray:
-        """D̃ (F,P,C) of band ``name`` from D (F,P,C) (:func:`valid_values`)."""
-        return valid_values(coeffs, values, d1, d2, rho, self.envelope[name], self.fallback(name, coeffs),
-                            self.width, self.slope)
+    def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
+                 rho: np.ndarray) -> np.ndarray:
+        """D̃ (F,P,C) of band ``name`` (coefficients (P,C,K)) at d1, d2, ρ (F,P)
+        (:func:`valid_polynomial`)."""
+        return valid_polynomial(coeffs, d1, d2, rho, self.envelope[name], self.fallback(name, coeffs),
+                                self.width, self.slope)
 
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
@@ -257,14 +293,13 @@ class BandValidity:
     width: float
     slope: float
 
-    def apply(self, values: np.ndarray, d1: np.ndarray, d2: np.ndarray, s: int = 0,
-              e: int | None = None) -> np.ndarray:
-        """D̃ (F,e−s,C) of points ``s:e`` from their D (F,e−s,C) and d1, d2 (F,e−s): elementwise
-        per point, so any split into ranges gives the whole band's values bit for bit.
-        Modifies ``values``."""
+    def evaluate(self, d1: np.ndarray, d2: np.ndarray, s: int = 0, e: int | None = None) -> np.ndarray:
+        """D̃ (F,e−s,C) of points ``s:e`` at their d1, d2 (F,e−s) (:func:`valid_polynomial`):
+        elementwise per point, so any split into ranges gives the whole band's values bit
+        for bit."""
         p = slice(s, e)
-        return valid_values(self.coeffs[p], values, d1, d2, self.rho[:, p], self.envelope[p],
-                            self.fallback[p], self.width, self.slope)
+        return valid_polynomial(self.coeffs[p], d1, d2, self.rho[:, p], self.envelope[p],
+                                self.fallback[p], self.width, self.slope)
 
     def outside(self, s: int = 0, e: int | None = None) -> np.ndarray:
         """Points ``s:e`` outside their validity region (ρ > 1), counted per frame (F,) int."""

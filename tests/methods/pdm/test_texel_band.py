@@ -3,6 +3,7 @@
 import numpy as np
 
 from service.methods.pdm import texel_band
+from service.methods.pdm.validity import valid_values
 
 
 def test_blocked_synthesis_is_parameters_then_evaluate_bit_for_bit(pdm_model, pdm_data, monkeypatch):
@@ -37,7 +38,8 @@ def test_blocked_validity_is_the_whole_band_validity_bit_for_bit(pdm_model, pdm_
         assert len(band.field.blocks(texel_band.BLOCK_POINTS)) > 3, name
         t1, t2, _ = band.parameters(S, None)
         rho_t = ev.validity.texels(name, rho)
-        whole = ev.validity.apply(name, band.coeffs, band.evaluate(t1, t2), t1, t2, rho_t)
+        whole = valid_values(band.coeffs, band.evaluate(t1, t2), t1, t2, rho_t, ev.validity.envelope[name],
+                             ev.validity.fallback(name, band.coeffs), ev.validity.width, ev.validity.slope)
         values, frac = band.synthesize(S, None, ev.validity.band(name, band.coeffs, rho))
         assert np.array_equal(values, whole), name
         assert np.array_equal(frac, np.mean(rho_t > 1, axis=-1)), name

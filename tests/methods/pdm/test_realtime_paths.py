@@ -1,0 +1,94 @@
+"""The faster per-frame paths of issue 23 against the implementations they replaced.
+
+``_old_valid_values`` is the gathered, float64 continuation of commit 7543b2b
+(service/methods/pdm/validity.py), kept here verbatim as the reference: the dense float32
+evaluation (:func:`~service.methods.pdm.validity.valid_polynomial`, the continuation inside
+the polynomial's own pass) must give the same values bit for bit wherever ρ ≤ 1, and
+within a stated float32 bound where ρ > 1 (the continuation and the falloff, which the old
+code evaluated in float64 on the gathered points).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.methods.confidence import falloff
+from service.methods.pdm.polynomial import TERM_POWERS
+from service.methods.pdm.validity import valid_polynomial, valid_values
+
+#: |new − old| at ρ > 1, relative to the largest |old| detail of the band's frame (measured
+#: 4.5e-6 on the albedo, ≤ 2e-6 on the vertex and fine bands of this model; float32
+#: evaluation of the continuation and of the falloff against the old float64 ones)
+CONTINUATION_RTOL = 1e-5
+
+
+def _old_valid_values(coeffs, values, d1, d2, rho, envelope, fallback, width, slope, margin=0.25):
+    f, p = np.nonzero(rho > 1)
+    if len(f):
+        powers = np.array(next(t for t in TERM_POWERS.values() if len(t) == coeffs.shape[-1]))
+        r = rho[f, p].astype(np.float64)
+        b1, b2 = d1[f, p] / r, d2[f, p] / r
+        mono = b1[:, None] ** powers[:, 0] * b2[:, None] ** powers[:, 1]           # (N,K)
+        mono *= 1 + slope * powers.sum(axis=1) * (r - 1)[:, None]
+        values[f, p] = np.einsum("nck,nk->nc", coeffs[p].astype(np.float64), mono).astype(values.dtype)
+    const = np.ascontiguousarray(fallback, dtype=values.dtype)                   # (P,C)
+    detail = values - const
+    norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
+    w = np.minimum(1.0, (1 + margin) * envelope / np.maximum(norm, 1e-30)) * falloff(rho - 1.0, width)
+    f, p = np.nonzero(w < 1)
+    values[f, p] = const[p] + w[f, p, None].astype(values.dtype) * detail[f, p]
+    return values
+
+
+@pytest.fixture(scope="module")
+def frames(pdm_model, pdm_data):
+    """S of frames inside (two training peaks), beyond (2.5× and 6× the peaks' motion)."""
+    _, clips = pdm_data
+    ev = pdm_model.evaluator
+    rest = ev.base.rest_markers
+    peak = clips[3].markers[[10, 12]]
+    pose = ev.deformation(peak)[0]
+    far = [pose.restore(rest + s * (pose.remove(peak) - rest)) for s in (2.5, 6.0)]
+    return ev.deformation(np.concatenate([peak, *far]))[2]
+
+
+@pytest.mark.parametrize("name", ["vertex", "fine", "albedo"])
+def test_dense_continuation_is_the_gathered_one(pdm_model, frames, name):
+    ev = pdm_model.evaluator
+    band = ev.bands[name]
+    v = ev.validity
+    d1, d2, _ = ev.vertex_band.parameters(frames, None)
+    rho_uv = v.gauge(d1, d2)
+    if name == "vertex":
+        t1, t2, rho = d1, d2, rho_uv
+    else:
+        t1, t2, _ = band.parameters(frames, None)
+        rho = v.texels(name, rho_uv)
+    args = (rho, v.envelope[name], v.fallback(name, band.coeffs), v.width, v.slope)
+    old = _old_valid_values(band.coeffs, band.evaluate(t1, t2), t1, t2, *args)
+    new = valid_polynomial(band.coeffs, t1, t2, *args)
+    kept = valid_values(band.coeffs, band.evaluate(t1, t2), t1, t2, *args)
+    assert new.dtype == np.float32 and new.flags.c_contiguous
+    inside = rho <= 1
+    assert inside[:2].mean() > 0.9 and (~inside[2:]).mean() > 0.1      # both cases are exercised
+    assert np.array_equal(new[inside], old[inside])                    # bit for bit inside
+    assert np.array_equal(kept, new)
+    scale = np.abs(old - v.fallback(name, band.coeffs)).max(axis=(1, 2), keepdims=True)
+    err = np.abs(new - old) / np.maximum(scale, 1e-12)
+    assert err.max() <= CONTINUATION_RTOL, err.max()
+
+
+def test_the_continuation_inside_the_polynomial_pass_is_the_plain_polynomial_inside(pdm_model, frames):
+    from service.methods.pdm import polynomial
+
+    band = pdm_model.evaluator.fine
+    t1, t2, _ = band.parameters(frames, None)
+    plain = band.evaluate(t1, t2)
+    assert np.array_equal(polynomial.evaluate(band.coeffs, t1, t2, np.full_like(t1, 0.5)), plain)
+    rho = np.where(np.arange(t1.shape[1]) % 2, 2.0, 1.0).astype(np.float32)[None].repeat(len(t1), 0)
+    got = polynomial.evaluate(band.coeffs, t1, t2, rho, slope=0.0)
+    assert np.array_equal(got[:, ::2], plain[:, ::2])
+    # slope 0 at ρ = 2: the polynomial at d/2
+    half = polynomial.evaluate(band.coeffs[1::2], t1[:, 1::2] / 2, t2[:, 1::2] / 2)
+    np.testing.assert_allclose(got[:, 1::2], half, rtol=1e-6, atol=1e-6 * np.abs(half).max())
