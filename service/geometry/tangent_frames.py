@@ -162,6 +162,18 @@ def tangent_frames(
     return frames.reshape(*lead, n, 3, 3)
 
 
+def _by_columns(A: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
+    """``A @ X`` (r,c) for a dense X (k,c) of a few columns, one sparse matrix-vector product
+    per (contiguous) column: the same sums in the same order as SciPy's multi-vector product,
+    which is about 2× slower on float32 (measured on the 535k-entry ``du_edges`` of the
+    level-1 sample actor: 3.7 → 1.7 ms)."""
+    Xt = np.ascontiguousarray(X.T)
+    out = np.empty((A.shape[0], X.shape[1]), np.result_type(A.dtype, X.dtype))
+    for i, column in enumerate(Xt):
+        out[:, i] = A @ column
+    return out
+
+
 @dataclass(frozen=True)
 class FrameField:
     """Tangent frames of many deformed poses of one mesh, two sparse products per pose.
@@ -279,10 +291,11 @@ class FrameField:
         else:                                                                      # class notes
             incidence, du_edges = self._float32
             e = e.astype(np.float32)
-            T = (du_edges @ e).reshape(n, nb, 3)
+            T = _by_columns(du_edges, e).reshape(n, nb, 3)
         e = e.reshape(2, m, nb, 3)
         fn = _cross(e[0], e[1])                                                    # (m,b,3)
-        N = _normalize((incidence @ fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
+        product = (lambda A, X: A @ X) if np.dtype(dtype) == np.float64 else _by_columns
+        N = _normalize(product(incidence, fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
         T -= np.einsum("nbd,nbd->nb", T, N)[..., None] * N
         has_n = np.einsum("nbd,nbd->nb", N, N) > 0.25
         tn = np.sqrt(np.einsum("nbd,nbd->nb", T, T))

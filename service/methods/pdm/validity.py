@@ -108,13 +108,27 @@ def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
 def gauge(d1: np.ndarray, d2: np.ndarray, hull: np.ndarray) -> np.ndarray:
     """ρ (…,P) = r / h(θ) of parameters d1, d2 (…,P) in the radius functions (K,P), h linear
     between the sectors: ≤ 1 inside, d/ρ on the boundary."""
-    K = len(hull)
+    return point_gauge(d1, d2, np.ascontiguousarray(np.asarray(hull).T))
+
+
+def point_gauge(d1: np.ndarray, d2: np.ndarray, hull_points: np.ndarray) -> np.ndarray:
+    """:func:`gauge` with the radius functions point-major, ``hull_points`` (P,K) (the
+    transpose of the (K,P) hull, made once): a point's two bracketing sectors are then
+    neighbours in memory, one flat gather instead of two column-strided ones (bit-identical)."""
+    K = hull_points.shape[1]
     d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
     x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
     k0 = np.floor(x).astype(np.int64) % K
     t = (x - np.floor(x)).astype(np.float32)
-    cols = np.broadcast_to(np.arange(d1.shape[-1]), d1.shape)
-    h = (1 - t) * hull[k0, cols] + t * hull[(k0 + 1) % K, cols]
+    flat = hull_points.ravel()
+    base = np.arange(d1.shape[-1]) * K                                       # (P,) row starts
+    k0 += base
+    h0 = np.take(flat, k0)
+    k0 -= base
+    k0 += 1
+    k0 %= K
+    k0 += base
+    h = (1 - t) * h0 + t * np.take(flat, k0)
     return (np.hypot(d1, d2) / h).astype(np.float32)
 
 
@@ -210,7 +224,8 @@ class ValidityData:
 class Validity:
     """The validity regions of one PDM model and their use in synthesis (module docstring).
 
-    hull : (K,Q) float32          radius function at the Q UV points of the medium PDM
+    hull_points : (Q,K) float32   radius function at the Q UV points of the medium PDM,
+                                  point-major (:func:`point_gauge`; ``hull`` is the (K,Q) form)
     envelope : dict name → (P,)   the bands' training envelopes (:func:`training_envelope`)
     width, slope : float          the falloff's width in ρ − 1 and the continuation's order
     texel_rho : dict name → (P,Q) sparse   UV points → a texel band's points (barycentric)
@@ -218,7 +233,7 @@ class Validity:
     vertex_weight : (n,) float    vertex areas (the per-frame confidence's weights)
     """
 
-    hull: np.ndarray
+    hull_points: np.ndarray
     envelope: dict
     width: float
     slope: float
@@ -238,12 +253,17 @@ class Validity:
             texel_rho[name] = interpolation_matrix(raster, uv_faces, len(uv))[index].tocsr()
         area = np.bincount(np.asarray(faces).ravel(), np.repeat(triangle_areas(vertices, faces), 3),
                            minlength=len(vertices)) / 3
-        return cls(np.asarray(hull, np.float32), envelope, float(width), float(slope), texel_rho,
+        return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,
                    seam_average.tocsr(), area)
 
     def gauge(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """ρ (F,Q) at the UV points for their parameters d1, d2 (F,Q)."""
-        return gauge(d1, d2, self.hull)
+        return point_gauge(d1, d2, self.hull_points)
+
+    @property
+    def hull(self) -> np.ndarray:
+        """The radius functions (K,Q) float32 (:func:`training_hull`'s layout, as stored)."""
+        return np.ascontiguousarray(self.hull_points.T)
 
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
         """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""

@@ -92,3 +92,24 @@ def test_the_continuation_inside_the_polynomial_pass_is_the_plain_polynomial_ins
     # slope 0 at ρ = 2: the polynomial at d/2
     half = polynomial.evaluate(band.coeffs[1::2], t1[:, 1::2] / 2, t2[:, 1::2] / 2)
     np.testing.assert_allclose(got[:, 1::2], half, rtol=1e-6, atol=1e-6 * np.abs(half).max())
+
+
+def _old_gauge(d1, d2, hull):
+    K = len(hull)
+    d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
+    x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
+    k0 = np.floor(x).astype(np.int64) % K
+    t = (x - np.floor(x)).astype(np.float32)
+    cols = np.broadcast_to(np.arange(d1.shape[-1]), d1.shape)
+    h = (1 - t) * hull[k0, cols] + t * hull[(k0 + 1) % K, cols]
+    return (np.hypot(d1, d2) / h).astype(np.float32)
+
+
+def test_point_major_gauge_is_the_old_gauge_bit_for_bit(pdm_model, frames):
+    from service.methods.pdm.validity import gauge
+
+    v = pdm_model.evaluator.validity
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
+    old = _old_gauge(d1, d2, v.hull)
+    assert np.array_equal(v.gauge(d1, d2), old) and np.array_equal(gauge(d1, d2, v.hull), old)
+    assert old.min() < 1 < old.max()
