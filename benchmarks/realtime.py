@@ -47,7 +47,18 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from service.app.threads import apply_blas_threads  # noqa: E402
+
+#: BLAS threads of the in-process reference and of the servers: ``serve``'s own sizing
+#: (cores ÷ synthesis slots, or FACESYNTH_BLAS_THREADS), set before NumPy loads. Measured on
+#: the level-1 actor with the machine loaded (load average 10 on 2 cores): 2 threads cost
+#: 2-3× the CPU time of 1 per mesh frame (OpenBLAS's waiting threads), so the reference
+#: must not run with more BLAS threads than the service does.
+BLAS_THREADS = apply_blas_threads(None, int(os.environ["FACESYNTH_BLAS_THREADS"])
+                                  if os.environ.get("FACESYNTH_BLAS_THREADS") else None)
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import harness  # noqa: E402
@@ -130,10 +141,8 @@ def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str
                 "FACESYNTH_HTTP": http_impl,
                 # h11 on the plain asyncio loop (uvicorn without extras); httptools on uvloop
                 "FACESYNTH_LOOP": "asyncio" if http_impl == "h11" else "uvloop",
-                # the in-process reference's BLAS threads (one call at a time here; the
-                # server would otherwise size them to cores // synthesis slots)
-                "FACESYNTH_BLAS_THREADS": os.environ.get("OPENBLAS_NUM_THREADS",
-                                                         str(len(os.sched_getaffinity(0))))})
+                # the in-process reference's BLAS threads (BLAS_THREADS: serve's sizing)
+                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS)})
     log = open(work / "server.log", "ab")
     server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
                               stdout=log, stderr=log, stdin=subprocess.DEVNULL)
@@ -292,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from service.methods.pdm.model import PdmModel
 
-    meta = {"load_start": load(), "cpus": os.cpu_count()}
+    meta = {"load_start": load(), "cpus": os.cpu_count(), "blas": BLAS_THREADS}
     t0 = time.perf_counter()
     model = PdmModel.load(model_dir)
     meta["load_s"] = time.perf_counter() - t0
@@ -349,7 +358,8 @@ def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
         "",
         f"Actor {actor_dir} ({meta['vertices']:,} vertices, fine map {meta['fine']}²), the same "
         f"model on every path (loaded in {meta['load_s']:.1f} s). Medians over {calls} calls; "
-        f"gRPC: wall time per frame of a {calls}-frame stream. {meta['cpus']} CPUs, NumPy "
+        f"gRPC: wall time per frame of a {calls}-frame stream. {meta['cpus']} CPUs, "
+        f"{meta['blas']} BLAS thread(s) in-process and in the servers, NumPy "
         f"{numpy.__version__}; load average (1, 5, 15 min) {meta['load_start']} at the start, "
         f"{meta['load_end']} at the end. Ratio: against in-process in the same run (for the "
         "transports, measured again beside each server).",
