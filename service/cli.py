@@ -209,7 +209,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     Both addresses are bound before anything else starts: a port that cannot be bound is
     one line naming ``--port`` or ``--grpc-port`` and exit status 2. With ``--preload``
-    the named models (or ``all`` ready ones) are loaded into the cache before serving."""
+    (setting ``preload``) the named models (or ``all`` ready ones) are checked at once (an
+    unknown or unready one: exit status 2) and loaded into the cache in the background
+    while the process serves; /readyz answers 503 until they are loaded."""
     import logging
     import signal
 
@@ -244,7 +246,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise SystemExit(0)
 
     log = logging.getLogger("facesynth.serve")
-    preload = [m for part in (args.preload or []) for m in part.split(",") if m]
+    preload = ([m.strip() for part in args.preload for m in part.split(",") if m.strip()]
+               if args.preload else settings.preload)
     try:
         http_socket = _listen(settings.host, settings.port)
     except OSError as error:
@@ -262,9 +265,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
             return _serve_error(f"cannot listen on {settings.host}:{settings.grpc_port} for "
                                 f"gRPC ({error}); choose another --grpc-port "
                                 "(FACESYNTH_GRPC_PORT)")
-        if preload:
+        if preload:   # checked now, loaded in the background; /readyz waits for them
             try:
-                services.preload(preload)
+                services.start_preload(preload)
             except FacesynthError as error:
                 return _serve_error(f"--preload: {error}")
         if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
@@ -425,8 +428,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="embedded job threads (FACESYNTH_WORKERS, default 1; "
                                                "0: no embedded worker, API only)")
     p.add_argument("--preload", action="append", metavar="MODELS",
-                   default=[os.environ["FACESYNTH_PRELOAD"]] if os.environ.get("FACESYNTH_PRELOAD") else None,
-                   help="load these models into the cache at start-up: comma-separated model "
+                   help="load these models into the cache at start-up, in the background "
+                        "(/readyz answers 503 until they are loaded): comma-separated model "
                         "ids, or 'all' for every ready model (FACESYNTH_PRELOAD; repeatable)")
     p.set_defaults(func=cmd_serve)
 

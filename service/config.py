@@ -132,6 +132,13 @@ class Settings(BaseSettings):
     model_cache_bytes: int = Field(
         default=2 * GiB, ge=0,
         description="Memory budget of the in-process cache of loaded models, in bytes.")
+    preload: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Models `facesynth serve` loads into the cache at start-up, in the "
+                    "background while it already serves: model ids, or 'all' for every "
+                    "ready model; in the environment a comma-separated list. /readyz answers "
+                    "503 (check 'models') until they are loaded, so a probe sends no traffic "
+                    "before the first frame can be answered without the load.")
 
     header_timeout_seconds: float = Field(
         default=10.0, gt=0,
@@ -194,9 +201,9 @@ class Settings(BaseSettings):
         description="/readyz answers 503 when the blob store has less free space than this, "
                     "in bytes (or cannot be written).")
 
-    @field_validator("tokens", mode="before")
+    @field_validator("tokens", "preload", mode="before")
     @classmethod
-    def _split_tokens(cls, value: Any) -> Any:
+    def _split_list(cls, value: Any) -> Any:
         """Accept ``"a,b"`` and ``'["a","b"]'`` as well as a list; drop blanks."""
         if isinstance(value, str):
             text = value.strip()

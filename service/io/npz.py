@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import io
 import math
+import mmap
 import struct
 import tokenize
 import zipfile
 import zlib
 
+from pathlib import Path
 from typing import Any, BinaryIO, Iterator, Mapping
 
 import numpy as np
@@ -179,6 +181,48 @@ def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
             return {k: d[k] for k in d.files}
     except _HEADER_ERRORS as error:
         raise ValueError(f"malformed .npy header: {type(error).__name__}") from None
+
+
+def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of a trusted ``.npz`` file (a stored model's, checksummed by the caller),
+    memory-mapped where the archive allows it.
+
+    ``np.savez`` stores each member uncompressed: the member is a ``.npy`` file at a fixed
+    offset of the archive, so its data is mapped read-only (``mmap``) instead of read —
+    a load costs no copy, and pages come in (and count as resident) when they are first
+    read, as page cache the kernel may drop again. Compressed members, object arrays and
+    empty ones are read into memory as :func:`npz_arrays` does. The arrays are plain
+    read-only ndarrays over a memoryview of the mapping (it stays open while they live).
+
+    Raises ``ValueError`` for a malformed member header and the :data:`ZIP_ERRORS` of a
+    corrupt archive.
+    """
+    path = Path(path)
+    out: dict[str, np.ndarray] = {}
+    with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
+        mapping = None
+        for info in archive.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            if info.compress_type == zipfile.ZIP_STORED and info.file_size:
+                f.seek(info.header_offset)
+                local = f.read(30)
+                if local[:4] != b"PK\x03\x04":
+                    raise zipfile.BadZipFile(f"{path.name}: bad local header of {info.filename}")
+                name_len, extra_len = struct.unpack("<HH", local[26:30])
+                start = info.header_offset + 30 + name_len + extra_len
+                f.seek(start)
+                shape, fortran, dtype = _read_header(f)
+                data = f.tell()
+                size = math.prod(shape) * dtype.itemsize
+                if not dtype.hasobject and data + size <= start + info.file_size and size:
+                    if mapping is None:
+                        mapping = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+                    flat = np.frombuffer(mapping, dtype=dtype, count=math.prod(shape), offset=data)
+                    out[name] = flat.reshape(shape, order="F" if fortran else "C")
+                    continue
+            with archive.open(info) as member:
+                out[name] = np.lib.format.read_array(member, allow_pickle=False)
+    return out
 
 
 def npz_bytes(**arrays: np.ndarray) -> bytes:

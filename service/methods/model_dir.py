@@ -11,7 +11,9 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Callable
 
+from service.io.atomic import sha256_file
 from service.errors import Corrupt
 
 
@@ -20,8 +22,14 @@ class ModelCorrupt(Corrupt, ValueError):
 
 
 def read_model_files(path, kind: str, format_version: int,
-                     required: tuple[str, ...] = ()) -> tuple[dict, dict[str, bytes]]:
+                     required: tuple[str, ...] = (), mapped: Callable[[str], bool] | None = None
+                     ) -> tuple[dict, dict[str, bytes | Path]]:
     """The manifest of the model directory ``path`` and the bytes of every file it lists.
+
+    ``mapped(name)`` true: that file is checksummed as it streams past (a MiB at a time) and
+    its :class:`~pathlib.Path` is returned instead of its bytes, for the caller to map
+    (:func:`service.io.npz.npz_mapped`) or read only if it needs it: a load then never
+    holds a file's bytes and its decoded arrays at once.
 
     Raises :class:`ModelCorrupt` for a missing or unreadable manifest, another kind or
     format, a listed file that is missing or does not match its checksum, or a ``required``
@@ -35,13 +43,18 @@ def read_model_files(path, kind: str, format_version: int,
     if manifest.get("kind") != kind or manifest.get("format_version") != format_version:
         raise ModelCorrupt(f"{path}: not a {kind} model of format {format_version} "
                            f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
-    data = {}
+    data: dict[str, bytes | Path] = {}
     for name, digest in {**manifest.get("files", {}), **manifest.get("derived", {})}.items():
         try:
-            data[name] = (path / name).read_bytes()
+            if mapped is not None and mapped(name):
+                data[name] = path / name
+                actual = sha256_file(data[name])
+            else:
+                data[name] = (path / name).read_bytes()
+                actual = hashlib.sha256(data[name]).hexdigest()
         except OSError:
             raise ModelCorrupt(f"{path}: {name} is missing") from None
-        if hashlib.sha256(data[name]).hexdigest() != digest:
+        if actual != digest:
             raise ModelCorrupt(f"{path}: {name} does not match its checksum")
     for name in required:
         if name not in data:

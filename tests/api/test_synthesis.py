@@ -235,6 +235,60 @@ def test_preload_and_the_model_cache_in_metrics(ready):
     assert after["misses_total"] == loaded["misses_total"]      # no second load
 
 
+def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load(ready, monkeypatch):
+    """``Services.start_preload`` (``facesynth serve --preload`` / ``FACESYNTH_PRELOAD``)
+    checks the ids at once, loads in a thread, and /readyz answers 503 (check ``models``)
+    until the models are in the cache; a load that fails keeps it 503 and names the model."""
+    import threading
+
+    from service.app.services import Preload
+    from service.errors import NotFound
+
+    client, _, model_id, markers, _ = ready
+    services = client.app.state.services
+    services.forget_model(model_id)
+    with pytest.raises(NotFound):
+        services.start_preload(["mdl_00000000000000000000000000"])
+    assert services.preloading is None                  # nothing started for a bad id
+    assert Preload([model_id, "mdl_x"], loaded=[model_id]).status() == "loading: 1 of 2 preloaded"
+    gate = threading.Event()
+    load = services.loaded_model
+
+    def slow_load(mid):
+        gate.wait(30)
+        return load(mid)
+
+    monkeypatch.setattr(services, "loaded_model", slow_load)
+    try:
+        state = services.start_preload([model_id])
+        response = client.get("/readyz")
+        assert response.status_code == 503
+        assert response.json()["checks"]["models"] == "loading: 0 of 1 preloaded"
+        gate.set()
+        assert state.done.wait(60) and state.loaded == [model_id]
+        response = client.get("/readyz")
+        assert response.status_code == 200 and response.json()["checks"]["models"] == "ok"
+        assert model_id in services.models
+
+        def broken(mid):
+            raise OSError("disk on fire")
+
+        monkeypatch.setattr(services, "loaded_model", broken)
+        assert services.start_preload([model_id]).done.wait(60)
+        response = client.get("/readyz")
+        assert response.status_code == 503
+        assert response.json()["checks"]["models"] == f"preload failed: {model_id}: OSError: disk on fire"
+    finally:
+        services.preloading = None
+
+
+def test_settings_preload_from_the_environment(monkeypatch):
+    monkeypatch.setenv("FACESYNTH_PRELOAD", " mdl_a, mdl_b ,")
+    assert Settings().preload == ["mdl_a", "mdl_b"]
+    monkeypatch.setenv("FACESYNTH_PRELOAD", "all")
+    assert Settings().preload == ["all"]
+
+
 def test_model_maps_list_and_download(ready):
     client, _, model_id, _, _ = ready
     maps = {m["name"]: m for m in client.get(f"/v1/models/{model_id}/maps").json()["items"]}

@@ -193,6 +193,25 @@ def test_poisson_boundary_term_is_exact_for_consistent_reference_and_pulls_towar
     assert errs[3] < 0.6 * errs[0]
 
 
+def test_poisson_batch_is_one_solve_equal_bit_for_bit_to_its_frames(rig):
+    """A batch (B,m,3,3) is one solve with 3B right-hand sides (bermano2014 §5.5 per frame of
+    an /enhance request): each frame's result is exactly that of solving it alone, with
+    per-frame and shared boundary references and pinned positions."""
+    V, V1, F = rig
+    rng = np.random.default_rng(3)
+    frames = np.stack([V1, V, V1 + 0.3 * rng.standard_normal(V1.shape), V1[::-1][np.argsort(np.arange(len(V))[::-1])]])
+    G = deformation_gradients(V, frames, F)
+    rec = PoissonReconstruction(V, F, boundary_weight=0.05)
+    pins = frames[:, rec.pinned]
+    batch = rec.solve(G, pinned_positions=pins, boundary_reference=frames)
+    shared = rec.solve(G, boundary_reference=V1)
+    for b in range(len(G)):
+        np.testing.assert_array_equal(batch[b], rec.solve(G[b], pinned_positions=pins[b],
+                                                          boundary_reference=frames[b]))
+        np.testing.assert_array_equal(shared[b], rec.solve(G[b], boundary_reference=V1))
+    assert batch.shape == frames.shape and batch.flags.c_contiguous
+
+
 def test_boundary_laplacian_1d_of_a_square_loop():
     # a 3x3 grid of vertices (2x2 quads, 8 triangles): 8 boundary vertices, centre interior
     x, y = np.meshgrid(np.arange(3.0), np.arange(3.0))

@@ -87,3 +87,27 @@ def test_a_good_header_reads_back():
     data = npz_bytes(vertices=np.zeros((4, 3), np.float32))
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
         assert npy_header(archive, "vertices.npy") == ((4, 3), np.dtype(np.float32))
+
+
+def test_npz_mapped_maps_stored_members_and_reads_the_rest(tmp_path):
+    """``npz_mapped`` (stored models' archives): every member equal to ``np.load``'s, the
+    uncompressed non-empty ones read-only views of one mapping (C and Fortran order), the
+    empty, string and compressed ones read."""
+    import mmap
+
+    from service.io.npz import npz_mapped
+
+    arrays = {"x": np.arange(12.0).reshape(3, 4), "f": np.asfortranarray(np.arange(6, dtype=np.int32).reshape(2, 3)),
+              "e": np.zeros((0, 3)), "s": np.float64(3.5), "u": np.array(["ab", "c"])}
+    for save in (np.savez, np.savez_compressed):
+        save(tmp_path / "a.npz", **arrays)
+        out = npz_mapped(tmp_path / "a.npz")
+        assert out.keys() == arrays.keys()
+        for k, v in arrays.items():
+            assert out[k].dtype == np.asarray(v).dtype and out[k].shape == np.shape(v), k
+            np.testing.assert_array_equal(out[k], v)
+        views = {k for k, v in out.items() if isinstance(v.base, np.ndarray)
+                 and isinstance(v.base.base, memoryview) and isinstance(v.base.base.obj, mmap.mmap)}
+        assert views == ({"x", "f", "s", "u"} if save is np.savez else set())
+        assert all(not out[k].flags.writeable for k in views)
+        assert out["f"].flags.f_contiguous

@@ -20,14 +20,18 @@ def healthz() -> dict[str, str]:
 
 
 @router.get("/readyz", summary="Store, database and queue are reachable",
-            responses={503: {"description": "Some component is not reachable.",
+            responses={503: {"description": "Some component is not reachable, or the "
+                                            "preloaded models are still loading.",
                              "content": {"application/json": {"example": {
                                  "status": "unavailable",
                                  "checks": {"database": "ok", "blobs": "ok",
-                                            "queue": "unreachable: ConnectionError"}}}}}})
+                                            "queue": "unreachable: ConnectionError",
+                                            "models": "loading: 0 of 1 preloaded"}}}}}})
 def readyz(services: ServicesDep) -> JSONResponse:
     """200 with every check ``ok`` when the database, the blob store and the job queue are
-    reachable; 503 naming what is not (a readiness probe)."""
+    reachable; 503 naming what is not (a readiness probe). A server started with models to
+    preload (``FACESYNTH_PRELOAD``) has the check ``models`` as well: not ready until they
+    are loaded into the cache (``loading: …``), or if a load failed (``preload failed: …``)."""
     checks = services.check()
     ready = all(value == "ok" for value in checks.values())
     return JSONResponse({"status": "ok" if ready else "unavailable", "checks": checks},

@@ -16,9 +16,11 @@ Layout (DESIGN.md "Data and storage"):
   order); written when the model has them; a model directory without it (stored before
   they were kept) derives them from ``S_train`` at load (seconds);
 * ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
-  basis and handle energy, the extrapolation limits per texel): listed under
-  ``derived`` in the manifest, checksummed like the rest, and optional (a model directory
-  without it loads, more slowly); ``size_bytes`` counts the model without it;
+  basis and handle energy, the extrapolation limits per texel, and each map's covered
+  texels ``<band>_index`` with their coefficients ``<band>_coeffs`` (P,C,K) float32, the
+  EXR's values): listed under ``derived`` in the manifest, checksummed like the rest, and
+  optional (a model directory without it, or without the coefficients, loads, more
+  slowly: the EXRs are decoded); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the
@@ -26,6 +28,12 @@ biquadratic: d1², d2², d1·d2, d1, d2, 1, as ma2008 eq. 1). Maps are float32 a
 past the UV charts (so a renderer's filtering at chart borders reads plausible values);
 loading reads the covered texels only. Every file is written atomically, the manifest
 last; a load verifies every checksum before it trusts a byte.
+
+Loading maps instead of reading (issue 23, cold start): each file is checksummed as it
+streams past, and the ``.npz`` archives (uncompressed, as ``np.savez`` writes them) are
+memory-mapped member by member (:func:`service.io.npz.npz_mapped`), so the coefficients
+come from the cache's ``.npy`` members without an EXR decode, and a load never holds a
+file's bytes and its arrays at once.
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ import numpy as np
 from service.geometry.uv_raster import dilate, rasterize_uv
 from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
-from service.io.npz import npz_arrays
+from service.io.npz import npz_mapped
 from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.pdm import polynomial
 from service.methods.pdm.data import PdmData, PdmDerived
@@ -89,6 +97,9 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
     cache = {"basis": derived.basis, "energy": derived.energy}
     for name, limit in derived.limits.items():
         cache[f"{name}_limit"] = limit
+    for name, band in (("medium", model.medium), ("fine", model.fine), ("albedo", model.albedo)):
+        if band is not None:        # the maps' covered texels as stored .npy members (mapped)
+            cache[f"{name}_index"], cache[f"{name}_coeffs"] = band.index, band.coeffs
     derived_files = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": model.params.model_dump(mode="json"),
@@ -124,21 +135,29 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     """The stored data and the derived cache (empty where the directory has none) written
     by :func:`write_model` in ``path`` (checksums verified first)."""
     path = Path(path)
-    manifest, data = read_model_files(path, KIND, FORMAT_VERSION)
+    # every file is checksummed as it streams past and mapped or read only as needed
+    manifest, data = read_model_files(path, KIND, FORMAT_VERSION, mapped=lambda name: True)
     # a model stored before marker_noise_mm existed interpolated its markers exactly
     params = PdmParams(**{"marker_noise_mm": 0.0, **manifest["params"]})
-    a = npz_arrays(data["model.npz"])
+    a = npz_mapped(data["model.npz"])
     F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
     K = polynomial.ORDERS[params.order]
+    cache = npz_mapped(data[CACHE]) if CACHE in data else {}
     bands = {}
     for name, res in zip(("medium", "fine", "albedo"), a["resolutions"]):
         if res == 0:
             bands[name] = None
             continue
-        res = int(res)
+        res, comps = int(res), COMPONENTS[name]
+        if f"{name}_coeffs" in cache:        # the covered texels, memory-mapped (no EXR decode)
+            index, coeffs = cache[f"{name}_index"], cache[f"{name}_coeffs"]
+            if coeffs.shape != (len(index), len(comps), K) or coeffs.dtype != np.float32:
+                raise ModelCorrupt(f"{path}: {CACHE} holds {name} coefficients of shape "
+                                   f"{coeffs.shape} {coeffs.dtype}, not ({len(index)},{len(comps)},{K}) float32")
+            bands[name] = CoefficientMap(res, index, coeffs)
+            continue
         index = np.flatnonzero(rasterize_uv(uv, uvf, res, res).mask.ravel())
         ch = read_exr(data[f"{name}.exr"])
-        comps = COMPONENTS[name]
         try:
             coeffs = np.stack([np.stack([ch[f"{c}.a{k}"].ravel()[index] for k in range(K)], axis=1)
                                for c in comps], axis=1)
@@ -151,10 +170,9 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     sm = manifest["metrics"].get("axis_smoothing", {})
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))
-    cache = npz_arrays(data[CACHE]) if CACHE in data else {}
     validity = None
     if VALIDITY in data:
-        v = npz_arrays(data[VALIDITY])
+        v = npz_mapped(data[VALIDITY])
         validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")})
     model = PdmData(params=params, faces=F, uv=uv, uv_faces=uvf, smooth=a["smooth"], handles=a["handles"],
                     rest_markers=a["rest_markers"], prior_scale_mm=float(a.get("marker_prior_scale_mm", np.nan)),

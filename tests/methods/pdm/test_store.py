@@ -100,3 +100,41 @@ def test_the_validity_regions_are_stored_and_an_older_directory_derives_them(pdm
     y = derived.synthesize(markers, outputs=("mesh", "displacement", "albedo"))
     for key in x:
         np.testing.assert_array_equal(x[key], y[key], err_msg=key)
+
+
+def test_the_coefficients_are_mapped_from_the_cache_and_equal_the_exr_decode(pdm_model, pdm_data, saved, tmp_path):
+    """A load maps the maps' covered texels from cache.npz's stored .npy members (issue 23:
+    no EXR decode, no file bytes held); a directory whose cache predates those members
+    decodes the EXRs to the same arrays, bit for bit, and synthesizes the same frames."""
+    import mmap
+    import shutil
+
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_arrays
+
+    path, _ = saved
+    older = tmp_path / "older"
+    shutil.copytree(path, older)
+    cache = npz_arrays((older / "cache.npz").read_bytes())
+    assert {"medium_coeffs", "fine_coeffs", "albedo_coeffs", "fine_index"} <= cache.keys()
+    m = json.loads((older / "manifest.json").read_text())
+    m["derived"]["cache.npz"] = write_npz(older / "cache.npz", {
+        k: v for k, v in cache.items() if not k.endswith(("_coeffs", "_index"))})
+    (older / "manifest.json").write_text(json.dumps(m))
+    mapped, decoded = PdmModel.load(path), PdmModel.load(older)
+    for name in ("medium", "fine", "albedo"):
+        a, b = getattr(mapped.data, name), getattr(decoded.data, name)
+        np.testing.assert_array_equal(a.index, b.index)
+        np.testing.assert_array_equal(a.coeffs, b.coeffs)
+        assert a.coeffs.dtype == b.coeffs.dtype == np.float32
+        base = a.coeffs
+        while isinstance(base, np.ndarray) and base.base is not None:
+            base = base.base
+        assert isinstance(base, memoryview) and isinstance(base.obj, mmap.mmap)
+        assert not a.coeffs.flags.writeable
+    np.testing.assert_array_equal(mapped.data.S_train, pdm_model.data.S_train)
+    markers = pdm_data[1][4].markers[[0, 9]]
+    x = mapped.synthesize(markers, outputs=("mesh", "displacement", "normal_map", "albedo"))
+    y = decoded.synthesize(markers, outputs=("mesh", "displacement", "normal_map", "albedo"))
+    for key in x:
+        np.testing.assert_array_equal(x[key], y[key], err_msg=key)

@@ -218,6 +218,17 @@ def test_invalid_input_is_rejected(shape_space_model):
         m.retime(np.stack([m.neutral] * 3), length=5)
 
 
+def test_the_estimate_is_within_ten_percent_of_the_resident_cost(shape_space_model, tmp_path):
+    """The model cache's weight of a loaded shape-space model (``nbytes``) against the resident
+    growth of its load in a fresh process (issue 23; tests/methods/test_footprint.py)."""
+    from tests.methods.test_footprint import resident_cost
+
+    shape_space_model.save(tmp_path / "model")
+    cost = resident_cost("shape_space", tmp_path / "model")
+    assert cost["measured"] > 4 << 20, cost
+    assert abs(cost["estimate"] / cost["measured"] - 1) <= 0.10, cost
+
+
 def test_memory_footprint_counts_the_detail_store_and_the_prefactored_solve(shape_space_model):
     from service.methods.footprint import FACTOR_ENTRY_BYTES, nbytes
 
