@@ -4,7 +4,8 @@
 Training (:func:`train`), from clips of high-resolution frames with their markers:
 
 1. head pose removed from every frame (weighted Kabsch with stability weights, as the PDM);
-2. large scale: the detailed neutral deformed by the precomputed thin shell (§4);
+2. large scale: the detailed neutral deformed by the precomputed thin shell (§4), driven by
+   the markers' posterior mean under the training marker prior (below: marker prior);
 3. features: relative stretch of the feature-graph edges (§5.1), measured on the shell at
    the feature nodes (the markers' surface points), ``node_rest + (N B) u_H``;
 4. corrections: each frame minus its shell, in the shell's tangent frames (§5.2);
@@ -20,7 +21,7 @@ Training (:func:`train`), from clips of high-resolution frames with their marker
    has the form, the reason and the measured effect).
 
 Synthesis (:meth:`PoseSpaceModel.synthesize`, §5.3 "at run-time"): markers → head pose →
-handle displacements (occluded completed, below) → shell ``X = 𝓕 + B u_H`` → features → per-vertex
+handle displacements (denoised and completed by the marker prior, below) → shell ``X = 𝓕 + B u_H`` → features → per-vertex
 distances to the basis poses (one sparse product for WPSD) → ``c_v = Σ_j w_v,j φ_v,j``
 rotated into X's tangent frames → head pose put back.
 
@@ -54,7 +55,26 @@ Choices and departures (the paper is silent or differs):
   the clean frames. Measured on family b (K = 2): in range clean / noisy / occluded 0.373 /
   1.033 / 1.155 → 0.325 / 0.993 / 1.125, combinations clean 0.812 → 0.935 (worse), so the
   default is K = 0;
-* **occlusion** — occluded markers (NaN) are completed before the shell: by default by the
+* **marker prior** (default ``params.marker_prior = "posterior"``) — before the shell, in
+  training and synthesis alike, the aligned markers are replaced by their posterior mean
+  under a Gaussian of the training markers (:func:`marker_posterior`): mean + principal modes
+  (:func:`marker_statistics`) plus an independent off-mode part whose per-marker variance τ²_m
+  is estimated by leaving one training clip out (:func:`residual_variance`: what an
+  expression the other clips never showed adds at that marker), observation noise
+  σ = ``validation_noise_mm``. A Wiener filter: the part the modes explain is kept, the rest
+  shrunk by τ²/(τ² + σ²), so marker noise reaches neither the shell nor the features
+  unfiltered while a combination keeps its off-mode part where the training says such parts
+  occur. Occluded markers get the modes' prediction plus the shell's minimum-energy
+  completion of the visible residual (:func:`posterior_displacements`). Chosen on family b,
+  level 0 (WPSD fine rel. err, nearest frame in brackets; evaluation-only switch on a model
+  trained without it): in range clean / noisy / occluded 0.373 / 1.033 / 1.155 → 0.378 /
+  0.819 / 0.427 (0.391 / 0.959 / 1.020), combinations 0.812 / 1.183 / 0.936 → 0.836 / 1.061 /
+  1.066 (1.254 / 1.496 / 1.360), max error below the shell's on every row; confirmed on
+  family a (6 frames per row: noisy in range 0.936 → 0.823, combinations 0.940 → 0.767).
+  ``"none"`` uses the markers as given (then ``marker_completion`` applies). A transferred
+  model carries the statistics to the target's markers through the source's shell
+  (:mod:`.transfer`);
+* **occlusion** — with ``marker_prior = "none"`` occluded markers (NaN) are completed before the shell: by default by the
   shell's minimum energy; with ``marker_completion = "training"`` by the training frames'
   marker statistics (the MAP of the missing markers under the Gaussian of the aligned
   training marker displacements, observation noise ``validation_noise_mm``:
