@@ -81,6 +81,7 @@ RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations"
           "out of range": "heldout_amplified"}
 CONDITIONS = {"clean": "", "noisy": "_noisy", "occluded": "_occluded"}
 WPSD_NO_POLY = "WPSD (LSq, eq. 5 as printed: no polynomial)"
+SS_MARKERS = "shape space (markers)"
 
 
 # --------------------------------------------------------------------------------------
@@ -454,9 +455,25 @@ def run_speed(actor_dir: Path, train_missing: bool = False, labels: list[str] | 
     return out
 
 
+def shape_space_method(model, tex):
+    """bermano2014 shape space driven by the markers (its database's detail blended), scored
+    at the report's map size (its fine maps box-filtered down if larger)."""
+    def run(markers):
+        out = model.enhance(markers, pr.SS_OUTPUTS, input_kind="markers")
+        D = out.get("fine_displacement")
+        if D is None:
+            return out["vertices"].astype(np.float64), None, None
+        k = D.shape[-1] // tex.H
+        if k > 1:
+            D = D.reshape(len(D), tex.H, k, tex.H, k).mean(axis=(2, 4))
+        return out["vertices"].astype(np.float64), np.stack([tex.texels(m) for m in D]), None
+    return run
+
+
 def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool, fig4: bool = True,
-              only: list[str] | None = None) -> dict:
+              only: list[str] | None = None, shape_space: bool = True) -> dict:
     from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
+    from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
     from service.methods.pose_space.transfer import transfer
     from service.samples.dataset import load_actor
@@ -518,6 +535,11 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     }
     if "WPSD P=20" in ps:
         methods["WPSD P=20"] = lambda m: pose_space_prediction(ps["WPSD P=20"], m, tex)
+    if shape_space:
+        log("shape space (markers)")
+        ss_dir, ss_rec = pr.shape_space_model(actor_dir, ShapeSpaceParams(), False)
+        train_s[SS_MARKERS] = ss_rec["train_s"]
+        methods[SS_MARKERS] = shape_space_method(ShapeSpaceModel.load(ss_dir), tex)
     res["heldout"] = {}
     for rname, perf in RANGES.items():
         if not (actor_dir / "performances" / f"{perf}.npz").is_file():
@@ -693,6 +715,9 @@ def main() -> None:
     parser.add_argument("--speed-models", help="with --speed-only: comma-separated labels of SPEED_MODELS "
                         f"(default all: {', '.join(SPEED_MODELS)})")
     parser.add_argument("--no-fig4", action="store_true", help="skip the Fig. 4 study")
+    parser.add_argument("--no-shape-space", action="store_true",
+                        help="skip the shape-space (marker input) rows (its model is built from the "
+                             "actor's database in a fresh process, cached under benchmarks/out/shape_space)")
     parser.add_argument("--models", help="comma-separated pose-space models to train and score "
                         "(default PSD, WPSD, WPSD P=6, WPSD P=20)")
     parser.add_argument("--out", type=Path, help="output directory (default benchmarks/out/pose_space)")
@@ -730,7 +755,8 @@ def main() -> None:
             "quick": args.quick}
     # the transfer's landmark pairs are vertex i ↔ vertex i (one rig): only the first actor's
     results = [run_actor(a.resolve(), args.target.resolve() if args.target and i == 0 else None, args.quick,
-                         args.reuse, not args.no_fig4, args.models and [x.strip() for x in args.models.split(",")])
+                         args.reuse, not args.no_fig4, args.models and [x.strip() for x in args.models.split(",")],
+                         not args.no_shape_space)
                for i, a in enumerate(args.actors)]
     meta["load_after"] = f"{os.getloadavg()[0]:.1f}"
     text = report(results, meta) + f"\nTotal run {time.perf_counter() - t0:.0f} s.\n"

@@ -43,6 +43,8 @@ class PoseSpaceData:
                                     frames' aligned marker displacements: mean and principal
                                     modes scaled by their standard deviation (occluded markers,
                                     ``params.marker_completion``); None for a transferred model
+    marker_residual_var (M,) float64 | None   their variance outside the modes, per marker and
+                                    coordinate, by leaving one clip out (``params.marker_prior``)
     feature_low, feature_high (E,) float64   training range of every feature
     confidence_scale float          δ₀ of the confidence (module docstring)
     basis_names tuple of str        the basis poses as "clip:frame"
@@ -78,6 +80,7 @@ class PoseSpaceData:
     map_poly_linear: sp.csr_matrix | None = None
     marker_mean: np.ndarray | None = None
     marker_modes: np.ndarray | None = None
+    marker_residual_var: np.ndarray | None = None
 
     @property
     def kind(self) -> str:

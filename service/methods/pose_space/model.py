@@ -4,7 +4,8 @@
 Training (:func:`train`), from clips of high-resolution frames with their markers:
 
 1. head pose removed from every frame (weighted Kabsch with stability weights, as the PDM);
-2. large scale: the detailed neutral deformed by the precomputed thin shell (§4);
+2. large scale: the detailed neutral deformed by the precomputed thin shell (§4), driven by
+   the markers' posterior mean under the training marker prior (below: marker prior);
 3. features: relative stretch of the feature-graph edges (§5.1), measured on the shell at
    the feature nodes (the markers' surface points), ``node_rest + (N B) u_H``;
 4. corrections: each frame minus its shell, in the shell's tangent frames (§5.2);
@@ -20,7 +21,7 @@ Training (:func:`train`), from clips of high-resolution frames with their marker
    has the form, the reason and the measured effect).
 
 Synthesis (:meth:`PoseSpaceModel.synthesize`, §5.3 "at run-time"): markers → head pose →
-handle displacements (occluded completed, below) → shell ``X = 𝓕 + B u_H`` → features → per-vertex
+handle displacements (denoised and completed by the marker prior, below) → shell ``X = 𝓕 + B u_H`` → features → per-vertex
 distances to the basis poses (one sparse product for WPSD) → ``c_v = Σ_j w_v,j φ_v,j``
 rotated into X's tangent frames → head pose put back.
 
@@ -54,7 +55,26 @@ Choices and departures (the paper is silent or differs):
   the clean frames. Measured on family b (K = 2): in range clean / noisy / occluded 0.373 /
   1.033 / 1.155 → 0.325 / 0.993 / 1.125, combinations clean 0.812 → 0.935 (worse), so the
   default is K = 0;
-* **occlusion** — occluded markers (NaN) are completed before the shell: by default by the
+* **marker prior** (default ``params.marker_prior = "posterior"``) — before the shell, in
+  training and synthesis alike, the aligned markers are replaced by their posterior mean
+  under a Gaussian of the training markers (:func:`marker_posterior`): mean + principal modes
+  (:func:`marker_statistics`) plus an independent off-mode part whose per-marker variance τ²_m
+  is estimated by leaving one training clip out (:func:`residual_variance`: what an
+  expression the other clips never showed adds at that marker), observation noise
+  σ = ``validation_noise_mm``. A Wiener filter: the part the modes explain is kept, the rest
+  shrunk by τ²/(τ² + σ²), so marker noise reaches neither the shell nor the features
+  unfiltered while a combination keeps its off-mode part where the training says such parts
+  occur. Occluded markers get the modes' prediction plus the shell's minimum-energy
+  completion of the visible residual (:func:`posterior_displacements`). Chosen on family b,
+  level 0 (WPSD fine rel. err, nearest frame in brackets; evaluation-only switch on a model
+  trained without it): in range clean / noisy / occluded 0.373 / 1.033 / 1.155 → 0.378 /
+  0.819 / 0.427 (0.391 / 0.959 / 1.020), combinations 0.812 / 1.183 / 0.936 → 0.836 / 1.061 /
+  1.066 (1.254 / 1.496 / 1.360), max error below the shell's on every row; confirmed on
+  family a (6 frames per row: noisy in range 0.936 → 0.823, combinations 0.940 → 0.767).
+  ``"none"`` uses the markers as given (then ``marker_completion`` applies). A transferred
+  model carries the statistics to the target's markers through the source's shell
+  (:mod:`.transfer`);
+* **occlusion** — with ``marker_prior = "none"`` occluded markers (NaN) are completed before the shell: by default by the
   shell's minimum energy; with ``marker_completion = "training"`` by the training frames'
   marker statistics (the MAP of the missing markers under the Gaussian of the aligned
   training marker displacements, observation noise ``validation_noise_mm``:
@@ -178,6 +198,9 @@ class PoseSpaceEvaluator:
                                f"{e.required} are needed") from None
         aligned = pose.remove(markers)
         d = self.data
+        if d.params.marker_prior == "posterior" and d.marker_residual_var is not None:
+            return pose, posterior_displacements(self.base, aligned, d.marker_mean, d.marker_modes,
+                                                 d.marker_residual_var, d.params.validation_noise_mm)
         if d.params.marker_completion == "training" and d.marker_modes is not None:
             aligned = complete_markers(aligned, d.rest_markers + d.marker_mean, d.marker_modes,
                                        d.params.validation_noise_mm)
@@ -435,6 +458,96 @@ def complete_markers(aligned: np.ndarray, mean: np.ndarray, modes: np.ndarray,
     return out
 
 
+def residual_variance(u: np.ndarray, clip_frames: Sequence[int], max_modes: int = MARKER_MODES,
+                      floor_mm: float = 1e-3) -> np.ndarray:
+    """Per-marker variance τ²_m (M,) (actor unit² per coordinate) of aligned marker
+    displacements u (T,M,3) *outside* the training modes, by leaving one clip out: for every
+    clip (``clip_frames`` its frame counts, in order) the mean and modes of the other clips
+    (:func:`marker_statistics`) leave a residual on its frames (their orthogonal projection
+    onto those modes removed); τ²_m is the mean of |r_m|²/3 over all frames, at least
+    ``floor_mm``². It is what an expression no training clip showed adds at each marker: the
+    off-mode prior of :func:`marker_posterior`. With one clip only, the residual of the
+    leave-every-4th-frame-out split is used instead."""
+    u = np.asarray(u, np.float64)
+    T, M, _ = u.shape
+    bounds = np.cumsum([0, *clip_frames])
+    if bounds[-1] != T:
+        raise ValueError(f"clip frames sum to {bounds[-1]}, u has {T}")
+    groups = [np.arange(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    if len(groups) < 2:
+        groups = [np.arange(k, T, 4) for k in range(4)]
+    sq = np.zeros(M)
+    count = 0
+    for g in groups:
+        rest = np.setdiff1d(np.arange(T), g)
+        mean, modes = marker_statistics(u[rest], max_modes)
+        x = (u[g] - mean).reshape(len(g), -1)
+        x = x[np.isfinite(x).all(axis=1)]
+        if len(modes):
+            Q, _ = np.linalg.qr(modes.reshape(len(modes), -1).T)                # (3M,r) orthonormal
+            x = x - (x @ Q) @ Q.T
+        sq += (x.reshape(len(x), M, 3) ** 2).sum(axis=(0, 2)) / 3.0
+        count += len(x)
+    return np.maximum(sq / max(count, 1), floor_mm ** 2)
+
+
+def marker_posterior(u: np.ndarray, mean: np.ndarray, modes: np.ndarray, resid_var: np.ndarray,
+                     noise_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mean of aligned marker displacements from noisy, partly occluded ones.
+
+    Prior (a Gaussian of the training markers): u = mean + Σ_k z_k mode_k + r with
+    z ~ N(0, I) (``modes`` (r,M,3) scaled by their std, :func:`marker_statistics`) and an
+    independent off-mode part r_m ~ N(0, τ²_m I₃) (``resid_var`` (M,), leave one clip out,
+    :func:`residual_variance`); observation x_v = u_v + ε, ε ~ N(0, σ² I) at the visible
+    markers, σ = ``noise_mm``. With N = diag(τ² + σ²) over the visible coordinates:
+
+        ẑ = (L_vᵀ N⁻¹ L_v + I)⁻¹ L_vᵀ N⁻¹ (x_v − mean_v),     r̂_v = τ²/(τ² + σ²) · (x_v − mean_v − L_v ẑ)
+
+    (the exact posterior mean E[u_v | x] = mean_v + L_v ẑ + r̂_v: a Wiener filter that keeps
+    what the training modes explain and shrinks the rest by its signal-to-noise ratio).
+    Occluded markers get the in-mode part mean_o + L_o ẑ; their off-mode part is left to the
+    caller (the thin shell completes it from the visible r̂ at minimum energy — a smooth prior
+    for the residual field where the independent Gaussian would give 0).
+
+    u (F,M,3) with NaN rows for occluded markers, mean (M,3). Returns ``inmode`` (F,M,3)
+    complete and ``resid`` (F,M,3), r̂ at visible markers and NaN at occluded ones; the
+    estimate at visible markers is their sum.
+    """
+    u = np.asarray(u, np.float64)
+    F, M, _ = u.shape
+    r = len(modes)
+    seen = np.isfinite(u).all(axis=-1)                                          # (F,M)
+    L = np.asarray(modes, np.float64).reshape(r, 3 * M).T                       # (3M,r)
+    tau2 = np.repeat(np.asarray(resid_var, np.float64), 3)                      # (3M,)
+    s2 = float(noise_mm) ** 2
+    ninv = 1.0 / (tau2 + s2)
+    keep = tau2 * ninv                                                          # Wiener gain
+    d = (u - mean).reshape(F, -1)
+    Z = np.zeros((F, r))
+    patterns, which = np.unique(seen, axis=0, return_inverse=True)
+    for k, pat in enumerate(patterns):
+        fr = np.flatnonzero(which.ravel() == k)
+        v = np.repeat(pat, 3)
+        if r and v.any():
+            Lv = L[v] * ninv[v, None]
+            Z[fr] = np.linalg.solve(L[v].T @ Lv + np.eye(r), Lv.T @ d[fr][:, v].T).T
+    inmode = mean.ravel() + Z @ L.T                                             # (F,3M)
+    resid = np.where(np.repeat(seen, 3, axis=1), keep * (np.nan_to_num(d) + mean.ravel() - inmode), np.nan)
+    return inmode.reshape(F, M, 3), resid.reshape(F, M, 3)
+
+
+def posterior_displacements(base: BaseSurface, aligned: np.ndarray, mean: np.ndarray, modes: np.ndarray,
+                            resid_var: np.ndarray, noise_mm: float) -> np.ndarray:
+    """Complete handle displacements u_H (F,M,3) of aligned markers (F,M,3) (NaN rows
+    occluded) with ``params.marker_prior = "posterior"``: the in-mode part of
+    :func:`marker_posterior` at every marker plus its shrunk residual, completed at the
+    occluded markers by the thin shell's minimum energy (the shell is linear, so the two
+    parts are completed separately and added)."""
+    rest = base.rest_markers
+    inmode, resid = marker_posterior(aligned - rest, mean, modes, resid_var, noise_mm)
+    return base.handle_displacements(rest + inmode) + base.handle_displacements(rest + resid)
+
+
 def _even_sample(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(np.int64))
 
@@ -561,7 +674,18 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
 
     progress(0.05, "large-scale shell")
     base = large_scale_surface(actor).with_marker_noise(params.marker_noise_mm, samples=pose.remove(markers))
-    u_H = base.handle_displacements(pose.remove(markers))
+    aligned = pose.remove(markers)
+    marker_mean, marker_modes = marker_statistics(aligned - rest)
+    marker_residual_var = residual_variance(aligned - rest, [c.frames for c in clips])
+
+    def shell_input(a):
+        """u_H of aligned markers a (T,M,3) as synthesis computes them (the marker prior)."""
+        if params.marker_prior == "posterior":
+            return posterior_displacements(base, a, marker_mean, marker_modes, marker_residual_var,
+                                           params.validation_noise_mm)
+        return base.handle_displacements(a)
+
+    u_H = shell_input(aligned)
     graph = (graph_from_pairs(params.feature_edges, actor.marker_names, rest) if params.feature_edges
              else automatic_graph(actor.marker_uv(), rest, params.max_edge_ratio, params.min_angle_deg))
 
@@ -611,7 +735,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         for k in range(params.noise_copies):
             noisy = markers + rng.normal(0.0, params.validation_noise_mm, markers.shape)
             pn = head_alignment(noisy, rest, pose_weights)
-            F_copies[k] = shell_features(base.handle_displacements(pn.remove(noisy)))
+            F_copies[k] = shell_features(shell_input(pn.remove(noisy)))
     F_fit, reps = fit_rows(F, F_copies)                                          # (T·reps,E)
     smoothing = params.smoothing
     if smoothing is None:
@@ -619,7 +743,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         rng = np.random.default_rng(VALIDATION_SEED)
         noisy = markers + rng.normal(0.0, params.validation_noise_mm, markers.shape)
         pn = head_alignment(noisy, rest, pose_weights)
-        F_noisy = shell_features(base.handle_displacements(pn.remove(noisy)))
+        F_noisy = shell_features(shell_input(pn.remove(noisy)))
         smoothing, table = validate_smoothing(F, F_noisy, D_s, alpha_s, params, first, sup_s, F_copies)
 
     progress(0.45, "basis selection")
@@ -714,7 +838,6 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
                 map_poly_linear = map_poly_linear.astype(np.float32)
         map_rms = float(np.sqrt(sq / maps.size))
 
-    marker_mean, marker_modes = marker_statistics(pose.remove(markers) - rest)
     progress(0.95, "metrics")
     regions = {k: np.asarray(v, bool) for k, v in actor.regions.items()}
     signal = np.einsum("tvc,tvc->v", C, C, dtype=np.float64)
@@ -756,7 +879,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         basis_names=tuple(names[j] for j in sel), metrics=metrics,
         poly_const=poly_const, poly_linear=poly_linear,
         map_poly_const=map_poly_const, map_poly_linear=map_poly_linear,
-        marker_mean=marker_mean, marker_modes=marker_modes)
+        marker_mean=marker_mean, marker_modes=marker_modes, marker_residual_var=marker_residual_var)
     progress(1.0, "done")
     return PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
 

@@ -98,6 +98,16 @@ class PoseSpaceParams(MarkerParams):
                     "displacements, observation noise validation_noise_mm: the MAP of the "
                     "missing markers) before the shell, so the shell and the features at them "
                     "follow the expression. A transferred model (other markers) uses 'shell'.")
+    marker_prior: Literal["none", "posterior"] = Field(
+        default="posterior",
+        description="'posterior' replaces the markers (visible and occluded) by their posterior "
+                    "mean under the training markers' Gaussian (mean + principal modes) plus an "
+                    "off-mode part whose per-marker variance is estimated by leaving one training "
+                    "clip out, with observation noise validation_noise_mm: a Wiener filter that "
+                    "keeps what the training explains, shrinks the rest by its signal-to-noise "
+                    "ratio, and completes occluded markers by the modes plus the thin shell's "
+                    "minimum-energy completion of the residual (model.marker_posterior); it "
+                    "supersedes marker_completion. 'none': the markers as given.")
     occlusion: Literal["shell", "reweight"] = Field(
         default="shell",
         description="Features of edges at occluded markers: 'shell' uses them as the thin "

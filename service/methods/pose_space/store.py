@@ -36,7 +36,7 @@ ARRAYS = ("faces", "uv", "uv_faces", "neutral", "handles", "rest_markers", "pose
           "map_index", "map_weights", "feature_low", "feature_high")
 #: CSR arrays (``NAME_data`` / ``_indices`` / ``_indptr`` / ``_shape``) and optional dense arrays
 SPARSE = ("alpha", "poly_linear", "map_poly_linear")
-OPTIONAL = ("poly_const", "map_poly_const", "marker_mean", "marker_modes")
+OPTIONAL = ("poly_const", "map_poly_const", "marker_mean", "marker_modes", "marker_residual_var")
 
 
 def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:

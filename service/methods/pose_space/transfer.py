@@ -111,6 +111,25 @@ def _bilinear_matrix(uv: np.ndarray, H: int, covered: np.ndarray) -> sp.csr_matr
     return sp.csr_matrix((w.ravel(), (np.repeat(np.arange(K), 4), cols.ravel())), shape=(K, H * H))
 
 
+def _marker_prior(model: PoseSpaceModel, C_handles: sp.csr_matrix, R: np.ndarray) -> dict:
+    """The source's marker statistics (``params.marker_prior``) at the target's markers: the
+    source marker modes and mean as displacement fields of the source's thin shell (B_s u),
+    read at the target markers' corresponding source points (``C_handles`` (M_t,n_s), rows of
+    the dense correspondence at the target's handle vertices) and rotated by the rigid
+    pre-alignment R (3,3); the per-marker off-mode variance interpolated with the shell's
+    normalized |B_s| weights. Empty for a source without them. On the source itself (C the
+    identity at its handles, B_s the identity there) the statistics are unchanged."""
+    s = model.data
+    if s.marker_residual_var is None or s.marker_modes is None or s.marker_mean is None:
+        return {}
+    T = np.asarray(C_handles @ model.evaluator.base.basis.astype(np.float64))   # (M_t,M_s)
+    A = np.abs(T)
+    A /= np.maximum(A.sum(axis=1, keepdims=True), 1e-300)
+    modes = np.einsum("ts,rsc,dc->rtd", T, s.marker_modes, R)
+    return {"marker_mean": np.einsum("ts,sc,dc->td", T, s.marker_mean, R), "marker_modes": modes,
+            "marker_residual_var": A @ s.marker_residual_var}
+
+
 def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
              pose_weights: np.ndarray | None = None, progress: Progress = no_progress) -> PoseSpaceModel:
     """A pose-space model of the same kind for ``target``, from ``model``'s details (§5.4).
@@ -197,6 +216,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     w = np.ones(M) if pose_weights is None else np.asarray(pose_weights, np.float64)
     if w.shape != (M,):
         raise InvalidInput(f"pose_weights must be ({M},), got {w.shape}")
+    prior = _marker_prior(model, C[base.handles], rigid.R)
     metrics = dict(s.metrics)
     metrics["transfer"] = {
         "landmarks": len(L),
@@ -215,7 +235,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
         map_index=map_index, map_weights=map_weights, feature_low=s.feature_low,
         feature_high=s.feature_high, confidence_scale=s.confidence_scale,
         basis_names=s.basis_names, metrics=metrics, poly_const=poly_const, poly_linear=poly_linear,
-        map_poly_const=map_poly_const, map_poly_linear=map_poly_linear)
+        map_poly_const=map_poly_const, map_poly_linear=map_poly_linear, **prior)
     model = PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
     progress(1.0, "done")
     return model
