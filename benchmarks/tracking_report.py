@@ -334,15 +334,14 @@ def main() -> None:
              f"{_commit()}, load average at the start {os.getloadavg()[0]:.1f}.", ""]
     summary: dict = {}
     actors = [Path(a) for a in args.actors] or [harness.sample_actor(f, 0) for f in ("a", "b")]
-    for actor in actors:
+    for actor in actors:                   # the report is rewritten after every family
         if not args.speed_only:
             run_family(actor, args, lines, summary)
         if args.speed_size and actor is actors[0]:
             speed_rows(actor, args, lines, summary)
-    text = "\n".join(lines)
-    (OUT / "report.md").write_text(text)
-    (OUT / "report.json").write_text(json.dumps(summary, indent=1, default=float))
-    print(text)
+        (OUT / "report.md").write_text("\n".join(lines))
+        (OUT / "report.json").write_text(json.dumps(summary, indent=1, default=float))
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":
