@@ -139,20 +139,67 @@ def plot_graph(path: Path, graph, names, title: str) -> None:
     plt.close(fig)
 
 
-def flow_speed(sample, params, n: int = 12) -> tuple[float, float]:
-    """Flows per second: the method's flow + NCC confidence vs OpenCV DIS medium alone."""
+def flow_speed(sample, params, n: int = 12) -> tuple[float, float, float]:
+    """Flows per second (CPU time, one thread): the method's flow + NCC confidence, one
+    tracking edge per view (both directions + forward-backward consistency, per flow), and
+    OpenCV DIS at the same preset alone, alternating so load changes hit all three alike."""
     from service.geometry.optical_flow import dis_flow
-    from service.methods.tracking.graph import flow_with_confidence
+    from service.methods.tracking.graph import edge_flows, flow_with_confidence
 
     pairs = [(sample.frame_images[t, 0], sample.frame_images[t + 1, 0]) for t in range(n)]
-    t0 = time.perf_counter()
+    cpu = {"ours": 0.0, "edge": 0.0, "dis": 0.0}
     for a, b in pairs:
+        t0 = time.process_time()
         flow_with_confidence(a, b, params)
-    ours = n / (time.perf_counter() - t0)
-    t0 = time.perf_counter()
-    for a, b in pairs:
-        dis_flow(a, b, "medium")
-    return ours, n / (time.perf_counter() - t0)
+        cpu["ours"] += time.process_time() - t0
+        t0 = time.process_time()
+        edge_flows(a[None], b[None], ("frame", 0), ("frame", 1), params)
+        cpu["edge"] += time.process_time() - t0
+        t0 = time.process_time()
+        dis_flow(a, b, params.dis_preset)
+        cpu["dis"] += time.process_time() - t0
+    return n / cpu["ours"], 2 * n / cpu["edge"], n / cpu["dis"]
+
+
+def speed_rows(actor: Path, args, lines: list, summary: dict) -> None:
+    """Time per frame end to end (graph method) at ``--speed-size`` for 1 and 3 views."""
+    from service.methods.tracking.params import TrackingParams
+    from service.methods.tracking.track import TrackingInput, track
+    from service.samples.tracking import TrackingSample, build_tracking_sample
+
+    fam, size, T = actor.name, args.speed_size, args.speed_frames
+    cache = OUT / f"sample_{fam}_{size}_{T}_{args.scans}.npz"
+    if cache.exists():
+        sample = TrackingSample.load(cache)
+    else:
+        manifest = json.loads((actor / "manifest.json").read_text())
+        training = sorted(k for k, v in manifest["performances"].items() if v["kind"] == "training")
+        sample = build_tracking_sample(actor, size=size, frames=T, views=3,
+                                       scans=tuple(training[:args.scans]), out=cache)
+    params = TrackingParams()
+    ours, edge, dis = flow_speed(sample, params)
+    rows = []
+    for views in (1, 3):
+        inp = TrackingInput.from_sample(sample, views=views)
+        load = os.getloadavg()[0]
+        w0, c0 = time.perf_counter(), time.process_time()
+        result = track(inp, params)
+        wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+        face = sample.region == 0
+        err = np.linalg.norm(result.vertices - sample.frame_truth, axis=2)[:, face].mean()
+        stages = ", ".join(f"{k} {v:.0f}" for k, v in result.timings.items())
+        rows.append(f"| {fam} | {size}² | {views} | {T} | {len(sample.artist_vertices)} | {wall / T:.2f} | "
+                    f"{cpu / T:.2f} | {err:.3f} | {stages} | {load:.1f} |")
+        summary[f"{fam}/speed/{size}/{views}"] = {"wall_s_per_frame": wall / T, "cpu_s_per_frame": cpu / T,
+                                                  "mean_mm": float(err), "timings": result.timings,
+                                                  "load": load}
+        print("speed", views, wall / T, cpu / T, flush=True)
+    lines += [f"### Speed at {size}² ({T} frames, graph method, 1 BLAS thread, one process)", "",
+              f"Flows per second at {size}² (CPU time, 1 view): flow + NCC {ours:.1f}; a tracking edge's "
+              f"flows (both directions + consistency) {edge:.1f}; OpenCV DIS {params.dis_preset} preset "
+              f"alone {dis:.1f}.", "",
+              "| family | images | views | frames | vertices | wall s / frame | CPU s / frame | mean mm | "
+              "stages (wall s) | load |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
 
 
 def run_family(actor: Path, args, lines: list, summary: dict) -> None:
@@ -180,12 +227,14 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
               f"({', '.join(str(x) for x in sample.scan_names)}), {n} vertices", "",
               f"sample built/loaded in {build_s:.0f} s; raw scans "
               f"{', '.join(str(len(v)) for v in sample.scan_vertices)} vertices (re-meshed)", ""]
-    runs = [("sequential", "sequential", 3), ("neutral anchors", "neutral", 3),
-            ("flow graph", "graph", 3), ("flow graph, monocular", "graph", 1)]
+    runs = [r for r in [("sequential", "sequential", 3), ("neutral anchors", "neutral", 3),
+                        ("flow graph", "graph", 3), ("flow graph, monocular", "graph", 1)]
+            if r[0] != "flow graph, monocular" or not args.no_monocular]
     curves, rows, results = {}, [], {}
     graphs = {}
     for label, method, views in runs:
         inp = TrackingInput.from_sample(sample, views=views)
+        load = os.getloadavg()[0]
         t0 = time.perf_counter()
         graph = graphs.get(method) if method != "sequential" else None
         result = track(inp, params, method=method, graph=graph)
@@ -200,7 +249,7 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
         edges = f"{len(result.graph.static_edges)} / {result.graph.candidates}" if result.graph else "1 / –"
         rows.append(f"| {label} | {views} | {err.mean():.3f} | {start:.3f} | {end:.3f} | "
                     f"{end / start:.2f} | {tv:.4f} | {edges} | {len(result.keyframes)} | "
-                    f"{wall:.0f} | {wall / T:.2f} |")
+                    f"{wall:.0f} | {wall / T:.2f} | {load:.1f} |")
         summary[f"{fam}/{label}"] = {"mean": float(err.mean()), "start": start, "end": end,
                                      "texture_variance": tv, "wall_s": wall,
                                      "timings": result.timings, "keyframes": result.keyframes,
@@ -209,12 +258,12 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
               flush=True)
     truth_tv = texture_variance(sample, sample.frame_truth)
     lines += ["| method | views | mean error mm | start (10 fr) | end (10 fr) | end/start | "
-              "texture variance (Fig. 15) | static edges / candidates | keyframes | wall s | s per frame |",
-              "|---|---|---|---|---|---|---|---|---|---|---|", *rows,
-              f"| ground truth mesh | – | 0 | | | | {truth_tv:.4f} | | | | |",
+              "texture variance (Fig. 15) | static edges / candidates | keyframes | wall s | s per frame | load |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|", *rows,
+              f"| ground truth mesh | – | 0 | | | | {truth_tv:.4f} | | | | | |",
               f"| no tracking (the neutral) | – | "
               f"{np.linalg.norm(sample.frame_truth - sample.artist_vertices, axis=2)[:, face].mean():.3f}"
-              " | | | | | | | | |", ""]
+              " | | | | | | | | | |", ""]
     plot_errors(OUT / f"error_over_time_{fam}.png", curves, f"{fam}: per-frame vertex error")
     full = results["flow graph"]
     plot_graph(OUT / f"graph_{fam}.png", full.graph, list(sample.scan_names), f"{fam} flow graph")
@@ -251,10 +300,20 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
               f"largest weight is each scan: "
               + ", ".join(f"{sample.scan_names[s]} {dominant[s] / dominant.sum():.0%}"
                           for s in range(len(dominant))) + ".", ""]
-    ours, dis = flow_speed(sample, params)
-    lines += [f"Flows per second at {args.size}² (1 view, 2 shared cores): the method's flow + NCC "
-              f"confidence {ours:.1f}, OpenCV DIS medium preset alone {dis:.1f}.", ""]
+    ours, edge, dis = flow_speed(sample, params)
+    lines += [f"Flows per second at {args.size}² (1 view, CPU time): the method's flow + NCC "
+              f"confidence {ours:.1f}, a tracking edge's flows {edge:.1f}, OpenCV DIS "
+              f"{params.dis_preset} preset alone {dis:.1f}.", ""]
     summary[f"{fam}/maps"] = {"blended": float(e_blend), "neutral": float(e_neutral)}
+
+
+def _commit() -> str:
+    import subprocess
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                              text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def main() -> None:
@@ -263,19 +322,26 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--scans", type=int, default=5, help="training clips used as static scans")
+    ap.add_argument("--no-monocular", action="store_true", help="skip the 1-view run (quick)")
+    ap.add_argument("--speed-size", type=int, default=512, help="images of the speed rows (0: none)")
+    ap.add_argument("--speed-frames", type=int, default=30, help="frames of the speed rows")
+    ap.add_argument("--speed-only", action="store_true", help="only the speed rows")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     lines = ["# Performance-flow tracking report (fyffe, Digital Ira course 2014)", "",
              f"{args.frames} frames of held-out_in_range, {args.size}² images, "
-             f"neutral + {args.scans} scans; errors over the face vertices (region 0).", ""]
+             f"neutral + {args.scans} scans; errors over the face vertices (region 0). Commit "
+             f"{_commit()}, load average at the start {os.getloadavg()[0]:.1f}.", ""]
     summary: dict = {}
     actors = [Path(a) for a in args.actors] or [harness.sample_actor(f, 0) for f in ("a", "b")]
-    for actor in actors:
-        run_family(actor, args, lines, summary)
-    text = "\n".join(lines)
-    (OUT / "report.md").write_text(text)
-    (OUT / "report.json").write_text(json.dumps(summary, indent=1, default=float))
-    print(text)
+    for actor in actors:                   # the report is rewritten after every family
+        if not args.speed_only:
+            run_family(actor, args, lines, summary)
+        if args.speed_size and actor is actors[0]:
+            speed_rows(actor, args, lines, summary)
+        (OUT / "report.md").write_text("\n".join(lines))
+        (OUT / "report.json").write_text(json.dumps(summary, indent=1, default=float))
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -109,11 +109,14 @@ def test_a_tracking_job_fans_out_one_job_per_span_and_equals_track(server, scene
     np.testing.assert_array_equal(tracked["vertices"], reference.vertices)
     np.testing.assert_array_equal(tracked["rotations"], reference.rotations)
 
-    # against the ground truth: measured 0.17 mm at frame 0, a mean 0.49× the untracked
-    # error over frames 1-7 (1.10 vs 2.22 mm), at most 1.50 mm
+    # against the ground truth: measured 0.49 mm at frame 0, a mean 0.46× the untracked
+    # error over frames 1-7, at most 1.36 mm. (With the per-scan voting, frame 0 has an edge
+    # to scan 1 besides the neutral's and shares scan 1's registration error, 0.36 mm; with
+    # the old all-scan suppression frame 0 had the neutral's edge alone and measured 0.17
+    # mm, but the mean was 0.49×, the max 1.50 mm and scan 1 was 0.70 mm off.)
     err = np.linalg.norm(tracked["vertices"] - scene.frame_truth, axis=2).mean(axis=1)
     still = np.linalg.norm(scene.artist_vertices[None] - scene.frame_truth, axis=2).mean(axis=1)
-    assert err[0] < 0.3
+    assert err[0] < 0.6
     assert err[1:].mean() < 0.65 * still[1:].mean(), (err, still)
     assert err.max() < 1.8
 
@@ -127,6 +130,8 @@ def test_a_tracking_job_fans_out_one_job_per_span_and_equals_track(server, scene
     assert scans["registered"][0] and scans["vertices"].shape == (2, len(scene.artist_vertices), 3)
     # the registered neutral scan is the artist mesh (the ground, eq. 12)
     np.testing.assert_allclose(scans["vertices"][0], scene.artist_vertices, atol=1e-4)
+    # scan 1 registered to the artist topology (Fig. 11): measured 0.36 mm from its truth
+    assert np.linalg.norm(scans["vertices"][1] - scene.scan_truth[1], axis=1).mean() < 0.5
 
 
 def test_cancelling_a_tracking_job_cancels_its_span_jobs(server, scene, start_worker):

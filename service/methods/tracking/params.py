@@ -25,6 +25,9 @@ class TrackingParams(MethodParams):
     stop_fraction: float = Field(0.2, gt=0.0, lt=1.0, strict=True, description=(
         "the voting stops when every confidence is below this fraction of the initial maximum "
         "(§4.1: 20 %)"))
+    vote_suppression: Literal["all", "scan"] = Field("scan", description=(
+        "whose confidence curves a chosen edge's hat is subtracted from: every scan's ('all') or "
+        "only the chosen scan's ('scan'); graph.vote"))
     candidate_stride: int = Field(5, ge=1, le=100, strict=True, description=(
         "candidate static-to-dynamic flows go to every n-th frame (§4.1: 5)"))
     dense_scans: tuple[str, ...] = Field((), description=(
@@ -44,6 +47,10 @@ class TrackingParams(MethodParams):
         "succeeds almost everywhere and the NCC of the candidate flows lies in 0.8–0.99 for "
         "every scan, so the voting's hat subtraction (by the chosen flow's own confidence) "
         "wiped out all other scans; the floor restores the contrast (0: the paper's plain NCC)"))
+    consistency_sigma: float = Field(0.5, ge=0.0, le=20.0, description=(
+        "σ, pixels, of the forward-backward consistency weight exp(−(r/σ)²) multiplied into the "
+        "confidence of every tracking edge's flows (graph.consistency; 0: off, the paper's NCC "
+        "alone). Chosen on family a, confirmed on b"))
     # §5 energy
     ray_regularization: float = Field(0.01, gt=0.0, le=10.0, description=(
         "ε of eq. 4: the isotropic part added to the ray penalty I − r rᵀ (monocular depth)"))

@@ -142,7 +142,8 @@ def build_graph(inp: TrackingInput, params: TrackingParams, scans: list[int] | N
                                                 labels, R, params, dense, progress)
     full = np.full((len(inp.scan_images),) + table.shape[1:], np.nan)
     full[use] = table
-    chosen = vote(full, params.hat_slope, params.stop_fraction, ground=0)
+    chosen = vote(full, params.hat_slope, params.stop_fraction, ground=0,
+                  suppression=params.vote_suppression)
     finite = full[np.isfinite(full)]
     return FlowGraph(inp.frames, sorted(chosen, key=lambda e: (e[1], e[0])), full,
                      float(finite.max()) if len(finite) else 0.0, count, scan_labels)

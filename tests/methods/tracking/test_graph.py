@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from service.errors import InvalidInput
-from service.methods.tracking.graph import vote
+from service.methods.tracking.graph import consistency, vote
 from service.methods.tracking.params import TrackingParams
 
 
@@ -52,3 +53,63 @@ def test_vote_adds_the_grounds_best_candidate_when_it_was_not_chosen():
     edges = vote(table, 0.04, 0.2, ground=0)
     assert (0, 1) in edges and edges[-1] == (0, 1)
     assert all(s == 1 for s, _ in edges[:-1])
+
+
+def test_vote_per_scan_suppression_leaves_other_scans_their_edges():
+    # the mediocre-scan table: with "scan" suppression an edge only accounts for its own
+    # scan's curves, so after (0, r0) = 0.9 and (1, r1) = 0.8 scan 2's 0.5 ≥ 0.18 is still
+    # standing and is chosen too
+    table = np.array([[[0.9], [0.3]], [[0.3], [0.8]], [[0.5], [0.5]]])
+    assert vote(table, 0.04, 0.2, suppression="scan") == [(0, 0), (1, 0), (2, 0)]
+    # two scans, confidence 1 at each of 31 frames, slope 0.04, stop 0.25: per scan the
+    # hat leaves 0.04·t up to t = 25 (by hand as in the test above), so each scan gets
+    # frames 0 and 25 (ties go to the first in (scan, region, frame) order); with "all"
+    # scan 0's edges satisfy scan 1 as well
+    table = np.ones((2, 1, 31))
+    assert vote(table, 0.04, 0.25, suppression="scan") == [(0, 0), (0, 25), (1, 0), (1, 25)]
+    assert vote(table, 0.04, 0.25, suppression="all") == [(0, 0), (0, 25)]
+    with pytest.raises(ValueError, match="suppression"):
+        vote(table, suppression="some")
+    with pytest.raises(InvalidInput, match="vote_suppression"):
+        TrackingParams(vote_suppression="some")
+
+
+def test_consistency_is_one_for_inverse_flows_and_falls_with_the_round_trip_miss():
+    H, W = 40, 50
+    shift = np.array([2.0, 1.0], np.float32)
+    f = np.broadcast_to(shift, (H, W, 2)).copy()
+    inner = (slice(5, -5), slice(5, -5))
+    # b = −f: the round trip returns to the start everywhere
+    np.testing.assert_allclose(consistency(f, -f, 0.5, 0.0)[inner], 1.0, atol=1e-6)
+    # b = 0: every pixel misses by |f| = √5 px → exp(−(√5/σ)²)
+    zero = np.zeros_like(f)
+    np.testing.assert_allclose(consistency(f, zero, 2.0, 0.0)[inner], np.exp(-5.0 / 4.0), rtol=1e-5)
+    # b = −f + 0.3 px: a miss of 0.3 px → exp(−0.36) at σ = 0.5; smoothing keeps a constant
+    near = -f + np.array([0.3, 0.0], np.float32)
+    np.testing.assert_allclose(consistency(f, near, 0.5, 3.0)[inner], np.exp(-0.36), rtol=1e-4)
+    # σ = 0 switches the weight off
+    assert np.all(consistency(f, zero, 0.0, 3.0) == 1.0)
+
+
+def test_edge_flows_confidence_drops_where_the_two_directions_disagree():
+    # a textured image and a copy shifted by 2 px: both flows agree, the confidence is the
+    # NCC's; an unrelated target: the flows disagree and the consistency takes it down
+    from service.methods.tracking.graph import edge_flows
+    rng = np.random.default_rng(3)
+    base = cv2.GaussianBlur(rng.uniform(0, 255, (64, 64)).astype(np.float32), (0, 0), 1.5)
+    base = cv2.normalize(base, None, 20, 235, cv2.NORM_MINMAX).astype(np.uint8)
+    moved = np.roll(base, 2, axis=1)
+    other = cv2.GaussianBlur(rng.uniform(0, 255, (64, 64)).astype(np.float32), (0, 0), 1.5)
+    other = cv2.normalize(other, None, 20, 235, cv2.NORM_MINMAX).astype(np.uint8)
+    inner = (slice(12, -12), slice(12, -12))
+    on = TrackingParams()
+    off = TrackingParams(consistency_sigma=0.0)
+    good = edge_flows(base[None], moved[None], ("scan", 0), ("frame", 0), on)
+    good_off = edge_flows(base[None], moved[None], ("scan", 0), ("frame", 0), off)
+    np.testing.assert_allclose(good.forward[0].flow[inner], np.broadcast_to([2.0, 0.0], (40, 40, 2)), atol=0.1)
+    assert good.forward[0].confidence[inner].mean() > 0.9 * good_off.forward[0].confidence[inner].mean()
+    assert good.forward[0].confidence[inner].mean() > 0.8
+    bad = edge_flows(base[None], other[None], ("scan", 0), ("frame", 0), on)
+    bad_off = edge_flows(base[None], other[None], ("scan", 0), ("frame", 0), off)
+    assert bad.forward[0].confidence[inner].mean() <= bad_off.forward[0].confidence[inner].mean()
+    assert bad.forward[0].confidence[inner].mean() < 0.1
