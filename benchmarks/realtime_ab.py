@@ -1,0 +1,141 @@
+"""One in-process PDM frame of an older commit against this tree's, in ONE process (issue 23).
+
+The machine these benchmarks run on is shared, and its load moves the timings of separate
+runs by ±30 %; so the two implementations are measured side by side: ``git archive REV
+service`` is unpacked into ``benchmarks/out/realtime_ab/<rev>/service_<rev>`` with its
+imports renamed (``service.`` → ``service_<rev>.``; ``models_store`` is shared), both load the
+same model directory, and the frames alternate old, new, new, old, … Timings are process CPU
+time (``time.process_time``: what the frame costs, not what the scheduler gave it) and wall
+time, medians over ``--calls`` frames of ``heldout_in_range``; ``--profile`` adds a cProfile
+breakdown (CPU clock) of each, on separate frames (also interleaved frame by frame).
+The outputs of both are compared on every fifth frame (largest |old − new| and how many
+frames are bit-identical).
+
+Run: ``python benchmarks/realtime_ab.py [--rev 7543b2b] [--actor DIR] [--calls 30]
+[--profile]``, with the model of ``benchmarks/realtime.py`` (trained there, reused here).
+BLAS threads: ``serve``'s sizing, as in ``realtime.py``. Writes JSON to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import re
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from service.app.threads import apply_blas_threads  # noqa: E402
+
+BLAS_THREADS = apply_blas_threads(None, int(os.environ["FACESYNTH_BLAS_THREADS"])
+                                  if os.environ.get("FACESYNTH_BLAS_THREADS") else None)
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import harness  # noqa: E402
+import realtime  # noqa: E402
+
+ROOT = harness.ROOT
+COMPARED = ("vertices", "displacement", "normal_map", "clamped", "confidence", "confidence_vertices")
+
+
+def old_package(rev: str) -> str:
+    """Unpack ``rev``'s ``service`` as the package ``service_<rev>`` (imports renamed) under
+    ``benchmarks/out/realtime_ab/<rev>`` on ``sys.path``; its name."""
+    name = "service_" + re.sub(r"\W", "_", rev)
+    where = ROOT / "benchmarks" / "out" / "realtime_ab" / rev
+    target = where / name
+    if not (target / "__init__.py").is_file():
+        where.mkdir(parents=True, exist_ok=True)
+        archive = where / "service.tar"
+        with open(archive, "wb") as f:
+            subprocess.run(["git", "archive", rev, "service"], cwd=ROOT, stdout=f, check=True)
+        with tarfile.open(archive) as tar:
+            tar.extractall(where / "tmp", filter="data")
+        (where / "tmp" / "service").rename(target)
+        pattern = re.compile(r"\b(from|import) service(\.| )|\"service\.")
+        for py in target.rglob("*.py"):
+            text = py.read_text()
+            py.write_text(pattern.sub(lambda m: (f"{m.group(1)} {name}{m.group(2)}" if m.group(1)
+                                                 else f'"{name}.'), text))
+    sys.path.insert(0, str(where))
+    return name
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rev", default="7543b2b", help="the older commit (default 7543b2b)")
+    parser.add_argument("--actor", type=Path, default=None, help="sample actor (default level 1)")
+    parser.add_argument("--calls", type=int, default=30)
+    parser.add_argument("--profile", action="store_true")
+    args = parser.parse_args(argv)
+    actor_dir = args.actor or harness.sample_actor("a", 1)
+    model_dir = realtime.ensure_model(actor_dir)
+    markers = realtime.heldout_markers(actor_dir)
+    import importlib
+
+    from service.methods.pdm.model import PdmModel as New
+    Old = importlib.import_module(old_package(args.rev) + ".methods.pdm.model").PdmModel
+    models = {"before": Old.load(model_dir), "after": New.load(model_dir)}
+    res: dict = {"rev": args.rev, "actor": str(actor_dir), "blas_threads": BLAS_THREADS,
+                 "calls": args.calls, "load_start": realtime.load()}
+    sets = {"mesh": ("mesh",), "maps": ("mesh", "displacement", "normal_map")}
+    for name, outs in sets.items():
+        cpu = {k: [] for k in models}
+        wall = {k: [] for k in models}
+        for k in range(args.calls + realtime.WARMUP):
+            for tag in alternating(k):
+                c0, w0 = time.process_time(), time.perf_counter()
+                models[tag].synthesize(markers[k % len(markers)][None], outs)
+                if k >= realtime.WARMUP:
+                    cpu[tag].append(time.process_time() - c0)
+                    wall[tag].append(time.perf_counter() - w0)
+        for tag in models:
+            res[f"{name} {tag}"] = {"cpu_ms": round(1e3 * float(np.median(cpu[tag])), 2),
+                                   "wall_ms": round(1e3 * float(np.median(wall[tag])), 2)}
+        res[f"{name} after/before"] = round(float(np.median(np.array(cpu["after"]) / np.array(cpu["before"]))), 3)
+        if args.profile:                  # separate frames: the profiler's overhead is not timed
+            prof = {k: cProfile.Profile(time.process_time) for k in models}
+            for k in range(args.calls):
+                for tag in alternating(k):
+                    prof[tag].enable()
+                    models[tag].synthesize(markers[k % len(markers)][None], outs)
+                    prof[tag].disable()
+            res[f"{name} profile"] = {tag: profile_rows(p, args.calls) for tag, p in prof.items()}
+    diff: dict = {}
+    for k in range(0, len(markers), 5):
+        a, b = (models[t].synthesize(markers[k][None], sets["maps"]) for t in ("before", "after"))
+        for key in COMPARED:
+            e = diff.setdefault(key, {"max_abs_diff": 0.0, "frames_bit_identical": 0, "frames": 0})
+            e["max_abs_diff"] = max(e["max_abs_diff"], float(np.abs(a[key].astype(np.float64) - b[key]).max()))
+            e["frames_bit_identical"] += int(np.array_equal(a[key], b[key]))
+            e["frames"] += 1
+    res["outputs before vs after"] = diff
+    res["load_end"] = realtime.load()
+    print(json.dumps(res, indent=1))
+    return 0
+
+
+def alternating(k: int) -> tuple[str, str]:
+    """The order of frame k: before first on even frames, after first on odd ones."""
+    return ("before", "after") if k % 2 == 0 else ("after", "before")
+
+
+def profile_rows(prof: cProfile.Profile, calls: int, top: int = 14) -> list[str]:
+    """The ``top`` functions by own CPU time: ``"where own_ms cumulative_ms calls"`` per frame."""
+    rows = sorted(((tt, ct, nc, f"{Path(f).name}:{line}({fn})")
+                   for (f, line, fn), (_, nc, tt, ct, _) in pstats.Stats(prof).stats.items()), reverse=True)
+    total = sum(r[0] for r in rows)
+    return [f"total {1e3 * total / calls:.1f} ms"] + [
+        f"{where} {1e3 * tt / calls:.2f} {1e3 * ct / calls:.2f} {nc / calls:.0f}" for tt, ct, nc, where in rows[:top]]
+
+
+if __name__ == "__main__":
+    sys.exit(main())
