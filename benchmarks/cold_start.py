@@ -154,11 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         for preload in (False, True):
             rows.append(one_server(work, model_id, markers, preload, args.calls))
             print(rows[-1], file=sys.stderr, flush=True)
-    import subprocess as sp
-
-    commit = sp.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                    text=True).stdout.strip()
-    lines = [f"## Cold start, {actor.name} (PDM {model_dir.name}), commit {commit}", "",
+    lines = [f"## Cold start, {actor.name} (PDM {model_dir.name}), {harness.git_state()}", "",
              f"{os.cpu_count()} cores. Seconds from spawning `facesynth serve`; first frame = "
              "latency of the first request sent once /readyz is 200; target ≤ "
              f"{TARGET_S:g} s.", "",

@@ -15,8 +15,9 @@ the load average beside each, the rate in vertices per second against bermano201
 bit. Also the model's load time and its cache weight (``footprint.nbytes``) against the
 service's default budget.
 
-Run: ``python benchmarks/enhance_speed.py --model DIR [--actor DIR] [--frames 30]
-[--rounds 2]``; a model is built with harness.py's ``train-shape-space``. BLAS threads:
+Run: ``python benchmarks/enhance_speed.py [--model DIR] [--actor DIR] [--frames 30]
+[--rounds 2]`` (``make bench``); without ``--model`` the model is harness.py's cached build
+(minutes and ~8 GB at level 1 the first time). BLAS threads:
 what the environment says (one synthesis slot's share: ``service.app.threads``). Writes the
 table to stdout and ``benchmarks/out/enhance_speed.md``.
 """
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -52,7 +52,9 @@ def timed(fn):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, required=True, help="shape-space model directory")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="shape-space model directory (default: harness.py's cached build of "
+                             "the actor's default-parameter model, built in a fresh process if missing)")
     parser.add_argument("--actor", type=Path, default=OUT / "actor-l1")
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--rounds", type=int, default=2)
@@ -60,7 +62,13 @@ def main(argv: list[str] | None = None) -> int:
 
     from service.config import Settings
     from service.methods.footprint import nbytes
-    from service.methods.shape_space import ShapeSpaceModel
+    from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import harness
+
+    if args.model is None:
+        args.model = harness.shape_space_model(args.actor.resolve(), ShapeSpaceParams(), False)[0]
 
     model, load_cpu, load_wall = timed(lambda: ShapeSpaceModel.load(args.model))
     weight = nbytes(model)
@@ -82,11 +90,9 @@ def main(argv: list[str] | None = None) -> int:
                 equal &= all(np.array_equal(value[f], s[key][0]) for f, s in enumerate(single))
         rows.append((name, "bit-identical", equal, None, None))
         print(rows[-3:], file=sys.stderr, flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
     budget = Settings().model_cache_bytes
     lines = [f"## Shape-space enhancement, {args.actor.name} ({n:,} vertices, {model.n_frames} database "
-             f"frames), {len(frames)}-frame request, commit {commit}", "",
+             f"frames), {len(frames)}-frame request, {harness.git_state()}", "",
              f"{os.cpu_count()} cores, OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}. "
              f"Model load {load_wall:.1f} s wall ({load_cpu:.1f} s CPU); cache weight "
              f"{weight / 2**20:,.0f} MiB against the default budget {budget / 2**20:,.0f} MiB"
