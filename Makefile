@@ -46,6 +46,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/load.py
 	$(BIN)/python benchmarks/upload_memory.py
 	$(BIN)/python benchmarks/realtime.py --profile
+	$(BIN)/python benchmarks/cold_start.py
+	$(BIN)/python benchmarks/enhance_speed.py
 
 ## constraints: rewrite constraints.txt from the versions installed in .venv (after
 ## changing a dependency in pyproject.toml: install it, then run this)

@@ -269,6 +269,7 @@ def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load
         response = client.get("/readyz")
         assert response.status_code == 200 and response.json()["checks"]["models"] == "ok"
         assert model_id in services.models
+        assert services.warm_up(services.loaded_model(model_id)) is True
 
         def broken(mid):
             raise OSError("disk on fire")

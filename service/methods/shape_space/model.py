@@ -76,7 +76,7 @@ from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, chec
 from service.methods.shape_space.alignment import align_frames, stability_weights
 from service.methods.shape_space.blending import blend
 from service.methods.shape_space.encoding import (
-    FrequencySeparator, compose, detail_encoding, shape_encoding,
+    FrequencySeparator, compose, detail_encoding, encode_gradients, shape_encoding,
 )
 from service.methods.shape_space.data import ShapeSpaceData
 from service.methods.shape_space.maps import DatabaseMaps, MapBlender
@@ -84,7 +84,8 @@ from service.methods.shape_space.markers import (
     MIN_VISIBLE_MARKERS, MarkerDatabase, MarkerShell, corrected_input,
 )
 from service.methods.shape_space.params import (
-    COMPONENTS, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE, ShapeSpaceParams,
+    COMPONENTS, ENHANCE_BATCH_TRIANGLES, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE,
+    ShapeSpaceParams,
 )
 from service.methods.shape_space.patches import PatchAverager, seed_and_grow_patches, triangle_patches
 from service.methods.shape_space.regions import (
@@ -258,18 +259,21 @@ class ShapeSpaceModel:
         """
         frames = self._check_vertices(frames)
         aligned, transforms = align_frames(frames, self.data.neutral, self.data.align_weights)
-        low = self.evaluator.separator(aligned)
+        low = self.low_frequencies(aligned)
+        G_low = deformation_gradients(self.data.smooth_neutral, low, self.data.faces, self.evaluator.rest_inverse)
         if not shape:
-            G_low = deformation_gradients(self.data.smooth_neutral, low, self.data.faces, self.evaluator.rest_inverse)
             return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
                     "shape": None}
-        G_low = np.empty((len(frames), len(self.data.faces), 3, 3))
-        vectors = np.empty((len(frames), self.data.shapes.shape[1]))
-        for f in range(len(frames)):
-            G_low[f], x = shape_encoding(self.data.smooth_neutral, low[f], self.data.faces, self.evaluator.rest_inverse)
-            vectors[f] = self.evaluator.averager(x).ravel()
+        x = encode_gradients(G_low)                                              # (F,m,9)
+        vectors = self.evaluator.averager(x).reshape(len(frames), -1)
         return {"aligned": aligned, "transforms": transforms, "low": low, "G_low": G_low,
                 "shape": vectors}
+
+    def low_frequencies(self, frames: np.ndarray) -> np.ndarray:
+        """f(frames) (F,n,3) float64 (§4.2 eq. 1), frame by frame: the frequency filter's
+        solve of one frame's three columns, so that a frame's result does not depend on the
+        batch it came in (a solve of more columns rounds differently)."""
+        return np.stack([self.evaluator.separator(x) for x in frames])
 
     def match(self, shape: np.ndarray, markers: bool = False) -> dict[str, np.ndarray]:
         """Convex weights per region for one compressed vector ã (9P,) (§5.3 eq. 3).
@@ -390,38 +394,39 @@ class ShapeSpaceModel:
                       for k, m in texel_maps.items() if m is not None}
         if "colors" in outputs:
             out["colors"] = np.empty((nf, n, self.data.colors.shape[2]), np.float32)
-        for f in range(nf):
-            enc = self.encode(frames[f:f + 1])
-            m = self.match(enc["shape"][0], markers=kind == "markers")
-            W = m["weights"]
+        batch = max(1, ENHANCE_BATCH_TRIANGLES // max(len(self.data.faces), 1))
+        for a in range(0, nf, batch):
+            b = min(nf, a + batch)
+            inputs = frames[a:b]
+            enc = self.encode(inputs)
+            W = np.empty((b - a, R, N))
+            for f, shape in enumerate(enc["shape"]):
+                m = self.match(shape, markers=kind == "markers")
+                W[f] = out["weights"][a + f] = m["weights"]
+                out["nonzero"][a + f] = m["nonzero"]
+                out["match_error"][a + f] = m["error"]
             if correct:
                 enc = self._pose_space_correction(enc, W)
-                out["corrected_input"][f] = enc["transforms"][0].inverse().apply(enc["aligned"][0])
-            aligned = enc["aligned"][0]
-            bh = blend(self.data.detail, self.evaluator.omega_hat, W)                     # (m,9)
-            G = compose(bh, enc["G_low"][0])
-            X = self.evaluator.poisson.solve(G, boundary_reference=aligned)
-            X = rigid_align(X, aligned).apply(X)
-            if self.data.params.restore_low_frequencies:
-                X = X + enc["low"][0] - self.evaluator.separator(X)
-            world = enc["transforms"][0].inverse().apply(X)
-            out["vertices"][f] = world
-            out["weights"][f] = W
-            out["nonzero"][f] = m["nonzero"]
-            out["match_error"][f] = m["error"]
+                out["corrected_input"][a:b] = np.stack([
+                    T.inverse().apply(x) for T, x in zip(enc["transforms"], enc["aligned"])])
+            world = self._reconstruct(enc, W)
+            out["vertices"][a:b] = world
             if disp:
-                normals = vertex_normals(frames[f], self.data.faces)
-                out["vertex_displacement"][f] = np.einsum("nd,nd->n", world - frames[f], normals)
+                normals = vertex_normals(inputs, self.data.faces)
+                out["vertex_displacement"][a:b] = np.einsum("fnd,fnd->fn", world - inputs, normals)
             for maps, values in texel_maps.values():
-                values[f] = maps.blend(W)
+                for f in range(b - a):
+                    values[a + f] = maps.blend(W[f])
             if "mesh_detailed" in want:
                 detailed = world
                 if fine:
-                    h = ev.fine_maps.vertex_sampler @ texel_maps["fine_displacement"][1][f][:, 0]
-                    detailed = world + h[:, None] * vertex_normals(world, self.data.faces)
-                out["vertices_detailed"][f] = detailed
+                    h = np.stack([ev.fine_maps.vertex_sampler @ texel_maps["fine_displacement"][1][a + f][:, 0]
+                                  for f in range(b - a)])
+                    detailed = world + h[..., None] * vertex_normals(world, self.data.faces)
+                out["vertices_detailed"][a:b] = detailed
             if "colors" in outputs:
-                out["colors"][f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W)
+                for f in range(b - a):
+                    out["colors"][a + f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W[f])
         if disp:
             out["displacement"] = self.vertex_map(out["vertex_displacement"])
         for key, (maps, values) in texel_maps.items():
@@ -437,6 +442,25 @@ class ShapeSpaceModel:
             for key in ("displacement", "vertex_displacement", "fine_displacement"):
                 out.pop(key, None)
         return out
+
+    def _reconstruct(self, enc: dict, weights: np.ndarray) -> np.ndarray:
+        """The enhanced frames (B,n,3) float64 in the inputs' world pose from their encoding
+        (:meth:`encode`) and convex weights (B,R,N) (bermano2014 §5.4–5.5): detail blended
+        per triangle (eq. 4) and composed with the input's low-frequency gradients, the
+        prefactored Poisson solve on f(d0) with the input's boundary, the result aligned to
+        the aligned input, its low frequencies restored, and the input's pose put back.
+
+        The frames of a batch go through the per-triangle arithmetic together (one
+        (B,m,3,3) array) and through each solve one at a time (its three columns), so a
+        frame's result is bit for bit the one it gets alone."""
+        aligned = enc["aligned"]
+        bh = np.stack([blend(self.data.detail, self.evaluator.omega_hat, w) for w in weights])  # (B,m,9)
+        G = compose(bh, enc["G_low"])
+        X = self.evaluator.poisson.solve(G, boundary_reference=aligned)
+        X = np.stack([rigid_align(x, y).apply(x) for x, y in zip(X, aligned)])
+        if self.data.params.restore_low_frequencies:
+            X = X + enc["low"] - self.low_frequencies(X)
+        return np.stack([T.inverse().apply(x) for T, x in zip(enc["transforms"], X)])
 
     def vertex_map(self, values: np.ndarray) -> np.ndarray:
         """Per-vertex values (F,n) as UV maps (F,H,H) float32 over the neutral's layout.
@@ -493,9 +517,9 @@ class ShapeSpaceModel:
         return self.evaluator.shell(markers)
 
     def _pose_space_correction(self, enc: dict, weights: np.ndarray) -> dict:
-        """The encoding (:meth:`encode`) of a shell input's corrected surface
-        ā' = ā + Frameᵀ(ā) · c, c the database corrections blended with ``weights`` (R,N)
-        (:mod:`.markers`), in the shell's world pose.
+        """The encoding (:meth:`encode`) of shell inputs' corrected surfaces
+        ā' = ā + Frameᵀ(ā) · c, c the database corrections blended with each frame's
+        ``weights`` (B,R,N) (:mod:`.markers`), in the shells' world pose.
 
         The weights stay those of the shell's match against the database's shells (like
         with like); ā' is encoded again (gradients only, no shape vector) because its
@@ -504,9 +528,12 @@ class ShapeSpaceModel:
         leaves a database frame's own markers 0.028 mm RMS, 0.36 mm at worst, off the frame
         on the level-0 actor.)
         """
-        c = blend(self.data.marker_database.corrections, self.evaluator.vertex_omega_hat, weights)  # (n,3)
-        corrected = corrected_input(self.frame_field(), enc["aligned"][0], c)
-        return self.encode(enc["transforms"][0].inverse().apply(corrected)[None], shape=False)
+        frame_field = self.frame_field()
+        corrected = np.stack([
+            T.inverse().apply(corrected_input(frame_field, a, blend(
+                self.data.marker_database.corrections, self.evaluator.vertex_omega_hat, w)))  # (n,3)
+            for T, a, w in zip(enc["transforms"], enc["aligned"], weights)])
+        return self.encode(corrected, shape=False)
 
     def frame_field(self) -> FrameField:
         """Per-vertex tangent frames of deformed poses (:mod:`.markers`, normal maps)."""

@@ -35,6 +35,10 @@ QP_RIDGE = 1e-12
 QP_TOL = 1e-12
 #: a convex weight counts as non-zero (reports) above this value
 WEIGHT_EPS = 1e-9
+#: most triangles × frames :meth:`~.model.ShapeSpaceModel.enhance` processes as one batch
+#: (a batch's (B,m,3,3) float64 gradients are B·m·72 bytes: ~75 MB per array at this size,
+#: 11 frames of a level-1 actor)
+ENHANCE_BATCH_TRIANGLES = 1 << 20
 #: sum of the region weights of a triangle below which it takes equal weights (eq. 4's
 #: normalization would divide by ~0 far from every region)
 REGION_WEIGHT_FLOOR = 1e-12

@@ -218,6 +218,32 @@ def test_invalid_input_is_rejected(shape_space_model):
         m.retime(np.stack([m.neutral] * 3), length=5)
 
 
+def test_a_batched_enhancement_equals_its_frames_enhanced_one_by_one(shape_space_model, shape_space_data,
+                                                                    monkeypatch):
+    """/enhance batches the per-triangle work over frames (issue 23:
+    ``ENHANCE_BATCH_TRIANGLES`` triangles × frames at a time) and solves frame by frame: every
+    output of a request, vertex and marker input (with the pose-space correction), is bit
+    for bit the one each frame gets alone, whatever the batch size (batches of 3 frames and
+    a last one of 1)."""
+    from service.methods.shape_space import model as ss_model
+
+    _, _, heldout = shape_space_data
+    m = shape_space_model
+    outputs = ("mesh", "mesh_detailed", "displacement", "normal_map", "colors")
+    outputs = tuple(o for o in outputs if o != "colors" or m.data.colors is not None)
+    monkeypatch.setattr(ss_model, "ENHANCE_BATCH_TRIANGLES", 3 * len(m.data.faces))
+    for inputs in (heldout["vertices_medium"][[0, 5, 9, 12, 17, 20, 24]], heldout["markers"][[3, 11, 22, 30]]):
+        batched = m.enhance(inputs, outputs)
+        for f in range(len(inputs)):
+            alone = m.enhance(inputs[f:f + 1], outputs)
+            assert alone.keys() == batched.keys()
+            for key, value in alone.items():
+                if key in ("faces", "region_names"):
+                    np.testing.assert_array_equal(batched[key], value)
+                else:
+                    np.testing.assert_array_equal(batched[key][f], value[0], err_msg=f"{key} frame {f}")
+
+
 def test_the_estimate_is_within_ten_percent_of_the_resident_cost(shape_space_model, tmp_path):
     """The model cache's weight of a loaded shape-space model (``nbytes``) against the resident
     growth of its load in a fresh process (issue 23; tests/methods/test_footprint.py)."""

@@ -1,0 +1,177 @@
+"""Cold start of a real ``facesynth serve`` (issue 23): how long until the first frame.
+
+The same trained PDM (default parameters: medium 512², fine 1024²) of the level-1 sample
+actor is registered once as a ready model in a data directory (as ``realtime.py`` does:
+actor and one clip uploaded through the API, the model row marked ready with the trained
+directory). Then, alternating, fresh server processes are started
+
+* **without preload**: the first request loads the model (what issue 23 measured: 7.7 s);
+* **with preload** (``FACESYNTH_PRELOAD=<model id>``): the model loads in the background
+  while the server already answers; ``/readyz`` is 503 (check ``models``) until it is in
+  the cache.
+
+For each server: seconds from spawn until ``/healthz`` answers (imports, database), until
+``/readyz`` answers 200, the latency of the first frame sent once it is ready (one frame of
+held-out markers, ``outputs=mesh``), of the first frame with the maps
+(``mesh,displacement,normal_map``: the normal mapper is built at load, so this frame does
+not build it), and the median of the next ``--calls`` mesh frames (steady state); also the
+server's resident memory (VmRSS) once the model is loaded, and the server's CPU seconds
+until ready and for the first frame (``/proc/<pid>/stat``: what the load costs whatever
+else the machine runs). A preload also synthesizes one neutral frame
+(``Services.warm_up``) before the server reports ready. The target is the first frame
+after ``serve`` is ready ≤ 2 s.
+
+Run: ``python benchmarks/cold_start.py [--actor DIR] [--model DIR] [--rounds 2]``. The model
+is trained once into ``benchmarks/out/realtime/model-<actor>`` (shared with realtime.py)
+unless ``--model`` names one. Writes the table to stdout and ``benchmarks/out/cold_start.md``.
+The machine is shared: the load average is recorded beside every row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import harness  # noqa: E402
+import realtime  # noqa: E402
+
+ROOT = harness.ROOT
+OUT = ROOT / "benchmarks" / "out"
+WORK = OUT / "cold_start"
+NPZ = {"Content-Type": "application/x-npz"}
+TARGET_S = 2.0
+MESH = "mesh"
+MAPS = "mesh,displacement,normal_map"
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) the process ``pid`` has used."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def spawn(work: Path, port: int, preload: str | None) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
+    env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
+                "FACESYNTH_GRPC_PORT": str(harness.free_port()), "FACESYNTH_WORKERS": "0",
+                "PYTHONPATH": str(ROOT)})
+    if preload:
+        env["FACESYNTH_PRELOAD"] = preload
+    log = open(work / "server.log", "ab")
+    return subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
+                            stdout=log, stderr=log, stdin=subprocess.DEVNULL)
+
+
+def wait_for(url: str, server: subprocess.Popen, t0: float, timeout: float = 600) -> float:
+    """Seconds from ``t0`` until ``url`` answers 200."""
+    import httpx
+
+    while True:
+        try:
+            if httpx.get(url, timeout=2).status_code == 200:
+                return time.perf_counter() - t0
+        except httpx.TransportError:
+            pass
+        if server.poll() is not None or time.perf_counter() - t0 > timeout:
+            raise RuntimeError(f"the server did not get ready; see {WORK / 'server.log'}")
+        time.sleep(0.05)
+
+
+def one_server(work: Path, model_id: str, markers: np.ndarray, preload: bool, calls: int) -> dict:
+    import httpx
+
+    from service.io.npz import npz_bytes
+
+    port = harness.free_port()
+    base = f"http://127.0.0.1:{port}"
+    t0 = time.perf_counter()
+    server = spawn(work, port, model_id if preload else None)
+    try:
+        row = {"preload": preload, "healthz_s": wait_for(f"{base}/healthz", server, t0)}
+        row["ready_s"] = wait_for(f"{base}/readyz", server, t0)
+        row["cpu_ready_s"] = cpu_s(server.pid)
+        with httpx.Client(base_url=base, timeout=600) as client:
+            def frame(k: int, outputs: str) -> float:
+                t = time.perf_counter()
+                r = client.post(f"/v1/models/{model_id}/synthesize", headers=NPZ,
+                                content=npz_bytes(markers=markers[k % len(markers)][None]),
+                                params={"outputs": outputs})
+                r.raise_for_status()
+                return time.perf_counter() - t
+
+            cpu = cpu_s(server.pid)
+            row["first_s"] = frame(0, MESH)
+            row["first_cpu_s"] = cpu_s(server.pid) - cpu
+            row["first_after_spawn_s"] = time.perf_counter() - t0
+            row["first_maps_s"] = frame(1, MAPS)
+            row["steady_ms"] = 1e3 * float(np.median([frame(2 + k, MESH) for k in range(calls)]))
+        row["rss_mb"] = rss_mb(server.pid)
+        row["load"] = load()
+        return row
+    finally:
+        harness.stop_server(server)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--actor", type=Path, default=OUT / "actor-l1")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="a trained PDM model directory (default: realtime.py's, trained once)")
+    parser.add_argument("--rounds", type=int, default=2, help="servers per setting (default 2)")
+    parser.add_argument("--calls", type=int, default=10, help="steady-state frames per server")
+    args = parser.parse_args(argv)
+    actor = args.actor.resolve()
+    model_dir = (args.model or realtime.ensure_model(actor)).resolve()
+    work = WORK / f"work-{actor.name}"
+    work.mkdir(parents=True, exist_ok=True)
+    markers = realtime.heldout_markers(actor)
+    port = harness.free_port()
+    server = harness.start_server(work, port, {"FACESYNTH_WORKERS": "0"})
+    try:
+        model_id = realtime.register_model(f"http://127.0.0.1:{port}", work, actor, model_dir)
+    finally:
+        harness.stop_server(server)
+    rows = []
+    for r in range(args.rounds):
+        for preload in (False, True):
+            rows.append(one_server(work, model_id, markers, preload, args.calls))
+            print(rows[-1], file=sys.stderr, flush=True)
+    lines = [f"## Cold start, {actor.name} (PDM {model_dir.name}), {harness.git_state()}", "",
+             f"{os.cpu_count()} cores. Seconds from spawning `facesynth serve`; first frame = "
+             "latency of the first request sent once /readyz is 200; target ≤ "
+             f"{TARGET_S:g} s.", "",
+             "| preload | /healthz s | /readyz s | server CPU s until ready | first frame s (mesh) | "
+             "its server CPU s | first frame after spawn s | first maps frame s | steady ms (mesh) | "
+             "server RSS MB | load average |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        lines.append(f"| {'yes' if r['preload'] else 'no'} | {r['healthz_s']:.1f} | {r['ready_s']:.1f} | "
+                     f"{r['cpu_ready_s']:.1f} | {r['first_s']:.2f} | {r['first_cpu_s']:.2f} | "
+                     f"{r['first_after_spawn_s']:.1f} | {r['first_maps_s']:.2f} | "
+                     f"{r['steady_ms']:.0f} | {r['rss_mb']:.0f} | {r['load']} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (OUT / "cold_start.md").write_text("# Cold start (benchmarks/cold_start.py)\n\n" + text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

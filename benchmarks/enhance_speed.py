@@ -1,0 +1,116 @@
+"""Shape-space ``/enhance`` speed (issue 23): a 30-frame request batched vs frame by frame.
+
+A trained shape-space model (default parameters) of a sample actor enhances ``--frames``
+held-out frames (``vertices_medium`` of ``heldout_in_range``, vertex input) two ways,
+alternating ``--rounds`` times in one process:
+
+* **batched**: one ``ShapeSpaceModel.enhance(frames)`` call (the per-triangle work of up
+  to ``ENHANCE_BATCH_TRIANGLES`` triangles × frames at a time, solves frame by frame);
+* **per frame**: ``enhance(frames[f:f+1])`` for every frame.
+
+Reported per output set: seconds per frame of CPU (``time.process_time``) and wall time,
+the load average beside each, the rate in vertices per second against bermano2014 §7
+(30 s/frame at 500k vertices: 16,667 vertices/s; issue 23's target ≥ 15× that, i.e.
+≤ 0.2 s/frame at level 1), and whether the batched arrays equal the per-frame ones bit for
+bit. Also the model's load time and its cache weight (``footprint.nbytes``) against the
+service's default budget.
+
+Run: ``python benchmarks/enhance_speed.py [--model DIR] [--actor DIR] [--frames 30]
+[--rounds 2]`` (``make bench``); without ``--model`` the model is harness.py's cached build
+(minutes and ~8 GB at level 1 the first time). BLAS threads:
+what the environment says (one synthesis slot's share: ``service.app.threads``). Writes the
+table to stdout and ``benchmarks/out/enhance_speed.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+OUT = ROOT / "benchmarks" / "out"
+PAPER_VERTICES_PER_S = 500_000 / 30.0          # bermano2014 §7
+TARGET_FACTOR = 15.0
+OUTPUT_SETS = {"mesh": ("mesh",), "mesh + displacement": ("mesh", "displacement")}
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def timed(fn):
+    c, w = time.process_time(), time.perf_counter()
+    out = fn()
+    return out, time.process_time() - c, time.perf_counter() - w
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=None,
+                        help="shape-space model directory (default: harness.py's cached build of "
+                             "the actor's default-parameter model, built in a fresh process if missing)")
+    parser.add_argument("--actor", type=Path, default=OUT / "actor-l1")
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--rounds", type=int, default=2)
+    args = parser.parse_args(argv)
+
+    from service.config import Settings
+    from service.methods.footprint import nbytes
+    from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import harness
+
+    if args.model is None:
+        args.model = harness.shape_space_model(args.actor.resolve(), ShapeSpaceParams(), False)[0]
+
+    model, load_cpu, load_wall = timed(lambda: ShapeSpaceModel.load(args.model))
+    weight = nbytes(model)
+    with np.load(args.actor / "performances" / "heldout_in_range.npz") as d:
+        frames = d["vertices_medium"][:args.frames].astype(np.float64)
+    n = model.n_vertices
+    model.enhance(frames[:1])                                   # warm-up
+    rows = []
+    for name, outputs in OUTPUT_SETS.items():
+        equal = True
+        for _ in range(args.rounds):
+            batched, c, w = timed(lambda: model.enhance(frames, outputs))
+            rows.append((name, "batched", c / len(frames), w / len(frames), load()))
+            single, c, w = timed(lambda: [model.enhance(frames[f:f + 1], outputs) for f in range(len(frames))])
+            rows.append((name, "per frame", c / len(frames), w / len(frames), load()))
+            for key, value in batched.items():
+                if key in ("faces", "region_names"):
+                    continue
+                equal &= all(np.array_equal(value[f], s[key][0]) for f, s in enumerate(single))
+        rows.append((name, "bit-identical", equal, None, None))
+        print(rows[-3:], file=sys.stderr, flush=True)
+    budget = Settings().model_cache_bytes
+    lines = [f"## Shape-space enhancement, {args.actor.name} ({n:,} vertices, {model.n_frames} database "
+             f"frames), {len(frames)}-frame request, {harness.git_state()}", "",
+             f"{os.cpu_count()} cores, OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}. "
+             f"Model load {load_wall:.1f} s wall ({load_cpu:.1f} s CPU); cache weight "
+             f"{weight / 2**20:,.0f} MiB against the default budget {budget / 2**20:,.0f} MiB"
+             f"{' (larger: never kept in the cache)' if weight > budget else ''}. "
+             f"Target ≤ {n / (TARGET_FACTOR * PAPER_VERTICES_PER_S):.2f} s/frame "
+             f"(≥ {TARGET_FACTOR:g}× bermano2014's {PAPER_VERTICES_PER_S:,.0f} vertices/s).", "",
+             "| outputs | how | CPU s/frame | wall s/frame | × paper's rate (CPU) | load average |",
+             "|---|---|---:|---:|---:|---|"]
+    for name, how, c, w, ld in rows:
+        if how == "bit-identical":
+            lines.append(f"| {name} | batched = per frame, bit for bit | {'yes' if c else 'NO'} | | | |")
+            continue
+        lines.append(f"| {name} | {how} | {c:.3f} | {w:.3f} | {n / c / PAPER_VERTICES_PER_S:.1f}× | {ld} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (OUT / "enhance_speed.md").write_text("# Shape-space enhancement speed (benchmarks/enhance_speed.py)\n\n" + text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
