@@ -57,7 +57,11 @@ Measured for the sector envelope (family a, level 0, biquadratic, ``heldout_comb
 frame 25, the worst vertex 6639 at the left mouth corner): d = (−27.7, −7.1) inside its
 hull (ρ = 0.89), the out-of-plane part of its markers' S within the training's (0.44–0.78
 of the training maximum: the 5D residual does not flag it either), PDM error 13.0 mm
-against the thin shell's 4.3 mm. See ``sector_envelope`` for what the sectors change.
+against the thin shell's 4.3 mm. The cause there turned out to be the vertex band's
+coefficients (sampled from the 512² map; fitted at the UV points since, see model.py), but
+the sector envelope alone, on the sampled band, already moved family a's biquadratic
+combinations (4 frames, clean) from max 12.99 → 11.87 mm and detail rel err 2.00 → 1.76
+(in range unchanged: 0.272 → 0.275 mm mean, rel err 1.02).
 
 Measured with the defaults (width 1, slope 1, margin 0.25) on family a's combinations
 (13 frames, face): max vertex error 41.3 → 10.7 mm (thin shell 7.0), mean 0.47 → 0.36 mm
@@ -98,6 +102,13 @@ def directions(K: int = DIRECTIONS) -> np.ndarray:
     return 2 * np.pi * np.arange(K) / K
 
 
+def _kappa(angle: np.ndarray, theta: float, K: int, reach: float) -> np.ndarray:
+    """The sectors' angular kernel κ (…) of samples at ``angle`` (…) for sector angle θ:
+    1 within one sector, falling linearly to 0 at ``reach`` sectors."""
+    delta = np.abs((angle - theta + np.pi) % (2 * np.pi) - np.pi)                  # in [0, π]
+    return np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
+
+
 def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
                   K: int = DIRECTIONS, reach: float = REACH, floor: float = HULL_FLOOR) -> np.ndarray:
     """Radius function (K,P) float32 of the training parameters (module docstring):
@@ -114,9 +125,7 @@ def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
         if h.shape[1] == 0:
             h = np.zeros((K, d1.shape[1]))
         for k, t in enumerate(theta):
-            delta = np.abs((a - t + np.pi) % (2 * np.pi) - np.pi)                  # (t,P) in [0, π]
-            kappa = np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
-            h[k] = np.maximum(h[k], (r * kappa).max(axis=0))
+            h[k] = np.maximum(h[k], (r * _kappa(a, t, K, reach)).max(axis=0))
     return np.maximum(h, floor * h.max(axis=0, keepdims=True) + 1e-12).astype(np.float32)
 
 
@@ -163,8 +172,7 @@ def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.n
         ang = np.arctan2(d2.astype(np.float64), d1)
         rest = np.hypot(d1.astype(np.float64), d2) <= REST_RADIUS * r_max
         for k, t in enumerate(theta):
-            delta = np.abs((ang - t + np.pi) % (2 * np.pi) - np.pi)
-            kappa = np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
+            kappa = _kappa(ang, t, K, reach)
             kappa[rest] = 1.0
             np.maximum(env[k], (norm * kappa).max(axis=0), out=env[k])
     return env
