@@ -42,7 +42,9 @@ shape-space model and rig registration in shape_space_report's cache, all keyed 
 actor's files. A method that fails on an input (e.g. occluded markers) gets a row saying so.
 
 Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
-[--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA]``; default actors (built
+[--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA] [--pdm-only]
+[--pdm-params JSON]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
+parameters, their models cached apart); default actors (built
 when missing, seed 1, level 0):
 ``benchmarks/out/generalization/actor-{a,b}-l0``. Writes the table to stdout and
 ``benchmarks/out/generalization/report.md``, figures beside it.
@@ -79,9 +81,11 @@ CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the 
 HEAT_MM = 2.0                     # heat-map colour range, mm
 
 
-def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0) -> dict:
+def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0, params: dict | None = None) -> dict:
     """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached),
-    trained with ``marker_noise_mm``."""
+    trained with ``marker_noise_mm`` and the other :class:`PdmParams` fields ``params``."""
+    import hashlib
+
     from service.methods.pdm.model import PdmModel
     from service.samples.dataset import performance_names
 
@@ -89,10 +93,12 @@ def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0) -> 
     key = pdm.actor_files_key(actor_dir, *files)
     models = {}
     for order in ORDERS:
-        model_dir = MODELS / (f"pdm_{order}-{key}" + (f"-noise{marker_noise_mm:g}" if marker_noise_mm else ""))
+        model_dir = MODELS / (f"pdm_{order}-{key}" + (f"-noise{marker_noise_mm:g}" if marker_noise_mm else "")
+                              + (f"-p{hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]}"
+                                 if params else ""))
         if retrain or not (model_dir / "manifest.json").is_file():
             print(f"  training PDM {order} (fresh process) ...", file=sys.stderr)
-            pdm.pdm_in_fresh_process(actor_dir, order, model_dir, marker_noise_mm)
+            pdm.pdm_in_fresh_process(actor_dir, order, model_dir, marker_noise_mm, params)
         models[order] = PdmModel.load(model_dir)
     return models
 
@@ -124,13 +130,13 @@ class MethodFailed(Exception):
 
 def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
                     marker_filter: float = 0.0, marker_noise_mm: float = 0.0,
-                    shape_space_rows: bool = True) -> dict:
+                    shape_space_rows: bool = True, pdm_params: dict | None = None) -> dict:
     """Rows {(range, condition, method): metrics} and the worst frame's data of one family."""
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
 
     actor = load_actor(actor_dir)
-    models = pdm_models(actor_dir, retrain, marker_noise_mm)
+    models = pdm_models(actor_dir, retrain, marker_noise_mm, pdm_params)
     bq = models["biquadratic"]
     # scored at the actor's map resolution (a level-0 actor's maps are 512², the PDM's fine
     # band 1024²: its maps are box-filtered down, its band split's σ scaled with them)
@@ -318,6 +324,9 @@ def main() -> None:
                              "SIGMA (soft marker constraints; default 0: exact interpolation)")
     parser.add_argument("--pdm-only", action="store_true",
                         help="only the baselines and the PDM rows (no shape-space model)")
+    parser.add_argument("--pdm-params", type=json.loads, default=None, metavar="JSON",
+                        help="other PdmParams fields of both PDMs, e.g. '{\"neutral_anchor\": false}' "
+                             "(cached apart from the defaults)")
     args = parser.parse_args()
     defaults = {"a": pdm.actor_dir("a", 0), "b": pdm.actor_dir("b", 0)}
     actors = {} if args.actor else defaults
@@ -337,7 +346,7 @@ def main() -> None:
         pdm.ensure_actor(actor_dir, level=0, family=family, with_tracking=False)
         print(f"family {family}: {actor_dir}", file=sys.stderr)
         results[family] = evaluate_family(family, actor_dir, frames, args.retrain, args.marker_filter,
-                                          args.marker_noise, not args.pdm_only)
+                                          args.marker_noise, not args.pdm_only, args.pdm_params)
         plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)
     print(text)

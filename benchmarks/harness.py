@@ -133,16 +133,17 @@ def peak_mb(rss0_kb: int) -> float:
     return (status_kb("VmHWM") - rss0_kb) / 1024
 
 
-def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0) -> dict:
-    """Train a PDM of ``order`` (and ``marker_noise_mm``) on the actor's training clips and
-    save it into ``model_dir``; wall time and peak RSS of ``train`` (run it in a fresh
-    process: :func:`run_worker`)."""
+def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0,
+              params_json: str = "{}") -> dict:
+    """Train a PDM of ``order`` (and ``marker_noise_mm``; other :class:`PdmParams` fields
+    from ``params_json``) on the actor's training clips and save it into ``model_dir``; wall
+    time and peak RSS of ``train`` (run it in a fresh process: :func:`run_worker`)."""
     from service.methods.pdm.model import PdmParams, train
     from service.samples.dataset import load_actor
 
     actor = load_actor(actor_dir)
     clips = training_clips(actor_dir, actor)
-    params = PdmParams(order=order, marker_noise_mm=marker_noise_mm)
+    params = PdmParams(**{**json.loads(params_json), "order": order, "marker_noise_mm": marker_noise_mm})
     rss0 = reset_peak()
     t0 = time.perf_counter()
     model = train(actor, clips, params,
@@ -423,9 +424,11 @@ def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, k
             "extra": extra}
 
 
-def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0) -> dict:
+def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0,
+                         params: dict | None = None) -> dict:
     """:func:`train_pdm` run in a fresh process (its own peak memory); the training record."""
-    return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir), str(marker_noise_mm))
+    return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir), str(marker_noise_mm),
+                      json.dumps(params or {}))
 
 
 def train_pdm_models(actor_dir: Path, orders, reuse: bool, models: Path = PDM_MODELS) -> dict[str, dict]:
@@ -637,7 +640,8 @@ def heldout_frames(actor_dir: Path, name: str, limit: int | None) -> Heldout:
 
 
 WORKERS = {
-    "train-pdm": lambda actor, order, model, noise="0": train_pdm(Path(actor), order, Path(model), float(noise)),
+    "train-pdm": lambda actor, order, model, noise="0", params="{}": train_pdm(Path(actor), order, Path(model),
+                                                                               float(noise), params),
     "train-shape-space": lambda actor, params, model: train_shape_space(Path(actor), params, Path(model)),
     "register-rig": lambda actor, out: register_input_rig(Path(actor), Path(out)),
 }
@@ -692,6 +696,6 @@ if __name__ == "__main__":
     worker = WORKERS.get(sys.argv[1] if len(sys.argv) > 1 else "")
     code, n = (worker.__code__, len(sys.argv) - 2) if worker else (None, 0)
     if worker is None or not code.co_argcount - len(worker.__defaults__ or ()) <= n <= code.co_argcount:
-        sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR [MARKER_NOISE_MM] | train-shape-space ACTOR_DIR "
+        sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR [MARKER_NOISE_MM [PARAMS_JSON]] | train-shape-space ACTOR_DIR "
                  "PARAMS_JSON MODEL_DIR | register-rig ACTOR_DIR OUT_NPZ (the reports' workers)")
     print(json.dumps(worker(*sys.argv[2:])))

@@ -39,6 +39,9 @@ class PdmData:
     metrics : dict
     validity : ValidityData | None   the training data's validity regions (None: trained with
                                      ``validity_width`` None, or stored before they were kept)
+    vertex_coeffs : (K,3,K') float32 | None   the medium PDM fitted at the K UV points (what
+                                     synthesis evaluates; None: stored before, sampled from
+                                     ``medium``)
 
     The maps' texels are in row-major order (as the EXR files hold them).
     """
@@ -61,6 +64,7 @@ class PdmData:
     albedo: CoefficientMap | None
     metrics: dict = field(default_factory=dict)
     validity: ValidityData | None = None
+    vertex_coeffs: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:

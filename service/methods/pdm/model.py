@@ -20,11 +20,17 @@ put back.
 
 Departures and choices (the paper is silent or differs):
 
-* the medium PDM is fitted in texture space, as in the paper, but evaluated at the
-  mesh's UV points: its coefficient maps are sampled once per UV point (bilinear, covered
-  texels only) and d1, d2 are evaluated at the same points; a seam vertex averages its
-  charts' results. Equal to evaluating the map and sampling it for coefficients that vary
-  bilinearly, and O(vertices) per frame;
+* the medium PDM is fitted in texture space, as in the paper (the ``medium.exr`` maps,
+  for renderers), and a second time *at the mesh's UV points*, where synthesis evaluates
+  it: each UV point's polynomial is fitted to its vertex's targets with that point's d1, d2
+  (``PdmData.vertex_coeffs``); a seam vertex averages its charts' results. Sampling the
+  512² map at the UV points instead (what models stored without ``vertex_coeffs`` still
+  do) mixes the texels of neighbouring vertices wherever UV triangles are smaller than a
+  texel: on family a's mouth corner (vertex 6639) the sampled polynomial missed its own
+  training targets by 4.0 mm RMS, pointing the offset the wrong way (−4.9, 5.9 → 5.6,
+  −0.8 mm), against 0.46 mm fitted at the point; that vertex was the worst vertex of the
+  combination and out-of-range performances (13 and 15 mm against the thin shell's 4.3
+  and 7.4). O(vertices) per frame either way;
 * the neutral's own medium detail (detailed neutral − smooth neutral, in the smooth
   neutral's tangent frames) is kept per vertex, and the medium PDM fits what the
   expressions add to it: the paper's constant term a5 would otherwise have to carry sharp
@@ -73,11 +79,17 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
-from service.methods.pdm.validity import BandValidity, Validity, ValidityData, training_envelope, training_hull
+from service.methods.pdm.validity import (
+    BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
+)
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
+#: training frames whose largest handle displacement is at most this fraction of the
+#: largest over all frames are rest frames: their targets give the fine and albedo bands'
+#: value at zero deformation (``neutral_anchor``)
+NEUTRAL_TOL = 0.02
 #: threads for per-frame map filtering (NumPy and SciPy release the GIL)
 WORKERS = 2
 
@@ -140,14 +152,17 @@ class BandFilter:
         return values - self.lowpass(values) if self.sigma > 0 else values
 
 
-def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: DeformationAxes) -> TexelBand:
-    """The medium PDM at the mesh's K UV points (uv (K,2)): coefficients sampled there
-    (bilinear, covered texels only) and d1, d2 at the same points. A seam vertex has one UV
-    per chart, and d1, d2 jump across seams (they live in texture space), so each chart's
-    coefficients are evaluated with that chart's parameters, and :func:`medium_offsets`
-    averages the results."""
-    S = uv_sampling_matrix(uv, medium.mask())[:, medium.index]
-    coeffs = (S @ medium.coeffs.reshape(len(medium.index), -1)).reshape(len(uv), 3, -1)
+def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: DeformationAxes,
+                coeffs: np.ndarray | None = None) -> TexelBand:
+    """The medium PDM at the mesh's K UV points (uv (K,2)): the coefficients (K,3,K') fitted
+    there (``coeffs``, :attr:`.data.PdmData.vertex_coeffs`) or, for a model stored without
+    them, sampled from the map (bilinear, covered texels only), and d1, d2 at the same
+    points. A seam vertex has one UV per chart, and d1, d2 jump across seams (they live in
+    texture space), so each chart's coefficients are evaluated with that chart's parameters,
+    and :func:`medium_offsets` averages the results."""
+    if coeffs is None:
+        S = uv_sampling_matrix(uv, medium.mask())[:, medium.index]
+        coeffs = (S @ medium.coeffs.reshape(len(medium.index), -1)).reshape(len(uv), 3, -1)
     W = barycentric_operator(mesh, uv)
     return TexelBand.build(0, np.arange(len(uv)), coeffs.astype(np.float32), ParameterField.build(axes, W))
 
@@ -210,7 +225,8 @@ class PdmEvaluator:
                                            basis=derived.basis, energy=derived.energy)
             base = base.with_marker_noise(d.params.marker_noise_mm, d.prior_scale_mm)
         n, K = d.n_vertices, len(d.uv)
-        bands, orders = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes)}, {"vertex": np.arange(K)}
+        bands = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes, d.vertex_coeffs)}
+        orders = {"vertex": np.arange(K)}
         for name in ("fine", "albedo"):
             m = getattr(d, name)
             if m is not None:
@@ -249,7 +265,7 @@ class PdmEvaluator:
         v = self.validity
         if v is None:
             return None
-        return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()})
+        return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()}, v.sectors)
 
     def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
         """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers."""
@@ -286,21 +302,25 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders
     stored without it, derived from ``d.S_train`` (seconds)."""
     if d.params.validity_width is None:
         return None
+    S = d.S_train
+
+    def over_training(field):          # the field's (d1, d2) of the training S, a chunk at a time
+        return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
+
+    vb = bands["vertex"]
+    sectors = None if d.validity is None else d.validity.sectors
+    if sectors is None:                # the medium band's sector envelope (a second at level 0)
+        sectors = sector_envelope(vb.coeffs, over_training(vb.field), Validity.fallback("vertex", vb.coeffs))
     if d.validity is not None:
         hull = d.validity.hull
         envelope = {k: d.validity.envelope[k][orders[k]] for k in bands}
     else:
-        S = d.S_train
-
-        def over_training(field):      # the field's (d1, d2) of the training S, a chunk at a time
-            return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
-
         hull = training_hull(over_training(bands["vertex"].field))
         envelope = {k: training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
                     for k, b in bands.items()}
     texels = {k: (b.resolution, b.index) for k, b in bands.items() if k != "vertex"}
     return Validity.build(hull, envelope, d.params.validity_width, d.params.validity_slope, d.uv,
-                          d.uv_faces, seam, base.smooth, d.faces, texels)
+                          d.uv_faces, seam, base.smooth, d.faces, texels, sectors)
 
 
 class PdmModel:
@@ -522,6 +542,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     axes = deformation_axes(mesh, S, params.axis_threshold_deg)
 
     T = len(markers)
+    rest_frames = neutral_frames(u_H)
+    anchored = params.neutral_anchor
 
     def world_vertices(t0, t1):
         return np.concatenate([clips[i].vertices[a:b] for i, a, b in _clip_slices(clips, t0, t1)])
@@ -538,24 +560,37 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     # all of the residual, as §4 fits the medium PDM to the scans (fitting it to the low
     # band of the split instead lowered held-out fine-detail r from 0.747 to 0.710)
     f_med = np.empty((T, len(idx_m), 3), np.float32)
+    uv_vertex = np.zeros(len(actor.uv), np.int64)                  # the vertex of each UV point
+    uv_vertex[np.asarray(actor.uv_faces).ravel()] = F.ravel()
+    f_uv = np.empty((T, len(uv_vertex), 3), np.float32)             # the targets at the UV points
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
         c -= neutral_offset
+        f_uv[t0:t1] = c[:, uv_vertex]
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
     d1, d2 = _parameters(field_m, S)
     progress(0.3, "medium band fit")
     ridge = {"ridge": params.ridge, "gamma": params.gamma}         # the fit's regularization
-    medium = CoefficientMap(Hm, idx_m, polynomial.fit(d1, d2, f_med, params.order, **ridge).astype(np.float32))
+    # the medium target of the neutral is 0 by construction (its offset is kept per vertex)
+    anchor_m = np.zeros(f_med.shape[1:]) if anchored else None
+    medium = CoefficientMap(Hm, idx_m, polynomial.fit(d1, d2, f_med, params.order, anchor=anchor_m,
+                                                      **ridge).astype(np.float32))
     med_rms = polynomial.fit_residual_rms(medium.coeffs, d1, d2, f_med)
     del f_med, d1, d2
 
     uv, uvf = np.asarray(actor.uv, np.float64), np.asarray(actor.uv_faces, np.int64)
     # the medium result at the vertices, as synthesis computes it (without the clamp)
     seam = seam_average_matrix(uvf, F, n, len(uv))
-    vertex = vertex_band(medium, uv, mesh, axes)
-    dv1, dv2 = _parameters(vertex.field, S)
+    # the medium PDM where synthesis evaluates it: fitted at the UV points to their vertex's
+    # targets with that point's d1, d2 (module docstring)
+    field_v = ParameterField.build(axes, barycentric_operator(mesh, uv))
+    dv1, dv2 = _parameters(field_v, S)
+    vertex_coeffs = polynomial.fit(dv1, dv2, f_uv, params.order, anchor=np.zeros(f_uv.shape[1:]) if anchored else None,
+                                   **ridge).astype(np.float32)
+    del f_uv
+    vertex = vertex_band(medium, uv, mesh, axes, vertex_coeffs)
 
     # ---- fine band (1D along the normal, high-pass residual)
     progress(0.45, "fine band")
@@ -588,7 +623,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         f_fine[t0:t1] = np.stack(cols)
     d1, d2 = _parameters(field_f, S)
     progress(0.6, "fine band fit")
-    coeffs_f = polynomial.fit(d1, d2, f_fine, params.order, **ridge).astype(np.float32)
+    anchor_f = _neutral_target(f_fine, rest_frames) if anchored else None
+    coeffs_f = polynomial.fit(d1, d2, f_fine, params.order, anchor=anchor_f, **ridge).astype(np.float32)
     fine = CoefficientMap(Hf, idx_f_stored, _unpermute(coeffs_f, order_f))
     fine_rms = polynomial.fit_residual_rms(coeffs_f, d1, d2, f_fine)[:, 0]
     fine_signal = np.sqrt(np.mean(f_fine.astype(np.float64) ** 2, axis=0))
@@ -603,7 +639,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         order_a, field_a = element_field(mesh, axes, idx_a, Ha)
         f_alb = np.concatenate([c.albedo.reshape(c.frames, -1, 3)[:, idx_a[order_a]] for c in clips]).astype(np.float32)
         d1, d2 = _parameters(field_a, S)
-        coeffs_a = polynomial.fit(d1, d2, f_alb, params.order, **ridge).astype(np.float32)
+        anchor_a = _neutral_target(f_alb, rest_frames) if anchored else None
+        coeffs_a = polynomial.fit(d1, d2, f_alb, params.order, anchor=anchor_a, **ridge).astype(np.float32)
         albedo = CoefficientMap(Ha, idx_a, _unpermute(coeffs_a, order_a))
         alb_rms = polynomial.fit_residual_rms(coeffs_a, d1, d2, f_alb)
         del f_alb, d1, d2
@@ -623,10 +660,13 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         "axis_smoothing": {"replaced": int(axes.replaced), "worst_angle_deg": float(axes.worst_angle_deg),
                            "threshold_deg": params.axis_threshold_deg},
         "highpass_sigma_texels": float(sigma),
+        "neutral_frames": int(len(rest_frames)),
+        "neutral_anchor": {"medium": anchored, "fine": anchored and len(rest_frames) > 0},
         "params": params.model_dump(mode="json"),
     }
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
-                   mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics)
+                   mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics,
+                   vertex_coeffs=vertex_coeffs)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
     # the validity regions of the training data are stored with the model (a load reads them)
@@ -634,6 +674,24 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     model = PdmModel(data, dataclasses.replace(evaluator, data=data))
     progress(1.0, "done")
     return model
+
+
+def neutral_frames(u_H: np.ndarray, tol: float = NEUTRAL_TOL) -> np.ndarray:
+    """Indices of the training frames at rest: whose largest aligned handle displacement
+    ``max_m ‖u_H[t,m]‖`` (u_H (T,M,3)) is at most ``tol`` × its largest over the frames."""
+    amp = np.linalg.norm(np.nan_to_num(u_H), axis=-1).max(axis=-1)           # (T,)
+    return np.flatnonzero(amp <= tol * max(float(amp.max()), 1e-30))
+
+
+def _neutral_target(f: np.ndarray, frames: np.ndarray) -> np.ndarray | None:
+    """The band's target at zero deformation (P,C): the mean of ``f`` (T,P,C) or (T,P) over
+    the rest ``frames`` (NaN-free: 0 where no rest frame measured the point); None without
+    rest frames (the constant is then fitted)."""
+    if len(frames) == 0:
+        return None
+    f0 = np.nanmean(np.asarray(f[frames], np.float64), axis=0) if np.isnan(f[frames]).any() \
+        else np.asarray(f[frames], np.float64).mean(axis=0)
+    return np.nan_to_num(f0)
 
 
 def _unpermute(values: np.ndarray, order: np.ndarray) -> np.ndarray:

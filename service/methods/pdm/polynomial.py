@@ -41,6 +41,18 @@ the biquadratic, not K² = 36 products), accumulated by a Python loop over block
 that is vectorized over a chunk of texels (never a loop over texels); the K×K systems are
 then Jacobi-scaled and solved by batched ``np.linalg.solve``.
 
+Neutral anchor (``fit``'s ``anchor``; issue 17, failure mode 1). The paper leaves the
+constant a5 free, so it is the intercept of the fit over all frames: wherever the data are
+not exactly polynomial (a wrinkle that only appears beyond some compression), the fitted
+surface misses the texel's value at d = 0 and every expression that keeps the texel near
+rest gets that offset — while the safe fallback (the thin shell, the static neutral map) is
+exactly the neutral. Given the value f0 (P,C) the texel must take at zero deformation (the
+neutral's detail, known), the constant is fixed to it, ``a5 = f0``, and the other terms are
+fitted to ``f − f0`` with the same ridge: the equality-constrained least squares whose
+solution has ``D(0, 0) = f0`` exactly. The anchor keeps D continuous with the fallback at the
+neutral, so at small deformations of untrained combinations the polynomial starts from the
+neutral's detail instead of an intercept.
+
 Orders (ma2008 §4.3): ``linear`` (K = 3), ``biquadratic`` (K = 6, the paper's choice),
 ``bicubic`` (K = 10). Coefficients are stored highest total degree first, the constant
 term always last, as in eq. 1.
@@ -215,10 +227,13 @@ def _solve_normal(
     return x * s[..., :, None]
 
 
-def _fit_chunk(d1, d2, f, order, ridge, gamma, sigma, sigma_floor):
+def _fit_chunk(d1, d2, f, order, ridge, gamma, sigma, sigma_floor, anchor=None):
     """Coefficients (n,C,K) for a chunk: d1, d2 (T,n), f (T,n,C), sigma (n,2) or None;
-    ``gamma`` None: the relative ridge ``ridge``, else the paper's γ rows."""
+    ``gamma`` None: the relative ridge ``ridge``, else the paper's γ rows; ``anchor`` (n,C)
+    or None: the constant fixed to it, the other terms fitted to ``f − anchor``."""
     powers = TERM_POWERS[order]
+    if anchor is not None:
+        f = f - anchor[None].astype(f.dtype)
     T, n, C = f.shape
     K = len(powers)
     monomials, index = _moment_index(powers)
@@ -293,12 +308,21 @@ def _fit_chunk(d1, d2, f, order, ridge, gamma, sigma, sigma_floor):
         e = min(s + SOLVE_BLOCK, n)
         A = np.moveaxis(M[:, s:e][index], (0, 1), (-2, -1))       # (e-s,Cm,K,K)
         A[..., np.arange(K), np.arange(K)] += w[s:e] ** 2
+        Bs = B[:, s:e]
+        if anchor is not None:                                    # a_const = 0 on f − anchor
+            A[..., const, :] = 0.0
+            A[..., :, const] = 0.0
+            A[..., const, const] = 1.0
+            Bs = Bs.copy()
+            Bs[const] = 0.0
         if shared:                                                # channels = right-hand sides
-            x = _solve_normal(A[:, 0], np.moveaxis(B[:, s:e], 0, 1), check[s:e, 0])
+            x = _solve_normal(A[:, 0], np.moveaxis(Bs, 0, 1), check[s:e, 0])
             coeffs[s:e] = np.moveaxis(x, -1, 1)
         else:
-            x = _solve_normal(A, np.moveaxis(B[:, s:e], 0, -1)[..., None], check[s:e])
+            x = _solve_normal(A, np.moveaxis(Bs, 0, -1)[..., None], check[s:e])
             coeffs[s:e] = x[..., 0]
+    if anchor is not None:
+        coeffs[..., const] = anchor
     return coeffs
 
 
@@ -313,6 +337,7 @@ def fit(
     sigma: np.ndarray | None = None,
     chunk: int = 65536,
     sigma_floor: float = SIGMA_FLOOR,
+    anchor: np.ndarray | None = None,
 ) -> np.ndarray:
     """Regularized least-squares PDM coefficients at every texel (ma2008 §4.2, eq. 1).
 
@@ -337,6 +362,10 @@ def fit(
                              d2 over the frames in which the texel was measured
     chunk : int              texels solved per batch, to bound memory (see Notes)
     sigma_floor : float      σ below this is treated as this (see ``regularization_weights``)
+    anchor : (P,C), (P,) or None   the value at zero deformation (module docstring, "neutral
+                             anchor"): the constant term fixed to it, so
+                             ``evaluate(coeffs, 0, 0) == anchor``; None: the constant is fitted
+                             (the paper; bit-identical to the fit without this argument)
 
     Returns
     -------
@@ -376,12 +405,18 @@ def fit(
     T, P, C = f.shape
     if gamma is not None and sigma is not None:
         sigma = np.broadcast_to(np.asarray(sigma, np.float64), (P, 2))
+    if anchor is not None:
+        anchor = np.asarray(anchor, np.float64)
+        anchor = anchor[:, None] if anchor.ndim == 1 else anchor
+        if anchor.shape != (P, C) or not np.isfinite(anchor).all():
+            raise ValueError(f"anchor must be finite (P,C) = ({P},{C}) or (P,), got {anchor.shape}")
     coeffs = np.empty((P, C, len(powers)))
     for s in range(0, P, chunk):
         e = min(s + chunk, P)
         coeffs[s:e] = _fit_chunk(
             d1[:, s:e], d2[:, s:e], f[:, s:e], order, ridge, gamma,
             None if gamma is None or sigma is None else sigma[s:e], sigma_floor,
+            None if anchor is None else anchor[s:e],
         )
     return coeffs
 

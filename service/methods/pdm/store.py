@@ -85,6 +85,7 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
         "q": ax.q, "r": ax.r, "scale": ax.scale, "energy": ax.energy,
         "pose_weights": model.pose_weights, "S_train": model.S_train,
         "neutral_offset": model.neutral_offset,
+        **({} if model.vertex_coeffs is None else {"vertex_coeffs": model.vertex_coeffs}),
         "marker_prior_scale_mm": np.float64(model.prior_scale_mm),
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
@@ -93,7 +94,8 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
     files["neutral.exr"] = _write_neutral(path / "neutral.exr", model)
     if model.validity is not None:
         files[VALIDITY] = write_npz(path / VALIDITY, {"hull": model.validity.hull, **{
-            f"{name}_envelope": e for name, e in model.validity.envelope.items()}})
+            f"{name}_envelope": e for name, e in model.validity.envelope.items()}, **(
+            {} if model.validity.sectors is None else {"sectors": model.validity.sectors})})
     cache = {"basis": derived.basis, "energy": derived.energy}
     for name, limit in derived.limits.items():
         cache[f"{name}_limit"] = limit
@@ -173,12 +175,13 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     validity = None
     if VALIDITY in data:
         v = npz_mapped(data[VALIDITY])
-        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")})
+        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")}, v.get("sectors"))
     model = PdmData(params=params, faces=F, uv=uv, uv_faces=uvf, smooth=a["smooth"], handles=a["handles"],
                     rest_markers=a["rest_markers"], prior_scale_mm=float(a.get("marker_prior_scale_mm", np.nan)),
                     mesh=mesh, axes=axes, pose_weights=a["pose_weights"], S_train=a["S_train"],
                     neutral_offset=a["neutral_offset"], medium=bands["medium"], fine=bands["fine"],
-                    albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity)
+                    albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity,
+                    vertex_coeffs=a.get("vertex_coeffs"))
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
                          limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")})
     return model, derived

@@ -23,7 +23,13 @@ only clamps), nor a nearest-sample distance separates those points. So two guard
    ``ρ(d) = r / h(θ)`` (h linear between sectors) is positively homogeneous: ``d_b = d / ρ``
    is the exit point of d's ray;
 2. **training envelope** per point: ``E = max_t ‖D(d_t) − fallback‖`` over the training
-   frames; the detail is limited to ``(1 + margin) E`` in norm.
+   frames; the detail is limited to ``(1 + margin) E`` in norm;
+3. **sector envelope** of the medium band (issue 17, failure mode 1, measured below): per
+   UV point and sector, ``E_k = max_t ‖D(d_t) − fallback‖ κ(θ_t − θ_k)`` — the training
+   detail in the direction of d, with the hull's angular kernel κ, linear between sectors
+   — replaces E for the vertex band: ``E(θ) ≤ E``. One scalar E per point lets a
+   combination keep the largest detail of *any* trained expression (a mouth corner's smile
+   offset) in a direction where training only saw small detail.
 
 Then, with the method's safe *fallback* (0 for the medium PDM: the thin shell of the
 neutral, its static detail kept; the constant term a5 for the fine and albedo PDMs: the
@@ -46,6 +52,16 @@ per-texel region of a 1024² map would cost T × 1024² × K per model load. Eve
 derived from ``S_train`` when the model is trained and stored with it (:class:`ValidityData`;
 a model stored without it derives it at load: about 9 s of a level-0 model's load, mostly
 the fine band's envelope).
+
+Measured for the sector envelope (family a, level 0, biquadratic, ``heldout_combinations``
+frame 25, the worst vertex 6639 at the left mouth corner): d = (−27.7, −7.1) inside its
+hull (ρ = 0.89), the out-of-plane part of its markers' S within the training's (0.44–0.78
+of the training maximum: the 5D residual does not flag it either), PDM error 13.0 mm
+against the thin shell's 4.3 mm. The cause there turned out to be the vertex band's
+coefficients (sampled from the 512² map; fitted at the UV points since, see model.py), but
+the sector envelope alone, on the sampled band, already moved family a's biquadratic
+combinations (4 frames, clean) from max 12.99 → 11.87 mm and detail rel err 2.00 → 1.76
+(in range unchanged: 0.272 → 0.275 mm mean, rel err 1.02).
 
 Measured with the defaults (width 1, slope 1, margin 0.25) on family a's combinations
 (13 frames, face): max vertex error 41.3 → 10.7 mm (thin shell 7.0), mean 0.47 → 0.36 mm
@@ -76,11 +92,21 @@ DIRECTIONS = 32
 REACH = 2.0
 #: radius in a direction no training frame moved along, relative to the largest radius
 HULL_FLOOR = 0.05
+#: training samples within this fraction of a point's largest radius are at rest: their
+#: detail bounds every sector of :func:`sector_envelope`
+REST_RADIUS = 0.02
 
 
 def directions(K: int = DIRECTIONS) -> np.ndarray:
     """Angles θ_k (K,) = 2πk/K of the sectors."""
     return 2 * np.pi * np.arange(K) / K
+
+
+def _kappa(angle: np.ndarray, theta: float, K: int, reach: float) -> np.ndarray:
+    """The sectors' angular kernel κ (…) of samples at ``angle`` (…) for sector angle θ:
+    1 within one sector, falling linearly to 0 at ``reach`` sectors."""
+    delta = np.abs((angle - theta + np.pi) % (2 * np.pi) - np.pi)                  # in [0, π]
+    return np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
 
 
 def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
@@ -99,10 +125,13 @@ def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
         if h.shape[1] == 0:
             h = np.zeros((K, d1.shape[1]))
         for k, t in enumerate(theta):
-            delta = np.abs((a - t + np.pi) % (2 * np.pi) - np.pi)                  # (t,P) in [0, π]
-            kappa = np.clip((reach - delta * K / (2 * np.pi)) / (reach - 1), 0.0, 1.0)
-            h[k] = np.maximum(h[k], (r * kappa).max(axis=0))
+            h[k] = np.maximum(h[k], (r * _kappa(a, t, K, reach)).max(axis=0))
     return np.maximum(h, floor * h.max(axis=0, keepdims=True) + 1e-12).astype(np.float32)
+
+
+def sector_values(d1: np.ndarray, d2: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """A per-sector table (K,P) at the direction θ of d1, d2 (…,P), linear between sectors."""
+    return point_sector_values(d1, d2, np.ascontiguousarray(np.asarray(table, np.float32).T))
 
 
 def gauge(d1: np.ndarray, d2: np.ndarray, hull: np.ndarray) -> np.ndarray:
@@ -115,12 +144,20 @@ def point_gauge(d1: np.ndarray, d2: np.ndarray, hull_points: np.ndarray) -> np.n
     """:func:`gauge` with the radius functions point-major, ``hull_points`` (P,K) (the
     transpose of the (K,P) hull, made once): a point's two bracketing sectors are then
     neighbours in memory, one flat gather instead of two column-strided ones (bit-identical)."""
-    K = hull_points.shape[1]
+    d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
+    h = point_sector_values(d1, d2, hull_points)
+    return (np.hypot(d1, d2) / h).astype(np.float32)
+
+
+def point_sector_values(d1: np.ndarray, d2: np.ndarray, table_points: np.ndarray) -> np.ndarray:
+    """A per-sector table, point-major (P,K), at the direction θ of d1, d2 (…,P), linear
+    between sectors (:func:`point_gauge`'s flat gather)."""
+    K = table_points.shape[1]
     d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
     x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
     k0 = np.floor(x).astype(np.int64) % K
     t = (x - np.floor(x)).astype(np.float32)
-    flat = hull_points.ravel()
+    flat = table_points.ravel()
     base = np.arange(d1.shape[-1]) * K                                       # (P,) row starts
     k0 += base
     h0 = np.take(flat, k0)
@@ -128,8 +165,37 @@ def point_gauge(d1: np.ndarray, d2: np.ndarray, hull_points: np.ndarray) -> np.n
     k0 += 1
     k0 %= K
     k0 += base
-    h = (1 - t) * h0 + t * np.take(flat, k0)
-    return (np.hypot(d1, d2) / h).astype(np.float32)
+    return (1 - t) * h0 + t * np.take(flat, k0)
+
+
+def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
+                    fallback: np.ndarray, K: int = DIRECTIONS, reach: float = REACH) -> np.ndarray:
+    """Sector envelope (K,P) float32 (module docstring, 3.): ``E_k = max_t ‖D(d_t) −
+    fallback‖ κ(θ_t − θ_k)`` of the band's polynomial (P,C,K') on its training parameters
+    (chunks of (t,P) d1, d2), κ the kernel of :func:`training_hull`; ``fallback`` (P,C).
+    Samples at rest (radius ≤ ``REST_RADIUS`` × the point's largest) count in every sector —
+    at d → 0 the direction is undefined, so every sector holds at least the neutral's detail
+    and the limit is continuous there. A sector no other training frame reached holds just
+    that (beyond it the detail is limited towards the fallback)."""
+    from service.methods.pdm.polynomial import evaluate
+
+    a = np.asarray(coeffs, np.float32)
+    theta = directions(K)
+    env = np.zeros((K, len(a)), np.float32)
+    r_max = np.zeros(len(a))
+    for d1, d2 in chunks():                                       # the points' largest radius
+        np.maximum(r_max, np.hypot(np.asarray(d1, np.float64), d2).max(axis=0), out=r_max)
+    for d1, d2 in chunks():
+        d1, d2 = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
+        D = evaluate(a, d1, d2) - fallback
+        norm = np.sqrt(np.einsum("tpc,tpc->tp", D, D))
+        ang = np.arctan2(d2.astype(np.float64), d1)
+        rest = np.hypot(d1.astype(np.float64), d2) <= REST_RADIUS * r_max
+        for k, t in enumerate(theta):
+            kappa = _kappa(ang, t, K, reach)
+            kappa[rest] = 1.0
+            np.maximum(env[k], (norm * kappa).max(axis=0), out=env[k])
+    return env
 
 
 def training_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
@@ -151,8 +217,8 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
                  slope: float, margin: float = 0.25) -> np.ndarray:
     """D̃ (F,P,C) from ``values`` = D(d1, d2) (F,P,C) (module docstring): points of ρ > 1
     continued from the hull's boundary, every point's detail ``D − a5`` limited to
-    ``(1 + margin)`` × its training ``envelope`` (P,) in norm, and faded by w(ρ) to the
-    ``fallback`` (P,C). ``coeffs`` (P,C,K) of the band; d1, d2, rho (F,P). Modifies ``values``.
+    ``(1 + margin)`` × its training ``envelope`` (P,) (or per frame (F,P): the sector
+    envelope at d's direction) in norm, and faded by w(ρ) to the ``fallback`` (P,C). ``coeffs`` (P,C,K) of the band; d1, d2, rho (F,P). Modifies ``values``.
 
     Synthesis uses :func:`valid_polynomial` (the continuation inside the polynomial's own
     pass); this form takes the polynomial's values already evaluated."""
@@ -178,7 +244,7 @@ def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallb
          width: float, margin: float = 0.25) -> np.ndarray:
     """``fallback + w · (L − fallback)`` (F,P,C) of the continued values L (F,P,C), in place:
     ``w = min(1, (1 + margin) E / ‖L − fallback‖) · falloff(ρ − 1, width)`` (module
-    docstring) with E the ``envelope`` (P,), fallback (P,C), ρ (F,P).
+    docstring) with E the ``envelope`` (P,) or (F,P), fallback (P,C), ρ (F,P).
 
     float32 for float32 values: points of ρ ≤ 1 (falloff exactly 1) are the old gathered
     evaluation bit for bit; at ρ > 1 the falloff is evaluated in float32 (≤ 2 ulp of w).
@@ -214,10 +280,14 @@ class ValidityData:
     envelope : dict name → (P,)   training envelope (:func:`training_envelope`) of each
                                   evaluated band (``vertex``, ``fine``, ``albedo``), float32,
                                   in the stored band's point order (row-major texels)
+    sectors : (D,Q) float32 or None   the medium band's sector envelope
+                                  (:func:`sector_envelope`); None: stored before it existed
+                                  (derived at load)
     """
 
     hull: np.ndarray
     envelope: dict
+    sectors: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -231,6 +301,8 @@ class Validity:
     texel_rho : dict name → (P,Q) sparse   UV points → a texel band's points (barycentric)
     vertex_rho : (n,Q) sparse     UV points → vertices (seam mean)
     vertex_weight : (n,) float    vertex areas (the per-frame confidence's weights)
+    sectors : (K,Q) float32 or None   the medium band's sector envelope (:func:`sector_envelope`;
+                                  None: the scalar envelope only)
     """
 
     hull_points: np.ndarray
@@ -240,11 +312,12 @@ class Validity:
     texel_rho: dict
     vertex_rho: sp.csr_matrix
     vertex_weight: np.ndarray
+    sectors: np.ndarray | None = None
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
               uv_faces: np.ndarray, seam_average: sp.csr_matrix, vertices: np.ndarray,
-              faces: np.ndarray, bands: dict) -> "Validity":
+              faces: np.ndarray, bands: dict, sectors: np.ndarray | None = None) -> "Validity":
         """``bands``: name → (resolution, index (P,)) of the texel bands that take ρ from the
         UV points; ``vertices`` (n,3), ``faces`` (m,3) the mesh whose areas weigh the frame."""
         texel_rho = {}
@@ -254,7 +327,7 @@ class Validity:
         area = np.bincount(np.asarray(faces).ravel(), np.repeat(triangle_areas(vertices, faces), 3),
                            minlength=len(vertices)) / 3
         return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,
-                   seam_average.tocsr(), area)
+                   seam_average.tocsr(), area, None if sectors is None else np.asarray(sectors, np.float32))
 
     def gauge(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """ρ (F,Q) at the UV points for their parameters d1, d2 (F,Q)."""
@@ -272,8 +345,12 @@ class Validity:
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
                  rho: np.ndarray) -> np.ndarray:
         """D̃ (F,P,C) of band ``name`` (coefficients (P,C,K)) at d1, d2, ρ (F,P)
-        (:func:`valid_polynomial`)."""
-        return valid_polynomial(coeffs, d1, d2, rho, self.envelope[name], self.fallback(name, coeffs),
+        (:func:`valid_polynomial`); the vertex band with its sector envelope at d's
+        direction, when there is one."""
+        envelope = self.envelope[name]
+        if name == "vertex" and self.sectors is not None:
+            envelope = sector_values(d1, d2, self.sectors)
+        return valid_polynomial(coeffs, d1, d2, rho, envelope, self.fallback(name, coeffs),
                                 self.width, self.slope)
 
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":

@@ -172,3 +172,42 @@ def test_float32_frames_keep_the_mesh_within_a_micrometre_of_float64(pdm_model, 
     h = (pdm_model.evaluator.fine_sampler @ out["displacement"].reshape(3, -1)[:, pdm_model.evaluator.fine.index].T).T
     detailed = pose.restore(medium + h[..., None] * pdm_model.evaluator.base.frames(medium)[..., 2, :])
     assert np.abs(out["vertices_detailed"] - detailed).max() < 1e-3
+
+
+
+@pytest.fixture(scope="module")
+def anchored_model(pdm_data):
+    from service.methods.pdm.model import train
+
+    actor, clips = pdm_data
+    return train(actor, clips, PdmParams(medium_resolution=256, fine_resolution=128, neutral_anchor=True))
+
+
+def test_the_neutral_is_reproduced_at_zero_deformation(anchored_model, pdm_model, pdm_data):
+    """neutral_anchor: neutral markers give the thin shell of the detailed neutral (the medium
+    band adds exactly nothing) and the rest frames' fine map (the static neutral map); the
+    free constant of the paper's fit (the default) does not."""
+    from service.methods.pdm.model import neutral_frames
+
+    actor, clips = pdm_data
+    m = anchored_model.metrics
+    assert m["neutral_anchor"] == {"medium": True, "fine": True} and m["neutral_frames"] >= len(clips)
+    assert pdm_model.metrics["neutral_anchor"] == {"medium": False, "fine": False}
+    rest = actor.marker_positions()[None]
+    shell = _thin_shell_only(anchored_model, actor, rest)[0]
+    for model, exact in ((anchored_model, True), (pdm_model, False)):
+        ev = model.evaluator
+        a5 = ev.vertex_band.coeffs[:, :, -1]
+        out = model.synthesize(rest, outputs=("mesh", "displacement"))
+        err = np.abs(out["vertices"][0] - shell).max()
+        if exact:
+            assert np.array_equal(a5, np.zeros_like(a5))
+            assert err < 2e-4                                                       # float32 frames
+            disp = out["displacement"][0].ravel()[ev.fine.index]
+            np.testing.assert_allclose(disp, ev.fine.coeffs[:, 0, -1], atol=1e-6)  # a5: the rest frames' map
+        else:
+            assert np.abs(a5).max() > 1e-3 and err > 1e-3                           # the fitted intercept
+    # rest frames: at most 2 % of the largest handle displacement
+    u = np.zeros((5, 3, 3))
+    u[1:, 0, 0] = [0.01, 0.019, 0.5, 1.0]
+    assert neutral_frames(u).tolist() == [0, 1, 2]

@@ -388,3 +388,42 @@ def test_fit_rejects_negative_ridge_and_gamma():
         fit(d1, d2, f, "linear", ridge=-0.1)
     with pytest.raises(ValueError, match="gamma"):
         fit(d1, d2, f, "linear", gamma=-1.0)
+
+
+# --- the neutral anchor (issue 17: the polynomial at zero deformation is the neutral) -----
+
+
+@pytest.mark.parametrize("order", sorted(ORDERS))
+def test_anchored_fit_reproduces_the_anchor_exactly_at_zero_deformation(order):
+    d1, d2, _, f = _exact(order, T=20, P=40)
+    f = f + np.random.default_rng(3).normal(size=f.shape)
+    f0 = np.random.default_rng(4).normal(size=f.shape[1:])
+    for kw in ({"ridge": 0.1}, {"ridge": 0.0}, {"gamma": 30.0}):
+        c = fit(d1, d2, f, order, anchor=f0, **kw)
+        assert np.array_equal(evaluate(c, np.zeros(40), np.zeros(40)), f0)
+        assert np.array_equal(c[..., -1], f0)
+
+
+def test_anchored_fit_is_the_constrained_least_squares():
+    """Constant fixed to f0, the other terms the plain least squares of f − f0 (ridge 0), and
+    data that are exactly a polynomial through f0 are recovered."""
+    d1, d2, a, f = _exact("biquadratic", T=30, P=25)
+    f_noisy = f + np.random.default_rng(5).normal(size=f.shape)
+    f0 = np.random.default_rng(6).normal(size=f.shape[1:])
+    c = fit(d1, d2, f_noisy, anchor=f0, ridge=0.0)
+    for p in (0, 7, 24):
+        Phi = design_matrix(d1[:, p], d2[:, p])[:, :-1]
+        ref = np.linalg.lstsq(Phi, f_noisy[:, p] - f0[p], rcond=None)[0].T
+        np.testing.assert_allclose(c[p, :, :-1], ref, rtol=1e-8, atol=1e-9)
+    exact = fit(d1, d2, f, anchor=a[..., -1], ridge=0.0)
+    np.testing.assert_allclose(exact, a, rtol=1e-8, atol=1e-8)
+
+
+def test_anchor_none_is_the_free_constant_fit_bit_for_bit_and_bad_anchor_is_refused():
+    d1, d2, _, f = _exact("biquadratic", T=12, P=10)
+    assert np.array_equal(fit(d1, d2, f, anchor=None), fit(d1, d2, f))
+    assert np.array_equal(fit(d1, d2, f, gamma=30.0, anchor=None), fit(d1, d2, f, gamma=30.0))
+    with pytest.raises(ValueError, match="anchor"):
+        fit(d1, d2, f, anchor=np.zeros((10, 2)))
+    with pytest.raises(ValueError, match="anchor"):
+        fit(d1, d2, f, anchor=np.full((10, 3), np.nan))

@@ -68,3 +68,53 @@ def test_every_training_sample_lies_in_its_region():
     d1, d2 = rng.normal(size=(2, 50, 7)).astype(np.float32)
     hull = training_hull(lambda: iter([(d1, d2)]))
     assert gauge(d1, d2, hull).max() <= 1 + 1e-5
+
+
+# --- the sector envelope of the medium band (issue 17, failure mode 1) ------------------
+
+
+def test_sector_envelope_is_the_training_detail_in_each_direction():
+    from service.methods.pdm.validity import sector_envelope, sector_values
+
+    r = np.linspace(0, 2, 5, dtype=np.float32)[:, None]          # training on the +d1 ray
+    env = sector_envelope(COEFFS, lambda: iter([(r, np.zeros_like(r))]), np.array([[0.0]], np.float32))
+    assert env.shape == (DIRECTIONS, 1)
+    assert env[0, 0] == pytest.approx(D(2.0, 0.0))                # 8.5: the largest on the ray
+    assert env[1, 0] == pytest.approx(8.5) and env[-1, 0] == pytest.approx(8.5)   # one sector away
+    # never trained: the rest sample's detail D(0, 0) = 0.5 (every sector holds the neutral's)
+    assert env[DIRECTIONS // 2, 0] == pytest.approx(0.5) and env[DIRECTIONS // 4, 0] == pytest.approx(0.5)
+    # linear between sectors: halfway between sector 1 (full) and 2 (κ = 0)
+    half = 2 * np.pi * 1.5 / DIRECTIONS
+    v = sector_values(np.array([[np.cos(half)]], np.float32), np.array([[np.sin(half)]], np.float32), env)
+    assert v[0, 0] == pytest.approx(4.5, rel=1e-5)
+
+
+def test_vertex_band_uses_the_sector_envelope_and_others_the_scalar_one():
+    """Along the trained ray the polynomial is kept; in a direction training never moved the
+    point (45°, inside the floored region), the detail is limited to 1.25 × that direction's
+    envelope (0: the fallback), where the scalar envelope keeps it."""
+    import scipy.sparse as sp
+
+    from service.methods.pdm.validity import Validity, sector_envelope
+
+    r = np.linspace(0, 2, 5, dtype=np.float32)[:, None]
+    chunks = lambda: iter([(r, np.zeros_like(r))])            # noqa: E731
+    coeffs = COEFFS.copy()
+    coeffs[..., -1] = 0.0                                     # D = d1² + 2 d1; vertex fallback 0
+    fb = np.zeros((1, 1), np.float32)
+    hull, env = training_hull(chunks), training_envelope(coeffs, chunks, fb)
+    args = ({"vertex": env, "fine": env}, 1.0, 1.0, {}, sp.csr_matrix((1, 1)), np.ones(1))
+    v = Validity(hull, *args, sector_envelope(coeffs, chunks, fb))
+    scalar = Validity(hull, *args)
+
+    def apply(val, name, d1, d2):
+        d1, d2 = np.array([[d1]], np.float32), np.array([[d2]], np.float32)
+        D_ = d1 * d1 + 2 * d1
+        return val.apply(name, coeffs, D_[..., None].copy(), d1, d2, val.gauge(d1, d2))[0, 0, 0], D_[0, 0]
+
+    got, want = apply(v, "vertex", 1.5, 0.0)                  # on the ray, inside: the polynomial
+    assert got == want
+    got, want = apply(v, "vertex", 0.05, 0.05)                # 45°: inside (ρ 0.71), untrained direction
+    assert want > 0.1 and got == 0.0
+    assert apply(scalar, "vertex", 0.05, 0.05)[0] == want     # the scalar envelope (8) keeps it
+    assert apply(v, "fine", 0.05, 0.05)[0] == want            # texel bands: the scalar envelope
