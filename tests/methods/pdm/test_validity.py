@@ -104,13 +104,14 @@ def test_vertex_band_uses_the_sector_envelope_and_others_the_scalar_one():
     fb = np.zeros((1, 1), np.float32)
     hull, env = training_hull(chunks), training_envelope(coeffs, chunks, fb)
     args = ({"vertex": env, "fine": env}, 1.0, 1.0, {}, sp.csr_matrix((1, 1)), np.ones(1))
-    v = Validity(hull, *args, sector_envelope(coeffs, chunks, fb))
-    scalar = Validity(hull, *args)
+    points = np.ascontiguousarray(hull.T)                     # Validity keeps the hull point-major
+    v = Validity(points, *args, sector_envelope(coeffs, chunks, fb))
+    scalar = Validity(points, *args)
 
     def apply(val, name, d1, d2):
         d1, d2 = np.array([[d1]], np.float32), np.array([[d2]], np.float32)
         D_ = d1 * d1 + 2 * d1
-        return val.apply(name, coeffs, D_[..., None].copy(), d1, d2, val.gauge(d1, d2))[0, 0, 0], D_[0, 0]
+        return val.evaluate(name, coeffs, d1, d2, val.gauge(d1, d2))[0, 0, 0], D_[0, 0]
 
     got, want = apply(v, "vertex", 1.5, 0.0)                  # on the ray, inside: the polynomial
     assert got == want
