@@ -2,7 +2,8 @@
 thin shell, the nearest training frame and the PDM, transfer to a second identity, speed.
 
 Usage: ``python benchmarks/pose_space_report.py ACTOR_DIR [ACTOR_DIR ...] [--target DIR]
-[--quick] [--reuse]``. Every actor directory has the sample actor's layout (``neutral.npz``,
+[--quick] [--frames N] [--reuse] [--no-fig4] [--no-shape-space]``. Every actor directory has
+the sample actor's layout (``neutral.npz``,
 ``markers.json``, ``performances/train_*.npz`` and ``heldout_*.npz`` with map frames), so any
 actor family written that way can be reported. Output: ``benchmarks/out/pose_space/``
 (``report.md``, ``report.json``, figures, models under ``models/``).
@@ -471,7 +472,9 @@ def shape_space_method(model, tex):
 
 
 def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool, fig4: bool = True,
-              only: list[str] | None = None, shape_space: bool = True) -> dict:
+              only: list[str] | None = None, shape_space: bool = True, frames: int | None = None) -> dict:
+    """One actor's sections (module docstring); ``frames``: held-out map frames per
+    performance, evenly spaced (None: all; ``quick``: 6)."""
     from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
@@ -479,6 +482,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     from service.samples.dataset import load_actor
 
     name = actor_dir.name
+    frames = 6 if quick and frames is None else frames
     models = OUT / "models" / name
     models.mkdir(parents=True, exist_ok=True)
     actor = load_actor(actor_dir)
@@ -544,7 +548,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     for rname, perf in RANGES.items():
         if not (actor_dir / "performances" / f"{perf}.npz").is_file():
             continue
-        gt = pr.load_heldout(actor_dir, perf, 6 if quick else None)
+        gt = pr.load_heldout(actor_dir, perf, frames)
         clean = gt.markers
         for cond, suffix in CONDITIONS.items():
             variant = actor_dir / "performances" / f"{perf}{suffix}.npz"
@@ -581,7 +585,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
                            "target_train_s": own_s, "correspondence": moved.metrics["transfer"], "scores": {}}
         res["transfer"]["identity_overlap"] = identity_overlap(actor_dir, target_dir, ttex)
         for perf in heldout_names(target_dir):
-            gt = pr.load_heldout(target_dir, perf, 6 if quick else None)
+            gt = pr.load_heldout(target_dir, perf, frames)
             log(f"  target {perf}")
             res["transfer"]["scores"][perf] = evaluate(gt, tmethods, ttex, target)
             res["transfer"]["scores"][perf]["frames"] = len(gt.frames)
@@ -715,6 +719,8 @@ def main() -> None:
     parser.add_argument("--speed-models", help="with --speed-only: comma-separated labels of SPEED_MODELS "
                         f"(default all: {', '.join(SPEED_MODELS)})")
     parser.add_argument("--no-fig4", action="store_true", help="skip the Fig. 4 study")
+    parser.add_argument("--frames", type=int, help="held-out map frames per performance, evenly spaced "
+                        "(default all; --quick 6)")
     parser.add_argument("--no-shape-space", action="store_true",
                         help="skip the shape-space (marker input) rows (its model is built from the "
                              "actor's database in a fresh process, cached under benchmarks/out/shape_space)")
@@ -756,7 +762,7 @@ def main() -> None:
     # the transfer's landmark pairs are vertex i ↔ vertex i (one rig): only the first actor's
     results = [run_actor(a.resolve(), args.target.resolve() if args.target and i == 0 else None, args.quick,
                          args.reuse, not args.no_fig4, args.models and [x.strip() for x in args.models.split(",")],
-                         not args.no_shape_space)
+                         not args.no_shape_space, args.frames)
                for i, a in enumerate(args.actors)]
     meta["load_after"] = f"{os.getloadavg()[0]:.1f}"
     text = report(results, meta) + f"\nTotal run {time.perf_counter() - t0:.0f} s.\n"
