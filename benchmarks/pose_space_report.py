@@ -294,12 +294,14 @@ def speed(model, markers: np.ndarray) -> dict:
     for outs in (("mesh",), ("mesh", "displacement")):
         for f in range(SPEED_WARMUP):
             model.synthesize(markers[f:f + 1], outs)
-        t = []
+        t, cpu = [], []
         for f in range(SPEED_WARMUP, len(markers)):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             model.synthesize(markers[f:f + 1], outs)
             t.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         res["+".join(outs)] = 1e3 * float(np.median(t))
+        res["+".join(outs) + " cpu"] = 1e3 * float(np.median(cpu))      # CPU time (all threads)
     from service.methods.pose_space import polynomial
 
     ev, d = model.evaluator, model.data
@@ -308,12 +310,14 @@ def speed(model, markers: np.ndarray) -> dict:
     _, u = ev.deformation(markers)
     feats = ev.features(u)
     # ours: the fine-scale evaluation alone (distances + weighted sum), per frame
-    t = []
+    t, cpu = [], []
     for f in feats[SPEED_WARMUP:]:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ev.corrections(ev.sq_distances(f[None]), f[None])
         t.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     res["ours_fine_ms"] = 1e3 * float(np.median(t))
+    res["ours_fine_cpu_ms"] = 1e3 * float(np.median(cpu))
     fb = d.basis_features
     kern = lambda f: ev.corrections(ev.sq_distances(f), f) - poly(f)          # the RBF sum alone
     values = kern(fb)                                                          # (P,n,3) at the centres
@@ -339,12 +343,14 @@ def speed(model, markers: np.ndarray) -> dict:
             s = np.sqrt(row.data)
             interps.append((row.indices, s, RBFInterpolator(fb[:, row.indices] * s, values[:, v],
                                                             kernel="linear", degree=-1)))
-        t = []
+        t, cpu = [], []
         for f in feats[SPEED_WARMUP:SPEED_WARMUP + 5]:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             got = [it(f[idx][None] * s) for idx, s, it in interps]
             t.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         res["scipy_fine_ms"] = 1e3 * float(np.median(t)) * n / k
+        res["scipy_fine_cpu_ms"] = 1e3 * float(np.median(cpu)) * n / k
         mine = kern(feats[SPEED_WARMUP + 4:SPEED_WARMUP + 5])[0][vs]
         res["scipy_max_diff_mm"] = float(np.abs(np.concatenate(got) - mine).max())
         res["scipy_vertices_timed"] = k
@@ -743,13 +749,15 @@ def main() -> None:
             first = next(iter(sp_.values()), {})
             lines += [f"## {name}", "", f"{first.get('n_vertices', 0):,} vertices, {first.get('map_resolution', 0)}² "
                       f"map, trained on {first.get('training_frames', 0)} frames.", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "
-                      "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
-                      "|---|---|---|---|---|---|---|---|---|---|"]
+                      "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex | "
+                      "mesh CPU ms/frame | fine-scale CPU ms | scipy CPU ms |",
+                      "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
             for k, s_ in sp_.items():
                 lines.append(f"| {k} | {s_['basis_size']} | {s_['mesh']:.1f} | {s_['mesh+displacement']:.1f} | "
                              f"{s_['ours_fine_ms']:.2f} | {s_['scipy_fine_ms']:.1f} | {s_['ratio_scipy_over_ours']:.1f}× | "
                              f"{s_['scipy_max_diff_mm']:.1e} | {s_['train_s']:.0f} | {s_['floats_per_vertex']:.0f} / "
-                             f"{s_['ints_per_vertex']:.0f} |")
+                             f"{s_['ints_per_vertex']:.0f} | {s_.get('mesh cpu', float('nan')):.1f} | "
+                             f"{s_.get('ours_fine_cpu_ms', float('nan')):.2f} | {s_.get('scipy_fine_cpu_ms', float('nan')):.1f} |")
             lines.append("")
         (OUT / "report_speed.md").write_text("\n".join(lines))
         (OUT / "report_speed.json").write_text(json.dumps(res, indent=1))
