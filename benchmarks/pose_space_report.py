@@ -2,7 +2,8 @@
 thin shell, the nearest training frame and the PDM, transfer to a second identity, speed.
 
 Usage: ``python benchmarks/pose_space_report.py ACTOR_DIR [ACTOR_DIR ...] [--target DIR]
-[--quick] [--reuse]``. Every actor directory has the sample actor's layout (``neutral.npz``,
+[--quick] [--frames N] [--reuse] [--no-fig4] [--no-shape-space]``. Every actor directory has
+the sample actor's layout (``neutral.npz``,
 ``markers.json``, ``performances/train_*.npz`` and ``heldout_*.npz`` with map frames), so any
 actor family written that way can be reported. Output: ``benchmarks/out/pose_space/``
 (``report.md``, ``report.json``, figures, models under ``models/``).
@@ -293,12 +294,14 @@ def speed(model, markers: np.ndarray) -> dict:
     for outs in (("mesh",), ("mesh", "displacement")):
         for f in range(SPEED_WARMUP):
             model.synthesize(markers[f:f + 1], outs)
-        t = []
+        t, cpu = [], []
         for f in range(SPEED_WARMUP, len(markers)):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             model.synthesize(markers[f:f + 1], outs)
             t.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         res["+".join(outs)] = 1e3 * float(np.median(t))
+        res["+".join(outs) + " cpu"] = 1e3 * float(np.median(cpu))      # CPU time (all threads)
     from service.methods.pose_space import polynomial
 
     ev, d = model.evaluator, model.data
@@ -307,12 +310,14 @@ def speed(model, markers: np.ndarray) -> dict:
     _, u = ev.deformation(markers)
     feats = ev.features(u)
     # ours: the fine-scale evaluation alone (distances + weighted sum), per frame
-    t = []
+    t, cpu = [], []
     for f in feats[SPEED_WARMUP:]:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ev.corrections(ev.sq_distances(f[None]), f[None])
         t.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     res["ours_fine_ms"] = 1e3 * float(np.median(t))
+    res["ours_fine_cpu_ms"] = 1e3 * float(np.median(cpu))
     fb = d.basis_features
     kern = lambda f: ev.corrections(ev.sq_distances(f), f) - poly(f)          # the RBF sum alone
     values = kern(fb)                                                          # (P,n,3) at the centres
@@ -338,12 +343,14 @@ def speed(model, markers: np.ndarray) -> dict:
             s = np.sqrt(row.data)
             interps.append((row.indices, s, RBFInterpolator(fb[:, row.indices] * s, values[:, v],
                                                             kernel="linear", degree=-1)))
-        t = []
+        t, cpu = [], []
         for f in feats[SPEED_WARMUP:SPEED_WARMUP + 5]:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             got = [it(f[idx][None] * s) for idx, s, it in interps]
             t.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         res["scipy_fine_ms"] = 1e3 * float(np.median(t)) * n / k
+        res["scipy_fine_cpu_ms"] = 1e3 * float(np.median(cpu)) * n / k
         mine = kern(feats[SPEED_WARMUP + 4:SPEED_WARMUP + 5])[0][vs]
         res["scipy_max_diff_mm"] = float(np.abs(np.concatenate(got) - mine).max())
         res["scipy_vertices_timed"] = k
@@ -471,7 +478,9 @@ def shape_space_method(model, tex):
 
 
 def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool, fig4: bool = True,
-              only: list[str] | None = None, shape_space: bool = True) -> dict:
+              only: list[str] | None = None, shape_space: bool = True, frames: int | None = None) -> dict:
+    """One actor's sections (module docstring); ``frames``: held-out map frames per
+    performance, evenly spaced (None: all; ``quick``: 6)."""
     from service.methods.pdm.model import PdmModel, PdmParams, train as pdm_train
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.methods.pose_space import PoseSpaceModel, PsdParams, WpsdParams, train
@@ -479,6 +488,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     from service.samples.dataset import load_actor
 
     name = actor_dir.name
+    frames = 6 if quick and frames is None else frames
     models = OUT / "models" / name
     models.mkdir(parents=True, exist_ok=True)
     actor = load_actor(actor_dir)
@@ -544,7 +554,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     for rname, perf in RANGES.items():
         if not (actor_dir / "performances" / f"{perf}.npz").is_file():
             continue
-        gt = pr.load_heldout(actor_dir, perf, 6 if quick else None)
+        gt = pr.load_heldout(actor_dir, perf, frames)
         clean = gt.markers
         for cond, suffix in CONDITIONS.items():
             variant = actor_dir / "performances" / f"{perf}{suffix}.npz"
@@ -581,7 +591,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
                            "target_train_s": own_s, "correspondence": moved.metrics["transfer"], "scores": {}}
         res["transfer"]["identity_overlap"] = identity_overlap(actor_dir, target_dir, ttex)
         for perf in heldout_names(target_dir):
-            gt = pr.load_heldout(target_dir, perf, 6 if quick else None)
+            gt = pr.load_heldout(target_dir, perf, frames)
             log(f"  target {perf}")
             res["transfer"]["scores"][perf] = evaluate(gt, tmethods, ttex, target)
             res["transfer"]["scores"][perf]["frames"] = len(gt.frames)
@@ -715,6 +725,8 @@ def main() -> None:
     parser.add_argument("--speed-models", help="with --speed-only: comma-separated labels of SPEED_MODELS "
                         f"(default all: {', '.join(SPEED_MODELS)})")
     parser.add_argument("--no-fig4", action="store_true", help="skip the Fig. 4 study")
+    parser.add_argument("--frames", type=int, help="held-out map frames per performance, evenly spaced "
+                        "(default all; --quick 6)")
     parser.add_argument("--no-shape-space", action="store_true",
                         help="skip the shape-space (marker input) rows (its model is built from the "
                              "actor's database in a fresh process, cached under benchmarks/out/shape_space)")
@@ -737,13 +749,15 @@ def main() -> None:
             first = next(iter(sp_.values()), {})
             lines += [f"## {name}", "", f"{first.get('n_vertices', 0):,} vertices, {first.get('map_resolution', 0)}² "
                       f"map, trained on {first.get('training_frames', 0)} frames.", "", "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | "
-                      "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
-                      "|---|---|---|---|---|---|---|---|---|---|"]
+                      "scipy RBFInterpolator ms | scipy / ours | scipy max diff mm | training s | floats / ints per vertex | "
+                      "mesh CPU ms/frame | fine-scale CPU ms | scipy CPU ms |",
+                      "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
             for k, s_ in sp_.items():
                 lines.append(f"| {k} | {s_['basis_size']} | {s_['mesh']:.1f} | {s_['mesh+displacement']:.1f} | "
                              f"{s_['ours_fine_ms']:.2f} | {s_['scipy_fine_ms']:.1f} | {s_['ratio_scipy_over_ours']:.1f}× | "
                              f"{s_['scipy_max_diff_mm']:.1e} | {s_['train_s']:.0f} | {s_['floats_per_vertex']:.0f} / "
-                             f"{s_['ints_per_vertex']:.0f} |")
+                             f"{s_['ints_per_vertex']:.0f} | {s_.get('mesh cpu', float('nan')):.1f} | "
+                             f"{s_.get('ours_fine_cpu_ms', float('nan')):.2f} | {s_.get('scipy_fine_cpu_ms', float('nan')):.1f} |")
             lines.append("")
         (OUT / "report_speed.md").write_text("\n".join(lines))
         (OUT / "report_speed.json").write_text(json.dumps(res, indent=1))
@@ -756,7 +770,7 @@ def main() -> None:
     # the transfer's landmark pairs are vertex i ↔ vertex i (one rig): only the first actor's
     results = [run_actor(a.resolve(), args.target.resolve() if args.target and i == 0 else None, args.quick,
                          args.reuse, not args.no_fig4, args.models and [x.strip() for x in args.models.split(",")],
-                         not args.no_shape_space)
+                         not args.no_shape_space, args.frames)
                for i, a in enumerate(args.actors)]
     meta["load_after"] = f"{os.getloadavg()[0]:.1f}"
     text = report(results, meta) + f"\nTotal run {time.perf_counter() - t0:.0f} s.\n"
