@@ -41,6 +41,13 @@ the lowest mean error; the end/start ratio stays above 1.5 because the last fram
 strong expression (2.4 mm from the neutral at frame 119) and the first ones the neutral:
 the error follows the expression's amplitude, it does not grow with time (see the plot).
 
+Family b (same settings, load 3.5-11; sequential and neutral anchors from this report, the
+flow graph from the same ``track()`` call in a separate process, the run was cut at 16:45):
+sequential 0.787 mm (start 0.322, end 0.799, 2.48); neutral anchors 1.000 (0.324, 0.419,
+1.29); flow graph 0.642 (0.283, 0.400, **1.41**; 47 edges of 150, texture variance 0.0855 vs
+0.1006 for the truth). The full graph is lowest on both families; on b it also meets the
+1.5× end/start bound. Its peak (1.94 mm at frame 95) is in the middle of the 90 → 105 gap.
+
 Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
 [--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only]``. Writes ``benchmarks/out/tracking/report.md`` (and stdout).
 """
