@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import hashlib
 import os
+import struct
 import tempfile
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, BinaryIO
@@ -52,10 +54,39 @@ def write_bytes(path: str | Path, data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+#: byte alignment of a stored member's data (what a memory-mapped load can use in place:
+#: NumPy's products on an unaligned array are slow — the level-1 thin-shell basis product
+#: took 7.7 ms per frame mapped unaligned against 5.8 ms aligned)
+MAP_ALIGNMENT = 64
+#: the local header's fixed part, and the zip64 extra record ``force_zip64`` adds to it
+_LOCAL_HEADER, _ZIP64_EXTRA = 30, 20
+#: the id of the padding extra record (an id no zip tool assigns; readers skip unknown ids)
+_PADDING_ID = 0xFA5E
+
+
+def aligned_member(archive: zipfile.ZipFile, name: str) -> zipfile.ZipInfo:
+    """A stored member ``name`` whose local header is padded (an extra record) so that its
+    data starts at a multiple of :data:`MAP_ALIGNMENT` in the archive. NumPy pads a ``.npy``
+    header to a multiple of 64 bytes, so the array's data is then aligned too, and
+    :func:`service.io.npz.npz_mapped` maps it instead of copying it."""
+    info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+    info.compress_type = zipfile.ZIP_STORED
+    start = archive.fp.tell() + _LOCAL_HEADER + len(name.encode()) + _ZIP64_EXTRA + 4
+    pad = -start % MAP_ALIGNMENT
+    info.extra = struct.pack("<HH", _PADDING_ID, pad) + bytes(pad)
+    return info
+
+
+
 def write_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
-    """Write arrays as an uncompressed .npz atomically; return the file's sha256."""
-    with atomic_open(path) as f:
-        np.savez(f, **arrays)
+    """Write arrays as an uncompressed .npz atomically (what ``np.savez`` writes, each
+    member's data :data:`MAP_ALIGNMENT`-aligned: :func:`aligned_member`); return the file's
+    sha256."""
+    with atomic_open(path) as f, zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_STORED,
+                                                 allowZip64=True) as archive:
+        for name, values in arrays.items():
+            with archive.open(aligned_member(archive, name + ".npy"), "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(values), allow_pickle=False)
     return sha256_file(path)
 
 

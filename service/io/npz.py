@@ -26,6 +26,7 @@ from typing import Any, BinaryIO, Iterator, Mapping
 
 import numpy as np
 
+from models_store.atomic import MAP_ALIGNMENT, aligned_member
 from service.io.arrays import BLOCK_BYTES, blocks
 
 #: what numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)
@@ -164,7 +165,7 @@ def write_npz(target: BinaryIO, arrays: Mapping[str, Any],
                 raise ValueError(f"'{name}' holds Python objects; .npz blobs hold numbers only")
             header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
                       "shape": tuple(values.shape)}
-            with archive.open(name + ".npy", "w", force_zip64=True) as member:
+            with archive.open(aligned_member(archive, name + ".npy"), "w", force_zip64=True) as member:
                 try:
                     np.lib.format.write_array_header_1_0(member, header)
                 except ValueError:  # a header over 64 KiB (a very long shape or dtype)
@@ -191,7 +192,8 @@ def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
     offset of the archive, so its data is mapped read-only (``mmap``) instead of read —
     a load costs no copy, and pages come in (and count as resident) when they are first
     read, as page cache the kernel may drop again. Compressed members, object arrays and
-    empty ones are read into memory as :func:`npz_arrays` does. The arrays are plain
+    empty ones are read into memory as :func:`npz_arrays` does, and a member whose data is
+    not :data:`MAP_ALIGNMENT`-aligned is copied out of the mapping. The arrays are plain
     read-only ndarrays over a memoryview of the mapping (it stays open while they live).
 
     Raises ``ValueError`` for a malformed member header and the :data:`ZIP_ERRORS` of a
@@ -218,6 +220,8 @@ def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
                     if mapping is None:
                         mapping = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
                     flat = np.frombuffer(mapping, dtype=dtype, count=math.prod(shape), offset=data)
+                    if data % MAP_ALIGNMENT:          # np.savez does not align its members
+                        flat = flat.copy()
                     out[name] = flat.reshape(shape, order="F" if fortran else "C")
                     continue
             with archive.open(info) as member:

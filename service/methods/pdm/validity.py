@@ -301,8 +301,9 @@ class Validity:
     texel_rho : dict name → (P,Q) sparse   UV points → a texel band's points (barycentric)
     vertex_rho : (n,Q) sparse     UV points → vertices (seam mean)
     vertex_weight : (n,) float    vertex areas (the per-frame confidence's weights)
-    sectors : (K,Q) float32 or None   the medium band's sector envelope (:func:`sector_envelope`;
-                                  None: the scalar envelope only)
+    sector_points : (Q,K) float32 or None   the medium band's sector envelope
+                                  (:func:`sector_envelope`), point-major as ``hull_points``
+                                  (``sectors`` is the (K,Q) form); None: the scalar envelope only
     """
 
     hull_points: np.ndarray
@@ -312,7 +313,7 @@ class Validity:
     texel_rho: dict
     vertex_rho: sp.csr_matrix
     vertex_weight: np.ndarray
-    sectors: np.ndarray | None = None
+    sector_points: np.ndarray | None = None
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
@@ -327,7 +328,8 @@ class Validity:
         area = np.bincount(np.asarray(faces).ravel(), np.repeat(triangle_areas(vertices, faces), 3),
                            minlength=len(vertices)) / 3
         return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,
-                   seam_average.tocsr(), area, None if sectors is None else np.asarray(sectors, np.float32))
+                   seam_average.tocsr(), area,
+                   None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T))
 
     def gauge(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """ρ (F,Q) at the UV points for their parameters d1, d2 (F,Q)."""
@@ -337,6 +339,11 @@ class Validity:
     def hull(self) -> np.ndarray:
         """The radius functions (K,Q) float32 (:func:`training_hull`'s layout, as stored)."""
         return np.ascontiguousarray(self.hull_points.T)
+
+    @property
+    def sectors(self) -> np.ndarray | None:
+        """The sector envelope (K,Q) float32 (:func:`sector_envelope`'s layout, as stored)."""
+        return None if self.sector_points is None else np.ascontiguousarray(self.sector_points.T)
 
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
         """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
@@ -348,8 +355,8 @@ class Validity:
         (:func:`valid_polynomial`); the vertex band with its sector envelope at d's
         direction, when there is one."""
         envelope = self.envelope[name]
-        if name == "vertex" and self.sectors is not None:
-            envelope = sector_values(d1, d2, self.sectors)
+        if name == "vertex" and self.sector_points is not None:
+            envelope = point_sector_values(d1, d2, self.sector_points)
         return valid_polynomial(coeffs, d1, d2, rho, envelope, self.fallback(name, coeffs),
                                 self.width, self.slope)
 

@@ -105,7 +105,7 @@ def test_vertex_band_uses_the_sector_envelope_and_others_the_scalar_one():
     hull, env = training_hull(chunks), training_envelope(coeffs, chunks, fb)
     args = ({"vertex": env, "fine": env}, 1.0, 1.0, {}, sp.csr_matrix((1, 1)), np.ones(1))
     points = np.ascontiguousarray(hull.T)                     # Validity keeps the hull point-major
-    v = Validity(points, *args, sector_envelope(coeffs, chunks, fb))
+    v = Validity(points, *args, np.ascontiguousarray(sector_envelope(coeffs, chunks, fb).T))
     scalar = Validity(points, *args)
 
     def apply(val, name, d1, d2):
