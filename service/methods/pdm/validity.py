@@ -129,11 +129,6 @@ def training_hull(chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
     return np.maximum(h, floor * h.max(axis=0, keepdims=True) + 1e-12).astype(np.float32)
 
 
-def sector_values(d1: np.ndarray, d2: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """A per-sector table (K,P) at the direction θ of d1, d2 (…,P), linear between sectors."""
-    return point_sector_values(d1, d2, np.ascontiguousarray(np.asarray(table, np.float32).T))
-
-
 def gauge(d1: np.ndarray, d2: np.ndarray, hull: np.ndarray) -> np.ndarray:
     """ρ (…,P) = r / h(θ) of parameters d1, d2 (…,P) in the radius functions (K,P), h linear
     between the sectors: ≤ 1 inside, d/ρ on the boundary."""

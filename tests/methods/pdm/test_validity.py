@@ -74,7 +74,7 @@ def test_every_training_sample_lies_in_its_region():
 
 
 def test_sector_envelope_is_the_training_detail_in_each_direction():
-    from service.methods.pdm.validity import sector_envelope, sector_values
+    from service.methods.pdm.validity import point_sector_values, sector_envelope
 
     r = np.linspace(0, 2, 5, dtype=np.float32)[:, None]          # training on the +d1 ray
     env = sector_envelope(COEFFS, lambda: iter([(r, np.zeros_like(r))]), np.array([[0.0]], np.float32))
@@ -85,7 +85,8 @@ def test_sector_envelope_is_the_training_detail_in_each_direction():
     assert env[DIRECTIONS // 2, 0] == pytest.approx(0.5) and env[DIRECTIONS // 4, 0] == pytest.approx(0.5)
     # linear between sectors: halfway between sector 1 (full) and 2 (κ = 0)
     half = 2 * np.pi * 1.5 / DIRECTIONS
-    v = sector_values(np.array([[np.cos(half)]], np.float32), np.array([[np.sin(half)]], np.float32), env)
+    v = point_sector_values(np.array([[np.cos(half)]], np.float32), np.array([[np.sin(half)]], np.float32),
+                            np.ascontiguousarray(env.T))
     assert v[0, 0] == pytest.approx(4.5, rel=1e-5)
 
 
