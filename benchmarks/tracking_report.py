@@ -97,6 +97,31 @@ def texture_variance(sample, vertices: np.ndarray, res: int = 128, sigma: float 
     return float(np.var(np.stack(stack)[:, sel], axis=0).mean())
 
 
+def drift(err: np.ndarray, amplitude: np.ndarray, window: int = 10) -> tuple[float, float]:
+    """Drift with the expression's amplitude factored out of the error.
+
+    err (T,) per-frame mean vertex error, mm; amplitude (T,) the ground truth's mean distance
+    from the neutral on the same vertices, mm. The tracking error of any method grows with
+    how far the face is from the neutral, so the plain end/start ratio of a performance that
+    starts neutral and ends on a strong expression measures the expression, not drift. Two
+    amplitude-free measures:
+
+    * matched ratio: each of the last ``window`` frames paired with the frame of the first
+      half whose amplitude is nearest; mean error of the last frames over that of their
+      partners (1 = no growth over time at equal expression);
+    * time slope: least squares ``err ≈ a + b·amplitude + c·t``; ``100·c`` in mm per 100
+      frames (0 = no growth over time).
+    """
+    T = len(err)
+    early = np.arange(T // 2)
+    late = np.arange(T - window, T)
+    partner = early[np.abs(amplitude[late, None] - amplitude[None, early]).argmin(axis=1)]
+    ratio = float(err[late].mean() / err[partner].mean())
+    A = np.column_stack([np.ones(T), amplitude, np.arange(T)])
+    coef = np.linalg.lstsq(A, err, rcond=None)[0]
+    return ratio, float(100.0 * coef[2])
+
+
 def plot_errors(path: Path, curves: dict, title: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -242,6 +267,7 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
             if r[0] != "flow graph, monocular" or not args.no_monocular]
     curves, rows, results = {}, [], {}
     graphs = {}
+    amplitude = np.linalg.norm(sample.frame_truth - sample.artist_vertices, axis=2)[:, face].mean(axis=1)
     for label, method, views in runs:
         inp = TrackingInput.from_sample(sample, views=views)
         load = os.getloadavg()[0]
@@ -255,25 +281,29 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
         curves[label] = err
         results[label] = result
         start, end = float(err[:10].mean()), float(err[-10:].mean())
+        matched, slope = drift(err, amplitude)
         tv = texture_variance(sample, result.vertices)
         edges = f"{len(result.graph.static_edges)} / {result.graph.candidates}" if result.graph else "1 / –"
         rows.append(f"| {label} | {views} | {err.mean():.3f} | {start:.3f} | {end:.3f} | "
-                    f"{end / start:.2f} | {tv:.4f} | {edges} | {len(result.keyframes)} | "
+                    f"{end / start:.2f} | {matched:.2f} | {slope:+.3f} | {tv:.4f} | {edges} | {len(result.keyframes)} | "
                     f"{wall:.0f} | {wall / T:.2f} | {load:.1f} |")
         summary[f"{fam}/{label}"] = {"mean": float(err.mean()), "start": start, "end": end,
+                                     "matched_drift": matched, "time_slope_mm_per_100": slope,
                                      "texture_variance": tv, "wall_s": wall,
                                      "timings": result.timings, "keyframes": result.keyframes,
                                      "edges": result.graph.static_edges if result.graph else []}
         print(label, views, f"mean {err.mean():.3f} start {start:.3f} end {end:.3f}", result.timings,
               flush=True)
     truth_tv = texture_variance(sample, sample.frame_truth)
+    np.savez(OUT / f"curves_{fam}.npz", amplitude=amplitude,
+             **{label.replace(" ", "_").replace(",", ""): e for label, e in curves.items()})
     lines += ["| method | views | mean error mm | start (10 fr) | end (10 fr) | end/start | "
-              "texture variance (Fig. 15) | static edges / candidates | keyframes | wall s | s per frame | load |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|", *rows,
-              f"| ground truth mesh | – | 0 | | | | {truth_tv:.4f} | | | | | |",
+              "end / amplitude-matched early | time slope mm/100 fr | texture variance (Fig. 15) | static edges / candidates | keyframes | wall s | s per frame | load |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows,
+              f"| ground truth mesh | – | 0 | | | | | | {truth_tv:.4f} | | | | | |",
               f"| no tracking (the neutral) | – | "
-              f"{np.linalg.norm(sample.frame_truth - sample.artist_vertices, axis=2)[:, face].mean():.3f}"
-              " | | | | | | | | | |", ""]
+              f"{amplitude.mean():.3f}"
+              " | | | | | | | | | | | |", ""]
     plot_errors(OUT / f"error_over_time_{fam}.png", curves, f"{fam}: per-frame vertex error")
     full = results["flow graph"]
     plot_graph(OUT / f"graph_{fam}.png", full.graph, list(sample.scan_names), f"{fam} flow graph")
