@@ -201,9 +201,12 @@ class Services:
                 return LoadedModel(model_id, kind, model, actor_id, stream)
 
             # weighed by what the model holds in memory (arrays, operators, factorizations),
-            # which can be several times its files (a shape-space model's prefactored solves)
-            return self.models.get_or_load(model_id, load,
-                                           size_of=lambda loaded: max(nbytes(loaded.model), size))
+            # which can be several times its files (a shape-space model's prefactored solves);
+            # at least its files unless the kind maps files it reads only in part
+            floor = size if kind.weighs_mapped else 0
+            return self.models.get_or_load(
+                model_id, load,
+                size_of=lambda loaded: max(nbytes(loaded.model, mapped=kind.weighs_mapped), floor))
 
     def preload(self, models: Sequence[str]) -> list[str]:
         """Load models into the cache before the first request needs them (a stream's first

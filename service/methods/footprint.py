@@ -4,11 +4,19 @@ A model's files say little about its size in memory: a shape-space model also ho
 prefactored Poisson and curvature-flow solves, a PDM its sampling operators. :func:`nbytes`
 walks a model's attributes and adds up what actually occupies memory — NumPy arrays,
 SciPy sparse matrices, sparse LU factors — counting each object once.
+
+Arrays over a read-only file mapping (:func:`service.io.npz.npz_mapped`) are page cache:
+their pages come in as they are read, are shared by every process that maps the same
+file, and the kernel drops them again under memory pressure. A kind that reads all of
+them on every frame (the PDM's coefficient maps) counts them; one that reads a few
+frames of a large mapped database per request (shape space: the K active frames of N,
+bermano2014 §5.4) does not (``Kind.weighs_mapped``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import mmap
 from typing import Any
 
 import numpy as np
@@ -23,12 +31,23 @@ FACTOR_ENTRY_BYTES = 12
 MAX_DEPTH = 8
 
 
-def nbytes(obj: Any) -> int:
+def file_mapped(array: np.ndarray) -> bool:
+    """Whether ``array`` (or the array it views) lies over a memory-mapped file."""
+    base = array
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    if isinstance(base, memoryview):
+        base = base.obj
+    return isinstance(base, mmap.mmap)
+
+
+def nbytes(obj: Any, mapped: bool = True) -> int:
     """Bytes of the arrays, sparse matrices and factorizations reachable from ``obj``.
 
     Follows dataclass fields, ``__dict__`` attributes, and the items of lists, tuples,
     dicts (up to :data:`MAX_DEPTH` levels); a NumPy view counts its base array once.
-    Python scalars, strings and small bookkeeping are not counted.
+    Python scalars, strings and small bookkeeping are not counted. ``mapped=False`` leaves
+    out arrays over a memory-mapped file (:func:`file_mapped`).
     """
     seen: set[int] = set()
 
@@ -42,7 +61,7 @@ def nbytes(obj: Any) -> int:
             if id(base) in seen:
                 return 0
             seen.add(id(base))
-            return int(base.nbytes)
+            return int(base.nbytes) if mapped or not file_mapped(base) else 0
         if id(x) in seen:
             return 0
         seen.add(id(x))

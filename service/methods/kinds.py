@@ -65,6 +65,9 @@ class Kind:
     train : callable      ``(ActorData, list[Clip], params, progress) -> model`` with
                           ``.save(dir)`` and ``.metrics``
     load : callable       ``(Path) -> model`` with ``.synthesize(frames, outputs, clamp)``
+    weighs_mapped : bool  whether the model cache counts the loaded model's memory-mapped
+                          arrays (:func:`~service.methods.footprint.nbytes`): true for a
+                          kind that reads all of them per frame
     """
 
     name: str
@@ -75,6 +78,7 @@ class Kind:
     outputs: tuple[str, ...]
     train: Callable[[ActorData, Sequence[Clip], Any, Progress], TrainedModel]
     load: Callable[[Path], TrainedModel]
+    weighs_mapped: bool = True
 
     def parse_params(self, raw: Mapping[str, Any] | BaseModel | None) -> BaseModel:
         """Validated parameters from a request's (or a stored model's) ``params``.
@@ -128,6 +132,10 @@ SHAPE_SPACE_KIND = Kind(
     outputs=tuple(o for o in SHAPE_SPACE_OUTPUTS if o in OUTPUTS),
     train=shape_space_train,
     load=ShapeSpaceModel.load,
+    # the database (detail, colours, maps, marker corrections) is mapped and a request reads
+    # only its active frames: a level-1 model's 4.4 GB would overflow the cache's budget and
+    # reload on every request if it counted
+    weighs_mapped=False,
 )
 
 _BICKEL2008 = ("(Bickel, Lang, Botsch, Otaduy, Gross: 'Pose-space animation and transfer of "

@@ -324,3 +324,23 @@ def test_enhance_answers_every_output_of_synthesize(tiny):
     assert out["normal_map"].shape == (2, 32, 32, 3)
     lengths = np.linalg.norm(out["normal_map"], axis=-1)
     np.testing.assert_allclose(lengths, 1.0, atol=1e-5)
+
+
+def test_the_cache_weighs_a_served_model_without_its_mapped_database(tiny):
+    """The database (detail, colours, maps, marker corrections) is memory-mapped at load and
+    a request reads only its active frames, so the model cache does not count it (issue 23:
+    a level-1 model's 4.4 GB outweighed the 2 GiB budget and reloaded on every request)."""
+    from service.methods.footprint import file_mapped, nbytes
+
+    services = tiny.client.app.state.services
+    services.models.invalidate(tiny.model_id)
+    before = services.models.total_bytes
+    model = services.loaded_model(tiny.model_id).model
+    data = model.data
+    database = [data.detail, *vars(data.marker_database).values()]    # no colours, no maps
+    assert data.colors is None and data.fine_maps is None
+    assert [file_mapped(a) for a in database] == [True] * len(database)
+    weight = services.models.total_bytes - before
+    assert weight == nbytes(model, mapped=False)
+    assert weight == nbytes(model) - sum(a.nbytes for a in database)
+    assert tiny.model_id in services.models

@@ -64,7 +64,7 @@ del first
 gc.collect(); release_free_heap()
 before = rss()
 model = used(kind.load(sys.argv[2]))
-print(json.dumps({"measured": rss() - before, "estimate": nbytes(model)}))
+print(json.dumps({"measured": rss() - before, "estimate": nbytes(model, mapped=kind.weighs_mapped)}))
 """
 
 
@@ -86,6 +86,19 @@ def resident_cost(kind: str, path) -> dict:
     """``{"measured", "estimate"}`` bytes of loading the model directory ``path`` of ``kind``
     in a fresh process (:data:`_RESIDENT_COST`)."""
     return _resident_cost(kind, path)
+
+
+def test_arrays_over_a_file_mapping_count_only_when_asked(tmp_path):
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_mapped
+    from service.methods.footprint import file_mapped
+
+    write_npz(tmp_path / "a.npz", {"a": np.ones((100, 10), np.float32), "e": np.zeros(0)})
+    mapped = npz_mapped(tmp_path / "a.npz")["a"]
+    held = {"mapped": mapped, "view": mapped[::2], "own": np.ones(10)}
+    assert file_mapped(mapped) and file_mapped(mapped[::2]) and not file_mapped(held["own"])
+    assert nbytes(held) == 4000 + 80
+    assert nbytes(held, mapped=False) == 80
 
 
 def test_the_pdm_estimate_is_within_ten_percent_of_its_resident_cost(pdm_model, tmp_path):

@@ -19,7 +19,8 @@ Layout (DESIGN.md "Data and storage"):
   sha256 of every file.
 
 Every array is stored in the dtype the model holds in memory, so a load reproduces the
-:class:`~.data.ShapeSpaceData` bit for bit; the evaluator (prefactored solvers, operators)
+:class:`~.data.ShapeSpaceData` bit for bit (the database files :data:`MAPPED_FILES`
+memory-mapped, read-only); the evaluator (prefactored solvers, operators)
 is rebuilt from it. Every file
 is written atomically, the manifest last; a load verifies every checksum before it parses
 a byte.
@@ -33,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from service.io.atomic import write_bytes, write_npz
-from service.io.npz import npz_arrays
+from service.io.npz import npz_arrays, npz_mapped
 from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.shape_space.data import ShapeSpaceData
 from service.methods.shape_space.maps import DatabaseMaps
@@ -49,6 +50,9 @@ MODEL_ARRAYS = ("faces", "neutral", "smooth_neutral", "align_weights", "patches"
                 "frame_clip", "frame_index", "marker_triangle", "marker_barycentric",
                 "marker_weights", "uv", "uv_faces")
 """arrays of model.npz (attribute names of :class:`~.data.ShapeSpaceData`)"""
+#: the database files, memory-mapped at load (read-only): a request reads only the active
+#: frames' detail (:mod:`.blending`), so their pages come in as they are needed
+MAPPED_FILES = frozenset({"detail.npz", "colors.npz", "markers.npz", "maps.npz"})
 
 
 def write_model(model: ShapeSpaceData, path) -> dict:
@@ -90,15 +94,16 @@ def read_model(path) -> ShapeSpaceData:
     """The stored data written by :func:`write_model` in ``path`` (checksums verified first,
     shapes checked)."""
     path = Path(path)
-    manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"))
+    manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"),
+                                      mapped=MAPPED_FILES.__contains__)
     a = npz_arrays(data["model.npz"])
     missing = [k for k in MODEL_ARRAYS if k not in a]
     if missing:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
-    detail = npz_arrays(data["detail.npz"])["detail"]
-    colors = npz_arrays(data["colors.npz"])["colors"] if "colors.npz" in data else None
-    marker_database = MarkerDatabase(**npz_arrays(data["markers.npz"])) if "markers.npz" in data else None
-    m = npz_arrays(data["maps.npz"]) if "maps.npz" in data else {}
+    detail = npz_mapped(data["detail.npz"])["detail"]
+    colors = npz_mapped(data["colors.npz"])["colors"] if "colors.npz" in data else None
+    marker_database = MarkerDatabase(**npz_mapped(data["markers.npz"])) if "markers.npz" in data else None
+    m = npz_mapped(data["maps.npz"]) if "maps.npz" in data else {}
     maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]),
                                m.get(f"{name}_frames"))
             for name, attr in MAP_FIELDS.items() if name in m}
