@@ -62,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from service.config import Settings
     from service.methods.footprint import nbytes
+    from service.methods.kinds import get_kind
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         args.model = harness.shape_space_model(args.actor.resolve(), ShapeSpaceParams(), False)[0]
 
     model, load_cpu, load_wall = timed(lambda: ShapeSpaceModel.load(args.model))
-    weight = nbytes(model)
+    weight = nbytes(model, mapped=get_kind("shape_space").weighs_mapped)  # as the service weighs it
     with np.load(args.actor / "performances" / "heldout_in_range.npz") as d:
         frames = d["vertices_medium"][:args.frames].astype(np.float64)
     n = model.n_vertices

@@ -30,6 +30,7 @@ def sheet_maps():
 def test_maps_are_kept_at_the_covered_texels(sheet_maps):
     fm, maps, _, _ = sheet_maps
     assert fm.maps.shape == (3, len(fm.texels), 1) and fm.maps.dtype == np.float16
+    assert fm.maps.flags.c_contiguous          # frame-major: a request reads whole frames
     assert fm.shape == (H, H) and 0 < len(fm.texels) < H * H
     stored = maps[1].astype(np.float16).astype(np.float32)           # the store's rounding ...
     np.testing.assert_array_equal(fm.image(fm.maps)[1].ravel()[fm.texels],
@@ -78,6 +79,7 @@ def test_albedo_maps_keep_their_channels(sheet_maps):
     am = MapBlender.build(DatabaseMaps.from_clips(actor, [clip], 1, "albedo"), actor.uv, actor.faces,
                           actor.faces, omega_hat)
     assert am.maps.shape == (2, len(am.texels), 3) and am.shape == (16, 16)
+    assert am.maps.flags.c_contiguous
     img = am.image(am.blend(np.array([[0.0, 1.0], [0.0, 1.0]]))[None])
     assert img.shape == (1, 16, 16, 3)
     stored = rgb[1].astype(np.float16).astype(np.float32).reshape(-1, 3)[am.texels]
