@@ -104,7 +104,9 @@ def read_model(path) -> ShapeSpaceData:
     colors = npz_mapped(data["colors.npz"])["colors"] if "colors.npz" in data else None
     marker_database = MarkerDatabase(**npz_mapped(data["markers.npz"])) if "markers.npz" in data else None
     m = npz_mapped(data["maps.npz"]) if "maps.npz" in data else {}
-    maps = {attr: DatabaseMaps(m[name], m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]),
+    # models stored before the maps were frame-major hold them texel-major: copied at load
+    # (then held in memory, and weighed by the cache), since a request reads whole frames
+    maps = {attr: DatabaseMaps(np.ascontiguousarray(m[name]), m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]),
                                m.get(f"{name}_frames"))
             for name, attr in MAP_FIELDS.items() if name in m}
     fields = dict(params=ShapeSpaceParams(**manifest["params"]), detail=detail, colors=colors,

@@ -64,3 +64,30 @@ def test_other_kinds_are_refused(saved, tmp_path):
         ShapeSpaceModel.load(tmp_path)
     with pytest.raises(ModelCorrupt, match="manifest"):
         ShapeSpaceModel.load(tmp_path / "nowhere")
+
+
+def test_texel_major_maps_of_an_older_model_load_frame_major(saved, tmp_path):
+    """Models stored before the database maps were frame-major hold them texel-major (F
+    order): they load frame-major (a request reads whole frames) with the same values, and
+    the rest of the database stays mapped from its files."""
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_mapped
+    from service.methods.footprint import file_mapped
+
+    path, _ = saved
+    old = tmp_path / "old"
+    old.mkdir()
+    for f in path.iterdir():
+        (old / f.name).write_bytes(f.read_bytes())
+    arrays = {k: np.asfortranarray(v) if k in ("displacement", "albedo") else v
+              for k, v in npz_mapped(old / "maps.npz").items()}
+    manifest = json.loads((old / "manifest.json").read_text())
+    manifest["files"]["maps.npz"] = write_npz(old / "maps.npz", arrays)
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    assert not npz_mapped(old / "maps.npz")["displacement"].flags.c_contiguous
+    a, b = ShapeSpaceModel.load(path), ShapeSpaceModel.load(old)
+    for attr in ("fine_maps", "albedo_maps"):
+        m = getattr(b.data, attr).maps
+        assert m.flags.c_contiguous and not file_mapped(m)
+        np.testing.assert_array_equal(m, getattr(a.data, attr).maps)
+    assert file_mapped(b.data.detail)
