@@ -31,7 +31,9 @@ def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.
     ----------
     values : (N,k,C) float      per database frame, per element (triangle or vertex), C
                                 components (9 shape-space coordinates, or colour channels)
-    omega_hat : (R,k) float     normalized region weights (columns sum to 1)
+    omega_hat : (R,k) float     normalized region weights (columns sum to 1); given in the
+                                values' compute precision (float32 for float16/float32
+                                values) the coefficients are formed in it
     weights : (R,N) float       matched convex weights per region (rows sum to 1)
 
     Returns
@@ -40,13 +42,16 @@ def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.
     """
     weights = np.asarray(weights, dtype=np.float64)
     K = active_frames(weights, 0.0)
-    # (K,k): each active frame's coefficients a contiguous row (the (k,R)·(R,K) product of
-    # the transposed weights took 3–9× as long as this one)
-    coef = weights[:, K].T @ np.asarray(omega_hat, dtype=np.float64)
     # K is small (§5.3: the weights fall off fast), so one multiply-add per active frame, in
     # the stored precision of the values (float32 halves the memory traffic)
     dtype = np.result_type(np.asarray(values[:0]).dtype, np.float32)
-    coef = coef.astype(dtype)
+    # (K,k): each active frame's coefficients a contiguous row (the (k,R)·(R,K) product of
+    # the transposed weights took 3–9× as long), in float64 unless omega_hat is given in
+    # the values' precision (a map's millions of texels: no float64 (K,k) pass)
+    omega_hat = np.asarray(omega_hat)
+    if omega_hat.dtype != dtype:
+        omega_hat = omega_hat.astype(np.float64)
+    coef = (weights[:, K].T.astype(omega_hat.dtype) @ omega_hat).astype(dtype, copy=False)
     out = np.zeros(np.shape(values)[1:], dtype)
     tmp = np.empty_like(out)
     for j, k in enumerate(K):

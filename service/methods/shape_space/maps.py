@@ -119,7 +119,8 @@ class MapBlender:
     Attributes (R regions, P covered texels)
     ----------
     database : DatabaseMaps    the stored maps
-    omega_hat : (R,P) float64  the normalized per-vertex region weights interpolated to the texels
+    omega_hat : (R,P) float32  the normalized per-vertex region weights interpolated to the texels
+                               (the maps' blend runs in float32: :func:`.blending.blend`)
     layout : (uv (K,2), uv_faces (m,3))   the neutral's UV layout (resampling to other sizes)
     resolution : int | None    the side :meth:`image` resamples to without building an operator
     resample : (resolution², P) CSR | None   that resampling (None: the stored size is square
@@ -149,7 +150,7 @@ class MapBlender:
         vertex sampler."""
         raster = rasterize_uv(uv, uv_faces, *maps.shape)
         P = interpolation_matrix(raster, faces, vertex_omega_hat.shape[1])[maps.texels]
-        omega_hat = np.ascontiguousarray((P @ vertex_omega_hat.T).T)
+        omega_hat = np.ascontiguousarray((P @ vertex_omega_hat.T).T, dtype=np.float32)
         layout = (uv, uv_faces)
         resample = None
         if resolution is not None and (resolution, resolution) != maps.shape:
