@@ -283,7 +283,8 @@ class NormalMapper:
         K[3:] = a1 * dv1 + a2 * dv2
         return K
 
-    def normal_map(self, h: np.ndarray, V: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    def normal_map(self, h: np.ndarray, V: np.ndarray, frames: np.ndarray,
+                   out: np.ndarray | None = None) -> np.ndarray:
         """Tangent-space normal map of the displacement map h on the mesh V.
 
         Parameters
@@ -293,6 +294,8 @@ class NormalMapper:
         V : (n,3) float            current vertices, mm
         frames : (n,3,3) float     vertex frames of V, rows (T, B, N) as from
                                    :func:`~service.geometry.tangent_frames.tangent_frames`
+        out : (H,W,3) float32, C-contiguous, optional   written and returned (e.g. a frame of
+                                   the caller's output array: no copy of the map)
 
         Returns
         -------
@@ -316,16 +319,22 @@ class NormalMapper:
         du = self._du.derivative(hf, self._texel)                        # (N,) ∂h/∂u
         dv = self._dv.derivative(hf, self._texel)                        # (N,) ∂h/∂v
         K = self.gradient_operators(V)
-        TN = np.empty((self.n, 6), dtype=np.float32)                    # rows (T, N) per vertex
-        TN[:, :3] = frames[:, 0]
-        TN[:, 3:] = frames[:, 2]
-        out = np.zeros((H * W, 3), dtype=np.float32)
-        out[:, 2] = 1.0
-        items = out.view(_TEXEL).reshape(H * W)         # one 12-byte item per texel: fast scatter
+        TN = np.empty((6, self.n), dtype=np.float32)                    # rows Tx, Ty, Tz, Nx, Ny, Nz
+        TN[:3] = frames[:, 0].T
+        TN[3:] = frames[:, 2].T
+        if out is None:
+            out = np.zeros((H, W, 3), dtype=np.float32)
+        elif out.shape != (H, W, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous float32 ({H},{W},3) array")
+        else:
+            out[...] = 0.0
+        flat = out.reshape(H * W, 3)
+        flat[:, 2] = 1.0
+        items = flat.view(_TEXEL).reshape(H * W)        # one 12-byte item per texel: fast scatter
         for s, e, interp in self._blocks:
             normals = self._block(interp, du[s:e], dv[s:e], self._triangle[s:e], K, TN)
             np.put(items, self._texel[s:e], normals.view(_TEXEL))
-        return out.reshape(H, W, 3)
+        return out
 
     @staticmethod
     def _block(interp: sp.csr_matrix, du: np.ndarray, dv: np.ndarray, triangle: np.ndarray,
@@ -333,12 +342,16 @@ class NormalMapper:
         """Unit normals (b,3) float32 of b covered texels (see :meth:`normal_map`).
 
         interp (b,n) barycentric rows, du/dv (b,) ∂h/∂u and ∂h/∂v, triangle (b,) into the
-        columns of K (6,mu), TN (n,6) float32 vertex (T, N).
+        columns of K (6,mu), TN (6,n) float32 vertex (T, N), one row per component (each
+        interpolated by its own sparse product: the same sums as the 6-column product,
+        about 2× faster, and the (6,b) rows come out contiguous without a transpose).
         """
         Kb = np.take(K, triangle, axis=1)                                # (6,b)
         g = Kb[:3] * du
         g += Kb[3:] * dv                                                 # (3,b) surface gradient
-        Y = np.ascontiguousarray((interp @ TN).T)                        # (6,b) interpolated T, N
+        Y = np.empty((6, interp.shape[0]), dtype=np.float32)            # (6,b) interpolated T, N
+        for i, row in enumerate(TN):
+            Y[i] = interp @ row
         T, N = Y[:3], Y[3:]
         X = _cross(T, N)                        # T × N     = −|T×N| B̂
         Z = _cross(X, N)                        # (T×N) × N = tn N − nn T = −|N| |T×N| T̂

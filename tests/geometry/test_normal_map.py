@@ -313,3 +313,25 @@ def test_shapes_are_checked():
         mapper.normal_map(np.zeros((8, 8)), V[:-1], fr)
     with pytest.raises(ValueError, match="raster refers"):
         NormalMapper(raster, F[:1], st, F[:1], len(V))
+
+
+def test_out_is_written_in_place_and_the_per_component_interpolation_is_the_six_column_one():
+    st, V, F = cylinder()
+    H, W = 48, 64
+    raster = rasterize_uv(st, F, H, W)
+    fr = tangent_frames(V, F, st, F).astype(np.float32)
+    h = 0.3 * np.random.default_rng(4).normal(size=(H, W)).astype(np.float32)
+    mapper = NormalMapper(raster, F, st, F, len(V))
+    ref = mapper.normal_map(h, V, fr)
+    out = np.full((2, H, W, 3), np.nan, np.float32)                   # dirty: every texel is written
+    got = mapper.normal_map(h, V, fr, out=out[1])
+    assert got is out[1] or np.shares_memory(got, out)
+    np.testing.assert_array_equal(out[1], ref)
+    assert np.isnan(out[0]).all()
+    with pytest.raises(ValueError, match="out must be"):
+        mapper.normal_map(h, V, fr, out=np.zeros((H, W, 3)))
+    # the rows (T, N) interpolated one component at a time: the 6-column product's sums
+    TN = np.concatenate([fr[:, 0], fr[:, 2]], axis=1)                   # (n,6)
+    for _, _, interp in mapper._blocks:
+        rows = np.stack([interp @ np.ascontiguousarray(TN[:, i]) for i in range(6)])
+        np.testing.assert_array_equal(rows, np.ascontiguousarray((interp @ TN).T))

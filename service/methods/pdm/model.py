@@ -451,9 +451,9 @@ class PdmModel:
                 h = (ev.fine_sampler @ disp.T).T                           # (f,n)
                 out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
             if "normal_map" in want:
-                for k in range(sl.stop - sl.start):
-                    out["normal_map"][s + k] = ev.normal_mapper.normal_map(
-                        out["displacement"][s + k], medium[k], mframes[k])
+                for k in range(sl.stop - sl.start):          # written in place (no copy)
+                    ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], mframes[k],
+                                                out=out["normal_map"][s + k])
             if "albedo" in want:
                 a = ev.albedo_band(S, margin, rho)
                 out["albedo"][sl] = ev.albedo.image(np.maximum(a, 0.0), channels=True)
