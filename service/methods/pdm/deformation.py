@@ -429,10 +429,23 @@ class ParameterField:
     def combine(self, g: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """d1, d2 (T,p) of the points of elements ``a:b`` (sorted points: ``runs`` set),
         for :meth:`element_terms` g (T,12,E): the points' slice is ``run_starts[a]:run_starts[b]``.
-        The same arithmetic, in the same order, as the whole field (bit-identical)."""
+
+        Each element's points by one matrix product ``(2,6) · (6,run)`` (its d1 and d2 terms
+        times its points' monomials) instead of twelve passes over the block's repeated
+        terms: float32 sums in BLAS's order, within 3e-7 of the largest |d| of the
+        elementwise sum over the points (:meth:`_combine`, the unsorted path; tests, measured
+        2e-7), about 4× faster (the 715k fine texels of the level-1 sample actor, 298
+        elements: 5.4 → 1.25 ms of CPU per frame). Elementwise per element, so any split
+        of the elements into ranges gives the same values bit for bit."""
         starts = self.run_starts
-        s, e = starts[a], starts[b]
-        return self._combine(np.repeat(g[:, :, a:b], self.runs[a:b], axis=2), self.mono[:, s:e])
+        T, s0 = g.shape[0], starts[a]
+        G = g[:, :, a:b].reshape(T, 2, 6, b - a)
+        out = np.empty((T, 2, starts[b] - s0), np.float32)
+        for e in range(a, b):
+            s, t = starts[e] - s0, starts[e + 1] - s0
+            if t > s:
+                np.matmul(G[..., e - a], self.mono[:, s + s0:t + s0], out=out[:, :, s:t])
+        return out[:, 0], out[:, 1]
 
     @staticmethod
     def _combine(g: np.ndarray, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
