@@ -318,8 +318,22 @@ class FrameField:
         out[~has_n] = C[~has_n]                     # identity frames
         return out.reshape(*lead, T.shape[1], 3)
 
-    def _rows32(self, V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """T, B, N (3,n) float32, component-major, and has_n (n,) of one pose V (n,3): the
+    def normal_rows(self, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What a normal map of pose V (n,3) reads of its frames (float32, :meth:`frames`
+        with ``dtype=np.float32``, rows T and N, identity frames where there is no normal)
+        without forming them: ``TN`` (6,n) float32, rows (Tx, Ty, Tz, Nx, Ny, Nz), and the
+        triangles' edges (3,2m) float32 the frames were computed from (component rows; e1
+        = P1 − P0 in columns :m, e2 = P2 − P0 after), for
+        :meth:`service.geometry.normal_map.NormalMapper.normal_map`'s ``rows``."""
+        T, _, N, has_n, e = self._rows32(V, edges=True)
+        TN = np.concatenate([T, N])
+        if not has_n.all():
+            TN[:, ~has_n] = np.array([1, 0, 0, 0, 0, 1], np.float32)[:, None]
+        return TN, e
+
+    def _rows32(self, V: np.ndarray, edges: bool = False):
+        """T, B, N (3,n) float32, component-major, and has_n (n,) of one pose V (n,3) (with
+        ``edges``, also the triangles' float32 edges (3,2m) they were computed from): the
         float32 path of :meth:`_rows` with every vector a row per component, so the cross
         and dot products run over contiguous rows instead of (n,3) strides. The same
         elementwise float32 arithmetic in the same order (the dot products summed x, y, z
@@ -343,6 +357,8 @@ class FrameField:
             axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
             T[:, weak] = (axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw).T
         T = _normalize_rows(T)
+        if edges:
+            return T, _cross_rows(N, T), N, has_n, e
         return T, _cross_rows(N, T), N, has_n
 
     @cached_property

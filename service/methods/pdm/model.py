@@ -445,15 +445,16 @@ class PdmModel:
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
                 out["displacement"][sl].reshape(len(disp), -1)[:, ev.fine.index] = disp
-            if want & {"mesh_detailed", "normal_map"}:
-                mframes = ev.base.frame_field.frames(medium, np.float32)
+            if want & {"mesh_detailed", "normal_map"}:  # T, N of the medium mesh (float32 frames)
+                rows = [ev.base.frame_field.normal_rows(m) for m in medium]
             if "mesh_detailed" in want:
                 h = (ev.fine_sampler @ disp.T).T                           # (f,n)
-                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
+                normal = np.stack([tn[3:].T for tn, _ in rows])            # (f,n,3)
+                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * normal)
             if "normal_map" in want:
                 for k in range(sl.stop - sl.start):          # written in place (no copy)
-                    ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], mframes[k],
-                                                out=out["normal_map"][s + k])
+                    ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], None,
+                                                out=out["normal_map"][s + k], rows=rows[k])
             if "albedo" in want:
                 a = ev.albedo_band(S, margin, rho)
                 out["albedo"][sl] = ev.albedo.image(np.maximum(a, 0.0), channels=True)
