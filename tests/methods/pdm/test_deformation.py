@@ -265,3 +265,30 @@ def test_sorted_field_combine_by_matrix_products_is_the_elementwise_sum_within_f
     np.testing.assert_array_equal(np.concatenate([p[0] for p in parts], axis=1), d1)
     np.testing.assert_array_equal(np.concatenate([p[1] for p in parts], axis=1), d2)
     assert starts[-1] == P
+
+
+def test_an_unsorted_field_combines_by_element_and_puts_the_points_back():
+    """ParameterField.build of points not grouped by element (the vertex band's UV points)
+    sorts them once (``sorting``); a call combines by element (the matrix products) and
+    returns the points in their own order: within 3e-7 of the elementwise sum."""
+    import scipy.sparse as sp
+
+    from service.methods.pdm.deformation import DeformationAxes, ParameterField
+
+    rng = np.random.default_rng(8)
+    M, E, P, T = 12, 9, 3000, 2
+    tri = np.array([rng.choice(M, 3, replace=False) for _ in range(E)])
+    element = rng.integers(0, E, P)                                  # unsorted
+    w = rng.dirichlet(np.ones(3), P)
+    W = sp.csr_matrix((w.ravel(), (np.repeat(np.arange(P), 3), tri[element].ravel())), shape=(P, M))
+    q, r = rng.normal(size=(2, M, 5))
+    axes = DeformationAxes(q, r, np.ones((M, 5)), np.ones((M, 5)), 0, 0.0)
+    field = ParameterField.build(axes, W)
+    assert field.runs is None and field.sorting is not None
+    S = rng.normal(scale=3.0, size=(T, M, 5))
+    d1, d2 = field(S)
+    g = field.element_terms(S)
+    e1, e2 = ParameterField._combine(g[:, :, field.element], field.mono)
+    for got, ref in ((d1, e1), (d2, e2)):
+        assert got.dtype == np.float32 and got.shape == (T, P)
+        assert np.abs(got - ref).max() <= 3e-7 * np.abs(ref).max()
