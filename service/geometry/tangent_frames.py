@@ -174,6 +174,33 @@ def _by_columns(A: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
     return out
 
 
+def _dot_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products (n,) of component-major vectors a, b (3,n), summed x, y, z in order."""
+    out = a[0] * b[0]
+    out += a[1] * b[1]
+    out += a[2] * b[2]
+    return out
+
+
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` (3,n) of component-major vectors (3,n) (the arithmetic of
+    :func:`service.geometry.normals._cross`)."""
+    c = np.empty(a.shape, np.result_type(a, b))
+    c[0] = a[1] * b[2] - a[2] * b[1]
+    c[1] = a[2] * b[0] - a[0] * b[2]
+    c[2] = a[0] * b[1] - a[1] * b[0]
+    return c
+
+
+def _normalize_rows(X: np.ndarray) -> np.ndarray:
+    """Component-major vectors X (3,n) scaled to unit length, zero ones kept zero (the
+    arithmetic of :func:`service.geometry.normals._normalize`)."""
+    norm = np.sqrt(_dot_rows(X, X))
+    with np.errstate(divide="ignore"):
+        inv = np.where(norm > 0, 1.0 / norm, 0.0)
+    return X * inv
+
+
 @dataclass(frozen=True)
 class FrameField:
     """Tangent frames of many deformed poses of one mesh, two sparse products per pose.
@@ -249,6 +276,15 @@ class FrameField:
     def frames(self, V: np.ndarray, dtype=np.float64) -> np.ndarray:
         """Frames (n,3,3) or (frames,n,3,3) of ``dtype`` (float64 or float32, see the class
         notes), rows (T, B, N), of poses V (n,3) or (frames,n,3)."""
+        if np.dtype(dtype) == np.float32:
+            Vb, lead = _flatten_frames(V)
+            out = np.empty(Vb.shape[:2] + (3, 3), np.float32)
+            for b, pose in enumerate(Vb):
+                T, B, N, has_n = self._rows32(pose)
+                for i, row in enumerate((T, B, N)):
+                    out[b, :, i, :] = row.T
+                out[b, ~has_n] = np.eye(3)
+            return out.reshape(*lead, Vb.shape[1], 3, 3)
         T, B, N, has_n, lead = self._rows(V, dtype)
         frames = np.stack([T, B, N], axis=-2)
         frames[~has_n] = np.eye(3)
@@ -258,15 +294,72 @@ class FrameField:
         """Frame coordinates C (…,n,3) of poses V (…,n,3) as world vectors ``Σ_j C_j row_j``.
 
         Equal to ``einsum("...nji,...nj->...ni", frames(V), C)`` without forming the frames;
-        ``dtype`` float32 computes the frames and the sum in float32 (class notes).
+        ``dtype`` float32 computes the frames and the sum in float32 (class notes), one pose
+        at a time component-major (:meth:`_rows32`).
         """
+        if np.dtype(dtype) == np.float32:
+            Vb, lead = _flatten_frames(V)
+            Cb = np.asarray(C, np.float32).reshape(Vb.shape)
+            out = np.empty((len(Vb), 3, Vb.shape[1]), np.float32)       # component-major
+            for b, pose in enumerate(Vb):
+                T, B, N, has_n = self._rows32(pose)
+                Cc = np.ascontiguousarray(Cb[b].T)                       # (3,n)
+                for j in range(3):
+                    np.multiply(Cc[0], T[j], out=out[b, j])
+                    out[b, j] += Cc[1] * B[j]
+                    out[b, j] += Cc[2] * N[j]
+                    out[b, j, ~has_n] = Cc[j, ~has_n]                   # identity frames
+            return out.transpose(0, 2, 1).reshape(*lead, Vb.shape[1], 3)
         T, B, N, has_n, lead = self._rows(V, dtype)
-        C = (np.asarray(C) if np.dtype(dtype) == np.float64 else np.asarray(C, dtype)).reshape(T.shape)
+        C = np.asarray(C).reshape(T.shape)
         out = C[..., 0:1] * T
         out += C[..., 1:2] * B
         out += C[..., 2:3] * N
         out[~has_n] = C[~has_n]                     # identity frames
         return out.reshape(*lead, T.shape[1], 3)
+
+    def normal_rows(self, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What a normal map of pose V (n,3) reads of its frames (float32, :meth:`frames`
+        with ``dtype=np.float32``, rows T and N, identity frames where there is no normal)
+        without forming them: ``TN`` (6,n) float32, rows (Tx, Ty, Tz, Nx, Ny, Nz), and the
+        triangles' edges (3,2m) float32 the frames were computed from (component rows; e1
+        = P1 − P0 in columns :m, e2 = P2 − P0 after), for
+        :meth:`service.geometry.normal_map.NormalMapper.normal_map`'s ``rows``."""
+        T, _, N, has_n, e = self._rows32(V, edges=True)
+        TN = np.concatenate([T, N])
+        if not has_n.all():
+            TN[:, ~has_n] = np.array([1, 0, 0, 0, 0, 1], np.float32)[:, None]
+        return TN, e
+
+    def _rows32(self, V: np.ndarray, edges: bool = False):
+        """T, B, N (3,n) float32, component-major, and has_n (n,) of one pose V (n,3) (with
+        ``edges``, also the triangles' float32 edges (3,2m) they were computed from): the
+        float32 path of :meth:`_rows` with every vector a row per component, so the cross
+        and dot products run over contiguous rows instead of (n,3) strides. The same
+        elementwise float32 arithmetic in the same order (the dot products summed x, y, z
+        as einsum does for float32): bit-identical to ``_rows(V, np.float32)`` (tests)."""
+        incidence, du_edges = self._float32
+        m = len(self.faces)
+        Vc = np.ascontiguousarray(np.asarray(V, np.float64).T)                    # (3,n)
+        e = np.empty((3, 2 * m), np.float32)                                       # rows: x, y, z
+        for i in range(3):
+            e[i] = self.edges @ Vc[i]                  # differenced in float64, rounded once
+        T = np.stack([du_edges @ e[i] for i in range(3)])                          # (3,n)
+        e1, e2 = e[:, :m], e[:, m:]
+        fn = _cross_rows(e1, e2)                                                   # (3,m)
+        N = _normalize_rows(np.stack([incidence @ fn[i] for i in range(3)]))
+        T -= _dot_rows(T, N) * N
+        has_n = _dot_rows(N, N) > 0.25
+        tn = np.sqrt(_dot_rows(T, T))
+        weak = has_n & ~(tn > CANCEL_RTOL * np.maximum(np.abs(T).max(), 1e-300))
+        if weak.any():
+            Nw = N[:, weak].T
+            axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
+            T[:, weak] = (axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw).T
+        T = _normalize_rows(T)
+        if edges:
+            return T, _cross_rows(N, T), N, has_n, e
+        return T, _cross_rows(N, T), N, has_n
 
     @cached_property
     def _float32(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:

@@ -313,3 +313,50 @@ def test_shapes_are_checked():
         mapper.normal_map(np.zeros((8, 8)), V[:-1], fr)
     with pytest.raises(ValueError, match="raster refers"):
         NormalMapper(raster, F[:1], st, F[:1], len(V))
+
+
+def test_out_is_written_in_place_and_the_per_component_interpolation_is_the_six_column_one():
+    st, V, F = cylinder()
+    H, W = 48, 64
+    raster = rasterize_uv(st, F, H, W)
+    fr = tangent_frames(V, F, st, F).astype(np.float32)
+    h = 0.3 * np.random.default_rng(4).normal(size=(H, W)).astype(np.float32)
+    mapper = NormalMapper(raster, F, st, F, len(V))
+    ref = mapper.normal_map(h, V, fr)
+    out = np.full((2, H, W, 3), np.nan, np.float32)                   # dirty: every texel is written
+    got = mapper.normal_map(h, V, fr, out=out[1])
+    assert got is out[1] or np.shares_memory(got, out)
+    np.testing.assert_array_equal(out[1], ref)
+    assert np.isnan(out[0]).all()
+    with pytest.raises(ValueError, match="out must be"):
+        mapper.normal_map(h, V, fr, out=np.zeros((H, W, 3)))
+    # the rows (T, N) interpolated one component at a time: the 6-column product's sums
+    TN = np.concatenate([fr[:, 0], fr[:, 2]], axis=1)                   # (n,6)
+    for _, _, interp in mapper._blocks:
+        rows = np.stack([interp @ np.ascontiguousarray(TN[:, i]) for i in range(6)])
+        np.testing.assert_array_equal(rows, np.ascontiguousarray((interp @ TN).T))
+
+
+def test_rows_of_the_frame_field_give_the_frames_normal_map_bit_for_bit():
+    """normal_map(rows=FrameField.normal_rows(V)) (T, N rows and the frames' float32 edges,
+    no (n,3,3) frames formed, no edges gathered again) is normal_map(frames=frames(V, float32))."""
+    from service.geometry.tangent_frames import FrameField
+
+    st, V, F = cylinder()
+    H, W = 48, 64
+    raster = rasterize_uv(st, F, H, W)
+    ff = FrameField.build(V, F, st, F)
+    pose = V + 0.05 * np.random.default_rng(6).normal(size=V.shape) + [200.0, -100.0, 50.0]
+    h = 0.3 * np.random.default_rng(7).normal(size=(H, W)).astype(np.float32)
+    mapper = NormalMapper(raster, F, st, F, len(V))
+    frames = ff.frames(pose, np.float32)
+    TN, edges = ff.normal_rows(pose)
+    np.testing.assert_array_equal(TN[:3], frames[:, 0].T)
+    np.testing.assert_array_equal(TN[3:], frames[:, 2].T)
+    np.testing.assert_array_equal(mapper.gradient_operators(pose, edges), mapper.gradient_operators(pose))
+    np.testing.assert_array_equal(mapper.normal_map(h, pose, None, rows=(TN, edges)),
+                                  mapper.normal_map(h, pose, frames))
+    with pytest.raises(ValueError, match="rows"):
+        mapper.normal_map(h, pose, None, rows=(TN[:3], edges))
+    with pytest.raises(ValueError, match="edges must be"):
+        mapper.gradient_operators(pose, edges[:, :-1])

@@ -169,3 +169,27 @@ def test_frame_field_float32_agrees_with_float64_on_the_face_rig():
     np.testing.assert_array_equal(w64, np.einsum("...nji,...nj->...ni", f64, C))
     with pytest.raises(ValueError, match="float64 or float32"):
         ff.frames(poses, np.float16)
+
+
+def test_frame_field_float32_component_major_is_the_pose_major_path_bit_for_bit():
+    """frames / to_world in float32 run component-major (FrameField._rows32); the (n,3)
+    pose-major float32 arithmetic they replaced (_rows) gives the same bits, one pose or two."""
+    from service.geometry.tangent_frames import FrameField
+
+    V = RIG["neutral"].astype(np.float64)
+    F = RIG["triangles"].astype(np.int64)
+    uv, uv_faces = RIG["uv"].astype(np.float64), RIG["triangle_uv"].astype(np.int64)
+    ff = FrameField.build(V, F, uv, uv_faces)
+    poses = V + RIG["expression_deltas"][[5, 20]].astype(np.float64) + [300.0, -200.0, 150.0]
+    C = np.random.default_rng(0).normal(scale=2.0, size=poses.shape).astype(np.float32)
+    T, B, N, has_n, lead = ff._rows(poses, np.float32)
+    old_frames = np.stack([T, B, N], axis=-2)
+    old_frames[~has_n] = np.eye(3)
+    old_world = C[..., 0:1] * T
+    old_world += C[..., 1:2] * B
+    old_world += C[..., 2:3] * N
+    old_world[~has_n] = C[~has_n]
+    np.testing.assert_array_equal(ff.frames(poses, np.float32), old_frames)
+    np.testing.assert_array_equal(ff.to_world(poses, C, np.float32), old_world)
+    np.testing.assert_array_equal(ff.frames(poses[1], np.float32), old_frames[1])
+    np.testing.assert_array_equal(ff.to_world(poses[1], C[1], np.float32), old_world[1])

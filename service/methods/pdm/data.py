@@ -33,7 +33,9 @@ class PdmData:
     S_train : (T,M,5) float64        the training frames' deformation vectors (eq. 2)
     neutral_offset : (n,3) float32   the neutral's medium detail in the smooth neutral's
                                      tangent frames (static part, per vertex)
-    medium : CoefficientMap          C = 3 (tangent, bitangent, normal), mm
+    medium : CoefficientMap          C = 3 (tangent, bitangent, normal), mm (a loaded model with
+                                     ``vertex_coeffs``: a :class:`~.store.StoredCoefficientMap`,
+                                     read from its directory when saved)
     fine : CoefficientMap            C = 1 (normal), mm
     albedo : CoefficientMap | None   C = 3 (linear RGB)
     metrics : dict

@@ -360,6 +360,10 @@ class ParameterField:
     mono : (6,P) float32        weight monomials
     q, r : (M,5) float64        the marker axes q̂, r̂;  scale : (M,5) :func:`strain_scale`
     runs : (E,) int64 or None   points per element when ``element`` is sorted
+    sorting : tuple or None     when it is not: (order (P,) the stable permutation that sorts
+                                the points by element, its runs (E,), and the monomials (6,P)
+                                in that order), so that :meth:`__call__` combines by element
+                                (:meth:`combine`'s products) and puts the points back
     """
 
     element: np.ndarray
@@ -369,6 +373,7 @@ class ParameterField:
     r: np.ndarray
     scale: np.ndarray
     runs: np.ndarray | None = None
+    sorting: tuple | None = None
 
     @staticmethod
     def _rows(W: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
@@ -402,8 +407,13 @@ class ParameterField:
         element = element.ravel()
         mono = np.stack([w[:, 0] ** 2, w[:, 1] ** 2, w[:, 2] ** 2,
                          w[:, 0] * w[:, 1], w[:, 0] * w[:, 2], w[:, 1] * w[:, 2]])
-        runs = np.bincount(element, minlength=len(markers)) if np.all(np.diff(element) >= 0) else None
-        return cls(element, markers, mono.astype(np.float32), axes.q, axes.r, axes.scale, runs)
+        mono = mono.astype(np.float32)
+        counts = np.bincount(element, minlength=len(markers))
+        if np.all(np.diff(element) >= 0):
+            return cls(element, markers, mono, axes.q, axes.r, axes.scale, counts)
+        order = np.argsort(element, kind="stable")
+        return cls(element, markers, mono, axes.q, axes.r, axes.scale, None,
+                   (order, counts, np.ascontiguousarray(mono[:, order])))
 
     @property
     def n_points(self) -> int:
@@ -412,9 +422,16 @@ class ParameterField:
     def __call__(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """d1, d2 (T,P) float32 for deformation vectors S (T,M,5)."""
         g = self.element_terms(S)
-        if self.runs is None:
+        E = len(self.markers)
+        if self.runs is not None:
+            return self.combine(g, 0, E)
+        if self.sorting is None:                    # built directly, without build()
             return self._combine(g[:, :, self.element], self.mono)
-        return self.combine(g, 0, len(self.markers))
+        order, counts, mono = self.sorting
+        d = np.empty((2, len(S), len(order)), np.float32)
+        for i, part in enumerate(self._products(g, mono, np.concatenate([[0], np.cumsum(counts)]), 0, E)):
+            d[i][:, order] = part
+        return d[0], d[1]
 
     def element_terms(self, S: np.ndarray) -> np.ndarray:
         """The six symmetric terms of d1 and of d2 per coarse element, (T,12,E) float32."""
@@ -429,10 +446,29 @@ class ParameterField:
     def combine(self, g: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """d1, d2 (T,p) of the points of elements ``a:b`` (sorted points: ``runs`` set),
         for :meth:`element_terms` g (T,12,E): the points' slice is ``run_starts[a]:run_starts[b]``.
-        The same arithmetic, in the same order, as the whole field (bit-identical)."""
-        starts = self.run_starts
-        s, e = starts[a], starts[b]
-        return self._combine(np.repeat(g[:, :, a:b], self.runs[a:b], axis=2), self.mono[:, s:e])
+
+        Each element's points by one matrix product ``(2,6) · (6,run)`` (its d1 and d2 terms
+        times its points' monomials) instead of twelve passes over the block's repeated
+        terms: float32 sums in BLAS's order, within 3e-7 of the largest |d| of the
+        elementwise sum over the points (:meth:`_combine`, the unsorted path; tests, measured
+        2e-7), about 4× faster (the 715k fine texels of the level-1 sample actor, 298
+        elements: 5.4 → 1.25 ms of CPU per frame). Elementwise per element, so any split
+        of the elements into ranges gives the same values bit for bit."""
+        return self._products(g, self.mono, self.run_starts, a, b)
+
+    @staticmethod
+    def _products(g: np.ndarray, mono: np.ndarray, starts: np.ndarray, a: int, b: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """d1, d2 (T,p) of the points of elements ``a:b``, sorted by element (element e's
+        points are ``starts[e]:starts[e+1]`` of ``mono`` (6,P)): one (2,6)·(6,run) product each."""
+        T, s0 = g.shape[0], starts[a]
+        G = g[:, :, a:b].reshape(T, 2, 6, b - a)
+        out = np.empty((T, 2, starts[b] - s0), np.float32)
+        for e in range(a, b):
+            s, t = starts[e] - s0, starts[e + 1] - s0
+            if t > s:
+                np.matmul(G[..., e - a], mono[:, s + s0:t + s0], out=out[:, :, s:t])
+        return out[:, 0], out[:, 1]
 
     @staticmethod
     def _combine(g: np.ndarray, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -80,7 +80,7 @@ from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
 from service.methods.pdm.validity import (
-    BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
+    BandValidity, SectorLookup, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
 )
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
@@ -169,15 +169,16 @@ def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: 
 
 def medium_offsets(vertex: TexelBand, seam_average: sp.csr_matrix, neutral_offset: np.ndarray,
                    d1: np.ndarray, d2: np.ndarray, validity: Validity | None = None,
-                   rho: np.ndarray | None = None) -> np.ndarray:
+                   rho: np.ndarray | None = None, lookup: SectorLookup | None = None) -> np.ndarray:
     """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
     points of the band ``vertex`` (:func:`vertex_band`), seam-averaged ((n,K)) onto the
     vertices plus the neutral's static ``neutral_offset`` (n,3); with ρ (F,K)
-    (:mod:`.validity`), continued and faded outside the hull."""
+    (:mod:`.validity`), continued and faded outside the hull (``lookup``: the sector lookup
+    of d1, d2 the gauge used, :meth:`.validity.Validity.lookup`)."""
     if rho is None:
         c = vertex.evaluate(d1, d2)                                             # (F,K,3)
     else:
-        c = validity.evaluate("vertex", vertex.coeffs, d1, d2, rho)
+        c = validity.evaluate("vertex", vertex.coeffs, d1, d2, rho, lookup)
     F, K = c.shape[:2]
     c = (seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
     return c.transpose(1, 0, 2) + neutral_offset
@@ -274,10 +275,12 @@ class PdmEvaluator:
         u_H = self.base.handle_displacements(aligned)
         return pose, u_H, deformation_vectors(self.data.mesh, self.base.denoised_markers(aligned, u_H), offsets=u_H)
 
-    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None) -> np.ndarray:
-        """:func:`medium_offsets` (F,n,3) of this model for d1, d2 (F,K); with ρ (F,K), valid."""
+    def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
+                       lookup: SectorLookup | None = None) -> np.ndarray:
+        """:func:`medium_offsets` (F,n,3) of this model for d1, d2 (F,K); with ρ (F,K), valid
+        (``lookup``: the gauge's sector lookup of d1, d2, reused)."""
         return medium_offsets(self.vertex_band, self.seam_average, self.data.neutral_offset, d1, d2,
-                              self.validity, rho)
+                              self.validity, rho, lookup)
 
     def fine_band(self, S: np.ndarray, margin: float | None,
                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -427,29 +430,31 @@ class PdmModel:
                                    f"least {e.required} are needed") from None
             X = ev.base.deform(u_H)
             d1, d2, clamped = ev.vertex_band.parameters(S, margin)
-            rho = None if valid is None else valid.gauge(d1, d2)
+            lookup = None if valid is None else valid.lookup(d1, d2)    # shared by gauge and envelope
+            rho = None if valid is None else valid.gauge(d1, d2, lookup)
             if rho is not None:
                 out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
-            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho), np.float32)
+            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup), np.float32)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
                 out["displacement"][sl].reshape(len(disp), -1)[:, ev.fine.index] = disp
-            if want & {"mesh_detailed", "normal_map"}:
-                mframes = ev.base.frame_field.frames(medium, np.float32)
+            if want & {"mesh_detailed", "normal_map"}:  # T, N of the medium mesh (float32 frames)
+                rows = [ev.base.frame_field.normal_rows(m) for m in medium]
             if "mesh_detailed" in want:
                 h = (ev.fine_sampler @ disp.T).T                           # (f,n)
-                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])
+                normal = np.stack([tn[3:].T for tn, _ in rows])            # (f,n,3)
+                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * normal)
             if "normal_map" in want:
-                for k in range(sl.stop - sl.start):
-                    out["normal_map"][s + k] = ev.normal_mapper.normal_map(
-                        out["displacement"][s + k], medium[k], mframes[k])
+                for k in range(sl.stop - sl.start):          # written in place (no copy)
+                    ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], None,
+                                                out=out["normal_map"][s + k], rows=rows[k])
             if "albedo" in want:
                 a = ev.albedo_band(S, margin, rho)
                 out["albedo"][sl] = ev.albedo.image(np.maximum(a, 0.0), channels=True)

@@ -39,6 +39,7 @@ file's bytes and its arrays at once.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +53,7 @@ from service.methods.pdm import polynomial
 from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
 from service.methods.pdm.params import PdmParams
-from service.methods.pdm.texel_band import CoefficientMap
+from service.methods.pdm.texel_band import CoefficientMap, CoveredTexels
 from service.methods.pdm.validity import ValidityData
 
 KIND = "pdm"
@@ -64,6 +65,38 @@ COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b
 CACHE = "cache.npz"
 #: the validity regions of the training data (optional: older model directories lack it)
 VALIDITY = "validity.npz"
+
+
+@dataclass(frozen=True)
+class StoredCoefficientMap:
+    """A band's coefficient map left in the model directory's ``cache.npz`` (issue 23):
+    what a loaded model keeps of the medium map when its medium PDM is evaluated from
+    ``vertex_coeffs``. Synthesis never reads the map (only saving and the renderers' EXR do),
+    so the model holds neither its arrays nor their mapping: :attr:`index` and
+    :attr:`coeffs` map the file again when asked (the checksum was verified at load; the
+    directory must still exist then). The model cache's weight (:func:`service.methods.footprint.nbytes`)
+    then counts what the model holds in memory only.
+
+    resolution : int;  file : Path  the ``cache.npz``;  name : str  the band (``medium``)
+    """
+
+    resolution: int
+    file: Path
+    name: str
+
+    @property
+    def index(self) -> np.ndarray:
+        """(P,) the covered texels, flat row-major (mapped from the file)."""
+        return npz_mapped(self.file)[f"{self.name}_index"]
+
+    @property
+    def coeffs(self) -> np.ndarray:
+        """(P,C,K) float32 the coefficients (mapped from the file)."""
+        return npz_mapped(self.file)[f"{self.name}_coeffs"]
+
+    def mask(self) -> np.ndarray:
+        """(H,W) bool: the covered texels."""
+        return CoveredTexels(self.resolution, self.index).mask()
 
 
 def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
@@ -156,7 +189,10 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
             if coeffs.shape != (len(index), len(comps), K) or coeffs.dtype != np.float32:
                 raise ModelCorrupt(f"{path}: {CACHE} holds {name} coefficients of shape "
                                    f"{coeffs.shape} {coeffs.dtype}, not ({len(index)},{len(comps)},{K}) float32")
-            bands[name] = CoefficientMap(res, index, coeffs)
+            if name == "medium" and "vertex_coeffs" in a:    # synthesis reads vertex_coeffs
+                bands[name] = StoredCoefficientMap(res, Path(data[CACHE]), name)
+            else:
+                bands[name] = CoefficientMap(res, index, coeffs)
             continue
         index = np.flatnonzero(rasterize_uv(uv, uvf, res, res).mask.ravel())
         ch = read_exr(data[f"{name}.exr"])

@@ -135,32 +135,61 @@ def gauge(d1: np.ndarray, d2: np.ndarray, hull: np.ndarray) -> np.ndarray:
     return point_gauge(d1, d2, np.ascontiguousarray(np.asarray(hull).T))
 
 
-def point_gauge(d1: np.ndarray, d2: np.ndarray, hull_points: np.ndarray) -> np.ndarray:
+def point_gauge(d1: np.ndarray, d2: np.ndarray, hull_points: np.ndarray,
+                lookup: "SectorLookup | None" = None) -> np.ndarray:
     """:func:`gauge` with the radius functions point-major, ``hull_points`` (P,K) (the
     transpose of the (K,P) hull, made once): a point's two bracketing sectors are then
-    neighbours in memory, one flat gather instead of two column-strided ones (bit-identical)."""
+    neighbours in memory, one flat gather instead of two column-strided ones (bit-identical).
+    ``lookup``: :class:`SectorLookup` of the same d1, d2 (computed here when None)."""
     d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
-    h = point_sector_values(d1, d2, hull_points)
+    if lookup is None:
+        lookup = SectorLookup.of(d1, d2, hull_points.shape[1])
+    h = lookup.values(hull_points)
     return (np.hypot(d1, d2) / h).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class SectorLookup:
+    """Where the directions θ of parameters d1, d2 (…,P) fall among K sectors: the flat
+    indices into a point-major (P,K) table of the sectors below and above θ, and the linear
+    weight t of the upper one. Made once per frame and read for every per-sector table of
+    the same points (the hull of :func:`point_gauge` and the sector envelope of
+    :meth:`Validity.evaluate`: one direction computation instead of one per table).
+
+    lower, upper : (…,P) int64;  t : (…,P) float32;  K : int the sectors
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    t: np.ndarray
+    K: int
+
+    @classmethod
+    def of(cls, d1: np.ndarray, d2: np.ndarray, K: int) -> "SectorLookup":
+        """The lookup of d1, d2 (…,P) (cast to float32) in K sectors."""
+        d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
+        x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
+        k0 = np.floor(x).astype(np.int64) % K
+        t = (x - np.floor(x)).astype(np.float32)
+        base = np.arange(d1.shape[-1]) * K                                   # (P,) row starts
+        upper = k0 + 1
+        upper %= K
+        upper += base
+        k0 += base
+        return cls(k0, upper, t, int(K))
+
+    def values(self, table_points: np.ndarray) -> np.ndarray:
+        """The table (P,K) at the looked-up directions, linear between sectors (…,P)."""
+        if table_points.shape[1] != self.K:
+            raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {table_points.shape[1]}")
+        flat = np.asarray(table_points).ravel()
+        return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
 
 def point_sector_values(d1: np.ndarray, d2: np.ndarray, table_points: np.ndarray) -> np.ndarray:
     """A per-sector table, point-major (P,K), at the direction θ of d1, d2 (…,P), linear
-    between sectors (:func:`point_gauge`'s flat gather)."""
-    K = table_points.shape[1]
-    d1, d2 = np.broadcast_arrays(np.asarray(d1, np.float32), np.asarray(d2, np.float32))
-    x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
-    k0 = np.floor(x).astype(np.int64) % K
-    t = (x - np.floor(x)).astype(np.float32)
-    flat = table_points.ravel()
-    base = np.arange(d1.shape[-1]) * K                                       # (P,) row starts
-    k0 += base
-    h0 = np.take(flat, k0)
-    k0 -= base
-    k0 += 1
-    k0 %= K
-    k0 += base
-    return (1 - t) * h0 + t * np.take(flat, k0)
+    between sectors (:func:`point_gauge`'s flat gather; :class:`SectorLookup`)."""
+    return SectorLookup.of(d1, d2, table_points.shape[1]).values(table_points)
 
 
 def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
@@ -326,9 +355,15 @@ class Validity:
                    seam_average.tocsr(), area,
                    None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T))
 
-    def gauge(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-        """ρ (F,Q) at the UV points for their parameters d1, d2 (F,Q)."""
-        return point_gauge(d1, d2, self.hull_points)
+    def lookup(self, d1: np.ndarray, d2: np.ndarray) -> SectorLookup:
+        """The :class:`SectorLookup` of parameters d1, d2 (F,Q) at the UV points, for
+        :meth:`gauge` and :meth:`evaluate` of the same frame."""
+        return SectorLookup.of(d1, d2, self.hull_points.shape[1])
+
+    def gauge(self, d1: np.ndarray, d2: np.ndarray, lookup: SectorLookup | None = None) -> np.ndarray:
+        """ρ (F,Q) at the UV points for their parameters d1, d2 (F,Q) (``lookup``: theirs,
+        :meth:`lookup`, computed here when None)."""
+        return point_gauge(d1, d2, self.hull_points, lookup)
 
     @property
     def hull(self) -> np.ndarray:
@@ -345,13 +380,15 @@ class Validity:
         return np.ascontiguousarray((self.texel_rho[name] @ rho.T).T, dtype=np.float32)
 
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
-                 rho: np.ndarray) -> np.ndarray:
+                 rho: np.ndarray, lookup: SectorLookup | None = None) -> np.ndarray:
         """D̃ (F,P,C) of band ``name`` (coefficients (P,C,K)) at d1, d2, ρ (F,P)
         (:func:`valid_polynomial`); the vertex band with its sector envelope at d's
-        direction, when there is one."""
+        direction, when there is one (``lookup``: the :meth:`lookup` of d1, d2 if made)."""
         envelope = self.envelope[name]
         if name == "vertex" and self.sector_points is not None:
-            envelope = point_sector_values(d1, d2, self.sector_points)
+            if lookup is None:
+                lookup = SectorLookup.of(d1, d2, self.sector_points.shape[1])
+            envelope = lookup.values(self.sector_points)
         return valid_polynomial(coeffs, d1, d2, rho, envelope, self.fallback(name, coeffs),
                                 self.width, self.slope)
 

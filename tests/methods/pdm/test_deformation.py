@@ -236,3 +236,59 @@ def test_parameter_field_blocks_cover_the_runs_and_combine_bit_for_bit():
     parts = [field.combine(g, a, b) for a, b in blocks]
     assert np.array_equal(np.concatenate([p[0] for p in parts], axis=1), d1)
     assert np.array_equal(np.concatenate([p[1] for p in parts], axis=1), d2)
+
+
+def test_sorted_field_combine_by_matrix_products_is_the_elementwise_sum_within_float32():
+    """ParameterField.combine (one (2,6)·(6,run) product per element) against the elementwise
+    sum over the points (_combine of the repeated terms): within 3e-7 of the largest |d|;
+    any split of the elements gives the same bits."""
+    from service.methods.pdm.deformation import ParameterField
+
+    rng = np.random.default_rng(7)
+    M, E, P, T = 12, 9, 4000, 3
+    markers = np.sort(rng.integers(0, M, (E, 3)), axis=1)
+    element = np.sort(rng.integers(0, E, P))
+    w = rng.dirichlet(np.ones(3), P)
+    mono = np.stack([w[:, 0] ** 2, w[:, 1] ** 2, w[:, 2] ** 2, w[:, 0] * w[:, 1], w[:, 0] * w[:, 2],
+                     w[:, 1] * w[:, 2]]).astype(np.float32)
+    q, r = rng.normal(size=(2, M, 5))
+    field = ParameterField(element, markers, mono, q, r, np.ones((M, 5)), np.bincount(element, minlength=E))
+    S = rng.normal(scale=3.0, size=(T, M, 5))
+    g = field.element_terms(S)
+    d1, d2 = field.combine(g, 0, E)
+    e1, e2 = ParameterField._combine(g[:, :, element], mono)
+    for got, ref in ((d1, e1), (d2, e2)):
+        assert got.dtype == np.float32 and got.shape == (T, P)
+        assert np.abs(got - ref).max() <= 3e-7 * np.abs(ref).max()
+    starts = field.run_starts
+    parts = [field.combine(g, a, b) for a, b in ((0, 4), (4, 5), (5, E))]
+    np.testing.assert_array_equal(np.concatenate([p[0] for p in parts], axis=1), d1)
+    np.testing.assert_array_equal(np.concatenate([p[1] for p in parts], axis=1), d2)
+    assert starts[-1] == P
+
+
+def test_an_unsorted_field_combines_by_element_and_puts_the_points_back():
+    """ParameterField.build of points not grouped by element (the vertex band's UV points)
+    sorts them once (``sorting``); a call combines by element (the matrix products) and
+    returns the points in their own order: within 3e-7 of the elementwise sum."""
+    import scipy.sparse as sp
+
+    from service.methods.pdm.deformation import DeformationAxes, ParameterField
+
+    rng = np.random.default_rng(8)
+    M, E, P, T = 12, 9, 3000, 2
+    tri = np.array([rng.choice(M, 3, replace=False) for _ in range(E)])
+    element = rng.integers(0, E, P)                                  # unsorted
+    w = rng.dirichlet(np.ones(3), P)
+    W = sp.csr_matrix((w.ravel(), (np.repeat(np.arange(P), 3), tri[element].ravel())), shape=(P, M))
+    q, r = rng.normal(size=(2, M, 5))
+    axes = DeformationAxes(q, r, np.ones((M, 5)), np.ones((M, 5)), 0, 0.0)
+    field = ParameterField.build(axes, W)
+    assert field.runs is None and field.sorting is not None
+    S = rng.normal(scale=3.0, size=(T, M, 5))
+    d1, d2 = field(S)
+    g = field.element_terms(S)
+    e1, e2 = ParameterField._combine(g[:, :, field.element], field.mono)
+    for got, ref in ((d1, e1), (d2, e2)):
+        assert got.dtype == np.float32 and got.shape == (T, P)
+        assert np.abs(got - ref).max() <= 3e-7 * np.abs(ref).max()

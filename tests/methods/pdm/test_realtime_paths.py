@@ -113,3 +113,31 @@ def test_point_major_gauge_is_the_old_gauge_bit_for_bit(pdm_model, frames):
     old = _old_gauge(d1, d2, v.hull)
     assert np.array_equal(v.gauge(d1, d2), old) and np.array_equal(gauge(d1, d2, v.hull), old)
     assert old.min() < 1 < old.max()
+
+
+def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, frames):
+    """The frame's :class:`SectorLookup` (made once) reads the hull and the sector envelope
+    as the per-table lookups did (the old gauge, the old sector values), bit for bit."""
+    from service.methods.pdm.validity import SectorLookup
+
+    v = pdm_model.evaluator.validity
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
+    lookup = v.lookup(d1, d2)
+    assert np.array_equal(v.gauge(d1, d2, lookup), _old_gauge(d1, d2, v.hull))
+    assert v.sector_points is not None
+    assert np.array_equal(lookup.values(v.sector_points), _old_sector_values(d1, d2, v.sectors))
+    rho = v.gauge(d1, d2, lookup)
+    coeffs = pdm_model.evaluator.vertex_band.coeffs
+    assert np.array_equal(v.evaluate("vertex", coeffs, d1, d2, rho, lookup), v.evaluate("vertex", coeffs, d1, d2, rho))
+    with pytest.raises(ValueError):
+        SectorLookup.of(d1, d2, 8).values(v.sector_points)
+
+
+def _old_sector_values(d1, d2, table):
+    """The (K,P) table at d's direction, linear between sectors (the old column gather)."""
+    K = len(table)
+    x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
+    k0 = np.floor(x).astype(np.int64) % K
+    t = (x - np.floor(x)).astype(np.float32)
+    cols = np.broadcast_to(np.arange(d1.shape[-1]), d1.shape)
+    return (1 - t) * table[k0, cols] + t * table[(k0 + 1) % K, cols]

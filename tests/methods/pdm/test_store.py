@@ -138,3 +138,26 @@ def test_the_coefficients_are_mapped_from_the_cache_and_equal_the_exr_decode(pdm
     y = decoded.synthesize(markers, outputs=("mesh", "displacement", "normal_map", "albedo"))
     for key in x:
         np.testing.assert_array_equal(x[key], y[key], err_msg=key)
+
+
+def test_a_loaded_model_leaves_the_medium_map_in_its_directory_and_saves_it_again(pdm_model, saved, tmp_path):
+    """With vertex_coeffs the loaded model holds no medium-map arrays (issue 23: the model
+    cache's estimate counted them mapped); saving the loaded model reads them from its
+    directory, and the saved copy holds the trained coefficients bit for bit."""
+    from service.methods.footprint import nbytes
+    from service.methods.pdm.store import StoredCoefficientMap
+
+    path, manifest = saved
+    loaded = PdmModel.load(path)
+    assert pdm_model.data.vertex_coeffs is not None
+    medium = loaded.data.medium
+    assert isinstance(medium, StoredCoefficientMap) and nbytes(medium) == 0
+    trained = pdm_model.data.medium
+    np.testing.assert_array_equal(medium.coeffs, trained.coeffs)
+    np.testing.assert_array_equal(medium.index, trained.index)
+    np.testing.assert_array_equal(medium.mask(), trained.mask())
+    assert nbytes(loaded) < nbytes(pdm_model) - trained.coeffs.nbytes
+    resaved = loaded.save(tmp_path / "again")
+    assert resaved["files"]["medium.exr"] == manifest["files"]["medium.exr"]    # the same map, byte for byte
+    again = PdmModel.load(tmp_path / "again")
+    np.testing.assert_array_equal(again.data.medium.coeffs, trained.coeffs)
