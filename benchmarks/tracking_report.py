@@ -49,7 +49,8 @@ sequential 0.787 mm (start 0.322, end 0.799, 2.48); neutral anchors 1.000 (0.324
 1.5× end/start bound. Its peak (1.94 mm at frame 95) is in the middle of the 90 → 105 gap.
 
 Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
-[--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only]``. Writes ``benchmarks/out/tracking/report.md`` (and stdout).
+[--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only] [--out DIR]``.
+Writes ``benchmarks/out/tracking/report.md`` (or ``DIR/report.md``; and stdout).
 """
 
 from __future__ import annotations
@@ -357,6 +358,7 @@ def _commit() -> str:
 
 
 def main() -> None:
+    global OUT
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("actors", nargs="*", default=[])
     ap.add_argument("--size", type=int, default=256)
@@ -366,7 +368,9 @@ def main() -> None:
     ap.add_argument("--speed-size", type=int, default=0, help="images of the speed rows, e.g. 512 (0: none)")
     ap.add_argument("--speed-frames", type=int, default=30, help="frames of the speed rows")
     ap.add_argument("--speed-only", action="store_true", help="only the speed rows")
+    ap.add_argument("--out", type=Path, default=OUT, help=f"output directory (default {OUT})")
     args = ap.parse_args()
+    OUT = args.out
     OUT.mkdir(parents=True, exist_ok=True)
     lines = ["# Performance-flow tracking report (fyffe, Digital Ira course 2014)", "",
              f"{args.frames} frames of held-out_in_range, {args.size}² images, "
