@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import pose_space_report as R  # noqa: E402
+import harness as pr  # noqa: E402  (the reports' shared code; no report imports another)
 
 
 def main() -> None:
@@ -33,8 +33,7 @@ def main() -> None:
     src_dir, l1_dir, l2_dir, out = (Path(a) for a in sys.argv[1:5])
     src = PoseSpaceModel.load(src_dir)
     a1, a2 = load_actor(l1_dir), load_actor(l2_dir)
-    face = np.flatnonzero(a1.regions[R.FACE])
-    lm1 = face[R.farthest_points(a1.vertices[face], R.LANDMARKS)]
+    lm1 = pr.face_landmarks(a1)
     _, lm2 = cKDTree(a2.vertices).query(a1.vertices[lm1])
     load0, t0 = os.getloadavg()[0], time.perf_counter()
     moved = transfer(src, a2, np.stack([lm1, lm2], 1))
