@@ -522,11 +522,10 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
         "thin shell (no detail)": lambda m: baselines.no_detail(m)[:2] + (None,),
         "nearest training frame": lambda m: baselines.nearest(m)[:2] + (None,),
         "PDM biquadratic": lambda m: pr.pdm_prediction(pdm, m, tex)[:2] + (None,),
-        "PSD": lambda m: pose_space_prediction(ps["PSD"], m, tex),
-        "WPSD": lambda m: pose_space_prediction(ps["WPSD"], m, tex),
     }
-    if "WPSD P=20" in ps:
-        methods["WPSD P=20"] = lambda m: pose_space_prediction(ps["WPSD P=20"], m, tex)
+    for label in ("PSD", "WPSD", "WPSD P=20"):          # the scored pose-space models that were trained
+        if label in ps:
+            methods[label] = lambda m, model=ps[label]: pose_space_prediction(model, m, tex)
     if shape_space:
         log("shape space (markers)")
         ss_dir, ss_rec = pr.shape_space_model(actor_dir, ShapeSpaceParams(), False)
