@@ -59,8 +59,6 @@ def corrections(base: BaseSurface, u_H: np.ndarray, aligned: np.ndarray) -> np.n
     return out
 
 
-def apply_corrections(base: BaseSurface, X: np.ndarray, c: np.ndarray, dtype=np.float64) -> np.ndarray:
-    """``X + Frame(X)ᵀ c``: shells X (…,n,3) plus corrections c (…,n,3) in their frames, the
-    frames and the rotated corrections of ``dtype`` (float32: the per-frame synthesis path,
-    :class:`~service.geometry.tangent_frames.FrameField`'s precision notes), the sum float64."""
-    return X + base.frame_field.to_world(X, c, dtype)
+def apply_corrections(base: BaseSurface, X: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``X + Frame(X)ᵀ c``: shells X (…,n,3) plus corrections c (…,n,3) in their frames."""
+    return X + base.to_world(X, c)

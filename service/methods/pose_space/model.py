@@ -376,7 +376,7 @@ class PoseSpaceModel:
             X = ev.base.deform(u_H)
             D2 = ev.sq_distances(f, ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight"
                                  else None)
-            medium = apply_corrections(ev.base, X, ev.corrections(D2, f), np.float32)
+            medium = apply_corrections(ev.base, X, ev.corrections(D2, f))
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if not want & {"mesh_detailed", "displacement", "normal_map"}:
@@ -385,7 +385,7 @@ class PoseSpaceModel:
             if "displacement" in out:
                 out["displacement"][sl].reshape(len(disp), -1)[:, d.map_index] = disp
             if want & {"mesh_detailed", "normal_map"}:
-                mframes = ev.base.frame_field.frames(medium, np.float32)
+                mframes = ev.base.frames(medium)
             if "mesh_detailed" in want:
                 h = (ev.map_sampler @ disp.T).T
                 out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * mframes[..., 2, :])

@@ -171,9 +171,9 @@ def test_edge_visibility_and_reweighted_distances(wpsd_exact, ps_data):
 
 @pytest.mark.parametrize("fixture", ["wpsd_exact", "psd_lsq"])
 def test_float32_synthesis_is_within_1e_4_mm_of_float64(fixture, ps_data, request):
-    """synthesize sums the RBF, rotates the corrections and builds the detail frames in
-    float32 (the stored precision of the weights); the same evaluation in float64 agrees
-    within 1e-4 mm (measured 1.5e-5: one float32 ulp at the actor's 186 mm)."""
+    """synthesize sums the RBF in float32 (the stored precision of the weights); the same
+    evaluation in float64 agrees within 1e-4 mm (measured 1.5e-5: one float32 ulp of the
+    output at the actor's 186 mm)."""
     from service.methods.pose_space import polynomial
     from service.methods.pose_space.corrections import apply_corrections
 
