@@ -92,6 +92,28 @@ Choices and departures (the paper is silent or differs):
   units, before the clamp), relative to the median feature norm of the training frames δ₀
   (a typical expression's strength): ``confidence = exp(−δ / δ₀)``; 1 inside the training
   box, 1/e a typical expression's distance beyond it;
+* **confidence fade** (``params.confidence_fade``, default on) — the frame's vertex
+  corrections are multiplied by its confidence κ, ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
+  :mod:`service.methods.confidence` with the shell as the safe fallback): the biharmonic
+  kernel and the linear polynomial extrapolate linearly without bound (§5.2), and a
+  combination outside the training box can put a wrong correction where the examples all
+  agree. Measured (level 0, WPSD defaults, 6 frames a row): family b, combinations with
+  noisy markers, frame 3 (κ = 0.63), vertex 18483: truth (0.32, 0.24, −3.93) mm in the
+  frame, WPSD (0.06, 1.36, 1.08) (its polynomial part (1.7, −1.0, 0.0): the two trained
+  expressions' linear responses added), error 5.16 mm against the thin shell's row maximum
+  4.91. No per-vertex quantity flags it: its feature-box excess in its own α metric is 0.04 of
+  its training span and its distance to the nearest basis pose 0.54 of it, as at the
+  neighbour 16815 that WPSD corrects from 4.9 to 0.8 mm, and the prediction lies inside the
+  vertex's training envelope of corrections (1.97 vs 3.72 mm; clipping it to the training
+  box changes nothing). With the fade every row of both families keeps its max error below
+  the thin shell's (b combinations noisy 5.16 → 4.57; family a passed before and still does,
+  its out-of-range max 2.33 → 5.53 against the shell's 7.57) at the cost of
+  the out-of-range rows: mean error b 0.117 → 0.210 mm, a 0.154 → 0.249 (thin shell 0.303 /
+  0.435), and their detail, whose metric includes the corrections' wrinkles (fine rel. err
+  clean b 0.660 → 1.156 (nearest frame 0.482), a 0.521 → 0.751 (nearest 0.906)); in range
+  clean unchanged (κ = 1), combinations b 0.775 → 0.763 / a 0.515 → 0.531. The fine map is not
+  faded (sub-mesh detail, 0.02–0.03 mm RMS, no part of the vertex error; fading it too gave
+  b 1.209, a 0.841);
 * weights are rounded to float32 when training ends (the stored precision), so a saved and
   reloaded model synthesizes bit-identical results.
 """
@@ -371,12 +393,17 @@ class PoseSpaceModel:
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             pose, u_H = ev.deformation(markers[sl])
             f = ev.features(u_H)
-            out["confidence"][sl] = ev.confidence(f)
+            conf = ev.confidence(f)
+            out["confidence"][sl] = conf
+            fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
             X = ev.base.deform(u_H)
             D2 = ev.sq_distances(f, ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight"
                                  else None)
-            medium = apply_corrections(ev.base, X, ev.corrections(D2, f))
+            c = ev.corrections(D2, f)
+            if fade is not None:
+                c *= fade[:, None, None]
+            medium = apply_corrections(ev.base, X, c)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if not want & {"mesh_detailed", "displacement", "normal_map"}:

@@ -193,3 +193,34 @@ def test_float32_synthesis_is_within_1e_4_mm_of_float64(fixture, ps_data, reques
     detailed = medium + h[..., None] * ev.base.frames(medium)[..., 2, :]
     assert np.abs(out["vertices"] - pose.restore(medium)).max() < 1e-4
     assert np.abs(out["vertices_detailed"] - pose.restore(detailed)).max() < 1e-4
+
+
+def test_confidence_fade_takes_a_pose_outside_the_training_toward_the_shell(wpsd_exact, ps_data):
+    """With confidence_fade (default) a frame's vertex corrections are scaled by its
+    confidence κ: mesh = shell + κ·(unfaded mesh − shell), the fine map kept; κ = 1 inside
+    the training box."""
+    import dataclasses
+
+    from service.methods.pose_space import PoseSpaceModel
+
+    model = wpsd_exact
+    d = model.data
+    assert d.params.confidence_fade
+    plain = PoseSpaceModel(dataclasses.replace(d, params=d.params.model_copy(update={"confidence_fade": False})),
+                           model.evaluator)
+    clip = ps_data[1][1]
+    rest = d.rest_markers
+    peak = clip.markers[[clip.frames // 2]]
+    far = rest + 2.5 * (peak - rest)                      # the expression 2.5x beyond its peak
+    markers = np.concatenate([clip.markers[[3]], far])
+    a = model.synthesize(markers, ("mesh", "displacement"))
+    b = plain.synthesize(markers, ("mesh", "displacement"))
+    k = a["confidence"]
+    assert k[0] == 1.0 and 0.05 < k[1] < 0.9
+    np.testing.assert_array_equal(a["vertices"][0], b["vertices"][0])
+    ev = model.evaluator
+    pose, u = ev.deformation(markers)
+    shell = pose.restore(ev.base.deform(u))
+    np.testing.assert_allclose(a["vertices"][1], shell[1] + k[1] * (b["vertices"][1] - shell[1]), atol=1e-4)
+    np.testing.assert_array_equal(a["displacement"], b["displacement"])
+    assert np.abs(b["vertices"][1] - shell[1]).max() > 0.5          # there was a correction to fade
