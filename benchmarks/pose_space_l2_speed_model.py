@@ -1,12 +1,14 @@
-"""A level-2 WPSD model for the speed rows of ``pose_space_report.py`` without training at
-level 2: a level-1 WPSD (``--speed-only --train-missing`` saved it) transferred (bickel2008
-§5.4) to the level-2 mesh of the same identity (seed 1); 40 landmark pairs = farthest-point
-face vertices of level 1 and their nearest level-2 vertices. The model keeps the source's map
-size. Its ``.train.json`` holds the transfer time (not a level-2 training time).
+"""A WPSD model at a higher mesh level for the speed rows of ``pose_space_report.py`` without
+training at that level: a WPSD of a lower level (``--speed-only --train-missing`` saved it)
+transferred (bickel2008 §5.4) to the higher-level mesh of the same identity (seed 1); 40
+landmark pairs = farthest-point face vertices of the source level and their nearest target
+vertices (``harness.face_landmarks``). The model keeps the source's map size. Its
+``.train.json`` holds the transfer time (not a training time).
 
-Usage: ``python benchmarks/pose_space_l2_speed_model.py SOURCE_MODEL_DIR LEVEL1_ACTOR
-LEVEL2_ACTOR OUT_MODEL_DIR``; then ``pose_space_report.py LEVEL2_ACTOR --speed-only`` with
-OUT_MODEL_DIR under its ``models/<actor>/``.
+Usage: ``python benchmarks/pose_space_l2_speed_model.py SOURCE_MODEL_DIR SOURCE_ACTOR
+TARGET_ACTOR OUT_MODEL_DIR`` (e.g. a level-1 or level-0 model, its actor, a level-2 actor);
+then ``pose_space_report.py TARGET_ACTOR --speed-only`` with OUT_MODEL_DIR under its
+``models/<actor>/``.
 """
 
 import json
