@@ -45,6 +45,7 @@ DATABASE = "database"                  # the shape-space database performance
 SS_OUTPUTS = ("mesh", "displacement")  # displacement: the blended fine maps (database with maps)
 QUICK_FRAMES = 6                       # held-out map frames per performance in quick runs
 FIGURE_SEPARATION = 20                 # strong-expression figure frames at least this far apart
+LANDMARKS = 40                         # detail-transfer landmark pairs (bickel2008 §5.4: ~40)
 
 
 def actor_dir(family: str = "a", level: int = LEVEL) -> Path:
@@ -80,6 +81,24 @@ def training_clips(actor_dir: Path, actor):
     from service.samples.dataset import load_clip, performance_names
 
     return [load_clip(actor_dir, name, actor) for name in performance_names(actor_dir, "train_")]
+
+
+def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    """Indices (k,) of k points of V (n,3) by farthest-point sampling from a seeded random start."""
+    rng = np.random.default_rng(seed)
+    idx = [int(rng.integers(len(V)))]
+    d = np.linalg.norm(V - V[idx[0]], axis=1)
+    for _ in range(k - 1):
+        idx.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(V - V[idx[-1]], axis=1))
+    return np.array(idx)
+
+
+def face_landmarks(actor, k: int = LANDMARKS) -> np.ndarray:
+    """Vertex indices (k,) of detail-transfer landmarks (bickel2008 §5.4): farthest-point
+    samples of the actor's face-region vertices (an :class:`~service.methods.inputs.ActorData`)."""
+    face = np.flatnonzero(actor.regions[FACE])
+    return face[farthest_points(actor.vertices[face], k)]
 
 
 @dataclass

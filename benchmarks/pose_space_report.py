@@ -72,10 +72,8 @@ FIG4_MAX_P = 20
 NOISE_MM = 0.3
 OCCLUDED_FRACTION = 0.1
 SEED = 7
-LANDMARKS = 40
 SPEED_FRAMES = 20
 SPEED_WARMUP = 2
-FACE = "face"
 #: held-out ranges and marker conditions: the sample actors' performances and their stored
 #: marker variants (as benchmarks/generalization_report.py: σ 0.3 mm noise, NaN bursts)
 RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations",
@@ -87,12 +85,6 @@ SS_MARKERS = "shape space (markers)"
 
 # --------------------------------------------------------------------------------------
 # data
-
-def training_clips(actor_dir: Path, actor):
-    from service.samples.dataset import load_clip, performance_names
-
-    return [load_clip(actor_dir, name, actor) for name in performance_names(actor_dir, "train_")]
-
 
 def heldout_names(actor_dir: Path) -> list[str]:
     """The actor's held-out performances of :data:`RANGES` (clean markers)."""
@@ -152,7 +144,7 @@ def fig4_study(actor, clips, max_p: int) -> dict:
     aligned = pose.remove(V)
     C = corrections(base, u_H, aligned)                                       # (T,n,3)
     U = (aligned - actor.vertices).astype(np.float32)                         # blend-shape targets
-    shell_sq = np.einsum("tvc,tvc->v", C[:, actor.regions[FACE]], C[:, actor.regions[FACE]], dtype=np.float64)
+    shell_sq = np.einsum("tvc,tvc->v", C[:, actor.regions[pr.FACE]], C[:, actor.regions[pr.FACE]], dtype=np.float64)
     graph = automatic_graph(actor.marker_uv(), rest)
     nodes = node_operator(actor.faces, actor.marker_triangle, actor.marker_barycentric, n)
     node_rest = nodes @ actor.vertices
@@ -175,7 +167,7 @@ def fig4_study(actor, clips, max_p: int) -> dict:
             K += Cv @ Cv.T
         pp = PsdParams(basis_size=max_p, smoothing=0.0, fit=fit)
         seq[("psd", fit)], _ = select_basis(F, rbf.gram_factor(K)[None], None, pp, 0.0, first)
-    face = np.flatnonzero(actor.regions[FACE])
+    face = np.flatnonzero(actor.regions[pr.FACE])
     count = T * len(face)
     sq = {k: np.zeros(max_p) for k in ("global blend shapes", "local blend shapes", "local blend shapes (LSq)",
                                        "PSD", "PSD (LSq)", "WPSD", "WPSD (LSq)", WPSD_NO_POLY)}
@@ -260,7 +252,7 @@ def evaluate(gt, methods: dict, tex, actor) -> dict:
     out = {"signal_rms_mm": signal, "methods": {}}
     for name, method in methods.items():
         V, D, conf = method(gt.markers)
-        acc = pr.Scores(np.asarray(actor.regions[FACE]), tex.face)
+        acc = pr.Scores(np.asarray(actor.regions[pr.FACE]), tex.face)
         for f in range(len(gt.frames)):
             err = np.linalg.norm(V[f] - gt.vertices[f], axis=-1)
             hp = tex.highpass(tex.heights(V[f], gt.medium[f], normals[f], None if D is None else D[f]))
@@ -399,16 +391,6 @@ def identity_overlap(source_dir: Path, target_dir: Path, tex) -> dict:
     return out
 
 
-def farthest_points(V: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    idx = [int(rng.integers(len(V)))]
-    d = np.linalg.norm(V - V[idx[0]], axis=1)
-    for _ in range(k - 1):
-        idx.append(int(np.argmax(d)))
-        d = np.minimum(d, np.linalg.norm(V - V[idx[-1]], axis=1))
-    return np.array(idx)
-
-
 def speed_markers(actor_dir: Path) -> np.ndarray:
     """The markers (SPEED_WARMUP + SPEED_FRAMES, M, 3) the speed section evaluates: the first
     held-out performance's first frames, or, for an actor built with training clips only (a
@@ -448,7 +430,7 @@ def run_speed(actor_dir: Path, train_missing: bool = False, labels: list[str] | 
         if train_missing and not (path / "manifest.json").is_file():
             if clips is None:
                 actor = load_actor(actor_dir)
-                clips = training_clips(actor_dir, actor)
+                clips = pr.training_clips(actor_dir, actor)
             cls = PsdParams if label == "PSD" else WpsdParams
             print(f"[{actor_dir.name}] training {label} for the speed section", file=sys.stderr, flush=True)
             cached_model(path, False, lambda: train(actor, clips, cls(**SPEED_MODELS[label])), PoseSpaceModel.load)
@@ -492,7 +474,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     models = OUT / "models" / name
     models.mkdir(parents=True, exist_ok=True)
     actor = load_actor(actor_dir)
-    clips = training_clips(actor_dir, actor)
+    clips = pr.training_clips(actor_dir, actor)
     res = {"actor": str(actor_dir), "vertices": actor.n_vertices, "markers": actor.n_markers,
            "train_frames": sum(c.frames for c in clips), "train_clips": len(clips)}
     log = lambda msg: print(f"[{name}] {msg}", file=sys.stderr, flush=True)
@@ -540,11 +522,10 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
         "thin shell (no detail)": lambda m: baselines.no_detail(m)[:2] + (None,),
         "nearest training frame": lambda m: baselines.nearest(m)[:2] + (None,),
         "PDM biquadratic": lambda m: pr.pdm_prediction(pdm, m, tex)[:2] + (None,),
-        "PSD": lambda m: pose_space_prediction(ps["PSD"], m, tex),
-        "WPSD": lambda m: pose_space_prediction(ps["WPSD"], m, tex),
     }
-    if "WPSD P=20" in ps:
-        methods["WPSD P=20"] = lambda m: pose_space_prediction(ps["WPSD P=20"], m, tex)
+    for label in ("PSD", "WPSD", "WPSD P=20"):          # the scored pose-space models that were trained
+        if label in ps:
+            methods[label] = lambda m, model=ps[label]: pose_space_prediction(model, m, tex)
     if shape_space:
         log("shape space (markers)")
         ss_dir, ss_rec = pr.shape_space_model(actor_dir, ShapeSpaceParams(), False)
@@ -574,12 +555,11 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     if target_dir is not None:
         log("transfer")
         target = load_actor(target_dir)
-        face = np.flatnonzero(actor.regions[FACE])
-        lm = face[farthest_points(actor.vertices[face], LANDMARKS)]
+        lm = pr.face_landmarks(actor)
         t0 = time.perf_counter()
         moved = transfer(ps["WPSD"], target, np.stack([lm, lm], axis=1))
         transfer_s = time.perf_counter() - t0
-        tclips = training_clips(target_dir, target)
+        tclips = pr.training_clips(target_dir, target)
         own, own_s = cached_model(models / f"target_{target_dir.name}_WPSD", reuse,
                                   lambda: train(target, tclips, WpsdParams()), PoseSpaceModel.load)
         del tclips
@@ -587,7 +567,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
         tmethods = {"thin shell (no detail)": shell_method(own),
                     "WPSD transferred from " + name: lambda m: pose_space_prediction(moved, m, ttex),
                     "WPSD trained on the target": lambda m: pose_space_prediction(own, m, ttex)}
-        res["transfer"] = {"target": str(target_dir), "landmarks": LANDMARKS, "seconds": transfer_s,
+        res["transfer"] = {"target": str(target_dir), "landmarks": pr.LANDMARKS, "seconds": transfer_s,
                            "target_train_s": own_s, "correspondence": moved.metrics["transfer"], "scores": {}}
         res["transfer"]["identity_overlap"] = identity_overlap(actor_dir, target_dir, ttex)
         for perf in heldout_names(target_dir):
@@ -664,7 +644,7 @@ def report(results: list[dict], meta: dict) -> str:
               "correction signal RMS mm (face) | map fit / signal RMS mm | α per vertex |", "|---|---|---|---|---|---|---|---|"]
         for k, f in r["fit"].items():
             L.append(f"| {k} | {r['train_s'][k]:.1f} | {f['basis_size']} | {f['smoothing']:g} | "
-                     f"{f['correction_fit_rms_mm'][FACE]:.4f} | {f['correction_signal_rms_mm'][FACE]:.4f} | "
+                     f"{f['correction_fit_rms_mm'][pr.FACE]:.4f} | {f['correction_signal_rms_mm'][pr.FACE]:.4f} | "
                      f"{_f(f['map_fit_rms_mm'], 4)} / {_f(f['map_signal_rms_mm'], 4)} | {_f(f['alpha_nonzero_per_vertex'], 1)} |")
         L.append(f"| PDM biquadratic | {r['train_s']['PDM biquadratic']:.1f} | | | | | | |")
         L += ["", "Smoothing validation (held-out every 4th training frame, their markers with 0.3 mm noise; "

@@ -158,3 +158,16 @@ def test_the_checks_on_a_hand_made_graph():
                                        "service.geometry.a -> service.io.b",
                                        "service.methods.c -> service.app.d"]
     assert import_cycles(graph) == [["service.app.d", "service.app.h"]]
+
+
+#: benchmark scripts still importing another script than the harness (to be moved into it)
+BENCHMARK_IMPORTS_PENDING = {"cold_start": {"realtime"}, "realtime_ab": {"realtime"}}
+
+
+def test_benchmarks_share_code_only_through_the_harness():
+    """A benchmark script imports another one only as ``harness`` (benchmarks/harness.py:
+    what the reports share), never another report (except the pending ones listed)."""
+    scripts = {p.stem: p for p in (ROOT / "benchmarks").glob("*.py")}
+    assert "harness" in scripts and "pose_space_l2_speed_model" in scripts
+    found = {name: _imports(path, name, set(scripts)) - {name, "harness"} for name, path in scripts.items()}
+    assert {k: v for k, v in found.items() if v} == BENCHMARK_IMPORTS_PENDING

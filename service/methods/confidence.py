@@ -15,7 +15,7 @@ Two rules of the excess e ≥ 0 (0 inside the training data) are declared here:
 :func:`falloff` (compact: exactly 0 from ``e ≥ width`` on, used to fade; the PDM's, with e
 the relative distance outside the hull of the point's training parameters,
 :mod:`service.methods.pdm.validity`) and :func:`exponential` (``exp(−e/scale)``, pose space's
-per-frame confidence, which reports but does not fade).
+per-frame confidence, which fades its vertex corrections: ``pose_space.model``, confidence fade).
 """
 
 from __future__ import annotations

@@ -92,6 +92,28 @@ Choices and departures (the paper is silent or differs):
   units, before the clamp), relative to the median feature norm of the training frames δ₀
   (a typical expression's strength): ``confidence = exp(−δ / δ₀)``; 1 inside the training
   box, 1/e a typical expression's distance beyond it;
+* **confidence fade** (``params.confidence_fade``, default on) — the frame's vertex
+  corrections are multiplied by its confidence κ, ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
+  :mod:`service.methods.confidence` with the shell as the safe fallback): the biharmonic
+  kernel and the linear polynomial extrapolate linearly without bound (§5.2), and a
+  combination outside the training box can put a wrong correction where the examples all
+  agree. Measured (level 0, WPSD defaults, 6 frames a row): family b, combinations with
+  noisy markers, frame 3 (κ = 0.63), vertex 18483: truth (0.32, 0.24, −3.93) mm in the
+  frame, WPSD (0.06, 1.36, 1.08) (its polynomial part (1.7, −1.0, 0.0): the two trained
+  expressions' linear responses added), error 5.16 mm against the thin shell's row maximum
+  4.91. No per-vertex quantity flags it: its feature-box excess in its own α metric is 0.04 of
+  its training span and its distance to the nearest basis pose 0.54 of it, as at the
+  neighbour 16815 that WPSD corrects from 4.9 to 0.8 mm, and the prediction lies inside the
+  vertex's training envelope of corrections (1.97 vs 3.72 mm; clipping it to the training
+  box changes nothing). With the fade every row of both families keeps its max error below
+  the thin shell's (b combinations noisy 5.16 → 4.57; family a passed before and still does,
+  its out-of-range max 2.33 → 5.53 against the shell's 7.57) at the cost of
+  the out-of-range rows: mean error b 0.117 → 0.210 mm, a 0.154 → 0.249 (thin shell 0.303 /
+  0.435), and their detail, whose metric includes the corrections' wrinkles (fine rel. err
+  clean b 0.660 → 1.156 (nearest frame 0.482), a 0.521 → 0.751 (nearest 0.906)); in range
+  clean unchanged (κ = 1), combinations b 0.775 → 0.763 / a 0.515 → 0.531. The fine map is not
+  faded (sub-mesh detail, 0.02–0.03 mm RMS, no part of the vertex error; fading it too gave
+  b 1.209, a 0.841);
 * weights are rounded to float32 when training ends (the stored precision), so a saved and
   reloaded model synthesizes bit-identical results.
 """
@@ -153,8 +175,9 @@ class PoseSpaceEvaluator:
 
     Attributes: ``base`` the thin shell (basis B, handle energy, tangent-frame field);
     ``node_rest`` (N,3) and ``node_basis`` (N,M) so that node positions are
-    ``node_rest + node_basis @ u_H``; ``alpha`` (n,E) float64 CSR (WPSD); the map band's
-    vertex → texel interpolation (Pt,n) and texel → vertex sampler (n,Pt).
+    ``node_rest + node_basis @ u_H``; ``alpha`` (n,E) float64 CSR (WPSD); ``weights`` the RBF
+    weights in the layout the per-frame sum reads (WPSD (n,3,P) float32, P innermost; PSD
+    (P,3n)); the map band's vertex → texel interpolation (Pt,n) and texel → vertex sampler (n,Pt).
     """
 
     def __init__(self, data: PoseSpaceData, base: BaseSurface | None = None):
@@ -170,9 +193,10 @@ class PoseSpaceEvaluator:
         influence = np.abs(self.node_basis)
         self.node_influence = influence / np.maximum(influence.sum(axis=1, keepdims=True), 1e-300)
         self.alpha = None if data.alpha is None else data.alpha.astype(np.float64).tocsr()
-        self.weights = np.ascontiguousarray(data.weights)
         if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
             self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
+        else:                         # WPSD: per vertex (3,P), the sum over P contiguous (corrections)
+            self.weights = np.ascontiguousarray(data.weights.transpose(0, 2, 1))
         self.poly_linear = None if data.poly_linear is None else data.poly_linear.tocsr()
         self.map_poly_linear = None if data.map_poly_linear is None else data.map_poly_linear.tocsr()
         self.map_interp = self.map_sampler = None
@@ -263,14 +287,17 @@ class PoseSpaceEvaluator:
         return np.where(ok[:, :, None], part, D2)
 
     def corrections(self, D2: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """Corrections c (F,n,3) in the tangent frames, from :meth:`sq_distances` of features
-        f (F,E) (eq. 2, 5, plus the polynomial term of :mod:`.polynomial` if stored)."""
-        phi = rbf.kernel(np.sqrt(D2))
+        """Corrections c (F,n,3) float32 in the tangent frames, from :meth:`sq_distances` of
+        features f (F,E) (eq. 2, 5, plus the polynomial term of :mod:`.polynomial` if stored).
+
+        The sums run in float32, the stored precision of the weights (kernel values rounded
+        to float32; within 1e-5 mm of the float64 sums on the sample actor, tested)."""
+        phi = rbf.kernel(np.sqrt(D2)).astype(np.float32)
         if self.alpha is None:      # per frame W.T @ φ: a GEMV (a (1,P)@(P,3n) GEMM is ~100x
             Wt = self.weights.T       # slower in OpenBLAS when the cores are busy)
-            c = np.stack([Wt @ p for p in phi[0].astype(np.float32)]).reshape(len(phi[0]), -1, 3)
-        else:
-            c = np.einsum("nfp,npc->fnc", phi, self.weights, optimize=True)
+            c = np.stack([Wt @ p for p in phi[0]]).reshape(len(phi[0]), -1, 3)
+        else:                       # one frame at a time: per vertex (3,P) @ (P,), P contiguous
+            c = np.stack([np.einsum("np,ncp->nc", phi[:, k], self.weights) for k in range(phi.shape[1])])
         if self.poly_linear is not None:
             c = c + polynomial.evaluate(self.data.poly_const, self.poly_linear, f)
         return c
@@ -366,12 +393,17 @@ class PoseSpaceModel:
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             pose, u_H = ev.deformation(markers[sl])
             f = ev.features(u_H)
-            out["confidence"][sl] = ev.confidence(f)
+            conf = ev.confidence(f)
+            out["confidence"][sl] = conf
+            fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
             X = ev.base.deform(u_H)
             D2 = ev.sq_distances(f, ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight"
                                  else None)
-            medium = apply_corrections(ev.base, X, ev.corrections(D2, f))
+            c = ev.corrections(D2, f)
+            if fade is not None:
+                c *= fade[:, None, None]
+            medium = apply_corrections(ev.base, X, c)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if not want & {"mesh_detailed", "displacement", "normal_map"}:

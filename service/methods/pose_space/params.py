@@ -82,6 +82,13 @@ class PoseSpaceParams(MarkerParams):
                     "range widened by this fraction of the range on both sides, so poses "
                     "beyond the training data do not extrapolate the linear kernel without "
                     "bound; null disables the limit.")
+    confidence_fade: bool = Field(
+        default=True,
+        description="Synthesis fades every frame's pose-space vertex corrections toward "
+                    "the thin shell by the frame's confidence exp(−δ/δ₀) (δ the features' "
+                    "distance outside the training range, δ₀ the training frames' median "
+                    "feature norm), so a pose far outside the training detail tends to the "
+                    "shell (the fine map is kept); false only reports the confidence.")
     noise_copies: int = Field(
         default=0, ge=0, le=8,
         description="Least squares: the fit also sees this many copies of every training "
