@@ -229,6 +229,27 @@ def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
+def sparse_members(name: str, m) -> dict[str, np.ndarray]:
+    """A CSR matrix ``m`` as ``.npz`` members ``<name>_data``, ``_indices``, ``_indptr`` and
+    ``_shape`` (2,) int64: its own arrays, so :func:`sparse_matrix` of a mapped archive
+    multiplies bit for bit as ``m``."""
+    m = m.tocsr()
+    return {f"{name}_data": m.data, f"{name}_indices": m.indices, f"{name}_indptr": m.indptr,
+            f"{name}_shape": np.array(m.shape, np.int64)}
+
+
+def sparse_matrix(arrays: Mapping[str, np.ndarray], name: str):
+    """The CSR matrix :func:`sparse_members` stored as ``name`` in ``arrays`` (over the
+    arrays as given, e.g. mapped: no copy), None when ``arrays`` lacks it."""
+    import scipy.sparse as sp
+
+    if f"{name}_data" not in arrays:
+        return None
+    shape = tuple(int(x) for x in arrays[f"{name}_shape"])
+    return sp.csr_matrix((arrays[f"{name}_data"], arrays[f"{name}_indices"], arrays[f"{name}_indptr"]),
+                         shape=shape, copy=False)
+
+
 def npz_bytes(**arrays: np.ndarray) -> bytes:
     """An uncompressed in-memory ``.npz`` of ``arrays``."""
     buffer = io.BytesIO()

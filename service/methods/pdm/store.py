@@ -20,7 +20,10 @@ Layout (DESIGN.md "Data and storage"):
   texels ``<band>_index`` with their coefficients ``<band>_coeffs`` (P,C,K) float32, the
   EXR's values): listed under ``derived`` in the manifest, checksummed like the rest, and
   optional (a model directory without it, or without the coefficients, loads, more
-  slowly: the EXRs are decoded); ``size_bytes`` counts the model without it;
+  slowly: the EXRs are decoded); ``op_<name>`` the evaluator's operators
+  (:meth:`.model.PdmEvaluator.operators`: rasterization, parameter fields, sparse
+  sampling matrices; issue 23, a level-1 load 17 → ~? s; a model stored without them
+  derives them at load, as before); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the
@@ -135,6 +138,7 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
     for name, band in (("medium", model.medium), ("fine", model.fine), ("albedo", model.albedo)):
         if band is not None:        # the maps' covered texels as stored .npy members (mapped)
             cache[f"{name}_index"], cache[f"{name}_coeffs"] = band.index, band.coeffs
+    cache.update({f"op_{k}": v for k, v in derived.operators.items()})
     derived_files = {CACHE: write_npz(path / CACHE, cache)}
     manifest = {
         "kind": KIND, "format_version": FORMAT_VERSION, "params": model.params.model_dump(mode="json"),
@@ -219,5 +223,6 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
                     albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity,
                     vertex_coeffs=a.get("vertex_coeffs"))
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
-                         limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")})
+                         limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")},
+                         operators={k[3:]: cache[k] for k in cache if k.startswith("op_")})
     return model, derived
