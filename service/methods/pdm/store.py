@@ -22,7 +22,7 @@ Layout (DESIGN.md "Data and storage"):
   optional (a model directory without it, or without the coefficients, loads, more
   slowly: the EXRs are decoded); ``op_<name>`` the evaluator's operators
   (:meth:`.model.PdmEvaluator.operators`: rasterization, parameter fields, sparse
-  sampling matrices; issue 23, a level-1 load 17 → ~? s; a model stored without them
+  sampling matrices; issue 23: a level-1 load 4.8 → 0.45 s of CPU; a model stored without them
   derives them at load, as before); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
