@@ -68,6 +68,11 @@ COMPONENTS = {"medium": ("x", "y", "z"), "fine": ("n",), "albedo": ("r", "g", "b
 CACHE = "cache.npz"
 #: the validity regions of the training data (optional: older model directories lack it)
 VALIDITY = "validity.npz"
+#: the evaluator's operators (``op_*`` members of the cache) read only while it is built —
+#: the normal mapper's rasterization, the element orders, the fields' ``element`` — are read
+#: into memory, not mapped: their mapped pages would stay resident with the mapping, uncounted
+#: by the model cache (level 1: +29 MB resident, estimate/measured 1.03 -> 0.93)
+READ_OPERATORS = ("op_raster_", "_order", "_field_element")
 
 
 @dataclass(frozen=True)
@@ -181,7 +186,8 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     a = npz_mapped(data["model.npz"])
     F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
     K = polynomial.ORDERS[params.order]
-    cache = npz_mapped(data[CACHE]) if CACHE in data else {}
+    cache = npz_mapped(data[CACHE], read=lambda k: k.startswith("op_") and any(
+        k.startswith(p) or k.endswith(p) for p in READ_OPERATORS)) if CACHE in data else {}
     bands = {}
     for name, res in zip(("medium", "fine", "albedo"), a["resolutions"]):
         if res == 0:

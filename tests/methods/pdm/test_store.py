@@ -198,6 +198,7 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     ev = mapped.evaluator
     assert file_mapped(ev.fine.field.mono) and file_mapped(ev.fine_sampler.data) and file_mapped(ev.seam_average.indices)
     assert file_mapped(ev.validity.texel_rho["fine"].data) and not file_mapped(ev.fine.field.element)
+    assert not file_mapped(ev.orders["fine"])          # read at load only: into memory, not mapped
     for model in (built, rebuilt):
         assert not file_mapped(model.evaluator.fine.field.mono)
         np.testing.assert_array_equal(model.evaluator.orders["fine"], ev.orders["fine"])
