@@ -22,7 +22,7 @@ import zipfile
 import zlib
 
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator, Mapping
+from typing import Any, BinaryIO, Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -184,7 +184,7 @@ def npz_arrays(data: bytes) -> dict[str, np.ndarray]:
         raise ValueError(f"malformed .npy header: {type(error).__name__}") from None
 
 
-def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
+def npz_mapped(path: str | Path, read: Callable[[str], bool] | None = None) -> dict[str, np.ndarray]:
     """Every array of a trusted ``.npz`` file (a stored model's, checksummed by the caller),
     memory-mapped where the archive allows it.
 
@@ -195,6 +195,9 @@ def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
     empty ones are read into memory as :func:`npz_arrays` does, and a member whose data is
     not :data:`MAP_ALIGNMENT`-aligned is copied out of the mapping. The arrays are plain
     read-only ndarrays over a memoryview of the mapping (it stays open while they live).
+    Members named where ``read(name)`` is true are read into memory instead: what the
+    caller reads once and drops (a mapped page, once read, stays resident while the
+    mapping lives, so it would count as the process's memory without being held).
 
     Raises ``ValueError`` for a malformed member header and the :data:`ZIP_ERRORS` of a
     corrupt archive.
@@ -205,7 +208,7 @@ def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
         mapping = None
         for info in archive.infolist():
             name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-            if info.compress_type == zipfile.ZIP_STORED and info.file_size:
+            if (read is None or not read(name)) and info.compress_type == zipfile.ZIP_STORED and info.file_size:
                 f.seek(info.header_offset)
                 local = f.read(30)
                 if local[:4] != b"PK\x03\x04":
@@ -227,6 +230,27 @@ def npz_mapped(path: str | Path) -> dict[str, np.ndarray]:
             with archive.open(info) as member:
                 out[name] = np.lib.format.read_array(member, allow_pickle=False)
     return out
+
+
+def sparse_members(name: str, m) -> dict[str, np.ndarray]:
+    """A CSR matrix ``m`` as ``.npz`` members ``<name>_data``, ``_indices``, ``_indptr`` and
+    ``_shape`` (2,) int64: its own arrays, so :func:`sparse_matrix` of a mapped archive
+    multiplies bit for bit as ``m``."""
+    m = m.tocsr()
+    return {f"{name}_data": m.data, f"{name}_indices": m.indices, f"{name}_indptr": m.indptr,
+            f"{name}_shape": np.array(m.shape, np.int64)}
+
+
+def sparse_matrix(arrays: Mapping[str, np.ndarray], name: str):
+    """The CSR matrix :func:`sparse_members` stored as ``name`` in ``arrays`` (over the
+    arrays as given, e.g. mapped: no copy), None when ``arrays`` lacks it."""
+    import scipy.sparse as sp
+
+    if f"{name}_data" not in arrays:
+        return None
+    shape = tuple(int(x) for x in arrays[f"{name}_shape"])
+    return sp.csr_matrix((arrays[f"{name}_data"], arrays[f"{name}_indices"], arrays[f"{name}_indptr"]),
+                         shape=shape, copy=False)
 
 
 def npz_bytes(**arrays: np.ndarray) -> bytes:

@@ -113,3 +113,25 @@ def test_npz_mapped_maps_stored_members_and_reads_the_rest(tmp_path):
         assert all(not out[k].flags.writeable and out[k].ctypes.data % MAP_ALIGNMENT == 0 for k in views)
         assert all(v.flags.aligned for v in out.values())
         assert out["f"].flags.f_contiguous
+
+
+def test_npz_mapped_reads_the_members_asked_for_and_csr_members_round_trip(tmp_path):
+    """``read``: the named members are read into memory (the rest still mapped), equal;
+    ``sparse_members``/``sparse_matrix``: a CSR matrix stored and mapped is the same arrays."""
+    import scipy.sparse as sp
+
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_mapped, sparse_matrix, sparse_members
+    from service.methods.footprint import file_mapped
+
+    m = sp.random(40, 30, density=0.2, format="csr", random_state=np.random.default_rng(3))
+    write_npz(tmp_path / "a.npz", {"x": np.arange(100.0), "y": np.arange(50, dtype=np.int32), **sparse_members("m", m)})
+    out = npz_mapped(tmp_path / "a.npz", read=lambda k: k == "y")
+    assert file_mapped(out["x"]) and not file_mapped(out["y"]) and out["y"].flags.writeable
+    np.testing.assert_array_equal(out["y"], np.arange(50))
+    back = sparse_matrix(out, "m")
+    assert back.shape == (40, 30) and file_mapped(back.data) and sparse_matrix(out, "other") is None
+    for a in ("data", "indices", "indptr"):
+        np.testing.assert_array_equal(getattr(back, a), getattr(m, a))
+    v = np.random.default_rng(4).normal(size=30)
+    assert np.array_equal(back @ v, m @ v)

@@ -87,11 +87,16 @@ class PdmDerived:
                                      (``vertex``, ``fine``, ``albedo``), in the evaluator's
                                      point order (``PdmEvaluator.orders``: the fine and albedo
                                      texels grouped by coarse element, a function of the data)
+    operators : dict name → array    the evaluator's operators (issue 23, cold start:
+                                     rasterizations, barycentric parameter fields, sparse
+                                     sampling matrices; ``PdmEvaluator.operators``), empty
+                                     for a model stored before they were kept
     """
 
     basis: np.ndarray | None = None
     energy: np.ndarray | None = None
     limits: dict = field(default_factory=dict)
+    operators: dict = field(default_factory=dict)
 
 
 __all__ = ["PdmData", "PdmDerived"]

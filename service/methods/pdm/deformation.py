@@ -415,6 +415,26 @@ class ParameterField:
         return cls(element, markers, mono, axes.q, axes.r, axes.scale, None,
                    (order, counts, np.ascontiguousarray(mono[:, order])))
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """What :meth:`build` derives from W (the axes aside), as named arrays for a store:
+        ``element``, ``markers``, ``mono`` and ``runs`` or the three parts of ``sorting``
+        (:meth:`from_arrays` puts them back)."""
+        out = {"element": self.element, "markers": self.markers, "mono": self.mono}
+        if self.runs is not None:
+            out["runs"] = self.runs
+        if self.sorting is not None:
+            out.update(zip(("sorting_order", "sorting_counts", "sorting_mono"), self.sorting))
+        return out
+
+    @classmethod
+    def from_arrays(cls, axes: DeformationAxes, a: dict) -> "ParameterField":
+        """The field of :meth:`arrays` ``a`` (e.g. memory-mapped) with the marker axes ``axes``:
+        the same arrays, so it evaluates bit for bit as the field that was stored. ``element``
+        (not read per frame by a field with ``runs`` or ``sorting``) is copied into memory."""
+        sorting = (a["sorting_order"], a["sorting_counts"], a["sorting_mono"]) if "sorting_order" in a else None
+        return cls(np.array(a["element"]), a["markers"], a["mono"], axes.q, axes.r, axes.scale,
+                   a.get("runs"), sorting)
+
     @property
     def n_points(self) -> int:
         return len(self.element)

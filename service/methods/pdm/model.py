@@ -62,9 +62,10 @@ from service.geometry.laplacian import triangle_areas
 from service.geometry.normal_map import NormalMapper
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
 from service.geometry.uv_raster import (
-    interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
+    UVRaster, interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
     texel_uv, uv_sampling_matrix,
 )
+from service.io.npz import sparse_matrix, sparse_members
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.pdm import polynomial, store
 from service.methods.pdm.base_surface import (
@@ -92,6 +93,9 @@ FRAME_CHUNK = 8
 NEUTRAL_TOL = 0.02
 #: threads for per-frame map filtering (NumPy and SciPy release the GIL)
 WORKERS = 2
+#: version of the evaluator's stored operators (:meth:`PdmEvaluator.operators`): a stored
+#: model whose operators carry another (derived by other code) builds them anew
+OPERATORS_VERSION = 1
 
 
 def element_field(mesh: MarkerMesh, axes: DeformationAxes, index: np.ndarray,
@@ -153,18 +157,20 @@ class BandFilter:
 
 
 def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: DeformationAxes,
-                coeffs: np.ndarray | None = None) -> TexelBand:
+                coeffs: np.ndarray | None = None, field: ParameterField | None = None) -> TexelBand:
     """The medium PDM at the mesh's K UV points (uv (K,2)): the coefficients (K,3,K') fitted
     there (``coeffs``, :attr:`.data.PdmData.vertex_coeffs`) or, for a model stored without
     them, sampled from the map (bilinear, covered texels only), and d1, d2 at the same
     points. A seam vertex has one UV per chart, and d1, d2 jump across seams (they live in
     texture space), so each chart's coefficients are evaluated with that chart's parameters,
-    and :func:`medium_offsets` averages the results."""
+    and :func:`medium_offsets` averages the results. ``field``: the parameter field at the UV
+    points where already derived (a stored model's operators)."""
     if coeffs is None:
         S = uv_sampling_matrix(uv, medium.mask())[:, medium.index]
         coeffs = (S @ medium.coeffs.reshape(len(medium.index), -1)).reshape(len(uv), 3, -1)
-    W = barycentric_operator(mesh, uv)
-    return TexelBand.build(0, np.arange(len(uv)), coeffs.astype(np.float32), ParameterField.build(axes, W))
+    if field is None:
+        field = ParameterField.build(axes, barycentric_operator(mesh, uv))
+    return TexelBand.build(0, np.arange(len(uv)), coeffs.astype(np.float32), field)
 
 
 def medium_offsets(vertex: TexelBand, seam_average: sp.csr_matrix, neutral_offset: np.ndarray,
@@ -220,32 +226,63 @@ class PdmEvaluator:
               derived: PdmDerived = PdmDerived()) -> "PdmEvaluator":
         """Precompute everything of the class docstring from ``d``; ``base`` (the training's)
         and the arrays of ``derived`` (a stored model's cache) are used instead of their
-        computation where given (the rest is derived from ``d.S_train``)."""
+        computation where given (the rest is derived from ``d.S_train``).
+
+        ``derived.operators`` (:meth:`operators` of the evaluator that was saved, issue 23)
+        replaces what the layout alone determines: the rasterization at the fine resolution,
+        the barycentric parameter fields with the fine and albedo texels' element order, and
+        the sparse seam, sampling and validity operators (at level 1 most of a build: under
+        cProfile, of 17.4 s wall, :func:`barycentric_operator` of the 700k texels took 11.9 s
+        and ``rasterize_uv`` 2.4 s; the whole load measured 4.8 → 0.45 s of CPU, wall
+        7.1 → 0.67 s at load average 4.4). They
+        are the saved evaluator's own arrays (memory-mapped as the store reads them), so
+        synthesis is bit for bit the same; without them (a model stored before they were
+        kept, or of another :data:`OPERATORS_VERSION`) they are derived as before."""
+        ops = derived.operators
+        if not ops or int(ops.get("version", -1)) != OPERATORS_VERSION:
+            ops = {}
         if base is None:
             base = BaseSurface.from_smooth(d.smooth, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
                                            basis=derived.basis, energy=derived.energy)
             base = base.with_marker_noise(d.params.marker_noise_mm, d.prior_scale_mm)
         n, K = d.n_vertices, len(d.uv)
-        bands = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes, d.vertex_coeffs)}
+        fields = {k: ParameterField.from_arrays(d.axes, a) for k in ("vertex", "fine", "albedo")
+                  if (a := _members(ops, f"{k}_field"))}
+        bands = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes, d.vertex_coeffs, fields.get("vertex"))}
         orders = {"vertex": np.arange(K)}
         for name in ("fine", "albedo"):
             m = getattr(d, name)
             if m is not None:
-                order, fld = element_field(d.mesh, d.axes, m.index, m.resolution)
+                if name in fields and f"{name}_order" in ops:
+                    order, fld = np.array(ops[f"{name}_order"]), fields[name]
+                else:
+                    order, fld = element_field(d.mesh, d.axes, m.index, m.resolution)
+                if len(order) != len(m.index) or fld.n_points != len(order):
+                    raise ValueError(f"the stored {name} operators do not fit its {len(m.index)} texels")
                 orders[name] = order
                 bands[name] = TexelBand.build(m.resolution, m.index[order], m.coeffs[order], fld)
         for name, band in bands.items():
             limit = derived.limits.get(name)
             bands[name] = dataclasses.replace(band, limit=_limits(band.field, d.S_train) if limit is None else limit)
-        seam = seam_average_matrix(d.uv_faces, d.faces, n, K)
+        seam = sparse_matrix(ops, "seam_average")
+        if seam is None:
+            seam = seam_average_matrix(d.uv_faces, d.faces, n, K)
         fine = bands["fine"]
         Hf = fine.resolution
+        fine_sampler = sparse_matrix(ops, "fine_sampler")
+        if fine_sampler is None:
+            fine_sampler = sampling_matrix(d.uv, d.uv_faces, d.faces, n, fine.mask())[:, fine.index].tocsr()
+        if "raster_triangle" in ops:        # the normal mapper's rasterization (float32: all it reads)
+            triangle = ops["raster_triangle"]
+            raster = UVRaster(triangle, ops["raster_barycentric"], triangle >= 0)
+        else:
+            raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
+        texel_rho = {k: m for k in ("fine", "albedo") if (m := sparse_matrix(ops, f"{k}_texel_rho")) is not None}
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
-            orders=orders, seam_average=seam,
-            fine_sampler=sampling_matrix(d.uv, d.uv_faces, d.faces, n, fine.mask())[:, fine.index].tocsr(),
-            normal_mapper=NormalMapper(rasterize_uv(d.uv, d.uv_faces, Hf, Hf), d.faces, d.uv, d.uv_faces, n),
-            validity=_validity(d, base, bands, orders, seam))
+            orders=orders, seam_average=seam, fine_sampler=fine_sampler,
+            normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, n),
+            validity=_validity(d, base, bands, orders, seam, texel_rho))
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -258,7 +295,31 @@ class PdmEvaluator:
     def derived(self) -> PdmDerived:
         """What a load of the data would recompute (the store's optional files)."""
         return PdmDerived(basis=self.base.basis, energy=self.base.energy,
-                          limits={k: b.limit for k, b in self.bands.items()})
+                          limits={k: b.limit for k, b in self.bands.items()}, operators=self.operators())
+
+    def operators(self) -> dict[str, np.ndarray]:
+        """What :meth:`build` derives from the data's layout alone, as named arrays for the
+        store (``derived.operators`` of a later build): ``version``
+        (:data:`OPERATORS_VERSION`); ``<band>_field_*`` the bands' parameter fields
+        (:meth:`.deformation.ParameterField.arrays`) and ``<band>_order`` the fine and albedo
+        texels' element order; the CSR matrices ``seam_average``, ``fine_sampler`` and
+        ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
+        (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
+        rasterization at the fine resolution (not held by the evaluator: rasterized again
+        here, ~1 s at 1024²)."""
+        d, Hf = self.data, self.fine.resolution
+        out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
+               **sparse_members("fine_sampler", self.fine_sampler)}
+        for name, band in self.bands.items():
+            out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
+            if name != "vertex":
+                out[f"{name}_order"] = self.orders[name]
+        for name, m in ({} if self.validity is None else self.validity.texel_rho).items():
+            out.update(sparse_members(f"{name}_texel_rho", m))
+        raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
+        out["raster_triangle"] = raster.triangle.astype(np.int32)
+        out["raster_barycentric"] = raster.barycentric.astype(np.float32)
+        return out
 
     def validity_data(self) -> ValidityData | None:
         """The validity regions as stored (:class:`~.validity.ValidityData`: the envelopes in
@@ -297,12 +358,19 @@ class PdmEvaluator:
         return None if rho is None else self.validity.band(name, band.coeffs, rho)
 
 
+def _members(arrays: dict, prefix: str) -> dict:
+    """The members ``<prefix>_<name>`` of ``arrays`` by ``name``."""
+    n = len(prefix) + 1
+    return {k[n:]: v for k, v in arrays.items() if k.startswith(prefix + "_")}
+
+
 def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
-              seam: sp.csr_matrix) -> Validity | None:
+              seam: sp.csr_matrix, texel_rho: dict | None = None) -> Validity | None:
     """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
     when ``params.validity_width`` is None (the extrapolation limit applies instead): the
     stored ``d.validity`` (its envelopes put in the bands' order ``orders``), or, for a model
-    stored without it, derived from ``d.S_train`` (seconds)."""
+    stored without it, derived from ``d.S_train`` (seconds); ``texel_rho`` as
+    :meth:`.validity.Validity.build`'s."""
     if d.params.validity_width is None:
         return None
     S = d.S_train
@@ -323,7 +391,7 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders
                     for k, b in bands.items()}
     texels = {k: (b.resolution, b.index) for k, b in bands.items() if k != "vertex"}
     return Validity.build(hull, envelope, d.params.validity_width, d.params.validity_slope, d.uv,
-                          d.uv_faces, seam, base.smooth, d.faces, texels, sectors)
+                          d.uv_faces, seam, base.smooth, d.faces, texels, sectors, texel_rho)
 
 
 class PdmModel:

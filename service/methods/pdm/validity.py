@@ -342,13 +342,17 @@ class Validity:
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
               uv_faces: np.ndarray, seam_average: sp.csr_matrix, vertices: np.ndarray,
-              faces: np.ndarray, bands: dict, sectors: np.ndarray | None = None) -> "Validity":
+              faces: np.ndarray, bands: dict, sectors: np.ndarray | None = None,
+              texel_rho: dict | None = None) -> "Validity":
         """``bands``: name → (resolution, index (P,)) of the texel bands that take ρ from the
-        UV points; ``vertices`` (n,3), ``faces`` (m,3) the mesh whose areas weigh the frame."""
-        texel_rho = {}
+        UV points; ``vertices`` (n,3), ``faces`` (m,3) the mesh whose areas weigh the frame;
+        ``texel_rho``: name → the (P,K) CSR UV points → texels of a band, where already
+        derived (a stored model's, :attr:`texel_rho`), instead of rasterizing the layout."""
+        texel_rho = dict(texel_rho or {})
         for name, (H, index) in bands.items():
-            raster = rasterize_uv(uv, uv_faces, H, H)
-            texel_rho[name] = interpolation_matrix(raster, uv_faces, len(uv))[index].tocsr()
+            if name not in texel_rho:
+                raster = rasterize_uv(uv, uv_faces, H, H)
+                texel_rho[name] = interpolation_matrix(raster, uv_faces, len(uv))[index].tocsr()
         area = np.bincount(np.asarray(faces).ravel(), np.repeat(triangle_areas(vertices, faces), 3),
                            minlength=len(vertices)) / 3
         return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,

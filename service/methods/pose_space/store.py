@@ -20,10 +20,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 
 from service.io.atomic import write_bytes, write_npz
-from service.io.npz import npz_arrays
+from service.io.npz import npz_arrays, sparse_matrix, sparse_members
 from service.methods.model_dir import ModelCorrupt, read_model_files
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pose_space.data import PoseSpaceData
@@ -48,8 +47,7 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
     for name in SPARSE:
         m = getattr(d, name)
         if m is not None:
-            arrays.update({f"{name}_data": m.data, f"{name}_indices": m.indices,
-                           f"{name}_indptr": m.indptr, f"{name}_shape": np.array(m.shape)})
+            arrays.update(sparse_members(name, m))
     for name in OPTIONAL:
         if getattr(d, name) is not None:
             arrays[name] = getattr(d, name)
@@ -82,9 +80,7 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     missing = [k for k in ARRAYS if k not in a]
     if missing:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
-    sparse = {name: sp.csr_matrix((a[f"{name}_data"], a[f"{name}_indices"], a[f"{name}_indptr"]),
-                                  shape=tuple(int(x) for x in a[f"{name}_shape"]))
-              if f"{name}_data" in a else None for name in SPARSE}
+    sparse = {name: sparse_matrix(a, name) for name in SPARSE}
     # a model stored before marker_noise_mm existed interpolated its markers exactly
     params = parse_params({"marker_noise_mm": 0.0, **manifest["params"]})
     if params.method != kind:

@@ -161,3 +161,53 @@ def test_a_loaded_model_leaves_the_medium_map_in_its_directory_and_saves_it_agai
     assert resaved["files"]["medium.exr"] == manifest["files"]["medium.exr"]    # the same map, byte for byte
     again = PdmModel.load(tmp_path / "again")
     np.testing.assert_array_equal(again.data.medium.coeffs, trained.coeffs)
+
+
+def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pdm_model, pdm_data, saved, tmp_path):
+    """Issue 23 (cold start): cache.npz holds the evaluator's operators (rasterization,
+    parameter fields, element orders, sparse seam/sampling/validity matrices); a load maps
+    them instead of deriving them, and synthesizes every output bit for bit as the trained
+    model, as a directory whose cache predates them (which derives them), and as operators
+    of another version (derived anew)."""
+    import dataclasses
+    import shutil
+
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_arrays
+    from service.methods.footprint import file_mapped
+    from service.methods.kinds import get_kind
+    from service.methods.pdm import model as pdm
+    from service.methods.pdm.store import read_model
+
+    path, _ = saved
+    cache = npz_arrays((path / "cache.npz").read_bytes())
+    assert {"op_version", "op_fine_order", "op_fine_field_mono", "op_vertex_field_sorting_order",
+            "op_fine_sampler_data", "op_seam_average_indptr", "op_fine_texel_rho_data",
+            "op_albedo_texel_rho_data", "op_raster_triangle", "op_raster_barycentric"} <= cache.keys()
+    assert cache["op_raster_triangle"].shape == (128, 128) and cache["op_raster_barycentric"].dtype == np.float32
+    older = tmp_path / "older"
+    shutil.copytree(path, older)
+    m = json.loads((older / "manifest.json").read_text())
+    m["derived"]["cache.npz"] = write_npz(older / "cache.npz", {
+        k: v for k, v in cache.items() if not k.startswith("op_")})
+    (older / "manifest.json").write_text(json.dumps(m))
+    data, derived = read_model(path)
+    other = dataclasses.replace(derived, operators={**derived.operators, "version": np.int64(pdm.OPERATORS_VERSION + 1)})
+    mapped, built = PdmModel.load(path), PdmModel.load(older)
+    rebuilt = PdmModel(data, pdm.PdmEvaluator.build(data, derived=other))
+    ev = mapped.evaluator
+    assert file_mapped(ev.fine.field.mono) and file_mapped(ev.fine_sampler.data) and file_mapped(ev.seam_average.indices)
+    assert file_mapped(ev.validity.texel_rho["fine"].data) and not file_mapped(ev.fine.field.element)
+    assert not file_mapped(ev.orders["fine"])          # read at load only: into memory, not mapped
+    for model in (built, rebuilt):
+        assert not file_mapped(model.evaluator.fine.field.mono)
+        np.testing.assert_array_equal(model.evaluator.orders["fine"], ev.orders["fine"])
+    markers = pdm_data[1][4].markers[[0, 9, 15]]
+    outputs = get_kind("pdm").outputs
+    a = pdm_model.synthesize(markers, outputs=outputs)
+    assert {"vertices", "vertices_detailed", "normal_map", "albedo", "displacement"} <= a.keys()
+    for model in (mapped, built, rebuilt):
+        b = model.synthesize(markers, outputs=outputs)
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
