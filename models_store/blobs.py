@@ -69,10 +69,13 @@ class VerifiedDir(type(Path())):  # type: ignore[misc]  # PosixPath / WindowsPat
 
     digests: dict[str, str]
 
-    def __new__(cls, path: str | os.PathLike[str], digests: dict[str, str]):
-        self = super().__new__(cls, path)
-        self.digests = dict(digests)
-        return self
+    @classmethod
+    def of(cls, path: str | os.PathLike[str], digests: dict[str, str]) -> VerifiedDir:
+        """``path`` with ``digests`` (constructed with the path alone: ``Path.__init__``
+        takes the constructor's arguments from Python 3.12 on)."""
+        verified = cls(path)
+        verified.digests = dict(digests)
+        return verified
 
 
 class ScratchFile(os.PathLike):
@@ -309,7 +312,7 @@ class BlobStore:
             raise NotFound("blob directory", key)
         digests = {rel: sha256_file(src) for src, rel in _walk_files(path)}
         _check(key, sha256, tree_digest(digests))
-        return VerifiedDir(path, digests)
+        return VerifiedDir.of(path, digests)
 
     def digest(self, key: str) -> str:
         """The sha256 of what is stored under ``key`` now (file digest or tree digest)."""

@@ -43,9 +43,9 @@ def test_a_verified_directory_is_not_hashed_again(stored, monkeypatch):
 def test_a_verified_digest_that_differs_from_the_manifest_is_refused(stored):
     blobs, info, _ = stored
     path = blobs.open_dir(info.key, info.sha256)
-    wrong = VerifiedDir(path, {**path.digests, "b.exr": "0" * 64})
+    wrong = VerifiedDir.of(path, {**path.digests, "b.exr": "0" * 64})
     with pytest.raises(ModelCorrupt, match="b.exr does not match its checksum"):
         read_model_files(wrong, "toy", 1)
-    missing = VerifiedDir(path, {k: v for k, v in path.digests.items() if k != "a.npz"})
+    missing = VerifiedDir.of(path, {k: v for k, v in path.digests.items() if k != "a.npz"})
     with pytest.raises(ModelCorrupt, match="a.npz is missing"):
         read_model_files(missing, "toy", 1, mapped=lambda name: True)
