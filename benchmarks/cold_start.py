@@ -40,19 +40,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import harness  # noqa: E402
-import realtime  # noqa: E402
 
 ROOT = harness.ROOT
 OUT = ROOT / "benchmarks" / "out"
 WORK = OUT / "cold_start"
-NPZ = {"Content-Type": "application/x-npz"}
+NPZ = harness.NPZ_TYPE
 TARGET_S = 2.0
 MESH = "mesh"
 MAPS = "mesh,displacement,normal_map"
-
-
-def load() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def rss_mb(pid: int) -> float:
@@ -124,7 +119,7 @@ def one_server(work: Path, model_id: str, markers: np.ndarray, preload: bool, ca
             row["first_maps_s"] = frame(1, MAPS)
             row["steady_ms"] = 1e3 * float(np.median([frame(2 + k, MESH) for k in range(calls)]))
         row["rss_mb"] = rss_mb(server.pid)
-        row["load"] = load()
+        row["load"] = harness.load_average()
         return row
     finally:
         harness.stop_server(server)
@@ -139,14 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=10, help="steady-state frames per server")
     args = parser.parse_args(argv)
     actor = args.actor.resolve()
-    model_dir = (args.model or realtime.ensure_model(actor)).resolve()
+    model_dir = (args.model or harness.ensure_realtime_model(actor)).resolve()
     work = WORK / f"work-{actor.name}"
     work.mkdir(parents=True, exist_ok=True)
-    markers = realtime.heldout_markers(actor)
+    markers = harness.heldout_markers(actor)
     port = harness.free_port()
     server = harness.start_server(work, port, {"FACESYNTH_WORKERS": "0"})
     try:
-        model_id = realtime.register_model(f"http://127.0.0.1:{port}", work, actor, model_dir)
+        model_id = harness.register_model(f"http://127.0.0.1:{port}", work, actor, model_dir)
     finally:
         harness.stop_server(server)
     rows = []

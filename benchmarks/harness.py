@@ -666,6 +666,77 @@ WORKERS = {
 }
 
 # ---------------------------------------------------------------------------- servers
+REALTIME = OUT / "realtime"            # realtime.py's PDM model (shared with cold_start, realtime_ab)
+REALTIME_PERFORMANCE = "heldout_in_range"
+REALTIME_TRAIN_CLIP = "train_smile"    # the clip the server's model row names (never trained there)
+REALTIME_FRAMES = 50                   # distinct frames cycled through
+WARMUP = 3                             # untimed calls before a median
+NPZ_TYPE = {"Content-Type": "application/x-npz"}
+
+
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages, as reported beside every timing."""
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def ensure_realtime_model(actor_dir: Path) -> Path:
+    """The benchmark's PDM model of ``actor_dir`` (default parameters), trained once."""
+    model_dir = REALTIME / f"model-{actor_dir.name}"
+    if not (model_dir / "manifest.json").is_file():
+        print(f"training the PDM of {actor_dir} into {model_dir} ...", file=sys.stderr, flush=True)
+        code = ("import sys, json; sys.path.insert(0, %r); import harness; from pathlib import Path; "
+                "print(json.dumps(harness.train_pdm(Path(%r), 'biquadratic', Path(%r))))"
+                % (str(Path(__file__).resolve().parent), str(actor_dir), str(model_dir)))
+        subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True)
+    return model_dir
+
+
+def heldout_markers(actor_dir: Path) -> np.ndarray:
+    """(FRAMES, M, 3) float32: the first frames of the held-out performance's markers, the
+    frames the serving benchmarks send."""
+    with np.load(actor_dir / "performances" / f"{REALTIME_PERFORMANCE}.npz") as d:
+        return d["markers"][:REALTIME_FRAMES].astype(np.float32)
+
+
+def register_model(base: str, work: Path, actor_dir: Path, model_dir: Path) -> str:
+    """Upload the actor and one clip through the API, create a PDM model row, and mark it
+    ready with the benchmark's trained directory (the same model as in-process); reused
+    from ``work`` on later runs."""
+    import httpx
+
+    from models_store import registry
+    from service.config import Settings
+    from service.samples.uploads import sample_actor_uploads
+    from service.store.container import get_store
+
+    record = work / "model_id"
+    with httpx.Client(base_url=base, timeout=600) as client:
+        if record.is_file():
+            model_id = record.read_text().strip()
+            if client.get(f"/v1/models/{model_id}").json().get("status") == "ready":
+                return model_id
+        neutral, layout, clips = sample_actor_uploads(actor_dir, (REALTIME_TRAIN_CLIP,))
+        canonical = json.loads(layout)
+        body = {"markers": [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
+                            zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]}
+        actor_id = client.post("/v1/actors", json={"name": "realtime"}).json()["id"]
+        client.put(f"/v1/actors/{actor_id}/neutral", content=neutral, headers=NPZ_TYPE).raise_for_status()
+        client.put(f"/v1/actors/{actor_id}/markers", json=body).raise_for_status()
+        clip = client.post(f"/v1/actors/{actor_id}/clips", content=clips[REALTIME_TRAIN_CLIP], headers=NPZ_TYPE,
+                           params={"name": REALTIME_TRAIN_CLIP})
+        clip.raise_for_status()
+        accepted = client.post(f"/v1/actors/{actor_id}/models",
+                               json={"kind": "pdm", "clips": [clip.json()["clip_id"]]})
+        accepted.raise_for_status()
+        model_id = accepted.json()["model_id"]
+    store = get_store(Settings(data_dir=work / "data"))
+    metrics = json.loads((model_dir / "manifest.json").read_text()).get("metrics", {})
+    with store.session() as session:
+        registry.mark_model_ready(session, store.blobs, model_id, model_dir, metrics=metrics)
+    record.write_text(model_id)
+    return model_id
+
+
 def free_port() -> int:
     """A free TCP port on the loopback interface."""
     import socket

@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
-import json
 import os
 import pstats
 import subprocess
@@ -65,11 +64,8 @@ import harness  # noqa: E402
 
 ROOT = harness.ROOT
 OUT = ROOT / "benchmarks" / "out"
-WORK = OUT / "realtime"
-PERFORMANCE = "heldout_in_range"
-TRAIN_CLIP = "train_smile"        # the clip the server's model row names (never trained there)
-FRAMES = 50                       # distinct frames cycled through
-WARMUP = 3
+WORK = harness.REALTIME
+WARMUP = harness.WARMUP
 IN_FLIGHT = 4
 OUTPUT_SETS = {"mesh": ("mesh",),
                "mesh + displacement + normal map": ("mesh", "displacement", "normal_map")}
@@ -77,33 +73,11 @@ OUTPUT_SETS = {"mesh": ("mesh",),
 TARGET_MS = {"mesh": 15.0, "mesh + displacement + normal map": 40.0}
 TARGET_HTTP = {"mesh": 1.15, "mesh + displacement + normal map": 1.25}
 TARGET_FPS = {"mesh": 60.0, "mesh + displacement + normal map": 30.0}
-NPZ = {"Content-Type": "application/x-npz"}
-
-
-def load() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+NPZ = harness.NPZ_TYPE
 
 
 def median_ms(fn, calls: int) -> float:
     return harness.median_ms(fn, calls, WARMUP)
-
-
-# ---------------------------------------------------------------------- model and data
-def ensure_model(actor_dir: Path) -> Path:
-    """The benchmark's PDM model of ``actor_dir`` (default parameters), trained once."""
-    model_dir = WORK / f"model-{actor_dir.name}"
-    if not (model_dir / "manifest.json").is_file():
-        print(f"training the PDM of {actor_dir} into {model_dir} ...", file=sys.stderr, flush=True)
-        code = ("import sys, json; sys.path.insert(0, %r); import harness; from pathlib import Path; "
-                "print(json.dumps(harness.train_pdm(Path(%r), 'biquadratic', Path(%r))))"
-                % (str(Path(__file__).parent), str(actor_dir), str(model_dir)))
-        subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True)
-    return model_dir
-
-
-def heldout_markers(actor_dir: Path) -> np.ndarray:
-    with np.load(actor_dir / "performances" / f"{PERFORMANCE}.npz") as d:
-        return d["markers"][:FRAMES].astype(np.float32)
 
 
 # ---------------------------------------------------------------------- in-process
@@ -134,7 +108,7 @@ def profile(model, markers: np.ndarray, outputs, calls: int, top: int = 14) -> s
 # ---------------------------------------------------------------------- server
 def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str]:
     """A ``facesynth serve`` on free ports (no job workers); its HTTP base URL and gRPC address."""
-    port, grpc_port = harness_free_port(), harness_free_port()
+    port, grpc_port = harness.free_port(), harness.free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
                 "FACESYNTH_GRPC_PORT": str(grpc_port), "FACESYNTH_WORKERS": "0",
@@ -167,53 +141,6 @@ def stop_server(server: subprocess.Popen) -> None:
         server.wait(60)
     except subprocess.TimeoutExpired:
         server.kill()
-
-
-def harness_free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def register_model(base: str, work: Path, actor_dir: Path, model_dir: Path) -> str:
-    """Upload the actor and one clip through the API, create a PDM model row, and mark it
-    ready with the benchmark's trained directory (the same model as in-process); reused
-    from ``work`` on later runs."""
-    import httpx
-
-    from models_store import registry
-    from service.config import Settings
-    from service.samples.uploads import sample_actor_uploads
-    from service.store.container import get_store
-
-    record = work / "model_id"
-    with httpx.Client(base_url=base, timeout=600) as client:
-        if record.is_file():
-            model_id = record.read_text().strip()
-            if client.get(f"/v1/models/{model_id}").json().get("status") == "ready":
-                return model_id
-        neutral, layout, clips = sample_actor_uploads(actor_dir, (TRAIN_CLIP,))
-        canonical = json.loads(layout)
-        body = {"markers": [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
-                            zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]}
-        actor_id = client.post("/v1/actors", json={"name": "realtime"}).json()["id"]
-        client.put(f"/v1/actors/{actor_id}/neutral", content=neutral, headers=NPZ).raise_for_status()
-        client.put(f"/v1/actors/{actor_id}/markers", json=body).raise_for_status()
-        clip = client.post(f"/v1/actors/{actor_id}/clips", content=clips[TRAIN_CLIP], headers=NPZ,
-                           params={"name": TRAIN_CLIP})
-        clip.raise_for_status()
-        accepted = client.post(f"/v1/actors/{actor_id}/models",
-                               json={"kind": "pdm", "clips": [clip.json()["clip_id"]]})
-        accepted.raise_for_status()
-        model_id = accepted.json()["model_id"]
-    store = get_store(Settings(data_dir=work / "data"))
-    metrics = json.loads((model_dir / "manifest.json").read_text()).get("metrics", {})
-    with store.session() as session:
-        registry.mark_model_ready(session, store.blobs, model_id, model_dir, metrics=metrics)
-    record.write_text(model_id)
-    return model_id
 
 
 def http_ms(base: str, model_id: str, markers: np.ndarray, outputs, calls: int,
@@ -296,12 +223,12 @@ def main(argv: list[str] | None = None) -> int:
         actor_dir = harness.sample_actor("a", 1)
     paths = set(args.paths.split(","))
     WORK.mkdir(parents=True, exist_ok=True)
-    model_dir = ensure_model(actor_dir)
-    markers = heldout_markers(actor_dir)
+    model_dir = harness.ensure_realtime_model(actor_dir)
+    markers = harness.heldout_markers(actor_dir)
 
     from service.methods.pdm.model import PdmModel
 
-    meta = {"load_start": load(), "cpus": os.cpu_count(), "blas": BLAS_THREADS}
+    meta = {"load_start": harness.load_average(), "cpus": os.cpu_count(), "blas": BLAS_THREADS}
     t0 = time.perf_counter()
     model = PdmModel.load(model_dir)
     meta["load_s"] = time.perf_counter() - t0
@@ -311,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     profiles: dict[str, str] = {}
     for name, outputs in OUTPUT_SETS.items():
         base_ms[name] = in_process(model, markers, outputs, args.calls)
-        rows.append({"outputs": name, "path": "in-process", "ms": base_ms[name], "load": load()})
+        rows.append({"outputs": name, "path": "in-process", "ms": base_ms[name], "load": harness.load_average()})
         print(rows[-1], file=sys.stderr, flush=True)
         if args.profile:
             profiles[name] = profile(model, markers, outputs, min(args.calls, 30))
@@ -325,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         for impl in http_impls():
             server, base, target = start_server(work, impl)
             try:
-                model_id = register_model(base, work, actor_dir, model_dir)
+                model_id = harness.register_model(base, work, actor_dir, model_dir)
                 for name, outputs in OUTPUT_SETS.items():
                     # in-process again beside each server: the ratio is within the same minute
                     ref = in_process(model, markers, outputs, args.calls)
@@ -333,18 +260,18 @@ def main(argv: list[str] | None = None) -> int:
                         for label, params in variants:
                             ms, size = http_ms(base, model_id, markers, outputs, args.calls, params)
                             rows.append({"outputs": name, "path": f"HTTP {impl}, {label}", "ms": ms,
-                                         "ref": ref, "bytes": size, "load": load()})
+                                         "ref": ref, "bytes": size, "load": harness.load_average()})
                             print(rows[-1], file=sys.stderr, flush=True)
                     if "grpc" in paths and impl == "h11":
                         for half in (False, True) if grpc_supports_half() else (False,):
                             ms = grpc_ms(target, model_id, markers, outputs, args.calls, half)
                             rows.append({"outputs": name, "path": f"gRPC stream, {IN_FLIGHT} in flight"
                                          + (", half maps" if half else ""), "ms": ms, "ref": ref,
-                                         "load": load()})
+                                         "load": harness.load_average()})
                             print(rows[-1], file=sys.stderr, flush=True)
             finally:
                 stop_server(server)
-    meta["load_end"] = load()
+    meta["load_end"] = harness.load_average()
     text = report(rows, base_ms, meta, actor_dir, args.calls, profiles)
     print(text)
     (OUT / "realtime.md").write_text(text)

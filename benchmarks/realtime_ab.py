@@ -40,7 +40,6 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import harness  # noqa: E402
-import realtime  # noqa: E402
 
 ROOT = harness.ROOT
 COMPARED = ("vertices", "displacement", "normal_map", "clamped", "confidence", "confidence_vertices")
@@ -77,24 +76,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", action="store_true")
     args = parser.parse_args(argv)
     actor_dir = args.actor or harness.sample_actor("a", 1)
-    model_dir = realtime.ensure_model(actor_dir)
-    markers = realtime.heldout_markers(actor_dir)
+    model_dir = harness.ensure_realtime_model(actor_dir)
+    markers = harness.heldout_markers(actor_dir)
     import importlib
 
     from service.methods.pdm.model import PdmModel as New
     Old = importlib.import_module(old_package(args.rev) + ".methods.pdm.model").PdmModel
     models = {"before": Old.load(model_dir), "after": New.load(model_dir)}
     res: dict = {"rev": args.rev, "actor": str(actor_dir), "blas_threads": BLAS_THREADS,
-                 "calls": args.calls, "load_start": realtime.load()}
+                 "calls": args.calls, "load_start": harness.load_average()}
     sets = {"mesh": ("mesh",), "maps": ("mesh", "displacement", "normal_map")}
     for name, outs in sets.items():
         cpu = {k: [] for k in models}
         wall = {k: [] for k in models}
-        for k in range(args.calls + realtime.WARMUP):
+        for k in range(args.calls + harness.WARMUP):
             for tag in alternating(k):
                 c0, w0 = time.process_time(), time.perf_counter()
                 models[tag].synthesize(markers[k % len(markers)][None], outs)
-                if k >= realtime.WARMUP:
+                if k >= harness.WARMUP:
                     cpu[tag].append(time.process_time() - c0)
                     wall[tag].append(time.perf_counter() - w0)
         for tag in models:
@@ -118,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
             e["frames_bit_identical"] += int(np.array_equal(a[key], b[key]))
             e["frames"] += 1
     res["outputs before vs after"] = diff
-    res["load_end"] = realtime.load()
+    res["load_end"] = harness.load_average()
     print(json.dumps(res, indent=1))
     return 0
 

@@ -225,14 +225,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # before NumPy loads: BLAS threads sized with the synthesis slots (service.app.threads)
     blas_threads = apply_blas_threads(settings.max_concurrent_syntheses, settings.blas_threads)
 
-    import uvicorn
-
-    from service.api.app import create_app
     from service.logs import configure_logging
     from service.app.services import Services
     from service.errors import FacesynthError
     from service.grpc.server import is_loopback, serve
-    from service.jobs.worker import start_embedded, start_maintenance
     if not settings.tokens and not is_loopback(settings.host):
         print(f"facesynth serve: refusing to listen on {settings.host} without tokens; set "
               "FACESYNTH_TOKENS, or listen on loopback (127.0.0.1)", file=sys.stderr)
@@ -270,6 +266,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
                 services.start_preload(preload)
             except FacesynthError as error:
                 return _serve_error(f"--preload: {error}")
+        # imported only now, while the preload thread loads (issue 23: the API's imports,
+        # ~0.5 s CPU, then overlap the model load instead of delaying its start)
+        import uvicorn
+
+        from service.api.app import create_app
+        from service.jobs.worker import start_embedded, start_maintenance
+
         if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
             workers = start_embedded(settings, settings.workers)
         else:  # reap expired leases and resubmit lost messages even with no worker alive

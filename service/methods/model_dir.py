@@ -31,10 +31,16 @@ def read_model_files(path, kind: str, format_version: int,
     (:func:`service.io.npz.npz_mapped`) or read only if it needs it: a load then never
     holds a file's bytes and its decoded arrays at once.
 
+    When ``path`` carries the digests of its files as just verified (``path.digests``, a
+    :class:`models_store.blobs.VerifiedDir` from the blob store, which checked them against
+    the database's tree digest), each listed file is compared with its digest there instead
+    of being hashed again: the directory is hashed once per load either way.
+
     Raises :class:`ModelCorrupt` for a missing or unreadable manifest, another kind or
     format, a listed file that is missing or does not match its checksum, or a ``required``
     file the manifest does not list.
     """
+    verified: dict[str, str] | None = getattr(path, "digests", None)
     path = Path(path)
     try:
         manifest = json.loads((path / "manifest.json").read_bytes())
@@ -48,11 +54,12 @@ def read_model_files(path, kind: str, format_version: int,
         try:
             if mapped is not None and mapped(name):
                 data[name] = path / name
-                actual = sha256_file(data[name])
+                actual = verified[name] if verified is not None else sha256_file(data[name])
             else:
                 data[name] = (path / name).read_bytes()
-                actual = hashlib.sha256(data[name]).hexdigest()
-        except OSError:
+                actual = (verified[name] if verified is not None
+                          else hashlib.sha256(data[name]).hexdigest())
+        except (OSError, KeyError):
             raise ModelCorrupt(f"{path}: {name} is missing") from None
         if actual != digest:
             raise ModelCorrupt(f"{path}: {name} does not match its checksum")
