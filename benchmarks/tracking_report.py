@@ -23,30 +23,33 @@ registration error of the static scans (Fig. 11 by-product); the blended albedo 
 stage timings and time per frame; flows per second (the method's flow + NCC vs OpenCV's DIS
 medium preset alone). Figures: ``error_over_time_<fam>.png``, ``graph_<fam>.png``.
 
-Measured (family a, level 0, 120 frames, 256² images, neutral + 5 scans, 2 cores at load
-average 8.7-11.4, commit cd3a909; per-scan voting and forward-backward consistency on):
+Measured (level 0, 120 frames, 256² images, neutral + 5 scans, 2 cores, load 4.5-6.8,
+commit 75fecc0; family a and b in separate runs; the drift columns recomputed from the saved
+curves with the head motion taken out of the amplitude, :func:`expression_amplitude`):
 
-=======================  =====  ==========  =====  =====  =========  ===========  ========
-method                   views  mean mm     start  end    end/start  texture var  s/frame
-=======================  =====  ==========  =====  =====  =========  ===========  ========
-sequential               3      0.977       0.314  1.142  3.63       0.0965       3.38
-neutral anchors          3      0.483       0.236  0.554  2.35       0.0966       6.09
-flow graph (49 edges)    3      0.401       0.187  0.491  2.63       0.0925       8.58
-flow graph, monocular    1      1.311       0.471  1.061  2.25       0.0882       5.67
-=======================  =====  ==========  =====  =====  =========  ===========  ========
+=====================  =====  =======  =====  =====  =========  =======  ===========  ===========
+method                 views  mean mm  start  end    end/start  matched  slope/100fr  texture var
+=====================  =====  =======  =====  =====  =========  =======  ===========  ===========
+a sequential           3      0.977    0.314  1.142  3.63       1.07     +0.503       0.0965
+a neutral anchors      3      0.483    0.236  0.554  2.35       1.01     +0.075       0.0966
+a flow graph           3      0.401    0.187  0.491  2.63       1.07     +0.107       0.0925
+a flow graph, mono     1      1.311    0.471  1.061  2.25       0.53     +0.002       0.0882
+b sequential           3      0.787    0.322  0.799  2.48       1.38     +0.387       0.0826
+b neutral anchors      3      1.000    0.324  0.419  1.29       0.91     +0.243       0.0938
+b flow graph           3      0.642    0.283  0.400  1.41       1.19     +0.215       0.0855
+b flow graph, mono     1      2.484    4.103  1.461  0.36       1.01     −1.316       0.0848
+=====================  =====  =======  =====  =====  =========  =======  ===========  ===========
 
-(no tracking: 4.43 mm; ground-truth texture variance 0.0963: the metric is dominated by the
-performance's light swing and does not separate the methods here). The full graph now has
-the lowest mean error; the end/start ratio stays above 1.5 because the last frames are a
-strong expression (2.4 mm from the neutral at frame 119) and the first ones the neutral:
-the error follows the expression's amplitude, it does not grow with time (see the plot).
-
-Family b (same settings, load 3.5-11; sequential and neutral anchors from this report, the
-flow graph from the same ``track()`` call in a separate process, the run was cut at 16:45):
-sequential 0.787 mm (start 0.322, end 0.799, 2.48); neutral anchors 1.000 (0.324, 0.419,
-1.29); flow graph 0.642 (0.283, 0.400, **1.41**; 47 edges of 150, texture variance 0.0855 vs
-0.1006 for the truth). The full graph is lowest on both families; on b it also meets the
-1.5× end/start bound. Its peak (1.94 mm at frame 95) is in the middle of the 90 → 105 gap.
+(no tracking: a 4.43, b 7.16 mm, b's head moving up to ~7 mm; ground-truth texture variance
+a 0.0963, b 0.1006: the metric follows the light swing and does not separate the methods.)
+The full graph has the lowest mean error on both families. Its end/start ratio is above
+1.5 on a because the performance ends on a strong expression (expression amplitude 1.71 mm
+over the last ten frames against 0.45 over the first); with the expression held fixed the
+error grows 0.11 (a) and 0.22 (b) mm per 100 frames, against 0.50 and 0.39 for sequential
+propagation. Family b's monocular error is the head's depth along the view axis (camera at
+622 mm, f = 579 px at 256²): on the first 30 frames the error is 0.6-5.3 mm, of which
+0.34-0.86 mm is left once each frame is rigidly aligned to the truth (mean offset along
+the optical axis up to 5.3 mm).
 
 Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
 [--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only] [--out DIR]``.
