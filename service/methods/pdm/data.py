@@ -81,6 +81,9 @@ class PdmDerived:
 
     basis : (n,M) float32 | None;  energy : (M,M) float64 | None   the thin shell's basis and
                                      handle energy (:class:`~.base_surface.BaseSurface`)
+    shell_correction : (n,M) float32 | None   the thin-shell basis of the detailed neutral minus
+                                     ``basis`` (the medium band's fallback,
+                                     :meth:`~.model.PdmEvaluator.shell_fallback`)
     limits : dict name → (4,P) float32   extrapolation limits of the evaluated bands
                                      (``vertex``, ``fine``, ``albedo``), in the evaluator's
                                      point order (``PdmEvaluator.orders``: the fine and albedo
@@ -88,6 +91,7 @@ class PdmDerived:
     """
 
     basis: np.ndarray | None = None
+    shell_correction: np.ndarray | None = None
     energy: np.ndarray | None = None
     limits: dict = field(default_factory=dict)
 

@@ -95,8 +95,11 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
     if model.validity is not None:
         files[VALIDITY] = write_npz(path / VALIDITY, {"hull": model.validity.hull, **{
             f"{name}_envelope": e for name, e in model.validity.envelope.items()}, **(
-            {} if model.validity.sectors is None else {"sectors": model.validity.sectors})})
+            {} if model.validity.sectors is None else {"sectors": model.validity.sectors}), **(
+            {} if model.validity.sector_box is None else {"sector_box": model.validity.sector_box})})
     cache = {"basis": derived.basis, "energy": derived.energy}
+    if derived.shell_correction is not None:
+        cache["shell_correction"] = derived.shell_correction
     for name, limit in derived.limits.items():
         cache[f"{name}_limit"] = limit
     for name, band in (("medium", model.medium), ("fine", model.fine), ("albedo", model.albedo)):
@@ -175,7 +178,8 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     validity = None
     if VALIDITY in data:
         v = npz_mapped(data[VALIDITY])
-        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")}, v.get("sectors"))
+        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")}, v.get("sectors"),
+                                v.get("sector_box"))
     model = PdmData(params=params, faces=F, uv=uv, uv_faces=uvf, smooth=a["smooth"], handles=a["handles"],
                     rest_markers=a["rest_markers"], prior_scale_mm=float(a.get("marker_prior_scale_mm", np.nan)),
                     mesh=mesh, axes=axes, pose_weights=a["pose_weights"], S_train=a["S_train"],
@@ -183,5 +187,6 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
                     albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity,
                     vertex_coeffs=a.get("vertex_coeffs"))
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
+                         shell_correction=cache.get("shell_correction"),
                          limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")})
     return model, derived
