@@ -13,10 +13,13 @@ Layout (DESIGN.md "Data and storage"):
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived);
 * ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
   ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
-  order); written when the model has them; a model directory without it (stored before
-  they were kept) derives them from ``S_train`` at load (seconds);
+  order, the medium band's ``sectors`` and ``sector_box`` against the thin shell of the
+  detailed neutral); written when the model has them; a model directory without it (stored
+  before they were kept), or without ``sector_box``, derives them from ``S_train`` at load
+  (seconds);
 * ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
-  basis and handle energy, the extrapolation limits per texel, and each map's covered
+  basis and handle energy, the detailed neutral's shell basis less it
+  ``shell_correction``, the extrapolation limits per texel, and each map's covered
   texels ``<band>_index`` with their coefficients ``<band>_coeffs`` (P,C,K) float32, the
   EXR's values): listed under ``derived`` in the manifest, checksummed like the rest, and
   optional (a model directory without it, or without the coefficients, loads, more
