@@ -337,8 +337,9 @@ def shell_fallback(base: BaseSurface, neutral_offset: np.ndarray, correction: np
     from service.geometry.thin_shell import apply_basis
 
     X = base.deform(u_H) if X is None else X
-    world = offset + apply_basis(correction, u_H)                                      # (F,n,3)
-    local = np.einsum("fnij,fnj->fni", base.frames(X), world) - neutral_offset
+    world = (offset + apply_basis(correction, u_H)).astype(np.float32)                 # (F,n,3)
+    frames = base.frame_field.frames(X, np.float32)                  # float32, as synthesis's
+    local = np.einsum("fnij,fnj->fni", frames, world) - neutral_offset
     return np.ascontiguousarray(local[:, uv_vertex], dtype=np.float32)
 
 

@@ -177,9 +177,15 @@ def point_sector_values(d1: np.ndarray, d2: np.ndarray, table_points: np.ndarray
     x = (np.arctan2(d2, d1) % (2 * np.pi)) * (K / (2 * np.pi))
     k0 = np.floor(x).astype(np.int64) % K
     t = (x - np.floor(x)).astype(np.float32)
-    if table_points.ndim == 3:                   # channels: one gather per channel
-        return np.stack([point_sector_values(d1, d2, np.ascontiguousarray(table_points[..., c]))
-                         for c in range(table_points.shape[2])], axis=-1)
+    if table_points.ndim == 3:                   # channels: the sectors found once
+        C = table_points.shape[2]
+        flat = np.ascontiguousarray(table_points).ravel()
+        row = (np.arange(d1.shape[-1]) * K)[..., None]                          # (P,1)
+        chan = np.arange(C)
+        lo = ((k0[..., None] + row) * C + chan)
+        hi = (((k0 + 1) % K)[..., None] + row) * C + chan
+        t = t[..., None]
+        return (1 - t) * np.take(flat, lo) + t * np.take(flat, hi)
     flat = table_points.ravel()
     base = np.arange(d1.shape[-1]) * K                                       # (P,) row starts
     k0 += base
