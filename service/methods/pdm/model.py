@@ -367,10 +367,11 @@ class PdmEvaluator:
         return medium_offsets(self.vertex_band, self.seam_average, self.data.neutral_offset, d1, d2,
                               self.validity, rho, lookup, fallback)
 
-    def shell_fallback(self, u_H: np.ndarray, X: np.ndarray) -> np.ndarray:
-        """:func:`shell_fallback` (F,K,3) of this model for u_H (F,M,3) and the base surfaces X."""
+    def shell_fallback(self, u_H: np.ndarray, X: np.ndarray, rows: list | None = None) -> np.ndarray:
+        """:func:`shell_fallback` (F,K,3) of this model for u_H (F,M,3) and the base surfaces X
+        (``rows``: their float32 frames, ``FrameField.rows32``, where already computed)."""
         return shell_fallback(self.base, self.data.neutral_offset, self.shell_correction, self.shell_offset,
-                              self.uv_vertex, u_H, X)
+                              self.uv_vertex, u_H, X, rows)
 
     def fine_band(self, S: np.ndarray, margin: float | None,
                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -399,20 +400,21 @@ def detailed_neutral(base: BaseSurface, neutral_offset: np.ndarray) -> np.ndarra
 
 
 def shell_fallback(base: BaseSurface, neutral_offset: np.ndarray, correction: np.ndarray, offset: np.ndarray,
-                   uv_vertex: np.ndarray, u_H: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+                   uv_vertex: np.ndarray, u_H: np.ndarray, X: np.ndarray | None = None,
+                   rows: list | None = None) -> np.ndarray:
     """The medium band's fallback (F,K,3) float32 at the UV points (:mod:`.validity`, module
     docstring 4.): the thin shell of the detailed neutral, ``V + B_det u_H`` (the *no
     detail* result), for handle displacements u_H (F,M,3), as a medium offset from the base
     surfaces ``X = X̄ + B u_H`` (F,n,3; computed when None) in their tangent frames, less the
     static ``neutral_offset`` (n,3): ``Frame(X) (offset + (B_det − B) u_H) − neutral_offset``
     with ``correction`` = B_det − B (n,M), ``offset`` = V − X̄ (n,3), taken at the UV points'
-    vertices ``uv_vertex`` (K,). 0 at the neutral."""
+    vertices ``uv_vertex`` (K,). 0 at the neutral. The frames are float32, as synthesis's
+    (``rows``: X's ``FrameField.rows32``, shared with synthesis's ``to_world``)."""
     from service.geometry.thin_shell import apply_basis
 
     X = base.deform(u_H) if X is None else X
     world = (offset + apply_basis(correction, u_H)).astype(np.float32)                 # (F,n,3)
-    frames = base.frame_field.frames(X, np.float32)                  # float32, as synthesis's
-    local = np.einsum("fnij,fnj->fni", frames, world) - neutral_offset
+    local = base.frame_field.to_frame(X, world, rows) - neutral_offset
     return np.ascontiguousarray(local[:, uv_vertex], dtype=np.float32)
 
 
@@ -566,8 +568,10 @@ class PdmModel:
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
-            fallback = None if rho is None else ev.shell_fallback(u_H, X)
-            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup, fallback), np.float32)
+            xrows = ev.base.frame_field.rows32(X)      # X's float32 frames: the fallback's and to_world's
+            fallback = None if rho is None else ev.shell_fallback(u_H, X, xrows)
+            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup, fallback), np.float32,
+                                                      xrows)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if fine:                            # mesh only: the fine band is not evaluated
