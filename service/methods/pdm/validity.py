@@ -204,17 +204,19 @@ class SectorLookup:
 
     def values(self, table_points: np.ndarray) -> np.ndarray:
         """The table (P,K) at the looked-up directions, linear between sectors (…,P); a table
-        of C channels (P,K,C) (the sector box) gives (…,P,C), the sectors found once for all
-        channels (flat index ``lower · C + c``)."""
+        of channels (P,K,…) (the sector box (P,K,2,3)) gives (…,P,…), the sectors found once
+        for all C channels (flat index ``lower · C + c``)."""
         if table_points.shape[1] != self.K:
             raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {table_points.shape[1]}")
         flat = np.ascontiguousarray(table_points).ravel()
-        if table_points.ndim == 3:
-            C = table_points.shape[2]
+        if table_points.ndim > 2:
+            channels = table_points.shape[2:]
+            C = int(np.prod(channels))
             chan = np.arange(C)
             t = self.t[..., None]
-            return ((1 - t) * np.take(flat, self.lower[..., None] * C + chan)
-                    + t * np.take(flat, self.upper[..., None] * C + chan))
+            out = ((1 - t) * np.take(flat, self.lower[..., None] * C + chan)
+                   + t * np.take(flat, self.upper[..., None] * C + chan))
+            return out.reshape(*out.shape[:-1], *channels)
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
 
@@ -390,8 +392,9 @@ class Validity:
     sector_points : (Q,K) float32 or None   the medium band's sector envelope
                                   (:func:`sector_envelope`), point-major as ``hull_points``
                                   (``sectors`` is the (K,Q) form); None: the scalar envelope only
-    box_points : (2,Q,K,3) float32 or None   the medium band's sector box (lo, hi) point-major
-                                  (``sector_box`` is the stored (2,K,Q,3) form), relative to
+    box_points : (Q,K,2,3) float32 or None   the medium band's sector box (lo, hi) point-major,
+                                  both bounds of a sector adjacent (one gather of 6 channels;
+                                  ``sector_box`` is the stored (2,K,Q,3) form), relative to
                                   the per-frame fallback the vertex band is given
     """
 
@@ -425,7 +428,7 @@ class Validity:
                    seam_average.tocsr(), area,
                    None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T),
                    None if sector_box is None else np.ascontiguousarray(
-                       np.asarray(sector_box, np.float32).transpose(0, 2, 1, 3)))
+                       np.asarray(sector_box, np.float32).transpose(2, 1, 0, 3)))
 
     def lookup(self, d1: np.ndarray, d2: np.ndarray) -> SectorLookup:
         """The :class:`SectorLookup` of parameters d1, d2 (F,Q) at the UV points, for
@@ -450,7 +453,7 @@ class Validity:
     @property
     def sector_box(self) -> np.ndarray | None:
         """The sector box (2,K,Q,3) float32 (:func:`sector_envelope`'s layout, as stored)."""
-        return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(0, 2, 1, 3))
+        return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
 
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
         """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
@@ -467,12 +470,12 @@ class Validity:
         envelope, box = self.envelope[name], None
         if name == "vertex" and (self.sector_points is not None or self.box_points is not None):
             if lookup is None:
-                table = self.sector_points if self.sector_points is not None else self.box_points[0]
+                table = self.sector_points if self.sector_points is not None else self.box_points
                 lookup = SectorLookup.of(d1, d2, table.shape[1])
             if self.sector_points is not None:
                 envelope = lookup.values(self.sector_points)
             if self.box_points is not None and fallback is not None:
-                box = np.stack([lookup.values(b) for b in self.box_points])
+                box = np.moveaxis(lookup.values(self.box_points), -2, 0)              # (2,F,Q,3)
         return valid_polynomial(coeffs, d1, d2, rho, envelope,
                                 self.fallback(name, coeffs) if fallback is None else fallback,
                                 self.width, self.slope, box=box)

@@ -129,10 +129,11 @@ def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, f
     rho = v.gauge(d1, d2, lookup)
     coeffs = pdm_model.evaluator.vertex_band.coeffs
     assert np.array_equal(v.evaluate("vertex", coeffs, d1, d2, rho, lookup), v.evaluate("vertex", coeffs, d1, d2, rho))
-    # the sector box's channels (P,K,3) through the same lookup, as the per-direction gather
+    # the sector box's bounds (Q,K,2,3) through the same lookup, as each bound's own gather
     assert v.box_points is not None
-    for b in v.box_points:
-        assert np.array_equal(lookup.values(b), point_sector_values(d1, d2, b))
+    both = lookup.values(v.box_points)                                          # (F,Q,2,3)
+    for i, bound in enumerate(v.sector_box):                                    # (K,Q,3) each
+        assert np.array_equal(both[..., i, :], point_sector_values(d1, d2, np.ascontiguousarray(bound.transpose(1, 0, 2))))
     fallback = pdm_model.evaluator.shell_fallback(frames[..., :3], None)
     shared = v.evaluate("vertex", coeffs, d1, d2, rho, lookup, fallback)
     assert np.array_equal(shared, v.evaluate("vertex", coeffs, d1, d2, rho, fallback=fallback))
