@@ -290,19 +290,45 @@ class FrameField:
         frames[~has_n] = np.eye(3)
         return frames.reshape(*lead, T.shape[1], 3, 3)
 
-    def to_world(self, V: np.ndarray, C: np.ndarray, dtype=np.float64) -> np.ndarray:
+    def rows32(self, V: np.ndarray) -> list[tuple]:
+        """The float32 frames of poses V (…,n,3), one (T, B, N (3,n) float32 component-major,
+        has_n (n,) bool) per pose in V's flattened order (:meth:`_rows32`), for
+        :meth:`to_world` and :meth:`to_frame` of the same poses (the frames computed once)."""
+        Vb, _ = _flatten_frames(V)
+        return [self._rows32(pose) for pose in Vb]
+
+    def to_frame(self, V: np.ndarray, W: np.ndarray, rows: list | None = None) -> np.ndarray:
+        """World vectors W (…,n,3) of poses V (…,n,3) in their float32 frames (…,n,3) float32:
+        ``C_i = row_i · W`` (identity frames where there is no normal), the inverse of
+        :meth:`to_world`; equal to ``einsum("...nij,...nj->...ni", frames(V, np.float32), W)``
+        within float32 rounding. ``rows``: :meth:`rows32` of V where already computed."""
+        Vb, lead = _flatten_frames(V)
+        rows = self.rows32(Vb) if rows is None else rows
+        Wb = np.asarray(W, np.float32).reshape(Vb.shape)
+        out = np.empty((len(Vb), 3, Vb.shape[1]), np.float32)           # component-major
+        for b, (T, B, N, has_n) in enumerate(rows):
+            Wc = np.ascontiguousarray(Wb[b].T)                           # (3,n)
+            for i, row in enumerate((T, B, N)):
+                np.multiply(row[0], Wc[0], out=out[b, i])
+                out[b, i] += row[1] * Wc[1]
+                out[b, i] += row[2] * Wc[2]
+                out[b, i, ~has_n] = Wc[i, ~has_n]                        # identity frames
+        return out.transpose(0, 2, 1).reshape(*lead, Vb.shape[1], 3)
+
+    def to_world(self, V: np.ndarray, C: np.ndarray, dtype=np.float64, rows: list | None = None) -> np.ndarray:
         """Frame coordinates C (…,n,3) of poses V (…,n,3) as world vectors ``Σ_j C_j row_j``.
 
         Equal to ``einsum("...nji,...nj->...ni", frames(V), C)`` without forming the frames;
         ``dtype`` float32 computes the frames and the sum in float32 (class notes), one pose
-        at a time component-major (:meth:`_rows32`).
+        at a time component-major (:meth:`_rows32`; ``rows``: :meth:`rows32` of V where
+        already computed).
         """
         if np.dtype(dtype) == np.float32:
             Vb, lead = _flatten_frames(V)
             Cb = np.asarray(C, np.float32).reshape(Vb.shape)
             out = np.empty((len(Vb), 3, Vb.shape[1]), np.float32)       # component-major
             for b, pose in enumerate(Vb):
-                T, B, N, has_n = self._rows32(pose)
+                T, B, N, has_n = self._rows32(pose) if rows is None else rows[b]
                 Cc = np.ascontiguousarray(Cb[b].T)                       # (3,n)
                 for j in range(3):
                     np.multiply(Cc[0], T[j], out=out[b, j])

@@ -7,7 +7,7 @@ One vocabulary for every marker-driven method (issue 17, "never worse than the i
   distance beyond it; ``confidence_vertices`` (F,n) float32 the same per vertex (the
   per-region confidence, at the finest region the method can resolve; the PDM's);
 * a method whose detail can go wrong outside its training data fades that detail toward
-  its *safe fallback* (the PDM: the thin shell of the neutral and the static neutral map)
+  its *safe fallback* (the PDM: the thin shell of the detailed neutral and the static neutral map)
   by the confidence: ``fallback + c · (detail − fallback)`` (:func:`fade`), so a frame of
   confidence 0 is exactly the fallback — never worse than the input's large-scale motion.
 

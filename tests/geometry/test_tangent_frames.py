@@ -151,15 +151,20 @@ def test_tangent_frames_rejects_mismatched_uv_faces():
         tangent_frames(V, F, V[:3, :2], F)
 
 
-def test_frame_field_float32_agrees_with_float64_on_the_face_rig():
+def _face_rig_field():
+    """The face rig's FrameField and two expression poses far from the origin (float32 must
+    not lose the edges to the offset)."""
     from service.geometry.tangent_frames import FrameField
 
     V = RIG["neutral"].astype(np.float64)
     F = RIG["triangles"].astype(np.int64)
     uv, uv_faces = RIG["uv"].astype(np.float64), RIG["triangle_uv"].astype(np.int64)
     ff = FrameField.build(V, F, uv, uv_faces)
-    # a pose far from the origin: float32 must not lose the edges to the offset
-    poses = V + RIG["expression_deltas"][[5, 20]].astype(np.float64) + [300.0, -200.0, 150.0]
+    return ff, V + RIG["expression_deltas"][[5, 20]].astype(np.float64) + [300.0, -200.0, 150.0]
+
+
+def test_frame_field_float32_agrees_with_float64_on_the_face_rig():
+    ff, poses = _face_rig_field()
     f64, f32 = ff.frames(poses), ff.frames(poses, np.float32)
     assert f32.dtype == np.float32 and f64.dtype == np.float64
     assert np.abs(f32 - f64).max() < 2e-5                        # measured 4e-6
@@ -174,13 +179,7 @@ def test_frame_field_float32_agrees_with_float64_on_the_face_rig():
 def test_frame_field_float32_component_major_is_the_pose_major_path_bit_for_bit():
     """frames / to_world in float32 run component-major (FrameField._rows32); the (n,3)
     pose-major float32 arithmetic they replaced (_rows) gives the same bits, one pose or two."""
-    from service.geometry.tangent_frames import FrameField
-
-    V = RIG["neutral"].astype(np.float64)
-    F = RIG["triangles"].astype(np.int64)
-    uv, uv_faces = RIG["uv"].astype(np.float64), RIG["triangle_uv"].astype(np.int64)
-    ff = FrameField.build(V, F, uv, uv_faces)
-    poses = V + RIG["expression_deltas"][[5, 20]].astype(np.float64) + [300.0, -200.0, 150.0]
+    ff, poses = _face_rig_field()
     C = np.random.default_rng(0).normal(scale=2.0, size=poses.shape).astype(np.float32)
     T, B, N, has_n, lead = ff._rows(poses, np.float32)
     old_frames = np.stack([T, B, N], axis=-2)
@@ -193,3 +192,20 @@ def test_frame_field_float32_component_major_is_the_pose_major_path_bit_for_bit(
     np.testing.assert_array_equal(ff.to_world(poses, C, np.float32), old_world)
     np.testing.assert_array_equal(ff.frames(poses[1], np.float32), old_frames[1])
     np.testing.assert_array_equal(ff.to_world(poses[1], C[1], np.float32), old_world[1])
+
+
+def test_frame_field_to_frame_inverts_to_world_and_shares_the_rows():
+    """to_frame (world → frame coordinates, the PDM's shell fallback) is the einsum of the
+    float32 frames it replaced bit for bit, and the poses' rows (rows32) computed once serve both
+    it and to_world bit for bit."""
+    ff, poses = _face_rig_field()
+    W = np.random.default_rng(1).normal(scale=2.0, size=poses.shape).astype(np.float32)
+    rows = ff.rows32(poses)
+    local = ff.to_frame(poses, W, rows)
+    old = np.einsum("fnij,fnj->fni", ff.frames(poses, np.float32), W)
+    assert local.dtype == np.float32 and local.shape == W.shape
+    np.testing.assert_array_equal(local, old)          # the same float32 sums, x, y, z in order
+    np.testing.assert_array_equal(ff.to_frame(poses, W), local)
+    np.testing.assert_array_equal(ff.to_world(poses, W, np.float32, rows), ff.to_world(poses, W, np.float32))
+    np.testing.assert_allclose(ff.to_world(poses, local, np.float32), W, rtol=0, atol=1e-5)   # orthonormal frames
+    np.testing.assert_array_equal(ff.to_frame(poses[1], W[1]), local[1])

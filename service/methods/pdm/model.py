@@ -60,6 +60,7 @@ from scipy.ndimage import gaussian_filter
 
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normal_map import NormalMapper
+from service.geometry.thin_shell import thin_shell_basis
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
 from service.geometry.uv_raster import (
     UVRaster, interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
@@ -175,16 +176,18 @@ def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: 
 
 def medium_offsets(vertex: TexelBand, seam_average: sp.csr_matrix, neutral_offset: np.ndarray,
                    d1: np.ndarray, d2: np.ndarray, validity: Validity | None = None,
-                   rho: np.ndarray | None = None, lookup: SectorLookup | None = None) -> np.ndarray:
+                   rho: np.ndarray | None = None, lookup: SectorLookup | None = None,
+                   fallback: np.ndarray | None = None) -> np.ndarray:
     """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
     points of the band ``vertex`` (:func:`vertex_band`), seam-averaged ((n,K)) onto the
     vertices plus the neutral's static ``neutral_offset`` (n,3); with ρ (F,K)
-    (:mod:`.validity`), continued and faded outside the hull (``lookup``: the sector lookup
+    (:mod:`.validity`), continued, limited and faded outside the hull towards ``fallback``
+    (F,K,3) (:meth:`PdmEvaluator.shell_fallback`; None: 0) (``lookup``: the sector lookup
     of d1, d2 the gauge used, :meth:`.validity.Validity.lookup`)."""
     if rho is None:
         c = vertex.evaluate(d1, d2)                                             # (F,K,3)
     else:
-        c = validity.evaluate("vertex", vertex.coeffs, d1, d2, rho, lookup)
+        c = validity.evaluate("vertex", vertex.coeffs, d1, d2, rho, lookup, fallback)
     F, K = c.shape[:2]
     c = (seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
     return c.transpose(1, 0, 2) + neutral_offset
@@ -208,6 +211,10 @@ class PdmEvaluator:
     normal_mapper : NormalMapper    tangent-space normal maps at the fine resolution
     validity : Validity | None      where the polynomial holds (:mod:`.validity`; None when
                                     ``validity_width`` is None)
+    shell_correction : (n,M) float32   thin-shell basis of the detailed neutral minus the
+                                    smooth neutral's (:meth:`shell_fallback`)
+    shell_offset : (n,3) float64    detailed minus smooth neutral, world, mm
+    uv_vertex : (K,) int64          the vertex of each UV point
     """
 
     data: PdmData = dataclasses.field(repr=False)
@@ -220,6 +227,9 @@ class PdmEvaluator:
     fine_sampler: sp.csr_matrix
     normal_mapper: NormalMapper
     validity: Validity | None
+    shell_correction: np.ndarray
+    shell_offset: np.ndarray
+    uv_vertex: np.ndarray
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -231,7 +241,8 @@ class PdmEvaluator:
         ``derived.operators`` (:meth:`operators` of the evaluator that was saved, issue 23)
         replaces what the layout alone determines: the rasterization at the fine resolution,
         the barycentric parameter fields with the fine and albedo texels' element order, and
-        the sparse seam, sampling and validity operators (at level 1 most of a build: under
+        the sparse seam, sampling and validity operators, the detailed neutral's shell
+        correction (:meth:`shell_fallback`; a cache of this version without it derives it) (at level 1 most of a build: under
         cProfile, of 17.4 s wall, :func:`barycentric_operator` of the 700k texels took 11.9 s
         and ``rasterize_uv`` 2.4 s; the whole load measured 4.8 → 0.45 s of CPU, wall
         7.1 → 0.67 s at load average 4.4). They
@@ -278,11 +289,20 @@ class PdmEvaluator:
         else:
             raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
         texel_rho = {k: m for k in ("fine", "albedo") if (m := sparse_matrix(ops, f"{k}_texel_rho")) is not None}
+        detailed = detailed_neutral(base, d.neutral_offset)
+        correction = ops.get("shell_correction")
+        if correction is None:           # the detailed neutral's thin shell (seconds at level 0)
+            correction = np.asfortranarray(thin_shell_basis(detailed, d.faces, d.handles, dtype=np.float32)
+                                           - base.basis)
+        uv_vertex = np.zeros(K, np.int64)
+        uv_vertex[np.asarray(d.uv_faces).ravel()] = np.asarray(d.faces).ravel()
+        shell = (correction, detailed - base.smooth, uv_vertex)
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
             normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, n),
-            validity=_validity(d, base, bands, orders, seam, texel_rho))
+            validity=_validity(d, base, bands, orders, seam, shell, texel_rho), shell_correction=shell[0],
+            shell_offset=shell[1], uv_vertex=uv_vertex)
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -298,18 +318,20 @@ class PdmEvaluator:
                           limits={k: b.limit for k, b in self.bands.items()}, operators=self.operators())
 
     def operators(self) -> dict[str, np.ndarray]:
-        """What :meth:`build` derives from the data's layout alone, as named arrays for the
+        """What :meth:`build` derives from the data's layout and neutral alone (no training
+        statistics), as named arrays for the
         store (``derived.operators`` of a later build): ``version``
         (:data:`OPERATORS_VERSION`); ``<band>_field_*`` the bands' parameter fields
         (:meth:`.deformation.ParameterField.arrays`) and ``<band>_order`` the fine and albedo
-        texels' element order; the CSR matrices ``seam_average``, ``fine_sampler`` and
+        texels' element order; ``shell_correction`` (n,M) float32 the detailed neutral's
+        thin-shell basis less the base's (:meth:`shell_fallback`); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
         rasterization at the fine resolution (not held by the evaluator: rasterized again
         here, ~1 s at 1024²)."""
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
-               **sparse_members("fine_sampler", self.fine_sampler)}
+               **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction}
         for name, band in self.bands.items():
             out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
             if name != "vertex":
@@ -327,7 +349,8 @@ class PdmEvaluator:
         v = self.validity
         if v is None:
             return None
-        return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()}, v.sectors)
+        return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()}, v.sectors,
+                            v.sector_box)
 
     def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
         """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers."""
@@ -337,11 +360,18 @@ class PdmEvaluator:
         return pose, u_H, deformation_vectors(self.data.mesh, self.base.denoised_markers(aligned, u_H), offsets=u_H)
 
     def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
-                       lookup: SectorLookup | None = None) -> np.ndarray:
+                       lookup: SectorLookup | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
         """:func:`medium_offsets` (F,n,3) of this model for d1, d2 (F,K); with ρ (F,K), valid
-        (``lookup``: the gauge's sector lookup of d1, d2, reused)."""
+        (towards ``fallback`` (F,K,3), :meth:`shell_fallback`; ``lookup``: the gauge's sector
+        lookup of d1, d2, reused)."""
         return medium_offsets(self.vertex_band, self.seam_average, self.data.neutral_offset, d1, d2,
-                              self.validity, rho, lookup)
+                              self.validity, rho, lookup, fallback)
+
+    def shell_fallback(self, u_H: np.ndarray, X: np.ndarray, rows: list | None = None) -> np.ndarray:
+        """:func:`shell_fallback` (F,K,3) of this model for u_H (F,M,3) and the base surfaces X
+        (``rows``: their float32 frames, ``FrameField.rows32``, where already computed)."""
+        return shell_fallback(self.base, self.data.neutral_offset, self.shell_correction, self.shell_offset,
+                              self.uv_vertex, u_H, X, rows)
 
     def fine_band(self, S: np.ndarray, margin: float | None,
                   rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -364,12 +394,38 @@ def _members(arrays: dict, prefix: str) -> dict:
     return {k[n:]: v for k, v in arrays.items() if k.startswith(prefix + "_")}
 
 
+def detailed_neutral(base: BaseSurface, neutral_offset: np.ndarray) -> np.ndarray:
+    """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset (n,3)."""
+    return base.smooth + np.einsum("nji,nj->ni", base.frames(base.smooth), neutral_offset)
+
+
+def shell_fallback(base: BaseSurface, neutral_offset: np.ndarray, correction: np.ndarray, offset: np.ndarray,
+                   uv_vertex: np.ndarray, u_H: np.ndarray, X: np.ndarray | None = None,
+                   rows: list | None = None) -> np.ndarray:
+    """The medium band's fallback (F,K,3) float32 at the UV points (:mod:`.validity`, module
+    docstring 4.): the thin shell of the detailed neutral, ``V + B_det u_H`` (the *no
+    detail* result), for handle displacements u_H (F,M,3), as a medium offset from the base
+    surfaces ``X = X̄ + B u_H`` (F,n,3; computed when None) in their tangent frames, less the
+    static ``neutral_offset`` (n,3): ``Frame(X) (offset + (B_det − B) u_H) − neutral_offset``
+    with ``correction`` = B_det − B (n,M), ``offset`` = V − X̄ (n,3), taken at the UV points'
+    vertices ``uv_vertex`` (K,). 0 at the neutral. The frames are float32, as synthesis's
+    (``rows``: X's ``FrameField.rows32``, shared with synthesis's ``to_world``)."""
+    from service.geometry.thin_shell import apply_basis
+
+    X = base.deform(u_H) if X is None else X
+    world = (offset + apply_basis(correction, u_H)).astype(np.float32)                 # (F,n,3)
+    local = base.frame_field.to_frame(X, world, rows) - neutral_offset
+    return np.ascontiguousarray(local[:, uv_vertex], dtype=np.float32)
+
+
 def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
-              seam: sp.csr_matrix, texel_rho: dict | None = None) -> Validity | None:
+              seam: sp.csr_matrix, shell: tuple, texel_rho: dict | None = None) -> Validity | None:
     """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
     when ``params.validity_width`` is None (the extrapolation limit applies instead): the
     stored ``d.validity`` (its envelopes put in the bands' order ``orders``), or, for a model
-    stored without it, derived from ``d.S_train`` (seconds); ``texel_rho`` as
+    stored without it, derived from ``d.S_train`` (seconds). ``shell``: the evaluator's
+    (shell_correction, shell_offset, uv_vertex) (:meth:`PdmEvaluator.shell_fallback`), the
+    fallback the medium band's sector envelope and box are measured from; ``texel_rho`` as
     :meth:`.validity.Validity.build`'s."""
     if d.params.validity_width is None:
         return None
@@ -378,10 +434,17 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders
     def over_training(field):          # the field's (d1, d2) of the training S, a chunk at a time
         return lambda: (field(S[t:t + FRAME_CHUNK]) for t in range(0, len(S), FRAME_CHUNK))
 
+    def with_shell(field):             # ... and each frame's shell fallback (u_H: S's offsets)
+        def chunks():
+            for t in range(0, len(S), FRAME_CHUNK):
+                u_H = S[t:t + FRAME_CHUNK, :, :3]
+                yield (*field(S[t:t + FRAME_CHUNK]), shell_fallback(base, d.neutral_offset, *shell, u_H))
+        return chunks
+
     vb = bands["vertex"]
-    sectors = None if d.validity is None else d.validity.sectors
-    if sectors is None:                # the medium band's sector envelope (a second at level 0)
-        sectors = sector_envelope(vb.coeffs, over_training(vb.field), Validity.fallback("vertex", vb.coeffs))
+    stored = d.validity is not None and d.validity.sector_box is not None
+    sectors, box = (d.validity.sectors, d.validity.sector_box) if stored else \
+        sector_envelope(vb.coeffs, with_shell(vb.field), None, box=True)    # a few seconds at level 0
     if d.validity is not None:
         hull = d.validity.hull
         envelope = {k: d.validity.envelope[k][orders[k]] for k in bands}
@@ -391,7 +454,7 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders
                     for k, b in bands.items()}
     texels = {k: (b.resolution, b.index) for k, b in bands.items() if k != "vertex"}
     return Validity.build(hull, envelope, d.params.validity_width, d.params.validity_slope, d.uv,
-                          d.uv_faces, seam, base.smooth, d.faces, texels, sectors, texel_rho)
+                          d.uv_faces, seam, base.smooth, d.faces, texels, sectors, box, texel_rho)
 
 
 class PdmModel:
@@ -435,8 +498,7 @@ class PdmModel:
 
     def neutral(self) -> np.ndarray:
         """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset."""
-        base = self.evaluator.base
-        return base.smooth + np.einsum("nji,nj->ni", base.frames(base.smooth), self.data.neutral_offset)
+        return detailed_neutral(self.evaluator.base, self.data.neutral_offset)
 
     # ------------------------------------------------------------------ synthesis
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
@@ -506,7 +568,10 @@ class PdmModel:
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
-            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup), np.float32)
+            xrows = ev.base.frame_field.rows32(X)      # X's float32 frames: the fallback's and to_world's
+            fallback = None if rho is None else ev.shell_fallback(u_H, X, xrows)
+            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup, fallback), np.float32,
+                                                      xrows)
             if "vertices" in out:
                 out["vertices"][sl] = pose.restore(medium)
             if fine:                            # mesh only: the fine band is not evaluated

@@ -13,8 +13,10 @@ Layout (DESIGN.md "Data and storage"):
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived);
 * ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
   ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
-  order); written when the model has them; a model directory without it (stored before
-  they were kept) derives them from ``S_train`` at load (seconds);
+  order, the medium band's ``sectors`` and ``sector_box`` against the thin shell of the
+  detailed neutral); written when the model has them; a model directory without it (stored
+  before they were kept), or without ``sector_box``, derives them from ``S_train`` at load
+  (seconds);
 * ``cache.npz``   derived data that loading would otherwise recompute (the thin-shell
   basis and handle energy, the extrapolation limits per texel, and each map's covered
   texels ``<band>_index`` with their coefficients ``<band>_coeffs`` (P,C,K) float32, the
@@ -22,7 +24,8 @@ Layout (DESIGN.md "Data and storage"):
   optional (a model directory without it, or without the coefficients, loads, more
   slowly: the EXRs are decoded); ``op_<name>`` the evaluator's operators
   (:meth:`.model.PdmEvaluator.operators`: rasterization, parameter fields, sparse
-  sampling matrices; issue 23: a level-1 load 4.8 → 0.45 s of CPU; a model stored without them
+  sampling matrices, the detailed neutral's shell basis less the base's
+  ``op_shell_correction``; issue 23: a level-1 load 4.8 → 0.45 s of CPU; a model stored without them
   derives them at load, as before); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
@@ -136,7 +139,8 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
     if model.validity is not None:
         files[VALIDITY] = write_npz(path / VALIDITY, {"hull": model.validity.hull, **{
             f"{name}_envelope": e for name, e in model.validity.envelope.items()}, **(
-            {} if model.validity.sectors is None else {"sectors": model.validity.sectors})})
+            {} if model.validity.sectors is None else {"sectors": model.validity.sectors}), **(
+            {} if model.validity.sector_box is None else {"sector_box": model.validity.sector_box})})
     cache = {"basis": derived.basis, "energy": derived.energy}
     for name, limit in derived.limits.items():
         cache[f"{name}_limit"] = limit
@@ -221,7 +225,8 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     validity = None
     if VALIDITY in data:
         v = npz_mapped(data[VALIDITY])
-        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")}, v.get("sectors"))
+        validity = ValidityData(v["hull"], {k[:-9]: v[k] for k in v if k.endswith("_envelope")}, v.get("sectors"),
+                                v.get("sector_box"))
     model = PdmData(params=params, faces=F, uv=uv, uv_faces=uvf, smooth=a["smooth"], handles=a["handles"],
                     rest_markers=a["rest_markers"], prior_scale_mm=float(a.get("marker_prior_scale_mm", np.nan)),
                     mesh=mesh, axes=axes, pose_weights=a["pose_weights"], S_train=a["S_train"],

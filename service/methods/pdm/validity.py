@@ -29,10 +29,34 @@ only clamps), nor a nearest-sample distance separates those points. So two guard
    detail in the direction of d, with the hull's angular kernel κ, linear between sectors
    — replaces E for the vertex band: ``E(θ) ≤ E``. One scalar E per point lets a
    combination keep the largest detail of *any* trained expression (a mouth corner's smile
-   offset) in a direction where training only saw small detail.
+   offset) in a direction where training only saw small detail;
+4. **shell fallback and sector box** of the medium band (issue 17, "never worse than the
+   thin shell"): the vertex band's fallback is, per frame, the *no detail* result itself —
+   the thin shell of the detailed neutral ``V + B_det u_H``, as an offset in the base's
+   frames (:func:`~service.methods.pdm.model.shell_fallback`) — and, per UV point, sector
+   and channel, the detail ``D(d_t) − fallback_t`` is bounded by the box
+   ``[min_t κ (D − fb)_t, max_t κ (D − fb)_t]`` of the training frames (0 included), the
+   sector envelope's kernel, ``(1 + margin)`` × it applied per channel before the norm
+   limit. The sector envelope is then measured against the same per-frame fallback.
 
-Then, with the method's safe *fallback* (0 for the medium PDM: the thin shell of the
-neutral, its static detail kept; the constant term a5 for the fine and albedo PDMs: the
+   Measured first (family a, level 0, biquadratic; every frame of the held-out
+   performances, face): the former fallback (the smooth neutral's thin shell plus the
+   neutral's offset carried in its frames) is itself worse than the thin shell of the
+   detailed neutral: max 6.33 / 8.95 / 10.98 mm against 5.19 / 7.31 / 8.40 (in range /
+   combinations / out of range), worse on 153/154, 100/125 and 120/122 frames, the
+   difference up to 3.5 mm at the lips (the two shells' bases differ there): no fade to it
+   could meet the target. The worst PDM vertices (mouth corners, lips: 6643, 6417, 6056)
+   lie *inside* their hulls (ρ 0.55–0.77, confidence 1) with the detail's norm within its
+   sector envelope, but its direction opposite to what training showed in that sector
+   (v6643, combinations frame 74: D = (3.3, 2.7, 4.8) mm where the nearest training frame,
+   3.2 away in |d| ≤ 38, had (4.0, −1.1, −0.5)): the off-ray null direction of the fit, which a
+   norm bound cannot see and the per-channel box does. Fallback alone: max 4.17 / 8.63 /
+   9.12 mm (from 4.17 / 8.63 / 10.59); with the box: 4.17 / 7.18 / 8.81, mean 0.196 /
+   0.317 / 0.253 → 0.194 / 0.307 / 0.242 mm (thin shell 0.266 / 0.396 / 0.501).
+
+Then, with the method's safe *fallback* (for the medium PDM the thin shell of the detailed
+neutral, 4.; 0 — the smooth neutral's shell with its static detail kept — where no per-frame
+fallback is given; the constant term a5 for the fine and albedo PDMs: the
 static neutral map)
 
     D̃(d) = fallback + w(ρ) · s · (L(d) − fallback),
@@ -179,39 +203,58 @@ class SectorLookup:
         return cls(k0, upper, t, int(K))
 
     def values(self, table_points: np.ndarray) -> np.ndarray:
-        """The table (P,K) at the looked-up directions, linear between sectors (…,P)."""
+        """The table (P,K) at the looked-up directions, linear between sectors (…,P); a table
+        of channels (P,K,…) (the sector box (P,K,2,3)) gives (…,P,…), the sectors found once
+        for all C channels (flat index ``lower · C + c``)."""
         if table_points.shape[1] != self.K:
             raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {table_points.shape[1]}")
-        flat = np.asarray(table_points).ravel()
+        flat = np.ascontiguousarray(table_points).ravel()
+        if table_points.ndim > 2:
+            channels = table_points.shape[2:]
+            C = int(np.prod(channels))
+            chan = np.arange(C)
+            t = self.t[..., None]
+            out = ((1 - t) * np.take(flat, self.lower[..., None] * C + chan)
+                   + t * np.take(flat, self.upper[..., None] * C + chan))
+            return out.reshape(*out.shape[:-1], *channels)
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
 
 def point_sector_values(d1: np.ndarray, d2: np.ndarray, table_points: np.ndarray) -> np.ndarray:
     """A per-sector table, point-major (P,K), at the direction θ of d1, d2 (…,P), linear
-    between sectors (:func:`point_gauge`'s flat gather; :class:`SectorLookup`)."""
+    between sectors (:func:`point_gauge`'s flat gather; :class:`SectorLookup`); a table of C
+    channels (P,K,C) gives (…,P,C)."""
     return SectorLookup.of(d1, d2, table_points.shape[1]).values(table_points)
 
 
-def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
-                    fallback: np.ndarray, K: int = DIRECTIONS, reach: float = REACH) -> np.ndarray:
+def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, ...]]],
+                    fallback: np.ndarray | None, K: int = DIRECTIONS, reach: float = REACH,
+                    box: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Sector envelope (K,P) float32 (module docstring, 3.): ``E_k = max_t ‖D(d_t) −
-    fallback‖ κ(θ_t − θ_k)`` of the band's polynomial (P,C,K') on its training parameters
-    (chunks of (t,P) d1, d2), κ the kernel of :func:`training_hull`; ``fallback`` (P,C).
+    fallback_t‖ κ(θ_t − θ_k)`` of the band's polynomial (P,C,K') on its training parameters
+    (chunks of (t,P) d1, d2), κ the kernel of :func:`training_hull`; ``fallback`` (P,C), or
+    None when the chunks carry each frame's fallback as a third item (t,P,C) (the medium
+    band's thin shell of the detailed neutral, module docstring 4.).
     Samples at rest (radius ≤ ``REST_RADIUS`` × the point's largest) count in every sector —
     at d → 0 the direction is undefined, so every sector holds at least the neutral's detail
     and the limit is continuous there. A sector no other training frame reached holds just
-    that (beyond it the detail is limited towards the fallback)."""
+    that (beyond it the detail is limited towards the fallback).
+
+    With ``box`` also the sector box (2,K,P,C) float32 (module docstring, 4.): per channel
+    the smallest and largest ``κ (D(d_t) − fallback_t)`` (with 0: the fallback is always
+    inside), returned as ``(envelope, box)``."""
     from service.methods.pdm.polynomial import evaluate
 
     a = np.asarray(coeffs, np.float32)
     theta = directions(K)
     env = np.zeros((K, len(a)), np.float32)
+    lo_hi = np.zeros((2, K, len(a), a.shape[1]), np.float32) if box else None
     r_max = np.zeros(len(a))
-    for d1, d2 in chunks():                                       # the points' largest radius
+    for d1, d2, *_ in chunks():                                   # the points' largest radius
         np.maximum(r_max, np.hypot(np.asarray(d1, np.float64), d2).max(axis=0), out=r_max)
-    for d1, d2 in chunks():
+    for d1, d2, *fb in chunks():
         d1, d2 = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
-        D = evaluate(a, d1, d2) - fallback
+        D = evaluate(a, d1, d2) - (fb[0] if fb else fallback)
         norm = np.sqrt(np.einsum("tpc,tpc->tp", D, D))
         ang = np.arctan2(d2.astype(np.float64), d1)
         rest = np.hypot(d1.astype(np.float64), d2) <= REST_RADIUS * r_max
@@ -219,7 +262,11 @@ def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.n
             kappa = _kappa(ang, t, K, reach)
             kappa[rest] = 1.0
             np.maximum(env[k], (norm * kappa).max(axis=0), out=env[k])
-    return env
+            if box:
+                scaled = D * kappa[..., None].astype(np.float32)
+                np.minimum(lo_hi[0, k], scaled.min(axis=0), out=lo_hi[0, k])
+                np.maximum(lo_hi[1, k], scaled.max(axis=0), out=lo_hi[1, k])
+    return (env, lo_hi) if box else env
 
 
 def training_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
@@ -255,27 +302,37 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
 
 def valid_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray,
                      envelope: np.ndarray, fallback: np.ndarray, width: float, slope: float,
-                     margin: float = 0.25) -> np.ndarray:
+                     margin: float = 0.25, box: np.ndarray | None = None) -> np.ndarray:
     """D̃ (F,P,C) float32, C-contiguous, of the polynomial ``coeffs`` (P,C,K) at d1, d2 (F,P)
     with gauge ρ (F,P) (module docstring): the continued polynomial L
     (:func:`~service.methods.pdm.polynomial.evaluate` with ``rho``, D(d) bit for bit where
-    ρ ≤ 1), then :func:`fade_detail`. Dense over the points: no gather of the points outside."""
+    ρ ≤ 1), then :func:`fade_detail` (``box``: its sector box at d's direction). Dense over
+    the points: no gather of the points outside."""
     values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2, rho, slope))
-    return fade_detail(values, rho, envelope, fallback, width, margin)
+    return fade_detail(values, rho, envelope, fallback, width, margin, box)
 
 
 def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray,
-         width: float, margin: float = 0.25) -> np.ndarray:
+                width: float, margin: float = 0.25, box: np.ndarray | None = None) -> np.ndarray:
     """``fallback + w · (L − fallback)`` (F,P,C) of the continued values L (F,P,C), in place:
     ``w = min(1, (1 + margin) E / ‖L − fallback‖) · falloff(ρ − 1, width)`` (module
-    docstring) with E the ``envelope`` (P,) or (F,P), fallback (P,C), ρ (F,P).
+    docstring) with E the ``envelope`` (P,) or (F,P), fallback (P,C) or per frame (F,P,C),
+    ρ (F,P). With ``box`` (2,F,P,C), the smallest and largest training detail at d's
+    direction (:func:`sector_envelope`), ``L − fallback`` is first clipped per channel to
+    ``(1 + margin)`` × that box (module docstring, 4.).
 
     float32 for float32 values: points of ρ ≤ 1 (falloff exactly 1) are the old gathered
     evaluation bit for bit; at ρ > 1 the falloff is evaluated in float32 (≤ 2 ulp of w).
-    Points of w = 1 keep their values unchanged (bit for bit)."""
+    Points of w = 1 that the box does not clip keep their values unchanged (bit for bit)."""
     dtype = values.dtype
-    const = np.ascontiguousarray(fallback, dtype=dtype)                         # (P,C)
+    const = np.ascontiguousarray(fallback, dtype=dtype)                         # (P,C) or (F,P,C)
     detail = values - const
+    clipped = None
+    if box is not None:
+        bound = np.asarray(box, dtype) * dtype.type(1 + margin)
+        inside = np.clip(detail, bound[0], bound[1])
+        clipped = np.any(inside != detail, axis=-1)                            # (F,P)
+        detail = inside
     if detail.shape[-1] == 1:
         norm = detail[..., 0] * detail[..., 0]
         np.sqrt(norm, out=norm)
@@ -288,6 +345,8 @@ def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallb
     if np.any(outside):
         w *= np.where(outside, falloff(np.asarray(rho, dtype) - dtype.type(1), width, dtype), dtype.type(1))
     fading = w < 1                                   # the others stay bit-identical to L
+    if clipped is not None:
+        fading |= clipped
     if np.any(fading):
         detail *= w[..., None]
         detail += const
@@ -307,11 +366,16 @@ class ValidityData:
     sectors : (D,Q) float32 or None   the medium band's sector envelope
                                   (:func:`sector_envelope`); None: stored before it existed
                                   (derived at load)
+    sector_box : (2,D,Q,3) float32 or None   the medium band's sector box, relative to the
+                                  thin shell of the detailed neutral (module docstring, 4.),
+                                  as ``sectors`` then is; None: stored before (both derived
+                                  at load, ``sectors`` having been relative to 0)
     """
 
     hull: np.ndarray
     envelope: dict
     sectors: np.ndarray | None = None
+    sector_box: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -328,6 +392,10 @@ class Validity:
     sector_points : (Q,K) float32 or None   the medium band's sector envelope
                                   (:func:`sector_envelope`), point-major as ``hull_points``
                                   (``sectors`` is the (K,Q) form); None: the scalar envelope only
+    box_points : (Q,K,2,3) float32 or None   the medium band's sector box (lo, hi) point-major,
+                                  both bounds of a sector adjacent (one gather of 6 channels;
+                                  ``sector_box`` is the stored (2,K,Q,3) form), relative to
+                                  the per-frame fallback the vertex band is given
     """
 
     hull_points: np.ndarray
@@ -338,12 +406,13 @@ class Validity:
     vertex_rho: sp.csr_matrix
     vertex_weight: np.ndarray
     sector_points: np.ndarray | None = None
+    box_points: np.ndarray | None = None
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
               uv_faces: np.ndarray, seam_average: sp.csr_matrix, vertices: np.ndarray,
               faces: np.ndarray, bands: dict, sectors: np.ndarray | None = None,
-              texel_rho: dict | None = None) -> "Validity":
+              sector_box: np.ndarray | None = None, texel_rho: dict | None = None) -> "Validity":
         """``bands``: name → (resolution, index (P,)) of the texel bands that take ρ from the
         UV points; ``vertices`` (n,3), ``faces`` (m,3) the mesh whose areas weigh the frame;
         ``texel_rho``: name → the (P,K) CSR UV points → texels of a band, where already
@@ -357,7 +426,9 @@ class Validity:
                            minlength=len(vertices)) / 3
         return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,
                    seam_average.tocsr(), area,
-                   None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T))
+                   None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T),
+                   None if sector_box is None else np.ascontiguousarray(
+                       np.asarray(sector_box, np.float32).transpose(2, 1, 0, 3)))
 
     def lookup(self, d1: np.ndarray, d2: np.ndarray) -> SectorLookup:
         """The :class:`SectorLookup` of parameters d1, d2 (F,Q) at the UV points, for
@@ -379,22 +450,35 @@ class Validity:
         """The sector envelope (K,Q) float32 (:func:`sector_envelope`'s layout, as stored)."""
         return None if self.sector_points is None else np.ascontiguousarray(self.sector_points.T)
 
+    @property
+    def sector_box(self) -> np.ndarray | None:
+        """The sector box (2,K,Q,3) float32 (:func:`sector_envelope`'s layout, as stored)."""
+        return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
+
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
         """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
         return np.ascontiguousarray((self.texel_rho[name] @ rho.T).T, dtype=np.float32)
 
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
-                 rho: np.ndarray, lookup: SectorLookup | None = None) -> np.ndarray:
+                 rho: np.ndarray, lookup: SectorLookup | None = None,
+                 fallback: np.ndarray | None = None) -> np.ndarray:
         """D̃ (F,P,C) of band ``name`` (coefficients (P,C,K)) at d1, d2, ρ (F,P)
-        (:func:`valid_polynomial`); the vertex band with its sector envelope at d's
-        direction, when there is one (``lookup``: the :meth:`lookup` of d1, d2 if made)."""
-        envelope = self.envelope[name]
-        if name == "vertex" and self.sector_points is not None:
+        (:func:`valid_polynomial`) towards ``fallback`` (F,P,C) (None: :meth:`fallback`); the
+        vertex band with its sector envelope and sector box at d's direction, when there
+        are (the box only with the per-frame fallback it was measured against), both read
+        through one :class:`SectorLookup` (``lookup``: the :meth:`lookup` of d1, d2 if made)."""
+        envelope, box = self.envelope[name], None
+        if name == "vertex" and (self.sector_points is not None or self.box_points is not None):
             if lookup is None:
-                lookup = SectorLookup.of(d1, d2, self.sector_points.shape[1])
-            envelope = lookup.values(self.sector_points)
-        return valid_polynomial(coeffs, d1, d2, rho, envelope, self.fallback(name, coeffs),
-                                self.width, self.slope)
+                table = self.sector_points if self.sector_points is not None else self.box_points
+                lookup = SectorLookup.of(d1, d2, table.shape[1])
+            if self.sector_points is not None:
+                envelope = lookup.values(self.sector_points)
+            if self.box_points is not None and fallback is not None:
+                box = np.moveaxis(lookup.values(self.box_points), -2, 0)              # (2,F,Q,3)
+        return valid_polynomial(coeffs, d1, d2, rho, envelope,
+                                self.fallback(name, coeffs) if fallback is None else fallback,
+                                self.width, self.slope, box=box)
 
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
@@ -404,8 +488,10 @@ class Validity:
 
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
-        """The safe fallback (P,C) of band ``name``: 0 for the medium PDM (``vertex``: the thin
-        shell of the neutral), the constant term a5 otherwise (the static neutral map)."""
+        """The static fallback (P,C) of band ``name``: 0 for the medium PDM (``vertex``: the
+        smooth neutral's thin shell with the neutral's offset; synthesis passes the per-frame
+        thin shell of the detailed neutral instead, module docstring 4.), the constant term
+        a5 otherwise (the static neutral map)."""
         return np.zeros(coeffs.shape[:2], np.float32) if name == "vertex" else coeffs[:, :, -1]
 
     def confidence(self, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,3 +30,30 @@ def test_confidence_decreases_with_the_distance_beyond_training(pdm_model, pdm_d
     # far outside the detail fades to the fallback: the medium offsets are the neutral's
     far = pdm_model.synthesize(frames[-1:] , ("mesh",))
     assert far[CONFIDENCE][0] < c[0]
+
+
+def test_the_medium_fallback_is_the_thin_shell_of_the_detailed_neutral(pdm_model, pdm_data):
+    """Issue 17: at confidence 0 the mesh is the *no detail* result, the detailed neutral
+    deformed by the linear thin shell (``V + B_det u_H``); the fallback is 0 at the neutral."""
+    from service.geometry.thin_shell import thin_shell_basis
+    from service.methods.pdm.base_surface import BaseSurface
+
+    actor, clips = pdm_data
+    ev = pdm_model.evaluator
+    rest = ev.base.rest_markers[None]
+    assert np.abs(ev.shell_fallback(np.zeros((1, pdm_model.n_markers, 3)), ev.base.smooth[None])).max() < 1e-5
+    peak = clips[3].markers[10]
+    pose = ev.deformation(peak[None])[0]
+    aligned = pose.remove(peak[None])[0]
+    far = pose.restore((rest[0] + 8.0 * (aligned - rest[0]))[None])
+    out = pdm_model.synthesize(far, ("mesh",))
+    w = out[VERTEX_CONFIDENCE][0]
+    pose, u_H, _ = ev.deformation(far)
+    det = BaseSurface.from_smooth(actor.vertices, actor.faces, actor.uv, actor.uv_faces, ev.base.handles,
+                                  ev.base.rest_markers)
+    shell = pose.restore(det.deform(u_H))[0]
+    faded = w == 0
+    assert faded.mean() > 0.2
+    assert np.abs(out["vertices"][0][faded] - shell[faded]).max() < 1e-3          # mm (float32 frames)
+    assert np.allclose(thin_shell_basis(actor.vertices, actor.faces, ev.base.handles, dtype=np.float32),
+                       ev.base.basis + ev.shell_correction, atol=1e-5)

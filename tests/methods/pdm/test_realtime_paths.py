@@ -118,7 +118,7 @@ def test_point_major_gauge_is_the_old_gauge_bit_for_bit(pdm_model, frames):
 def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, frames):
     """The frame's :class:`SectorLookup` (made once) reads the hull and the sector envelope
     as the per-table lookups did (the old gauge, the old sector values), bit for bit."""
-    from service.methods.pdm.validity import SectorLookup
+    from service.methods.pdm.validity import SectorLookup, point_sector_values
 
     v = pdm_model.evaluator.validity
     d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
@@ -129,6 +129,15 @@ def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, f
     rho = v.gauge(d1, d2, lookup)
     coeffs = pdm_model.evaluator.vertex_band.coeffs
     assert np.array_equal(v.evaluate("vertex", coeffs, d1, d2, rho, lookup), v.evaluate("vertex", coeffs, d1, d2, rho))
+    # the sector box's bounds (Q,K,2,3) through the same lookup, as each bound's own gather
+    assert v.box_points is not None
+    both = lookup.values(v.box_points)                                          # (F,Q,2,3)
+    for i, bound in enumerate(v.sector_box):                                    # (K,Q,3) each
+        assert np.array_equal(both[..., i, :], point_sector_values(d1, d2, np.ascontiguousarray(bound.transpose(1, 0, 2))))
+    fallback = pdm_model.evaluator.shell_fallback(frames[..., :3], None)
+    shared = v.evaluate("vertex", coeffs, d1, d2, rho, lookup, fallback)
+    assert np.array_equal(shared, v.evaluate("vertex", coeffs, d1, d2, rho, fallback=fallback))
+    assert not np.array_equal(shared, v.evaluate("vertex", coeffs, d1, d2, rho, lookup))    # the box and fallback act
     with pytest.raises(ValueError):
         SectorLookup.of(d1, d2, 8).values(v.sector_points)
 

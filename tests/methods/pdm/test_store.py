@@ -167,8 +167,9 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     """Issue 23 (cold start): cache.npz holds the evaluator's operators (rasterization,
     parameter fields, element orders, sparse seam/sampling/validity matrices); a load maps
     them instead of deriving them, and synthesizes every output bit for bit as the trained
-    model, as a directory whose cache predates them (which derives them), and as operators
-    of another version (derived anew)."""
+    model, as a directory whose cache predates them (which derives them), as operators
+    of another version (derived anew), and as operators without the shell correction
+    (derived alone)."""
     import dataclasses
     import shutil
 
@@ -183,7 +184,8 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     cache = npz_arrays((path / "cache.npz").read_bytes())
     assert {"op_version", "op_fine_order", "op_fine_field_mono", "op_vertex_field_sorting_order",
             "op_fine_sampler_data", "op_seam_average_indptr", "op_fine_texel_rho_data",
-            "op_albedo_texel_rho_data", "op_raster_triangle", "op_raster_barycentric"} <= cache.keys()
+            "op_albedo_texel_rho_data", "op_raster_triangle", "op_raster_barycentric",
+            "op_shell_correction"} <= cache.keys()
     assert cache["op_raster_triangle"].shape == (128, 128) and cache["op_raster_barycentric"].dtype == np.float32
     older = tmp_path / "older"
     shutil.copytree(path, older)
@@ -193,8 +195,13 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     (older / "manifest.json").write_text(json.dumps(m))
     data, derived = read_model(path)
     other = dataclasses.replace(derived, operators={**derived.operators, "version": np.int64(pdm.OPERATORS_VERSION + 1)})
+    no_shell = dataclasses.replace(derived, operators={k: v for k, v in derived.operators.items()
+                                                       if k != "shell_correction"})    # this version, before it
     mapped, built = PdmModel.load(path), PdmModel.load(older)
     rebuilt = PdmModel(data, pdm.PdmEvaluator.build(data, derived=other))
+    shell = PdmModel(data, pdm.PdmEvaluator.build(data, derived=no_shell))
+    assert file_mapped(mapped.evaluator.shell_correction) and not file_mapped(shell.evaluator.shell_correction)
+    np.testing.assert_array_equal(shell.evaluator.shell_correction, mapped.evaluator.shell_correction)
     ev = mapped.evaluator
     assert file_mapped(ev.fine.field.mono) and file_mapped(ev.fine_sampler.data) and file_mapped(ev.seam_average.indices)
     assert file_mapped(ev.validity.texel_rho["fine"].data) and not file_mapped(ev.fine.field.element)
@@ -206,7 +213,7 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     outputs = get_kind("pdm").outputs
     a = pdm_model.synthesize(markers, outputs=outputs)
     assert {"vertices", "vertices_detailed", "normal_map", "albedo", "displacement"} <= a.keys()
-    for model in (mapped, built, rebuilt):
+    for model in (mapped, built, rebuilt, shell):
         b = model.synthesize(markers, outputs=outputs)
         assert a.keys() == b.keys()
         for key in a:

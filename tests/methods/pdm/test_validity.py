@@ -120,3 +120,55 @@ def test_vertex_band_uses_the_sector_envelope_and_others_the_scalar_one():
     assert want > 0.1 and got == 0.0
     assert apply(scalar, "vertex", 0.05, 0.05)[0] == want     # the scalar envelope (8) keeps it
     assert apply(v, "fine", 0.05, 0.05)[0] == want            # texel bands: the scalar envelope
+
+
+# --- the sector box and the per-frame shell fallback (issue 17, step 1) -------------------
+
+
+def test_sector_box_is_the_training_detail_per_channel_against_each_frames_fallback():
+    from service.methods.pdm.validity import sector_envelope
+
+    r = np.linspace(0, 2, 5, dtype=np.float32)[:, None]          # training on the +d1 ray
+    fb = np.linspace(0, 1, 5, dtype=np.float32)[:, None, None]    # each frame's fallback (t,P,C)
+    coeffs = np.concatenate([COEFFS, -COEFFS], axis=1)            # channels D and −D
+    env, box = sector_envelope(coeffs, lambda: iter([(r, np.zeros_like(r), fb)]), None, box=True)
+    assert box.shape == (2, DIRECTIONS, 1, 2)
+    detail = np.stack([D(r[:, 0], 0) - fb[:, 0, 0], -D(r[:, 0], 0) - fb[:, 0, 0]], -1)   # (t,C)
+    # on the ray: the channels' extremes over the frames, with 0 (the fallback) always inside
+    assert box[0, 0, 0] == pytest.approx(np.minimum(detail.min(0), 0))
+    assert box[1, 0, 0] == pytest.approx(np.maximum(detail.max(0), 0))
+    assert env[0, 0] == pytest.approx(np.linalg.norm(detail, axis=1).max())
+    # opposite the ray only the rest sample (d = 0: D − fb = 0.5, −0.5) counts
+    assert box[:, DIRECTIONS // 2, 0].ravel() == pytest.approx([0.0, -0.5, 0.5, 0.0])
+
+
+def test_point_sector_values_of_channels_are_each_channels_values():
+    from service.methods.pdm.validity import point_sector_values
+
+    rng = np.random.default_rng(1)
+    table = rng.normal(size=(4, DIRECTIONS, 3)).astype(np.float32)
+    d1, d2 = rng.normal(size=(2, 2, 4)).astype(np.float32)
+    got = point_sector_values(d1, d2, table)
+    assert got.shape == (2, 4, 3)
+    for c in range(3):
+        assert np.array_equal(got[..., c], point_sector_values(d1, d2, np.ascontiguousarray(table[..., c])))
+
+
+def test_the_box_clips_each_channel_and_the_fade_reaches_each_frames_fallback():
+    from service.methods.pdm.validity import fade_detail
+
+    fb = np.array([[[1.0, -1.0]], [[2.0, 0.0]]], np.float32)      # per frame (F=2,P=1,C=2)
+    box = np.array([[[[-1.0, -1.0]]] * 2, [[[1.0, 0.5]]] * 2], np.float32)   # (2,F,P,C)
+    big = np.float32(1e9)
+    # inside the region: (1 + margin) × box = [−1.25, 1.25] × [−1.25, 0.625] per channel
+    values = fb + np.array([[[0.5, 3.0]], [[-3.0, 0.1]]], np.float32)
+    out = fade_detail(values.copy(), np.full((2, 1), 0.5, np.float32), np.full((2, 1), big), fb, 1.0, 0.25, box)
+    assert out[0, 0] == pytest.approx(fb[0, 0] + [0.5, 0.625])
+    assert out[1, 0] == pytest.approx(fb[1, 0] + [-1.25, 0.1])
+    # detail within the box, inside the region: the values unchanged, bit for bit
+    inside = fb + np.float32(0.1)
+    assert np.array_equal(fade_detail(inside.copy(), np.full((2, 1), 0.5, np.float32), np.full((2, 1), big),
+                                      fb, 1.0, 0.25, box), inside)
+    # far outside (ρ ≥ 1 + width): exactly each frame's fallback
+    far = fade_detail(values.copy(), np.full((2, 1), 2.5, np.float32), np.full((2, 1), big), fb, 1.0, 0.25, box)
+    assert np.array_equal(far, fb)
