@@ -34,7 +34,7 @@ import os
 import re
 import zipfile
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any, BinaryIO, Mapping, Sequence
 
 import numpy as np
 
@@ -463,6 +463,26 @@ class ClipForm:
     frames: list[tuple[str, bytes]]
     markers: tuple[str, bytes]
     fps: float | None
+
+
+@dataclass
+class TrackingForm:
+    """The parts of a multipart tracking upload (file parts as spooled file objects), read
+    by :func:`service.app.tracking.submit_tracking`.
+
+    Attributes
+    ----------
+    cameras : bytes or None;  params : str or None
+    scans : list of (filename, file);  scan_images : (filename, file) or None
+    frames : list of (filename, file);  scan_maps : (filename, file) or None
+    """
+
+    cameras: bytes | None
+    scans: list[tuple[str, BinaryIO]] = field(default_factory=list)
+    scan_images: tuple[str, BinaryIO] | None = None
+    frames: list[tuple[str, BinaryIO]] = field(default_factory=list)
+    params: str | None = None
+    scan_maps: tuple[str, BinaryIO] | None = None
 
 
 def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,
