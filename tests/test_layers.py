@@ -5,6 +5,9 @@ stays within its own package, and no modules import each other in a cycle."""
 from __future__ import annotations
 
 import ast
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -171,3 +174,26 @@ def test_benchmarks_share_code_only_through_the_harness():
     assert "harness" in scripts and "pose_space_l2_speed_model" in scripts
     found = {name: _imports(path, name, set(scripts)) - {name, "harness"} for name, path in scripts.items()}
     assert {k: v for k, v in found.items() if v} == BENCHMARK_IMPORTS_PENDING
+
+
+#: modules ``facesynth serve`` imports before its first frame must not pull in (issue 23):
+#: the tasks' methods, imported where a job runs (the runner's ``TASKS``)
+SERVE_NEVER_IMPORTS = ("service.jobs.tasks.synthesize", "service.jobs.tasks.track",
+                       "service.jobs.tasks.register", "service.jobs.tasks.correspond",
+                       "service.jobs.frame_usd", "service.io.usd")
+
+
+def test_serve_imports_no_task_methods_until_a_job_runs():
+    """What ``cmd_serve`` imports (services, gRPC server, HTTP app, maintenance thread) leaves
+    the task modules above unimported; the runner's table, read once, imports every task."""
+    code = ("import sys, service.app.services, service.grpc.server, service.api.app, "
+            "service.jobs.worker\n"
+            f"print(sorted(m for m in {SERVE_NEVER_IMPORTS!r} if m in sys.modules))\n"
+            "from service.jobs import tasks\n"
+            "print(sorted(tasks.TASKS), tasks.TASKS is tasks.TASKS, "
+            f"all(m in sys.modules for m in {SERVE_NEVER_IMPORTS[:4]!r}))")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
+                         text=True, check=True).stdout.splitlines()
+    assert out == ["[]", "['bone_rig', 'correspond', 'register', 'synthesize', 'track', "
+                   "'track_span', 'train', 'transfer'] True True"]

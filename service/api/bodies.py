@@ -17,8 +17,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import BodyTooLarge, problem
 from service.app.limits import MULTIPART_MAX_FIELD_BYTES, MULTIPART_MAX_FILES
-from service.app.tracking import TrackingForm
-from service.app.uploads import JSON_TYPE, MESH_TYPES, NPZ_TYPES, OBJ_TYPES, ClipForm
+from service.app.uploads import (JSON_TYPE, MESH_TYPES, NPZ_TYPES, OBJ_TYPES, ClipForm,
+                                 TrackingForm)
 from service.errors import InvalidInput, MalformedInput, UnsupportedFormat
 
 

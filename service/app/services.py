@@ -25,11 +25,11 @@ from models_store.cache import ByteLRUCache
 from service.app.limits import REGISTRATION_CACHE_BYTES
 from service.app.marker_units import MarkerReference, face_unit, layout_positions
 from service.app.memory import release_free_heap
-from service.app.uploads import neutral_arrays
 from service.config import Settings
 from service.methods.footprint import nbytes
 from service.errors import Conflict
 from service.methods.kinds import Kind, get_kind
+from service.store.actors import neutral_arrays
 from service.store.container import Store, get_store
 
 log = logging.getLogger("facesynth.api")

@@ -31,9 +31,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -43,6 +41,7 @@ from models_store.ids import new_token
 from models_store.schema import JOB_FINAL_STATUSES
 from service.app.operations import submit
 from service.app.services import Services, Submit
+from service.app.uploads import TrackingForm
 from service.errors import Conflict, InvalidInput, invalid_fields
 from service.geometry.camera import Camera
 from service.io.frames import (VIDEO_SUFFIXES, decode_image, decode_sequence,
@@ -51,7 +50,7 @@ from service.io.mesh import read_mesh
 from service.io.npz import npz_arrays
 from service.jobs.formats import RESULT_FORMATS
 from service.store.actors import load_neutral_arrays
-from service.jobs.tasks.track import SPAN_JOB, TRACK_JOB, span_jobs
+from service.jobs.track_jobs import SPAN_JOB, TRACK_JOB, span_jobs
 from service.methods.tracking.params import TrackingParams
 
 #: the neutral's region (``region_<name>``) whose vertices the facial regions are drawn on
@@ -140,25 +139,6 @@ def parse_calibration(data: bytes) -> tuple[list[Camera], list[str]]:
                            "stacks the views); got " + ", ".join(
                                f"{n} {c.width}×{c.height}" for n, c in zip(names, cams)))
     return cams, names
-
-
-@dataclass
-class TrackingForm:
-    """The parts of a tracking upload (file parts as spooled file objects).
-
-    Attributes
-    ----------
-    cameras : bytes or None;  params : str or None
-    scans : list of (filename, file);  scan_images : (filename, file) or None
-    frames : list of (filename, file);  scan_maps : (filename, file) or None
-    """
-
-    cameras: bytes | None
-    scans: list[tuple[str, BinaryIO]] = field(default_factory=list)
-    scan_images: tuple[str, BinaryIO] | None = None
-    frames: list[tuple[str, BinaryIO]] = field(default_factory=list)
-    params: str | None = None
-    scan_maps: tuple[str, BinaryIO] | None = None
 
 
 def parse_params(text: str | None) -> TrackingParams:
@@ -388,5 +368,5 @@ def cancel_spans(session, job) -> list[str]:
     return ids
 
 
-__all__ = ["Calibration", "CameraView", "TrackingForm", "submit_tracking", "cancel_spans",
+__all__ = ["Calibration", "CameraView", "submit_tracking", "cancel_spans",
            "parse_calibration", "SPAN_JOB", "TRACK_JOB"]

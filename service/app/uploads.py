@@ -34,7 +34,7 @@ import os
 import re
 import zipfile
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any, BinaryIO, Mapping, Sequence
 
 import numpy as np
 
@@ -47,7 +47,7 @@ from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
 from service.io.arrays import ArraySpec, Axes
-from service.io.npz import ZIP_ERRORS, NpyMember, npz_arrays
+from service.io.npz import ZIP_ERRORS, NpyMember
 from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
@@ -297,12 +297,6 @@ def parse_rig_mesh(kind: str, data: bytes | os.PathLike, settings: Settings) -> 
     return upload, buffer.getvalue()
 
 
-def neutral_arrays(neutral: bytes) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (n,3) and faces (m,3) of a stored canonical neutral."""
-    arrays = npz_arrays(neutral)
-    return arrays["vertices"], arrays["faces"]
-
-
 # ---------------------------------------------------------------------------- layouts
 @dataclass(frozen=True)
 class LayoutUpload:
@@ -327,7 +321,7 @@ def parse_layout(data: bytes, neutral: bytes) -> LayoutUpload:
     """Read API.md's layout JSON and resolve every marker to a surface point of the stored
     neutral (vertex and position placements become triangle + barycentric)."""
     parse_json(data)
-    V, F = neutral_arrays(neutral)
+    V, F = actor_store.neutral_arrays(neutral)
     layout = read_marker_layout(data, vertex_count=len(V), triangle_count=len(F))
     try:
         triangle, barycentric = resolve_marker_layout(layout, V, F)
@@ -463,6 +457,26 @@ class ClipForm:
     frames: list[tuple[str, bytes]]
     markers: tuple[str, bytes]
     fps: float | None
+
+
+@dataclass
+class TrackingForm:
+    """The parts of a multipart tracking upload (file parts as spooled file objects), read
+    by :func:`service.app.tracking.submit_tracking`.
+
+    Attributes
+    ----------
+    cameras : bytes or None;  params : str or None
+    scans : list of (filename, file);  scan_images : (filename, file) or None
+    frames : list of (filename, file);  scan_maps : (filename, file) or None
+    """
+
+    cameras: bytes | None
+    scans: list[tuple[str, BinaryIO]] = field(default_factory=list)
+    scan_images: tuple[str, BinaryIO] | None = None
+    frames: list[tuple[str, BinaryIO]] = field(default_factory=list)
+    params: str | None = None
+    scan_maps: tuple[str, BinaryIO] | None = None
 
 
 def parse_clip_form(form: ClipForm, settings: Settings, n_vertices: int,

@@ -66,6 +66,12 @@ def open_npz(data: bytes, what: str) -> Mapping[str, np.ndarray]:
         raise InvalidInput(f"{what} is not a readable .npz: {error}") from None
 
 
+def neutral_arrays(neutral: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n,3) and faces (m,3) of a stored canonical neutral (:func:`neutral_npz`)."""
+    arrays = npz_arrays(neutral)
+    return arrays["vertices"], arrays["faces"]
+
+
 # ---------------------------------------------------------------------------- writers
 def neutral_npz(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
                 uv_faces: np.ndarray | None = None,

@@ -48,15 +48,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sqlalchemy.orm import Session
 
 from models_store import registry
-from models_store.schema import Job
 from service.geometry.camera import Camera
 from service.io.npz import npz_bytes
 from service.jobs.frame_usd import DEFAULT_FPS, FrameUsdWriter
 from service.jobs.frame_zip import FrameZipWriter
 from service.jobs.running import JobCancelled, Requeue, RunningJob, worker_name
+from service.jobs.track_jobs import SPAN_JOB, span_jobs
 from service.jobs.track_stages import overall
 from service.methods.inputs import InvalidInput
 from service.methods.scan_textures import scan_reflectance
@@ -67,8 +66,6 @@ from service.methods.tracking.solve import PoseState, TrackingMesh
 from service.methods.tracking.track import (KeyframeSolution, TrackingInput, TrackingResult,
                                             build_graph, solve_keyframes, solve_span, spans)
 
-TRACK_JOB = "track"
-SPAN_JOB = "track_span"
 #: seconds between a waiting parent's checks of its span jobs
 JOIN_DELAY = 0.5
 NPZ = "application/x-npz"
@@ -142,12 +139,6 @@ def _keyframes_of(d: dict) -> KeyframeSolution:
 
 def span_key(prefix: str, a: int, b: int) -> str:
     return f"{prefix}/spans/{a:06d}-{b:06d}.npz"
-
-
-def span_jobs(session: Session, job: Job | RunningJob) -> list[Job]:
-    """The ``track_span`` jobs a ``track`` job created, oldest first."""
-    return [j for j in registry.list_jobs(session, kind=SPAN_JOB, actor_id=job.actor_id)
-            if (j.payload or {}).get("parent_job_id") == job.id]
 
 
 # ---------------------------------------------------------------------------- the parent
