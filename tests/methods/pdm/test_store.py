@@ -100,6 +100,13 @@ def test_the_validity_regions_are_stored_and_an_older_directory_derives_them(pdm
     y = derived.synthesize(markers, outputs=("mesh", "displacement", "albedo"))
     for key in x:
         np.testing.assert_array_equal(x[key], y[key], err_msg=key)
+    # re-saved, the older model stores what its load derived: the next load reads it
+    derived.save(tmp_path / "resaved")
+    with np.load(path / "validity.npz") as want, np.load(tmp_path / "resaved" / "validity.npz") as got:
+        assert set(got.files) == set(want.files) and "sector_box" in got.files
+        for k in want.files:
+            np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    assert PdmModel.load(tmp_path / "resaved").data.validity.sector_box is not None
 
 
 def test_the_coefficients_are_mapped_from_the_cache_and_equal_the_exr_decode(pdm_model, pdm_data, saved, tmp_path):
