@@ -598,12 +598,10 @@ class PdmModel:
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:
         """Write the model directory (manifest.json, model.npz, *.exr, the derived cache); see
-        :mod:`.store`. A model loaded from a directory stored without the validity regions'
-        sector box (or without validity) writes the ones its load derived, so the next load
-        reads them instead of deriving them again (about 10 s CPU at level 1)."""
-        data, v = self.data, self.data.validity
-        if self.evaluator.validity is not None and (v is None or v.sector_box is None):
-            data = dataclasses.replace(data, validity=self.evaluator.validity_data())
+        :mod:`.store`. The validity regions written are the evaluator's (as training stores
+        them), so a model loaded from a directory stored without some of them (the sector
+        box) writes what its load derived and the next load reads it (about 10 s CPU at level 1)."""
+        data = dataclasses.replace(self.data, validity=self.evaluator.validity_data())
         return store.write_model(data, self.evaluator.derived(), path)
 
     @classmethod

@@ -220,13 +220,6 @@ class SectorLookup:
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
 
-def point_sector_values(d1: np.ndarray, d2: np.ndarray, table_points: np.ndarray) -> np.ndarray:
-    """A per-sector table, point-major (P,K), at the direction θ of d1, d2 (…,P), linear
-    between sectors (:func:`point_gauge`'s flat gather; :class:`SectorLookup`); a table of C
-    channels (P,K,C) gives (…,P,C)."""
-    return SectorLookup.of(d1, d2, table_points.shape[1]).values(table_points)
-
-
 def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, ...]]],
                     fallback: np.ndarray | None, K: int = DIRECTIONS, reach: float = REACH,
                     box: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:

@@ -118,7 +118,7 @@ def test_point_major_gauge_is_the_old_gauge_bit_for_bit(pdm_model, frames):
 def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, frames):
     """The frame's :class:`SectorLookup` (made once) reads the hull and the sector envelope
     as the per-table lookups did (the old gauge, the old sector values), bit for bit."""
-    from service.methods.pdm.validity import SectorLookup, point_sector_values
+    from service.methods.pdm.validity import SectorLookup
 
     v = pdm_model.evaluator.validity
     d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
@@ -133,7 +133,7 @@ def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, f
     assert v.box_points is not None
     both = lookup.values(v.box_points)                                          # (F,Q,2,3)
     for i, bound in enumerate(v.sector_box):                                    # (K,Q,3) each
-        assert np.array_equal(both[..., i, :], point_sector_values(d1, d2, np.ascontiguousarray(bound.transpose(1, 0, 2))))
+        assert np.array_equal(both[..., i, :], SectorLookup.of(d1, d2, lookup.K).values(np.ascontiguousarray(bound.transpose(1, 0, 2))))
     fallback = pdm_model.evaluator.shell_fallback(frames[..., :3], None)
     shared = v.evaluate("vertex", coeffs, d1, d2, rho, lookup, fallback)
     assert np.array_equal(shared, v.evaluate("vertex", coeffs, d1, d2, rho, fallback=fallback))

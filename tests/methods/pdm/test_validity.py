@@ -74,7 +74,7 @@ def test_every_training_sample_lies_in_its_region():
 
 
 def test_sector_envelope_is_the_training_detail_in_each_direction():
-    from service.methods.pdm.validity import point_sector_values, sector_envelope
+    from service.methods.pdm.validity import SectorLookup, sector_envelope
 
     r = np.linspace(0, 2, 5, dtype=np.float32)[:, None]          # training on the +d1 ray
     env = sector_envelope(COEFFS, lambda: iter([(r, np.zeros_like(r))]), np.array([[0.0]], np.float32))
@@ -85,8 +85,8 @@ def test_sector_envelope_is_the_training_detail_in_each_direction():
     assert env[DIRECTIONS // 2, 0] == pytest.approx(0.5) and env[DIRECTIONS // 4, 0] == pytest.approx(0.5)
     # linear between sectors: halfway between sector 1 (full) and 2 (κ = 0)
     half = 2 * np.pi * 1.5 / DIRECTIONS
-    v = point_sector_values(np.array([[np.cos(half)]], np.float32), np.array([[np.sin(half)]], np.float32),
-                            np.ascontiguousarray(env.T))
+    v = SectorLookup.of(np.array([[np.cos(half)]], np.float32), np.array([[np.sin(half)]], np.float32),
+                        DIRECTIONS).values(np.ascontiguousarray(env.T))
     assert v[0, 0] == pytest.approx(4.5, rel=1e-5)
 
 
@@ -142,16 +142,17 @@ def test_sector_box_is_the_training_detail_per_channel_against_each_frames_fallb
     assert box[:, DIRECTIONS // 2, 0].ravel() == pytest.approx([0.0, -0.5, 0.5, 0.0])
 
 
-def test_point_sector_values_of_channels_are_each_channels_values():
-    from service.methods.pdm.validity import point_sector_values
+def test_a_sector_lookup_of_channels_is_each_channels_lookup():
+    from service.methods.pdm.validity import SectorLookup
 
     rng = np.random.default_rng(1)
     table = rng.normal(size=(4, DIRECTIONS, 3)).astype(np.float32)
     d1, d2 = rng.normal(size=(2, 2, 4)).astype(np.float32)
-    got = point_sector_values(d1, d2, table)
+    lookup = SectorLookup.of(d1, d2, DIRECTIONS)
+    got = lookup.values(table)
     assert got.shape == (2, 4, 3)
     for c in range(3):
-        assert np.array_equal(got[..., c], point_sector_values(d1, d2, np.ascontiguousarray(table[..., c])))
+        assert np.array_equal(got[..., c], lookup.values(np.ascontiguousarray(table[..., c])))
 
 
 def test_the_box_clips_each_channel_and_the_fade_reaches_each_frames_fallback():
