@@ -162,18 +162,6 @@ def tangent_frames(
     return frames.reshape(*lead, n, 3, 3)
 
 
-def _by_columns(A: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
-    """``A @ X`` (r,c) for a dense X (k,c) of a few columns, one sparse matrix-vector product
-    per (contiguous) column: the same sums in the same order as SciPy's multi-vector product,
-    which is about 2× slower on float32 (measured on the 535k-entry ``du_edges`` of the
-    level-1 sample actor: 3.7 → 1.7 ms)."""
-    Xt = np.ascontiguousarray(X.T)
-    out = np.empty((A.shape[0], X.shape[1]), np.result_type(A.dtype, X.dtype))
-    for i, column in enumerate(Xt):
-        out[:, i] = A @ column
-    return out
-
-
 def _dot_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Dot products (n,) of component-major vectors a, b (3,n), summed x, y, z in order."""
     out = a[0] * b[0]
@@ -363,7 +351,7 @@ class FrameField:
         float32 path of :meth:`_rows` with every vector a row per component, so the cross
         and dot products run over contiguous rows instead of (n,3) strides. The same
         elementwise float32 arithmetic in the same order (the dot products summed x, y, z
-        as einsum does for float32): bit-identical to ``_rows(V, np.float32)`` (tests)."""
+        as einsum does for float32): bit-identical to the pose-major float32 arithmetic it replaced (tests)."""
         incidence, du_edges = self._float32
         m = len(self.faces)
         Vc = np.ascontiguousarray(np.asarray(V, np.float64).T)                    # (3,n)
@@ -395,26 +383,20 @@ class FrameField:
         return self.incidence.astype(np.float32), self.du_edges.astype(np.float32)
 
     def _rows(self, V: np.ndarray, dtype=np.float64):
-        """T, B, N (b,n,3) of ``dtype``, has_n (b,n) and the leading shape of poses V."""
+        """T, B, N (b,n,3) float64, has_n (b,n) and the leading shape of poses V (the float32
+        frames are :meth:`_rows32`'s)."""
         Vb, lead = _flatten_frames(V)
         nb, n = Vb.shape[:2]
         m = len(self.faces)
-        if np.dtype(dtype) not in (np.float64, np.float32):
+        if np.dtype(dtype) != np.float64:
             raise ValueError(f"dtype must be float64 or float32, got {dtype}")
         # vertex-major (n, 3·b) throughout: sparse products instead of gathers, no copies for b = 1
         Vn = Vb.transpose(1, 0, 2).reshape(n, 3 * nb)
         e = self.edges @ Vn                                                        # (2m, 3b)
-        if np.dtype(dtype) == np.float64:
-            incidence = self.incidence
-            T = (self.du @ Vn).reshape(n, nb, 3)
-        else:                                                                      # class notes
-            incidence, du_edges = self._float32
-            e = e.astype(np.float32)
-            T = _by_columns(du_edges, e).reshape(n, nb, 3)
+        T = (self.du @ Vn).reshape(n, nb, 3)
         e = e.reshape(2, m, nb, 3)
         fn = _cross(e[0], e[1])                                                    # (m,b,3)
-        product = (lambda A, X: A @ X) if np.dtype(dtype) == np.float64 else _by_columns
-        N = _normalize(product(incidence, fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
+        N = _normalize((self.incidence @ fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
         T -= np.einsum("nbd,nbd->nb", T, N)[..., None] * N
         has_n = np.einsum("nbd,nbd->nb", N, N) > 0.25
         tn = np.sqrt(np.einsum("nbd,nbd->nb", T, T))

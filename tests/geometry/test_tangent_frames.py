@@ -176,12 +176,45 @@ def test_frame_field_float32_agrees_with_float64_on_the_face_rig():
         ff.frames(poses, np.float16)
 
 
+def _pose_major_rows32(ff, V):
+    """The (n,3) pose-major float32 frames FrameField._rows32 replaced: T, B, N (b,n,3),
+    has_n (b,n) of poses V (b,n,3), each sparse product one column at a time."""
+    from service.geometry.tangent_frames import CANCEL_RTOL, _cross, _normalize
+
+    def by_columns(A, X):
+        Xt = np.ascontiguousarray(X.T)
+        out = np.empty((A.shape[0], X.shape[1]), np.result_type(A.dtype, X.dtype))
+        for i, column in enumerate(Xt):
+            out[:, i] = A @ column
+        return out
+
+    nb, n = V.shape[:2]
+    m = len(ff.faces)
+    incidence, du_edges = ff._float32
+    e = (ff.edges @ V.transpose(1, 0, 2).reshape(n, 3 * nb)).astype(np.float32)
+    T = by_columns(du_edges, e).reshape(n, nb, 3)
+    e = e.reshape(2, m, nb, 3)
+    fn = _cross(e[0], e[1])
+    N = _normalize(by_columns(incidence, fn.reshape(m, 3 * nb)).reshape(n, nb, 3))
+    T -= np.einsum("nbd,nbd->nb", T, N)[..., None] * N
+    has_n = np.einsum("nbd,nbd->nb", N, N) > 0.25
+    tn = np.sqrt(np.einsum("nbd,nbd->nb", T, T))
+    weak = has_n & ~(tn > CANCEL_RTOL * np.maximum(np.abs(T).max(), 1e-300))
+    if weak.any():
+        Nw = N[weak]
+        axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
+        T[weak] = axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw
+    T = _normalize(T)
+    B = _cross(N, T)
+    return T.transpose(1, 0, 2), B.transpose(1, 0, 2), N.transpose(1, 0, 2), has_n.T
+
+
 def test_frame_field_float32_component_major_is_the_pose_major_path_bit_for_bit():
     """frames / to_world in float32 run component-major (FrameField._rows32); the (n,3)
     pose-major float32 arithmetic they replaced (_rows) gives the same bits, one pose or two."""
     ff, poses = _face_rig_field()
     C = np.random.default_rng(0).normal(scale=2.0, size=poses.shape).astype(np.float32)
-    T, B, N, has_n, lead = ff._rows(poses, np.float32)
+    T, B, N, has_n = _pose_major_rows32(ff, poses)
     old_frames = np.stack([T, B, N], axis=-2)
     old_frames[~has_n] = np.eye(3)
     old_world = C[..., 0:1] * T
