@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 from sqlalchemy import Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy.engine import URL
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 if TYPE_CHECKING:  # alembic is imported only when migrating
@@ -35,6 +36,9 @@ MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 SQLITE_BUSY_TIMEOUT = 30.0
 #: key of the PostgreSQL advisory lock held while migrating ("facesynt" in ASCII)
 MIGRATION_LOCK_KEY = 0x6661636573796E74
+#: the newest shipped migration (tests check it against Alembic's head): a database already
+#: there is not migrated, so a server's start does not import Alembic (~0.27 s CPU)
+HEAD_REVISION = "0003"
 
 
 def normalize_url(url: str | URL) -> URL:
@@ -150,6 +154,8 @@ def upgrade(url: str | URL | Engine, revision: str = "head") -> None:
     """
     engine = url if isinstance(url, Engine) else make_engine(url)
     try:
+        if revision in ("head", HEAD_REVISION) and current_revision(engine) == HEAD_REVISION:
+            return
         with _migration_lock(engine), engine.begin() as connection:
             if connection.dialect.name == "postgresql":
                 connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
@@ -158,6 +164,16 @@ def upgrade(url: str | URL | Engine, revision: str = "head") -> None:
     finally:
         if engine is not url:
             engine.dispose()
+
+
+def current_revision(engine: Engine) -> str | None:
+    """The migration the database at ``engine`` is at (Alembic's ``alembic_version`` row),
+    or None before the first one (no table, or no row)."""
+    with engine.connect() as connection:
+        try:
+            return connection.execute(text("SELECT version_num FROM alembic_version")).scalar()
+        except DBAPIError:  # no version table yet: a new database
+            return None
 
 
 def _run_alembic(connection: Connection, revision: str) -> None:

@@ -14,8 +14,8 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import inspect, select, text
 
-from models_store.db import (alembic_config, make_engine, make_session_factory, normalize_url,
-                             sqlite_path, upgrade)
+from models_store.db import (HEAD_REVISION, alembic_config, current_revision, make_engine,
+                             make_session_factory, normalize_url, sqlite_path, upgrade)
 from models_store.schema import Actor, Base
 
 REPO = Path(__file__).resolve().parents[2]
@@ -93,6 +93,25 @@ def test_upgrade_is_idempotent(fresh_db_url):
         assert session.scalars(select(Actor.name)).all() == ["kept"]
     sessions.kw["bind"].dispose()
     assert revision_of(fresh_db_url) == HEAD
+
+
+def test_head_revision_is_alembics_head():
+    assert HEAD_REVISION == HEAD
+
+
+def test_a_database_at_head_is_not_migrated_and_alembic_not_imported(fresh_db_url):
+    engine = make_engine(fresh_db_url)
+    assert current_revision(engine) is None
+    upgrade(fresh_db_url, "0002")
+    assert current_revision(engine) == "0002"
+    upgrade(fresh_db_url)
+    assert current_revision(engine) == HEAD_REVISION
+    engine.dispose()
+    code = ("import sys; from models_store.db import upgrade; upgrade(sys.argv[1]); "
+            "print('alembic' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code, str(fresh_db_url)], capture_output=True,
+                         text=True, check=True, timeout=60).stdout
+    assert out.strip() == "False"
 
 
 def test_processes_starting_at_once_migrate_once(fresh_db_url):
