@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from service.geometry.marker_layout import BARYCENTRIC_TOLERANCE, MarkerLayout
 
@@ -115,6 +114,8 @@ def closest_points(V: np.ndarray, F: np.ndarray, P: np.ndarray, k: int = 16) -> 
     centroid = T.mean(axis=1)
     radius = np.linalg.norm(T - centroid[:, None, :], axis=2).max()
     sliver = _is_sliver(T)
+    from scipy.spatial import cKDTree  # here: serve's start never needs scipy.spatial
+
     tree = cKDTree(centroid)
 
     triangle = np.full(q, -1, np.int64)

@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import zoom
 import scipy.sparse as sp
 
 from service.geometry.scan_convert import BARY_TOL, barycentric_2d, scan_convert
@@ -442,6 +441,8 @@ def resample_map(maps: np.ndarray, side: int, unit: bool = False) -> np.ndarray:
     resolution, as API.md's texel convention); with ``unit`` the vectors of the last axis
     are renormalized to unit length (normal maps).
     """
+    from scipy.ndimage import zoom  # imported here: serve's start never needs it (issue 23's cold start)
+
     factor = (1.0, side / maps.shape[1], side / maps.shape[2]) + (1.0,) * (maps.ndim - 3)
     resized = zoom(maps, factor, order=1, mode="nearest", grid_mode=True).astype(np.float32)
     if unit:

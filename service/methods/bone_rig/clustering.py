@@ -17,7 +17,6 @@ trajectory k-means is simpler to vectorize and lands in the same kind of rigid r
 from __future__ import annotations
 
 import numpy as np
-from scipy.cluster.vq import kmeans2
 
 from service.geometry.rigid import rigid_align_frames
 from service.methods.bone_rig.transforms import MIN_BONE_VERTICES
@@ -97,6 +96,8 @@ def initial_rig(rest: np.ndarray, frames: np.ndarray, bones: int, cluster_frames
     if bones == 1:
         labels = np.zeros(V, np.int64)
     else:
+        from scipy.cluster.vq import kmeans2  # imported here: serve's start never needs it (issue 23's cold start)
+
         rng = np.random.default_rng(seed)
         _, labels = kmeans2(feats, kmeans_pp(feats, bones, rng), minit="matrix", missing="warn")
     R, t, ok = rigid_fit(rest, frames_vm, labels, bones)

@@ -15,7 +15,6 @@ hull; this extends the warp continuously).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError
 
 from service.geometry.scan_convert import scan_convert
 from service.methods.inputs import InvalidInput
@@ -80,6 +79,8 @@ def piecewise_affine_coords(source_xy: np.ndarray, target_xy: np.ndarray, shape:
         corners = corners[far]
         tgt = np.vstack([tgt, corners])
         src = np.vstack([src, np.column_stack([corners, np.ones(len(corners))]) @ A.T])
+    from scipy.spatial import Delaunay, QhullError  # here: serve's start never needs it (issue 23)
+
     try:
         tri = Delaunay(tgt)
     except QhullError as e:

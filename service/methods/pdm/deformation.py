@@ -39,7 +39,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import Delaunay, cKDTree
 
 from service.geometry.scan_convert import barycentric_2d
 from service.geometry.topology import adjacency_matrix, edge_face_counts, edges, k_ring_matrix
@@ -84,7 +83,7 @@ class MarkerMesh:
 
 
 def marker_mesh(uv: np.ndarray, rest: np.ndarray, axes: np.ndarray,
-                max_edge_ratio: float = MAX_EDGE_RATIO) -> MarkerMesh:
+                max_edge_ratio: float = MAX_EDGE_RATIO, faces: np.ndarray | None = None) -> MarkerMesh:
     """Triangulate the markers in texture space and measure their rest neighbourhoods.
 
     Parameters
@@ -95,6 +94,8 @@ def marker_mesh(uv: np.ndarray, rest: np.ndarray, axes: np.ndarray,
                            :func:`~service.geometry.tangent_frames.tangent_frames`)
     max_edge_ratio : float drop Delaunay triangles with a 3D edge longer than this times the
                            median edge (the eye and mouth openings)
+    faces : (k,3) int      the triangles as this function made them before (a stored
+                           model's), instead of triangulating again
 
     Returns
     -------
@@ -102,6 +103,20 @@ def marker_mesh(uv: np.ndarray, rest: np.ndarray, axes: np.ndarray,
     """
     uv = np.asarray(uv, dtype=np.float64)
     rest = np.asarray(rest, dtype=np.float64)
+    if faces is None:
+        faces = _triangulate(uv, rest, max_edge_ratio)
+    faces = np.asarray(faces, np.int64)
+    two_ring = k_ring_matrix(faces, len(uv), 2).tocsr()
+    mesh = MarkerMesh(uv, faces, two_ring, rest, np.asarray(axes, dtype=np.float64),
+                      np.zeros((len(uv), 2)))
+    return replace(mesh, rest_sigma=neighbourhood_sigma(mesh, rest[None])[0])
+
+
+def _triangulate(uv: np.ndarray, rest: np.ndarray, max_edge_ratio: float) -> np.ndarray:
+    """(k,3) counter-clockwise (in uv) Delaunay triangles of the marker UVs (M,2) without
+    those with a 3D edge (rest (M,3)) over ``max_edge_ratio`` × the median edge."""
+    from scipy.spatial import Delaunay  # imported here: a served model never triangulates (issue 23's cold start)
+
     faces = Delaunay(uv).simplices.astype(np.int64)
     # counter-clockwise in uv, like the surface charts
     e1, e2 = uv[faces[:, 1]] - uv[faces[:, 0]], uv[faces[:, 2]] - uv[faces[:, 0]]
@@ -110,11 +125,7 @@ def marker_mesh(uv: np.ndarray, rest: np.ndarray, axes: np.ndarray,
     length = np.linalg.norm(rest[faces] - rest[np.roll(faces, 1, axis=1)], axis=2)   # (k,3)
     E, _ = edges(faces)
     median = np.median(np.linalg.norm(rest[E[:, 0]] - rest[E[:, 1]], axis=1))
-    faces = faces[length.max(axis=1) <= max_edge_ratio * median]
-    two_ring = k_ring_matrix(faces, len(uv), 2).tocsr()
-    mesh = MarkerMesh(uv, faces, two_ring, rest, np.asarray(axes, dtype=np.float64),
-                      np.zeros((len(uv), 2)))
-    return replace(mesh, rest_sigma=neighbourhood_sigma(mesh, rest[None])[0])
+    return faces[length.max(axis=1) <= max_edge_ratio * median]
 
 
 def neighbourhood_sigma(mesh: MarkerMesh, P: np.ndarray) -> np.ndarray:
@@ -299,6 +310,8 @@ def barycentric_operator(mesh: MarkerMesh, uv: np.ndarray, bridge_holes: bool = 
     nearest hole edge alone. Measured on the level-1 sample actor (biquadratic, held-out
     in-range): medium p95 0.728 → 0.700 mm, mean 0.194 → 0.191 mm, fine r 0.745 → 0.747.
     """
+    from scipy.spatial import Delaunay, cKDTree  # imported here: a served model never needs it (issue 23's cold start)
+
     uv = np.asarray(uv, dtype=np.float64)
     P, M = len(uv), len(mesh.uv)
     tri = np.full(P, -1)

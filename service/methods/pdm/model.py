@@ -56,7 +56,6 @@ from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.ndimage import gaussian_filter
 
 from service.geometry.laplacian import triangle_areas
 from service.geometry.normal_map import NormalMapper
@@ -138,6 +137,8 @@ class BandFilter:
 
     @classmethod
     def build(cls, H: int, index: np.ndarray, sigma: float) -> "BandFilter":
+        from scipy.ndimage import gaussian_filter  # imported here: training only (issue 23's cold start)
+
         if sigma <= 0:
             return cls(H, index, 0.0, None)
         mask = np.zeros(H * H)
@@ -146,6 +147,8 @@ class BandFilter:
 
     def lowpass(self, values: np.ndarray) -> np.ndarray:
         """(P,) covered-texel values → their low band (P,)."""
+        from scipy.ndimage import gaussian_filter
+
         if self.sigma <= 0:
             return values
         img = np.zeros(self.H * self.H)

@@ -216,9 +216,8 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
         except KeyError as e:
             raise ModelCorrupt(f"{path}: {name}.exr lacks channel {e}") from None
         bands[name] = CoefficientMap(res, index, coeffs)
-    mesh = marker_mesh(a["marker_uv"], a["rest_markers"], a["marker_axes"])
-    if not np.array_equal(mesh.faces, a["marker_faces"]):
-        raise ModelCorrupt(f"{path}: the coarse marker mesh does not rebuild identically")
+    # the stored triangles (checksummed with the file) instead of a Delaunay again
+    mesh = marker_mesh(a["marker_uv"], a["rest_markers"], a["marker_axes"], faces=a["marker_faces"])
     sm = manifest["metrics"].get("axis_smoothing", {})
     axes = DeformationAxes(a["q"], a["r"], a["scale"], a["energy"], sm.get("replaced", 0),
                            sm.get("worst_angle_deg", 0.0))

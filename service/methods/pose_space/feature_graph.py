@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial import Delaunay
 
 from service.methods.inputs import InvalidInput
 
@@ -77,6 +76,8 @@ def automatic_graph(marker_uv: np.ndarray, rest: np.ndarray, max_edge_ratio: flo
     rest = np.asarray(rest, dtype=np.float64)
     if len(uv) < 3:
         raise InvalidInput(f"an automatic feature graph needs at least 3 markers, got {len(uv)}")
+    from scipy.spatial import Delaunay  # imported here: serve's start never needs it (issue 23's cold start)
+
     tri = Delaunay(uv).simplices                                            # (t,3)
     P = uv[tri]
     angles = []

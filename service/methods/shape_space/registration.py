@@ -71,7 +71,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from scipy.spatial import cKDTree
 
 from service.geometry.closest_point import closest_points
 from service.geometry.normals import vertex_normals
@@ -219,6 +218,8 @@ class _Surface:
     search of :func:`closest_points` is kept for the final projection and statistics)."""
 
     def __init__(self, V: np.ndarray, F: np.ndarray):
+        from scipy.spatial import cKDTree  # imported here: serve's start never needs it (issue 23's cold start)
+
         self.V = V
         self.normals = vertex_normals(V, F)
         self.tree = cKDTree(V)

@@ -33,7 +33,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.cluster.vq import kmeans2
 
 from service.geometry.curvature_flow import uniform_smoothing_operator
 
@@ -64,6 +63,8 @@ def region_masks(neutral: np.ndarray, faces: np.ndarray, scan_stress: np.ndarray
     if R == 1:
         labels = np.zeros(n, np.int64)
     else:
+        from scipy.cluster.vq import kmeans2  # imported here: serve's start never needs it (issue 23's cold start)
+
         centres, _ = kmeans2(feats[active], R, minit="++", rng=np.random.default_rng(seed), missing="warn")
         d2 = (np.sum(feats ** 2, axis=1)[:, None] - 2 * feats @ centres.T
               + np.sum(centres ** 2, axis=1)[None])

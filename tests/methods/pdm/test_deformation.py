@@ -32,6 +32,15 @@ def test_two_ring_and_rest_sigma():
     np.testing.assert_allclose(mesh.rest_sigma, sig)
 
 
+def test_a_mesh_given_its_own_triangles_equals_the_triangulated_one():
+    """A stored model's marker mesh (``faces=``, no Delaunay at load) is the trained one."""
+    mesh, P = _grid()
+    again = dm.marker_mesh(mesh.uv, P, mesh.axes, faces=mesh.faces)
+    for name in ("uv", "faces", "rest", "axes", "rest_sigma"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(mesh, name))
+    assert (again.two_ring != mesh.two_ring).nnz == 0
+
+
 def test_strain_of_a_uniformly_scaled_patch_is_analytic():
     """Scaling the patch by s about any point changes σ by (s−1)σ_ref exactly; O = (s−1)P."""
     mesh, P = _grid()
