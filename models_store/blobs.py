@@ -40,10 +40,11 @@ import io
 import os
 import re
 import shutil
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import BinaryIO, Callable, Iterator
 
 from models_store.errors import BlobCorrupt, Conflict, InvalidId, NotFound
 from models_store.ids import new_token
@@ -76,6 +77,58 @@ class VerifiedDir(type(Path())):  # type: ignore[misc]  # PosixPath / WindowsPat
         verified = cls(path)
         verified.digests = dict(digests)
         return verified
+
+
+class VerifyingDir(VerifiedDir):
+    """The path of a directory blob whose files are being verified in a background thread
+    while the caller reads them (:meth:`BlobStore.open_dir` with ``background=True``).
+
+    A model's load then overlaps the hashing of its files instead of waiting for it (issue
+    23: 0.36 s of a level-1 PDM's 0.8 s load; ``hashlib`` and file reads release the GIL).
+    Nothing read from it may be used before :meth:`confirm` returns: a file that does not
+    match fails there (:class:`~models_store.errors.BlobCorrupt`), and so does any check a
+    reader deferred with :meth:`after_verify`. ``digests`` waits for the thread.
+    """
+
+    _thread: threading.Thread
+    _result: dict
+    _checks: list
+
+    @classmethod
+    def start(cls, path: Path, key: str, sha256: str) -> VerifyingDir:
+        """``path`` with its verification against the tree digest ``sha256`` running."""
+        pending = cls(path)
+        pending._result, pending._checks = {}, []
+
+        def verify() -> None:
+            try:
+                digests = {rel: sha256_file(src) for src, rel in _walk_files(path)}
+                _check(key, sha256, tree_digest(digests))
+                pending._result["digests"] = digests
+            except BaseException as error:  # noqa: BLE001 - re-raised by confirm()
+                pending._result["error"] = error
+
+        pending._thread = threading.Thread(target=verify, name=f"verify-{path.name}", daemon=True)
+        pending._thread.start()
+        return pending
+
+    @property
+    def digests(self) -> dict[str, str]:  # type: ignore[override]
+        self._thread.join()
+        if "error" in self._result:
+            raise self._result["error"]
+        return self._result["digests"]
+
+    def after_verify(self, check: Callable[[dict[str, str]], None]) -> None:
+        """Run ``check(digests)`` in :meth:`confirm`, once the files are verified."""
+        self._checks.append(check)
+
+    def confirm(self) -> None:
+        """Wait for the verification; raise what it found (BlobCorrupt, NotFound, OSError),
+        then what the deferred checks raise."""
+        digests = self.digests
+        for check in self._checks:
+            check(digests)
 
 
 class ScratchFile(os.PathLike):
@@ -297,19 +350,25 @@ class BlobStore:
         _check(key, sha256, sha256_file(path))
         return open(path, "rb")  # blobs are write-once: what was verified is what is read
 
-    def open_dir(self, key: str, sha256: str) -> VerifiedDir:
+    def open_dir(self, key: str, sha256: str, background: bool = False) -> VerifiedDir:
         """The path of a directory blob after verifying every file against ``sha256`` (the
         tree digest returned by :meth:`put_dir`), with the digests of its files as verified
         (:class:`VerifiedDir`: a reader of the files' own manifest compares against those
         instead of hashing every file again).
 
+        ``background``: return at once, verifying in a thread (:class:`VerifyingDir`; the
+        caller must :meth:`~VerifyingDir.confirm` before it uses what it read).
+
         Raises
         ------
-        NotFound, BlobCorrupt   as :meth:`read_bytes`
+        NotFound, BlobCorrupt   as :meth:`read_bytes` (with ``background``: NotFound only;
+                                the rest from ``confirm``)
         """
         path = self.path(key)
         if not path.is_dir():
             raise NotFound("blob directory", key)
+        if background:
+            return VerifyingDir.start(path, key, sha256)
         digests = {rel: sha256_file(src) for src, rel in _walk_files(path)}
         _check(key, sha256, tree_digest(digests))
         return VerifiedDir.of(path, digests)

@@ -123,12 +123,13 @@ def mark_model_failed(session: Session, model_id: str, code: str, message: str) 
 
 
 def model_dir(session: Session, blobs: BlobStore, model_id: str, *,
-              tenant: str | None = None) -> Path:
-    """The verified directory of a ready model (Conflict if it is not ready)."""
+              tenant: str | None = None, background: bool = False) -> Path:
+    """The verified directory of a ready model (Conflict if it is not ready); with
+    ``background``, being verified (:meth:`BlobStore.open_dir`)."""
     model = get_model(session, model_id, tenant=tenant)
     if model.status != "ready":
         raise Conflict(f"model {model_id!r} is {model.status}, not ready")
-    return blobs.open_dir(model.blob, model.sha256)  # type: ignore[arg-type]
+    return blobs.open_dir(model.blob, model.sha256, background)  # type: ignore[arg-type]
 
 
 def delete_model(session: Session, blobs: BlobStore, model_id: str,

@@ -189,9 +189,16 @@ class Services:
             actor_id = row.actor_id
 
             def load() -> LoadedModel:
-                path = registry.model_dir(session, self.blobs, model_id)
+                # the files are hashed in a thread while the kind reads them (issue 23's cold
+                # start); nothing loaded is used before confirm() has checked them
+                path = registry.model_dir(session, self.blobs, model_id, background=True)
                 log.info("loading model %s (%s, %d bytes)", model_id, kind.name, size)
-                model = kind.load(path)
+                try:
+                    model = kind.load(path)
+                except Exception:
+                    path.confirm()   # a corrupt file is reported as corrupt, not as what it broke
+                    raise
+                path.confirm()
                 # a load's temporaries (file bytes, decoded maps, operator assembly) are about
                 # as large as the model: hand the freed heap back so that the resident cost
                 # is the model's (what the cache weighs by, below), not its peak

@@ -3,7 +3,8 @@
 A model directory (DESIGN.md "Data and storage") holds ``manifest.json`` with ``kind``,
 ``format_version``, and the sha256 of every file under ``files`` (and, for optional derived
 data, ``derived``). Each kind's ``store`` module writes its own files; this module reads any
-of them back once, verifying each checksum before a byte is parsed.
+of them back once, verifying each checksum before a byte is parsed (or, in a directory the
+blob store verifies while it is read, before the model is used).
 """
 
 from __future__ import annotations
@@ -34,13 +35,16 @@ def read_model_files(path, kind: str, format_version: int,
     When ``path`` carries the digests of its files as just verified (``path.digests``, a
     :class:`models_store.blobs.VerifiedDir` from the blob store, which checked them against
     the database's tree digest), each listed file is compared with its digest there instead
-    of being hashed again: the directory is hashed once per load either way.
+    of being hashed again: the directory is hashed once per load either way. When they are
+    still being verified (a :class:`models_store.blobs.VerifyingDir`), the comparison runs
+    in its ``confirm()``, which the caller calls before it uses the model.
 
     Raises :class:`ModelCorrupt` for a missing or unreadable manifest, another kind or
     format, a listed file that is missing or does not match its checksum, or a ``required``
     file the manifest does not list.
     """
-    verified: dict[str, str] | None = getattr(path, "digests", None)
+    later = getattr(path, "after_verify", None)
+    verified: dict[str, str] | None = None if later else getattr(path, "digests", None)
     path = Path(path)
     try:
         manifest = json.loads((path / "manifest.json").read_bytes())
@@ -49,20 +53,33 @@ def read_model_files(path, kind: str, format_version: int,
     if manifest.get("kind") != kind or manifest.get("format_version") != format_version:
         raise ModelCorrupt(f"{path}: not a {kind} model of format {format_version} "
                            f"(kind {manifest.get('kind')!r}, format {manifest.get('format_version')!r})")
+    listed: dict[str, str] = {**manifest.get("files", {}), **manifest.get("derived", {})}
     data: dict[str, bytes | Path] = {}
-    for name, digest in {**manifest.get("files", {}), **manifest.get("derived", {})}.items():
+    actual: dict[str, str] = {}
+    for name in listed:
         try:
             if mapped is not None and mapped(name):
                 data[name] = path / name
-                actual = verified[name] if verified is not None else sha256_file(data[name])
+                if verified is None and later is None:
+                    actual[name] = sha256_file(data[name])
             else:
                 data[name] = (path / name).read_bytes()
-                actual = (verified[name] if verified is not None
-                          else hashlib.sha256(data[name]).hexdigest())
-        except (OSError, KeyError):
+                if verified is None and later is None:
+                    actual[name] = hashlib.sha256(data[name]).hexdigest()
+        except OSError:
             raise ModelCorrupt(f"{path}: {name} is missing") from None
-        if actual != digest:
-            raise ModelCorrupt(f"{path}: {name} does not match its checksum")
+
+    def compare(digests: dict[str, str]) -> None:
+        for name, digest in listed.items():
+            if name not in digests:
+                raise ModelCorrupt(f"{path}: {name} is missing")
+            if digests[name] != digest:
+                raise ModelCorrupt(f"{path}: {name} does not match its checksum")
+
+    if later is not None:
+        later(compare)
+    else:
+        compare(verified if verified is not None else actual)
     for name in required:
         if name not in data:
             raise ModelCorrupt(f"{path}: the manifest lists no {name}")

@@ -235,6 +235,31 @@ def test_preload_and_the_model_cache_in_metrics(ready):
     assert after["misses_total"] == loaded["misses_total"]      # no second load
 
 
+@pytest.mark.parametrize("damage", ["manifest", "cache"])
+def test_a_model_file_altered_on_disk_is_refused_as_corrupt_and_never_cached(ready, damage):
+    """The files are hashed while the model loads (``BlobStore.open_dir(background=True)``):
+    one flipped byte, in the manifest (read first) or in the largest file (mapped, read
+    last), still fails the load as corrupt (500, the checksum detail) and caches nothing."""
+    client, _, model_id, markers, _ = ready
+    services = client.app.state.services
+    services.forget_model(model_id)
+    with services.session() as session:
+        blob = registry.get_model(session, model_id).blob
+    target = services.blobs.path(blob) / ("manifest.json" if damage == "manifest" else "cache.npz")
+    original = target.read_bytes()
+    altered = bytearray(original)
+    altered[len(altered) // 2] ^= 0x01
+    target.chmod(0o644)
+    target.write_bytes(bytes(altered))
+    try:
+        response = synth(client, model_id, npz(markers=markers))
+        assert_problem(response, 500, "stored data failed its checksum")
+        assert model_id not in services.models
+    finally:
+        target.write_bytes(original)
+    assert synth(client, model_id, npz(markers=markers)).status_code == 200
+
+
 def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load(ready, monkeypatch):
     """``Services.start_preload`` (``facesynth serve --preload`` / ``FACESYNTH_PRELOAD``)
     checks the ids at once, loads in a thread, and /readyz answers 503 (check ``models``)

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from models_store.blobs import BlobStore, VerifiedDir
+from models_store.blobs import BlobStore, VerifiedDir, VerifyingDir
 from service.methods import model_dir
 from service.methods.model_dir import ModelCorrupt, read_model_files
 
@@ -49,3 +49,23 @@ def test_a_verified_digest_that_differs_from_the_manifest_is_refused(stored):
     missing = VerifiedDir.of(path, {k: v for k, v in path.digests.items() if k != "a.npz"})
     with pytest.raises(ModelCorrupt, match="a.npz is missing"):
         read_model_files(missing, "toy", 1, mapped=lambda name: True)
+
+
+def test_a_directory_being_verified_is_compared_at_confirm(stored, monkeypatch):
+    blobs, info, files = stored
+    path = blobs.open_dir(info.key, info.sha256, background=True)
+    manifest, data = read_model_files(path, "toy", 1, mapped=lambda name: name == "a.npz")
+    assert data["b.exr"] == files["b.exr"]
+    path.confirm()
+    # a manifest that disagrees with the verified files fails at confirm, not at the read
+    (blobs.root.parent / "alt").mkdir()
+    for name in files:
+        (blobs.root.parent / "alt" / name).write_bytes(files[name])
+    listed = {**manifest["files"], "b.exr": "0" * 64}
+    (blobs.root.parent / "alt" / "manifest.json").write_text(json.dumps({**manifest, "files": listed}))
+    alt = blobs.put_dir("models/m/v2", blobs.root.parent / "alt")
+    pending = blobs.open_dir(alt.key, alt.sha256, background=True)
+    assert isinstance(pending, VerifyingDir)
+    read_model_files(pending, "toy", 1)
+    with pytest.raises(ModelCorrupt, match="b.exr does not match its checksum"):
+        pending.confirm()

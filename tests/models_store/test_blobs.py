@@ -9,7 +9,7 @@ import stat
 import numpy as np
 import pytest
 
-from models_store.blobs import CHUNK, BlobStore, tree_digest, validate_key
+from models_store.blobs import CHUNK, BlobStore, VerifyingDir, tree_digest, validate_key
 from models_store.errors import BlobCorrupt, Conflict, InvalidId, NotFound
 
 
@@ -100,6 +100,30 @@ def test_corrupted_directory_raises_blob_corrupt(blobs, model_dir, damage):
         (stored / "empty").rename(stored / "empty2")
     with pytest.raises(BlobCorrupt):
         blobs.open_dir("m", info.sha256)
+
+
+@pytest.mark.parametrize("damage", ["none", "flip", "missing_file"])
+def test_a_directory_verified_in_the_background_fails_only_at_confirm(blobs, model_dir, damage):
+    info = blobs.put_dir("m", model_dir)
+    stored = blobs.path("m")
+    if damage == "flip":
+        target = stored / "maps" / "x.exr"
+        data = bytearray(target.read_bytes())
+        data[0] ^= 0x80
+        target.write_bytes(bytes(data))
+    elif damage == "missing_file":
+        (stored / "empty").unlink()
+    pending = blobs.open_dir("m", info.sha256, background=True)
+    assert isinstance(pending, VerifyingDir) and pending == stored
+    seen = []
+    pending.after_verify(seen.append)
+    if damage == "none":
+        pending.confirm()
+        assert seen == [blobs.open_dir("m", info.sha256).digests] == [pending.digests]
+        return
+    with pytest.raises(BlobCorrupt, match="'m' is corrupt"):
+        pending.confirm()
+    assert seen == []   # no deferred check runs on files that failed
 
 
 @pytest.mark.parametrize("key", [
