@@ -24,7 +24,8 @@ def active_frames(weights: np.ndarray, eps: float = WEIGHT_EPS) -> np.ndarray:
     return np.flatnonzero(np.any(np.asarray(weights) > eps, axis=0))
 
 
-def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray,
+          scale: np.ndarray | None = None) -> np.ndarray:
     """Region-weighted blend of per-frame, per-element values (bermano2014 eq. 4).
 
     Parameters
@@ -35,6 +36,8 @@ def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.
                                 values' compute precision (float32 for float16/float32
                                 values) the coefficients are formed in it
     weights : (R,N) float       matched convex weights per region (rows sum to 1)
+    scale : (N,) float | None   values stored quantized, frame k's being ``scale[k] ·
+                                values[k]`` (:func:`.maps.quantize`): folded into the weights
 
     Returns
     -------
@@ -42,6 +45,7 @@ def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.
     """
     weights = np.asarray(weights, dtype=np.float64)
     K = active_frames(weights, 0.0)
+    WK = weights[:, K] if scale is None else weights[:, K] * np.asarray(scale, np.float64)[K]
     # K is small (§5.3: the weights fall off fast), so one multiply-add per active frame, in
     # the stored precision of the values (float32 halves the memory traffic)
     dtype = np.result_type(np.asarray(values[:0]).dtype, np.float32)
@@ -51,7 +55,7 @@ def blend(values: np.ndarray, omega_hat: np.ndarray, weights: np.ndarray) -> np.
     omega_hat = np.asarray(omega_hat)
     if omega_hat.dtype != dtype:
         omega_hat = omega_hat.astype(np.float64)
-    coef = (weights[:, K].T.astype(omega_hat.dtype) @ omega_hat).astype(dtype, copy=False)
+    coef = (WK.T.astype(omega_hat.dtype) @ omega_hat).astype(dtype, copy=False)
     out = np.zeros(np.shape(values)[1:], dtype)
     tmp = np.empty_like(out)
     for j, k in enumerate(K):

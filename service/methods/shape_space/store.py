@@ -8,8 +8,9 @@ Layout (DESIGN.md "Data and storage"):
 * ``detail.npz``  ``detail`` (N,m,9) float32: the high-frequency detail of every database
   frame (rotation log + stretch per triangle) — the bulk of the model;
 * ``colors.npz``  ``colors`` (N,n,C) float32, only for a model trained with colours;
-* ``maps.npz``    per map kind (``displacement``, ``albedo``) the maps (N,P,C) float16 at the
-  covered texels with ``<kind>_texels`` (P,) and ``<kind>_shape`` (2,) (:mod:`.maps`), only
+* ``maps.npz``    per map kind (``displacement``, ``albedo``) the maps (N,P,C) int16 at the
+  covered texels with their per-frame steps ``<kind>_scale`` (N,) float32 (float16 values and
+  no scale in models stored before), ``<kind>_texels`` (P,) and ``<kind>_shape`` (2,) (:mod:`.maps`), only
   if the database had maps; when only some of its clips had them, the maps are (K,P,C) and
   ``<kind>_frames`` (K,) names their database frames;
 * ``markers.npz`` the :class:`~.markers.MarkerDatabase`: ``shapes`` (N,9P) and ``gram``
@@ -75,6 +76,8 @@ def write_model(model: ShapeSpaceData, path) -> dict:
         if dm is not None:
             maps.update({name: dm.maps, f"{name}_texels": dm.texels,
                          f"{name}_shape": np.array(dm.shape, np.int64)})
+            if dm.scale is not None:
+                maps[f"{name}_scale"] = dm.scale
             if dm.frames is not None:
                 maps[f"{name}_frames"] = dm.frames
     if maps:
@@ -107,7 +110,7 @@ def read_model(path) -> ShapeSpaceData:
     # models stored before the maps were frame-major hold them texel-major: copied at load
     # (then held in memory, and weighed by the cache), since a request reads whole frames
     maps = {attr: DatabaseMaps(np.ascontiguousarray(m[name]), m[f"{name}_texels"], tuple(int(x) for x in m[f"{name}_shape"]),
-                               m.get(f"{name}_frames"))
+                               m.get(f"{name}_frames"), m.get(f"{name}_scale"))
             for name, attr in MAP_FIELDS.items() if name in m}
     fields = dict(params=ShapeSpaceParams(**manifest["params"]), detail=detail, colors=colors,
                   marker_database=marker_database, **maps,
@@ -126,6 +129,9 @@ def read_model(path) -> ShapeSpaceData:
                     np.all(np.diff(dm.frames) > 0) and 0 <= dm.frames[0] and dm.frames[-1] < frames)):
             raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.shape} for "
                                f"{count} of {frames} frames and {len(dm.texels)} texels")
+        if dm.scale is not None and (dm.scale.shape != (count,) or dm.maps.dtype != np.int16):
+            raise ModelCorrupt(f"{path}: maps.npz has {attr} {dm.maps.dtype} with steps of shape "
+                               f"{dm.scale.shape}, expected int16 and ({count},)")
     md = marker_database
     if md is not None and (md.corrections.shape != (frames, vertices, 3)
                            or md.shapes.shape != a["shapes"].shape or md.gram.shape != a["gram"].shape):

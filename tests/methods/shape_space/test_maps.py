@@ -29,26 +29,56 @@ def sheet_maps():
 
 def test_maps_are_kept_at_the_covered_texels(sheet_maps):
     fm, maps, _, _ = sheet_maps
-    assert fm.maps.shape == (3, len(fm.texels), 1) and fm.maps.dtype == np.float16
+    db = fm.database
+    assert fm.maps.shape == (3, len(fm.texels), 1) and fm.maps.dtype == np.int16
     assert fm.maps.flags.c_contiguous          # frame-major: a request reads whole frames
     assert fm.shape == (H, H) and 0 < len(fm.texels) < H * H
-    stored = maps[1].astype(np.float16).astype(np.float32)           # the store's rounding ...
-    np.testing.assert_array_equal(fm.image(fm.maps)[1].ravel()[fm.texels],
-                                  stored.ravel()[fm.texels])
-    assert np.abs(stored - maps[1]).max() <= 2.0 ** -12                  # ... half a step at |d| < 0.5
+    flat = maps.reshape(3, -1)[:, fm.texels]
+    # one step per frame: its largest value is ±32767 steps, every value within half a step
+    np.testing.assert_allclose(db.scale, np.abs(flat).max(axis=1) / 32767, rtol=1e-6)
+    assert np.abs(fm.maps).max(axis=(1, 2)).tolist() == [32767] * 3
+    # (and float32's own rounding of the value)
+    np.testing.assert_array_less(np.abs(db.values()[..., 0] - flat).max(axis=1), 0.5 * db.scale + 1e-7)
+    np.testing.assert_array_equal(fm.image(db.values())[1].ravel()[fm.texels], db.values()[1, :, 0])
+
+
+def test_quantization_is_exact_on_a_step_grid_and_zero_frames_stay_zero():
+    from service.methods.shape_space.maps import quantize
+
+    values = np.array([[[3.0], [-1.5], [0.75]], [[0.0], [0.0], [0.0]]], np.float32)
+    q, scale = quantize(values)
+    assert q.dtype == np.int16 and scale.tolist() == [np.float32(3.0 / 32767), 1.0]
+    assert q[:, :, 0].tolist() == [[32767, -16384, 8192], [0, 0, 0]]   # −16383.5, 8191.75 rounded
+    np.testing.assert_allclose(q * scale[:, None, None], values, atol=0.5 * 3.0 / 32767)
 
 
 def test_blend_follows_the_region_weights_per_texel(sheet_maps):
     fm, maps, _, _ = sheet_maps
     W = np.array([[1.0, 0.0, 0.0], [0.0, 0.25, 0.75]])     # region 0: frame 0; region 1: a mix
     m = fm.blend(W)[:, 0]
-    flat = maps.reshape(3, -1)[:, fm.texels].astype(np.float16).astype(np.float64)
+    flat = fm.database.values()[..., 0].astype(np.float64)   # the stored values
     a = fm.omega_hat                                         # (2,P), columns sum to 1
     np.testing.assert_allclose(a.sum(axis=0), 1.0, atol=1e-12)
     expected = a[0] * flat[0] + a[1] * (0.25 * flat[1] + 0.75 * flat[2])
-    np.testing.assert_allclose(m, expected, atol=1e-5)
+    np.testing.assert_allclose(m, expected, atol=1e-6)
     one = fm.blend(np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]]))[:, 0]
     np.testing.assert_allclose(one, flat[1], atol=1e-6)
+    # against the float maps the clips gave: within the steps the weights put on them
+    raw = maps.reshape(3, -1)[:, fm.texels].astype(np.float64)
+    exact = a[0] * raw[0] + a[1] * (0.25 * raw[1] + 0.75 * raw[2])
+    bound = 0.5 * (a[0] * fm.database.scale[0] + a[1] * (0.25 * fm.database.scale[1]
+                                                          + 0.75 * fm.database.scale[2]))
+    assert np.all(np.abs(m - exact) <= bound + 1e-6)
+
+
+def test_float16_maps_of_older_models_blend_as_stored(sheet_maps):
+    """A model stored before the int16 maps holds float16 values and no steps."""
+    fm, maps, actor, omega_hat = sheet_maps
+    half = DatabaseMaps(fm.database.values().astype(np.float16), fm.texels, fm.shape)
+    old = MapBlender.build(half, actor.uv, actor.faces, actor.faces, omega_hat)
+    W = np.array([[0.5, 0.5, 0.0], [0.0, 0.25, 0.75]])
+    np.testing.assert_allclose(old.blend(W), fm.blend(W), atol=2.0 ** -11)
+    np.testing.assert_array_equal(half.values(), half.maps.astype(np.float32))
 
 
 def test_resampling_keeps_a_constant_map_on_the_covered_texels(sheet_maps):
@@ -82,6 +112,7 @@ def test_albedo_maps_keep_their_channels(sheet_maps):
     assert am.maps.flags.c_contiguous
     img = am.image(am.blend(np.array([[0.0, 1.0], [0.0, 1.0]]))[None])
     assert img.shape == (1, 16, 16, 3)
-    stored = rgb[1].astype(np.float16).astype(np.float32).reshape(-1, 3)[am.texels]
+    stored = am.database.values()[1]
     np.testing.assert_allclose(img[0].reshape(-1, 3)[am.texels], stored, atol=1e-6)
+    np.testing.assert_allclose(stored, rgb[1].reshape(-1, 3)[am.texels], atol=0.5 / 32767 + 1e-7)
     assert am.image(am.maps[:1], H=24).shape == (1, 24, 24, 3)
