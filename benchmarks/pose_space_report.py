@@ -45,7 +45,12 @@ Per actor:
   (``mesh``: large scale + fine scale + tangent frames; and with the displacement map),
   against scipy's ``RBFInterpolator`` doing the same interpolation in the same run (for PSD
   one interpolator over all 3n values; for WPSD one per vertex, timed on a vertex sample and
-  scaled to n), training time, and stored floats/ints per vertex.
+  scaled to n), training time, and stored floats/ints per vertex. CPU times are of every
+  thread: run with ``OPENBLAS_NUM_THREADS=1`` to measure as ``facesynth serve`` runs a
+  synthesis on 2 cores (2 slots x 1 BLAS thread, ``service/app/threads.py``). With
+  OpenBLAS's default of one thread per core, the threads of the one dense product (the
+  thin-shell basis) spin-wait after it and bill their cycles to the synthesis: level 2, P =
+  6, mesh CPU 84 ms with 1 thread against 109-130 ms with 2 (session 13, load 5-6).
 """
 
 from __future__ import annotations
@@ -301,11 +306,12 @@ def speed(model, markers: np.ndarray) -> dict:
             else (lambda f: 0.0))
     _, u = ev.deformation(markers)
     feats = ev.features(u)
-    # ours: the fine-scale evaluation alone (distances + weighted sum), per frame
+    # ours: the fine-scale evaluation alone (distances + weighted sum), per frame, as synthesize
+    # runs it (WPSD distances in float32)
     t, cpu = [], []
     for f in feats[SPEED_WARMUP:]:
         t0, c0 = time.perf_counter(), time.process_time()
-        ev.corrections(ev.sq_distances(f[None]), f[None])
+        ev.corrections(ev.sq_distances(f[None], dtype=np.float32), f[None])
         t.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     res["ours_fine_ms"] = 1e3 * float(np.median(t))
@@ -724,7 +730,8 @@ def main() -> None:
             if unknown:
                 parser.error(f"unknown --speed-models {sorted(unknown)}; known: {list(SPEED_MODELS)}")
         res = {a.name: run_speed(a.resolve(), args.train_missing, labels) for a in args.actors}
-        lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})", ""]
+        lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, "
+                 f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')})", ""]
         for name, sp_ in res.items():
             first = next(iter(sp_.values()), {})
             lines += [f"## {name}", "", f"{first.get('n_vertices', 0):,} vertices, {first.get('map_resolution', 0)}² "

@@ -29,6 +29,7 @@ Against :meth:`FrameField.frames` in float64 the frames agree to ~1e-6 (tests bo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -126,6 +127,12 @@ class ShellFrames:
         return cls(order, rank, np.ascontiguousarray(Fi), e1, e2, cb.astype(np.float32),
                    cc.astype(np.float32), angles, incidence)
 
+    @cached_property
+    def _corners(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The three corner columns of :attr:`faces`, each contiguous (gathers by a
+        contiguous index run ~2x faster than by a strided column)."""
+        return tuple(np.ascontiguousarray(self.faces[:, k]) for k in range(3))
+
     @property
     def n_vertices(self) -> int:
         return len(self.order)
@@ -147,7 +154,7 @@ class ShellFrames:
     def rows(self, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """T, B, N (3,n) float32 and has_n (n,) bool (internal order) of the shell X̄ + u,
         u given as U (3,n) float32 in the internal order (:meth:`to_internal`)."""
-        F0, F1, F2 = self.faces[:, 0], self.faces[:, 1], self.faces[:, 2]
+        F0, F1, F2 = self._corners
         m = len(F0)
         e1 = np.empty((3, m), np.float32)
         e2 = np.empty((3, m), np.float32)
