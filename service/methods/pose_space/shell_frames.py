@@ -57,15 +57,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return c
 
 
-def _normalize(X: np.ndarray) -> np.ndarray:
-    """Columns of X (3,n) scaled to unit length in place; zero columns stay zero."""
-    norm = np.sqrt(_dot(X, X))
-    with np.errstate(divide="ignore"):
-        inv = np.where(norm > 0, np.float32(1.0) / norm, np.float32(0.0))
-    X *= inv
-    return X
-
-
 def locality_order(F: np.ndarray, n: int) -> np.ndarray:
     """A vertex order (n,) of small bandwidth: reverse Cuthill–McKee of the mesh's edge graph."""
     F = np.asarray(F, np.int64)
@@ -139,10 +130,8 @@ class ShellFrames:
 
     def to_internal(self, X: np.ndarray) -> np.ndarray:
         """Per-vertex values X (n,3) in vertex order → (3,n) float32 in the internal order."""
-        out = np.empty((3, self.n_vertices), np.float32)
-        for i in range(3):
-            out[i] = np.take(X[:, i], self.order)
-        return out
+        Xt = np.ascontiguousarray(np.asarray(X).T, dtype=np.float32)             # contiguous rows
+        return np.take(Xt, self.order, axis=1)
 
     def to_vertices(self, Xi: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Internal-order (3,n) values → (n,3) in vertex order (into ``out`` if given)."""
@@ -165,17 +154,23 @@ class ShellFrames:
             np.subtract(np.take(U[i], F2), u0, out=e2[i])
             e2[i] += self.rest_e2[i]
         T = np.stack([self.angles @ (self.cb * e1[i] + self.cc * e2[i]) for i in range(3)])
-        fn = _cross(e1, e2)
-        N = _normalize(np.stack([self.incidence @ fn[i] for i in range(3)]))
+        N = np.stack([self.incidence @ row for row in _cross(e1, e2)])
+        nn = _dot(N, N)
+        has_n = nn > 0
+        with np.errstate(divide="ignore"):
+            N *= np.where(has_n, np.float32(1.0) / np.sqrt(nn), np.float32(0.0))
         T -= _dot(T, N) * N
-        has_n = _dot(N, N) > 0.25
-        tn = np.sqrt(_dot(T, T))
-        weak = has_n & ~(tn > CANCEL_RTOL * np.maximum(np.abs(T).max(), 1e-30))
+        tt = _dot(T, T)
+        # as FrameField: a tangent cancelled to below CANCEL_RTOL of the largest component
+        floor = np.float32(CANCEL_RTOL * max(float(np.abs(T).max()), 1e-30)) ** 2
+        weak = has_n & ~(tt > floor)
         if weak.any():
             Nw = N[:, weak].T.astype(np.float64)
             axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
             T[:, weak] = (axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw).T
-        T = _normalize(T)
+            tt = _dot(T, T)
+        with np.errstate(divide="ignore"):
+            T *= np.where(tt > 0, np.float32(1.0) / np.sqrt(tt), np.float32(0.0))
         B = _cross(N, T)
         return T, B, N, has_n
 
