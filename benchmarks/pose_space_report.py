@@ -45,7 +45,14 @@ Per actor:
   (``mesh``: large scale + fine scale + tangent frames; and with the displacement map),
   against scipy's ``RBFInterpolator`` doing the same interpolation in the same run (for PSD
   one interpolator over all 3n values; for WPSD one per vertex, timed on a vertex sample and
-  scaled to n), training time, and stored floats/ints per vertex.
+  scaled to n), training time, and stored floats/ints per vertex. CPU times are of every
+  thread. The report runs with ``facesynth serve``'s BLAS threads (cores ÷ synthesis slots:
+  1 on 2 cores, ``service/app/threads.py``; an ``OPENBLAS_NUM_THREADS`` in the environment
+  is kept). With OpenBLAS's default of one thread per core, the second thread of the one
+  dense product per frame (the thin-shell basis) spin-waits after it and bills its cycles
+  to the synthesis: level 2, P = 6, mesh CPU 52-54 ms with 1 thread against 93 ms with 2
+  (session 13, load 6-7 on 2 cores; before that session's float32 mesh path 84-88 against
+  109).
 """
 
 from __future__ import annotations
@@ -58,12 +65,19 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 OUT = ROOT / "benchmarks" / "out" / "pose_space"
+
+from service.app.threads import apply_blas_threads  # noqa: E402
+
+#: BLAS threads, set before NumPy loads: ``facesynth serve``'s sizing (cores ÷ synthesis
+#: slots, 1 on 2 cores; an OPENBLAS_NUM_THREADS already set is kept), so the speed rows
+#: measure a synthesis as the service runs it (module docstring: speed)
+BLAS_THREADS = apply_blas_threads(None, None)
+
+import numpy as np  # noqa: E402
 
 import harness as pr  # noqa: E402  (the reports' shared data, metric and baselines)
 
@@ -301,11 +315,12 @@ def speed(model, markers: np.ndarray) -> dict:
             else (lambda f: 0.0))
     _, u = ev.deformation(markers)
     feats = ev.features(u)
-    # ours: the fine-scale evaluation alone (distances + weighted sum), per frame
+    # ours: the fine-scale evaluation alone (distances + weighted sum), per frame, as synthesize
+    # runs it (WPSD distances in float32)
     t, cpu = [], []
     for f in feats[SPEED_WARMUP:]:
         t0, c0 = time.perf_counter(), time.process_time()
-        ev.corrections(ev.sq_distances(f[None]), f[None])
+        ev.corrections(ev.sq_distances(f[None], dtype=np.float32), f[None])
         t.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     res["ours_fine_ms"] = 1e3 * float(np.median(t))
@@ -675,7 +690,7 @@ def report(results: list[dict], meta: dict) -> str:
                       "(static detail) and peak − neutral (the expression's wrinkles):", "",
                       "| clip | static r | wrinkle r |", "|---|---|---|"]
                 L += [f"| {k} | {v['static_r']:.3f} | {v['wrinkle_r']:.3f} |" for k, v in ov.items()]
-        L += ["", f"### Speed ({meta['cpus']} cores, one frame per call, median of {SPEED_FRAMES})", "",
+        L += ["", f"### Speed ({meta['cpus']} cores, {BLAS_THREADS} BLAS thread(s), one frame per call, median of {SPEED_FRAMES})", "",
               "| model | P | mesh ms/frame | mesh + displacement ms/frame | fine-scale eval ms | scipy RBFInterpolator ms "
               "(same interpolation) | scipy / ours | scipy max diff mm | training s | floats / ints per vertex |",
               "|---|---|---|---|---|---|---|---|---|---|"]
@@ -724,7 +739,8 @@ def main() -> None:
             if unknown:
                 parser.error(f"unknown --speed-models {sorted(unknown)}; known: {list(SPEED_MODELS)}")
         res = {a.name: run_speed(a.resolve(), args.train_missing, labels) for a in args.actors}
-        lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})", ""]
+        lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, "
+                 f"{BLAS_THREADS} BLAS thread(s))", ""]
         for name, sp_ in res.items():
             first = next(iter(sp_.values()), {})
             lines += [f"## {name}", "", f"{first.get('n_vertices', 0):,} vertices, {first.get('map_resolution', 0)}² "

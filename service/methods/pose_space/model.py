@@ -115,7 +115,15 @@ Choices and departures (the paper is silent or differs):
   faded (sub-mesh detail, 0.02–0.03 mm RMS, no part of the vertex error; fading it too gave
   b 1.209, a 0.841);
 * weights are rounded to float32 when training ends (the stored precision), so a saved and
-  reloaded model synthesizes bit-identical results.
+  reloaded model synthesizes bit-identical results;
+* **per-frame mesh path in float32** (:meth:`PoseSpaceEvaluator.medium_internal`): the
+  displacement ``B u_H`` (float32 basis), the shell's tangent frames from the rest edges plus
+  the displacement's edges in a cache-friendly vertex order (:mod:`.shell_frames`), the
+  rotation of the corrections and the head pose, all float32; WPSD distances in float32
+  (:meth:`PoseSpaceEvaluator.sq_distances`). Training and the float64 operators are
+  unchanged. Within 1e-4 mm of the float64 path (tests; 3.8e-5 mm measured at level 2).
+  Level 2 (178,726 vertices), P = 6, mesh CPU per frame 84-88 → 52-54 ms with one BLAS
+  thread, load 6-7 on 2 cores (session 13; the profile is in the issue 18 report).
 """
 
 from __future__ import annotations
@@ -137,8 +145,9 @@ from service.methods.pdm.base_surface import (
 )
 from service.methods.pose_space import polynomial, rbf, store
 from service.methods.pose_space.data import PoseSpaceData
-from service.methods.pose_space.corrections import apply_corrections, corrections, large_scale_surface
+from service.methods.pose_space.corrections import corrections, large_scale_surface
 from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs
+from service.methods.pose_space.shell_frames import ShellFrames
 from service.methods.pose_space.params import (
     NOISE_COPIES_SEED, VALIDATION_SEED, Params, PsdParams, WpsdParams,
 )
@@ -193,6 +202,10 @@ class PoseSpaceEvaluator:
         influence = np.abs(self.node_basis)
         self.node_influence = influence / np.maximum(influence.sum(axis=1, keepdims=True), 1e-300)
         self.alpha = None if data.alpha is None else data.alpha.astype(np.float64).tocsr()
+        self.alpha32 = None if data.alpha is None else data.alpha.astype(np.float32).tocsr()
+        # the per-frame mesh path: float32 frames from the displacement (:mod:`.shell_frames`)
+        self.shell_frames = ShellFrames.build(self.base.smooth, self.base.faces, data.uv, data.uv_faces)
+        self.smooth_internal = self.shell_frames.to_internal(self.base.smooth)
         if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
             self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
         else:                         # WPSD: per vertex (3,P), the sum over P contiguous (corrections)
@@ -260,12 +273,60 @@ class PoseSpaceEvaluator:
         e = self.graph.edges
         return node[:, e[:, 0]] * node[:, e[:, 1]]
 
+    def medium_internal(self, u_H: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """The shell plus its corrections ``X + Frame(X)ᵀ c`` (3,n) float32 in the internal
+        vertex order of :attr:`shell_frames`, for one frame: handle displacements u_H (M,3),
+        corrections c (n,3) (vertex order, tangent frames).
+
+        Float32 throughout: the displacement ``B u_H`` (the basis product of
+        :func:`~service.geometry.thin_shell.apply_basis`, its (3,h)@(h,n) form), the frames
+        of :class:`ShellFrames` from it, the rotation of c; the rest pose added in float32.
+        Within 1e-4 mm of the float64 ``apply_corrections(base, base.deform(u_H), c)``
+        (tests; one float32 ulp of a position at the sample actor's ~190 mm is 1.5e-5 mm)."""
+        sf = self.shell_frames
+        B = self.base.basis
+        uh = np.asarray(u_H, np.float32)
+        if B.flags.f_contiguous:
+            ut = np.ascontiguousarray(uh.T) @ B.T                                     # (3,n)
+        else:
+            ut = (B @ uh).T
+        U = np.take(ut, sf.order, axis=1)                                            # (3,n) internal
+        W = sf.to_world(sf.rows(U), sf.to_internal(c))
+        U += self.smooth_internal
+        U += W
+        return U
+
+    def restore_internal(self, Xi: np.ndarray, R: np.ndarray, t: np.ndarray,
+                         out: np.ndarray | None = None) -> np.ndarray:
+        """Neutral-aligned points Xi (3,n) internal order → world ``Rᵀ (X − t)`` (n,3)
+        float32 in vertex order (:class:`~service.methods.pdm.base_surface.HeadPose` of one
+        frame, R (3,3), t (3,)), into ``out`` if given."""
+        R32 = np.asarray(R, np.float32)
+        Y = Xi - np.asarray(t, np.float32)[:, None]
+        W = np.empty_like(Y)
+        for k in range(3):
+            np.multiply(Y[0], R32[0, k], out=W[k])
+            W[k] += Y[1] * R32[1, k]
+            W[k] += Y[2] * R32[2, k]
+        return self.shell_frames.to_vertices(W, out)
+
     # -- fine scale
-    def sq_distances(self, f: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+    def sq_distances(self, f: np.ndarray, visibility: np.ndarray | None = None,
+                     dtype=np.float64) -> np.ndarray:
         """Squared feature distances to the basis poses: WPSD (n,F,P) per vertex (eq. 3),
         PSD (1,F,P) (eq. 2). With ``visibility`` ν (F,E) (:meth:`edge_visibility`) every edge's
-        term is weighted by ν and the weights renormalized (module docstring: occlusion)."""
+        term is weighted by ν and the weights renormalized (module docstring: occlusion).
+
+        ``dtype=np.float32`` (WPSD without ``visibility``; the synthesis path): the sparse
+        product in float32 (α and the squared feature differences rounded to float32, 2×
+        less memory read; the kernel sums run in float32 anyway, :meth:`corrections`);
+        within 1e-6 relative of float64 (tests). Otherwise float64."""
         fb = self.data.basis_features
+        if np.dtype(dtype) == np.float32 and self.alpha is not None and visibility is None:
+            f = np.asarray(f, np.float64)
+            G = ((f[:, None, :] - fb[None]) ** 2).astype(np.float32)                 # (F,P,E)
+            F, P = G.shape[:2]
+            return np.asarray(self.alpha32 @ G.reshape(F * P, -1).T).reshape(-1, F, P)
         if self.alpha is None:
             g = f[:, None, :] - fb[None]
             if visibility is None:
@@ -397,16 +458,22 @@ class PoseSpaceModel:
             out["confidence"][sl] = conf
             fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
-            X = ev.base.deform(u_H)
-            D2 = ev.sq_distances(f, ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight"
-                                 else None)
+            vis = ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight" else None
+            D2 = ev.sq_distances(f, vis, dtype=np.float32)
             c = ev.corrections(D2, f)
             if fade is not None:
                 c *= fade[:, None, None]
-            medium = apply_corrections(ev.base, X, c)
-            if "vertices" in out:
-                out["vertices"][sl] = pose.restore(medium)
-            if not want & {"mesh_detailed", "displacement", "normal_map"}:
+            maps = want & {"mesh_detailed", "displacement", "normal_map"}
+            need_medium = want & {"mesh_detailed", "normal_map"}
+            if "vertices" in out or need_medium:
+                medium = np.empty((len(c), n, 3), np.float64) if need_medium else None
+                for k in range(len(c)):
+                    Mi = ev.medium_internal(u_H[k], c[k])
+                    if "vertices" in out:
+                        ev.restore_internal(Mi, pose.R[k], pose.t[k], out["vertices"][s + k])
+                    if need_medium:
+                        medium[k] = ev.shell_frames.to_vertices(Mi)
+            if not maps:
                 continue
             disp = ev.fine_map(D2, f)                                            # (f,Pt)
             if "displacement" in out:

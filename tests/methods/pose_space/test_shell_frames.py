@@ -1,0 +1,82 @@
+"""Tests for service.methods.pose_space.shell_frames and the float32 per-frame mesh path."""
+
+import numpy as np
+
+from service.geometry.tangent_frames import FrameField
+from service.methods.pose_space.shell_frames import ShellFrames, locality_order
+
+
+def _sphere_patch(k: int = 14):
+    """A bumpy height field (k², 3) mm over a UV grid, its triangles and UVs (with a mirrored
+    column of triangles so both handedness branches run)."""
+    u, v = np.meshgrid(np.linspace(0, 1, k), np.linspace(0, 1, k))
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    V = np.column_stack([40 * uv, 3 * np.sin(6 * uv[:, 0]) * np.cos(5 * uv[:, 1])]) + [80.0, 90.0, 100.0]
+    idx = np.arange(k * k).reshape(k, k)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    F = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+    return V, F, uv
+
+
+def test_locality_order_is_a_permutation_of_small_bandwidth():
+    V, F, _ = _sphere_patch(20)
+    rng = np.random.default_rng(3)
+    shuffle = rng.permutation(len(V))                  # a scrambled numbering of the same mesh
+    rank = np.empty(len(V), np.int64)
+    rank[shuffle] = np.arange(len(V))
+    Fs = rank[F]
+    order = locality_order(Fs, len(V))
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(V)))
+    inv = np.empty(len(V), np.int64)
+    inv[order] = np.arange(len(V))
+    band = lambda G: np.abs(G[:, None, :] - G[:, :, None]).max()
+    assert band(inv[Fs]) <= 2 * 20 + 2 < band(Fs)     # a grid row apart at most
+
+
+def test_frames_match_the_float64_frame_field_and_rotate_like_it():
+    V, F, uv = _sphere_patch()
+    rng = np.random.default_rng(0)
+    u = np.stack([2.0 * np.sin(V[:, 0] / 9), 1.5 * np.cos(V[:, 1] / 7), 2.5 * np.sin(V[:, 0] / 11 + V[:, 1] / 13)], 1)
+    sf = ShellFrames.build(V, F, uv, F)
+    T, B, N, has_n = sf.rows(sf.to_internal(u.astype(np.float32)))
+    assert T.dtype == np.float32 and has_n.all()
+    ref = FrameField.build(V, F, uv, F).frames(V + u)                            # (n,3,3) float64
+    got = np.stack([sf.to_vertices(R) for R in (T, B, N)], axis=1)               # (n,3,3)
+    err = np.abs(got - ref).max()
+    assert err < 1e-5, err
+    C = rng.normal(size=(len(V), 3)).astype(np.float32)
+    W = sf.to_vertices(sf.to_world((T, B, N, has_n), sf.to_internal(C)))
+    np.testing.assert_allclose(W, np.einsum("nji,nj->ni", ref, C), atol=1e-5)
+
+
+def test_internal_order_round_trip_is_exact():
+    V, F, uv = _sphere_patch()
+    sf = ShellFrames.build(V, F, uv, F)
+    X = np.random.default_rng(1).normal(size=(len(V), 3)).astype(np.float32)
+    np.testing.assert_array_equal(sf.to_vertices(sf.to_internal(X)), X)
+    np.testing.assert_array_equal(sf.to_internal(X)[:, sf.rank], X.T)
+
+
+def test_float32_distances_within_1e_6_relative_of_float64(wpsd_exact, ps_data):
+    ev = wpsd_exact.evaluator
+    _, u = ev.deformation(ps_data[1][1].markers[[2, 9]])
+    f = ev.features(u)
+    a, b = ev.sq_distances(f), ev.sq_distances(f, dtype=np.float32)
+    assert b.dtype == np.float32 and b.shape == a.shape
+    assert np.abs(b - a).max() <= 1e-6 * a.max()
+
+
+def test_mesh_path_within_1e_4_mm_of_float64_apply_corrections(wpsd_exact, ps_data):
+    """The per-frame float32 shell + rotated corrections against the float64 operators."""
+    from service.methods.pose_space.corrections import apply_corrections
+
+    ev = wpsd_exact.evaluator
+    pose, u = ev.deformation(ps_data[1][1].markers[[5]])
+    f = ev.features(u)
+    c = ev.corrections(ev.sq_distances(f), f)
+    ref = pose.restore(apply_corrections(ev.base, ev.base.deform(u), c))[0]
+    got = ev.restore_internal(ev.medium_internal(u[0], c[0]), pose.R[0], pose.t[0])
+    assert got.dtype == np.float32
+    err = np.abs(got - ref).max()
+    assert err < 1e-4, err
+    assert np.abs(c).max() > 0.5                      # corrections that the frames had to rotate
