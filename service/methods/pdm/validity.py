@@ -205,18 +205,28 @@ class SectorLookup:
     def values(self, table_points: np.ndarray) -> np.ndarray:
         """The table (P,K) at the looked-up directions, linear between sectors (…,P); a table
         of channels (P,K,…) (the sector box (P,K,2,3)) gives (…,P,…), the sectors found once
-        for all C channels (flat index ``lower · C + c``)."""
+        for all C channels.
+
+        A table of channels is read as one item of C values per (point, sector) (a void
+        view of C·itemsize bytes): one gather of ``lower`` and one of ``upper`` move every
+        channel at once, instead of gathering C scalars by the flat indices ``lower · C + c``
+        (built per call). The same values, combined by the same float32 arithmetic, so
+        bit for bit the flat gather (tests); on the level-1 sample actor's box (45,600 UV
+        points × 32 sectors × 6) 5.2 → 1.7 ms of CPU per frame (load 6)."""
         if table_points.shape[1] != self.K:
             raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {table_points.shape[1]}")
-        flat = np.ascontiguousarray(table_points).ravel()
-        if table_points.ndim > 2:
-            channels = table_points.shape[2:]
+        table = np.ascontiguousarray(table_points)
+        if table.ndim > 2:
+            channels = table.shape[2:]
             C = int(np.prod(channels))
-            chan = np.arange(C)
+            items = table.reshape(-1, C).view(np.dtype((np.void, C * table.itemsize))).reshape(-1)
+            lead = self.lower.shape
             t = self.t[..., None]
-            out = ((1 - t) * np.take(flat, self.lower[..., None] * C + chan)
-                   + t * np.take(flat, self.upper[..., None] * C + chan))
-            return out.reshape(*out.shape[:-1], *channels)
+            lo = np.take(items, self.lower).view(table.dtype).reshape(*lead, C)
+            hi = np.take(items, self.upper).view(table.dtype).reshape(*lead, C)
+            out = (1 - t) * lo + t * hi
+            return out.reshape(*lead, *channels)
+        flat = table.ravel()
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
 
@@ -324,7 +334,10 @@ def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallb
     if box is not None:
         bound = np.asarray(box, dtype) * dtype.type(1 + margin)
         inside = np.clip(detail, bound[0], bound[1])
-        clipped = np.any(inside != detail, axis=-1)                            # (F,P)
+        moved = inside != detail
+        clipped = moved[..., 0].copy()                                         # (F,P): any channel
+        for c in range(1, moved.shape[-1]):           # (np.any over a last axis of 3 is ~5x slower)
+            clipped |= moved[..., c]
         detail = inside
     if detail.shape[-1] == 1:
         norm = detail[..., 0] * detail[..., 0]

@@ -150,3 +150,82 @@ def _old_sector_values(d1, d2, table):
     t = (x - np.floor(x)).astype(np.float32)
     cols = np.broadcast_to(np.arange(d1.shape[-1]), d1.shape)
     return (1 - t) * table[k0, cols] + t * table[(k0 + 1) % K, cols]
+
+
+def _flat_channel_values(lookup, table):
+    """The channel-table lookup before items (frozen copy): C scalars gathered per point by
+    the flat indices ``lower · C + c``."""
+    flat = np.ascontiguousarray(table).ravel()
+    channels = table.shape[2:]
+    C = int(np.prod(channels))
+    chan = np.arange(C)
+    t = lookup.t[..., None]
+    out = ((1 - t) * np.take(flat, lookup.lower[..., None] * C + chan)
+           + t * np.take(flat, lookup.upper[..., None] * C + chan))
+    return out.reshape(*out.shape[:-1], *channels)
+
+
+def test_the_item_gather_of_a_channel_table_is_the_flat_gather_bit_for_bit(pdm_model, frames):
+    from service.methods.pdm.validity import SectorLookup
+
+    v = pdm_model.evaluator.validity
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
+    lookup = v.lookup(d1, d2)
+    got = lookup.values(v.box_points)
+    assert got.shape == d1.shape + (2, 3) and got.dtype == np.float32
+    assert np.array_equal(got, _flat_channel_values(lookup, v.box_points))
+    assert np.abs(got).max() > 0
+    # a table that is not contiguous, float64, one frame of 1-D parameters
+    rng = np.random.default_rng(4)
+    table = rng.normal(size=(5, 3, 16, 4)).transpose(0, 2, 1, 3)              # (P,K,3,4) view
+    a, b = rng.normal(size=(2, 5)).astype(np.float32)
+    one = SectorLookup.of(a, b, 16)
+    assert np.array_equal(one.values(table), _flat_channel_values(one, table))
+
+
+def _any_axis_fade(values, rho, envelope, fallback, width, margin, box):
+    """:func:`~service.methods.pdm.validity.fade_detail` with the box's clip found by
+    ``np.any(…, axis=-1)`` (frozen copy of the code before the per-channel OR)."""
+    dtype = values.dtype
+    const = np.ascontiguousarray(fallback, dtype=dtype)
+    detail = values - const
+    bound = np.asarray(box, dtype) * dtype.type(1 + margin)
+    inside = np.clip(detail, bound[0], bound[1])
+    clipped = np.any(inside != detail, axis=-1)
+    detail = inside
+    norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
+    np.maximum(norm, 1e-30, out=norm)
+    w = np.divide((1 + margin) * np.asarray(envelope, dtype), norm, out=norm)
+    np.minimum(w, 1.0, out=w)
+    outside = rho > 1
+    if np.any(outside):
+        w *= np.where(outside, falloff(np.asarray(rho, dtype) - dtype.type(1), width, dtype), dtype.type(1))
+    fading = (w < 1) | clipped
+    detail *= w[..., None]
+    detail += const
+    np.copyto(values, detail, where=fading[..., None])
+    return values
+
+
+def test_the_medium_fade_toward_the_shell_is_the_old_one_bit_for_bit(pdm_model, frames):
+    """The vertex band's fade to the per-frame shell fallback through the item gather of
+    the sector box and the per-channel clip test, against the old flat gather and
+    ``np.any``: frames inside the hull and far outside (2.5×, 6× the peaks)."""
+    from service.methods.pdm import polynomial
+    from service.methods.pdm.validity import fade_detail
+
+    ev = pdm_model.evaluator
+    v = ev.validity
+    d1, d2, _ = ev.vertex_band.parameters(frames, None)
+    lookup = v.lookup(d1, d2)
+    rho = v.gauge(d1, d2, lookup)
+    fallback = ev.shell_fallback(frames[..., :3], None)
+    L = np.ascontiguousarray(polynomial.evaluate(ev.vertex_band.coeffs, d1, d2, rho, v.slope))
+    env = lookup.values(v.sector_points)
+    old_box = np.moveaxis(_flat_channel_values(lookup, v.box_points), -2, 0)
+    old = _any_axis_fade(L.copy(), rho, env, fallback, v.width, 0.25, old_box)
+    new = fade_detail(L.copy(), rho, env, fallback, v.width, 0.25, np.moveaxis(lookup.values(v.box_points), -2, 0))
+    assert np.array_equal(new, old)
+    assert np.array_equal(v.evaluate("vertex", ev.vertex_band.coeffs, d1, d2, rho, lookup, fallback), old)
+    changed = np.any(old != L, axis=-1)
+    assert not changed[:2].any() and changed[2:].mean() > 0.3     # training peaks kept; far frames faded
