@@ -462,8 +462,17 @@ class Validity:
         return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
 
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
-        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
-        return np.ascontiguousarray((self.texel_rho[name] @ rho.T).T, dtype=np.float32)
+        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points: one sparse
+        product per frame of its (Q,) row as float64 (SciPy's single-vector kernel; the
+        (Q,F) product took the multi-vector one with the same sums in the same order,
+        3.6 → 2.6 ms for the 715k fine texels of the level-1 sample actor), rounded to float32."""
+        R = self.texel_rho[name]
+        rho = np.asarray(rho)
+        dtype = np.result_type(R.dtype, rho.dtype)                        # SciPy's upcast
+        out = np.empty((len(rho), R.shape[0]), np.float32)
+        for f, row in enumerate(rho):
+            out[f] = R @ np.asarray(row, dtype)
+        return out
 
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
                  rho: np.ndarray, lookup: SectorLookup | None = None,

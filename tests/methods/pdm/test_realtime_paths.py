@@ -229,3 +229,15 @@ def test_the_medium_fade_toward_the_shell_is_the_old_one_bit_for_bit(pdm_model, 
     assert np.array_equal(v.evaluate("vertex", ev.vertex_band.coeffs, d1, d2, rho, lookup, fallback), old)
     changed = np.any(old != L, axis=-1)
     assert not changed[:2].any() and changed[2:].mean() > 0.3     # training peaks kept; far frames faded
+
+
+@pytest.mark.parametrize("name", ["fine", "albedo"])
+def test_texel_rho_per_frame_is_the_multi_vector_product_bit_for_bit(pdm_model, frames, name):
+    v = pdm_model.evaluator.validity
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
+    rho = v.gauge(d1, d2)
+    old = np.ascontiguousarray((v.texel_rho[name] @ rho.T).T, dtype=np.float32)    # frozen: before
+    got = v.texels(name, rho)
+    assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == old.shape
+    assert np.array_equal(got, old) and old.max() > 1
+    assert np.array_equal(v.texels(name, rho[1:2]), old[1:2])
