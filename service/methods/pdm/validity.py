@@ -99,6 +99,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+import dataclasses
 from dataclasses import dataclass
 
 import scipy.sparse as sp
@@ -310,9 +311,74 @@ def valid_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np
     with gauge ρ (F,P) (module docstring): the continued polynomial L
     (:func:`~service.methods.pdm.polynomial.evaluate` with ``rho``, D(d) bit for bit where
     ρ ≤ 1), then :func:`fade_detail` (``box``: its sector box at d's direction). Dense over
-    the points: no gather of the points outside."""
+    the points: no gather of the points outside (but see :func:`valid_scalar_polynomial`,
+    which one-channel bands take: the same values, the continuation and fade on the points
+    that can change)."""
+    if box is None and np.shape(coeffs)[1] == 1 and np.ndim(envelope) == 1 and np.ndim(fallback) == 2:
+        return valid_scalar_polynomial(coeffs, d1, d2, rho, envelope, fallback, width, slope, margin)
     values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2, rho, slope))
     return fade_detail(values, rho, envelope, fallback, width, margin, box)
+
+
+#: |detail| at most this fraction of (1 + margin) E is within the envelope whatever the
+#: float32 rounding of its norm (``sqrt(fl(d²)) ≤ |d| (1 + 2⁻²³)``), with room
+SURE_INSIDE = np.float32(1 - 2.0 ** -20)
+
+
+def sure_bound(envelope: np.ndarray, margin: float = 0.25) -> np.ndarray:
+    """(P,) float32: ``SURE_INSIDE · (1 + margin) E`` where (1 + margin) E (float32, as
+    :func:`fade_detail` forms it) is in [1e-18, 1e18], else −1 (no detail is surely
+    inside): a one-channel detail ``|D − a5|`` at most this has w = 1 in the fade
+    (:func:`valid_scalar_polynomial`)."""
+    with np.errstate(over="ignore"):                  # an envelope near float32's largest
+        bound = (1 + margin) * np.asarray(envelope, np.float32)
+    ok = (bound >= np.float32(1e-18)) & (bound <= np.float32(1e18))
+    return np.where(ok, bound * SURE_INSIDE, np.float32(-1)).astype(np.float32)
+
+
+def valid_scalar_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray,
+                            envelope: np.ndarray, fallback: np.ndarray, width: float, slope: float,
+                            margin: float = 0.25, sure: np.ndarray | None = None) -> np.ndarray:
+    """:func:`valid_polynomial` (F,P,1) float32 of a one-channel band (coefficients (P,1,K),
+    envelope (P,), fallback (P,1): the fine displacement), bit for bit, with the work done
+    only where it can change a value (issue 23):
+
+    * the plain polynomial everywhere; where some ρ > 1, the continued one (the dense
+      pass's arithmetic, elementwise) on those points and on the inside points whose plain
+      value is ±0 — the dense pass adds ``0 · Σ k a_k m_k`` to the inside points, which
+      can turn a −0 into +0 and nothing else;
+    * :func:`fade_detail` on the points that are outside or whose detail ``|D − a5|`` is
+      not surely within ``(1 + margin) E`` (``sure``: :func:`sure_bound` of the envelope,
+      made here when None): elsewhere the float32 norm is ≤ (1 + margin) E, w = 1, and
+      the dense fade keeps the value.
+
+    Measured on the level-1 sample actor's 715k fine texels (one in-range frame, 3.4 % of
+    them outside, 4 % to fade), in blocks as synthesis runs it: 8.2 → 6.5 ms of CPU per
+    frame (load 5.8; the plain polynomial is 2.5 of it)."""
+    values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2))            # (F,P,1)
+    dtype = values.dtype
+    d1, d2, rho = np.broadcast_arrays(np.asarray(d1, dtype), np.asarray(d2, dtype), np.asarray(rho, dtype))
+    P = d1.shape[-1]
+    flat = values.reshape(-1)                                                     # (F·P,)
+    outside = rho > 1
+    if np.any(outside):
+        idx = np.flatnonzero(outside | (flat == 0).reshape(outside.shape))
+        p = idx % P
+        flat[idx] = polynomial.evaluate(np.asarray(coeffs)[p], d1.reshape(-1)[idx], d2.reshape(-1)[idx],
+                                        rho.reshape(-1)[idx], slope)[:, 0]
+    const = np.ascontiguousarray(fallback, dtype=dtype)[:, 0]                     # (P,)
+    sure = sure_bound(envelope, margin) if sure is None else sure
+    detail = values.reshape(d1.shape) - const
+    np.abs(detail, out=detail)
+    fade = np.less_equal(detail, sure)
+    np.logical_not(fade, out=fade)
+    fade |= outside
+    idx = np.flatnonzero(fade)
+    if len(idx):
+        p = idx % P
+        flat[idx] = fade_detail(flat[idx].reshape(1, -1, 1), rho.reshape(-1)[idx][None],
+                                np.asarray(envelope, dtype)[p][None], const[p][:, None], width, margin)[0, :, 0]
+    return values
 
 
 def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray,
@@ -413,6 +479,7 @@ class Validity:
     vertex_weight: np.ndarray
     sector_points: np.ndarray | None = None
     box_points: np.ndarray | None = None
+    sure: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → sure_bound, made once
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
@@ -498,8 +565,11 @@ class Validity:
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
         at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block)."""
+        sure = self.sure.get(name) if coeffs.shape[1] == 1 else None
+        if sure is None and coeffs.shape[1] == 1:
+            sure = self.sure[name] = sure_bound(self.envelope[name])
         return BandValidity(self.texels(name, rho), coeffs, self.envelope[name], self.fallback(name, coeffs),
-                            self.width, self.slope)
+                            self.width, self.slope, sure)
 
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
@@ -525,6 +595,7 @@ class BandValidity:
     of :meth:`.texel_band.TexelBand.synthesize`, while its values are in the cache).
 
     rho : (F,P) float32;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
+    sure : (P,) float32 or None   :func:`sure_bound` of the envelope (one-channel bands)
     """
 
     rho: np.ndarray
@@ -533,12 +604,16 @@ class BandValidity:
     fallback: np.ndarray
     width: float
     slope: float
+    sure: np.ndarray | None = None
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray, s: int = 0, e: int | None = None) -> np.ndarray:
         """D̃ (F,e−s,C) of points ``s:e`` at their d1, d2 (F,e−s) (:func:`valid_polynomial`):
         elementwise per point, so any split into ranges gives the whole band's values bit
         for bit."""
         p = slice(s, e)
+        if self.sure is not None:
+            return valid_scalar_polynomial(self.coeffs[p], d1, d2, self.rho[:, p], self.envelope[p],
+                                           self.fallback[p], self.width, self.slope, sure=self.sure[p])
         return valid_polynomial(self.coeffs[p], d1, d2, self.rho[:, p], self.envelope[p],
                                 self.fallback[p], self.width, self.slope)
 

@@ -241,3 +241,74 @@ def test_texel_rho_per_frame_is_the_multi_vector_product_bit_for_bit(pdm_model, 
     assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == old.shape
     assert np.array_equal(got, old) and old.max() > 1
     assert np.array_equal(v.texels(name, rho[1:2]), old[1:2])
+
+
+def _dense_valid(coeffs, d1, d2, rho, envelope, fallback, width, slope):
+    """The dense continuation and fade every band took before (one pass over all points)."""
+    from service.methods.pdm import polynomial
+    from service.methods.pdm.validity import fade_detail
+
+    values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2, rho, slope))
+    return fade_detail(values, rho, envelope, fallback, width)
+
+
+def test_the_scalar_band_path_is_the_dense_one_bit_for_bit(pdm_model, frames):
+    """The fine band (one channel) continued and faded only where a value can change is
+    the dense pass bit for bit, per block as synthesis runs it, inside the hull and far out."""
+    from service.methods.pdm.validity import valid_polynomial
+
+    ev = pdm_model.evaluator
+    v = ev.validity
+    band = ev.fine
+    d1, d2, _ = ev.vertex_band.parameters(frames, None)
+    bv = v.band("fine", band.coeffs, v.gauge(d1, d2))
+    assert bv.sure is not None
+    t1, t2, _ = band.parameters(frames, None)
+    args = (bv.rho, bv.envelope, bv.fallback, v.width, v.slope)
+    dense = _dense_valid(band.coeffs, t1, t2, *args)
+    assert np.array_equal(valid_polynomial(band.coeffs, t1, t2, *args), dense)
+    P = len(band.index)
+    cuts = [0, P // 3, P // 3 + 1, P]                                      # blocks, one of one point
+    got = np.concatenate([bv.evaluate(t1[:, a:b], t2[:, a:b], a, b) for a, b in zip(cuts, cuts[1:])], axis=1)
+    assert np.array_equal(got, dense)
+    assert np.array_equal(band.synthesize(frames, None, bv)[0], dense)
+    outside = bv.rho > 1
+    assert outside[2:].mean() > 0.1 and np.any(dense != band.evaluate(t1, t2))      # continued and faded
+
+
+def test_the_scalar_band_path_keeps_the_dense_zeros_signs_and_edge_envelopes():
+    """Synthetic one-channel points where the dense pass's arithmetic has corner cases: values
+    ±0 inside (the dense continuation adds 0 · Σ k a_k m_k), envelopes 0, subnormal and
+    huge, NaN coefficients, ρ exactly 1, and details at the envelope: bit for bit."""
+    from service.methods.pdm.validity import valid_scalar_polynomial
+
+    rng = np.random.default_rng(7)
+    P = 400
+    coeffs = rng.normal(size=(P, 1, 6)).astype(np.float32)
+    coeffs[:40] = 0.0
+    coeffs[20:40] = -0.0                                                 # D = −0 where d > 0
+    coeffs[40:60, 0, :5] = 0.0
+    coeffs[40:60, 0, -1] = -0.0
+    coeffs[40:50, 0, 0] = -1e-30                                        # −0 after rounding, sum < 0
+    coeffs[60, 0, 2] = np.nan
+    d1, d2 = rng.normal(size=(2, 3, P)).astype(np.float32) * 3
+    d1[:, 20:40], d2[:, 20:40] = np.abs(d1[:, 20:40]), np.abs(d2[:, 20:40])
+    rho = np.abs(rng.normal(size=(3, P))).astype(np.float32) * 1.3
+    rho[:, ::7] = 1.0
+    fallback = coeffs[:, :, -1].copy()
+    envelope = np.abs(rng.normal(size=P)).astype(np.float32)
+    envelope[100:110] = 0.0
+    envelope[110:120] = 1e-40
+    envelope[120:130] = 3e38
+    plain = np.ascontiguousarray(
+        __import__("service.methods.pdm.polynomial", fromlist=["evaluate"]).evaluate(coeffs, d1, d2))
+    detail = np.abs(plain[..., 0] - fallback[:, 0])
+    envelope[130:200] = (detail[0, 130:200] / np.float32(1.25)).astype(np.float32)   # at the bound
+    for width, slope in ((1.0, 1.0), (0.5, 0.0)):
+        dense = _dense_valid(coeffs, d1, d2, rho, envelope, fallback, width, slope)
+        got = valid_scalar_polynomial(coeffs, d1, d2, rho, envelope, fallback, width, slope)
+        same = (got == dense) | (np.isnan(got) & np.isnan(dense))
+        assert same.all() and np.array_equal(np.signbit(got), np.signbit(dense))
+        assert (dense == 0).sum() > 30 and np.isnan(dense).any()
+        zero = dense[..., 0] == 0
+        assert np.signbit(plain[..., 0][zero]).any() and not np.signbit(dense[..., 0][zero]).all()
