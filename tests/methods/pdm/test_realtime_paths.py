@@ -313,3 +313,17 @@ def test_the_scalar_band_path_keeps_the_dense_zeros_signs_and_edge_envelopes():
         assert (dense == 0).sum() > 30 and np.isnan(dense).any()
         zero = dense[..., 0] == 0
         assert np.signbit(plain[..., 0][zero]).any() and not np.signbit(dense[..., 0][zero]).all()
+
+
+def test_the_shell_fallback_gathered_by_items_is_the_strided_gather_bit_for_bit(pdm_model, frames):
+    from service.geometry.thin_shell import apply_basis
+
+    ev = pdm_model.evaluator
+    u_H = frames[..., :3]
+    X = ev.base.deform(u_H)
+    world = (ev.shell_offset + apply_basis(ev.shell_correction, u_H)).astype(np.float32)
+    local = ev.base.frame_field.to_frame(X, world) - ev.data.neutral_offset             # frozen: before
+    old = np.ascontiguousarray(local[:, ev.uv_vertex], dtype=np.float32)
+    got = ev.shell_fallback(u_H, X)
+    assert got.dtype == np.float32 and got.flags.c_contiguous and np.array_equal(got, old)
+    assert np.abs(old).max() > 0.1
