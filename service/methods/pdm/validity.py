@@ -99,6 +99,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+import dataclasses
 from dataclasses import dataclass
 
 import scipy.sparse as sp
@@ -205,18 +206,28 @@ class SectorLookup:
     def values(self, table_points: np.ndarray) -> np.ndarray:
         """The table (P,K) at the looked-up directions, linear between sectors (…,P); a table
         of channels (P,K,…) (the sector box (P,K,2,3)) gives (…,P,…), the sectors found once
-        for all C channels (flat index ``lower · C + c``)."""
+        for all C channels.
+
+        A table of channels is read as one item of C values per (point, sector) (a void
+        view of C·itemsize bytes): one gather of ``lower`` and one of ``upper`` move every
+        channel at once, instead of gathering C scalars by the flat indices ``lower · C + c``
+        (built per call). The same values, combined by the same float32 arithmetic, so
+        bit for bit the flat gather (tests); on the level-1 sample actor's box (45,600 UV
+        points × 32 sectors × 6) 5.2 → 1.7 ms of CPU per frame (load 6)."""
         if table_points.shape[1] != self.K:
             raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {table_points.shape[1]}")
-        flat = np.ascontiguousarray(table_points).ravel()
-        if table_points.ndim > 2:
-            channels = table_points.shape[2:]
+        table = np.ascontiguousarray(table_points)
+        if table.ndim > 2:
+            channels = table.shape[2:]
             C = int(np.prod(channels))
-            chan = np.arange(C)
+            items = table.reshape(-1, C).view(np.dtype((np.void, C * table.itemsize))).reshape(-1)
+            lead = self.lower.shape
             t = self.t[..., None]
-            out = ((1 - t) * np.take(flat, self.lower[..., None] * C + chan)
-                   + t * np.take(flat, self.upper[..., None] * C + chan))
-            return out.reshape(*out.shape[:-1], *channels)
+            lo = np.take(items, self.lower).view(table.dtype).reshape(*lead, C)
+            hi = np.take(items, self.upper).view(table.dtype).reshape(*lead, C)
+            out = (1 - t) * lo + t * hi
+            return out.reshape(*lead, *channels)
+        flat = table.ravel()
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
 
@@ -300,9 +311,74 @@ def valid_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np
     with gauge ρ (F,P) (module docstring): the continued polynomial L
     (:func:`~service.methods.pdm.polynomial.evaluate` with ``rho``, D(d) bit for bit where
     ρ ≤ 1), then :func:`fade_detail` (``box``: its sector box at d's direction). Dense over
-    the points: no gather of the points outside."""
+    the points: no gather of the points outside (but see :func:`valid_scalar_polynomial`,
+    which one-channel bands take: the same values, the continuation and fade on the points
+    that can change)."""
+    if box is None and np.shape(coeffs)[1] == 1 and np.ndim(envelope) == 1 and np.ndim(fallback) == 2:
+        return valid_scalar_polynomial(coeffs, d1, d2, rho, envelope, fallback, width, slope, margin)
     values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2, rho, slope))
     return fade_detail(values, rho, envelope, fallback, width, margin, box)
+
+
+#: |detail| at most this fraction of (1 + margin) E is within the envelope whatever the
+#: float32 rounding of its norm (``sqrt(fl(d²)) ≤ |d| (1 + 2⁻²³)``), with room
+SURE_INSIDE = np.float32(1 - 2.0 ** -20)
+
+
+def sure_bound(envelope: np.ndarray, margin: float = 0.25) -> np.ndarray:
+    """(P,) float32: ``SURE_INSIDE · (1 + margin) E`` where (1 + margin) E (float32, as
+    :func:`fade_detail` forms it) is in [1e-18, 1e18], else −1 (no detail is surely
+    inside): a one-channel detail ``|D − a5|`` at most this has w = 1 in the fade
+    (:func:`valid_scalar_polynomial`)."""
+    with np.errstate(over="ignore"):                  # an envelope near float32's largest
+        bound = (1 + margin) * np.asarray(envelope, np.float32)
+    ok = (bound >= np.float32(1e-18)) & (bound <= np.float32(1e18))
+    return np.where(ok, bound * SURE_INSIDE, np.float32(-1)).astype(np.float32)
+
+
+def valid_scalar_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray,
+                            envelope: np.ndarray, fallback: np.ndarray, width: float, slope: float,
+                            margin: float = 0.25, sure: np.ndarray | None = None) -> np.ndarray:
+    """:func:`valid_polynomial` (F,P,1) float32 of a one-channel band (coefficients (P,1,K),
+    envelope (P,), fallback (P,1): the fine displacement), bit for bit, with the work done
+    only where it can change a value (issue 23):
+
+    * the plain polynomial everywhere; where some ρ > 1, the continued one (the dense
+      pass's arithmetic, elementwise) on those points and on the inside points whose plain
+      value is ±0 — the dense pass adds ``0 · Σ k a_k m_k`` to the inside points, which
+      can turn a −0 into +0 and nothing else;
+    * :func:`fade_detail` on the points that are outside or whose detail ``|D − a5|`` is
+      not surely within ``(1 + margin) E`` (``sure``: :func:`sure_bound` of the envelope,
+      made here when None): elsewhere the float32 norm is ≤ (1 + margin) E, w = 1, and
+      the dense fade keeps the value.
+
+    Measured on the level-1 sample actor's 715k fine texels (one in-range frame, 3.4 % of
+    them outside, 4 % to fade), in blocks as synthesis runs it: 8.2 → 6.5 ms of CPU per
+    frame (load 5.8; the plain polynomial is 2.5 of it)."""
+    values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2))            # (F,P,1)
+    dtype = values.dtype
+    d1, d2, rho = np.broadcast_arrays(np.asarray(d1, dtype), np.asarray(d2, dtype), np.asarray(rho, dtype))
+    P = d1.shape[-1]
+    flat = values.reshape(-1)                                                     # (F·P,)
+    outside = rho > 1
+    if np.any(outside):
+        idx = np.flatnonzero(outside | (flat == 0).reshape(outside.shape))
+        p = idx % P
+        flat[idx] = polynomial.evaluate(np.asarray(coeffs)[p], d1.reshape(-1)[idx], d2.reshape(-1)[idx],
+                                        rho.reshape(-1)[idx], slope)[:, 0]
+    const = np.ascontiguousarray(fallback, dtype=dtype)[:, 0]                     # (P,)
+    sure = sure_bound(envelope, margin) if sure is None else sure
+    detail = values.reshape(d1.shape) - const
+    np.abs(detail, out=detail)
+    fade = np.less_equal(detail, sure)
+    np.logical_not(fade, out=fade)
+    fade |= outside
+    idx = np.flatnonzero(fade)
+    if len(idx):
+        p = idx % P
+        flat[idx] = fade_detail(flat[idx].reshape(1, -1, 1), rho.reshape(-1)[idx][None],
+                                np.asarray(envelope, dtype)[p][None], const[p][:, None], width, margin)[0, :, 0]
+    return values
 
 
 def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray,
@@ -324,7 +400,10 @@ def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallb
     if box is not None:
         bound = np.asarray(box, dtype) * dtype.type(1 + margin)
         inside = np.clip(detail, bound[0], bound[1])
-        clipped = np.any(inside != detail, axis=-1)                            # (F,P)
+        moved = inside != detail
+        clipped = moved[..., 0].copy()                                         # (F,P): any channel
+        for c in range(1, moved.shape[-1]):           # (np.any over a last axis of 3 is ~5x slower)
+            clipped |= moved[..., c]
         detail = inside
     if detail.shape[-1] == 1:
         norm = detail[..., 0] * detail[..., 0]
@@ -400,6 +479,7 @@ class Validity:
     vertex_weight: np.ndarray
     sector_points: np.ndarray | None = None
     box_points: np.ndarray | None = None
+    sure: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → sure_bound, made once
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
@@ -449,8 +529,17 @@ class Validity:
         return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
 
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
-        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points."""
-        return np.ascontiguousarray((self.texel_rho[name] @ rho.T).T, dtype=np.float32)
+        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points: one sparse
+        product per frame of its (Q,) row as float64 (SciPy's single-vector kernel; the
+        (Q,F) product took the multi-vector one with the same sums in the same order,
+        3.6 → 2.6 ms for the 715k fine texels of the level-1 sample actor), rounded to float32."""
+        R = self.texel_rho[name]
+        rho = np.asarray(rho)
+        dtype = np.result_type(R.dtype, rho.dtype)                        # SciPy's upcast
+        out = np.empty((len(rho), R.shape[0]), np.float32)
+        for f, row in enumerate(rho):
+            out[f] = R @ np.asarray(row, dtype)
+        return out
 
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
                  rho: np.ndarray, lookup: SectorLookup | None = None,
@@ -476,8 +565,11 @@ class Validity:
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
         at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block)."""
+        sure = self.sure.get(name) if coeffs.shape[1] == 1 else None
+        if sure is None and coeffs.shape[1] == 1:
+            sure = self.sure[name] = sure_bound(self.envelope[name])
         return BandValidity(self.texels(name, rho), coeffs, self.envelope[name], self.fallback(name, coeffs),
-                            self.width, self.slope)
+                            self.width, self.slope, sure)
 
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
@@ -503,6 +595,7 @@ class BandValidity:
     of :meth:`.texel_band.TexelBand.synthesize`, while its values are in the cache).
 
     rho : (F,P) float32;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
+    sure : (P,) float32 or None   :func:`sure_bound` of the envelope (one-channel bands)
     """
 
     rho: np.ndarray
@@ -511,12 +604,16 @@ class BandValidity:
     fallback: np.ndarray
     width: float
     slope: float
+    sure: np.ndarray | None = None
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray, s: int = 0, e: int | None = None) -> np.ndarray:
         """D̃ (F,e−s,C) of points ``s:e`` at their d1, d2 (F,e−s) (:func:`valid_polynomial`):
         elementwise per point, so any split into ranges gives the whole band's values bit
         for bit."""
         p = slice(s, e)
+        if self.sure is not None:
+            return valid_scalar_polynomial(self.coeffs[p], d1, d2, self.rho[:, p], self.envelope[p],
+                                           self.fallback[p], self.width, self.slope, sure=self.sure[p])
         return valid_polynomial(self.coeffs[p], d1, d2, self.rho[:, p], self.envelope[p],
                                 self.fallback[p], self.width, self.slope)
 

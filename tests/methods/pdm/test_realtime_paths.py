@@ -150,3 +150,180 @@ def _old_sector_values(d1, d2, table):
     t = (x - np.floor(x)).astype(np.float32)
     cols = np.broadcast_to(np.arange(d1.shape[-1]), d1.shape)
     return (1 - t) * table[k0, cols] + t * table[(k0 + 1) % K, cols]
+
+
+def _flat_channel_values(lookup, table):
+    """The channel-table lookup before items (frozen copy): C scalars gathered per point by
+    the flat indices ``lower · C + c``."""
+    flat = np.ascontiguousarray(table).ravel()
+    channels = table.shape[2:]
+    C = int(np.prod(channels))
+    chan = np.arange(C)
+    t = lookup.t[..., None]
+    out = ((1 - t) * np.take(flat, lookup.lower[..., None] * C + chan)
+           + t * np.take(flat, lookup.upper[..., None] * C + chan))
+    return out.reshape(*out.shape[:-1], *channels)
+
+
+def test_the_item_gather_of_a_channel_table_is_the_flat_gather_bit_for_bit(pdm_model, frames):
+    from service.methods.pdm.validity import SectorLookup
+
+    v = pdm_model.evaluator.validity
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
+    lookup = v.lookup(d1, d2)
+    got = lookup.values(v.box_points)
+    assert got.shape == d1.shape + (2, 3) and got.dtype == np.float32
+    assert np.array_equal(got, _flat_channel_values(lookup, v.box_points))
+    assert np.abs(got).max() > 0
+    # a table that is not contiguous, float64, one frame of 1-D parameters
+    rng = np.random.default_rng(4)
+    table = rng.normal(size=(5, 3, 16, 4)).transpose(0, 2, 1, 3)              # (P,K,3,4) view
+    a, b = rng.normal(size=(2, 5)).astype(np.float32)
+    one = SectorLookup.of(a, b, 16)
+    assert np.array_equal(one.values(table), _flat_channel_values(one, table))
+
+
+def _any_axis_fade(values, rho, envelope, fallback, width, margin, box):
+    """:func:`~service.methods.pdm.validity.fade_detail` with the box's clip found by
+    ``np.any(…, axis=-1)`` (frozen copy of the code before the per-channel OR)."""
+    dtype = values.dtype
+    const = np.ascontiguousarray(fallback, dtype=dtype)
+    detail = values - const
+    bound = np.asarray(box, dtype) * dtype.type(1 + margin)
+    inside = np.clip(detail, bound[0], bound[1])
+    clipped = np.any(inside != detail, axis=-1)
+    detail = inside
+    norm = np.sqrt(np.einsum("fpc,fpc->fp", detail, detail))
+    np.maximum(norm, 1e-30, out=norm)
+    w = np.divide((1 + margin) * np.asarray(envelope, dtype), norm, out=norm)
+    np.minimum(w, 1.0, out=w)
+    outside = rho > 1
+    if np.any(outside):
+        w *= np.where(outside, falloff(np.asarray(rho, dtype) - dtype.type(1), width, dtype), dtype.type(1))
+    fading = (w < 1) | clipped
+    detail *= w[..., None]
+    detail += const
+    np.copyto(values, detail, where=fading[..., None])
+    return values
+
+
+def test_the_medium_fade_toward_the_shell_is_the_old_one_bit_for_bit(pdm_model, frames):
+    """The vertex band's fade to the per-frame shell fallback through the item gather of
+    the sector box and the per-channel clip test, against the old flat gather and
+    ``np.any``: frames inside the hull and far outside (2.5×, 6× the peaks)."""
+    from service.methods.pdm import polynomial
+    from service.methods.pdm.validity import fade_detail
+
+    ev = pdm_model.evaluator
+    v = ev.validity
+    d1, d2, _ = ev.vertex_band.parameters(frames, None)
+    lookup = v.lookup(d1, d2)
+    rho = v.gauge(d1, d2, lookup)
+    fallback = ev.shell_fallback(frames[..., :3], None)
+    L = np.ascontiguousarray(polynomial.evaluate(ev.vertex_band.coeffs, d1, d2, rho, v.slope))
+    env = lookup.values(v.sector_points)
+    old_box = np.moveaxis(_flat_channel_values(lookup, v.box_points), -2, 0)
+    old = _any_axis_fade(L.copy(), rho, env, fallback, v.width, 0.25, old_box)
+    new = fade_detail(L.copy(), rho, env, fallback, v.width, 0.25, np.moveaxis(lookup.values(v.box_points), -2, 0))
+    assert np.array_equal(new, old)
+    assert np.array_equal(v.evaluate("vertex", ev.vertex_band.coeffs, d1, d2, rho, lookup, fallback), old)
+    changed = np.any(old != L, axis=-1)
+    assert not changed[:2].any() and changed[2:].mean() > 0.3     # training peaks kept; far frames faded
+
+
+@pytest.mark.parametrize("name", ["fine", "albedo"])
+def test_texel_rho_per_frame_is_the_multi_vector_product_bit_for_bit(pdm_model, frames, name):
+    v = pdm_model.evaluator.validity
+    d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
+    rho = v.gauge(d1, d2)
+    old = np.ascontiguousarray((v.texel_rho[name] @ rho.T).T, dtype=np.float32)    # frozen: before
+    got = v.texels(name, rho)
+    assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == old.shape
+    assert np.array_equal(got, old) and old.max() > 1
+    assert np.array_equal(v.texels(name, rho[1:2]), old[1:2])
+
+
+def _dense_valid(coeffs, d1, d2, rho, envelope, fallback, width, slope):
+    """The dense continuation and fade every band took before (one pass over all points)."""
+    from service.methods.pdm import polynomial
+    from service.methods.pdm.validity import fade_detail
+
+    values = np.ascontiguousarray(polynomial.evaluate(coeffs, d1, d2, rho, slope))
+    return fade_detail(values, rho, envelope, fallback, width)
+
+
+def test_the_scalar_band_path_is_the_dense_one_bit_for_bit(pdm_model, frames):
+    """The fine band (one channel) continued and faded only where a value can change is
+    the dense pass bit for bit, per block as synthesis runs it, inside the hull and far out."""
+    from service.methods.pdm.validity import valid_polynomial
+
+    ev = pdm_model.evaluator
+    v = ev.validity
+    band = ev.fine
+    d1, d2, _ = ev.vertex_band.parameters(frames, None)
+    bv = v.band("fine", band.coeffs, v.gauge(d1, d2))
+    assert bv.sure is not None
+    t1, t2, _ = band.parameters(frames, None)
+    args = (bv.rho, bv.envelope, bv.fallback, v.width, v.slope)
+    dense = _dense_valid(band.coeffs, t1, t2, *args)
+    assert np.array_equal(valid_polynomial(band.coeffs, t1, t2, *args), dense)
+    P = len(band.index)
+    cuts = [0, P // 3, P // 3 + 1, P]                                      # blocks, one of one point
+    got = np.concatenate([bv.evaluate(t1[:, a:b], t2[:, a:b], a, b) for a, b in zip(cuts, cuts[1:])], axis=1)
+    assert np.array_equal(got, dense)
+    assert np.array_equal(band.synthesize(frames, None, bv)[0], dense)
+    outside = bv.rho > 1
+    assert outside[2:].mean() > 0.1 and np.any(dense != band.evaluate(t1, t2))      # continued and faded
+
+
+def test_the_scalar_band_path_keeps_the_dense_zeros_signs_and_edge_envelopes():
+    """Synthetic one-channel points where the dense pass's arithmetic has corner cases: values
+    ±0 inside (the dense continuation adds 0 · Σ k a_k m_k), envelopes 0, subnormal and
+    huge, NaN coefficients, ρ exactly 1, and details at the envelope: bit for bit."""
+    from service.methods.pdm.validity import valid_scalar_polynomial
+
+    rng = np.random.default_rng(7)
+    P = 400
+    coeffs = rng.normal(size=(P, 1, 6)).astype(np.float32)
+    coeffs[:40] = 0.0
+    coeffs[20:40] = -0.0                                                 # D = −0 where d > 0
+    coeffs[40:60, 0, :5] = 0.0
+    coeffs[40:60, 0, -1] = -0.0
+    coeffs[40:50, 0, 0] = -1e-30                                        # −0 after rounding, sum < 0
+    coeffs[60, 0, 2] = np.nan
+    d1, d2 = rng.normal(size=(2, 3, P)).astype(np.float32) * 3
+    d1[:, 20:40], d2[:, 20:40] = np.abs(d1[:, 20:40]), np.abs(d2[:, 20:40])
+    rho = np.abs(rng.normal(size=(3, P))).astype(np.float32) * 1.3
+    rho[:, ::7] = 1.0
+    fallback = coeffs[:, :, -1].copy()
+    envelope = np.abs(rng.normal(size=P)).astype(np.float32)
+    envelope[100:110] = 0.0
+    envelope[110:120] = 1e-40
+    envelope[120:130] = 3e38
+    plain = np.ascontiguousarray(
+        __import__("service.methods.pdm.polynomial", fromlist=["evaluate"]).evaluate(coeffs, d1, d2))
+    detail = np.abs(plain[..., 0] - fallback[:, 0])
+    envelope[130:200] = (detail[0, 130:200] / np.float32(1.25)).astype(np.float32)   # at the bound
+    for width, slope in ((1.0, 1.0), (0.5, 0.0)):
+        with np.errstate(over="ignore"):                     # 1.25 × 3e38 is inf in float32
+            dense = _dense_valid(coeffs, d1, d2, rho, envelope, fallback, width, slope)
+            got = valid_scalar_polynomial(coeffs, d1, d2, rho, envelope, fallback, width, slope)
+        same = (got == dense) | (np.isnan(got) & np.isnan(dense))
+        assert same.all() and np.array_equal(np.signbit(got), np.signbit(dense))
+        assert (dense == 0).sum() > 30 and np.isnan(dense).any()
+        zero = dense[..., 0] == 0
+        assert np.signbit(plain[..., 0][zero]).any() and not np.signbit(dense[..., 0][zero]).all()
+
+
+def test_the_shell_fallback_gathered_by_items_is_the_strided_gather_bit_for_bit(pdm_model, frames):
+    from service.geometry.thin_shell import apply_basis
+
+    ev = pdm_model.evaluator
+    u_H = frames[..., :3]
+    X = ev.base.deform(u_H)
+    world = (ev.shell_offset + apply_basis(ev.shell_correction, u_H)).astype(np.float32)
+    local = ev.base.frame_field.to_frame(X, world) - ev.data.neutral_offset             # frozen: before
+    old = np.ascontiguousarray(local[:, ev.uv_vertex], dtype=np.float32)
+    got = ev.shell_fallback(u_H, X)
+    assert got.dtype == np.float32 and got.flags.c_contiguous and np.array_equal(got, old)
+    assert np.abs(old).max() > 0.1
