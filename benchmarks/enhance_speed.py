@@ -17,8 +17,11 @@ service's default budget.
 
 Run: ``python benchmarks/enhance_speed.py [--model DIR] [--actor DIR] [--frames 30]
 [--rounds 2]`` (``make bench``); without ``--model`` the model is harness.py's cached build
-(minutes and ~8 GB at level 1 the first time). BLAS threads:
-what the environment says (one synthesis slot's share: ``service.app.threads``). Writes the
+(minutes and ~8 GB at level 1 the first time). BLAS threads: ``facesynth serve``'s, set
+before NumPy loads (cores ÷ synthesis slots, ``service.app.threads``: 1 on 2 cores; an
+``OPENBLAS_NUM_THREADS`` already set is kept). With OpenBLAS's default of one per core the
+idle second thread's spin-wait billed 0.32 against 0.20 s CPU per frame (mesh +
+displacement, level 1, load 5.4). Writes the
 table to stdout and ``benchmarks/out/enhance_speed.md``.
 """
 
@@ -30,11 +33,16 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from service.app.threads import apply_blas_threads  # noqa: E402
+
+#: serve's BLAS threads, set before NumPy loads (module docstring)
+BLAS_THREADS = apply_blas_threads(None, None)
 OUT = ROOT / "benchmarks" / "out"
+
+import numpy as np  # noqa: E402
+
 PAPER_VERTICES_PER_S = 500_000 / 30.0          # bermano2014 §7
 TARGET_FACTOR = 15.0
 OUTPUT_SETS = {"mesh": ("mesh",), "mesh + displacement": ("mesh", "displacement")}
@@ -94,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     budget = Settings().model_cache_bytes
     lines = [f"## Shape-space enhancement, {args.actor.name} ({n:,} vertices, {model.n_frames} database "
              f"frames), {len(frames)}-frame request, {harness.git_state()}", "",
-             f"{os.cpu_count()} cores, OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}. "
+             f"{os.cpu_count()} cores, {BLAS_THREADS} BLAS thread(s) (serve's sizing). "
              f"Model load {load_wall:.1f} s wall ({load_cpu:.1f} s CPU); cache weight "
              f"{weight / 2**20:,.0f} MiB against the default budget {budget / 2**20:,.0f} MiB"
              f"{' (larger: never kept in the cache)' if weight > budget else ''}. "
