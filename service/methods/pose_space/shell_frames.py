@@ -36,14 +36,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from service.geometry.normals import corner_angles
-from service.geometry.tangent_frames import CANCEL_RTOL, _triangle_signs, uv_handedness
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    out = a[0] * b[0]
-    out += a[1] * b[1]
-    out += a[2] * b[2]
-    return out
+from service.geometry.tangent_frames import CANCEL_RTOL, _dot_rows as _dot, _triangle_signs, uv_handedness
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
