@@ -15,9 +15,6 @@ Everything is float64.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
-
-from service.geometry.topology import vertex_face_adjacency
 
 #: Triangle-frames processed at once by :func:`vertex_normals` (~100k: a few MB per temporary).
 CHUNK_ELEMENTS = 100_000
@@ -108,23 +105,24 @@ def vertex_normals(V: np.ndarray, F: np.ndarray, weighting: str = "angle") -> np
     Vb, lead = _flatten_frames(V)
     nb, n = Vb.shape[:2]
     m = len(F)
-    if weighting == "angle":
-        # every corner scatters its own contribution to its vertex
-        scatter = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.arange(3 * m))), shape=(n, 3 * m))
-    else:
-        # the same cross product goes to all three corners: scatter faces
-        scatter = vertex_face_adjacency(F, n).astype(np.float64)
+    corners = F.ravel()
     N = np.empty((nb, n, 3))
+    acc = np.empty((n, 3))
     step = max(1, CHUNK_ELEMENTS // max(m, 1))      # frames at once: temporaries stay cached
     for s in range(0, nb, step):
         B = Vb[s:s + step]
-        if weighting == "angle":
+        if weighting == "angle":          # every corner its own contribution
             contrib = corner_angles(B, F)[..., None] * face_normals(B, F)[:, :, None, :]
-            contrib = contrib.transpose(1, 2, 0, 3).reshape(3 * m, -1)      # (3m, b·3)
-        else:
+        else:                             # the face's cross product at all three corners
             P = B[:, F]                                                      # (b,m,3,3)
-            contrib = _cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0])
-            contrib = contrib.transpose(1, 0, 2).reshape(m, -1)             # (m, b·3)
-        acc = scatter @ np.ascontiguousarray(contrib)
-        N[s:s + step] = _normalize(acc.reshape(n, -1, 3).transpose(1, 0, 2))
+            cross = _cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0])
+            contrib = np.broadcast_to(cross[:, :, None, :], (len(B), m, 3, 3))
+        contrib = contrib.reshape(len(B), 3 * m, 3)
+        for f in range(len(B)):
+            # summed per vertex in corner order, as a (n,3m) scatter matrix product sums
+            # (bit for bit), without building one per call (most of the call's time at 89k
+            # triangles: 43 → ~12 ms)
+            for d in range(3):
+                acc[:, d] = np.bincount(corners, contrib[f, :, d], minlength=n)
+            N[s + f] = _normalize(acc)
     return N.reshape(*lead, n, 3)
