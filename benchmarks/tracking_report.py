@@ -211,6 +211,15 @@ def flow_speed(sample, params, n: int = 12) -> tuple[float, float, float]:
     return n / cpu["ours"], 2 * n / cpu["edge"], n / cpu["dis"]
 
 
+def run_queue_wait() -> float:
+    """Seconds this process's main thread has spent ready to run but waiting for a core
+    (Linux ``/proc/self/schedstat``, second field; NaN elsewhere)."""
+    try:
+        return int(Path("/proc/self/schedstat").read_text().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
 def speed_rows(actor: Path, args, lines: list, summary: dict) -> None:
     """Time per frame end to end (graph method) at ``--speed-size`` for 1 and 3 views."""
     from service.methods.tracking.params import TrackingParams
@@ -232,24 +241,31 @@ def speed_rows(actor: Path, args, lines: list, summary: dict) -> None:
     for views in (1, 3):
         inp = TrackingInput.from_sample(sample, views=views)
         load = os.getloadavg()[0]
-        w0, c0 = time.perf_counter(), time.process_time()
+        w0, c0, q0 = time.perf_counter(), time.process_time(), run_queue_wait()
         result = track(inp, params)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+        queued = run_queue_wait() - q0
         face = sample.region == 0
         err = np.linalg.norm(result.vertices - sample.frame_truth, axis=2)[:, face].mean()
-        stages = ", ".join(f"{k} {v:.0f}" for k, v in result.timings.items())
+        stages = ", ".join(f"{k} {v:.0f} / {result.cpu_timings.get(k, float('nan')):.0f}"
+                           for k, v in result.timings.items())
         rows.append(f"| {fam} | {size}² | {views} | {T} | {len(sample.artist_vertices)} | {wall / T:.2f} | "
-                    f"{cpu / T:.2f} | {err:.3f} | {stages} | {load:.1f} |")
+                    f"{cpu / T:.2f} | {queued / T:.2f} | {err:.3f} | {stages} | {load:.1f} |")
         summary[f"{fam}/speed/{size}/{views}"] = {"wall_s_per_frame": wall / T, "cpu_s_per_frame": cpu / T,
+                                                  "run_queue_s_per_frame": queued / T,
                                                   "mean_mm": float(err), "timings": result.timings,
-                                                  "load": load}
-        print("speed", views, wall / T, cpu / T, flush=True)
+                                                  "cpu_timings": result.cpu_timings, "load": load}
+        print("speed", views, wall / T, cpu / T, queued / T, flush=True)
     lines += [f"### Speed at {size}² ({T} frames, graph method, 1 BLAS thread, one process)", "",
               f"Flows per second at {size}² (CPU time, 1 view): flow + NCC {ours:.1f}; a tracking edge's "
               f"flows (both directions + consistency) {edge:.1f}; OpenCV DIS {params.dis_preset} preset "
               f"alone {dis:.1f}.", "",
-              "| family | images | views | frames | vertices | wall s / frame | CPU s / frame | mean mm | "
-              "stages (wall s) | load |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
+              "| family | images | views | frames | vertices | wall s / frame | CPU s / frame | "
+              "run-queue wait s / frame | mean mm | stages (wall / CPU s) | load |",
+              "|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
+              "The run-queue wait is the time the main thread was ready but waited for a core "
+              "(``/proc/self/schedstat``): wall ≈ main-thread CPU + wait when other work shares "
+              "the cores; CPU counts OpenCV's worker threads too.", ""]
 
 
 def run_family(actor: Path, args, lines: list, summary: dict) -> None:

@@ -103,8 +103,9 @@ class TrackingResult:
     rotations : (T,3,3), translations : (T,3)   head → world per frame
     scan_vertices : (S,n,3) float32      the static scans registered to the artist topology
                                          (NaN rows for scans the graph did not use)
-    graph : FlowGraph;  keyframes : list[int];  timings : stage → seconds
+    graph : FlowGraph;  keyframes : list[int];  timings : stage → seconds (wall)
     states : pose key → PoseState (the solver's states, for the maps and re-use)
+    cpu_timings : stage → CPU seconds of this process (all its threads)
     """
 
     vertices: np.ndarray
@@ -115,6 +116,7 @@ class TrackingResult:
     keyframes: list
     timings: dict
     states: dict = field(repr=False, default_factory=dict)
+    cpu_timings: dict = field(default_factory=dict)
 
 
 def ground_state(mesh: TrackingMesh) -> PoseState:
@@ -216,6 +218,7 @@ class KeyframeSolution:
     keyframes: list
     rigidity: np.ndarray
     timings: dict
+    cpu_timings: dict = field(default_factory=dict)
 
 
 def solve_keyframes(inp: TrackingInput, graph: FlowGraph, params: TrackingParams,
@@ -230,8 +233,8 @@ def solve_keyframes(inp: TrackingInput, graph: FlowGraph, params: TrackingParams
     """
     mesh = mesh or TrackingMesh.build(inp.artist_vertices, inp.faces)
     temporal = temporal or TemporalFlows(inp, params, 0.0)
-    timings = {}
-    t0 = time.perf_counter()
+    timings, cpu = {}, {}
+    t0, c0 = time.perf_counter(), time.process_time()
     keyframes = graph.keyframes()
     used = sorted({0} | {s for s, _ in graph.static_edges})
     edges = [edge_flows(inp.scan_images[s], inp.frame_images[t], ("scan", s), ("frame", t), params)
@@ -242,8 +245,8 @@ def solve_keyframes(inp: TrackingInput, graph: FlowGraph, params: TrackingParams
                      concatenate(chain, inp.frame_images[a], inp.frame_images[b], params))
         if progress is not None:
             progress(0.5 * b / max(inp.frames - 1, 1), "full flows")
-    timings["full_flows"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    timings["full_flows"], cpu["full_flows"] = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
     states = {("scan", 0): ground_state(mesh)}
     states.update({("scan", s): unknown_state(mesh) for s in used if s != 0})
     states.update({("frame", t): unknown_state(mesh) for t in keyframes})
@@ -258,8 +261,8 @@ def solve_keyframes(inp: TrackingInput, graph: FlowGraph, params: TrackingParams
     if params.keyframe_iterations > first:
         states = solve_poses(mesh, inp.cameras, states, free, edges, raw, params,
                              params.keyframe_iterations - first)
-    timings["keyframe_solve"] = time.perf_counter() - t0
-    return KeyframeSolution(states, keyframes, mesh.rigidity, timings)
+    timings["keyframe_solve"], cpu["keyframe_solve"] = time.perf_counter() - t0, time.process_time() - c0
+    return KeyframeSolution(states, keyframes, mesh.rigidity, timings, cpu)
 
 
 def spans(keyframes: list[int]) -> list[tuple[int, int]]:
@@ -334,27 +337,29 @@ def track(inp: TrackingInput, params: TrackingParams | None = None, method: str 
     report = progress or (lambda f, s: None)
     mesh = TrackingMesh.build(inp.artist_vertices, inp.faces)
     timings: dict[str, float] = {}
+    cpu: dict[str, float] = {}
     T = inp.frames
     if method == "sequential":
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         states = solve_sequential(inp, params, mesh)
-        timings["sequential_solve"] = time.perf_counter() - t0
+        timings["sequential_solve"], cpu["sequential_solve"] = time.perf_counter() - t0, time.process_time() - c0
         keyframes: list[int] = [0]
     else:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         if graph is None:
             report(0.0, "graph flows")
             graph = build_graph(inp, params, [0] if method == "neutral" else None,
                                 lambda f: report(0.2 * f, "graph flows"))
-        timings["graph"] = time.perf_counter() - t0
+        timings["graph"], cpu["graph"] = time.perf_counter() - t0, time.process_time() - c0
         report(0.2, "keyframe solve")
         temporal = TemporalFlows(inp, params, flow_cache_mb)
         key = solve_keyframes(inp, graph, params, mesh,
                               lambda f, s: report(0.2 + 0.2 * f, s), temporal)
         timings.update(key.timings)
+        cpu.update(key.cpu_timings)
         states = dict(key.states)
         keyframes = key.keyframes
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         todo = spans(keyframes)
         for k, (a, b) in enumerate(todo):
             report(0.5 + 0.5 * k / max(len(todo), 1), "tween solve")
@@ -362,7 +367,7 @@ def track(inp: TrackingInput, params: TrackingParams | None = None, method: str 
                                    temporal).items():
                 states[("frame", t)] = s
             temporal.release(range(a, b))     # a span's flows are not needed again
-        timings["tween_solve"] = time.perf_counter() - t0
+        timings["tween_solve"], cpu["tween_solve"] = time.perf_counter() - t0, time.process_time() - c0
     report(1.0, "done")
     frames = [states[("frame", t)] for t in range(T)]
     S = len(inp.scan_images)
@@ -372,4 +377,5 @@ def track(inp: TrackingInput, params: TrackingParams | None = None, method: str 
             scans[s] = states[("scan", s)].world()
     return TrackingResult(np.stack([f.world() for f in frames]).astype(np.float32),
                           np.stack([f.R for f in frames]), np.stack([f.t for f in frames]),
-                          scans, graph if method != "sequential" else None, keyframes, timings, states)
+                          scans, graph if method != "sequential" else None, keyframes, timings, states,
+                          cpu)
