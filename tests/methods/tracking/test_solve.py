@@ -97,7 +97,7 @@ def test_correspondence_model_is_the_squared_distance_to_the_flowed_ray():
     np.testing.assert_allclose(energy(W1 + 1.0 * side)[ok], 1.0, atol=0.05)   # 1 mm off: 1 mm²
 
 
-def test_pose_system_block_matvec_equals_the_per_block_products():
+def test_pose_system_products_and_solve_match_the_per_block_reference():
     # the CG loop's BSR matrix of the data blocks plus β_p (DᵀD ⊗ I₃) against the blocks
     # applied one by one
     from service.methods.tracking.solve import PoseSystem
@@ -119,7 +119,14 @@ def test_pose_system_block_matvec_equals_the_per_block_products():
     for p in range(P):
         ref[p] += system.beta[p] * (system.L @ X[p])
     np.testing.assert_allclose(system.matvec(x), ref.ravel(), rtol=1e-12, atol=1e-10)
-    np.testing.assert_allclose(system.matvec(x, system.block_matrix()), ref.ravel(), rtol=1e-12, atol=1e-10)
+    # the CG loop's vertex-major ordering is the same matrix with its unknowns permuted
+    perm = np.arange(P * n * 3).reshape(P, n, 3).transpose(1, 0, 2).ravel()
+    vm = system.block_matrix(vertex_major=True) @ x[perm]
+    np.testing.assert_allclose(vm, (system.block_matrix() @ x)[perm], rtol=1e-12, atol=1e-10)
+    # and the solve reaches the solution of that system (exact b from a known x)
+    system.b = ref.reshape(P, n, 3)
+    sol = system.solve(np.zeros((P, n, 3)), 400, rtol=1e-10)
+    np.testing.assert_allclose(sol.ravel(), x, atol=1e-6)
 
 
 def test_visibility_on_a_reduced_z_buffer_agrees_with_the_full_one():
