@@ -21,10 +21,11 @@ outer loop of DDMS — each iteration re-fits every term as a quadratic model at
 estimate (correspondence rays, shape targets, shrink-wrap planes, visibility) — but
 minimizes the sum of the quadratics over *all free poses of the call at once*, as one
 sparse linear least-squares system, instead of by Gaussian message passing. The system's
-matrix is never formed as one CSR matrix: it is the per-vertex 3×3 blocks of the data
-terms (diagonal and between the two poses of an edge) plus β_p · (DᵀD ⊗ I₃) per pose (D the
-mesh's edge-incidence matrix), applied in :class:`PoseSystem` and solved by conjugate
-gradients with a 3×3 block-Jacobi preconditioner, warm-started at the current estimate.
+matrix is the per-vertex 3×3 blocks of the data terms (diagonal and between the two poses
+of an edge, one BSR matrix) plus β_p · (DᵀD ⊗ I₃) per pose (D the mesh's edge-incidence
+matrix, applied as one sparse product over all poses), assembled in :class:`PoseSystem` and
+solved by conjugate gradients with a 3×3 block-Jacobi preconditioner, warm-started at the
+current estimate.
 (A direct factorization, :mod:`service.geometry.sparse_solve`, took 1.6 s for one pose of
 the 11k-vertex mesh and 195 s for five coupled poses — the pose coupling fills in like a
 3-D grid; CG takes ~0.1 s per pose.) TRW-S's lazy model construction — terms are fitted
