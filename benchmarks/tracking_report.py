@@ -51,6 +51,32 @@ propagation. Family b's monocular error is the head's depth along the view axis 
 0.34-0.86 mm is left once each frame is rigidly aligned to the truth (mean offset along
 the optical axis up to 5.3 mm).
 
+Speed (512², 30 frames, neutral + 5 scans, graph method, one process, 1 BLAS thread; CPU
+seconds per frame, all threads; load 5-7 on 2 cores throughout). Before: commit 8974d4e;
+after: this file's commit. Family a has 11 248 vertices (the issue's ≈10k), b 21 092:
+
+======  =====  ==================  ==================  ===============  ================
+family  views  CPU s/fr before     CPU s/fr after      mean mm before   mean mm after
+======  =====  ==================  ==================  ===============  ================
+a       1      2.35                1.09                0.682            0.682
+b       1      3.41                1.72                2.554            2.379
+a       3      5.62                2.35                0.324            0.328
+b       3      7.14                2.96                0.249            0.249
+======  =====  ==================  ==================  ===============  ================
+
+Wall time was 1.6-2.4× the CPU time in every run: the main thread's run-queue wait
+(``/proc/self/schedstat``) accounts for all of it (a, 1 view, after: wall 78.5 s = 29.8 s
+running + 48.2 s waiting for a core + 0.5 s else), so the gap is the other work on the
+two cores, not I/O, sleeping or subprocesses. What cut the CPU: the temporal flows were
+computed twice (keyframe concatenation, then the spans: 58 of 197 flows); DIS at patch
+stride 4 instead of 2 (0.115 against 0.221 s per 512² flow at the same end-point error);
+the visibility z-buffer at 256 px (0.042 against 0.119 s per pose and view); the CG's
+matrix as BSR blocks in vertex-major order (0.65 against 1.10 s per 100 iterations for 8
+poses). Flows per second at 512² (CPU, 1 view): flow + NCC 4.5 → 8.9 (a), 4.6 → 10.1 (b);
+OpenCV DIS medium alone 38.5 / 35.6. The NCC confidence is 0.019 s of a flow's 0.11 s; the
+remaining flow cost is DIS at finest scale 0 (finest scale 1: 0.051 s, but 20-40 % larger
+end-point error).
+
 Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
 [--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only] [--out DIR]``.
 Writes ``benchmarks/out/tracking/report.md`` (or ``DIR/report.md``; and stdout).
