@@ -77,6 +77,20 @@ OpenCV DIS medium alone 38.5 / 35.6. The NCC confidence is 0.019 s of a flow's 0
 remaining flow cost is DIS at finest scale 0 (finest scale 1: 0.051 s, but 20-40 % larger
 end-point error).
 
+Where family a's end error comes from (256², 120 frames, 3 views, full graph; mean 0.404,
+start 0.191, end 0.504, ratio 2.63, as before this session's speed changes: 0.401 / 0.187 /
+0.491 / 2.63). No scan resembles the last frames: for every frame 110-119 the nearest scan
+(rigidly aligned, mean distance) is the neutral, at the frame's own expression amplitude
+(1.1-2.4 mm). 87 % of the end-minus-start error increase is in the lower centre and left
+of the face (4 × 3 grid in view 0), where the truth moves 2-4 mm, and the end error equals
+the error of earlier frames of like amplitude (frames 15, 60, 90: amplitude 1.9-2.3 mm,
+error 0.51-0.53 mm). Anchors are selected there (frame 110: pucker; 119: all six scans). The
+per-vertex end error correlates with the registration error of the smile (r = 0.82),
+pucker (0.71) and chin-raise (0.69) scans (registered 0.75 / 1.53 / 0.64 mm off, mostly
+tangentially), but holding every static pose at its ground truth only moves the end error
+from 0.504 to 0.468 mm (mean 0.404 → 0.380, ratio 2.63 → 2.25): the registration is a
+small part; the performance's end expression, outside the scans, is the rest.
+
 Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
 [--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only] [--out DIR]``.
 Writes ``benchmarks/out/tracking/report.md`` (or ``DIR/report.md``; and stdout).
