@@ -51,6 +51,46 @@ propagation. Family b's monocular error is the head's depth along the view axis 
 0.34-0.86 mm is left once each frame is rigidly aligned to the truth (mean offset along
 the optical axis up to 5.3 mm).
 
+Speed (512², 30 frames, neutral + 5 scans, graph method, one process, 1 BLAS thread; CPU
+seconds per frame, all threads; load 5-7 on 2 cores throughout). Before: commit 8974d4e;
+after: this file's commit. Family a has 11 248 vertices (the issue's ≈10k), b 21 092:
+
+======  =====  ==================  ==================  ===============  ================
+family  views  CPU s/fr before     CPU s/fr after      mean mm before   mean mm after
+======  =====  ==================  ==================  ===============  ================
+a       1      2.35                1.09                0.682            0.682
+b       1      3.41                1.72                2.554            2.379
+a       3      5.62                2.35                0.324            0.328
+b       3      7.14                2.96                0.249            0.249
+======  =====  ==================  ==================  ===============  ================
+
+Wall time was 1.6-2.4× the CPU time in every run: the main thread's run-queue wait
+(``/proc/self/schedstat``) accounts for all of it (a, 1 view, after: wall 78.5 s = 29.8 s
+running + 48.2 s waiting for a core + 0.5 s else), so the gap is the other work on the
+two cores, not I/O, sleeping or subprocesses. What cut the CPU: the temporal flows were
+computed twice (keyframe concatenation, then the spans: 58 of 197 flows); DIS at patch
+stride 4 instead of 2 (0.115 against 0.221 s per 512² flow at the same end-point error);
+the visibility z-buffer at 256 px (0.042 against 0.119 s per pose and view); the CG's
+matrix as BSR blocks in vertex-major order (0.65 against 1.10 s per 100 iterations for 8
+poses). Flows per second at 512² (CPU, 1 view): flow + NCC 4.5 → 8.9 (a), 4.6 → 10.1 (b);
+OpenCV DIS medium alone 38.5 / 35.6. The NCC confidence is 0.019 s of a flow's 0.11 s; the
+remaining flow cost is DIS at finest scale 0 (finest scale 1: 0.051 s, but 20-40 % larger
+end-point error).
+
+Where family a's end error comes from (256², 120 frames, 3 views, full graph; mean 0.404,
+start 0.191, end 0.504, ratio 2.63, as before this session's speed changes: 0.401 / 0.187 /
+0.491 / 2.63). No scan resembles the last frames: for every frame 110-119 the nearest scan
+(rigidly aligned, mean distance) is the neutral, at the frame's own expression amplitude
+(1.1-2.4 mm). 87 % of the end-minus-start error increase is in the lower centre and left
+of the face (4 × 3 grid in view 0), where the truth moves 2-4 mm, and the end error equals
+the error of earlier frames of like amplitude (frames 15, 60, 90: amplitude 1.9-2.3 mm,
+error 0.51-0.53 mm). Anchors are selected there (frame 110: pucker; 119: all six scans). The
+per-vertex end error correlates with the registration error of the smile (r = 0.82),
+pucker (0.71) and chin-raise (0.69) scans (registered 0.75 / 1.53 / 0.64 mm off, mostly
+tangentially), but holding every static pose at its ground truth only moves the end error
+from 0.504 to 0.468 mm (mean 0.404 → 0.380, ratio 2.63 → 2.25): the registration is a
+small part; the performance's end expression, outside the scans, is the rest.
+
 Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
 [--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only] [--out DIR]``.
 Writes ``benchmarks/out/tracking/report.md`` (or ``DIR/report.md``; and stdout).
@@ -211,6 +251,15 @@ def flow_speed(sample, params, n: int = 12) -> tuple[float, float, float]:
     return n / cpu["ours"], 2 * n / cpu["edge"], n / cpu["dis"]
 
 
+def run_queue_wait() -> float:
+    """Seconds this process's main thread has spent ready to run but waiting for a core
+    (Linux ``/proc/self/schedstat``, second field; NaN elsewhere)."""
+    try:
+        return int(Path("/proc/self/schedstat").read_text().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
 def speed_rows(actor: Path, args, lines: list, summary: dict) -> None:
     """Time per frame end to end (graph method) at ``--speed-size`` for 1 and 3 views."""
     from service.methods.tracking.params import TrackingParams
@@ -232,24 +281,31 @@ def speed_rows(actor: Path, args, lines: list, summary: dict) -> None:
     for views in (1, 3):
         inp = TrackingInput.from_sample(sample, views=views)
         load = os.getloadavg()[0]
-        w0, c0 = time.perf_counter(), time.process_time()
+        w0, c0, q0 = time.perf_counter(), time.process_time(), run_queue_wait()
         result = track(inp, params)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+        queued = run_queue_wait() - q0
         face = sample.region == 0
         err = np.linalg.norm(result.vertices - sample.frame_truth, axis=2)[:, face].mean()
-        stages = ", ".join(f"{k} {v:.0f}" for k, v in result.timings.items())
+        stages = ", ".join(f"{k} {v:.0f} / {result.cpu_timings.get(k, float('nan')):.0f}"
+                           for k, v in result.timings.items())
         rows.append(f"| {fam} | {size}² | {views} | {T} | {len(sample.artist_vertices)} | {wall / T:.2f} | "
-                    f"{cpu / T:.2f} | {err:.3f} | {stages} | {load:.1f} |")
+                    f"{cpu / T:.2f} | {queued / T:.2f} | {err:.3f} | {stages} | {load:.1f} |")
         summary[f"{fam}/speed/{size}/{views}"] = {"wall_s_per_frame": wall / T, "cpu_s_per_frame": cpu / T,
+                                                  "run_queue_s_per_frame": queued / T,
                                                   "mean_mm": float(err), "timings": result.timings,
-                                                  "load": load}
-        print("speed", views, wall / T, cpu / T, flush=True)
+                                                  "cpu_timings": result.cpu_timings, "load": load}
+        print("speed", views, wall / T, cpu / T, queued / T, flush=True)
     lines += [f"### Speed at {size}² ({T} frames, graph method, 1 BLAS thread, one process)", "",
               f"Flows per second at {size}² (CPU time, 1 view): flow + NCC {ours:.1f}; a tracking edge's "
               f"flows (both directions + consistency) {edge:.1f}; OpenCV DIS {params.dis_preset} preset "
               f"alone {dis:.1f}.", "",
-              "| family | images | views | frames | vertices | wall s / frame | CPU s / frame | mean mm | "
-              "stages (wall s) | load |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
+              "| family | images | views | frames | vertices | wall s / frame | CPU s / frame | "
+              "run-queue wait s / frame | mean mm | stages (wall / CPU s) | load |",
+              "|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
+              "The run-queue wait is the time the main thread was ready but waited for a core "
+              "(``/proc/self/schedstat``): wall ≈ main-thread CPU + wait when other work shares "
+              "the cores; CPU counts OpenCV's worker threads too.", ""]
 
 
 def run_family(actor: Path, args, lines: list, summary: dict) -> None:

@@ -73,7 +73,8 @@ def flow_with_confidence(reference: np.ndarray, moving: np.ndarray, params: Trac
     The confidence is the smoothed NCC between the reference and the moving image warped by
     the flow, over the reference's foreground (non-zero pixels).
     """
-    flow = of.refined_flow(reference, moving, passes=params.dis_passes, preset=params.dis_preset)
+    flow = of.refined_flow(reference, moving, passes=params.dis_passes, preset=params.dis_preset,
+                           patch_stride=params.dis_patch_stride)
     warped = of.warp(moving.astype(np.float32), flow)
     mask = reference > 0
     conf = of.ncc_confidence(reference.astype(np.float32), warped, params.ncc_window,

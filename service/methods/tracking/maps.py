@@ -50,7 +50,7 @@ def scan_weights(inp, result, params: TrackingParams | None = None,
     for k, t in enumerate(sampled):
         frame = resize(inp.frame_images[t, 0], scale)
         world = result.vertices[t].astype(np.float64)
-        vis = visibility(mesh, cam, world, params.visibility_tolerance_mm)
+        vis = visibility(mesh, cam, world, params.visibility_tolerance_mm, params.visibility_size)
         xy = cam.project(world)[:, :2] - 0.5
         for s in used:
             vf = flow_with_confidence(frame, scans[s], params)
