@@ -384,7 +384,9 @@ class ShapeSpaceModel:
         disp = bool(want & {"displacement", "normal_map"})          # the displacement is computed
         fine = bool(want & {"displacement", "normal_map", "mesh_detailed"}) and self.data.fine_maps is not None
         if disp:
+            H = self.data.params.map_resolution
             out["vertex_displacement"] = np.empty((nf, n), np.float32)
+            out["displacement"] = np.empty((nf, H, H), np.float32)
         if "mesh_detailed" in want:
             out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
         ev = self.evaluator
@@ -417,6 +419,11 @@ class ShapeSpaceModel:
             for maps, values in texel_maps.values():
                 for f in range(b - a):
                     values[a + f] = maps.blend(W[f])
+            if disp:      # per batch: a whole request's (F,H²) float64 maps are GBs at 1024²
+                out["displacement"][a:b] = self.vertex_map(out["vertex_displacement"][a:b])
+                if fine:
+                    out["displacement"][a:b] += ev.fine_maps.image(
+                        texel_maps["fine_displacement"][1][a:b], self.data.params.map_resolution)
             if "mesh_detailed" in want:
                 detailed = world
                 if fine:
@@ -427,13 +434,8 @@ class ShapeSpaceModel:
             if "colors" in outputs:
                 for f in range(b - a):
                     out["colors"][a + f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W[f])
-        if disp:
-            out["displacement"] = self.vertex_map(out["vertex_displacement"])
         for key, (maps, values) in texel_maps.items():
             out[key] = maps.image(values)
-        if fine and disp:
-            out["displacement"] += ev.fine_maps.image(texel_maps["fine_displacement"][1],
-                                                        self.data.params.map_resolution)
         if "normal_map" in want:
             out["normal_map"] = np.stack([
                 ev.normal_mapper.normal_map(h, V, ev.frame_field.frames(V))
