@@ -357,7 +357,8 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
         other = "synthesize" if loaded.kind.input == "markers" else "enhance"
         raise InvalidInput(f"a {loaded.kind.name} model takes {loaded.kind.input}: use "
                            f"POST /v1/models/{model_id}/{other}")
-    expected = replace(Expected.of(loaded), reference=services.marker_reference(loaded.actor_id))
+    # the actor's layout as of the load: it cannot change while the model exists
+    expected = replace(Expected.of(loaded), reference=loaded.reference)
     loaded_rig = None
     if rig is not None:
         loaded_rig = load_rig(services, loaded.actor_id, rig, expected.count)

@@ -12,6 +12,7 @@ import contextlib
 import json
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -22,6 +23,7 @@ from sqlalchemy.orm import Session
 from models_store import registry
 from models_store.blobs import BlobStore
 from models_store.cache import ByteLRUCache
+from models_store.registry._common import in_tenant
 from service.app.limits import REGISTRATION_CACHE_BYTES
 from service.app.marker_units import MarkerReference, face_unit, layout_positions
 from service.app.memory import release_free_heap
@@ -37,6 +39,38 @@ log = logging.getLogger("facesynth.api")
 #: hands a queued job (by id) to the task queue
 Submit = Callable[[str], None]
 
+#: seconds for which one read of a ready model's row answers for it (issue 23: the row read,
+#: the actor read of the marker check and their two sessions were 0.4 ms of a quiet
+#: level-1 mesh request and 4 ms of one under load 6, against a 4 ms budget). A ready
+#: model's row is immutable until it is deleted (its status, tenant, actor, kind and files;
+#: its actor's neutral and marker layout cannot change while the actor has models:
+#: ``registry.set_neutral`` / ``set_markers``), so the only staleness is of a deletion: one
+#: made in this process drops the model at once (:meth:`Services.forget_model`); one made
+#: by another process (another server worker, the CLI) answers 404 here within this time.
+#: The tenant check is made on every request against the row's (immutable) tenant.
+READY_RECHECK_SECONDS = 1.0
+#: most ready rows remembered (the oldest read is dropped first)
+READY_ROWS = 1024
+
+
+@dataclass(frozen=True)
+class ReadyRow:
+    """What one read of a ready model's row established (:data:`READY_RECHECK_SECONDS`).
+
+    Attributes
+    ----------
+    id, tenant, kind, actor_id : the row's (immutable while the model exists)
+    size_bytes : int     its files' size
+    checked : float      ``time.monotonic()`` of the read
+    """
+
+    id: str
+    tenant: str
+    kind: str
+    actor_id: str | None
+    size_bytes: int
+    checked: float
+
 
 @dataclass
 class LoadedModel:
@@ -51,6 +85,9 @@ class LoadedModel:
     stream : object   what the gRPC server synthesizes with: the model, or for marker-driven
                       kinds a :class:`UnitCheckedModel` of it
     topology : Topology or None   the topology resource (``service.app.operations``), cached
+    reference : MarkerReference or None   the actor's marker layout on its neutral when the
+                      model was loaded (:meth:`Services.marker_reference`; it cannot change
+                      while the model exists), for the unit check of marker frames
     """
 
     id: str
@@ -60,6 +97,7 @@ class LoadedModel:
     stream: Any = None
     #: the model's topology resource (NPZ body, ETag), built on its first request
     topology: Any = None
+    reference: MarkerReference | None = None
 
 
 @dataclass(frozen=True)
@@ -136,6 +174,10 @@ class Services:
     marker_references: dict[tuple, Any] = field(default_factory=dict, repr=False)
     #: the background preload of ``facesynth serve`` (None: none was asked for)
     preloading: Preload | None = field(default=None, repr=False)
+    #: ready models' rows by id, as last read (:data:`READY_RECHECK_SECONDS`)
+    ready_rows: dict[str, ReadyRow] = field(default_factory=dict, repr=False)
+    #: models forgotten so far: a row read before a deletion is not remembered after it
+    forgotten: int = field(default=0, repr=False)
 
     @classmethod
     def open(cls, settings: Settings) -> "Services":
@@ -157,6 +199,7 @@ class Services:
         """Drop the cached models and the database connections."""
         self.models.clear()
         self.registrations.clear()
+        self.ready_rows.clear()
         self.store.dispose()
 
     def session(self) -> contextlib.AbstractContextManager[Session]:
@@ -172,48 +215,72 @@ class Services:
     def loaded_model(self, model_id: str) -> LoadedModel:
         """A ready model from the cache, loading it (checksums verified) on a miss.
 
+        Its row is read at most every :data:`READY_RECHECK_SECONDS` while the model stays
+        cached (a deletion in this process is seen at once, one by another process within
+        that time); the tenant of the request is checked on every call.
+
         Raises
         ------
-        NotFound   unknown (or malformed) model id
+        NotFound   unknown (or malformed) model id, or one of another tenant
         Conflict   the model is training or failed, so it cannot synthesize
         """
+        row = self.ready_rows.get(model_id)
+        if (row is not None and time.monotonic() - row.checked < READY_RECHECK_SECONDS
+                and model_id in self.models):
+            in_tenant(row, "model", None)   # another tenant's: the NotFound of an unknown id
+            # (evicted since the check above: the loader reads the row again, as a miss does)
+            return self.models.get_or_load(model_id, lambda: self._load(model_id, row),
+                                           size_of=self._size_of(row))
+        forgotten = self.forgotten
         with self.session() as session:
-            row = registry.get_model(session, model_id)
-            if row.status != "ready":
+            model = registry.get_model(session, model_id)
+            if model.status != "ready":
                 what = ("still training; it can synthesize once its training job succeeds"
-                        if row.status == "training" else
-                        f"{row.status}{': ' + row.error['message'] if row.error else ''}")
+                        if model.status == "training" else
+                        f"{model.status}{': ' + model.error['message'] if model.error else ''}")
                 raise Conflict(f"model {model_id!r} is not ready: it is {what}")
-            kind = get_kind(row.kind)
-            size = int(row.size_bytes or 0)
-            actor_id = row.actor_id
+            row = ReadyRow(model_id, model.tenant, model.kind, model.actor_id,
+                           int(model.size_bytes or 0), time.monotonic())
+        loaded = self.models.get_or_load(model_id, lambda: self._load(model_id, row),
+                                         size_of=self._size_of(row))
+        if forgotten == self.forgotten:     # no deletion since the read: remember it
+            self.ready_rows.pop(model_id, None)
+            while len(self.ready_rows) >= READY_ROWS:
+                self.ready_rows.pop(next(iter(self.ready_rows)), None)
+            self.ready_rows[model_id] = row
+        return loaded
 
-            def load() -> LoadedModel:
-                # the files are hashed in a thread while the kind reads them (issue 23's cold
-                # start); nothing loaded is used before confirm() has checked them
-                path = registry.model_dir(session, self.blobs, model_id, background=True)
-                log.info("loading model %s (%s, %d bytes)", model_id, kind.name, size)
-                try:
-                    model = kind.load(path)
-                except Exception:
-                    path.confirm()   # a corrupt file is reported as corrupt, not as what it broke
-                    raise
-                path.confirm()
-                # a load's temporaries (file bytes, decoded maps, operator assembly) are about
-                # as large as the model: hand the freed heap back so that the resident cost
-                # is the model's (what the cache weighs by, below), not its peak
-                release_free_heap()
-                stream = (UnitCheckedModel(model, self.marker_reference(actor_id))
-                          if kind.input == "markers" else model)
-                return LoadedModel(model_id, kind, model, actor_id, stream)
+    def _size_of(self, row: ReadyRow) -> Callable[[LoadedModel], int]:
+        """What the cache weighs a loaded model of ``row`` by: what it holds in memory
+        (arrays, operators, factorizations), which can be several times its files (a
+        shape-space model's prefactored solves); at least its files unless the kind maps
+        files it reads only in part."""
+        kind = get_kind(row.kind)
+        floor = row.size_bytes if kind.weighs_mapped else 0
+        return lambda loaded: max(nbytes(loaded.model, mapped=kind.weighs_mapped), floor)
 
-            # weighed by what the model holds in memory (arrays, operators, factorizations),
-            # which can be several times its files (a shape-space model's prefactored solves);
-            # at least its files unless the kind maps files it reads only in part
-            floor = size if kind.weighs_mapped else 0
-            return self.models.get_or_load(
-                model_id, load,
-                size_of=lambda loaded: max(nbytes(loaded.model, mapped=kind.weighs_mapped), floor))
+    def _load(self, model_id: str, row: ReadyRow) -> LoadedModel:
+        """Load the ready model of ``row`` from its verified files."""
+        kind = get_kind(row.kind)
+        with self.session() as session:
+            # the files are hashed in a thread while the kind reads them (issue 23's cold
+            # start); nothing loaded is used before confirm() has checked them. model_dir
+            # reads the row again (NotFound, Conflict as loaded_model's)
+            path = registry.model_dir(session, self.blobs, model_id, background=True)
+        log.info("loading model %s (%s, %d bytes)", model_id, kind.name, row.size_bytes)
+        try:
+            model = kind.load(path)
+        except Exception:
+            path.confirm()   # a corrupt file is reported as corrupt, not as what it broke
+            raise
+        path.confirm()
+        # a load's temporaries (file bytes, decoded maps, operator assembly) are about
+        # as large as the model: hand the freed heap back so that the resident cost
+        # is the model's (what the cache weighs by), not its peak
+        release_free_heap()
+        reference = self.marker_reference(row.actor_id)
+        stream = UnitCheckedModel(model, reference) if kind.input == "markers" else model
+        return LoadedModel(model_id, kind, model, row.actor_id, stream, reference=reference)
 
     def preload(self, models: Sequence[str]) -> list[str]:
         """Load models into the cache before the first request needs them (a stream's first
@@ -334,7 +401,10 @@ class Services:
             return cached
 
     def forget_model(self, model_id: str) -> None:
-        """Drop a (deleted) model from the cache."""
+        """Drop a (deleted) model from the cache, and its row: the next request reads it
+        (and answers 404) at once."""
+        self.forgotten += 1
+        self.ready_rows.pop(model_id, None)
         self.models.invalidate(model_id)
 
     def check(self) -> dict[str, str]:

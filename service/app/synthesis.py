@@ -36,6 +36,7 @@ from service.geometry.uv_raster import resample_map
 from service.io.exr import write_map
 from service.io.markers import read_markers_json
 from service.io.mesh import Mesh, write_obj
+from service.io.half import to_float16
 from service.io.npz import npz_bytes
 from service.methods.inputs import InvalidInput
 
@@ -370,10 +371,16 @@ def npz_arrays(result: dict[str, np.ndarray], *, half: bool = False,
     topology resource). With neither, ``result`` itself (bit-exact float32)."""
     out = {k: v for k, v in result.items() if topology or k not in TOPOLOGY_KEYS}
     if half:
-        with np.errstate(over="ignore"):      # beyond the half range is +-inf, as in EXR
-            for name in MAP_OUTPUTS:
-                if name in out and np.ndim(out[name]) >= 3:
-                    out[name] = np.asarray(out[name]).astype(np.float16)
+        # beyond the half range is +-inf, as in EXR; float32 maps by the vectorized
+        # conversion (bit for bit NumPy's astype, ~1.6x faster: service/io/half.py)
+        for name in MAP_OUTPUTS:
+            if name in out and np.ndim(out[name]) >= 3:
+                values = np.asarray(out[name])
+                if values.dtype == np.float32:
+                    out[name] = to_float16(values)
+                else:
+                    with np.errstate(over="ignore"):
+                        out[name] = values.astype(np.float16)
     return out
 
 
