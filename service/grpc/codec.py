@@ -13,6 +13,7 @@ import numpy as np
 
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.errors import InvalidInput
+from service.io.half import to_float16
 from service.methods import outputs as vocabulary
 from service.methods.outputs import MAP_OUTPUTS, STREAM_DEFAULT_OUTPUTS
 
@@ -60,9 +61,9 @@ def decode_markers(msg: pb.MarkerFrame) -> np.ndarray:
 # ---------------------------------------------------------------------- MeshFrame
 def encode_map(values: np.ndarray, half: bool = False) -> pb.Map:
     """A Map of a (H,W) or (H,W,C) array: float32, or with ``half`` binary16 (rounded to
-    nearest: within 2^-11 relative, 2^-25 absolute, of float32; beyond 65504 is +-inf)."""
-    with np.errstate(over="ignore"):
-        values = np.asarray(values, dtype=F16 if half else F32)
+    nearest: within 2^-11 relative, 2^-25 absolute, of float32; beyond 65504 is +-inf;
+    :func:`service.io.half.to_float16`, NumPy's rounding bit for bit, vectorized)."""
+    values = to_float16(values) if half else np.asarray(values, dtype=F32)
     H, W = values.shape[:2]
     return pb.Map(height=H, width=W, channels=1 if values.ndim == 2 else values.shape[2],
                   data=values.tobytes(), half=half)
