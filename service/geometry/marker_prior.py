@@ -49,8 +49,9 @@ prior and the shell prior ``exp(−xᵀ(G⊗I₃)x / 2τ²)``
 
     (D_V + σ² Q + β σ²/τ² G⊗I₃) x = D_V m + σ² Q μ,     Q = C⁻¹,
 
-a (3M)×(3M) symmetric positive definite solve per visibility pattern (precomputed once for
-frames with every marker, :meth:`MarkerDenoiser.__call__`). Occluded markers (NaN) drop
+a (3M)×(3M) symmetric positive definite system, inverted once for frames with every
+marker; a frame with occluded markers needs only a (3|U|)×(3|U|) solve for its |U|
+occluded ones (Woodbury, :meth:`MarkerDenoiser.__call__`). Occluded markers (NaN) drop
 out of D_V and are completed by the prior's conditional mean given the visible ones. σ → 0
 gives back the visible markers exactly; σ = 0 itself is the paper's exact interpolation
 with minimum-energy completion (:func:`~service.geometry.thin_shell.soft_handles`, λ = 0),
@@ -208,8 +209,6 @@ class MarkerDenoiser:
     shell_ratio : float        β σ²/τ² (τ the shell prior's scale; 0 without the shell prior)
     full : (3M,3M) or None     ``(I + A)⁻¹`` for frames with every marker (None when σ = 0)
     offset : (3M,) or None     ``(I + A)⁻¹ b``
-    system : (3M,3M) or None   A = σ² Q + λ G⊗I₃ (frames with occluded markers add D_V)
-    rhs : (3M,) or None        b = σ² Q μ
     """
 
     prior: MarkerPrior
@@ -218,8 +217,6 @@ class MarkerDenoiser:
     shell_ratio: float
     full: np.ndarray | None = None
     offset: np.ndarray | None = None
-    system: np.ndarray | None = None
-    rhs: np.ndarray | None = None
 
     @classmethod
     def build(cls, prior: MarkerPrior, G: np.ndarray, noise_mm: float, prior_scale_mm: float,
@@ -241,7 +238,7 @@ class MarkerDenoiser:
         A, b = _system(prior, G, noise_mm, ratio)
         Ainv = np.linalg.inv(A + np.eye(len(A)))
         Ainv = 0.5 * (Ainv + Ainv.T)
-        return cls(prior, G, float(noise_mm), ratio, Ainv, Ainv @ b, A, b)
+        return cls(prior, G, float(noise_mm), ratio, Ainv, Ainv @ b)
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """Denoised complete displacements (F,M,3) (or (M,3)) of marker displacements u,
@@ -267,18 +264,19 @@ class MarkerDenoiser:
         if full.any():
             out[full] = u[full].reshape(-1, 3 * M) @ self.full + self.offset   # full is symmetric
         if (~full).any():
-            A, b = self.system, self.rhs
+            # (I + A − E Eᵀ)⁻¹ by Woodbury from the precomputed (I + A)⁻¹ = P, E selecting the
+            # occluded coordinates: x = y + P E (I − Eᵀ P E)⁻¹ Eᵀ y, y = P (D_V m + b)
+            P = self.full
             patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
             frames = np.flatnonzero(~full)
             for p, miss in enumerate(patterns):
                 if miss.all():
                     raise ValueError("all markers are unknown; at least one is needed")
                 sel = frames[which.ravel() == p]
-                d = np.repeat(~miss, 3).astype(np.float64)                      # D_V
-                m = np.nan_to_num(u[sel].reshape(len(sel), 3 * M)) * d
-                Ap = A.copy()
-                Ap[np.diag_indices_from(Ap)] += d
-                out[sel] = np.linalg.solve(Ap, (m + b).T).T
+                idx = np.flatnonzero(np.repeat(miss, 3))
+                y = np.nan_to_num(u[sel].reshape(len(sel), 3 * M)) @ P + self.offset
+                S = np.eye(len(idx)) - P[np.ix_(idx, idx)]
+                out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P[idx]
         out = out.reshape(F, M, 3)
         return out[0] if single else out
 
