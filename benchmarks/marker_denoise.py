@@ -8,9 +8,16 @@ generalization report) with
   weight from an assumed noise ``σ_param`` (mm) and the shell prior's scale τ estimated on
   the family's training frames (:func:`~service.geometry.thin_shell.shell_prior_scale`);
 * optionally the temporal filter of :mod:`service.geometry.marker_filter` over the whole
-  performance (window s frames) before it.
+  performance (window s frames) before it;
+* the learned marker priors of :mod:`service.geometry.marker_prior`, fitted on the
+  family's head-aligned training displacements, alone (β = 0) or with the shell prior
+  (β = 1): probabilistic PCA with its isotropic variance floored at a fraction f of the
+  mean per-coordinate variance (rows ``ppca f=… β=…``), and the tapered covariance
+  (the service's prior; length ℓ × the rest markers' RMS radius, diagonal floor f; rows
+  ``tapered ℓ=… f=… β=…``).
 
-It prints the face-region mean vertex error against the ground truth (``vs truth``) and
+Marker sets: clean, σ = 0.3 mm noisy, and occluded (the performances' ``_occluded`` files,
+clean markers with NaN bursts). It prints the face-region mean vertex error against the ground truth (``vs truth``) and
 against the same shell driven by the clean markers with exact interpolation (``vs clean
 shell``: the noise that reaches the surface), averaged over the in-range, combination and
 out-of-range performances. It needs no trained model, so it runs in a minute per family:
@@ -33,10 +40,18 @@ sys.path.insert(0, str(ROOT))
 PERFORMANCES = ("heldout_in_range", "heldout_combinations", "heldout_amplified")
 SIGMAS = (0.0, 0.1, 0.2, 0.3, 0.45)
 WINDOWS = (0.0, 1.0, 2.0, 3.0)
+FLOORS = (0.03, 0.1)
+LENGTHS = (0.5, 0.75, 1.0, 1.5)
+TAPER_FLOORS = (0.003, 0.01, 0.03)
+BETAS = (0.0, 1.0)
 
 
-def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS) -> list[tuple]:
+def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS, floors=FLOORS, betas=BETAS,
+                 occluded: bool = True, lengths=LENGTHS, taper_floors=TAPER_FLOORS) -> list[tuple]:
+    """(τ, rows, prior info): rows ``(markers, denoiser, s, σ, vs truth, vs clean shell,
+    per performance vs truth …, per performance vs clean shell …)``."""
     from service.geometry.marker_filter import filter_performance
+    from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
     from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handle_operator, soft_handles
     from service.methods.pdm.base_surface import BaseSurface, handle_vertices, head_alignment, training_head_pose
     from service.samples.dataset import load_actor, performance_names
@@ -50,7 +65,13 @@ def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS) -> list[tuple]
     handles = handle_vertices(F, actor.marker_triangle, actor.marker_barycentric)
     base = BaseSurface.from_smooth(actor.vertices, F, actor.uv, actor.uv_faces, handles, rest)
     G = base.energy
-    tau = shell_prior_scale(G, base.handle_displacements(pose.remove(train)))
+    u_train = base.handle_displacements(pose.remove(train))
+    tau = shell_prior_scale(G, u_train)
+    d_train = pose.remove(train) - rest
+    priors = {f"ppca f={f:g}": MarkerPrior.fit_ppca(d_train, f) for f in floors}
+    priors.update({f"tapered ℓ={ell:g} f={f:g}": MarkerPrior.fit_tapered(d_train, rest, ell, f)
+                   for ell in lengths for f in taper_floors})
+    denoisers = {}
     face = np.asarray(actor.regions["face"])
     rows = []
     acc: dict = {}
@@ -61,22 +82,37 @@ def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS) -> list[tuple]
         p_clean = head_alignment(clean, rest, weights)
         ref = base.deform(base.handle_displacements(p_clean.remove(clean)))
         gt = p_clean.remove(truth)
-        for cname, m in (("clean", clean), ("noisy", noisy)):
+        sets = [("clean", clean), ("noisy", noisy)]
+        occ = actor_dir / "performances" / f"{perf}_occluded.npz"
+        if occluded and occ.exists():
+            sets.append(("occluded", np.load(occ)["markers"].astype(np.float64)))
+
+        def score(key, X, p):
+            X = p_clean.remove(p.restore(X))      # same frame as the truth
+            e_gt = np.linalg.norm(X - gt, axis=-1)[:, face].mean()
+            e_ref = np.linalg.norm(X - ref, axis=-1)[:, face].mean()
+            acc.setdefault(key, []).append((e_gt, e_ref))
+
+        for cname, m in sets:
             for s in windows:
                 mf = filter_performance(m, s) if s else m
                 p = head_alignment(mf, rest, weights)
                 a = p.remove(mf) - rest
                 for sig in sigmas:
                     lam = marker_noise_ratio(sig, tau)
-                    X = base.deform(soft_handles(G, a, lam, soft_handle_operator(G, lam)))
-                    X = p_clean.remove(p.restore(X))      # same frame as the truth
-                    e_gt = np.linalg.norm(X - gt, axis=-1)[:, face].mean()
-                    e_ref = np.linalg.norm(X - ref, axis=-1)[:, face].mean()
-                    acc.setdefault((cname, s, sig), []).append((e_gt, e_ref))
-    for (cname, s, sig), v in acc.items():
+                    score((cname, "shell", s, sig), base.deform(soft_handles(G, a, lam, soft_handle_operator(G, lam))), p)
+                    if s:
+                        continue
+                    for name, prior in priors.items():
+                        for beta in betas:
+                            key = (name, beta, sig)
+                            if key not in denoisers:
+                                denoisers[key] = MarkerDenoiser.build(prior, G, sig, tau, beta)
+                            score((cname, f"{name} β={beta:g}", s, sig), base.deform(denoisers[key](a)), p)
+    for key, v in acc.items():
         v = np.asarray(v)
-        rows.append((cname, s, sig, *v.mean(axis=0), *v[:, 0]))
-    return tau, rows
+        rows.append((*key, *v.mean(axis=0), *v[:, 0], *v[:, 1]))
+    return tau, rows, {}
 
 
 def main() -> None:
@@ -84,17 +120,27 @@ def main() -> None:
     parser.add_argument("--actor", action="append", required=True, metavar="FAMILY=DIR")
     parser.add_argument("--sigmas", type=float, nargs="+", default=SIGMAS, help="σ_param values, mm")
     parser.add_argument("--windows", type=float, nargs="+", default=WINDOWS, help="temporal s values, frames")
+    parser.add_argument("--floors", type=float, nargs="*", default=FLOORS,
+                        help="learned prior's eigenvalue floor, fractions of the mean variance (none: no prior rows)")
+    parser.add_argument("--lengths", type=float, nargs="*", default=LENGTHS,
+                        help="tapered prior's length, fractions of the rest markers' RMS radius")
+    parser.add_argument("--taper-floors", type=float, nargs="*", default=TAPER_FLOORS,
+                        help="tapered prior's diagonal floor, fractions of the mean variance")
+    parser.add_argument("--betas", type=float, nargs="+", default=BETAS, help="shell prior weights beside the learned prior")
+    parser.add_argument("--no-occluded", action="store_true", help="skip the occluded marker sets")
     args = parser.parse_args()
     for item in args.actor:
         family, _, path = item.partition("=")
-        tau, rows = family_table(Path(path), args.sigmas, args.windows)
+        tau, rows, info = family_table(Path(path), args.sigmas, args.windows, args.floors, args.betas,
+                                       not args.no_occluded, args.lengths, args.taper_floors)
         print(f"\n## family {family} ({path}); shell prior scale τ = {tau:.4f} mm\n")
-        print("| markers | temporal s (frames) | σ_param mm | vs truth mm | vs clean shell mm | "
-              + " | ".join(PERFORMANCES) + " |")
-        print("|---|---|---|---|---|" + "---|" * len(PERFORMANCES))
+        short = [p.removeprefix("heldout_") for p in PERFORMANCES]
+        print("\n| markers | denoiser | temporal s (frames) | σ_param mm | vs truth mm | vs clean shell mm | "
+              + " | ".join(f"{p} vs truth" for p in short) + " | " + " | ".join(f"{p} vs clean" for p in short) + " |")
+        print("|---|---|---|---|---|---|" + "---|" * (2 * len(PERFORMANCES)))
         for r in rows:
-            print(f"| {r[0]} | {r[1]:g} | {r[2]:g} | {r[3]:.3f} | {r[4]:.3f} | "
-                  + " | ".join(f"{x:.3f}" for x in r[5:]) + " |", flush=True)
+            print(f"| {r[0]} | {r[1]} | {r[2]:g} | {r[3]:g} | {r[4]:.3f} | {r[5]:.3f} | "
+                  + " | ".join(f"{x:.3f}" for x in r[6:]) + " |", flush=True)
 
 
 if __name__ == "__main__":

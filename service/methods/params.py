@@ -68,10 +68,12 @@ class MarkerParams(MethodParams):
         default=MARKER_NOISE_MM, ge=0, le=5, allow_inf_nan=False,
         description="Assumed noise of the input markers, σ per coordinate in the actor's unit "
                     "(mm). 0 (default) interpolates the markers exactly, as the papers do; "
-                    "σ > 0 makes them soft constraints of the thin shell: the handles are the "
-                    "MAP estimate under the shell energy as a prior (its scale estimated on "
-                    "the training frames) and Gaussian marker noise σ, and every feature is "
-                    "computed from the denoised markers. Used in training and synthesis alike. "
-                    "For whole performances, see also the synthesis job's "
-                    "`marker_filter_frames`.",
+                    "σ > 0 makes them soft constraints: the handles are the MAP estimate "
+                    "under Gaussian marker noise σ and a Gaussian prior over the head-aligned "
+                    "marker displacements learned from the training frames (a tapered "
+                    "covariance, stored with the model; models trained before it use the "
+                    "thin-shell energy as the prior), and every feature is computed from the "
+                    "denoised markers. Used in training and synthesis alike. Set it to the "
+                    "capture's noise level (e.g. 0.3 for ordinary optical mocap). For whole "
+                    "performances, see also the synthesis job's `marker_filter_frames`.",
         examples=[0.0, 0.3])

@@ -29,7 +29,11 @@ interpolated exactly but are the MAP estimate under the shell prior
 (:func:`~service.geometry.thin_shell.soft_handles`, weight λ = σ²/τ² with the prior scale τ
 estimated on the training frames, :meth:`BaseSurface.with_marker_noise`), and the marker
 positions every feature is computed from are the denoised ones
-(:meth:`BaseSurface.denoised_markers`), in training and synthesis alike.
+(:meth:`BaseSurface.denoised_markers`), in training and synthesis alike. When the base
+carries a learned marker prior (fitted on the aligned training markers by
+:meth:`BaseSurface.with_marker_noise`, :mod:`service.geometry.marker_prior`), the MAP
+estimate is under that prior instead (:class:`~service.geometry.marker_prior.MarkerDenoiser`);
+a model saved before the prior existed has none and keeps the shell-prior estimate.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import numpy as np
 
 from service.errors import InvalidInput
 from service.geometry.curvature_flow import LAMBDA_DT, frequency_separation
+from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
 from service.geometry.rigid import MIN_POINTS, rigid_align, stability_weights_from_rms
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
@@ -182,6 +187,9 @@ class BaseSurface:
     prior_scale_mm : float     shell prior scale τ, mm (:func:`shell_prior_scale`; NaN unset)
     soft_operator : (M,M)      ``(I + λG)⁻¹``, λ = σ²/τ², for frames with every marker
                                (None when σ = 0)
+    marker_prior : MarkerPrior learned prior over the aligned marker displacements (None:
+                               the shell prior alone)
+    denoiser : MarkerDenoiser  its MAP solve for σ (None when σ = 0 or without a prior)
     """
 
     smooth: np.ndarray
@@ -194,6 +202,8 @@ class BaseSurface:
     noise_mm: float = 0.0
     prior_scale_mm: float = float("nan")
     soft_operator: np.ndarray | None = None
+    marker_prior: MarkerPrior | None = None
+    denoiser: MarkerDenoiser | None = None
 
     @classmethod
     def build(cls, V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
@@ -223,12 +233,16 @@ class BaseSurface:
         return 0.0 if self.noise_mm == 0 else marker_noise_ratio(self.noise_mm, self.prior_scale_mm)
 
     def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None = None,
-                          samples: np.ndarray | None = None) -> "BaseSurface":
+                          samples: np.ndarray | None = None,
+                          marker_prior: MarkerPrior | None = None) -> "BaseSurface":
         """This base with soft marker constraints for noise σ = ``noise_mm`` (mm).
 
         The prior scale τ is ``prior_scale_mm`` (a stored model's) or estimated from
         ``samples``, aligned training markers (F,M,3) (:func:`shell_prior_scale` of their
-        exactly interpolated handle displacements). σ = 0 gives the exact interpolation.
+        exactly interpolated handle displacements). The learned marker prior is
+        ``marker_prior`` (a stored model's) or fitted on ``samples``
+        (:meth:`MarkerPrior.fit_tapered`); with neither, the shell prior alone is used (a
+        model saved before the learned prior existed). σ = 0 gives the exact interpolation.
 
         Raises
         ------
@@ -240,19 +254,29 @@ class BaseSurface:
                     raise ValueError("soft marker constraints need the prior scale or samples")
                 prior_scale_mm = float("nan")
             else:
-                exact = dataclasses.replace(self, noise_mm=0.0, soft_operator=None)
+                exact = dataclasses.replace(self, noise_mm=0.0, soft_operator=None, denoiser=None)
                 prior_scale_mm = shell_prior_scale(self.energy, exact.handle_displacements(samples))
+        if marker_prior is None and samples is not None:
+            marker_prior = MarkerPrior.fit_tapered(np.asarray(samples, np.float64) - self.rest_markers,
+                                                   self.rest_markers)
         out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=float(prior_scale_mm),
-                                  soft_operator=None)
+                                  soft_operator=None, marker_prior=marker_prior, denoiser=None)
         if out.noise_ratio > 0:
-            out.soft_operator = soft_handle_operator(self.energy, out.noise_ratio)
+            if marker_prior is None:
+                out.soft_operator = soft_handle_operator(self.energy, out.noise_ratio)
+            else:
+                out.denoiser = MarkerDenoiser.build(marker_prior, self.energy, out.noise_mm, out.prior_scale_mm)
         return out
 
     def handle_displacements(self, aligned: np.ndarray) -> np.ndarray:
         """u_H (F,M,3) of aligned markers (F,M,3): the markers' displacements, missing rows
-        completed by minimum energy; with marker noise σ > 0 the MAP estimate of the soft
-        constraints (:func:`~service.geometry.thin_shell.soft_handles`)."""
+        completed by minimum energy; with marker noise σ > 0 the MAP estimate under the
+        learned marker prior (:class:`~service.geometry.marker_prior.MarkerDenoiser`) or,
+        without one, of the shell's soft constraints
+        (:func:`~service.geometry.thin_shell.soft_handles`)."""
         u = np.asarray(aligned, dtype=np.float64) - self.rest_markers
+        if self.denoiser is not None:
+            return self.denoiser(u)
         return soft_handles(self.energy, u, self.noise_ratio, self.soft_operator)
 
     def denoised_markers(self, aligned: np.ndarray, u_H: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.geometry.marker_prior import MarkerPrior
 from service.methods.pdm.deformation import DeformationAxes, MarkerMesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap
@@ -44,6 +45,9 @@ class PdmData:
     vertex_coeffs : (K,3,K') float32 | None   the medium PDM fitted at the K UV points (what
                                      synthesis evaluates; None: stored before, sampled from
                                      ``medium``)
+    marker_prior : MarkerPrior | None   learned prior over the aligned marker displacements
+                                     (:mod:`service.geometry.marker_prior`; None: stored before
+                                     it existed, marker noise then uses the shell prior alone)
 
     The maps' texels are in row-major order (as the EXR files hold them).
     """
@@ -67,6 +71,7 @@ class PdmData:
     metrics: dict = field(default_factory=dict)
     validity: ValidityData | None = None
     vertex_coeffs: np.ndarray | None = None
+    marker_prior: MarkerPrior | None = None
 
     @property
     def n_vertices(self) -> int:

@@ -258,7 +258,7 @@ class PdmEvaluator:
         if base is None:
             base = BaseSurface.from_smooth(d.smooth, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
                                            basis=derived.basis, energy=derived.energy)
-            base = base.with_marker_noise(d.params.marker_noise_mm, d.prior_scale_mm)
+            base = base.with_marker_noise(d.params.marker_noise_mm, d.prior_scale_mm, marker_prior=d.marker_prior)
         n, K = d.n_vertices, len(d.uv)
         fields = {k: ParameterField.from_arrays(d.axes, a) for k in ("vertex", "fine", "albedo")
                   if (a := _members(ops, f"{k}_field"))}
@@ -825,7 +825,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     }
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
                    mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics,
-                   vertex_coeffs=vertex_coeffs)
+                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
     # the validity regions of the training data are stored with the model (a load reads them)

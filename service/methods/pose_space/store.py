@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.geometry.marker_prior import MarkerPrior
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays, sparse_matrix, sparse_members
 from service.methods.model_dir import ModelCorrupt, read_model_files
@@ -51,6 +52,8 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
     for name in OPTIONAL:
         if getattr(d, name) is not None:
             arrays[name] = getattr(d, name)
+    if base.marker_prior is not None:
+        arrays.update(base.marker_prior.arrays())
     files = {"model.npz": write_npz(path / "model.npz", arrays)}
     derived = {CACHE: write_npz(path / CACHE, {"basis": base.basis, "energy": base.energy})}
     manifest = {
@@ -93,7 +96,8 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     base = BaseSurface.from_smooth(d.neutral, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
                                    basis=cache.get("basis"), energy=cache.get("energy"))
     scale = manifest.get("marker_prior_scale_mm")
-    return d, base.with_marker_noise(params.marker_noise_mm, None if scale is None else float(scale))
+    return d, base.with_marker_noise(params.marker_noise_mm, None if scale is None else float(scale),
+                                     marker_prior=MarkerPrior.from_arrays(a))
 
 
 def _finite_or_none(x: float) -> float | None:

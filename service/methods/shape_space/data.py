@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.geometry.marker_prior import MarkerPrior
 from service.methods.shape_space.maps import DatabaseMaps
 from service.methods.shape_space.markers import MarkerDatabase
 from service.methods.shape_space.params import ShapeSpaceParams
@@ -47,6 +48,10 @@ class ShapeSpaceData:
                                       is matched against the frames and not corrected)
     fine_maps, albedo_maps : DatabaseMaps | None   the database frames' fine displacement and
                                       albedo maps (None: the database had none; :mod:`.maps`)
+    marker_prior : MarkerPrior | None   learned prior over the database's head-aligned marker
+                                      displacements (:mod:`service.geometry.marker_prior`; None:
+                                      no markers, or stored before it existed: marker noise
+                                      then uses the shell prior alone)
     """
 
     params: ShapeSpaceParams
@@ -77,6 +82,7 @@ class ShapeSpaceData:
     marker_database: MarkerDatabase | None = None
     fine_maps: DatabaseMaps | None = None
     albedo_maps: DatabaseMaps | None = None
+    marker_prior: MarkerPrior | None = None
 
     @property
     def n_vertices(self) -> int:

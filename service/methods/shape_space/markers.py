@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.geometry.closest_point import surface_points
+from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
@@ -65,6 +66,8 @@ class MarkerShell:
                               :func:`~service.geometry.thin_shell.soft_handles`)
     prior_scale_mm : float    the shell prior's scale τ, mm (:meth:`prior_scale`)
     operator : (M,M) or None  ``(I + λG)⁻¹`` for fully visible frames, λ = σ²/τ²
+    denoiser : MarkerDenoiser or None   the MAP solve under a learned marker prior
+                              (:meth:`learned_prior`) for σ, used instead of the shell prior
     """
 
     neutral: np.ndarray
@@ -75,6 +78,7 @@ class MarkerShell:
     noise_mm: float = 0.0
     prior_scale_mm: float = float("nan")
     operator: np.ndarray | None = None
+    denoiser: MarkerDenoiser | None = None
 
     @classmethod
     def build(cls, neutral: np.ndarray, faces: np.ndarray, marker_triangle: np.ndarray,
@@ -95,33 +99,52 @@ class MarkerShell:
         """λ = σ²/τ² (0: exact interpolation)."""
         return 0.0 if self.noise_mm == 0 else marker_noise_ratio(self.noise_mm, self.prior_scale_mm)
 
-    def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None) -> "MarkerShell":
+    def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None,
+                          marker_prior: MarkerPrior | None = None) -> "MarkerShell":
         """This shell with soft marker constraints for noise σ = ``noise_mm`` and prior scale
-        τ = ``prior_scale_mm`` (mm); σ = 0 interpolates exactly (τ may then be None)."""
+        τ = ``prior_scale_mm`` (mm); σ = 0 interpolates exactly (τ may then be None). With a
+        learned ``marker_prior`` (:meth:`learned_prior`) the handles are its MAP estimate
+        (:class:`~service.geometry.marker_prior.MarkerDenoiser`), else the shell prior's."""
         tau = float("nan") if prior_scale_mm is None else float(prior_scale_mm)
         if noise_mm and not np.isfinite(tau):
             raise ValueError("soft marker constraints need the shell prior's scale")
-        out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=tau, operator=None)
+        out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=tau, operator=None,
+                                  denoiser=None)
         if out.noise_ratio > 0:
-            out = dataclasses.replace(out, operator=soft_handle_operator(self.energy, out.noise_ratio))
+            if marker_prior is None:
+                out = dataclasses.replace(out, operator=soft_handle_operator(self.energy, out.noise_ratio))
+            else:
+                out = dataclasses.replace(out, denoiser=MarkerDenoiser.build(
+                    marker_prior, self.energy, out.noise_mm, tau))
         return out
 
     def _handles(self, P: np.ndarray, T) -> np.ndarray:
         """Handle displacements (M,3) of world markers P (M,3) under head pose T."""
         visible = np.isfinite(P).all(axis=1)
         u = np.where(visible[:, None], T.apply(P) - self.rest, np.nan)
+        if self.denoiser is not None:
+            return self.denoiser(u)
         return soft_handles(self.energy, u, self.noise_ratio, self.operator)
+
+    def _aligned_displacements(self, markers: np.ndarray) -> np.ndarray:
+        """Head-aligned displacements (F',M,3) of the sample world markers (F,M,3) with
+        every marker visible."""
+        markers = np.asarray(markers, dtype=np.float64)
+        full = markers[np.isfinite(markers).all(axis=(1, 2))]
+        if not len(full):
+            raise InvalidInput("no frame has every marker visible; cannot estimate the shell prior")
+        return np.stack([rigid_align(P, self.rest, self.weights).apply(P) - self.rest for P in full])
 
     def prior_scale(self, markers: np.ndarray) -> float:
         """The shell prior's scale τ (mm) from sample world markers (F,M,3), e.g. the
         database's (:func:`~service.geometry.thin_shell.shell_prior_scale` of their exactly
         interpolated, head-aligned handle displacements; frames with a missing marker skipped)."""
-        markers = np.asarray(markers, dtype=np.float64)
-        full = markers[np.isfinite(markers).all(axis=(1, 2))]
-        if not len(full):
-            raise InvalidInput("no frame has every marker visible; cannot estimate the shell prior")
-        u = np.stack([rigid_align(P, self.rest, self.weights).apply(P) - self.rest for P in full])
-        return shell_prior_scale(self.energy, u)
+        return shell_prior_scale(self.energy, self._aligned_displacements(markers))
+
+    def learned_prior(self, markers: np.ndarray) -> MarkerPrior:
+        """The learned marker prior (:meth:`MarkerPrior.fit_tapered`) of sample world markers
+        (F,M,3), e.g. the database's, head-aligned (frames with a missing marker skipped)."""
+        return MarkerPrior.fit_tapered(self._aligned_displacements(markers), self.rest)
 
     def __call__(self, markers: np.ndarray) -> np.ndarray:
         """Shell surfaces (F,n,3) float64 in the markers' world pose for markers (F,M,3).

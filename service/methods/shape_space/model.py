@@ -106,7 +106,7 @@ OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "col
 #: colours or the marker database, keeps the evaluator; :meth:`ShapeSpaceModel.replace`)
 DERIVED_FROM = frozenset({"params", "faces", "neutral", "smooth_neutral", "patches", "tri_patch",
                           "region_weights", "marker_triangle", "marker_barycentric",
-                          "marker_weights", "uv", "uv_faces"})
+                          "marker_weights", "uv", "uv_faces", "marker_prior"})
 #: the stored maps and their blenders (:class:`ShapeSpaceEvaluator` attributes of the same name)
 MAP_FIELDS = ("fine_maps", "albedo_maps")
 
@@ -157,7 +157,7 @@ class ShapeSpaceEvaluator:
         if d.n_markers:
             shell = MarkerShell.build(d.neutral, d.faces, d.marker_triangle, d.marker_barycentric,
                                       d.marker_weights).with_marker_noise(
-                p.marker_noise_mm, d.metrics.get("marker_prior_scale_mm"))
+                p.marker_noise_mm, d.metrics.get("marker_prior_scale_mm"), d.marker_prior)
         return cls(
             separator=FrequencySeparator(d.faces, p.lam_dt, p.smoothing, rest=d.neutral),
             poisson=PoissonReconstruction(d.smooth_neutral, d.faces, boundary_weight=p.boundary_weight),
@@ -747,12 +747,13 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
     fine_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "displacement")
     albedo_maps = DatabaseMaps.from_clips(actor, clips, p.frame_stride, "albedo")
     sizes = np.bincount(labels, minlength=P)
-    prior = {}
-    if actor.n_markers:                # the shell prior of marker_noise_mm, from the database
+    prior, marker_prior = {}, None
+    if actor.n_markers:                # the priors of marker_noise_mm, from the database
         shell = MarkerShell.build(d0, F, np.asarray(actor.marker_triangle, np.int64),
                                   np.asarray(actor.marker_barycentric, np.float64), marker_weights)
-        prior["marker_prior_scale_mm"] = shell.prior_scale(np.stack(
-            [clips[c].markers[f] for c, f in zip(frame_clip, frame_index)]))
+        db_markers = np.stack([clips[c].markers[f] for c, f in zip(frame_clip, frame_index)])
+        prior["marker_prior_scale_mm"] = shell.prior_scale(db_markers)
+        marker_prior = shell.learned_prior(db_markers)
     data = ShapeSpaceData(
         params=p, faces=F, neutral=d0, smooth_neutral=smooth0, align_weights=align_w,
         patches=labels, tri_patch=tri_patch, shapes=shapes, detail=detail,
@@ -762,7 +763,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: ShapeSpaceParams = Sh
         colors=colors,
         marker_triangle=np.asarray(actor.marker_triangle, np.int64),
         marker_barycentric=np.asarray(actor.marker_barycentric, np.float64),
-        marker_weights=marker_weights,
+        marker_weights=marker_weights, marker_prior=marker_prior,
         uv=np.asarray(actor.uv, np.float64), uv_faces=np.asarray(actor.uv_faces, np.int64),
         metrics={
             "database_frames": N, "clips": [c.name for c in clips],

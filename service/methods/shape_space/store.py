@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.geometry.marker_prior import MarkerPrior
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays, npz_mapped
 from service.methods.model_dir import ModelCorrupt, read_model_files
@@ -62,7 +63,8 @@ def write_model(model: ShapeSpaceData, path) -> dict:
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     files = {
-        "model.npz": write_npz(path / "model.npz", {k: getattr(model, k) for k in MODEL_ARRAYS}),
+        "model.npz": write_npz(path / "model.npz", {k: getattr(model, k) for k in MODEL_ARRAYS} | (
+            {} if model.marker_prior is None else model.marker_prior.arrays())),
         "detail.npz": write_npz(path / "detail.npz", {"detail": model.detail}),
     }
     if model.colors is not None:
@@ -117,7 +119,8 @@ def read_model(path) -> ShapeSpaceData:
                   region_names=tuple(manifest["region_names"]),
                   clip_names=tuple(manifest["clip_names"]),
                   clip_fps=tuple(float(x) for x in manifest["clip_fps"]),
-                  metrics=manifest["metrics"], **{k: a[k] for k in MODEL_ARRAYS})
+                  metrics=manifest["metrics"], marker_prior=MarkerPrior.from_arrays(a),
+                  **{k: a[k] for k in MODEL_ARRAYS})
     frames, triangles, vertices = len(a["shapes"]), len(a["faces"]), len(a["neutral"])
     if detail.shape != (frames, triangles, 9):
         raise ModelCorrupt(f"{path}: detail.npz has shape {detail.shape}, expected "

@@ -97,8 +97,11 @@ def test_frame_field_rotates_with_the_surface_and_matches_tangent_frames(rig_mes
 
 
 def test_marker_noise_softens_the_handles_and_denoises_the_feature_markers(rig_mesh):
-    """σ = 0 is the exact interpolation; σ > 0 is soft_handles with τ from the samples;
-    denoised_markers puts P_ref + u_H on visible markers and keeps occluded ones NaN."""
+    """σ = 0 is the exact interpolation; σ > 0 with samples learns τ and the marker prior
+    and is that prior's MAP solve; with a stored τ and no prior (a model saved before the
+    prior existed) it is soft_handles; denoised_markers puts P_ref + u_H on visible markers
+    and keeps occluded ones NaN."""
+    from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
     from service.geometry.thin_shell import shell_prior_scale, soft_handles
 
     V, F = rig_mesh
@@ -113,17 +116,25 @@ def test_marker_noise_softens_the_handles_and_denoises_the_feature_markers(rig_m
     tau = shell_prior_scale(exact.energy, samples - V[handles])
     assert soft.prior_scale_mm == pytest.approx(tau)
     assert soft.noise_ratio == pytest.approx(0.09 / tau ** 2)
+    prior = MarkerPrior.fit_tapered(samples - V[handles], V[handles])
+    np.testing.assert_array_equal(soft.marker_prior.covariance, prior.covariance)
     aligned = samples[:3].copy()
     aligned[1, [4, 9]] = np.nan
     u = soft.handle_displacements(aligned)
-    np.testing.assert_allclose(u, soft_handles(exact.energy, aligned - V[handles], 0.09 / tau ** 2), atol=1e-12)
+    np.testing.assert_allclose(u, MarkerDenoiser.build(prior, exact.energy, 0.3, tau)(aligned - V[handles]), atol=1e-12)
     assert np.abs(u - np.nan_to_num(aligned - V[handles])).max() > 0.05      # not interpolated
     P = soft.denoised_markers(aligned, u)
     np.testing.assert_allclose(P[0], V[handles] + u[0])
     assert np.isnan(P[1, [4, 9]]).all() and np.isfinite(np.delete(P[1], [4, 9], axis=0)).all()
-    # σ = 0 (also as restored from a stored model's τ) is the paper's interpolation
-    zero = soft.with_marker_noise(0.0, soft.prior_scale_mm)
+    # σ = 0 (also as restored from a stored model's τ and prior) is the paper's interpolation
+    zero = soft.with_marker_noise(0.0, soft.prior_scale_mm, marker_prior=soft.marker_prior)
     np.testing.assert_allclose(zero.handle_displacements(aligned[:1]), aligned[:1] - V[handles], atol=1e-12)
     assert zero.denoised_markers(aligned, u) is aligned
-    again = exact.with_marker_noise(0.3, soft.prior_scale_mm)
-    np.testing.assert_allclose(again.soft_operator, soft.soft_operator)
+    # restored with the stored prior: the same solve
+    stored = exact.with_marker_noise(0.3, soft.prior_scale_mm, marker_prior=soft.marker_prior)
+    np.testing.assert_allclose(stored.handle_displacements(aligned), u, atol=1e-12)
+    # a model stored before the prior existed: τ alone, the shell prior's soft constraints
+    old = exact.with_marker_noise(0.3, soft.prior_scale_mm)
+    assert old.marker_prior is None and old.denoiser is None
+    np.testing.assert_allclose(old.handle_displacements(aligned),
+                               soft_handles(exact.energy, aligned - V[handles], 0.09 / tau ** 2), atol=1e-12)

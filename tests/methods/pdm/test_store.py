@@ -225,3 +225,35 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
         assert a.keys() == b.keys()
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_the_marker_prior_is_stored_and_an_older_directory_loads_without_it(pdm_model, pdm_data, saved, tmp_path):
+    """Training learns the marker prior (issue 17) and the store round-trips it; a directory
+    saved before it existed (no ``marker_prior_*`` arrays) loads with none and synthesizes
+    the same at σ = 0 (its params' default; with σ > 0 it would use the shell prior alone,
+    tests/methods/pdm/test_base_surface.py)."""
+    import shutil
+
+    from service.io.atomic import write_npz
+
+    path, _ = saved
+    prior = pdm_model.data.marker_prior
+    assert prior is not None and prior.covariance.shape == (3 * pdm_model.data.n_markers,) * 2
+    loaded = PdmModel.load(path)
+    np.testing.assert_array_equal(loaded.data.marker_prior.covariance, prior.covariance)
+    np.testing.assert_array_equal(loaded.data.marker_prior.mean, prior.mean)
+    old = tmp_path / "old"
+    shutil.copytree(path, old)
+    with np.load(old / "model.npz") as a:
+        arrays = {k: a[k] for k in a.files if not k.startswith("marker_prior_") or k == "marker_prior_scale_mm"}
+    m = json.loads((old / "manifest.json").read_text())
+    m["files"]["model.npz"] = write_npz(old / "model.npz", arrays)
+    m["size_bytes"] = sum((old / f).stat().st_size for f in m["files"])
+    (old / "manifest.json").write_text(json.dumps(m))
+    before = PdmModel.load(old)
+    assert before.data.marker_prior is None and before.evaluator.base.denoiser is None
+    markers = pdm_data[1][2].markers[[3, 11]]
+    x, y = loaded.synthesize(markers, outputs=("mesh",)), before.synthesize(markers, outputs=("mesh",))
+    assert x.keys() == y.keys() and "vertices" in x
+    for key in x:
+        np.testing.assert_array_equal(y[key], x[key], err_msg=key)

@@ -21,6 +21,10 @@ def test_save_load_round_trip_is_bit_exact(which, request, ps_data, tmp_path):
     a, b = model.synthesize(markers, OUT), loaded.synthesize(markers, OUT)
     for k in a:
         assert np.array_equal(a[k], b[k]), k
+    # the learned marker prior (issue 17) round-trips
+    assert model.evaluator.base.marker_prior is not None
+    np.testing.assert_array_equal(loaded.evaluator.base.marker_prior.covariance,
+                                  model.evaluator.base.marker_prior.covariance)
     # without the derived cache the basis is recomputed: the same numbers
     (tmp_path / "m" / "cache.npz").unlink()
     import json

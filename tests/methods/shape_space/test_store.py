@@ -36,6 +36,9 @@ def test_round_trip_is_bit_exact(shape_space_model, shape_space_data, saved):
     for key in ("shapes", "detail", "gram", "region_weights", "patches", "align_weights"):
         np.testing.assert_array_equal(getattr(loaded, key), getattr(shape_space_model, key), err_msg=key)
     assert loaded.params == shape_space_model.params
+    # the learned marker prior (issue 17) round-trips
+    assert shape_space_model.data.marker_prior is not None
+    np.testing.assert_array_equal(loaded.data.marker_prior.covariance, shape_space_model.data.marker_prior.covariance)
     assert manifest["kind"] == "shape_space" and manifest["region_names"] == list(loaded.region_names)
     assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir()
                                          if p.name != "manifest.json")

@@ -1,0 +1,284 @@
+"""A learned Gaussian prior over marker displacements, and the per-frame MAP denoiser it gives.
+
+Issue 17, failure mode 4: optical-mocap noise (σ ≈ 0.3 mm per coordinate) on the markers
+that drive ma2008's large-scale step (the linear thin shell of bickel2008 §4, which
+interpolates the markers exactly) goes straight into the surface. The shell prior alone
+(:func:`~service.geometry.thin_shell.soft_handles`) cannot tell noise from deformation: a
+smooth shell prior gives every marker configuration of the same bending energy the same
+probability. The training frames can: a face's marker displacements lie close to a
+low-dimensional span.
+
+Two estimators of that prior's covariance C over the flattened, head-aligned training
+displacements ``x ∈ R^{3M}`` (M markers, row-major (marker, xyz)), mean μ the sample mean:
+
+* :meth:`MarkerPrior.fit_ppca`, **probabilistic PCA** (Tipping & Bishop 1999,
+  "Probabilistic principal component analysis", J. R. Statist. Soc. B 61(3), eq. 7-8):
+  ``C = U_k diag(l) U_kᵀ + δ (I − U_k U_kᵀ)``, the isotropic variance floored at a fraction
+  of the mean per-coordinate variance (T&B's ML value, the mean discarded eigenvalue, is
+  tiny on a few training clips and crushes everything outside their span). Measured, it
+  fails on the sample actors: family a's 8 symmetric training clips span 8 dimensions and
+  the held-out in-range and combination performances (one-sided smiles and brows, new
+  combinations) have 0.52 mm RMS of marker displacement outside even a 32-dimensional
+  training span, more than the noise (0.30 mm); so the prior's best setting (floor 3 %)
+  costs clean markers +0.10 mm of face mean error (0.388 → 0.485 mm at σ = 0.3) and takes
+  only 0.637 → 0.564 mm off the noisy ones. Kept for the benchmark's rows.
+* :meth:`MarkerPrior.fit_tapered`, the **default**: the sample covariance tapered by a
+  compactly supported correlation of the rest markers' distance (covariance tapering /
+  localization: Furrer & Bengtsson 2007, "Estimation of high-dimensional prior and
+  posterior covariance matrices in Kalman filter variants", J. Multivariate Anal. 98, §3,
+  with the Gaspari & Cohn 1999 function, Q. J. R. Meteorol. Soc. 125, eq. 4.10), plus a
+  diagonal floor. A face's expressions are local: tapering keeps what the training shows
+  within a region and drops the long-range couplings (left brow with right brow), so the
+  one-sided and combined deformations stay plausible. Family a, σ = 0.3 mm, face mean vs
+  truth (clean / noisy markers): exact interpolation 0.388 / 0.637, shell prior 0.454 /
+  0.620, PPCA 0.485 / 0.564, tapered (defaults) 0.430 / 0.501 (``benchmarks/marker_denoise.py``).
+  Rule chosen on family a (grid ℓ ∈ {0.75, 1, 1.5, 2}, f ∈ {0.003, 0.01, 0.03}: the lowest
+  mean of clean and noisy error; ℓ = 2 is the grid's edge, larger ℓ trades clean accuracy
+  for noise removal) and confirmed on family b (README, "Noisy markers").
+
+Measured and not kept: a target diagonal in the shell energy's eigenbasis (the training
+energy per shell mode, correlations between modes dropped): noisy 0.555 mm at best on
+family a, because facial motion is not sparse in those modes; adding the shell prior
+(β = 1) to either learned prior made both clean and noisy results worse on family a
+(e.g. PPCA 3 %: noisy 0.564 → 0.583 mm), so :data:`SHELL_WEIGHT` is 0.
+
+The denoiser (:class:`MarkerDenoiser`) is the MAP estimate of the true displacements x
+from the visible noisy ones m (Gaussian noise σ per coordinate) under the product of this
+prior and the shell prior ``exp(−xᵀ(G⊗I₃)x / 2τ²)``
+(:func:`~service.geometry.thin_shell.shell_prior_scale`), weighted by ``shell_weight`` β:
+
+    (D_V + σ² Q + β σ²/τ² G⊗I₃) x = D_V m + σ² Q μ,     Q = C⁻¹,
+
+a (3M)×(3M) symmetric positive definite system, inverted once for frames with every
+marker; a frame with occluded markers needs only a (3|U|)×(3|U|) solve for its |U|
+occluded ones (Woodbury, :meth:`MarkerDenoiser.__call__`). Occluded markers (NaN) drop
+out of D_V and are completed by the prior's conditional mean given the visible ones. σ → 0
+gives back the visible markers exactly; σ = 0 itself is the paper's exact interpolation
+with minimum-energy completion (:func:`~service.geometry.thin_shell.soft_handles`, λ = 0),
+bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.geometry.thin_shell import soft_handles
+
+#: default floor δ of :meth:`MarkerPrior.fit_ppca`, a fraction of the mean per-coordinate
+#: training variance tr S / 3M (its best on family a, benchmarks/marker_denoise.py)
+FLOOR_FRACTION = 0.03
+#: default taper length L of :meth:`MarkerPrior.fit_tapered`, a fraction of the rest
+#: markers' RMS radius
+LENGTH_FRACTION = 2.0
+#: default floor δ of :meth:`MarkerPrior.fit_tapered`, a fraction of tr S / 3M
+TAPER_FLOOR_FRACTION = 0.01
+#: default weight β of the shell prior beside the learned one (0: measured worse on family a)
+SHELL_WEIGHT = 0.0
+
+
+@dataclass(frozen=True)
+class MarkerPrior:
+    """Gaussian prior over marker displacements (M markers): ``x ~ N(mean, covariance)``.
+
+    Attributes
+    ----------
+    mean : (M,3) float64              μ, the mean training displacement, mm
+    covariance : (3M,3M) float64      C, symmetric positive definite, mm² (row-major (marker, xyz))
+    """
+
+    mean: np.ndarray
+    covariance: np.ndarray
+
+    @staticmethod
+    def _samples(samples: np.ndarray) -> np.ndarray:
+        x = np.asarray(samples, dtype=np.float64)
+        if x.ndim != 3 or x.shape[2] != 3:
+            raise ValueError(f"samples must be (F,M,3), got {x.shape}")
+        x = x[np.isfinite(x).all(axis=(1, 2))]
+        if len(x) < 2:
+            raise ValueError("the marker prior needs at least 2 frames with every marker")
+        return x
+
+    @classmethod
+    def fit_ppca(cls, samples: np.ndarray, floor_fraction: float = FLOOR_FRACTION) -> "MarkerPrior":
+        """PPCA (Tipping & Bishop 1999, eq. 7-8) of sample displacements (F,M,3), mm, with
+        the isotropic variance floored at δ = ``floor_fraction`` · tr S / 3M and every
+        eigenvalue above δ kept (frames with a NaN are skipped)."""
+        if not 0 < floor_fraction <= 1:
+            raise ValueError(f"the floor fraction must be in (0, 1], got {floor_fraction}")
+        x = cls._samples(samples)
+        F, M, _ = x.shape
+        mu = x.mean(axis=0)
+        X = (x - mu).reshape(F, 3 * M)
+        _, s, Vt = np.linalg.svd(X, full_matrices=False)
+        ev = s ** 2 / F
+        delta = max(float(floor_fraction) * float(ev.sum()) / (3 * M), 1e-12)
+        U, l = Vt[ev > delta].T, ev[ev > delta]
+        C = (U * (l - delta)) @ U.T
+        C[np.diag_indices_from(C)] += delta
+        return cls(mu, 0.5 * (C + C.T))
+
+    @classmethod
+    def fit_tapered(cls, samples: np.ndarray, rest: np.ndarray, length_fraction: float = LENGTH_FRACTION,
+                    floor_fraction: float = TAPER_FLOOR_FRACTION) -> "MarkerPrior":
+        """Tapered sample covariance of displacements (F,M,3), mm, of markers at ``rest`` (M,3).
+
+        ``C = S ∘ (ρ(D / L) ⊗ 1₃ₓ₃) + δ I`` (Furrer & Bengtsson 2007, §3; frames with a NaN
+        skipped): S the sample covariance, D the rest markers' distances, ρ the compactly
+        supported Gaspari & Cohn (1999, eq. 4.10) correlation (ρ(0) = 1, 0 beyond 2L), L =
+        ``length_fraction`` × the rest markers' RMS radius about their centroid (so the rule
+        does not depend on the actor's unit or size), δ = ``floor_fraction`` · tr S / 3M.
+        The Schur product with a positive definite taper stays positive semidefinite; it
+        keeps the training's local correlations (a brow's markers move together) and drops
+        the long-range ones (the left brow with the right), so a deformation the clips only
+        showed symmetrically is plausible on one side alone.
+        """
+        if not length_fraction > 0:
+            raise ValueError(f"the taper length must be > 0, got {length_fraction}")
+        if not 0 < floor_fraction <= 1:
+            raise ValueError(f"the floor fraction must be in (0, 1], got {floor_fraction}")
+        x = cls._samples(samples)
+        F, M, _ = x.shape
+        rest = np.asarray(rest, np.float64)
+        if rest.shape != (M, 3):
+            raise ValueError(f"rest markers must be ({M},3), got {rest.shape}")
+        mu = x.mean(axis=0)
+        X = (x - mu).reshape(F, 3 * M)
+        S = X.T @ X / F
+        L = float(length_fraction) * float(np.sqrt(((rest - rest.mean(axis=0)) ** 2).sum(axis=1).mean()))
+        D = np.linalg.norm(rest[:, None] - rest[None], axis=-1)
+        C = S * np.kron(gaspari_cohn(D / max(L, 1e-12)), np.ones((3, 3)))
+        C[np.diag_indices_from(C)] += max(float(floor_fraction) * float(np.trace(S)) / (3 * M), 1e-12)
+        return cls(mu, 0.5 * (C + C.T))
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.mean)
+
+    def precision(self) -> np.ndarray:
+        """Q = C⁻¹ (3M,3M), mm⁻²."""
+        Q = np.linalg.inv(self.covariance)
+        return 0.5 * (Q + Q.T)
+
+    def arrays(self, prefix: str = "marker_prior_") -> dict[str, np.ndarray]:
+        """The prior as named arrays (for a model's npz); :meth:`from_arrays` reads them."""
+        return {f"{prefix}mean": self.mean, f"{prefix}covariance": self.covariance}
+
+    @classmethod
+    def from_arrays(cls, a, prefix: str = "marker_prior_") -> "MarkerPrior | None":
+        """The prior stored by :meth:`arrays` in the mapping ``a``; None when ``a`` has none
+        (a model saved before the prior existed)."""
+        if f"{prefix}mean" not in a:
+            return None
+        return cls(np.asarray(a[f"{prefix}mean"], np.float64), np.asarray(a[f"{prefix}covariance"], np.float64))
+
+
+def gaspari_cohn(r: np.ndarray) -> np.ndarray:
+    """Gaspari & Cohn (1999, eq. 4.10) compactly supported correlation of r = distance / L
+    (any shape): a fifth-order piecewise rational, 1 at 0, 0 for r ≥ 2, positive definite in
+    three dimensions."""
+    r = np.abs(np.asarray(r, dtype=np.float64))
+    out = np.zeros_like(r)
+    a, b = r <= 1, (r > 1) & (r < 2)
+    x = r[a]
+    out[a] = -0.25 * x ** 5 + 0.5 * x ** 4 + 0.625 * x ** 3 - 5.0 / 3.0 * x ** 2 + 1.0
+    x = r[b]
+    out[b] = x ** 5 / 12.0 - 0.5 * x ** 4 + 0.625 * x ** 3 + 5.0 / 3.0 * x ** 2 - 5.0 * x + 4.0 - 2.0 / (3.0 * x)
+    return out
+
+
+def _system(prior: MarkerPrior, G: np.ndarray, noise_mm: float, shell_ratio: float):
+    """``A = σ² Q + λ G⊗I₃`` (3M,3M) and ``b = σ² Q μ`` (3M,) of the MAP normal equations."""
+    s2 = float(noise_mm) ** 2
+    Q = prior.precision()
+    A = s2 * Q + shell_ratio * np.kron(np.asarray(G, np.float64), np.eye(3))
+    return A, s2 * (Q @ prior.mean.ravel())
+
+
+@dataclass(frozen=True)
+class MarkerDenoiser:
+    """Per-frame MAP marker displacements under the learned prior and the shell prior.
+
+    Attributes
+    ----------
+    prior : MarkerPrior
+    energy : (M,M) float64     handle energy G of the thin shell (:func:`handle_energy_matrix`)
+    noise_mm : float           σ ≥ 0 per coordinate, mm (0: exact interpolation)
+    shell_ratio : float        β σ²/τ² (τ the shell prior's scale; 0 without the shell prior)
+    full : (3M,3M) or None     ``(I + A)⁻¹`` for frames with every marker (None when σ = 0)
+    offset : (3M,) or None     ``(I + A)⁻¹ b``
+    """
+
+    prior: MarkerPrior
+    energy: np.ndarray
+    noise_mm: float
+    shell_ratio: float
+    full: np.ndarray | None = None
+    offset: np.ndarray | None = None
+
+    @classmethod
+    def build(cls, prior: MarkerPrior, G: np.ndarray, noise_mm: float, prior_scale_mm: float,
+              shell_weight: float = SHELL_WEIGHT) -> "MarkerDenoiser":
+        """The denoiser for noise σ = ``noise_mm`` with the shell prior of scale τ =
+        ``prior_scale_mm`` (mm) weighted by β = ``shell_weight`` (0: learned prior only)."""
+        G = np.asarray(G, np.float64)
+        if G.shape != (prior.n_markers,) * 2:
+            raise ValueError(f"energy {G.shape} does not match a prior of {prior.n_markers} markers")
+        if not (noise_mm >= 0 and np.isfinite(noise_mm)):
+            raise ValueError(f"marker noise must be finite and >= 0 mm, got {noise_mm}")
+        ratio = 0.0
+        if shell_weight and noise_mm:
+            if not (prior_scale_mm > 0 and np.isfinite(prior_scale_mm)):
+                raise ValueError(f"the shell prior's scale must be finite and > 0 mm, got {prior_scale_mm}")
+            ratio = float(shell_weight) * float(noise_mm) ** 2 / float(prior_scale_mm) ** 2
+        if noise_mm == 0:
+            return cls(prior, G, 0.0, 0.0)
+        A, b = _system(prior, G, noise_mm, ratio)
+        Ainv = np.linalg.inv(A + np.eye(len(A)))
+        Ainv = 0.5 * (Ainv + Ainv.T)
+        return cls(prior, G, float(noise_mm), ratio, Ainv, Ainv @ b)
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """Denoised complete displacements (F,M,3) (or (M,3)) of marker displacements u,
+        mm, NaN rows for occluded markers.
+
+        Raises
+        ------
+        ValueError   a frame with no visible marker
+        """
+        u = np.asarray(u, dtype=np.float64)
+        single = u.ndim == 2
+        u = u[None] if single else u
+        M = self.prior.n_markers
+        if u.shape[1:] != (M, 3):
+            raise ValueError(f"displacements must be (F,{M},3), got {u.shape}")
+        if self.noise_mm == 0:
+            out = soft_handles(self.energy, u, 0.0)
+            return out[0] if single else out
+        F = len(u)
+        missing = ~np.isfinite(u).all(axis=2)                                  # (F,M)
+        full = ~missing.any(axis=1)
+        out = np.empty((F, 3 * M))
+        if full.any():
+            out[full] = u[full].reshape(-1, 3 * M) @ self.full + self.offset   # full is symmetric
+        if (~full).any():
+            # (I + A − E Eᵀ)⁻¹ by Woodbury from the precomputed (I + A)⁻¹ = P, E selecting the
+            # occluded coordinates: x = y + P E (I − Eᵀ P E)⁻¹ Eᵀ y, y = P (D_V m + b)
+            P = self.full
+            patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
+            frames = np.flatnonzero(~full)
+            for p, miss in enumerate(patterns):
+                if miss.all():
+                    raise ValueError("all markers are unknown; at least one is needed")
+                sel = frames[which.ravel() == p]
+                idx = np.flatnonzero(np.repeat(miss, 3))
+                y = np.nan_to_num(u[sel].reshape(len(sel), 3 * M)) @ P + self.offset
+                S = np.eye(len(idx)) - P[np.ix_(idx, idx)]
+                out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P[idx]
+        out = out.reshape(F, M, 3)
+        return out[0] if single else out
+
+
+__all__ = ["FLOOR_FRACTION", "MarkerDenoiser", "MarkerPrior", "SHELL_WEIGHT"]
