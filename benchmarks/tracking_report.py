@@ -19,7 +19,10 @@ their ratio (drift); the temporal variance of contrast-normalized texture in UV 
 intensity normalized by its local mean and deviation over σ = 3 texels, variance over time,
 mean over texels seen in every frame); static-to-dynamic edges selected vs candidates;
 registration error of the static scans (Fig. 11 by-product); the blended albedo maps
-(§7.3) against the ground-truth maps at the performance's map frames, vs the neutral's map;
+(§7.3) against the ground-truth maps at the performance's map frames (mean |error| over face
+texels and channels), vs the blend by the correspondence strength alone (the paper's
+weights, without :mod:`~service.methods.tracking.maps`' strain similarity), the neutral's
+map alone, and two oracles (the best single scan per frame; the best scan per texel);
 stage timings and time per frame; flows per second (the method's flow + NCC vs OpenCV's DIS
 medium preset alone). Figures: ``error_over_time_<fam>.png``, ``graph_<fam>.png``.
 
