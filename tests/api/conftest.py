@@ -161,6 +161,27 @@ def upload_sheet_actor(client: TestClient, name: str) -> tuple[str, dict[str, st
     return actor_id, clip_ids
 
 
+def upload_sample_actor(client: TestClient, actor_dir, clip_names: Sequence[str]) -> tuple[str, dict[str, str]]:
+    """Upload a built sample actor (neutral, marker layout, the named clips) through the API:
+    (actor id, clip name → clip id)."""
+    from service.samples.uploads import sample_actor_uploads
+
+    neutral, layout, clips = sample_actor_uploads(actor_dir, tuple(clip_names))
+    actor_id = client.post("/v1/actors", json={"name": "sample"}).json()["id"]
+    assert client.put(f"/v1/actors/{actor_id}/neutral", content=neutral,
+                      headers=NPZ).status_code == 200
+    canonical = json.loads(layout)
+    markers = [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
+               zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]
+    assert client.put(f"/v1/actors/{actor_id}/markers", json={"markers": markers}).status_code == 200
+    ids = {}
+    for name in clip_names:
+        response = client.post(f"/v1/actors/{actor_id}/clips", content=clips[name], headers=NPZ)
+        assert response.status_code == 201, response.text
+        ids[name] = response.json()["clip_id"]
+    return actor_id, ids
+
+
 def put_rig(client: TestClient, actor_id: str, name: str, V: np.ndarray, F: np.ndarray) -> dict:
     """``PUT`` an input rig (its registration job is only recorded): the 202 body."""
     response = client.put(f"/v1/actors/{actor_id}/input-rigs/{name}",

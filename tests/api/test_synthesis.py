@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 
 from models_store import registry
-from service.samples.uploads import sample_actor_uploads
 from service.config import Settings
 from service.io.exr import read_exr, read_map
 from service.io.markers import MarkerSequence, write_markers_csv, write_markers_trc
 from service.io.mesh import read_obj
 from service.methods.footprint import nbytes
-from tests.api.conftest import NPZ, Recorder, assert_problem, load_npz, make_client, npz
+from tests.api.conftest import NPZ, Recorder, assert_problem, load_npz, make_client, npz, upload_sample_actor
 from tests.conftest import PDM_TRAINING
 
 
@@ -29,20 +28,9 @@ def ready(tmp_path_factory, pdm_actor_dir, pdm_model):
     settings = Settings(data_dir=tmp / "data", max_frames_per_request=4, max_map_resolution=256)
     submitted = Recorder()
     with make_client(settings, submitted) as client:
-        neutral, layout, clips = sample_actor_uploads(pdm_actor_dir, PDM_TRAINING[:1])
-        actor_id = client.post("/v1/actors", json={"name": "sample"}).json()["id"]
-        assert client.put(f"/v1/actors/{actor_id}/neutral", content=neutral,
-                          headers=NPZ).status_code == 200
-        canonical = json.loads(layout)
-        markers = [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
-                   zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]
-        assert client.put(f"/v1/actors/{actor_id}/markers",
-                          json={"markers": markers}).status_code == 200
-        clip = client.post(f"/v1/actors/{actor_id}/clips", content=clips[PDM_TRAINING[0]],
-                           headers=NPZ)
-        assert clip.status_code == 201, clip.text
+        actor_id, clip_ids = upload_sample_actor(client, pdm_actor_dir, PDM_TRAINING[:1])
         model_id = client.post(f"/v1/actors/{actor_id}/models", json={
-            "kind": "pdm", "clips": [clip.json()["clip_id"]]}).json()["model_id"]
+            "kind": "pdm", "clips": [clip_ids[PDM_TRAINING[0]]]}).json()["model_id"]
         pdm_model.save(tmp / "model")
         services = client.app.state.services
         with services.session() as session:

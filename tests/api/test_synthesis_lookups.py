@@ -6,7 +6,6 @@ the half-precision response the same bytes as before the vectorized float16 conv
 from __future__ import annotations
 
 import io
-import json
 import zipfile
 
 import numpy as np
@@ -18,8 +17,7 @@ from service.app import services as services_module
 from service.app.services import READY_RECHECK_SECONDS, Services
 from service.config import Settings
 from service.errors import NotFound
-from service.samples.uploads import sample_actor_uploads
-from tests.api.conftest import NPZ, Recorder, assert_problem, make_client, npz
+from tests.api.conftest import NPZ, Recorder, assert_problem, make_client, npz, upload_sample_actor
 from tests.conftest import PDM_TRAINING
 
 
@@ -30,17 +28,8 @@ def models(tmp_path_factory, pdm_actor_dir, pdm_model):
     tmp = tmp_path_factory.mktemp("api_lookups")
     settings = Settings(data_dir=tmp / "data", max_frames_per_request=4)
     with make_client(settings, Recorder()) as client:
-        neutral, layout, clips = sample_actor_uploads(pdm_actor_dir, PDM_TRAINING[:1])
-        actor_id = client.post("/v1/actors", json={"name": "sample"}).json()["id"]
-        assert client.put(f"/v1/actors/{actor_id}/neutral", content=neutral,
-                          headers=NPZ).status_code == 200
-        canonical = json.loads(layout)
-        markers = [{"name": n, "triangle": t, "barycentric": b} for n, t, b in
-                   zip(canonical["names"], canonical["triangle"], canonical["barycentric"])]
-        assert client.put(f"/v1/actors/{actor_id}/markers",
-                          json={"markers": markers}).status_code == 200
-        clip = client.post(f"/v1/actors/{actor_id}/clips", content=clips[PDM_TRAINING[0]],
-                           headers=NPZ).json()["clip_id"]
+        actor_id, clip_ids = upload_sample_actor(client, pdm_actor_dir, PDM_TRAINING[:1])
+        clip = clip_ids[PDM_TRAINING[0]]
         pdm_model.save(tmp / "model")
         services = client.app.state.services
         ids = []
