@@ -178,11 +178,11 @@ def test_benchmarks_share_code_only_through_the_harness():
 
 #: modules ``facesynth serve`` imports before its first frame must not pull in (issue 23):
 #: the tasks' methods, imported where a job runs (the runner's ``TASKS``), and the parts of
-#: SciPy only training and jobs use (triangulations, trees, k-means)
+#: SciPy only training and jobs use (triangulations, trees, k-means, image filters)
 SERVE_NEVER_IMPORTS = ("service.jobs.tasks.synthesize", "service.jobs.tasks.track",
                        "service.jobs.tasks.register", "service.jobs.tasks.correspond",
                        "service.jobs.frame_usd", "service.io.usd", "scipy.spatial",
-                       "scipy.cluster")
+                       "scipy.cluster", "scipy.ndimage")
 
 
 def test_serve_imports_no_task_methods_until_a_job_runs():

@@ -48,7 +48,6 @@ motion (clean +28 %).
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import correlate1d
 
 from service.geometry.rigid import MIN_POINTS, rigid_align
 
@@ -62,6 +61,8 @@ MAX_SIGMA_FRAMES = 30.0
 
 def _moments(x: np.ndarray, kernels: np.ndarray) -> np.ndarray:
     """Σ_τ k_j(τ) x(t+τ) along axis 0 for each kernel row j: (J, *x.shape)."""
+    from scipy.ndimage import correlate1d  # imported here: serve's start never needs it (issue 23)
+
     return np.stack([correlate1d(x, k, axis=0, mode="constant", cval=0.0) for k in kernels])
 
 
@@ -121,7 +122,7 @@ def filter_markers(markers: np.ndarray, sigma_frames: float = SIGMA_FRAMES, degr
     idx = np.add.outer(np.arange(p), np.arange(p))
     A = np.moveaxis(A_m[idx], (0, 1), (-2, -1))                                  # (F,M,p,p)
     b = np.moveaxis(b_m, 0, -2)                                                  # (F,M,p,3)
-    count = correlate1d(visible, (np.abs(tau) <= r).astype(np.float64), axis=0, mode="constant")
+    count = _moments(visible, (np.abs(tau) <= r).astype(np.float64)[None])[0]
     # scale τ by s so the normal matrix is well conditioned for any window
     s = sigma_frames ** np.arange(p)
     A = A / np.multiply.outer(s, s)
