@@ -371,16 +371,11 @@ def npz_arrays(result: dict[str, np.ndarray], *, half: bool = False,
     topology resource). With neither, ``result`` itself (bit-exact float32)."""
     out = {k: v for k, v in result.items() if topology or k not in TOPOLOGY_KEYS}
     if half:
-        # beyond the half range is +-inf, as in EXR; float32 maps by the vectorized
-        # conversion (bit for bit NumPy's astype, ~1.6x faster: service/io/half.py)
+        # beyond the half range is +-inf, as in EXR (bit for bit NumPy's astype, float32
+        # maps ~1.6x faster: service/io/half.py)
         for name in MAP_OUTPUTS:
             if name in out and np.ndim(out[name]) >= 3:
-                values = np.asarray(out[name])
-                if values.dtype == np.float32:
-                    out[name] = to_float16(values)
-                else:
-                    with np.errstate(over="ignore"):
-                        out[name] = values.astype(np.float16)
+                out[name] = to_float16(out[name])
     return out
 
 

@@ -51,3 +51,13 @@ def test_map_like_values_any_block_and_shape(block):
 def test_empty_and_scalar():
     assert to_float16(np.zeros((0, 3), np.float32)).shape == (0, 3)
     assert _bits(to_float16(np.float32(1.0 / 3.0)).reshape(1)).tolist() == [0x3555]
+
+
+def test_other_dtypes_round_once_as_numpy_does():
+    """float64 goes to float16 directly (NumPy's single rounding), not through float32."""
+    x = np.array([1 + 2.0 ** -11 + 2.0 ** -40, -65519.9, 1e-9, np.inf, np.nan])  # ties after float32
+    got = to_float16(x)
+    with np.errstate(over="ignore"):
+        expected = x.astype(np.float16)
+    assert got.view(np.uint16).tolist() == expected.view(np.uint16).tolist()
+    assert to_float16(x[:1])[0] != np.float32(x[0]).astype(np.float16)    # the double rounding avoided
