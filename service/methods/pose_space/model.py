@@ -134,6 +134,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from service.geometry.normal_map import NormalMapper
+from service.geometry.thin_shell import basis_rows
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
 )
@@ -285,11 +286,7 @@ class PoseSpaceEvaluator:
         (tests; one float32 ulp of a position at the sample actor's ~190 mm is 1.5e-5 mm)."""
         sf = self.shell_frames
         B = self.base.basis
-        uh = np.asarray(u_H, np.float32)
-        if B.flags.f_contiguous:
-            ut = np.ascontiguousarray(uh.T) @ B.T                                     # (3,n)
-        else:
-            ut = (B @ uh).T
+        ut = basis_rows(B, np.asarray(u_H, np.float32))                               # (3,n)
         U = np.take(ut, sf.order, axis=1)                                            # (3,n) internal
         W = sf.to_world(sf.rows(U), sf.to_internal(c))
         U += self.smooth_internal
