@@ -174,7 +174,7 @@ class TemporalFlows:
         e = edge_flows(inp.frame_images[t], inp.frame_images[t + 1], ("frame", t), ("frame", t + 1),
                        self.params)
         self.computed += 1
-        size = sum(v.flow.nbytes + v.confidence.nbytes for v in e.forward + e.backward)
+        size = _edge_bytes(e)
         if self.bytes + size <= self.budget:
             self.kept[t] = e
             self.bytes += size
@@ -185,7 +185,12 @@ class TemporalFlows:
         for t in frames:
             e = self.kept.pop(t, None)
             if e is not None:
-                self.bytes -= sum(v.flow.nbytes + v.confidence.nbytes for v in e.forward + e.backward)
+                self.bytes -= _edge_bytes(e)
+
+
+def _edge_bytes(e: EdgeFlows) -> int:
+    """Bytes of an edge's flows and confidences, both directions, every view."""
+    return sum(v.flow.nbytes + v.confidence.nbytes for v in e.forward + e.backward)
 
 
 def _temporal(inp: TrackingInput, t: int, params: TrackingParams) -> EdgeFlows:
