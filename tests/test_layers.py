@@ -178,11 +178,12 @@ def test_benchmarks_share_code_only_through_the_harness():
 
 #: modules ``facesynth serve`` imports before its first frame must not pull in (issue 23):
 #: the tasks' methods, imported where a job runs (the runner's ``TASKS``), and the parts of
-#: SciPy only training and jobs use (triangulations, trees, k-means, image filters)
+#: SciPy only training and jobs use (triangulations, trees, k-means, image filters), and
+#: Numba (the compiled kernels of a model kind, imported when such a model loads)
 SERVE_NEVER_IMPORTS = ("service.jobs.tasks.synthesize", "service.jobs.tasks.track",
                        "service.jobs.tasks.register", "service.jobs.tasks.correspond",
                        "service.jobs.frame_usd", "service.io.usd", "scipy.spatial",
-                       "scipy.cluster", "scipy.ndimage")
+                       "scipy.cluster", "scipy.ndimage", "numba")
 
 
 def test_serve_imports_no_task_methods_until_a_job_runs():

@@ -2,7 +2,8 @@
 
 A synchronous synthesis is CPU-bound NumPy/SciPy work; ``max_concurrent_syntheses`` of them
 run at once (:class:`service.app.synthesis.Synthesizer`), and each dense BLAS call inside one
-may start OpenBLAS's (or OpenMP's, MKL's) own threads — by default one per core. With S
+may start OpenBLAS's (or OpenMP's, MKL's) own threads — by default one per core — and the
+compiled per-frame kernels split their vertices over as many threads. With S
 slots on C cores that is up to S·C busy threads: on 2 cores, 2 slots × 2 BLAS threads
 oversubscribe the machine twice over and every synthesis slows down (the threads preempt
 each other and OpenBLAS's spin-waits burn the cycles). Sized together, S slots get
@@ -19,8 +20,9 @@ from __future__ import annotations
 import os
 from typing import MutableMapping
 
-#: the thread-count variables of the BLAS / OpenMP runtimes NumPy and SciPy may load
-BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+#: the thread-count variables of the BLAS / OpenMP runtimes NumPy and SciPy may load, and
+#: of the compiled per-frame kernels (:func:`service.geometry.ranges.kernel_threads`)
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
 def cores() -> int:

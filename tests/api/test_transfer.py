@@ -140,9 +140,11 @@ def test_transfer_to_the_source_actor_reproduces_the_source_model(app_client, so
     assert quality["projection_max_mm"] < 1e-9 and quality["pose_weights"] == "source model"
     markers = sheet_motion(V, 6, 0.15)[:, list(SOURCE_MARKERS)]
     a, b = synthesize(app_client, model_id, markers), synthesize(app_client, moved, markers)
-    # measured: 7e-18 mm (an identity interpolation of the same weights; the default pose
-    # weights are the source model's own for its own actor)
-    assert np.abs(a - b).max() < 1e-6
+    # an identity interpolation of the same weights (the default pose weights are the source
+    # model's own for its own actor): equal to float32 rounding of the outputs — one ulp of a
+    # coordinate below 64 mm is 3.8e-6 mm (measured 1.9e-6: the interpolated weights agree to
+    # ~1e-7 relative, and the compiled per-vertex sums round them)
+    assert np.abs(a - b).max() <= 3.8e-6
     # given uniform head-alignment weights instead, the head pose differs slightly (measured
     # 0.012 mm): the parameter reaches the new model
     response = app_client.post(f"/v1/models/{model_id}/transfer", json={

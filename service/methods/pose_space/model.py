@@ -116,14 +116,15 @@ Choices and departures (the paper is silent or differs):
   b 1.209, a 0.841);
 * weights are rounded to float32 when training ends (the stored precision), so a saved and
   reloaded model synthesizes bit-identical results;
-* **per-frame mesh path in float32** (:meth:`PoseSpaceEvaluator.medium_internal`): the
-  displacement ``B u_H`` (float32 basis), the shell's tangent frames from the rest edges plus
-  the displacement's edges in a cache-friendly vertex order (:mod:`.shell_frames`), the
-  rotation of the corrections and the head pose, all float32; WPSD distances in float32
-  (:meth:`PoseSpaceEvaluator.sq_distances`). Training and the float64 operators are
-  unchanged. Within 1e-4 mm of the float64 path (tests; 3.8e-5 mm measured at level 2).
-  Level 2 (178,726 vertices), P = 6, mesh CPU per frame 84-88 → 52-54 ms with one BLAS
-  thread, load 6-7 on 2 cores (session 13; the profile is in the issue 18 report).
+* **per-frame mesh path in float32, compiled** (:meth:`PoseSpaceEvaluator.shell_detail`,
+  :meth:`PoseSpaceModel._corrections`): the displacement ``B u_H`` (float32 basis, BLAS),
+  then two Numba kernels over contiguous vertex ranges in a cache-friendly vertex order
+  (:mod:`service.geometry.ranges`): :mod:`.correction_sum` (WPSD: eq. 3's distances, eq. 5's
+  sum, the polynomial and the fade, per vertex in float32, α and the polynomial on one CSR
+  pattern) and :mod:`.shell_frames` (the shell's tangent frames from the rest edges plus the
+  displacement's edges, the corrections rotated into them, the head pose). Training and the
+  float64 operators are unchanged. Within 1e-4 mm of the float64 path (tests). The speed
+  rows are in issue 18's report (``benchmarks/pose_space_report.py --speed-only``).
 """
 
 from __future__ import annotations
@@ -148,7 +149,6 @@ from service.methods.pose_space import polynomial, rbf, store
 from service.methods.pose_space.data import PoseSpaceData
 from service.methods.pose_space.corrections import corrections, large_scale_surface
 from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs
-from service.methods.pose_space.shell_frames import ShellFrames
 from service.methods.pose_space.params import (
     NOISE_COPIES_SEED, VALIDATION_SEED, Params, PsdParams, WpsdParams,
 )
@@ -203,14 +203,21 @@ class PoseSpaceEvaluator:
         influence = np.abs(self.node_basis)
         self.node_influence = influence / np.maximum(influence.sum(axis=1, keepdims=True), 1e-300)
         self.alpha = None if data.alpha is None else data.alpha.astype(np.float64).tocsr()
-        self.alpha32 = None if data.alpha is None else data.alpha.astype(np.float32).tocsr()
+        # compiled kernels: Numba is imported where a model is built, not with the kinds
+        from service.methods.pose_space.correction_sum import CorrectionSum
+        from service.methods.pose_space.shell_frames import ShellFrames
+
         # the per-frame mesh path: float32 frames from the displacement (:mod:`.shell_frames`)
         self.shell_frames = ShellFrames.build(self.base.smooth, self.base.faces, data.uv, data.uv_faces)
         self.smooth_internal = self.shell_frames.to_internal(self.base.smooth)
         if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
             self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
-        else:                         # WPSD: per vertex (3,P), the sum over P contiguous (corrections)
-            self.weights = np.ascontiguousarray(data.weights.transpose(0, 2, 1))
+            self.correction_sum = None
+        else:                         # WPSD: the compiled per-vertex sum, in the frames' vertex order
+            self.weights = None
+            self.correction_sum = CorrectionSum.build(data.alpha, data.weights, data.basis_features,
+                                                      data.poly_const, data.poly_linear,
+                                                      order=self.shell_frames.order)
         self.poly_linear = None if data.poly_linear is None else data.poly_linear.tocsr()
         self.map_poly_linear = None if data.map_poly_linear is None else data.map_poly_linear.tocsr()
         self.map_interp = self.map_sampler = None
@@ -274,56 +281,34 @@ class PoseSpaceEvaluator:
         e = self.graph.edges
         return node[:, e[:, 0]] * node[:, e[:, 1]]
 
-    def medium_internal(self, u_H: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """The shell plus its corrections ``X + Frame(X)ᵀ c`` (3,n) float32 in the internal
-        vertex order of :attr:`shell_frames`, for one frame: handle displacements u_H (M,3),
-        corrections c (n,3) (vertex order, tangent frames).
+    def shell_detail(self, u_H: np.ndarray, C: np.ndarray, R: np.ndarray | None = None,
+                     t: np.ndarray | None = None, aligned: bool = False,
+                     world: np.ndarray | None = None) -> np.ndarray | None:
+        """One frame's shell plus its corrections ``X + Frame(X)ᵀ c``, float32: handle
+        displacements u_H (M,3), corrections C (3,n) in the tangent frames in the internal
+        vertex order of :attr:`shell_frames`. ``aligned`` returns X (3,n) internal order
+        (neutral-aligned); ``world`` (n,3) float32 is filled with ``Rᵀ (X − t)`` in vertex
+        order (:class:`~service.methods.pdm.base_surface.HeadPose` of the frame, R (3,3),
+        t (3,)).
 
-        Float32 throughout: the displacement ``B u_H`` (the basis product of
-        :func:`~service.geometry.thin_shell.apply_basis`, its (3,h)@(h,n) form), the frames
-        of :class:`ShellFrames` from it, the rotation of c; the rest pose added in float32.
-        Within 1e-4 mm of the float64 ``apply_corrections(base, base.deform(u_H), c)``
-        (tests; one float32 ulp of a position at the sample actor's ~190 mm is 1.5e-5 mm)."""
+        The displacement ``B u_H`` is the basis product of
+        :func:`~service.geometry.thin_shell.apply_basis` (its (3,h)@(h,n) form, float32),
+        the rest by :meth:`ShellFrames.shell`. Within 1e-4 mm of the float64
+        ``apply_corrections(base, base.deform(u_H), c)`` (tests; one float32 ulp of a
+        position at the sample actor's ~190 mm is 1.5e-5 mm)."""
         sf = self.shell_frames
-        B = self.base.basis
-        ut = basis_rows(B, np.asarray(u_H, np.float32))                               # (3,n)
-        U = np.take(ut, sf.order, axis=1)                                            # (3,n) internal
-        W = sf.to_world(sf.rows(U), sf.to_internal(c))
-        U += self.smooth_internal
-        U += W
-        return U
-
-    def restore_internal(self, Xi: np.ndarray, R: np.ndarray, t: np.ndarray,
-                         out: np.ndarray | None = None) -> np.ndarray:
-        """Neutral-aligned points Xi (3,n) internal order → world ``Rᵀ (X − t)`` (n,3)
-        float32 in vertex order (:class:`~service.methods.pdm.base_surface.HeadPose` of one
-        frame, R (3,3), t (3,)), into ``out`` if given."""
-        R32 = np.asarray(R, np.float32)
-        Y = Xi - np.asarray(t, np.float32)[:, None]
-        W = np.empty_like(Y)
-        for k in range(3):
-            np.multiply(Y[0], R32[0, k], out=W[k])
-            W[k] += Y[1] * R32[1, k]
-            W[k] += Y[2] * R32[2, k]
-        return self.shell_frames.to_vertices(W, out)
+        U = np.take(basis_rows(self.base.basis, np.asarray(u_H, np.float32)), sf.order, axis=1)
+        return sf.shell(U, self.smooth_internal, C, R, t, aligned=aligned, world=world)
 
     # -- fine scale
-    def sq_distances(self, f: np.ndarray, visibility: np.ndarray | None = None,
-                     dtype=np.float64) -> np.ndarray:
+    def sq_distances(self, f: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
         """Squared feature distances to the basis poses: WPSD (n,F,P) per vertex (eq. 3),
         PSD (1,F,P) (eq. 2). With ``visibility`` ν (F,E) (:meth:`edge_visibility`) every edge's
         term is weighted by ν and the weights renormalized (module docstring: occlusion).
 
-        ``dtype=np.float32`` (WPSD without ``visibility``; the synthesis path): the sparse
-        product in float32 (α and the squared feature differences rounded to float32, 2×
-        less memory read; the kernel sums run in float32 anyway, :meth:`corrections`);
-        within 1e-6 relative of float64 (tests). Otherwise float64."""
+        term is weighted by ν and the weights renormalized (module docstring: occlusion).
+        Float64; the synthesis path sums them in float32 inside :attr:`correction_sum`."""
         fb = self.data.basis_features
-        if np.dtype(dtype) == np.float32 and self.alpha is not None and visibility is None:
-            f = np.asarray(f, np.float64)
-            G = ((f[:, None, :] - fb[None]) ** 2).astype(np.float32)                 # (F,P,E)
-            F, P = G.shape[:2]
-            return np.asarray(self.alpha32 @ G.reshape(F * P, -1).T).reshape(-1, F, P)
         if self.alpha is None:
             g = f[:, None, :] - fb[None]
             if visibility is None:
@@ -345,20 +330,22 @@ class PoseSpaceEvaluator:
         return np.where(ok[:, :, None], part, D2)
 
     def corrections(self, D2: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """Corrections c (F,n,3) float32 in the tangent frames, from :meth:`sq_distances` of
-        features f (F,E) (eq. 2, 5, plus the polynomial term of :mod:`.polynomial` if stored).
+        """Corrections c (F,n,3) float32 in the tangent frames, vertex order, from
+        :meth:`sq_distances` of features f (F,E) (eq. 2, 5, plus the polynomial term of
+        :mod:`.polynomial` if stored). WPSD: :attr:`correction_sum` per frame with the
+        distances given; the synthesis path sums the distances there too.
 
         The sums run in float32, the stored precision of the weights (kernel values rounded
         to float32; within 1e-5 mm of the float64 sums on the sample actor, tested)."""
-        phi = rbf.kernel(np.sqrt(D2)).astype(np.float32)
         if self.alpha is None:      # per frame W.T @ φ: a GEMV (a (1,P)@(P,3n) GEMM is ~100x
+            phi = rbf.kernel(np.sqrt(D2)).astype(np.float32)
             Wt = self.weights.T       # slower in OpenBLAS when the cores are busy)
             c = np.stack([Wt @ p for p in phi[0]]).reshape(len(phi[0]), -1, 3)
-        else:                       # one frame at a time: per vertex (3,P) @ (P,), P contiguous
-            c = np.stack([np.einsum("np,ncp->nc", phi[:, k], self.weights) for k in range(phi.shape[1])])
-        if self.poly_linear is not None:
-            c = c + polynomial.evaluate(self.data.poly_const, self.poly_linear, f)
-        return c
+            if self.poly_linear is not None:
+                c = c + polynomial.evaluate(self.data.poly_const, self.poly_linear, f)
+            return c
+        sf, cs = self.shell_frames, self.correction_sum
+        return np.stack([sf.to_vertices(cs(fk, D2=D2[sf.order, k])) for k, fk in enumerate(f)])
 
     def fine_map(self, D2: np.ndarray, f: np.ndarray) -> np.ndarray:
         """Fine displacement (F,Pt) float32 at the map texels of features f (F,E) (module
@@ -456,20 +443,17 @@ class PoseSpaceModel:
             fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
             vis = ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight" else None
-            D2 = ev.sq_distances(f, vis, dtype=np.float32)
-            c = ev.corrections(D2, f)
-            if fade is not None:
-                c *= fade[:, None, None]
             maps = want & {"mesh_detailed", "displacement", "normal_map"}
             need_medium = want & {"mesh_detailed", "normal_map"}
+            C, D2 = self._corrections(f, vis, fade, keep_distances=bool(maps))
             if "vertices" in out or need_medium:
-                medium = np.empty((len(c), n, 3), np.float64) if need_medium else None
-                for k in range(len(c)):
-                    Mi = ev.medium_internal(u_H[k], c[k])
-                    if "vertices" in out:
-                        ev.restore_internal(Mi, pose.R[k], pose.t[k], out["vertices"][s + k])
+                medium = np.empty((len(f), n, 3), np.float64) if need_medium else None
+                for k in range(len(f)):
+                    world = out["vertices"][s + k] if "vertices" in out else None
+                    Xa = ev.shell_detail(u_H[k], C[k], pose.R[k], pose.t[k], aligned=bool(need_medium),
+                                         world=world)
                     if need_medium:
-                        medium[k] = ev.shell_frames.to_vertices(Mi)
+                        medium[k] = ev.shell_frames.to_vertices(Xa)
             if not maps:
                 continue
             disp = ev.fine_map(D2, f)                                            # (f,Pt)
@@ -487,6 +471,31 @@ class PoseSpaceModel:
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
+
+    def _corrections(self, f: np.ndarray, vis: np.ndarray | None, fade: np.ndarray | None,
+                     keep_distances: bool) -> tuple[list[np.ndarray], np.ndarray | None]:
+        """Per frame the corrections (3,n) float32 in the frames' internal vertex order, faded
+        by ``fade`` (f,), and, with ``keep_distances``, the distances (n,f,P) in vertex order
+        (the fine map's input) — for features f (f,E) and edge visibility ``vis`` (f,E)."""
+        ev = self.evaluator
+        sf, cs = ev.shell_frames, ev.correction_sum
+        kappa = np.ones(len(f), np.float32) if fade is None else fade
+        if cs is None:                                         # PSD: one system, NumPy
+            D2 = ev.sq_distances(f, vis)
+            c = ev.corrections(D2, f)
+            return [sf.to_internal(ck * kk) for ck, kk in zip(c, kappa)], D2 if keep_distances else None
+        C, D = [], []
+        for k, fk in enumerate(f):
+            if vis is None:
+                res = cs(fk, kappa[k], keep_distances=keep_distances)
+                Ck, Dk = res if keep_distances else (res, None)
+                Dk = None if Dk is None else Dk[sf.rank]
+            else:
+                Dk = ev.sq_distances(fk[None], vis[k:k + 1])[:, 0]                  # (n,P) vertex order
+                Ck = cs(fk, kappa[k], D2=Dk[sf.order])
+            C.append(Ck)
+            D.append(Dk)
+        return C, np.stack(D, axis=1) if keep_distances else None
 
     def save(self, path) -> dict:
         """Write the model directory (manifest.json, model.npz, cache.npz); see :mod:`.store`."""

@@ -1,6 +1,7 @@
-"""Float32 tangent frames of a thin-shell pose from its displacement, in a cache-friendly vertex
-order (the per-frame path of bickel2008 §5.3 "at run-time": corrections "stored per-vertex in
-local tangent frames" are rotated into the current shell's frames).
+"""Float32 tangent frames of a thin-shell pose from its displacement, and the per-frame mesh
+of bickel2008 §5.3 "at run-time" built on them: the shell plus corrections "stored
+per-vertex in local tangent frames", rotated into the current shell's frames, head pose put
+back — compiled (Numba, ``nogil``) over a cache-friendly vertex order.
 
 The frames are those of :class:`service.geometry.tangent_frames.FrameField` (weights frozen
 at the rest pose; rows T, B, N; N the area-weighted normal, T the rest-corner-angle-weighted
@@ -11,43 +12,46 @@ for a shell ``X = X̄ + u`` from
   edges of the float32 displacement ``u = B u_H`` — the positions are never differenced in
   float32 (at ~100 mm from the origin that would lose ~1e-5 mm per edge), the displacement
   (a few mm) is, and the rest edges carry the rest of the edge;
-* per-triangle dP/du ``cb e1 + cc e2`` (UV coefficients), accumulated at the vertices with
-  the rest corner angles — one sparse product with 3m entries per component instead of
-  :class:`FrameField`'s ``du_edges`` with 6m;
+* per-triangle dP/du ``cb e1 + cc e2`` (UV coefficients), accumulated at each vertex over
+  its incident triangles with the rest corner angles (``angle`` of the vertex → triangle
+  incidence), the normal as the sum of the incident ``e1 × e2``;
 * a **vertex order** of small bandwidth (reverse Cuthill–McKee of the mesh graph, triangles
-  sorted by their first vertex in that order), in which the gathers of vertex values by
-  triangle and the triangle → vertex sums touch nearby memory. Measured on the level-2
-  sample mesh (178,726 vertices, 357,448 triangles, CPU at load 6 on 2 cores): the three
-  triangle → vertex float32 products 5.0 → 1.9 ms, the edge gathers 2.6 → 1.7 ms.
-  Callers move per-vertex arrays into that order with :meth:`ShellFrames.to_internal` and
-  back with :meth:`ShellFrames.to_vertices`.
+  sorted by their first vertex in that order), in which a vertex's incident triangles and
+  their corners lie in nearby memory. Callers move per-vertex arrays into that order with
+  :meth:`ShellFrames.to_internal` and back with :meth:`ShellFrames.to_vertices`.
 
-Arrays are component-major (3,n) float32 throughout (contiguous rows per coordinate).
-Against :meth:`FrameField.frames` in float64 the frames agree to ~1e-6 (tests bound it).
+Per frame two passes over the vertices (:func:`frame_sums`, then :func:`compose`): the first
+accumulates T and N at every vertex (the normal normalized, T projected off it), the second
+needs the largest tangent component over the whole mesh (FrameField's threshold for a
+cancelled tangent) and finishes the frames, rotates the corrections, adds the rest pose and
+the displacement and applies the head pose. Both run over contiguous vertex ranges on
+:func:`service.geometry.ranges.kernel_threads` threads.
+
+Why compiled: the same operations as NumPy array passes read and write every per-triangle
+and per-vertex temporary once per operation (about 40 passes over (3,m) and (3,n) float32
+rows); fused per vertex they read the displacement, the triangles and the incidence once.
+Measured in :mod:`benchmarks.pose_space_report`'s speed section (issue 18's report).
+
+Arrays are component-major (3,n) float32 (contiguous rows per coordinate). Against
+:meth:`FrameField.frames` in float64 the frames agree to ~1e-6 (tests bound it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from service.geometry import ranges
 from service.geometry.normals import corner_angles
-from service.geometry.tangent_frames import CANCEL_RTOL, _dot_rows as _dot, _triangle_signs, uv_handedness
+from service.geometry.tangent_frames import CANCEL_RTOL, _triangle_signs, uv_handedness
 
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c = np.empty(a.shape, np.float32)
-    np.multiply(a[1], b[2], out=c[0])
-    c[0] -= a[2] * b[1]
-    np.multiply(a[2], b[0], out=c[1])
-    c[1] -= a[0] * b[2]
-    np.multiply(a[0], b[1], out=c[2])
-    c[2] -= a[1] * b[0]
-    return c
+#: LLVM flags of the kernels: reassociation and contraction only (no finite-math
+#: assumptions, so the zero tests of the fallbacks keep their meaning)
+FASTMATH = {"reassoc", "contract"}
 
 
 def locality_order(F: np.ndarray, n: int) -> np.ndarray:
@@ -57,9 +61,102 @@ def locality_order(F: np.ndarray, n: int) -> np.ndarray:
     return np.asarray(reverse_cuthill_mckee((A + A.T).tocsr(), symmetric_mode=True), np.int64)
 
 
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def frame_sums(lo, hi, U, F, rest_e1, rest_e2, cb, cc, ptr, tri, angle, T, N, tmax):
+    """Vertices [lo, hi): unit normal N and tangent T projected off it (3,n) float32, and
+    tmax (n,) the largest |T| component, of the shell whose displacement is U (3,n)
+    (internal order; the module docstring has the sums)."""
+    for k in range(lo, hi):
+        tx = ty = tz = np.float32(0.0)
+        nx = ny = nz = np.float32(0.0)
+        for q in range(ptr[k], ptr[k + 1]):
+            t = tri[q]
+            a, b, c = F[t, 0], F[t, 1], F[t, 2]
+            e1x = (U[0, b] - U[0, a]) + rest_e1[0, t]
+            e1y = (U[1, b] - U[1, a]) + rest_e1[1, t]
+            e1z = (U[2, b] - U[2, a]) + rest_e1[2, t]
+            e2x = (U[0, c] - U[0, a]) + rest_e2[0, t]
+            e2y = (U[1, c] - U[1, a]) + rest_e2[1, t]
+            e2z = (U[2, c] - U[2, a]) + rest_e2[2, t]
+            w = angle[q]
+            tx += w * (cb[t] * e1x + cc[t] * e2x)
+            ty += w * (cb[t] * e1y + cc[t] * e2y)
+            tz += w * (cb[t] * e1z + cc[t] * e2z)
+            nx += e1y * e2z - e1z * e2y
+            ny += e1z * e2x - e1x * e2z
+            nz += e1x * e2y - e1y * e2x
+        nn = nx * nx + ny * ny + nz * nz
+        if nn > 0:
+            s = np.float32(1.0) / np.sqrt(nn)
+            nx, ny, nz = nx * s, ny * s, nz * s
+        else:
+            nx = ny = nz = np.float32(0.0)
+        d = tx * nx + ty * ny + tz * nz
+        tx, ty, tz = tx - d * nx, ty - d * ny, tz - d * nz
+        T[0, k], T[1, k], T[2, k] = tx, ty, tz
+        N[0, k], N[1, k], N[2, k] = nx, ny, nz
+        tmax[k] = max(abs(tx), abs(ty), abs(tz))
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def compose(lo, hi, T, N, floor, U, rest, C, R, t, order, aligned, world, Bout):
+    """Vertices [lo, hi): finish the frames of :func:`frame_sums` (a tangent with
+    ``|T|² ≤ floor`` replaced by the least-aligned axis projected off N, as FrameField;
+    T normalized; ``B = N × T``) and compose ``X = rest + U + (C₀T + C₁B + C₂N)`` (C as is
+    where there is no normal). Writes, where the output has columns: ``aligned`` (3,n) X
+    in the internal order; ``world`` (n,3) ``Rᵀ (X − t)`` at vertex ``order[k]``;
+    T normalized in place and ``Bout`` (3,n)."""
+    want_aligned = aligned.shape[1] > 0
+    want_world = world.shape[0] > 0
+    want_frames = Bout.shape[1] > 0
+    for k in range(lo, hi):
+        nx, ny, nz = N[0, k], N[1, k], N[2, k]
+        tx, ty, tz = T[0, k], T[1, k], T[2, k]
+        has_n = nx != 0 or ny != 0 or nz != 0
+        tt = tx * tx + ty * ty + tz * tz
+        if has_n and not tt > floor:
+            ax, ay, az = abs(nx), abs(ny), abs(nz)
+            j = 0 if ax <= ay and ax <= az else (1 if ay <= az else 2)
+            n0, n1, n2 = np.float64(nx), np.float64(ny), np.float64(nz)
+            d = n0 if j == 0 else (n1 if j == 1 else n2)
+            tx = np.float32((1.0 if j == 0 else 0.0) - d * n0)
+            ty = np.float32((1.0 if j == 1 else 0.0) - d * n1)
+            tz = np.float32((1.0 if j == 2 else 0.0) - d * n2)
+            tt = tx * tx + ty * ty + tz * tz
+        if tt > 0:
+            s = np.float32(1.0) / np.sqrt(tt)
+            tx, ty, tz = tx * s, ty * s, tz * s
+        else:
+            tx = ty = tz = np.float32(0.0)
+        bx = ny * tz - nz * ty
+        by = nz * tx - nx * tz
+        bz = nx * ty - ny * tx
+        c0, c1, c2 = C[0, k], C[1, k], C[2, k]
+        if has_n:
+            wx = c0 * tx + c1 * bx + c2 * nx
+            wy = c0 * ty + c1 * by + c2 * ny
+            wz = c0 * tz + c1 * bz + c2 * nz
+        else:
+            wx, wy, wz = c0, c1, c2
+        x = (rest[0, k] + U[0, k]) + wx
+        y = (rest[1, k] + U[1, k]) + wy
+        z = (rest[2, k] + U[2, k]) + wz
+        if want_aligned:
+            aligned[0, k], aligned[1, k], aligned[2, k] = x, y, z
+        if want_world:
+            x, y, z = x - t[0], y - t[1], z - t[2]
+            v = order[k]
+            for i in range(3):
+                world[v, i] = x * R[0, i] + y * R[1, i] + z * R[2, i]
+        if want_frames:
+            T[0, k], T[1, k], T[2, k] = tx, ty, tz
+            Bout[0, k], Bout[1, k], Bout[2, k] = bx, by, bz
+
+
 @dataclass(frozen=True)
 class ShellFrames:
-    """Tangent frames of shells ``X̄ + u`` in an internal vertex order (module docstring).
+    """Tangent frames of shells ``X̄ + u`` in an internal vertex order, and the per-frame
+    shell mesh on them (module docstring).
 
     Attributes
     ----------
@@ -68,8 +165,10 @@ class ShellFrames:
     faces : (m,3) int64      triangles over internal positions (sorted by first corner)
     rest_e1, rest_e2 : (3,m) float32   rest edges P1 − P0, P2 − P0 of X̄
     cb, cc : (m,) float32    dP/du = cb e1 + cc e2 per triangle (0 for UV-degenerate ones)
-    angles : (n,m) CSR float32    rest corner angles (majority handedness only), internal order
-    incidence : (n,m) CSR float32 vertex–triangle incidence, internal order
+    ptr : (n+1,) int64, tri : (3m,) int64, angle : (3m,) float32
+                             vertex → incident triangles (CSR by internal position, triangles
+                             ascending) and the rest corner angle there (0 where the triangle's
+                             UV handedness is not the vertex's majority one)
     """
 
     order: np.ndarray
@@ -79,8 +178,9 @@ class ShellFrames:
     rest_e2: np.ndarray
     cb: np.ndarray
     cc: np.ndarray
-    angles: sp.csr_matrix
-    incidence: sp.csr_matrix
+    ptr: np.ndarray
+    tri: np.ndarray
+    angle: np.ndarray
 
     @classmethod
     def build(cls, V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray) -> "ShellFrames":
@@ -102,20 +202,14 @@ class ShellFrames:
         Fi = rank[F]
         tri = np.argsort(Fi.min(axis=1), kind="stable")
         Fi, F, cb, cc, w = Fi[tri], F[tri], cb[tri], cc[tri], w[tri]
-        cols = np.repeat(np.arange(m), 3)
-        angles = sp.csr_matrix((w.ravel().astype(np.float32), (Fi.ravel(), cols)), shape=(n, m))
-        incidence = sp.csr_matrix((np.ones(3 * m, np.float32), (Fi.ravel(), cols)), shape=(n, m))
+        rows, cols = Fi.ravel(), np.repeat(np.arange(m), 3)
+        inc = np.lexsort((cols, rows))                                            # by vertex, then triangle
+        ptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int64)
         Vt = V.T
         e1 = (Vt[:, F[:, 1]] - Vt[:, F[:, 0]]).astype(np.float32)
         e2 = (Vt[:, F[:, 2]] - Vt[:, F[:, 0]]).astype(np.float32)
         return cls(order, rank, np.ascontiguousarray(Fi), e1, e2, cb.astype(np.float32),
-                   cc.astype(np.float32), angles, incidence)
-
-    @cached_property
-    def _corners(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The three corner columns of :attr:`faces`, each contiguous (gathers by a
-        contiguous index run ~2x faster than by a strided column)."""
-        return tuple(np.ascontiguousarray(self.faces[:, k]) for k in range(3))
+                   cc.astype(np.float32), ptr, cols[inc], w.ravel()[inc].astype(np.float32))
 
     @property
     def n_vertices(self) -> int:
@@ -133,51 +227,59 @@ class ShellFrames:
             out[:, i] = np.take(Xi[i], self.rank)
         return out
 
-    def rows(self, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """T, B, N (3,n) float32 and has_n (n,) bool (internal order) of the shell X̄ + u,
-        u given as U (3,n) float32 in the internal order (:meth:`to_internal`)."""
-        F0, F1, F2 = self._corners
-        m = len(F0)
-        e1 = np.empty((3, m), np.float32)
-        e2 = np.empty((3, m), np.float32)
-        for i in range(3):
-            u0 = np.take(U[i], F0)
-            np.subtract(np.take(U[i], F1), u0, out=e1[i])
-            e1[i] += self.rest_e1[i]
-            np.subtract(np.take(U[i], F2), u0, out=e2[i])
-            e2[i] += self.rest_e2[i]
-        T = np.stack([self.angles @ (self.cb * e1[i] + self.cc * e2[i]) for i in range(3)])
-        N = np.stack([self.incidence @ row for row in _cross(e1, e2)])
-        nn = _dot(N, N)
-        has_n = nn > 0
-        with np.errstate(divide="ignore"):
-            N *= np.where(has_n, np.float32(1.0) / np.sqrt(nn), np.float32(0.0))
-        T -= _dot(T, N) * N
-        tt = _dot(T, T)
-        # as FrameField: a tangent cancelled to below CANCEL_RTOL of the largest component
-        floor = np.float32(CANCEL_RTOL * max(float(np.abs(T).max()), 1e-30)) ** 2
-        weak = has_n & ~(tt > floor)
-        if weak.any():
-            Nw = N[:, weak].T.astype(np.float64)
-            axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
-            T[:, weak] = (axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw).T
-            tt = _dot(T, T)
-        with np.errstate(divide="ignore"):
-            T *= np.where(tt > 0, np.float32(1.0) / np.sqrt(tt), np.float32(0.0))
-        B = _cross(N, T)
-        return T, B, N, has_n
+    def _sums(self, U: np.ndarray, threads: int | None) -> tuple[np.ndarray, np.ndarray, np.float32]:
+        """:func:`frame_sums` over every vertex: T, N (3,n) and FrameField's cancellation floor."""
+        n = self.n_vertices
+        T = np.empty((3, n), np.float32)
+        N = np.empty((3, n), np.float32)
+        tmax = np.empty(n, np.float32)
+        ranges.run(frame_sums, n, U, self.faces, self.rest_e1, self.rest_e2, self.cb, self.cc,
+                   self.ptr, self.tri, self.angle, T, N, tmax, threads=threads)
+        floor = np.float32(CANCEL_RTOL * max(float(tmax.max(initial=0.0)), 1e-30)) ** 2
+        return T, N, floor
 
-    @staticmethod
-    def to_world(rows: tuple, C: np.ndarray) -> np.ndarray:
-        """Frame coordinates C (3,n) float32 (internal order) → world vectors (3,n)
-        ``Σ_j C_j row_j`` in the frames ``rows`` (:meth:`rows`); identity frames where
-        there is no normal."""
-        T, B, N, has_n = rows
-        out = np.empty_like(C)
-        for j in range(3):
-            np.multiply(C[0], T[j], out=out[j])
-            out[j] += C[1] * B[j]
-            out[j] += C[2] * N[j]
-        if not has_n.all():
-            out[:, ~has_n] = C[:, ~has_n]
-        return out
+    def rows(self, U: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """T, B, N (3,n) float32 (internal order) of the shell X̄ + u, u given as U (3,n)
+        float32 in the internal order (:meth:`to_internal`); zero rows where a vertex has
+        no normal (and so no frame)."""
+        U = np.ascontiguousarray(U, np.float32)
+        T, N, floor = self._sums(U, threads)
+        B = np.empty_like(T)
+        ranges.run(compose, self.n_vertices, T, N, floor, U, U, U, _EYE, _ZERO3, self.order,
+                   _NO_ALIGNED, _NO_WORLD, B, threads=threads)
+        return T, B, N
+
+    def shell(self, U: np.ndarray, rest: np.ndarray, C: np.ndarray, R: np.ndarray | None = None,
+              t: np.ndarray | None = None, aligned: bool = False, world: np.ndarray | None = None,
+              threads: int | None = None) -> np.ndarray | None:
+        """The detailed shell ``X = rest + U + Frame(X̄ + U)ᵀ C`` of one frame (§5.3 run time).
+
+        Parameters
+        ----------
+        U : (3,n) float32      shell displacement B u_H, internal order, mm
+        rest : (3,n) float32   the rest pose X̄, internal order, mm
+        C : (3,n) float32      corrections in the tangent frames (T, B, N), internal order, mm
+        R, t : (3,3), (3,)     head pose of the frame (world = Rᵀ (X − t)), with ``world``
+        aligned : bool         return X (3,n) float32 in the internal order (neutral-aligned)
+        world : (n,3) float32  filled with Rᵀ (X − t) in vertex order, if given
+
+        Vertices without a normal take C unrotated (FrameField's identity frame).
+        """
+        U = np.ascontiguousarray(U, np.float32)
+        n = self.n_vertices
+        T, N, floor = self._sums(U, threads)
+        Xa = np.empty((3, n), np.float32) if aligned else _NO_ALIGNED
+        W = _NO_WORLD if world is None else world
+        R32 = _EYE if R is None else np.ascontiguousarray(R, np.float32)
+        t32 = _ZERO3 if t is None else np.ascontiguousarray(t, np.float32)
+        ranges.run(compose, n, T, N, floor, U, np.ascontiguousarray(rest, np.float32),
+                   np.ascontiguousarray(C, np.float32), R32, t32, self.order, Xa, W, _NO_FRAMES,
+                   threads=threads)
+        return Xa if aligned else None
+
+
+_EYE = np.eye(3, dtype=np.float32)
+_ZERO3 = np.zeros(3, np.float32)
+_NO_ALIGNED = np.empty((3, 0), np.float32)
+_NO_WORLD = np.empty((0, 3), np.float32)
+_NO_FRAMES = np.empty((3, 0), np.float32)

@@ -38,15 +38,16 @@ def test_frames_match_the_float64_frame_field_and_rotate_like_it():
     rng = np.random.default_rng(0)
     u = np.stack([2.0 * np.sin(V[:, 0] / 9), 1.5 * np.cos(V[:, 1] / 7), 2.5 * np.sin(V[:, 0] / 11 + V[:, 1] / 13)], 1)
     sf = ShellFrames.build(V, F, uv, F)
-    T, B, N, has_n = sf.rows(sf.to_internal(u.astype(np.float32)))
-    assert T.dtype == np.float32 and has_n.all()
+    T, B, N = sf.rows(sf.to_internal(u.astype(np.float32)))
+    assert T.dtype == np.float32 and (np.abs(N).sum(axis=0) > 0).all()
     ref = FrameField.build(V, F, uv, F).frames(V + u)                            # (n,3,3) float64
     got = np.stack([sf.to_vertices(R) for R in (T, B, N)], axis=1)               # (n,3,3)
     err = np.abs(got - ref).max()
     assert err < 1e-5, err
     C = rng.normal(size=(len(V), 3)).astype(np.float32)
-    W = sf.to_vertices(sf.to_world((T, B, N, has_n), sf.to_internal(C)))
-    np.testing.assert_allclose(W, np.einsum("nji,nj->ni", ref, C), atol=1e-5)
+    zero = np.zeros((3, len(V)), np.float32)
+    W = sf.to_vertices(sf.shell(sf.to_internal(u), zero, sf.to_internal(C), aligned=True))
+    np.testing.assert_allclose(W, u + np.einsum("nji,nj->ni", ref, C), atol=1e-5)
 
 
 def test_internal_order_round_trip_is_exact():
@@ -57,13 +58,21 @@ def test_internal_order_round_trip_is_exact():
     np.testing.assert_array_equal(sf.to_internal(X)[:, sf.rank], X.T)
 
 
-def test_float32_distances_within_1e_6_relative_of_float64(wpsd_exact, ps_data):
+def test_float32_distances_and_corrections_match_float64(wpsd_exact, ps_data):
+    """The compiled sum (distances summed per vertex in float32, polynomial, fade) against
+    the float64 distances of eq. 3 and the corrections from them."""
     ev = wpsd_exact.evaluator
+    sf, cs = ev.shell_frames, ev.correction_sum
     _, u = ev.deformation(ps_data[1][1].markers[[2, 9]])
     f = ev.features(u)
-    a, b = ev.sq_distances(f), ev.sq_distances(f, dtype=np.float32)
-    assert b.dtype == np.float32 and b.shape == a.shape
-    assert np.abs(b - a).max() <= 1e-6 * a.max()
+    ref = ev.sq_distances(f)                                                   # (n,2,P) float64
+    for k in range(2):
+        C, D = cs(f[k], 0.75, keep_distances=True)
+        assert D.dtype == np.float32 and C.dtype == np.float32
+        assert np.abs(D[sf.rank] - ref[:, k]).max() <= 1e-6 * ref.max()
+        c64 = ev.corrections(ref[:, k:k + 1], f[k:k + 1])[0]
+        np.testing.assert_allclose(sf.to_vertices(C), 0.75 * c64, atol=1e-5)
+        np.testing.assert_array_equal(cs(f[k], 0.75, D2=D), C)              # distances given = summed
 
 
 def test_mesh_path_within_1e_4_mm_of_float64_apply_corrections(wpsd_exact, ps_data):
@@ -75,8 +84,20 @@ def test_mesh_path_within_1e_4_mm_of_float64_apply_corrections(wpsd_exact, ps_da
     f = ev.features(u)
     c = ev.corrections(ev.sq_distances(f), f)
     ref = pose.restore(apply_corrections(ev.base, ev.base.deform(u), c))[0]
-    got = ev.restore_internal(ev.medium_internal(u[0], c[0]), pose.R[0], pose.t[0])
+    got = np.empty_like(ref, dtype=np.float32)
+    ev.shell_detail(u[0], ev.shell_frames.to_internal(c[0]), pose.R[0], pose.t[0], world=got)
+    two = np.empty_like(got)
+    ev.shell_frames.shell(*_shell_args(ev, u[0], c[0]), pose.R[0], pose.t[0], world=two, threads=2)
+    np.testing.assert_array_equal(two, got)           # vertex ranges on two threads: the same sums
     assert got.dtype == np.float32
     err = np.abs(got - ref).max()
     assert err < 1e-4, err
     assert np.abs(c).max() > 0.5                      # corrections that the frames had to rotate
+
+
+def _shell_args(ev, u, c):
+    from service.geometry.thin_shell import basis_rows
+
+    sf = ev.shell_frames
+    return (np.take(basis_rows(ev.base.basis, u.astype(np.float32)), sf.order, axis=1),
+            ev.smooth_internal, sf.to_internal(c))

@@ -1,0 +1,42 @@
+"""Tests for service.geometry.ranges: contiguous ranges and the threaded kernel runner."""
+
+import numpy as np
+import pytest
+
+from service.geometry import ranges
+
+
+@pytest.mark.parametrize("n, parts", [(10, 3), (7, 7), (3, 8), (0, 2), (100_003, 2)])
+def test_split_covers_the_range_in_near_equal_contiguous_parts(n, parts):
+    b = ranges.split(n, parts)
+    assert b[0] == 0 and b[-1] == n and (np.diff(b) >= 0).all()
+    sizes = np.diff(b)
+    assert sizes.max() - sizes.min() <= 1 and len(sizes) == max(1, min(parts, max(n, 1)))
+
+
+def test_run_fills_every_element_once_on_any_thread_count():
+    def kernel(lo, hi, out):
+        out[lo:hi] += np.arange(lo, hi)
+
+    for threads in (1, 2, 3):
+        out = np.zeros(1001, np.int64)
+        ranges.run(kernel, len(out), out, threads=threads)
+        np.testing.assert_array_equal(out, np.arange(1001))
+
+
+def test_run_reraises_a_kernel_error():
+    def kernel(lo, hi):
+        if lo > 0:
+            raise ValueError("second range")
+
+    with pytest.raises(ValueError, match="second range"):
+        ranges.run(kernel, 10, threads=2)
+
+
+def test_kernel_threads_reads_numba_num_threads(monkeypatch):
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "2")
+    assert ranges.kernel_threads() == 2
+    monkeypatch.delenv("NUMBA_NUM_THREADS")
+    assert ranges.kernel_threads() == 1
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "x")
+    assert ranges.kernel_threads() == 1
