@@ -32,28 +32,67 @@ from service.geometry import ranges
 FASTMATH = {"reassoc", "contract"}
 
 
+#: the distances are summed in blocks of this many basis poses (G padded with zero columns
+#: to a multiple of it), each block in that many scalar accumulators the compiler keeps in
+#: registers (one vector), where a loop over P would load and store the sums per entry
+LANES = 8
+
+
 @njit(nogil=True, cache=True, fastmath=FASTMATH)
-def correction_sums(lo, hi, ptr, edge, alpha, poly, const, W, G, f, fade, D2, given, C):
+def correction_sums(lo, hi, ptr, edge, values, const, W, G, f, fade, D2, given, C):
     """Vertices [lo, hi) (rows of the CSR ``ptr``/``edge``): corrections C (3,n) float32 of
-    the module docstring. ``G`` (E,P) holds (f − f_j)² per edge; with ``given`` the
-    distances are read from D2 (n,P) instead of summed (and written to D2 where it has rows
-    otherwise). ``poly`` (nnz,3) and ``const`` (n,3) may have no rows (no polynomial)."""
+    the module docstring. ``values`` (nnz,4) holds α and the three polynomial
+    coefficients of every stored entry (zeros without a polynomial); ``G`` (E,Pp)
+    (f − f_j)² per edge, Pp = P padded to a multiple of :data:`LANES` with zero columns.
+    With ``given`` the distances are read from D2 (n,P) instead of summed (and written to
+    D2 where it has rows otherwise). ``const`` (n,3) has no rows without a polynomial.
+
+    One pass over a vertex's entries sums the polynomial and the first :data:`LANES`
+    distances; further blocks of distances (P > LANES) take one more pass each."""
     P = W.shape[2]
+    Pp = G.shape[1]
     has_poly = const.shape[0] > 0
     keep = D2.shape[0] > 0 and not given
-    d2 = np.empty(P, np.float32)
+    d2 = np.zeros(Pp, np.float32)
     for v in range(lo, hi):
+        p0, p1 = ptr[v], ptr[v + 1]
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = np.float32(0.0)
+        px = py = pz = np.float32(0.0)
+        for q in range(p0, p1):
+            a = values[q, 0]
+            i = edge[q]
+            fi = f[i]
+            px += values[q, 1] * fi
+            py += values[q, 2] * fi
+            pz += values[q, 3] * fi
+            s0 += a * G[i, 0]
+            s1 += a * G[i, 1]
+            s2 += a * G[i, 2]
+            s3 += a * G[i, 3]
+            s4 += a * G[i, 4]
+            s5 += a * G[i, 5]
+            s6 += a * G[i, 6]
+            s7 += a * G[i, 7]
         if given:
             for j in range(P):
                 d2[j] = D2[v, j]
         else:
-            for j in range(P):
-                d2[j] = 0.0
-            for q in range(ptr[v], ptr[v + 1]):
-                a = alpha[q]
-                i = edge[q]
-                for j in range(P):
-                    d2[j] += a * G[i, j]
+            d2[0], d2[1], d2[2], d2[3], d2[4], d2[5], d2[6], d2[7] = s0, s1, s2, s3, s4, s5, s6, s7
+            for b in range(LANES, Pp, LANES):
+                s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = np.float32(0.0)
+                for q in range(p0, p1):
+                    a = values[q, 0]
+                    i = edge[q]
+                    s0 += a * G[i, b]
+                    s1 += a * G[i, b + 1]
+                    s2 += a * G[i, b + 2]
+                    s3 += a * G[i, b + 3]
+                    s4 += a * G[i, b + 4]
+                    s5 += a * G[i, b + 5]
+                    s6 += a * G[i, b + 6]
+                    s7 += a * G[i, b + 7]
+                d2[b], d2[b + 1], d2[b + 2], d2[b + 3] = s0, s1, s2, s3
+                d2[b + 4], d2[b + 5], d2[b + 6], d2[b + 7] = s4, s5, s6, s7
             if keep:
                 for j in range(P):
                     D2[v, j] = d2[j]
@@ -64,13 +103,9 @@ def correction_sums(lo, hi, ptr, edge, alpha, poly, const, W, G, f, fade, D2, gi
             cy += W[v, 1, j] * r
             cz += W[v, 2, j] * r
         if has_poly:
-            px, py, pz = const[v, 0], const[v, 1], const[v, 2]
-            for q in range(ptr[v], ptr[v + 1]):
-                fi = f[edge[q]]
-                px += poly[q, 0] * fi
-                py += poly[q, 1] * fi
-                pz += poly[q, 2] * fi
-            cx, cy, cz = cx + px, cy + py, cz + pz
+            cx += const[v, 0] + px
+            cy += const[v, 1] + py
+            cz += const[v, 2] + pz
         C[0, v] = cx * fade
         C[1, v] = cy * fade
         C[2, v] = cz * fade
@@ -81,14 +116,14 @@ class CorrectionSum:
     """α, the polynomial and the RBF weights of a WPSD model on one CSR pattern, rows in a
     given vertex order (:func:`aligned_support`); :meth:`__call__` evaluates one frame.
 
-    ptr (n+1,) int64, edge (nnz,) int64, alpha (nnz,) float32, poly (nnz,3) float32 (or no
-    rows), const (n,3) float32 (or no rows), weights (n,3,P) float32, basis_features (P,E).
+    ptr (n+1,) int64, edge (nnz,) int32, values (nnz,4) float32 (α and the polynomial's three
+    coefficients; zero coefficients without a polynomial), const (n,3) float32 (no rows
+    without a polynomial), weights (n,3,P) float32, basis_features (P,E).
     """
 
     ptr: np.ndarray
     edge: np.ndarray
-    alpha: np.ndarray
-    poly: np.ndarray
+    values: np.ndarray
     const: np.ndarray
     weights: np.ndarray
     basis_features: np.ndarray
@@ -104,12 +139,9 @@ class CorrectionSum:
         order = np.arange(n) if order is None else np.asarray(order, np.int64)
         ptr, edge, values = aligned_support(alpha, poly_linear, order)
         W = np.ascontiguousarray(np.asarray(weights, np.float32)[order].transpose(0, 2, 1))
-        has_poly = poly_linear is not None
-        const = (np.ascontiguousarray(np.asarray(poly_const, np.float32)[order]) if has_poly
+        const = (np.ascontiguousarray(np.asarray(poly_const, np.float32)[order]) if poly_linear is not None
                  else np.empty((0, 3), np.float32))
-        poly = np.ascontiguousarray(values[:, 1:]) if has_poly else np.empty((0, 3), np.float32)
-        return cls(ptr, edge, np.ascontiguousarray(values[:, 0]), poly, const, W,
-                   np.asarray(basis_features, np.float64))
+        return cls(ptr, edge.astype(np.int32), values, const, W, np.asarray(basis_features, np.float64))
 
     @property
     def n_vertices(self) -> int:
@@ -122,15 +154,16 @@ class CorrectionSum:
         here (eq. 3) unless given. With ``keep_distances`` returns (C, D2)."""
         n, P = self.n_vertices, self.weights.shape[2]
         f = np.asarray(f, np.float64)
-        G = np.ascontiguousarray(((f[None, :] - self.basis_features) ** 2).T, np.float32)   # (E,P)
+        Pp = -(-P // LANES) * LANES
+        G = np.zeros((len(f), Pp), np.float32)                                   # (E,Pp)
+        G[:, :P] = ((f[None, :] - self.basis_features) ** 2).T
         given = D2 is not None
         if given:
             D = np.ascontiguousarray(D2, np.float32)
         else:
             D = np.empty((n, P), np.float32) if keep_distances else np.empty((0, P), np.float32)
         C = np.empty((3, n), np.float32)
-        ranges.run(correction_sums, n, self.ptr, self.edge, self.alpha, self.poly, self.const,
-                   self.weights, G, f.astype(np.float32), np.float32(fade), D, given, C,
+        ranges.run(correction_sums, n, self.ptr, self.edge, self.values, self.const, self.weights, G, f.astype(np.float32), np.float32(fade), D, given, C,
                    threads=threads)
         return (C, D) if keep_distances else C
 
@@ -141,7 +174,8 @@ def aligned_support(alpha: sp.csr_matrix, poly_linear: sp.csr_matrix | None,
     pattern with rows permuted to ``order``: the union of their supports per vertex.
 
     Returns ptr (n+1,) int64, edge (nnz,) int64 (ascending within a row) and values
-    (nnz,4) float32 = (α, a_x, a_y, a_z), zero where a matrix has no entry.
+    (nnz,4) float32 = (α, a_x, a_y, a_z), zero where a matrix has no entry (each entry one
+    16-byte record, read once per vertex and frame).
     """
     A = sp.csr_matrix(alpha)
     n, E = A.shape

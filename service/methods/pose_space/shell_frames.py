@@ -20,8 +20,9 @@ for a shell ``X = X̄ + u`` from
   their corners lie in nearby memory. Callers move per-vertex arrays into that order with
   :meth:`ShellFrames.to_internal` and back with :meth:`ShellFrames.to_vertices`.
 
-Per frame two passes over the vertices (:func:`frame_sums`, then :func:`compose`): the first
-accumulates T and N at every vertex (the normal normalized, T projected off it), the second
+Per frame a pass over the triangles (:func:`triangle_terms`: dP/du and e1 × e2) and two over
+the vertices (:func:`frame_sums`, then :func:`compose`): the first accumulates T and N at
+every vertex (the normal normalized, T projected off it), the second
 needs the largest tangent component over the whole mesh (FrameField's threshold for a
 cancelled tangent) and finishes the frames, rotates the corrections, adds the rest pose and
 the displacement and applies the head pose. Both run over contiguous vertex ranges on
@@ -62,29 +63,44 @@ def locality_order(F: np.ndarray, n: int) -> np.ndarray:
 
 
 @njit(nogil=True, cache=True, fastmath=FASTMATH)
-def frame_sums(lo, hi, U, F, rest_e1, rest_e2, cb, cc, ptr, tri, angle, T, N, tmax):
+def triangle_terms(lo, hi, U, F, rest, out):
+    """Triangles [lo, hi): ``out[t] = (dP/du, e1 × e2)`` (m,6) float32 of the shell whose
+    displacement is U (3,n) (internal order); ``rest`` (m,8) holds the rest edges e1, e2 and
+    the UV coefficients cb, cc of dP/du = cb e1 + cc e2."""
+    for t in range(lo, hi):
+        a, b, c = F[t, 0], F[t, 1], F[t, 2]
+        e1x = (U[0, b] - U[0, a]) + rest[t, 0]
+        e1y = (U[1, b] - U[1, a]) + rest[t, 1]
+        e1z = (U[2, b] - U[2, a]) + rest[t, 2]
+        e2x = (U[0, c] - U[0, a]) + rest[t, 3]
+        e2y = (U[1, c] - U[1, a]) + rest[t, 4]
+        e2z = (U[2, c] - U[2, a]) + rest[t, 5]
+        cb, cc = rest[t, 6], rest[t, 7]
+        out[t, 0] = cb * e1x + cc * e2x
+        out[t, 1] = cb * e1y + cc * e2y
+        out[t, 2] = cb * e1z + cc * e2z
+        out[t, 3] = e1y * e2z - e1z * e2y
+        out[t, 4] = e1z * e2x - e1x * e2z
+        out[t, 5] = e1x * e2y - e1y * e2x
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def frame_sums(lo, hi, terms, ptr, tri, angle, T, N, tmax):
     """Vertices [lo, hi): unit normal N and tangent T projected off it (3,n) float32, and
-    tmax (n,) the largest |T| component, of the shell whose displacement is U (3,n)
-    (internal order; the module docstring has the sums)."""
+    tmax (n,) the largest |T| component, from the incident triangles' :func:`triangle_terms`
+    (T the angle-weighted sum of dP/du, N the normalized sum of e1 × e2)."""
     for k in range(lo, hi):
         tx = ty = tz = np.float32(0.0)
         nx = ny = nz = np.float32(0.0)
         for q in range(ptr[k], ptr[k + 1]):
             t = tri[q]
-            a, b, c = F[t, 0], F[t, 1], F[t, 2]
-            e1x = (U[0, b] - U[0, a]) + rest_e1[0, t]
-            e1y = (U[1, b] - U[1, a]) + rest_e1[1, t]
-            e1z = (U[2, b] - U[2, a]) + rest_e1[2, t]
-            e2x = (U[0, c] - U[0, a]) + rest_e2[0, t]
-            e2y = (U[1, c] - U[1, a]) + rest_e2[1, t]
-            e2z = (U[2, c] - U[2, a]) + rest_e2[2, t]
             w = angle[q]
-            tx += w * (cb[t] * e1x + cc[t] * e2x)
-            ty += w * (cb[t] * e1y + cc[t] * e2y)
-            tz += w * (cb[t] * e1z + cc[t] * e2z)
-            nx += e1y * e2z - e1z * e2y
-            ny += e1z * e2x - e1x * e2z
-            nz += e1x * e2y - e1y * e2x
+            tx += w * terms[t, 0]
+            ty += w * terms[t, 1]
+            tz += w * terms[t, 2]
+            nx += terms[t, 3]
+            ny += terms[t, 4]
+            nz += terms[t, 5]
         nn = nx * nx + ny * ny + nz * nz
         if nn > 0:
             s = np.float32(1.0) / np.sqrt(nn)
@@ -162,10 +178,10 @@ class ShellFrames:
     ----------
     order : (n,) int64       internal position k holds vertex ``order[k]``
     rank : (n,) int64        the inverse: vertex v is at internal position ``rank[v]``
-    faces : (m,3) int64      triangles over internal positions (sorted by first corner)
-    rest_e1, rest_e2 : (3,m) float32   rest edges P1 − P0, P2 − P0 of X̄
-    cb, cc : (m,) float32    dP/du = cb e1 + cc e2 per triangle (0 for UV-degenerate ones)
-    ptr : (n+1,) int64, tri : (3m,) int64, angle : (3m,) float32
+    faces : (m,3) int32      triangles over internal positions (sorted by first corner)
+    rest : (m,8) float32     per triangle the rest edges e1 = P1 − P0, e2 = P2 − P0 of X̄ and
+                             cb, cc with dP/du = cb e1 + cc e2 (0 for UV-degenerate ones)
+    ptr : (n+1,) int64, tri : (3m,) int32, angle : (3m,) float32
                              vertex → incident triangles (CSR by internal position, triangles
                              ascending) and the rest corner angle there (0 where the triangle's
                              UV handedness is not the vertex's majority one)
@@ -174,10 +190,7 @@ class ShellFrames:
     order: np.ndarray
     rank: np.ndarray
     faces: np.ndarray
-    rest_e1: np.ndarray
-    rest_e2: np.ndarray
-    cb: np.ndarray
-    cc: np.ndarray
+    rest: np.ndarray
     ptr: np.ndarray
     tri: np.ndarray
     angle: np.ndarray
@@ -205,11 +218,9 @@ class ShellFrames:
         rows, cols = Fi.ravel(), np.repeat(np.arange(m), 3)
         inc = np.lexsort((cols, rows))                                            # by vertex, then triangle
         ptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int64)
-        Vt = V.T
-        e1 = (Vt[:, F[:, 1]] - Vt[:, F[:, 0]]).astype(np.float32)
-        e2 = (Vt[:, F[:, 2]] - Vt[:, F[:, 0]]).astype(np.float32)
-        return cls(order, rank, np.ascontiguousarray(Fi), e1, e2, cb.astype(np.float32),
-                   cc.astype(np.float32), ptr, cols[inc], w.ravel()[inc].astype(np.float32))
+        rest = np.column_stack([V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]], cb, cc]).astype(np.float32)
+        return cls(order, rank, Fi.astype(np.int32), rest, ptr, cols[inc].astype(np.int32),
+                   w.ravel()[inc].astype(np.float32))
 
     @property
     def n_vertices(self) -> int:
@@ -233,8 +244,9 @@ class ShellFrames:
         T = np.empty((3, n), np.float32)
         N = np.empty((3, n), np.float32)
         tmax = np.empty(n, np.float32)
-        ranges.run(frame_sums, n, U, self.faces, self.rest_e1, self.rest_e2, self.cb, self.cc,
-                   self.ptr, self.tri, self.angle, T, N, tmax, threads=threads)
+        terms = np.empty((len(self.faces), 6), np.float32)
+        ranges.run(triangle_terms, len(self.faces), U, self.faces, self.rest, terms, threads=threads)
+        ranges.run(frame_sums, n, terms, self.ptr, self.tri, self.angle, T, N, tmax, threads=threads)
         floor = np.float32(CANCEL_RTOL * max(float(tmax.max(initial=0.0)), 1e-30)) ** 2
         return T, N, floor
 
