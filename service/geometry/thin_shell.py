@@ -358,23 +358,6 @@ def apply_basis(B: np.ndarray, u_H: np.ndarray) -> np.ndarray:
     return out if batched else out[0]
 
 
-def basis_rows(B: np.ndarray, u_H: np.ndarray) -> np.ndarray:
-    """Displacements ``B @ u_H`` of one frame as component rows (3,n), dtype of B: the
-    product :func:`apply_basis` evaluates, for callers that work on (3,n) rows (a
-    Fortran-ordered B gives a C-contiguous result without the transposing copy; a C-ordered
-    one a transposed view).
-
-    Parameters
-    ----------
-    B : (n,h) float     from :func:`thin_shell_basis`
-    u_H : (h,3) float   handle displacements, mm (cast to B's dtype)
-    """
-    U = np.asarray(u_H, dtype=B.dtype)
-    if B.flags.f_contiguous:
-        return np.ascontiguousarray(U.T) @ B.T
-    return (B @ U).T
-
-
 def handle_energy_matrix(V: np.ndarray, F: np.ndarray, B: np.ndarray, ks: float = KS,
                          kb: float = KB, mass: str = "voronoi") -> np.ndarray:
     """Thin-shell energy as a quadratic form of the handle displacements: ``G = Bᵀ K B``.

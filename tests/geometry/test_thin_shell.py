@@ -9,7 +9,6 @@ import scipy.sparse as sp
 from service.geometry.laplacian import cotangent_laplacian, mass_matrix
 from service.geometry.normals import vertex_normals
 from service.geometry.thin_shell import (
-    basis_rows,
     KB, KS, ThinShellSolver, apply_basis, complete_handles, handle_energy_matrix,
     thin_shell_basis, thin_shell_operator, thin_shell_system,
 )
@@ -319,10 +318,3 @@ def test_soft_handles_denoise_a_surface_of_the_prior(basis, energy):
     e_soft = np.linalg.norm(soft - ref, axis=-1).mean()
     assert e_soft < e_exact / 1.5, (e_soft, e_exact)
 
-
-@pytest.mark.parametrize("order", ["F", "C"])
-def test_basis_rows_are_apply_basis_as_component_rows(order):
-    rng = np.random.default_rng(5)
-    B = np.asarray(rng.normal(size=(40, 7)), dtype=np.float32, order=order)
-    u = rng.normal(size=(7, 3))
-    np.testing.assert_array_equal(basis_rows(B, u), apply_basis(B, u).T)

@@ -135,7 +135,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from service.geometry.normal_map import NormalMapper
-from service.geometry.thin_shell import basis_rows
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
 )
@@ -210,6 +209,7 @@ class PoseSpaceEvaluator:
         # the per-frame mesh path: float32 frames from the displacement (:mod:`.shell_frames`)
         self.shell_frames = ShellFrames.build(self.base.smooth, self.base.faces, data.uv, data.uv_faces)
         self.smooth_internal = self.shell_frames.to_internal(self.base.smooth)
+        self.basis_internal = self.shell_frames.internal_basis(self.base.basis)
         if self.alpha is None:        # PSD: one (P,3n) system, a BLAS product per frame
             self.weights = np.ascontiguousarray(data.weights.transpose(1, 0, 2).reshape(data.basis_size, -1))
             self.correction_sum = None
@@ -291,13 +291,13 @@ class PoseSpaceEvaluator:
         order (:class:`~service.methods.pdm.base_surface.HeadPose` of the frame, R (3,3),
         t (3,)).
 
-        The displacement ``B u_H`` is the basis product of
-        :func:`~service.geometry.thin_shell.apply_basis` (its (3,h)@(h,n) form, float32),
-        the rest by :meth:`ShellFrames.shell`. Within 1e-4 mm of the float64
+        The displacement ``B u_H`` by :meth:`ShellFrames.displacement` from the basis rows in
+        the internal order (:attr:`basis_internal`, a float32 copy of the base's basis), the
+        rest by :meth:`ShellFrames.shell`. Within 1e-4 mm of the float64
         ``apply_corrections(base, base.deform(u_H), c)`` (tests; one float32 ulp of a
         position at the sample actor's ~190 mm is 1.5e-5 mm)."""
         sf = self.shell_frames
-        U = np.take(basis_rows(self.base.basis, np.asarray(u_H, np.float32)), sf.order, axis=1)
+        U = sf.displacement(self.basis_internal, u_H)
         return sf.shell(U, self.smooth_internal, C, R, t, aligned=aligned, world=world)
 
     # -- fine scale

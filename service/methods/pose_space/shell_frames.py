@@ -20,7 +20,8 @@ for a shell ``X = X̄ + u`` from
   their corners lie in nearby memory. Callers move per-vertex arrays into that order with
   :meth:`ShellFrames.to_internal` and back with :meth:`ShellFrames.to_vertices`.
 
-Per frame a pass over the triangles (:func:`triangle_terms`: dP/du and e1 × e2) and two over
+Per frame the displacement ``u = B u_H`` (:func:`displacements`, the basis rows stored in
+the internal order), a pass over the triangles (:func:`triangle_terms`: dP/du and e1 × e2) and two over
 the vertices (:func:`frame_sums`, then :func:`compose`): the first accumulates T and N at
 every vertex (the normal normalized, T projected off it), the second
 needs the largest tangent component over the whole mesh (FrameField's threshold for a
@@ -60,6 +61,22 @@ def locality_order(F: np.ndarray, n: int) -> np.ndarray:
     F = np.asarray(F, np.int64)
     A = sp.csr_matrix((np.ones(F.size, np.int8), (F.ravel(), np.roll(F, 1, axis=1).ravel())), shape=(n, n))
     return np.asarray(reverse_cuthill_mckee((A + A.T).tocsr(), symmetric_mode=True), np.int64)
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def displacements(lo, hi, B, u, U):
+    """Vertices [lo, hi): the shell displacement ``U[:, k] = u B[k]`` (3,n) float32 of handle
+    displacements u (3,h) float32 and the thin-shell basis rows B (n,h) float32 in the
+    internal order (bickel2008 §4: u = B u_H, one row of B per vertex, read once)."""
+    h = B.shape[1]
+    for k in range(lo, hi):
+        x = y = z = np.float32(0.0)
+        for j in range(h):
+            b = B[k, j]
+            x += b * u[0, j]
+            y += b * u[1, j]
+            z += b * u[2, j]
+        U[0, k], U[1, k], U[2, k] = x, y, z
 
 
 @njit(nogil=True, cache=True, fastmath=FASTMATH)
@@ -237,6 +254,20 @@ class ShellFrames:
         for i in range(3):
             out[:, i] = np.take(Xi[i], self.rank)
         return out
+
+    def internal_basis(self, basis: np.ndarray) -> np.ndarray:
+        """The thin-shell basis (n,h) with its rows in the internal order, C-contiguous
+        float32 (what :meth:`displacement` reads: one vertex's row contiguous)."""
+        return np.ascontiguousarray(np.asarray(basis)[self.order], dtype=np.float32)
+
+    def displacement(self, B: np.ndarray, u_H: np.ndarray, threads: int | None = None) -> np.ndarray:
+        """U (3,n) float32, internal order: the shell displacement ``B u_H`` of handle
+        displacements u_H (h,3) mm, B from :meth:`internal_basis`. Equals
+        :func:`~service.geometry.thin_shell.apply_basis` up to float32 summation order."""
+        u = np.ascontiguousarray(np.asarray(u_H, np.float32).T)
+        U = np.empty((3, self.n_vertices), np.float32)
+        ranges.run(displacements, self.n_vertices, B, u, U, threads=threads)
+        return U
 
     def _sums(self, U: np.ndarray, threads: int | None) -> tuple[np.ndarray, np.ndarray, np.float32]:
         """:func:`frame_sums` over every vertex: T, N (3,n) and FrameField's cancellation floor."""

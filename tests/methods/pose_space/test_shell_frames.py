@@ -96,8 +96,19 @@ def test_mesh_path_within_1e_4_mm_of_float64_apply_corrections(wpsd_exact, ps_da
 
 
 def _shell_args(ev, u, c):
-    from service.geometry.thin_shell import basis_rows
-
     sf = ev.shell_frames
-    return (np.take(basis_rows(ev.base.basis, u.astype(np.float32)), sf.order, axis=1),
-            ev.smooth_internal, sf.to_internal(c))
+    return sf.displacement(ev.basis_internal, u), ev.smooth_internal, sf.to_internal(c)
+
+
+def test_displacement_is_the_basis_product_in_the_internal_order(wpsd_exact, ps_data):
+    from service.geometry.thin_shell import apply_basis
+
+    ev = wpsd_exact.evaluator
+    sf = ev.shell_frames
+    _, u = ev.deformation(ps_data[1][1].markers[[4]])
+    ref = apply_basis(ev.base.basis.astype(np.float64), u[0])                 # (n,3) float64
+    for threads in (1, 2):
+        U = sf.displacement(ev.basis_internal, u[0], threads=threads)
+        assert U.dtype == np.float32 and U.shape == (3, len(ref))
+        assert np.abs(sf.to_vertices(U) - ref).max() <= 1e-5 * max(np.abs(ref).max(), 1.0)
+        assert np.abs(ref).max() > 1.0                                        # a real deformation
