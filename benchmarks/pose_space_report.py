@@ -48,11 +48,13 @@ Per actor:
   scaled to n), training time, and stored floats/ints per vertex. CPU times are of every
   thread. The report runs with ``facesynth serve``'s BLAS threads (cores ÷ synthesis slots:
   1 on 2 cores, ``service/app/threads.py``; an ``OPENBLAS_NUM_THREADS`` in the environment
-  is kept). With OpenBLAS's default of one thread per core, the second thread of the one
-  dense product per frame (the thin-shell basis) spin-waits after it and bills its cycles
-  to the synthesis: level 2, P = 6, mesh CPU 52-54 ms with 1 thread against 93 ms with 2
-  (session 13, load 6-7 on 2 cores; before that session's float32 mesh path 84-88 against
-  109).
+  is kept; the compiled per-frame kernels run on ``NUMBA_NUM_THREADS`` threads, sized with
+  them). ``OPENBLAS_NUM_THREADS=2 NUMBA_NUM_THREADS=2`` in the environment measures one
+  synthesis slot with both cores (the latency setting, ``FACESYNTH_MAX_CONCURRENT_SYNTHESES=1
+  FACESYNTH_BLAS_THREADS=2``), written to ``report_speed_2x2threads.md``.
+  (Before the compiled kernels the thin-shell basis product was an OpenBLAS GEMM, whose
+  idle second thread spin-waited and billed its cycles to the synthesis: level 2, P = 6,
+  mesh CPU 52-54 ms with 1 thread against 93 ms with 2, session 13.)
 """
 
 from __future__ import annotations
@@ -741,8 +743,9 @@ def main() -> None:
             if unknown:
                 parser.error(f"unknown --speed-models {sorted(unknown)}; known: {list(SPEED_MODELS)}")
         res = {a.name: run_speed(a.resolve(), args.train_missing, labels) for a in args.actors}
+        threads = int(os.environ["OPENBLAS_NUM_THREADS"]), int(os.environ["NUMBA_NUM_THREADS"])
         lines = [f"# Pose-space speed ({os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, "
-                 f"{BLAS_THREADS} BLAS thread(s))", ""]
+                 f"{threads[0]} BLAS thread(s), {threads[1]} kernel thread(s))", ""]
         for name, sp_ in res.items():
             first = next(iter(sp_.values()), {})
             lines += [f"## {name}", "", f"{first.get('n_vertices', 0):,} vertices, {first.get('map_resolution', 0)}² "
@@ -757,8 +760,9 @@ def main() -> None:
                              f"{s_['ints_per_vertex']:.0f} | {s_.get('mesh cpu', float('nan')):.1f} | "
                              f"{s_.get('ours_fine_cpu_ms', float('nan')):.2f} | {s_.get('scipy_fine_cpu_ms', float('nan')):.1f} |")
             lines.append("")
-        (OUT / "report_speed.md").write_text("\n".join(lines))
-        (OUT / "report_speed.json").write_text(json.dumps(res, indent=1))
+        stem = "report_speed" + ("" if threads == (BLAS_THREADS, BLAS_THREADS) else f"_{threads[0]}x{threads[1]}threads")
+        (OUT / f"{stem}.md").write_text("\n".join(lines))
+        (OUT / f"{stem}.json").write_text(json.dumps(res, indent=1))
         print("\n".join(lines))
         return
     t0 = time.perf_counter()

@@ -64,6 +64,15 @@ def locality_order(F: np.ndarray, n: int) -> np.ndarray:
 
 
 @njit(nogil=True, cache=True, fastmath=FASTMATH)
+def _unit(x, y, z, xx):
+    """(x, y, z) / sqrt(xx) in float32, xx its squared length; zeros where xx is not > 0."""
+    if xx > 0:
+        s = np.float32(1.0) / np.sqrt(xx)
+        return x * s, y * s, z * s
+    return np.float32(0.0), np.float32(0.0), np.float32(0.0)
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
 def displacements(lo, hi, B, u, U):
     """Vertices [lo, hi): the shell displacement ``U[:, k] = u B[k]`` (3,n) float32 of handle
     displacements u (3,h) float32 and the thin-shell basis rows B (n,h) float32 in the
@@ -118,12 +127,7 @@ def frame_sums(lo, hi, terms, ptr, tri, angle, T, N, tmax):
             nx += terms[t, 3]
             ny += terms[t, 4]
             nz += terms[t, 5]
-        nn = nx * nx + ny * ny + nz * nz
-        if nn > 0:
-            s = np.float32(1.0) / np.sqrt(nn)
-            nx, ny, nz = nx * s, ny * s, nz * s
-        else:
-            nx = ny = nz = np.float32(0.0)
+        nx, ny, nz = _unit(nx, ny, nz, nx * nx + ny * ny + nz * nz)
         d = tx * nx + ty * ny + tz * nz
         tx, ty, tz = tx - d * nx, ty - d * ny, tz - d * nz
         T[0, k], T[1, k], T[2, k] = tx, ty, tz
@@ -156,11 +160,7 @@ def compose(lo, hi, T, N, floor, U, rest, C, R, t, order, aligned, world, Bout):
             ty = np.float32((1.0 if j == 1 else 0.0) - d * n1)
             tz = np.float32((1.0 if j == 2 else 0.0) - d * n2)
             tt = tx * tx + ty * ty + tz * tz
-        if tt > 0:
-            s = np.float32(1.0) / np.sqrt(tt)
-            tx, ty, tz = tx * s, ty * s, tz * s
-        else:
-            tx = ty = tz = np.float32(0.0)
+        tx, ty, tz = _unit(tx, ty, tz, tt)
         bx = ny * tz - nz * ty
         by = nz * tx - nx * tz
         bz = nx * ty - ny * tx
