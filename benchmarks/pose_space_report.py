@@ -370,18 +370,21 @@ def speed(model, markers: np.ndarray) -> dict:
 
 
 def storage(model) -> dict:
-    """Stored floats and ints per vertex (what evaluation reads), and per map texel."""
-    d = model.data
+    """Floats and ints per vertex that one frame's evaluation reads (the shell's basis row, the
+    RBF weights, the correction sum's entries — α and the polynomial's coefficients on one
+    pattern, WPSD — the polynomial's constant, the rest position), and per map texel."""
+    d, cs = model.data, model.evaluator.correction_sum
     n, P, M = d.n_vertices, d.basis_size, d.n_markers
-    a = 0.0 if d.alpha is None else d.alpha.nnz / n
-    q = 0.0 if d.poly_linear is None else d.poly_linear.nnz / n                 # linear term
-    floats = M + 3 * P + a + 3 + q + (3 if q else 0)   # B row, RBF weights, α, rest position, polynomial
-    return {"floats_per_vertex": floats, "ints_per_vertex": a + q,
+    entries = 0.0 if cs is None else len(cs.edge) / n
+    poly = cs is not None and len(cs.const) > 0
+    floats = M + 3 * P + 4 * entries + (3 if poly else 0) + 3
+    return {"floats_per_vertex": floats, "ints_per_vertex": entries,
             "floats_per_texel": P if d.map_resolution else 0,
             "texels_per_vertex": len(d.map_index) / n,
-            "layout": f"B row {M} + weights 3P = {3 * P} + α {a:.1f} + rest position 3"
-                      + (f" + polynomial 3 + {q:.1f}" if q else "") + f"; ints: α columns {a:.1f}"
-                      + (f" + polynomial columns {q:.1f}" if q else "")}
+            "layout": f"B row {M} + weights 3P = {3 * P}"
+                      + (f" + α and polynomial 4 × {entries:.1f} entries" if cs is not None else "")
+                      + (" + polynomial constant 3" if poly else "") + " + rest position 3"
+                      + (f"; ints: the entries' edges {entries:.1f}" if cs is not None else "")}
 
 
 # --------------------------------------------------------------------------------------
