@@ -21,10 +21,15 @@ else the machine runs). A preload also synthesizes one neutral frame
 (``Services.warm_up``) before the server reports ready. The target is the first frame
 after ``serve`` is ready ≤ 2 s.
 
-Run: ``python benchmarks/cold_start.py [--actor DIR] [--model DIR] [--rounds 2]``. The model
-is trained once into ``benchmarks/out/realtime/model-<actor>`` (shared with realtime.py)
-unless ``--model`` names one. Writes the table to stdout and ``benchmarks/out/cold_start.md``.
-The machine is shared: the load average is recorded beside every row.
+Run: ``python benchmarks/cold_start.py [--actor DIR] [--model DIR] [--rounds 2]
+[--against REV]``. The model is trained once into ``benchmarks/out/realtime/model-<actor>``
+(shared with realtime.py) unless ``--model`` names one. Writes the table to stdout and
+``benchmarks/out/cold_start.md``. The machine is shared: the load average is recorded beside
+every row. With ``--against REV`` every round starts a server of the commit REV
+(``git archive REV service models_store``, unpacked once into
+``benchmarks/out/cold_start/rev-<REV>``) and one of this tree, in alternating order, on the
+same data directory and model: on a loaded machine only such pairs compare (REV must read
+the same database schema).
 """
 
 from __future__ import annotations
@@ -63,16 +68,36 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def spawn(work: Path, port: int, preload: str | None) -> subprocess.Popen:
+def spawn(work: Path, port: int, preload: str | None, repo: Path = ROOT) -> subprocess.Popen:
+    """``facesynth serve`` of the source tree ``repo`` on ``port`` (data in ``work/data``)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
                 "FACESYNTH_GRPC_PORT": str(harness.free_port()), "FACESYNTH_WORKERS": "0",
-                "PYTHONPATH": str(ROOT)})
+                "PYTHONPATH": str(repo)})
     if preload:
         env["FACESYNTH_PRELOAD"] = preload
     log = open(work / "server.log", "ab")
-    return subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
+    return subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=repo, env=env,
                             stdout=log, stderr=log, stdin=subprocess.DEVNULL)
+
+
+def source_tree(rev: str) -> Path:
+    """The ``service`` and ``models_store`` packages of commit ``rev``, unpacked once into
+    ``WORK/rev-<rev>`` (a server of it runs with that directory first on its path)."""
+    import re
+    import tarfile
+
+    where = WORK / f"rev-{re.sub(r'[^0-9A-Za-z_.-]', '_', rev)}"
+    if not (where / "service" / "__init__.py").is_file():
+        where.mkdir(parents=True, exist_ok=True)
+        archive = where / "source.tar"
+        with open(archive, "wb") as f:
+            subprocess.run(["git", "archive", rev, "service", "models_store"], cwd=ROOT,
+                           stdout=f, check=True)
+        with tarfile.open(archive) as tar:
+            tar.extractall(where, filter="data")
+        archive.unlink()
+    return where
 
 
 def wait_for(url: str, server: subprocess.Popen, t0: float, timeout: float = 600) -> float:
@@ -90,7 +115,8 @@ def wait_for(url: str, server: subprocess.Popen, t0: float, timeout: float = 600
         time.sleep(0.05)
 
 
-def one_server(work: Path, model_id: str, markers: np.ndarray, preload: bool, calls: int) -> dict:
+def one_server(work: Path, model_id: str, markers: np.ndarray, preload: bool, calls: int,
+               repo: Path = ROOT) -> dict:
     import httpx
 
     from service.io.npz import npz_bytes
@@ -98,7 +124,7 @@ def one_server(work: Path, model_id: str, markers: np.ndarray, preload: bool, ca
     port = harness.free_port()
     base = f"http://127.0.0.1:{port}"
     t0 = time.perf_counter()
-    server = spawn(work, port, model_id if preload else None)
+    server = spawn(work, port, model_id if preload else None, repo)
     try:
         row = {"preload": preload, "healthz_s": wait_for(f"{base}/healthz", server, t0)}
         row["ready_s"] = wait_for(f"{base}/readyz", server, t0)
@@ -132,7 +158,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="a trained PDM model directory (default: realtime.py's, trained once)")
     parser.add_argument("--rounds", type=int, default=2, help="servers per setting (default 2)")
     parser.add_argument("--calls", type=int, default=10, help="steady-state frames per server")
+    parser.add_argument("--against", metavar="REV", default=None,
+                        help="also start servers of this older commit, paired and alternating")
     args = parser.parse_args(argv)
+    trees = {"this tree": ROOT}
+    if args.against:
+        trees = {args.against: source_tree(args.against), **trees}
     actor = args.actor.resolve()
     model_dir = (args.model or harness.ensure_realtime_model(actor)).resolve()
     work = WORK / f"work-{actor.name}"
@@ -147,18 +178,22 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for r in range(args.rounds):
         for preload in (False, True):
-            rows.append(one_server(work, model_id, markers, preload, args.calls))
-            print(rows[-1], file=sys.stderr, flush=True)
+            order = list(trees) if r % 2 == 0 else list(reversed(trees))
+            for tree in order:
+                rows.append({"tree": tree, **one_server(work, model_id, markers, preload,
+                                                        args.calls, trees[tree])})
+                print(rows[-1], file=sys.stderr, flush=True)
+    rows.sort(key=lambda r: (list(trees).index(r["tree"]), r["preload"]))
     lines = [f"## Cold start, {actor.name} (PDM {model_dir.name}), {harness.git_state()}", "",
              f"{os.cpu_count()} cores. Seconds from spawning `facesynth serve`; first frame = "
              "latency of the first request sent once /readyz is 200; target ≤ "
              f"{TARGET_S:g} s.", "",
-             "| preload | /healthz s | /readyz s | server CPU s until ready | first frame s (mesh) | "
+             "| tree | preload | /healthz s | /readyz s | server CPU s until ready | first frame s (mesh) | "
              "its server CPU s | first frame after spawn s | first maps frame s | steady ms (mesh) | "
              "server RSS MB | load average |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        lines.append(f"| {'yes' if r['preload'] else 'no'} | {r['healthz_s']:.1f} | {r['ready_s']:.1f} | "
+        lines.append(f"| {r['tree']} | {'yes' if r['preload'] else 'no'} | {r['healthz_s']:.1f} | {r['ready_s']:.1f} | "
                      f"{r['cpu_ready_s']:.1f} | {r['first_s']:.2f} | {r['first_cpu_s']:.2f} | "
                      f"{r['first_after_spawn_s']:.1f} | {r['first_maps_s']:.2f} | "
                      f"{r['steady_ms']:.0f} | {r['rss_mb']:.0f} | {r['load']} |")

@@ -208,20 +208,30 @@ def cmd_serve(args: argparse.Namespace) -> int:
     workers, sharing one database, blob store and model cache, until SIGINT/SIGTERM.
 
     Both addresses are bound before anything else starts: a port that cannot be bound is
-    one line naming ``--port`` or ``--grpc-port`` and exit status 2. With ``--preload``
-    (setting ``preload``) the named models (or ``all`` ready ones) are checked at once (an
-    unknown or unready one: exit status 2) and loaded into the cache in the background
-    while the process serves; /readyz answers 503 until they are loaded."""
+    one line naming ``--port`` or ``--grpc-port`` and exit status 2, and so is a queue URL
+    of an unsupported form (or ``memory://`` with workers). With ``--preload`` (setting
+    ``preload``) the named models (or ``all`` ready ones) are checked at once (an unknown or
+    unready one: exit status 2) and loaded into the cache in the background while the
+    process serves; /readyz answers 503 until they are loaded, and the job threads (embedded
+    workers, or the maintenance rounds with ``--workers 0``) start only 2 s after that, so
+    that Huey's import and their first rounds compete neither with the load nor with the
+    first frames (issue 23's cold start; :mod:`service.jobs.job_threads`: a start that
+    fails then is logged and fails /readyz)."""
     import logging
     import signal
 
     from service.app.threads import apply_blas_threads
     from service.config import Settings
+    from service.jobs.queue_storage import queue_storage, worker_storage
 
     overrides = {name: getattr(args, name) for name in ("host", "port", "grpc_port", "data_dir",
                                                         "workers")
                  if getattr(args, name) is not None}
     settings = Settings(**overrides)
+    try:  # the queue URL's form, before anything loads (/readyz probes the storage itself)
+        (worker_storage if settings.workers > 0 else queue_storage)(settings)
+    except ValueError as error:
+        return _serve_error(f"FACESYNTH_QUEUE_URL: {error}")
     # before NumPy loads: BLAS threads sized with the synthesis slots (service.app.threads)
     blas_threads = apply_blas_threads(settings.max_concurrent_syntheses, settings.blas_threads)
 
@@ -229,6 +239,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.app.services import Services
     from service.errors import FacesynthError
     from service.grpc.server import is_loopback, serve
+    from service.jobs.job_threads import AFTER_PRELOAD_SECONDS, JobThreads
     if not settings.tokens and not is_loopback(settings.host):
         print(f"facesynth serve: refusing to listen on {settings.host} without tokens; set "
               "FACESYNTH_TOKENS, or listen on loopback (127.0.0.1)", file=sys.stderr)
@@ -252,7 +263,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
                             "(FACESYNTH_PORT)")
     previous_sigterm = signal.signal(signal.SIGTERM, stop)
     services = Services.open(settings)
-    workers = grpc_server = None
+    jobs = services.job_threads = JobThreads(settings)
+    grpc_server = preloading = None
     try:
         try:
             grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
@@ -263,7 +275,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                 "(FACESYNTH_GRPC_PORT)")
         if preload:   # checked now, loaded in the background; /readyz waits for them
             try:
-                services.start_preload(preload)
+                preloading = services.start_preload(preload)
             except FacesynthError as error:
                 return _serve_error(f"--preload: {error}")
         # imported only now, while the preload thread loads (issue 23: the API's imports,
@@ -271,12 +283,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
         import uvicorn
 
         from service.api.app import create_app
-        from service.jobs.worker import start_embedded, start_maintenance
 
-        if settings.workers > 0:  # 0: API only, jobs run on `facesynth worker` processes
-            workers = start_embedded(settings, settings.workers)
-        else:  # reap expired leases and resubmit lost messages even with no worker alive
-            workers = start_maintenance(settings)
+        # embedded workers, or with --workers 0 (API only, jobs run on `facesynth worker`
+        # processes) the maintenance rounds: expired leases reaped and lost messages
+        # resubmitted even with no worker alive. After a preload, shortly after it is done
+        if preloading is None:
+            jobs.start()
+        else:
+            jobs.start_after(preloading.done, AFTER_PRELOAD_SECONDS)
         from service.api.connections import protocol_class
 
         try:
@@ -304,8 +318,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         http_socket.close()
         if grpc_server is not None:
             grpc_server.stop(grace=5).wait()
-        if workers is not None:
-            workers.stop(timeout=60)
+        jobs.stop(timeout=60)
         services.close()
         signal.signal(signal.SIGTERM, previous_sigterm)
     return 0

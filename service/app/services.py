@@ -30,6 +30,8 @@ from service.app.memory import release_free_heap
 from service.config import Settings
 from service.methods.footprint import nbytes
 from service.errors import Conflict
+from service.jobs.job_threads import JobThreads
+from service.jobs.queue_storage import probe as probe_queue
 from service.methods.kinds import Kind, get_kind
 from service.store.actors import neutral_arrays
 from service.store.container import Store, get_store
@@ -174,6 +176,8 @@ class Services:
     marker_references: dict[tuple, Any] = field(default_factory=dict, repr=False)
     #: the background preload of ``facesynth serve`` (None: none was asked for)
     preloading: Preload | None = field(default=None, repr=False)
+    #: the job threads ``facesynth serve`` runs beside the API (None: another process's)
+    job_threads: JobThreads | None = field(default=None, repr=False)
     #: ready models' rows by id, as last read (:data:`READY_RECHECK_SECONDS`)
     ready_rows: dict[str, ReadyRow] = field(default_factory=dict, repr=False)
     #: models forgotten so far: a row read before a deletion is not remembered after it
@@ -408,8 +412,10 @@ class Services:
         self.models.invalidate(model_id)
 
     def check(self) -> dict[str, str]:
-        """Readiness of the database, the blob store, the job queue and (while a background
-        preload runs, :meth:`start_preload`) the preloaded models.
+        """Readiness of the database, the blob store, the job queue (its storage probed
+        without Huey: :func:`service.jobs.queue_storage.probe`), (while a background preload
+        runs, :meth:`start_preload`) the preloaded models, and (``workers``, only when it
+        happened) the failed start of this process's job threads (:attr:`job_threads`).
 
         Returns
         -------
@@ -430,15 +436,16 @@ class Services:
         status["queue"] = _queue_status(self.settings)
         if self.preloading is not None:
             status["models"] = self.preloading.status()
+        if self.job_threads is not None and self.job_threads.error is not None:
+            status["workers"] = self.job_threads.status()
         return status
 
 
 def _queue_status(settings: Settings) -> str:
-    """``"ok"`` if the job queue's storage answers, else why not."""
+    """``"ok"`` if the job queue's storage answers, else why not (no Huey imported: issue
+    23's cold start, :mod:`service.jobs.queue_storage`)."""
     try:
-        from service.jobs.queue import get_queue
-
-        get_queue(settings).huey.storage.queue_size()
+        probe_queue(settings)
     except Exception as error:  # noqa: BLE001 - any failure means "not ready"
         return f"unreachable: {type(error).__name__}: {error}"
     return "ok"

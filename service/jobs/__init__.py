@@ -15,4 +15,8 @@ is harmless, because a worker runs a job only after claiming its row.
 - :mod:`.worker`      :func:`~.worker.run_worker` (``facesynth worker``) and
   :func:`~.worker.start_embedded` (``facesynth serve``): the consumer plus the reaper that
   requeues jobs whose worker died
+- :mod:`.queue_storage`  the queue URL's form and a probe of its storage, without Huey
+  (``/readyz``, ``facesynth check``, serve's start)
+- :mod:`.job_threads`  serve's embedded workers or maintenance thread, started at once or
+  after a preload (Huey imported only then)
 """

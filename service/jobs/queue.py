@@ -1,6 +1,7 @@
 """The task queue: a Huey instance per settings, its JSON serializer and the one task.
 
-Storage is chosen by ``Settings.queue_url``:
+Storage is chosen by ``Settings.queue_url`` (its form read by
+:func:`service.jobs.queue_storage.queue_storage`, which also probes it without Huey):
 
 - ``None`` (default): :class:`huey.SqliteHuey` in ``<data_dir>/queue.db`` — one machine, the
   API and its workers share the file;
@@ -31,16 +32,11 @@ from huey.registry import Message
 from huey.serializer import Serializer
 
 from service.config import Settings
+from service.jobs.queue_storage import queue_storage
 from service.jobs.running import worker_name
 
 log = logging.getLogger(__name__)
 
-#: file of the embedded queue in the data directory
-QUEUE_FILE = "queue.db"
-#: ``queue_url`` of immediate mode
-MEMORY_URL = "memory://"
-#: URL schemes served by Redis
-REDIS_SCHEMES = ("redis://", "rediss://", "unix://")
 #: name of the one Huey task
 RUN_JOB = "run_job"
 #: Huey retries of a ``run_job`` message whose execution raised (the database was
@@ -124,20 +120,15 @@ class JobQueue:
 
 def make_queue(settings: Settings) -> JobQueue:
     """A new :class:`JobQueue` for ``settings`` (see the module docstring for the storage)."""
-    url = settings.queue_url
+    storage = queue_storage(settings)    # ValueError for an unsupported URL
     options: dict[str, Any] = {"results": False, "serializer": JsonSerializer(), "utc": True}
-    if url is None:
+    if storage.kind == "sqlite":
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        huey: Huey = SqliteHuey(settings.queue_name,
-                                filename=str((settings.data_dir / QUEUE_FILE).absolute()),
-                                **options)
-    elif url.startswith(REDIS_SCHEMES):
-        huey = RedisHuey(settings.queue_name, url=url, **options)
-    elif url == MEMORY_URL:
-        huey = MemoryHuey(settings.queue_name, immediate=True, **options)
+        huey: Huey = SqliteHuey(settings.queue_name, filename=storage.location, **options)
+    elif storage.kind == "redis":
+        huey = RedisHuey(settings.queue_name, url=storage.location, **options)
     else:
-        raise ValueError(f"unsupported queue URL {url!r}: expected redis://..., "
-                         f"{MEMORY_URL} or none (the SQLite queue in the data directory)")
+        huey = MemoryHuey(settings.queue_name, immediate=True, **options)
     queue = JobQueue(huey, None)  # type: ignore[arg-type]  # the task needs the queue
 
     def run_job(job_id: str) -> None:

@@ -42,6 +42,7 @@ from models_store.schema import utcnow
 from service.config import Settings
 from service.store.container import get_store
 from service.jobs.queue import JobQueue, get_queue, submit
+from service.jobs.queue_storage import worker_storage
 
 log = logging.getLogger(__name__)
 
@@ -192,10 +193,8 @@ class Worker:
         if self.workers < 1:
             raise ValueError(f"a worker needs at least one thread, got {self.workers}")
         self.grace_seconds = grace_seconds
+        worker_storage(settings)       # ValueError: an unsupported URL, or memory://
         self.queue: JobQueue = get_queue(settings)
-        if self.queue.immediate:
-            raise ValueError("the memory:// queue runs jobs when they are submitted; it has "
-                             "no workers (set FACESYNTH_QUEUE_URL to redis://... or unset it)")
         db.upgrade(settings.database_url_resolved)
         self.maintenance = Maintenance(settings)
         self.reap_interval = self.maintenance.interval

@@ -108,3 +108,80 @@ def test_serve_runs_http_grpc_and_workers(tmp_path):
     access = [r for r in records if r["logger"] == "facesynth.access"]
     assert any(entry.get("request_id") == "serve-test" and entry["route"] == "/readyz"
                for entry in access)
+
+
+@pytest.mark.parametrize("url, workers", [("amqp://queue", "0"), ("memory://", "1")])
+def test_serve_with_a_queue_url_of_the_wrong_form_is_one_line_and_exit_2(
+        url, workers, tmp_path, capsys, monkeypatch):
+    """The queue URL's form is checked at start, before anything loads (no Huey imported:
+    ``service.jobs.queue_storage``); a reachable-but-down queue fails /readyz instead."""
+    monkeypatch.setenv("FACESYNTH_QUEUE_URL", url)
+    code = main(["serve", "--port", str(free_port()), "--grpc-port", str(free_port()),
+                 "--data-dir", str(tmp_path), "--workers", workers])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("facesynth serve: FACESYNTH_QUEUE_URL: ")
+    assert len(err.splitlines()) == 1
+
+
+#: ``facesynth serve --preload`` in a fresh interpreter whose model load waits for a gate:
+#: what /readyz says and what is imported while it loads, then after it
+_PRELOAD_SCRIPT = r"""
+import json, os, signal, sys, threading, time
+import httpx
+from service.app.services import Services
+from service.cli import main
+
+gate = threading.Event()
+Services.preload_ids = lambda self, models: list(models)
+Services.loaded_model = lambda self, model_id: gate.wait(60)
+Services.warm_up = lambda self, loaded: True
+port, grpc_port, data_dir = sys.argv[1:4]
+
+def state():
+    response = httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=5)
+    return {"status": response.status_code, "checks": response.json()["checks"],
+            "imported": sorted(m for m in ("huey", "redis", "psycopg", "service.jobs.worker")
+                               if m in sys.modules),
+            "worker": any(t.name == "facesynth-worker" for t in threading.enumerate())}
+
+def watch():
+    seen = {}
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            seen["loading"] = state()
+            break
+        except httpx.TransportError:
+            time.sleep(0.05)
+    gate.set()
+    while time.monotonic() < deadline and not state()["worker"]:
+        time.sleep(0.05)
+    seen["loaded"] = state()
+    print(json.dumps(seen), flush=True)
+    os.kill(os.getpid(), signal.SIGINT)
+
+threading.Thread(target=watch, daemon=True).start()
+sys.exit(main(["serve", "--port", port, "--grpc-port", grpc_port, "--data-dir", data_dir,
+               "--workers", "1", "--preload", "mdl_00000000000000000000000000"]))
+"""
+
+
+def test_serve_with_a_preload_starts_its_workers_and_imports_huey_once_the_models_are_loaded(tmp_path):
+    """Issue 23's cold start: while a preload loads, /readyz answers 503 (``models``) with
+    the queue probed without Huey, and neither Huey (nor the redis and psycopg it imports)
+    nor the worker module is imported; once the models are loaded the embedded worker
+    starts and /readyz answers 200."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env["PYTHONPATH"] = root
+    result = subprocess.run([sys.executable, "-c", _PRELOAD_SCRIPT, str(free_port()),
+                             str(free_port()), str(tmp_path)], cwd=root, env=env,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    seen = json.loads(result.stdout.strip().splitlines()[-1])
+    loading, loaded = seen["loading"], seen["loaded"]
+    assert loading["status"] == 503 and loading["checks"]["queue"] == "ok"
+    assert loading["checks"]["models"] == "loading: 0 of 1 preloaded"
+    assert loading["imported"] == [] and not loading["worker"]
+    assert loaded["status"] == 200 and set(loaded["checks"].values()) == {"ok"}
+    assert loaded["worker"] and {"huey", "service.jobs.worker"} <= set(loaded["imported"])

@@ -591,7 +591,7 @@ class PdmModel:
             medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup, fallback), np.float32,
                                                       xrows)
             if "vertices" in out:
-                out["vertices"][sl] = pose.restore(medium)
+                pose.restore32(medium, out=out["vertices"][sl])     # float32 (its bound: tests)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
@@ -601,7 +601,7 @@ class PdmModel:
             if "mesh_detailed" in want:
                 h = (ev.fine_sampler @ disp.T).T                           # (f,n)
                 normal = np.stack([tn[3:].T for tn, _ in rows])            # (f,n,3)
-                out["vertices_detailed"][sl] = pose.restore(medium + h[..., None] * normal)
+                pose.restore32(medium + h[..., None] * normal, out=out["vertices_detailed"][sl])
             if "normal_map" in want:
                 for k in range(sl.stop - sl.start):          # written in place (no copy)
                     ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], None,

@@ -184,9 +184,11 @@ def _write_neutral(file: Path, model: PdmData) -> str:
 def read_model(path) -> tuple[PdmData, PdmDerived]:
     """The stored data and the derived cache (empty where the directory has none) written
     by :func:`write_model` in ``path`` (checksums verified first)."""
-    path = Path(path)
-    # every file is checksummed as it streams past and mapped or read only as needed
+    # every file is checksummed as it streams past and mapped or read only as needed; the
+    # path as given, since a directory the blob store verifies (VerifiedDir, VerifyingDir)
+    # carries its digests, which Path() would drop (the files were then hashed twice)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, mapped=lambda name: True)
+    path = Path(path)
     # a model stored before marker_noise_mm existed interpolated its markers exactly
     params = PdmParams(**{"marker_noise_mm": 0.0, **manifest["params"]})
     a = npz_mapped(data["model.npz"])

@@ -71,14 +71,15 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
 def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     """The stored data and thin shell of a model written by :func:`write_model` (checksums
     verified first)."""
-    path = Path(path)
+    given, path = path, Path(path)
     try:
         kind = json.loads((path / "manifest.json").read_bytes()).get("kind")
     except (OSError, ValueError) as e:
         raise ModelCorrupt(f"{path}: no readable manifest.json ({e})") from None
     if kind not in ("psd", "wpsd"):
         raise ModelCorrupt(f"{path}: not a pose-space model (kind {kind!r})")
-    manifest, data = read_model_files(path, kind, FORMAT_VERSION, required=("model.npz",))
+    # the path as given: a verified directory's digests (models_store.blobs.VerifiedDir)
+    manifest, data = read_model_files(given, kind, FORMAT_VERSION, required=("model.npz",))
     a = npz_arrays(data["model.npz"])
     missing = [k for k in ARRAYS if k not in a]
     if missing:

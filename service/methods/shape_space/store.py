@@ -98,9 +98,10 @@ def write_model(model: ShapeSpaceData, path) -> dict:
 def read_model(path) -> ShapeSpaceData:
     """The stored data written by :func:`write_model` in ``path`` (checksums verified first,
     shapes checked)."""
-    path = Path(path)
+    # the path as given: a verified directory's digests (models_store.blobs.VerifiedDir)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, ("model.npz", "detail.npz"),
                                       mapped=MAPPED_FILES.__contains__)
+    path = Path(path)
     a = npz_arrays(data["model.npz"])
     missing = [k for k in MODEL_ARRAYS if k not in a]
     if missing:

@@ -55,8 +55,9 @@ def write_model(model: StressBlendData, texel_masks: np.ndarray, path) -> dict:
 
 def read_model(path) -> StressBlendData:
     """The stored data written by :func:`write_model` in ``path`` (checksums verified first)."""
-    path = Path(path)
+    # the path as given: a verified directory's digests (models_store.blobs.VerifiedDir)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, required=("model.npz", "displacement.exr"))
+    path = Path(path)
     params = StressBlendParams.model_validate(manifest["params"])
     a = npz_arrays(data["model.npz"])
     S = len(a["scan_stress"])

@@ -27,6 +27,25 @@ def test_head_alignment_recovers_the_rigid_motion_and_round_trips():
     np.testing.assert_allclose(pose[2:4].R, pose.R[2:4])
 
 
+@pytest.mark.parametrize("scale", [80.0, 200.0, 1000.0])
+def test_the_float32_restore_is_within_its_stated_bound_of_the_float64_one(scale):
+    """HeadPose.restore32 (synthesis's output path): per point within 2⁻²⁰ ‖X − t‖ of the
+    float64 restore, written into ``out`` (issue 23)."""
+    rng = np.random.default_rng(int(scale))
+    R = Rotation.random(3, random_state=int(scale)).as_matrix()
+    pose = bs.HeadPose(R, rng.normal(scale=scale / 4, size=(3, 3)))
+    X = rng.normal(scale=scale, size=(3, 5000, 3))
+    exact = pose.restore(X)
+    out = np.empty(X.shape, np.float32)
+    got = pose.restore32(X, out=out)
+    assert got is out and got.dtype == np.float32
+    err = np.linalg.norm(got - exact, axis=-1)
+    bound = 2.0 ** -20 * np.linalg.norm(X - pose.t[:, None, :], axis=-1)
+    assert (err <= bound).all(), float((err / bound).max())
+    # and it is no worse than a few roundings of the float32 result itself
+    assert np.abs(got - exact).max() <= 4 * np.finfo(np.float32).eps * np.abs(exact).max()
+
+
 def test_stability_weights_keep_the_head_pose_off_moving_markers():
     rest, R, t, world = _markers(seed=1, M=60)
     rng = np.random.default_rng(1)

@@ -8,6 +8,7 @@ import pytest
 from service.io.exr import read_exr
 from service.methods.pdm.model import PdmModel
 from service.methods.model_dir import ModelCorrupt
+from tests.methods.verified import load_verified_without_hashing
 
 
 @pytest.fixture(scope="module")
@@ -257,3 +258,11 @@ def test_the_marker_prior_is_stored_and_an_older_directory_loads_without_it(pdm_
     assert x.keys() == y.keys() and "vertices" in x
     for key in x:
         np.testing.assert_array_equal(y[key], x[key], err_msg=key)
+
+
+def test_a_directory_the_blob_store_verified_is_not_hashed_again(pdm_model, pdm_data, saved, monkeypatch):
+    path, _ = saved
+    loaded = load_verified_without_hashing(PdmModel.load, path, monkeypatch)
+    markers = pdm_data[1][4].markers[[0, 9]]
+    np.testing.assert_array_equal(loaded.synthesize(markers, outputs=("mesh",))["vertices"],
+                                  pdm_model.synthesize(markers, outputs=("mesh",))["vertices"])

@@ -5,6 +5,7 @@ import pytest
 
 from service.methods.model_dir import ModelCorrupt
 from service.methods.pose_space import PoseSpaceModel
+from tests.methods.verified import load_verified_without_hashing
 
 OUT = ("mesh", "mesh_detailed", "displacement", "normal_map")
 
@@ -42,3 +43,11 @@ def test_load_rejects_a_changed_file(wpsd_exact, tmp_path):
         f.write(b"\x00\x01")
     with pytest.raises(ModelCorrupt, match="checksum"):
         PoseSpaceModel.load(tmp_path / "m")
+
+
+def test_a_directory_the_blob_store_verified_is_not_hashed_again(wpsd_exact, ps_data, tmp_path, monkeypatch):
+    wpsd_exact.save(tmp_path / "m")
+    loaded = load_verified_without_hashing(PoseSpaceModel.load, tmp_path / "m", monkeypatch)
+    markers = ps_data[1][1].markers[[2, 9]]
+    assert np.array_equal(loaded.synthesize(markers, ("mesh",))["vertices"],
+                          wpsd_exact.synthesize(markers, ("mesh",))["vertices"])

@@ -7,6 +7,7 @@ import pytest
 
 from service.methods.shape_space import ShapeSpaceModel
 from service.methods.model_dir import ModelCorrupt
+from tests.methods.verified import load_verified_without_hashing
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +95,9 @@ def test_texel_major_maps_of_an_older_model_load_frame_major(saved, tmp_path):
         assert m.flags.c_contiguous and not file_mapped(m)
         np.testing.assert_array_equal(m, getattr(a.data, attr).maps)
     assert file_mapped(b.data.detail)
+
+
+def test_a_directory_the_blob_store_verified_is_not_hashed_again(shape_space_model, saved, monkeypatch):
+    path, _ = saved
+    loaded = load_verified_without_hashing(ShapeSpaceModel.load, path, monkeypatch)
+    assert loaded.metrics == shape_space_model.metrics

@@ -5,6 +5,7 @@ from service.methods.inputs import InvalidInput
 from service.methods.stress_blend.model import StressBlendModel, train
 from service.methods.stress_blend.params import StressBlendParams
 from tests.methods.stress_blend.synthetic import H, clips
+from tests.methods.verified import load_verified_without_hashing
 
 PARAMS = StressBlendParams(regions=3, stress_smoothing=2, mask_smoothing=2)
 
@@ -122,3 +123,12 @@ def test_mesh_detailed_is_the_input_mesh_with_the_blended_displacement_along_the
     assert inner.sum() > 50
     np.testing.assert_allclose(h[inner], expected[inner], atol=1e-5)
     assert np.abs(h).max() > 0.05                                          # the map's noise, 0.1 mm
+
+
+def test_a_directory_the_blob_store_verified_is_not_hashed_again(trained, tmp_path, monkeypatch):
+    _, cl, model = trained
+    model.save(tmp_path / "m")
+    back = load_verified_without_hashing(StressBlendModel.load, tmp_path / "m", monkeypatch)
+    X = cl[0].vertices[1:3]
+    np.testing.assert_array_equal(back.synthesize(X, ("displacement",))["displacement"],
+                                  model.synthesize(X, ("displacement",))["displacement"])
