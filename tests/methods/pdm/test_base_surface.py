@@ -159,8 +159,8 @@ def test_auto_marker_noise_denoises_with_the_requests_estimated_sigma(rig_mesh):
     u = aligned - V[handles]
     sigma = float(np.median(frame_noise(auto.marker_prior, u)))
     fixed = MarkerDenoiser.build(auto.marker_prior, exact.energy, sigma, np.nan, 0.0)
-    np.testing.assert_allclose(auto.handle_displacements(aligned), fixed(u), atol=1e-12)
-    np.testing.assert_allclose(auto.with_noise_estimate(sigma).handle_displacements(aligned), fixed(u), atol=1e-12)
+    np.testing.assert_allclose(auto.handle_displacements(aligned), fixed(u), atol=1e-9)
+    np.testing.assert_allclose(auto.with_noise_estimate(sigma).handle_displacements(aligned), fixed(u), atol=1e-9)
     assert auto.denoised_markers(aligned, fixed(u)) is not aligned
     with pytest.raises(ValueError, match="learned marker prior"):
         exact.with_marker_noise("auto", 1.0)
