@@ -422,9 +422,9 @@ def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = No
     Estimator: project ``u − μ`` on the prior's *floor directions* (eigenvectors of C whose
     eigenvalue is at most :data:`FLOOR_DIRECTIONS` × the median eigenvalue: the diagonal
     floor δ, the directions the training never moved in; 345 of 450 on family a) and take
-    ``σ̂² = median_i z_i² / 0.4549`` (the median of χ²₁), a robust scale estimate of the
-    coordinates there (Rousseeuw & Croux 1993 use the same median-of-squares consistency
-    factor). Assumptions: the noise is white, Gaussian, the same σ on every coordinate
+    ``σ̂² = median_i z_i² / 0.4549`` (the median of χ²₁), i.e. the median absolute
+    deviation about zero of the coordinates there, ``σ̂ = 1.4826 · median_i |z_i|`` (Hampel
+    1974, the normal consistency factor 1/Φ⁻¹(3/4)). Assumptions: the noise is white, Gaussian, the same σ on every coordinate
     and independent of the deformation, so it spreads evenly over all 3M directions, while
     a face's deformation (smooth, low-dimensional) lies mostly in the prior's few leading
     directions; what a held-out frame does outside the training span is concentrated in a
