@@ -81,7 +81,13 @@ CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the 
 HEAT_MM = 2.0                     # heat-map colour range, mm
 
 
-def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0, params: dict | None = None) -> dict:
+def _noise_arg(text: str) -> float | str:
+    """``--marker-noise``: a number (mm) or "auto" (σ estimated per request)."""
+    return text if text == "auto" else float(text)
+
+
+def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float | str = 0.0, params: dict | None = None,
+               orders=None) -> dict:
     """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached),
     trained with ``marker_noise_mm`` and the other :class:`PdmParams` fields ``params``."""
     import hashlib
@@ -92,8 +98,9 @@ def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float = 0.0, par
     files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
     key = pdm.actor_files_key(actor_dir, *files)
     models = {}
-    for order in ORDERS:
-        model_dir = MODELS / (f"pdm_{order}-{key}" + (f"-noise{marker_noise_mm:g}" if marker_noise_mm else "")
+    for order in orders or ORDERS:
+        noise = marker_noise_mm if isinstance(marker_noise_mm, str) else f"{marker_noise_mm:g}"
+        model_dir = MODELS / (f"pdm_{order}-{key}" + (f"-noise{noise}" if marker_noise_mm else "")
                               + (f"-p{hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]}"
                                  if params else ""))
         if retrain or not (model_dir / "manifest.json").is_file():
@@ -129,14 +136,19 @@ class MethodFailed(Exception):
 
 
 def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
-                    marker_filter: float = 0.0, marker_noise_mm: float = 0.0,
-                    shape_space_rows: bool = True, pdm_params: dict | None = None) -> dict:
-    """Rows {(range, condition, method): metrics} and the worst frame's data of one family."""
+                    marker_filter: float = 0.0, marker_noise_mm: float | str = 0.0,
+                    shape_space_rows: bool = True, pdm_params: dict | None = None,
+                    only: set | None = None, ranges=None, conditions=None) -> dict:
+    """Rows {(range, condition, method): metrics} and the worst frame's data of one family;
+    ``only`` (method names), ``ranges`` and ``conditions`` restrict the rows (None: all)."""
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
 
     actor = load_actor(actor_dir)
-    models = pdm_models(actor_dir, retrain, marker_noise_mm, pdm_params)
+    wanted = lambda name: only is None or name in only          # noqa: E731
+    # the biquadratic PDM is always built: the baselines and the detail band split use it
+    models = pdm_models(actor_dir, retrain, marker_noise_mm, pdm_params,
+                        [o for o in ORDERS if o == "biquadratic" or wanted(f"PDM {o}")])
     bq = models["biquadratic"]
     # scored at the actor's map resolution (a level-0 actor's maps are 512², the PDM's fine
     # band 1024²: its maps are box-filtered down, its band split's σ scaled with them)
@@ -166,11 +178,16 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
         return out["vertices"].astype(np.float64), D, None
 
     rows, worst = {}, None
+    worst_frame = only is None and ranges is None and conditions is None
     for rname, perf in RANGES.items():
+        if ranges is not None and rname not in ranges:
+            continue
         gt_clean = pdm.heldout_frames(actor_dir, perf, frames)
         with np.load(actor_dir / "performances" / f"{perf}.npz") as d:
             lowres = d["lowres"][gt_clean.frames].astype(np.float64)
         for cname, suffix in CONDITIONS.items():
+            if conditions is not None and cname not in conditions:
+                continue
             gt = dataclasses.replace(gt_clean, name=perf + suffix,
                                      markers=_variant_markers(actor_dir, perf + suffix, gt_clean.frames, marker_filter))
             methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
@@ -182,6 +199,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
             if shape_space_rows and cname == "clean":
                 methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
             for name, method in methods.items():
+                if not wanted(name):
+                    continue
                 t0 = time.perf_counter()
                 try:
                     r = pdm.evaluate_performance(gt, {name: _guard(method)}, tex, actor, gt.frames.tolist())
@@ -200,9 +219,18 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                 if r["extra"].get(name) is not None:        # per-frame confidence (PDM)
                     r_["confidence"] = np.asarray(r["extra"][name], np.float64).tolist()
                     r_["frame_error"] = face_err.mean(axis=1).tolist()
+                    model = models.get(name.removeprefix("PDM "))
+                    if model is not None and model.evaluator.base.marker_prior is not None:
+                        # each frame's noise estimate (service.geometry.marker_prior.frame_noise)
+                        from service.geometry.marker_prior import frame_noise
+                        from service.methods.pdm.base_surface import head_alignment
+                        ev = model.evaluator
+                        p = head_alignment(gt.markers, ev.base.rest_markers, model.data.pose_weights)
+                        r_["noise_mm"] = frame_noise(ev.base.marker_prior,
+                                                     p.remove(gt.markers) - ev.base.rest_markers).tolist()
                 print(f"ROW | {family} | {rname} | {cname} | {name} | {r_['mean']:.3f} | {r_['p95']:.3f} "
                       f"| {r_['max']:.2f} | {r_['corr']:.2f} | {r_['rel']:.2f} |", file=sys.stderr, flush=True)
-                if name == WORST_OF:
+                if name == WORST_OF and worst_frame:
                     k = int(np.argmax(face_err.max(axis=1)))
                     if worst is None or face_err[k].max() > worst["max"]:
                         worst = {"max": float(face_err[k].max()), "range": rname, "condition": cname,
@@ -211,6 +239,9 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                                  "lowres": lowres[k:k + 1]}
     # the worst frame, every method
     errors = {}
+    if worst is None:
+        return {"rows": rows, "worst": None, "actor": actor,
+                "meta": {"vertices": actor.n_vertices, "markers": actor.n_markers}}
     for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic") + (
             (SS_MARKERS,) if shape_space_rows else ()):
         fn = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
@@ -301,9 +332,10 @@ def report(results: dict, frames: int | None, seconds: float) -> str:
             for name, by in ranks.items():
                 lines.append(f"| {name} confidence | " + " | ".join(
                     f"{_n(by[k][0], 2)} ({by[k][1]} frames)" if k in by else "" for k in keys) + " |")
-        lines += ["", f"Worst {WORST_OF} frame: {w['performance']} frame {w['frame']} "
-                      f"({w['range']}, {w['condition']}), max {w['max']:.2f} mm: "
-                      f"`benchmarks/out/generalization/worst_family_{family}.png`", ""]
+        if w is not None:
+            lines += ["", f"Worst {WORST_OF} frame: {w['performance']} frame {w['frame']} "
+                          f"({w['range']}, {w['condition']}), max {w['max']:.2f} mm: "
+                          f"`benchmarks/out/generalization/worst_family_{family}.png`", ""]
     lines.append(f"Total run {seconds:.0f} s on {os.cpu_count()} CPUs (load {os.getloadavg()[0]:.1f}).")
     return "\n".join(lines) + "\n"
 
@@ -319,9 +351,17 @@ def main() -> None:
     parser.add_argument("--marker-filter", type=float, default=0.0, metavar="S",
                         help="smooth every performance's markers in time first (σ = S frames, "
                              "the synthesis job's marker_filter_frames; default 0: off)")
-    parser.add_argument("--marker-noise", type=float, default=0.0, metavar="SIGMA",
+    parser.add_argument("--marker-noise", type=_noise_arg, default=0.0, metavar="SIGMA",
                         help="train the PDMs and the shape-space model with marker_noise_mm = "
-                             "SIGMA (soft marker constraints; default 0: exact interpolation)")
+                             "SIGMA (soft marker constraints; \"auto\": σ estimated per request; "
+                             "default 0: exact interpolation)")
+    parser.add_argument("--methods", nargs="+", default=None, metavar="NAME",
+                        help="only these rows' methods (e.g. 'PDM biquadratic' 'shape space (markers)'); "
+                             "no worst-frame figure")
+    parser.add_argument("--ranges", nargs="+", default=None, choices=list(RANGES),
+                        help="only these input ranges (no worst-frame figure)")
+    parser.add_argument("--conditions", nargs="+", default=None, choices=list(CONDITIONS),
+                        help="only these marker conditions (no worst-frame figure)")
     parser.add_argument("--pdm-only", action="store_true",
                         help="only the baselines and the PDM rows (no shape-space model)")
     parser.add_argument("--pdm-params", type=json.loads, default=None, metavar="JSON",
@@ -345,9 +385,13 @@ def main() -> None:
         actor_dir = actor_dir.resolve()
         pdm.ensure_actor(actor_dir, level=0, family=family, with_tracking=False)
         print(f"family {family}: {actor_dir}", file=sys.stderr)
+        only = None if args.methods is None else set(args.methods)
         results[family] = evaluate_family(family, actor_dir, frames, args.retrain, args.marker_filter,
-                                          args.marker_noise, not args.pdm_only, args.pdm_params)
-        plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
+                                          args.marker_noise, not args.pdm_only and (
+                                              only is None or SS_MARKERS in only or SS_RIG in only),
+                                          args.pdm_params, only, args.ranges, args.conditions)
+        if results[family]["worst"] is not None:
+            plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)
     print(text)
     (OUT / "report.md").write_text(text)

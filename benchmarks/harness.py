@@ -152,7 +152,7 @@ def peak_mb(rss0_kb: int) -> float:
     return (status_kb("VmHWM") - rss0_kb) / 1024
 
 
-def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0,
+def train_pdm(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float | str = 0.0,
               params_json: str = "{}") -> dict:
     """Train a PDM of ``order`` (and ``marker_noise_mm``; other :class:`PdmParams` fields
     from ``params_json``) on the actor's training clips and save it into ``model_dir``; wall
@@ -443,7 +443,7 @@ def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, k
             "extra": extra}
 
 
-def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float = 0.0,
+def pdm_in_fresh_process(actor_dir: Path, order: str, model_dir: Path, marker_noise_mm: float | str = 0.0,
                          params: dict | None = None) -> dict:
     """:func:`train_pdm` run in a fresh process (its own peak memory); the training record."""
     return run_worker(__file__, "train-pdm", str(actor_dir), order, str(model_dir), str(marker_noise_mm),
@@ -659,8 +659,8 @@ def heldout_frames(actor_dir: Path, name: str, limit: int | None) -> Heldout:
 
 
 WORKERS = {
-    "train-pdm": lambda actor, order, model, noise="0", params="{}": train_pdm(Path(actor), order, Path(model),
-                                                                               float(noise), params),
+    "train-pdm": lambda actor, order, model, noise="0", params="{}": train_pdm(
+        Path(actor), order, Path(model), noise if noise == "auto" else float(noise), params),
     "train-shape-space": lambda actor, params, model: train_shape_space(Path(actor), params, Path(model)),
     "register-rig": lambda actor, out: register_input_rig(Path(actor), Path(out)),
 }

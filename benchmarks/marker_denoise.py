@@ -23,7 +23,9 @@ shell``: the noise that reaches the surface), averaged over the in-range, combin
 out-of-range performances. It needs no trained model, so it runs in a minute per family:
 the place to choose ``marker_noise_mm``'s default (on family a, confirmed on family b).
 
-Run: ``python benchmarks/marker_denoise.py --actor a=benchmarks/out/actor-a-l0 [--actor b=DIR]``.
+Run: ``python benchmarks/marker_denoise.py --actor a=benchmarks/out/actor-a-l0 [--actor b=DIR]
+[--prior-source train|database]`` (``database``: the priors fitted on the ``database``
+performance, as shape space fits its own).
 """
 
 from __future__ import annotations
@@ -47,9 +49,13 @@ BETAS = (0.0, 1.0)
 
 
 def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS, floors=FLOORS, betas=BETAS,
-                 occluded: bool = True, lengths=LENGTHS, taper_floors=TAPER_FLOORS) -> list[tuple]:
+                 occluded: bool = True, lengths=LENGTHS, taper_floors=TAPER_FLOORS,
+                 prior_source: str = "train") -> list[tuple]:
     """(τ, rows, prior info): rows ``(markers, denoiser, s, σ, vs truth, vs clean shell,
-    per performance vs truth …, per performance vs clean shell …)``."""
+    per performance vs truth …, per performance vs clean shell …)``. The learned priors
+    are fitted on the ``train_*`` clips (``prior_source="train"``, the PDM's and pose
+    space's) or on the ``database`` performance (``"database"``, shape space's), head-aligned
+    with the training clips' stability weights."""
     from service.geometry.marker_filter import filter_performance
     from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
     from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handle_operator, soft_handles
@@ -68,6 +74,11 @@ def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS, floors=FLOORS,
     u_train = base.handle_displacements(pose.remove(train))
     tau = shell_prior_scale(G, u_train)
     d_train = pose.remove(train) - rest
+    if prior_source == "database":
+        db = np.load(actor_dir / "performances" / "database.npz")["markers"].astype(np.float64)
+        d_train = head_alignment(db, rest, weights).remove(db) - rest
+    elif prior_source != "train":
+        raise ValueError(f"prior_source must be 'train' or 'database', got {prior_source!r}")
     priors = {f"ppca f={f:g}": MarkerPrior.fit_ppca(d_train, f) for f in floors}
     priors.update({f"tapered ℓ={ell:g} f={f:g}": MarkerPrior.fit_tapered(d_train, rest, ell, f)
                    for ell in lengths for f in taper_floors})
@@ -128,12 +139,16 @@ def main() -> None:
                         help="tapered prior's diagonal floor, fractions of the mean variance")
     parser.add_argument("--betas", type=float, nargs="+", default=BETAS, help="shell prior weights beside the learned prior")
     parser.add_argument("--no-occluded", action="store_true", help="skip the occluded marker sets")
+    parser.add_argument("--prior-source", choices=("train", "database"), default="train",
+                        help="fit the learned priors on the train_* clips (PDM, pose space; default) "
+                             "or on the database performance (shape space)")
     args = parser.parse_args()
     for item in args.actor:
         family, _, path = item.partition("=")
         tau, rows, info = family_table(Path(path), args.sigmas, args.windows, args.floors, args.betas,
-                                       not args.no_occluded, args.lengths, args.taper_floors)
-        print(f"\n## family {family} ({path}); shell prior scale τ = {tau:.4f} mm\n")
+                                       not args.no_occluded, args.lengths, args.taper_floors, args.prior_source)
+        print(f"\n## family {family} ({path}); shell prior scale τ = {tau:.4f} mm; learned priors "
+              f"fitted on {args.prior_source}\n")
         short = [p.removeprefix("heldout_") for p in PERFORMANCES]
         print("\n| markers | denoiser | temporal s (frames) | σ_param mm | vs truth mm | vs clean shell mm | "
               + " | ".join(f"{p} vs truth" for p in short) + " | " + " | ".join(f"{p} vs clean" for p in short) + " |")

@@ -33,14 +33,30 @@ displacements ``x ∈ R^{3M}`` (M markers, row-major (marker, xyz)), mean μ the
   truth (clean / noisy markers): exact interpolation 0.388 / 0.637, shell prior 0.454 /
   0.620, PPCA 0.485 / 0.564, tapered (defaults) 0.430 / 0.501 (``benchmarks/marker_denoise.py``).
   Rule chosen on family a (grid ℓ ∈ {0.75, 1, 1.5, 2}, f ∈ {0.003, 0.01, 0.03}: the lowest
-  mean of clean and noisy error; ℓ = 2 is the grid's edge, larger ℓ trades clean accuracy
-  for noise removal) and confirmed on family b (README, "Noisy markers").
+  mean of clean and noisy error) and confirmed on family b (README, "Noisy markers").
+  The grid extended beyond its edge ℓ = 2 (ℓ ∈ {2, 4, 6, 8, 12, ∞}, f ∈ {0.001, 0.003,
+  0.01}, σ = 0.3, same rule): on the PDM's prior (the ``train_*`` clips) ℓ = 2, f = 0.01
+  stays the optimum (clean / noisy 0.430 / 0.501 mm; ℓ = 4: 0.441 / 0.496, ℓ = 8: 0.454 /
+  0.500, ∞: 0.538 / 0.574); on shape space's prior (the ``database`` performance) family a
+  prefers ever longer tapers (ℓ = 2: 0.408 / 0.478, ℓ = 12: 0.406 / 0.441, ∞ f = 0.003:
+  0.407 / 0.439), but family b refutes it: its combinations go 0.515 → 0.625 (ℓ = 12) and
+  0.756 (∞) mm on clean markers (mean over the three performances 0.451 / 0.513 at ℓ = 2
+  against 0.486 / 0.529 and 0.530 / 0.567), because b's database never shows its
+  combinations and the long-range couplings it learns are wrong for them. So ℓ = 2 stays
+  for both (``benchmarks/marker_denoise.py --prior-source train|database``).
 
 Measured and not kept: a target diagonal in the shell energy's eigenbasis (the training
 energy per shell mode, correlations between modes dropped): noisy 0.555 mm at best on
 family a, because facial motion is not sparse in those modes; adding the shell prior
 (β = 1) to either learned prior made both clean and noisy results worse on family a
 (e.g. PPCA 3 %: noisy 0.564 → 0.583 mm), so :data:`SHELL_WEIGHT` is 0.
+
+Every marker-driven method takes its denoiser from one constructor,
+:func:`marker_denoiser` (σ = 0: exact interpolation; σ > 0: the learned prior's
+:class:`MarkerDenoiser`, or the shell prior's :class:`ShellDenoiser` for a model saved
+before the learned prior; ``"auto"``: :class:`AdaptiveDenoiser`, σ estimated per request by
+:func:`frame_noise`). For a performance of consecutive frames :func:`temporal_noise` is the
+sharper estimate; :func:`noise_confidence` turns an estimate into a confidence factor.
 
 The denoiser (:class:`MarkerDenoiser`) is the MAP estimate of the true displacements x
 from the visible noisy ones m (Gaussian noise σ per coordinate) under the product of this
@@ -64,7 +80,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.geometry.thin_shell import soft_handles
+from service.geometry.thin_shell import marker_noise_ratio, soft_handle_operator, soft_handles
 
 #: default floor δ of :meth:`MarkerPrior.fit_ppca`, a fraction of the mean per-coordinate
 #: training variance tr S / 3M (its best on family a, benchmarks/marker_denoise.py)
@@ -240,6 +256,11 @@ class MarkerDenoiser:
         Ainv = 0.5 * (Ainv + Ainv.T)
         return cls(prior, G, float(noise_mm), ratio, Ainv, Ainv @ b)
 
+    @property
+    def interpolates(self) -> bool:
+        """True when visible markers pass unchanged (σ = 0)."""
+        return self.noise_mm == 0
+
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """Denoised complete displacements (F,M,3) (or (M,3)) of marker displacements u,
         mm, NaN rows for occluded markers.
@@ -281,4 +302,323 @@ class MarkerDenoiser:
         return out[0] if single else out
 
 
-__all__ = ["FLOOR_FRACTION", "MarkerDenoiser", "MarkerPrior", "SHELL_WEIGHT"]
+@dataclass(frozen=True)
+class ShellDenoiser:
+    """Per-frame MAP marker displacements under the thin shell's energy alone (a model saved
+    before the learned prior existed, or σ = 0): :func:`~service.geometry.thin_shell.soft_handles`.
+
+    Attributes
+    ----------
+    energy : (M,M) float64          handle energy G of the thin shell
+    ratio : float                   λ = σ²/τ² ≥ 0 (0: exact interpolation, minimum-energy completion)
+    operator : (M,M) or None        ``(I + λG)⁻¹`` for frames with every marker (None when λ = 0)
+    """
+
+    energy: np.ndarray
+    ratio: float
+    operator: np.ndarray | None = None
+
+    @property
+    def interpolates(self) -> bool:
+        """True when visible markers pass unchanged (λ = 0, the papers' exact interpolation)."""
+        return self.ratio == 0
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """Denoised complete displacements, same shape as u (F,M,3) or (M,3), mm (NaN rows:
+        occluded markers)."""
+        return soft_handles(self.energy, u, self.ratio, self.operator)
+
+
+#: ``marker_noise_mm`` value asking for σ estimated per request (:class:`AdaptiveDenoiser`)
+AUTO = "auto"
+#: prior directions whose variance is at most this multiple of the median eigenvalue of C
+#: count as the prior's floor, where a frame's residual is noise (:func:`frame_noise`)
+FLOOR_DIRECTIONS = 1.5
+#: median of the χ²₁ distribution (scipy.stats.chi2.ppf(0.5, 1)): median(z²) = 0.4549 σ²
+#: for z ~ N(0, σ²)
+CHI2_1_MEDIAN = 0.45493642311957283
+#: σ (mm) of the near-exact fill of occluded markers before :func:`frame_noise` projects a
+#: frame (the prior's conditional mean of the occluded given the visible ones)
+FILL_NOISE_MM = 1e-3
+
+
+@dataclass(frozen=True)
+class PriorEigen:
+    """The eigendecomposition ``C = U diag(c) Uᵀ`` of a prior's covariance, so the MAP
+    estimate of :class:`MarkerDenoiser` is had for any σ without a (3M)×(3M) inverse:
+    ``P = (I + σ²Q)⁻¹ = U diag(w) Uᵀ`` with the Wiener gains ``w = c / (c + σ²)``, and for a
+    frame with every marker ``x = μ + U (w ∘ Uᵀ(m − μ))`` (two (3M)×(3M) products); occluded
+    coordinates by the same Woodbury update as :meth:`MarkerDenoiser.__call__`, on the rows
+    of P it needs, with ``I − P_UU = U_U diag(1 − w) U_Uᵀ`` computed without cancellation.
+    Equal to :class:`MarkerDenoiser`'s solve within rounding (tests: 1e-9 mm).
+
+    Attributes
+    ----------
+    mean : (3M,) float64        μ, mm
+    values : (3M,) float64      c, the eigenvalues of C (ascending, clipped at 0), mm²
+    vectors : (3M,3M) float64   U, orthonormal columns
+    """
+
+    mean: np.ndarray
+    values: np.ndarray
+    vectors: np.ndarray
+
+    @classmethod
+    def of(cls, prior: MarkerPrior) -> "PriorEigen":
+        c, U = np.linalg.eigh(prior.covariance)
+        return cls(prior.mean.ravel().copy(), np.clip(c, 0.0, None), np.ascontiguousarray(U))
+
+    def floor_directions(self) -> np.ndarray:
+        """(3M,k) the eigenvectors with eigenvalues ≤ :data:`FLOOR_DIRECTIONS` × their median."""
+        return np.ascontiguousarray(self.vectors[:, self.values <= FLOOR_DIRECTIONS * np.median(self.values)])
+
+    def map(self, u: np.ndarray, noise_mm: float) -> np.ndarray:
+        """MAP displacements (F,M,3) (or (M,3)) of head-aligned displacements u, mm, NaN rows
+        occluded, under noise σ = ``noise_mm`` > 0 (no shell term).
+
+        Raises
+        ------
+        ValueError   a frame with no visible marker; σ not > 0
+        """
+        if not (noise_mm > 0 and np.isfinite(noise_mm)):
+            raise ValueError(f"the MAP solve needs a finite σ > 0, got {noise_mm}")
+        u = np.asarray(u, np.float64)
+        single = u.ndim == 2
+        u = u[None] if single else u
+        n = len(self.mean)
+        if u.shape[1:] != (n // 3, 3):
+            raise ValueError(f"displacements must be (F,{n // 3},3), got {u.shape}")
+        s2 = float(noise_mm) ** 2
+        w = self.values / (self.values + s2)
+        U, mu = self.vectors, self.mean
+        F = len(u)
+        x = u.reshape(F, n)
+        missing = ~np.isfinite(u).all(axis=2)
+        full = ~missing.any(axis=1)
+        out = np.empty((F, n))
+        if full.any():
+            out[full] = mu + ((x[full] - mu) @ U * w) @ U.T
+        if (~full).any():
+            patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
+            frames = np.flatnonzero(~full)
+            for p, miss in enumerate(patterns):
+                if miss.all():
+                    raise ValueError("all markers are unknown; at least one is needed")
+                sel = frames[which.ravel() == p]
+                idx = np.flatnonzero(np.repeat(miss, 3))
+                y = mu + ((np.nan_to_num(x[sel]) - mu) @ U * w) @ U.T            # P (D_V m + b)
+                P_rows = (U[idx] * w) @ U.T                                       # P[idx]
+                S = (U[idx] * (s2 / (self.values + s2))) @ U[idx].T              # I − P[idx, idx]
+                out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P_rows
+        out = out.reshape(F, n // 3, 3)
+        return out[0] if single else out
+
+
+def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = None,
+                eigen: "PriorEigen | None" = None) -> np.ndarray:
+    """Per-frame marker noise σ̂ (F,), mm per coordinate, from each frame's residual against
+    the learned prior.
+
+    Estimator: project ``u − μ`` on the prior's *floor directions* (eigenvectors of C whose
+    eigenvalue is at most :data:`FLOOR_DIRECTIONS` × the median eigenvalue: the diagonal
+    floor δ, the directions the training never moved in; 345 of 450 on family a) and take
+    ``σ̂² = median_i z_i² / 0.4549`` (the median of χ²₁), i.e. the median absolute
+    deviation about zero of the coordinates there, ``σ̂ = 1.4826 · median_i |z_i|`` (Hampel
+    1974, the normal consistency factor 1/Φ⁻¹(3/4)). Assumptions: the noise is white, Gaussian, the same σ on every coordinate
+    and independent of the deformation, so it spreads evenly over all 3M directions, while
+    a face's deformation (smooth, low-dimensional) lies mostly in the prior's few leading
+    directions; what a held-out frame does outside the training span is concentrated in a
+    few smooth directions, which the median ignores (the mean would not: the Gaussian
+    marginal likelihood of σ, N(μ, C + σ²I), reads those as noise and gives family a's
+    clean in-range frames σ̂ up to 0.28 mm). Measured on family a's held-out frames
+    (prior of the training clips): σ = 0.3 mm noisy markers give per-frame medians 0.299 –
+    0.313 mm (p10–p90 0.28–0.41); clean markers 0.006 – 0.059 mm (p90 up to 0.26 mm on
+    in-range frames far from the training span). The estimate is per frame, in any frame
+    order, so it serves a single-frame request or a stream.
+
+    Occluded markers (NaN) are first filled by the prior's conditional mean given the
+    visible ones (a MAP solve at σ = :data:`FILL_NOISE_MM`), which carries no noise, so
+    σ̂² is divided by the visible fraction of the coordinates.
+
+    Parameters
+    ----------
+    prior : MarkerPrior
+    u : (F,M,3) or (M,3) float     head-aligned marker displacements, mm, NaN rows occluded
+    basis : (3M,k) float, optional  the floor directions (:func:`floor_directions`), precomputed
+    eigen : PriorEigen, optional    the prior's eigendecomposition (the fill), precomputed
+
+    Returns
+    -------
+    sigma : (F,) float64 (a float for one frame), mm
+    """
+    u = np.asarray(u, np.float64)
+    single = u.ndim == 2
+    u = u[None] if single else u
+    M = prior.n_markers
+    if u.shape[1:] != (M, 3):
+        raise ValueError(f"displacements must be (F,{M},3), got {u.shape}")
+    if basis is None or (eigen is None and not np.isfinite(u).all()):
+        eigen = PriorEigen.of(prior) if eigen is None else eigen
+        basis = eigen.floor_directions() if basis is None else basis
+    W = basis
+    visible = np.isfinite(u).all(axis=2)                                          # (F,M)
+    if not visible.all():
+        u = eigen.map(u, FILL_NOISE_MM)
+    z2 = ((u.reshape(len(u), 3 * M) - prior.mean.ravel()) @ W) ** 2              # (F,k)
+    s2 = np.median(z2, axis=1) / CHI2_1_MEDIAN / np.maximum(visible.mean(axis=1), 1.0 / M)
+    sigma = np.sqrt(s2)
+    return float(sigma[0]) if single else sigma
+
+
+def floor_directions(prior: MarkerPrior) -> np.ndarray:
+    """The prior's floor directions (3M,k): orthonormal eigenvectors of C with eigenvalues at
+    most :data:`FLOOR_DIRECTIONS` × their median (see :func:`frame_noise`)."""
+    return PriorEigen.of(prior).floor_directions()
+
+
+def temporal_noise(u: np.ndarray) -> float:
+    """Marker noise σ̂ (mm per coordinate) of a performance of consecutive frames (F,M,3),
+    F ≥ 3, head-aligned, NaN rows occluded: the robust MAD of its temporal second
+    differences, ``σ̂ = 1.4826 · median |u_{t+1} − 2u_t + u_{t−1}| / √6``.
+
+    Assumptions: noise white in time and space, Gaussian, σ the same everywhere (then a
+    second difference carries variance (1 + 4 + 1) σ² = 6σ²; 1.4826 is the normal
+    consistency factor of the MAD, Hampel 1974), and motion smooth at the capture rate (a
+    second difference of the deformation itself small against √6 σ for most markers, which
+    the median then ignores). Measured on family a's held-out performances at 30 frames/s:
+    0.296 – 0.300 mm for σ = 0.3, 0.004 – 0.007 mm for clean markers. It needs consecutive
+    frames: on frames far apart it measures the motion (a benchmark's subsampled frames,
+    a stream's single frames), where :func:`frame_noise` serves.
+    """
+    u = np.asarray(u, np.float64)
+    if u.ndim != 3 or len(u) < 3:
+        raise ValueError(f"need (F,M,3) with F >= 3 consecutive frames, got {u.shape}")
+    d2 = np.abs(u[2:] - 2.0 * u[1:-1] + u[:-2])
+    d2 = d2[np.isfinite(d2)]
+    if not d2.size:
+        raise ValueError("no marker is visible in three consecutive frames")
+    return float(1.4826 * np.median(d2) / np.sqrt(6.0))
+
+
+def noise_confidence(prior: MarkerPrior, sigma: np.ndarray) -> np.ndarray:
+    """The fraction of the marker space the markers still determine over noise σ (…), mm:
+    ``tr(C (C + σ² I)⁻¹) / 3M`` in [0, 1], the effective degrees of freedom of the MAP
+    (Wiener) filter over its dimension (the ridge hat-matrix trace, Hastie, Tibshirani &
+    Friedman, *Elements of Statistical Learning*, eq. 3.50). 1 at σ = 0; on family a's
+    prior 0.25 at σ = 0.3 mm (the floor directions, variance δ ≈ (0.16 mm)², are then
+    mostly noise)."""
+    c = np.clip(np.linalg.eigvalsh(prior.covariance), 0.0, None)
+    s2 = np.asarray(sigma, np.float64)[..., None] ** 2
+    return (c / np.maximum(c + s2, 1e-300)).mean(axis=-1)
+
+
+@dataclass(frozen=True)
+class AdaptiveDenoiser:
+    """The MAP denoiser of :class:`MarkerDenoiser` with σ estimated per request
+    (``marker_noise_mm = "auto"``).
+
+    Per call (one request: a frame, a batch or a whole performance) the per-frame noise
+    σ̂_f is :func:`frame_noise`, the request's σ is their median (capture noise is a property
+    of the capture, not of a frame; the median keeps a few frames far from the training span
+    from raising it), floored at :data:`FILL_NOISE_MM` (so occluded markers are always
+    completed by the prior), and the displacements are :class:`MarkerDenoiser`'s MAP
+    estimate for that σ, by the prior's eigendecomposition (:class:`PriorEigen`: no inverse
+    per request; two (3M)×(3M) products per frame with every marker).
+
+    Attributes
+    ----------
+    prior : MarkerPrior
+    energy : (M,M) float64      handle energy G of the thin shell (kept beside the prior)
+    eigen : PriorEigen          the prior's eigendecomposition
+    basis : (3M,k) float64      the prior's floor directions (:func:`floor_directions`)
+    """
+
+    prior: MarkerPrior
+    energy: np.ndarray
+    eigen: PriorEigen
+    basis: np.ndarray
+
+    @classmethod
+    def build(cls, prior: MarkerPrior, energy: np.ndarray) -> "AdaptiveDenoiser":
+        eigen = PriorEigen.of(prior)
+        return cls(prior, np.asarray(energy, np.float64), eigen, eigen.floor_directions())
+
+    #: visible markers are denoised (σ̂ > 0 in practice)
+    interpolates = False
+
+    def frame_noise(self, u: np.ndarray) -> np.ndarray:
+        """σ̂ (F,) mm of head-aligned displacements u (F,M,3) (:func:`frame_noise`)."""
+        return frame_noise(self.prior, u, self.basis, self.eigen)
+
+    def request_noise(self, u: np.ndarray) -> float:
+        """σ̂ (mm) of a request: the median of its frames' :meth:`frame_noise`."""
+        u = np.asarray(u, np.float64)
+        return float(np.median(self.frame_noise(u[None] if u.ndim == 2 else u)))
+
+    def fixed(self, noise_mm: float) -> "FixedNoise":
+        """The MAP denoiser of this prior for one request's σ = ``noise_mm`` (floored at
+        :data:`FILL_NOISE_MM`)."""
+        return FixedNoise(self.eigen, max(float(noise_mm), FILL_NOISE_MM))
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """MAP displacements for the request's σ̂, same shape as u (F,M,3) or (M,3), mm."""
+        return self.fixed(self.request_noise(u))(u)
+
+
+@dataclass(frozen=True)
+class FixedNoise:
+    """The MAP denoiser of a prior (:class:`PriorEigen`) at one request's estimated σ (mm):
+    ``u (F,M,3) → x (F,M,3)`` (:meth:`PriorEigen.map`)."""
+
+    eigen: PriorEigen
+    noise_mm: float
+    #: visible markers are denoised
+    interpolates = False
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        return self.eigen.map(u, self.noise_mm)
+
+
+def marker_denoiser(energy: np.ndarray, noise_mm: "float | str", prior_scale_mm: float,
+                    prior: MarkerPrior | None = None) -> "MarkerDenoiser | ShellDenoiser | AdaptiveDenoiser":
+    """The per-frame marker denoiser every marker-driven method uses (issue 17): a callable
+    taking head-aligned marker displacements u (F,M,3) or (M,3), mm, NaN rows for occluded
+    markers, to complete handle displacements of the same shape.
+
+    * σ = ``noise_mm`` = 0: the papers' exact interpolation with minimum-energy completion
+      (:class:`ShellDenoiser`, λ = 0);
+    * σ > 0 with a learned ``prior``: its MAP estimate (:class:`MarkerDenoiser`, no shell term);
+    * σ > 0 without one (a model saved before the learned prior existed): the shell prior's
+      soft constraints, λ = σ²/τ² with τ = ``prior_scale_mm``
+      (:func:`~service.geometry.thin_shell.marker_noise_ratio`, :class:`ShellDenoiser` with
+      its precomputed operator);
+    * σ = :data:`AUTO` (``"auto"``): σ estimated per request from the markers' residual
+      against the learned prior (:class:`AdaptiveDenoiser`).
+
+    Parameters
+    ----------
+    energy : (M,M) float      handle energy G of the thin shell (:func:`handle_energy_matrix`)
+    noise_mm : float or "auto"   σ ≥ 0 per coordinate, mm
+    prior_scale_mm : float    the shell prior's scale τ, mm (NaN allowed when σ = 0 or auto)
+    prior : MarkerPrior, optional
+
+    Raises
+    ------
+    ValueError   σ > 0 with a τ that is not finite and > 0; "auto" without a learned prior
+    """
+    if noise_mm == AUTO:
+        if prior is None:
+            raise ValueError('marker_noise_mm = "auto" needs a learned marker prior')
+        return AdaptiveDenoiser.build(prior, energy)
+    ratio = 0.0 if noise_mm == 0 else marker_noise_ratio(noise_mm, prior_scale_mm)
+    if ratio == 0:
+        return ShellDenoiser(energy, 0.0)
+    if prior is not None:
+        return MarkerDenoiser.build(prior, energy, noise_mm, prior_scale_mm)
+    return ShellDenoiser(energy, ratio, soft_handle_operator(energy, ratio))
+
+
+__all__ = ["AUTO", "AdaptiveDenoiser", "FLOOR_FRACTION", "FixedNoise", "MarkerDenoiser", "MarkerPrior",
+           "PriorEigen", "SHELL_WEIGHT",
+           "ShellDenoiser", "floor_directions", "frame_noise", "marker_denoiser", "noise_confidence",
+           "temporal_noise"]

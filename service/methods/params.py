@@ -19,9 +19,9 @@ for a number (``"125"`` is not 125, ``1`` is not ``true``).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, TypeAdapter, ValidationError
 
 from service.errors import InvalidInput, field_errors
 
@@ -58,14 +58,35 @@ class MethodParams(BaseModel):
 
 #: default ``marker_noise_mm`` (see :class:`MarkerParams`)
 MARKER_NOISE_MM = 0.0
+#: the ``marker_noise_mm`` value that estimates σ per request
+#: (:data:`service.geometry.marker_prior.AUTO`)
+MARKER_NOISE_AUTO = "auto"
+#: bounds of a numeric ``marker_noise_mm``, mm
+MARKER_NOISE_RANGE = (0.0, 5.0)
+_NOISE_NUMBER = TypeAdapter(Annotated[float, Field(ge=MARKER_NOISE_RANGE[0], le=MARKER_NOISE_RANGE[1],
+                                                   allow_inf_nan=False)])
+
+
+def _marker_noise(value: Any) -> float | str:
+    """``marker_noise_mm``: "auto" or a finite number in :data:`MARKER_NOISE_RANGE` (one error,
+    located at the field, for anything else)."""
+    if value == MARKER_NOISE_AUTO:
+        return MARKER_NOISE_AUTO
+    try:
+        return _NOISE_NUMBER.validate_python(value)
+    except ValidationError:
+        raise ValueError(f'must be "{MARKER_NOISE_AUTO}" or a finite number from {MARKER_NOISE_RANGE[0]:g} '
+                         f'to {MARKER_NOISE_RANGE[1]:g} (mm)') from None
 
 
 class MarkerParams(MethodParams):
     """Parameters of every method driven by markers: the base of their params models, so the
     marker-noise field is declared once (issue 17)."""
 
-    marker_noise_mm: float = Field(
-        default=MARKER_NOISE_MM, ge=0, le=5, allow_inf_nan=False,
+    marker_noise_mm: Annotated[float | str, PlainValidator(
+        _marker_noise, json_schema_input_type=Annotated[float, Field(ge=MARKER_NOISE_RANGE[0], le=MARKER_NOISE_RANGE[1])]
+        | Literal["auto"])] = Field(
+        default=MARKER_NOISE_MM,
         description="Assumed noise of the input markers, σ per coordinate in the actor's unit "
                     "(mm). 0 (default) interpolates the markers exactly, as the papers do; "
                     "σ > 0 makes them soft constraints: the handles are the MAP estimate "
@@ -74,6 +95,10 @@ class MarkerParams(MethodParams):
                     "covariance, stored with the model; models trained before it use the "
                     "thin-shell energy as the prior), and every feature is computed from the "
                     "denoised markers. Used in training and synthesis alike. Set it to the "
-                    "capture's noise level (e.g. 0.3 for ordinary optical mocap). For whole "
-                    "performances, see also the synthesis job's `marker_filter_frames`.",
-        examples=[0.0, 0.3])
+                    "capture's noise level (e.g. 0.3 for ordinary optical mocap). \"auto\" "
+                    "estimates σ per request (each frame's residual against the learned prior "
+                    "in the directions the training never moved in, the request's median), "
+                    "denoises with it and lowers each frame's confidence by its own estimate "
+                    "(pdm). For whole performances, see also the synthesis job's "
+                    "`marker_filter_frames`.",
+        examples=[0.0, 0.3, "auto"])

@@ -3,7 +3,10 @@
 import numpy as np
 import pytest
 
-from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior, gaspari_cohn
+from service.geometry.marker_prior import (
+    AdaptiveDenoiser, MarkerDenoiser, MarkerPrior, ShellDenoiser, floor_directions, frame_noise, gaspari_cohn,
+    marker_denoiser, noise_confidence, temporal_noise,
+)
 from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handles
 
 
@@ -129,3 +132,78 @@ def test_tapered_covariance_keeps_near_and_drops_far_correlations_and_round_trip
     assert MarkerPrior.from_arrays({}) is None
     with pytest.raises(ValueError, match="at least 2 frames"):
         MarkerPrior.fit_tapered(train[:1], rest)
+
+
+def test_frame_noise_recovers_a_known_sigma_per_frame_with_and_without_occlusion():
+    """Seeded synthetic markers (held-out one-sided, combined and amplified deformations)
+    plus white noise of known σ: every frame's estimate is within 30 % of σ and the
+    request's median within 3 % (measured: medians 0.101 / 0.297 / 0.997 for σ 0.1 / 0.3 /
+    1.0; per-frame extremes 0.75σ–1.26σ), occluded bursts included; clean markers give
+    ~0 (they lie in the prior's span)."""
+    rest, G, train, test, rng = _data()
+    prior = MarkerPrior.fit_tapered(train, rest)
+    W = floor_directions(prior)
+    assert W.shape == (3 * len(rest), 155) and np.allclose(W.T @ W, np.eye(155), atol=1e-12)
+    for sigma in (0.1, 0.3, 1.0):
+        noisy = test + rng.normal(scale=sigma, size=test.shape)
+        for u in (noisy, np.where(np.arange(len(rest))[None, :, None] // 4 == 2, np.nan, noisy)):
+            s = frame_noise(prior, u, W)
+            assert s.shape == (len(test),)
+            assert np.all(np.abs(s / sigma - 1) < 0.3), (sigma, s.min(), s.max())
+            assert np.median(s) == pytest.approx(sigma, rel=0.03)
+        assert frame_noise(prior, noisy[0]) == pytest.approx(frame_noise(prior, noisy)[0], rel=1e-12)
+    assert frame_noise(prior, test).max() < 1e-6
+
+
+def test_temporal_noise_recovers_a_known_sigma_of_a_smooth_performance():
+    """A 90-frame, 30 frames/s performance of smooth expression curves plus white noise σ:
+    the MAD of second differences gives σ within 3 % (measured 0.0986 / 0.2962 for 0.1 /
+    0.3) and < 0.002 mm on the clean performance; too short or empty input is refused."""
+    rest, _, _, _, rng = _data()
+    left, right, mid = _modes(rest, [(15.0, 20.0), (55.0, 20.0), (35.0, 55.0)])
+    t = np.arange(90) / 30.0
+    amp = np.stack([0.5 * (1 - np.cos(2 * np.pi * t / 3)), 0.5 * (1 - np.cos(2 * np.pi * t / 2)),
+                    0.3 * np.sin(2 * np.pi * t / 4) ** 2], axis=1)
+    perf = np.einsum("fk,kmd->fmd", amp, np.stack([left, right, mid]))
+    assert temporal_noise(perf) < 0.002
+    for sigma in (0.1, 0.3):
+        noisy = perf + rng.normal(scale=sigma, size=perf.shape)
+        assert temporal_noise(noisy) == pytest.approx(sigma, rel=0.03)
+        noisy[10:20, :5] = np.nan                                  # occlusion drops out
+        assert temporal_noise(noisy) == pytest.approx(sigma, rel=0.03)
+    with pytest.raises(ValueError):
+        temporal_noise(perf[:2])
+
+
+def test_noise_confidence_is_the_wiener_filters_degrees_of_freedom_fraction():
+    """Hand-computed on C = diag(1, 3, 0.25): σ = 1 gives (1/2 + 3/4 + 1/5) / 3 = 0.48333…;
+    σ = 0 gives 1."""
+    prior = MarkerPrior(np.zeros((1, 3)), np.diag([1.0, 3.0, 0.25]))
+    np.testing.assert_allclose(noise_confidence(prior, np.array([0.0, 1.0])), [1.0, (0.5 + 0.75 + 0.2) / 3],
+                               rtol=1e-14)
+
+
+def test_marker_denoiser_picks_one_rule_for_every_method():
+    """σ = 0: exact interpolation (soft_handles at λ = 0, bit for bit); σ > 0 with a prior:
+    MarkerDenoiser.build's solve; without one: the shell prior's soft constraints; "auto":
+    the MAP solve at the request's median per-frame estimate; "auto" needs a prior."""
+    rest, G, train, test, rng = _data(3)
+    prior = MarkerPrior.fit_tapered(train, rest)
+    u = test[:6] + rng.normal(scale=0.3, size=test[:6].shape)
+    u[1, [4, 9]] = np.nan
+    exact = marker_denoiser(G, 0.0, np.nan, prior)
+    assert isinstance(exact, ShellDenoiser) and exact.interpolates
+    np.testing.assert_array_equal(exact(u), soft_handles(G, u, 0.0))
+    learned = marker_denoiser(G, 0.3, 2.0, prior)
+    assert isinstance(learned, MarkerDenoiser) and not learned.interpolates
+    np.testing.assert_array_equal(learned(u), MarkerDenoiser.build(prior, G, 0.3, 2.0)(u))
+    shell = marker_denoiser(G, 0.3, 2.0)
+    np.testing.assert_array_equal(shell(u), soft_handles(G, u, marker_noise_ratio(0.3, 2.0), shell.operator))
+    auto = marker_denoiser(G, "auto", np.nan, prior)
+    assert isinstance(auto, AdaptiveDenoiser) and not auto.interpolates
+    sigma = auto.request_noise(u)
+    assert sigma == pytest.approx(float(np.median(frame_noise(prior, u))), rel=1e-12)
+    assert sigma == pytest.approx(0.3, rel=0.1)
+    np.testing.assert_allclose(auto(u), MarkerDenoiser.build(prior, G, sigma, np.nan, 0.0)(u), atol=1e-9)
+    with pytest.raises(ValueError, match="learned marker prior"):
+        marker_denoiser(G, "auto", np.nan)

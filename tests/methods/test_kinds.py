@@ -133,3 +133,23 @@ def test_pose_space_kinds_train_their_own_method():
     assert kinds.get_kind("wpsd").parse_params(None).method == "wpsd"
     with pytest.raises(ValidationError):
         kinds.get_kind("psd").parse_params({"alpha_threshold": 0.1})   # a WPSD parameter
+
+
+def test_marker_noise_is_a_number_or_auto_with_one_error_at_the_field():
+    """marker_noise_mm (declared once on MarkerParams): a number in [0, 5] mm or "auto";
+    anything else is one error located at the field; pose space's posterior refuses auto."""
+    for name in ("pdm", "shape_space"):
+        kind = kinds.get_kind(name)
+        assert kind.parse_params({"marker_noise_mm": "auto"}).marker_noise_mm == "auto"
+        assert kind.parse_params({"marker_noise_mm": 0.3}).marker_noise_mm == 0.3
+        for bad in ("x", 6, -1, "nan"):
+            with pytest.raises(ValidationError) as info:
+                kind.parse_params({"marker_noise_mm": bad})
+            assert [e["loc"] for e in info.value.errors()] == [("marker_noise_mm",)]
+        prop = kind.params.model_json_schema()["properties"]["marker_noise_mm"]
+        assert {"maximum": 5.0, "minimum": 0.0, "type": "number"} in prop["anyOf"]
+        assert {"const": "auto", "type": "string"} in prop["anyOf"]
+    wpsd = kinds.get_kind("wpsd")
+    assert wpsd.parse_params({"marker_noise_mm": "auto", "marker_prior": "none"}).marker_noise_mm == "auto"
+    with pytest.raises(ValidationError, match="marker_prior"):
+        wpsd.parse_params({"marker_noise_mm": "auto"})

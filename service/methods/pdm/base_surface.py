@@ -33,7 +33,11 @@ positions every feature is computed from are the denoised ones
 carries a learned marker prior (fitted on the aligned training markers by
 :meth:`BaseSurface.with_marker_noise`, :mod:`service.geometry.marker_prior`), the MAP
 estimate is under that prior instead (:class:`~service.geometry.marker_prior.MarkerDenoiser`);
-a model saved before the prior existed has none and keeps the shell-prior estimate.
+a model saved before the prior existed has none and keeps the shell-prior estimate. The
+choice is :func:`~service.geometry.marker_prior.marker_denoiser`'s, shared with shape space's
+marker shell. With ``marker_noise_mm = "auto"`` σ is estimated per request from the markers'
+residual against the learned prior (:class:`~service.geometry.marker_prior.AdaptiveDenoiser`,
+:meth:`BaseSurface.with_noise_estimate`).
 """
 
 from __future__ import annotations
@@ -46,12 +50,11 @@ import numpy as np
 
 from service.errors import InvalidInput
 from service.geometry.curvature_flow import LAMBDA_DT, frequency_separation
-from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
+from service.geometry.marker_prior import AUTO, MarkerDenoiser, MarkerPrior, ShellDenoiser, marker_denoiser
 from service.geometry.rigid import MIN_POINTS, rigid_align, stability_weights_from_rms
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
-    KB, KS, apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale,
-    soft_handle_operator, soft_handles, thin_shell_basis,
+    KB, KS, apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, thin_shell_basis,
 )
 
 #: a frame needs at least this many visible markers (rigid fit and thin shell)
@@ -196,13 +199,14 @@ class BaseSurface:
     basis : (n,M) float32      thin-shell basis B (Fortran order)
     energy : (M,M) float64     handle energy G = BᵀKB, for exact completion of missing markers
     frame_field : FrameField   per-pose tangent frames (weights from X̄)
-    noise_mm : float           assumed marker noise σ per coordinate, mm (0: interpolation)
+    noise_mm : float or "auto" assumed marker noise σ per coordinate, mm (0: interpolation;
+                               "auto": estimated per request)
     prior_scale_mm : float     shell prior scale τ, mm (:func:`shell_prior_scale`; NaN unset)
-    soft_operator : (M,M)      ``(I + λG)⁻¹``, λ = σ²/τ², for frames with every marker
-                               (None when σ = 0)
     marker_prior : MarkerPrior learned prior over the aligned marker displacements (None:
                                the shell prior alone)
-    denoiser : MarkerDenoiser  its MAP solve for σ (None when σ = 0 or without a prior)
+    denoise : callable         u (F,M,3) → u_H (F,M,3), the marker denoiser of σ, τ and the
+                               prior (:func:`~service.geometry.marker_prior.marker_denoiser`;
+                               None at construction: exact interpolation)
     """
 
     smooth: np.ndarray
@@ -214,9 +218,12 @@ class BaseSurface:
     frame_field: FrameField
     noise_mm: float = 0.0
     prior_scale_mm: float = float("nan")
-    soft_operator: np.ndarray | None = None
     marker_prior: MarkerPrior | None = None
-    denoiser: MarkerDenoiser | None = None
+    denoise: MarkerDenoiser | ShellDenoiser | None = None
+
+    def __post_init__(self):
+        if self.denoise is None:
+            self.denoise = ShellDenoiser(self.energy, 0.0)
 
     @classmethod
     def build(cls, V: np.ndarray, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
@@ -242,13 +249,22 @@ class BaseSurface:
 
     @property
     def noise_ratio(self) -> float:
-        """λ = σ²/τ² of the soft marker constraints (0: the paper's exact interpolation)."""
+        """λ = σ²/τ² of the soft marker constraints (0: the paper's exact interpolation; NaN
+        for σ estimated per request, ``"auto"``)."""
+        if self.noise_mm == AUTO:
+            return float("nan")
         return 0.0 if self.noise_mm == 0 else marker_noise_ratio(self.noise_mm, self.prior_scale_mm)
 
-    def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None = None,
+    @property
+    def denoiser(self) -> MarkerDenoiser | None:
+        """The learned prior's MAP solve (None when σ = 0 or without a learned prior)."""
+        return self.denoise if isinstance(self.denoise, MarkerDenoiser) else None
+
+    def with_marker_noise(self, noise_mm: float | str, prior_scale_mm: float | None = None,
                           samples: np.ndarray | None = None,
                           marker_prior: MarkerPrior | None = None) -> "BaseSurface":
-        """This base with soft marker constraints for noise σ = ``noise_mm`` (mm).
+        """This base with soft marker constraints for noise σ = ``noise_mm`` (mm; ``"auto"``:
+        estimated per request, :class:`~service.geometry.marker_prior.AdaptiveDenoiser`).
 
         The prior scale τ is ``prior_scale_mm`` (a stored model's) or estimated from
         ``samples``, aligned training markers (F,M,3) (:func:`shell_prior_scale` of their
@@ -261,25 +277,26 @@ class BaseSurface:
         ------
         ValueError   σ > 0 without a prior scale or samples; σ negative
         """
+        noise_mm = noise_mm if noise_mm == AUTO else float(noise_mm)
         if prior_scale_mm is None or not np.isfinite(prior_scale_mm):
             if samples is None:
-                if noise_mm:
+                if noise_mm and noise_mm != AUTO:
                     raise ValueError("soft marker constraints need the prior scale or samples")
                 prior_scale_mm = float("nan")
             else:
-                exact = dataclasses.replace(self, noise_mm=0.0, soft_operator=None, denoiser=None)
+                exact = dataclasses.replace(self, noise_mm=0.0, denoise=ShellDenoiser(self.energy, 0.0))
                 prior_scale_mm = shell_prior_scale(self.energy, exact.handle_displacements(samples))
         if marker_prior is None and samples is not None:
             marker_prior = MarkerPrior.fit_tapered(np.asarray(samples, np.float64) - self.rest_markers,
                                                    self.rest_markers)
-        out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=float(prior_scale_mm),
-                                  soft_operator=None, marker_prior=marker_prior, denoiser=None)
-        if out.noise_ratio > 0:
-            if marker_prior is None:
-                out.soft_operator = soft_handle_operator(self.energy, out.noise_ratio)
-            else:
-                out.denoiser = MarkerDenoiser.build(marker_prior, self.energy, out.noise_mm, out.prior_scale_mm)
-        return out
+        return dataclasses.replace(
+            self, noise_mm=noise_mm, prior_scale_mm=float(prior_scale_mm), marker_prior=marker_prior,
+            denoise=marker_denoiser(self.energy, noise_mm, float(prior_scale_mm), marker_prior))
+
+    def with_noise_estimate(self, noise_mm: float) -> "BaseSurface":
+        """This base (``marker_noise_mm = "auto"``) with the denoiser of one request's
+        estimated σ = ``noise_mm`` (:meth:`~service.geometry.marker_prior.AdaptiveDenoiser.fixed`)."""
+        return dataclasses.replace(self, denoise=self.denoise.fixed(noise_mm))
 
     def handle_displacements(self, aligned: np.ndarray) -> np.ndarray:
         """u_H (F,M,3) of aligned markers (F,M,3): the markers' displacements, missing rows
@@ -287,16 +304,13 @@ class BaseSurface:
         learned marker prior (:class:`~service.geometry.marker_prior.MarkerDenoiser`) or,
         without one, of the shell's soft constraints
         (:func:`~service.geometry.thin_shell.soft_handles`)."""
-        u = np.asarray(aligned, dtype=np.float64) - self.rest_markers
-        if self.denoiser is not None:
-            return self.denoiser(u)
-        return soft_handles(self.energy, u, self.noise_ratio, self.soft_operator)
+        return self.denoise(np.asarray(aligned, dtype=np.float64) - self.rest_markers)
 
     def denoised_markers(self, aligned: np.ndarray, u_H: np.ndarray) -> np.ndarray:
         """Aligned marker positions (F,M,3) the features are computed from: ``P_ref + u_H``
         where a marker is visible in ``aligned`` (F,M,3), NaN where it is occluded (so it
         drops out of strains as before); ``aligned`` itself when σ = 0."""
-        if self.noise_ratio == 0:
+        if self.denoise.interpolates:
             return aligned
         visible = np.isfinite(np.asarray(aligned)).all(axis=-1, keepdims=True)
         return np.where(visible, self.rest_markers + u_H, np.nan)

@@ -58,6 +58,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from service.geometry.laplacian import triangle_areas
+from service.geometry.marker_prior import AdaptiveDenoiser, noise_confidence
 from service.geometry.normal_map import NormalMapper
 from service.geometry.thin_shell import thin_shell_basis
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
@@ -355,12 +356,31 @@ class PdmEvaluator:
         return ValidityData(v.hull, {k: _unpermute(e, self.orders[k]) for k, e in v.envelope.items()}, v.sectors,
                             v.sector_box)
 
-    def deformation(self, markers: np.ndarray) -> tuple[HeadPose, np.ndarray, np.ndarray]:
-        """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers."""
-        pose = head_alignment(markers, self.base.rest_markers, self.data.pose_weights)
+    def deformation(self, markers: np.ndarray, base: BaseSurface | None = None
+                    ) -> tuple[HeadPose, np.ndarray, np.ndarray]:
+        """Head pose, complete handle displacements u_H (F,M,3) and S (F,M,5) of world markers
+        (F,M,3), denoised by ``base`` (default this evaluator's; a request's
+        :meth:`request_base` when σ is estimated per request)."""
+        base = self.base if base is None else base
+        pose = head_alignment(markers, base.rest_markers, self.data.pose_weights)
         aligned = pose.remove(markers)
-        u_H = self.base.handle_displacements(aligned)
-        return pose, u_H, deformation_vectors(self.data.mesh, self.base.denoised_markers(aligned, u_H), offsets=u_H)
+        u_H = base.handle_displacements(aligned)
+        return pose, u_H, deformation_vectors(self.data.mesh, base.denoised_markers(aligned, u_H), offsets=u_H)
+
+    def request_base(self, markers: np.ndarray) -> tuple[BaseSurface, np.ndarray | None]:
+        """The base surface a request of world markers (F,M,3) is denoised with, and the
+        per-frame noise estimates σ̂ (F,) mm: this evaluator's base and None unless
+        ``marker_noise_mm = "auto"``, where σ is estimated once over the whole request
+        (:class:`~service.geometry.marker_prior.AdaptiveDenoiser`: the median of the frames'
+        σ̂, so frame chunks share one σ).
+
+        Raises :class:`TooFewMarkers` for a frame with too few visible markers."""
+        if not isinstance(self.base.denoise, AdaptiveDenoiser):
+            return self.base, None
+        pose = head_alignment(markers, self.base.rest_markers, self.data.pose_weights)
+        u = pose.remove(markers) - self.base.rest_markers
+        sigma = self.base.denoise.frame_noise(u)
+        return self.base.with_noise_estimate(float(np.median(sigma))), sigma
 
     def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
                        lookup: SectorLookup | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
@@ -534,7 +554,12 @@ class PdmModel:
         call); ``confidence`` (F,) and ``confidence_vertices`` (F,n)
         (:mod:`service.methods.confidence`, :meth:`.validity.Validity.confidence`). With
         ``clamp`` the detail outside the hull is continued and faded to the neutral's
-        (:mod:`.validity`); without, the raw polynomial.
+        (:mod:`.validity`); without, the raw polynomial. With ``marker_noise_mm = "auto"``
+        the request's markers are denoised with σ estimated over the request
+        (:meth:`PdmEvaluator.request_base`), and each frame's confidence (per frame and per
+        vertex) is multiplied by its own noise estimate's
+        :func:`~service.geometry.marker_prior.noise_confidence` (the fraction of the marker
+        space the markers still determine over that noise); the fade stays the validity's.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -569,10 +594,16 @@ class PdmModel:
         valid = ev.validity
         margin = d.params.extrapolation_margin if clamp and valid is None else None
         fine = bool(want & {"displacement", "normal_map", "mesh_detailed"})
+        try:
+            base, sigma = ev.request_base(markers)
+        except TooFewMarkers as e:
+            raise InvalidInput(f"frame {e.frame} has {e.visible} visible markers, at "
+                               f"least {e.required} are needed") from None
+        noise_conf = None if sigma is None else noise_confidence(base.marker_prior, sigma)
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             try:
-                pose, u_H, S = ev.deformation(markers[sl])
+                pose, u_H, S = ev.deformation(markers[sl], base)
             except TooFewMarkers as e:
                 raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
                                    f"least {e.required} are needed") from None
@@ -583,6 +614,9 @@ class PdmModel:
             if rho is not None:
                 out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
+            if noise_conf is not None:
+                out[CONFIDENCE][sl] *= noise_conf[sl].astype(np.float32)
+                out[VERTEX_CONFIDENCE][sl] *= noise_conf[sl, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal, Union
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from service.methods.params import MarkerParams
 
@@ -126,6 +126,15 @@ class PoseSpaceParams(MarkerParams):
         default=4096, ge=16,
         description="Vertices (an even stride over the mesh) on which WPSD's greedy basis "
                     "selection and the smoothing validation measure the fit error.")
+
+    @model_validator(mode="after")
+    def _auto_noise_needs_markers_as_given(self):
+        # the posterior splits the markers into two parts denoised apart: a σ estimated per
+        # request would be estimated twice, on neither part's noise
+        if self.marker_noise_mm == "auto" and self.marker_prior == "posterior":
+            raise ValueError('marker_noise_mm = "auto" needs marker_prior = "none" (the posterior '
+                             'already filters the markers with validation_noise_mm)')
+        return self
 
 
 class PsdParams(PoseSpaceParams):

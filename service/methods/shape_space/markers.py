@@ -39,12 +39,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.geometry.closest_point import surface_points
-from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
+from service.geometry.marker_prior import (
+    AUTO, AdaptiveDenoiser, MarkerDenoiser, MarkerPrior, ShellDenoiser, marker_denoiser,
+)
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
-    apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, soft_handle_operator,
-    soft_handles, thin_shell_basis,
+    apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, thin_shell_basis,
 )
 from service.methods.inputs import InvalidInput
 from service.methods.pdm.base_surface import MIN_VISIBLE_MARKERS, handle_vertices
@@ -62,12 +63,11 @@ class MarkerShell:
     rest : (M,3) float64      the markers on the neutral, mm
     weights : (M,) float64    head-alignment weights of the markers
     noise_mm : float          assumed marker noise σ, mm: soft marker constraints when > 0
-                              (the same MAP solve as the PDM's base surface,
-                              :func:`~service.geometry.thin_shell.soft_handles`)
     prior_scale_mm : float    the shell prior's scale τ, mm (:meth:`prior_scale`)
-    operator : (M,M) or None  ``(I + λG)⁻¹`` for fully visible frames, λ = σ²/τ²
-    denoiser : MarkerDenoiser or None   the MAP solve under a learned marker prior
-                              (:meth:`learned_prior`) for σ, used instead of the shell prior
+    denoise : callable        u (M,3) → u_H (M,3), the marker denoiser of σ, τ and the learned
+                              prior (:meth:`learned_prior`), the same as the PDM's base
+                              surface (:func:`~service.geometry.marker_prior.marker_denoiser`;
+                              None at construction: exact interpolation)
     """
 
     neutral: np.ndarray
@@ -77,8 +77,11 @@ class MarkerShell:
     weights: np.ndarray
     noise_mm: float = 0.0
     prior_scale_mm: float = float("nan")
-    operator: np.ndarray | None = None
-    denoiser: MarkerDenoiser | None = None
+    denoise: MarkerDenoiser | ShellDenoiser | None = None
+
+    def __post_init__(self):
+        if self.denoise is None:
+            object.__setattr__(self, "denoise", ShellDenoiser(self.energy, 0.0))
 
     @classmethod
     def build(cls, neutral: np.ndarray, faces: np.ndarray, marker_triangle: np.ndarray,
@@ -97,34 +100,32 @@ class MarkerShell:
     @property
     def noise_ratio(self) -> float:
         """λ = σ²/τ² (0: exact interpolation)."""
+        if self.noise_mm == AUTO:
+            return float("nan")
         return 0.0 if self.noise_mm == 0 else marker_noise_ratio(self.noise_mm, self.prior_scale_mm)
 
-    def with_marker_noise(self, noise_mm: float, prior_scale_mm: float | None,
+    @property
+    def denoiser(self) -> MarkerDenoiser | None:
+        """The learned prior's MAP solve (None when σ = 0 or without a learned prior)."""
+        return self.denoise if isinstance(self.denoise, MarkerDenoiser) else None
+
+    def with_marker_noise(self, noise_mm: float | str, prior_scale_mm: float | None,
                           marker_prior: MarkerPrior | None = None) -> "MarkerShell":
         """This shell with soft marker constraints for noise σ = ``noise_mm`` and prior scale
         τ = ``prior_scale_mm`` (mm); σ = 0 interpolates exactly (τ may then be None). With a
         learned ``marker_prior`` (:meth:`learned_prior`) the handles are its MAP estimate
         (:class:`~service.geometry.marker_prior.MarkerDenoiser`), else the shell prior's."""
         tau = float("nan") if prior_scale_mm is None else float(prior_scale_mm)
-        if noise_mm and not np.isfinite(tau):
+        noise_mm = noise_mm if noise_mm == AUTO else float(noise_mm)
+        if noise_mm and noise_mm != AUTO and not np.isfinite(tau):
             raise ValueError("soft marker constraints need the shell prior's scale")
-        out = dataclasses.replace(self, noise_mm=float(noise_mm), prior_scale_mm=tau, operator=None,
-                                  denoiser=None)
-        if out.noise_ratio > 0:
-            if marker_prior is None:
-                out = dataclasses.replace(out, operator=soft_handle_operator(self.energy, out.noise_ratio))
-            else:
-                out = dataclasses.replace(out, denoiser=MarkerDenoiser.build(
-                    marker_prior, self.energy, out.noise_mm, tau))
-        return out
+        return dataclasses.replace(self, noise_mm=noise_mm, prior_scale_mm=tau,
+                                   denoise=marker_denoiser(self.energy, noise_mm, tau, marker_prior))
 
     def _handles(self, P: np.ndarray, T) -> np.ndarray:
         """Handle displacements (M,3) of world markers P (M,3) under head pose T."""
         visible = np.isfinite(P).all(axis=1)
-        u = np.where(visible[:, None], T.apply(P) - self.rest, np.nan)
-        if self.denoiser is not None:
-            return self.denoiser(u)
-        return soft_handles(self.energy, u, self.noise_ratio, self.operator)
+        return self.denoise(np.where(visible[:, None], T.apply(P) - self.rest, np.nan))
 
     def _aligned_displacements(self, markers: np.ndarray) -> np.ndarray:
         """Head-aligned displacements (F',M,3) of the sample world markers (F,M,3) with
@@ -151,7 +152,7 @@ class MarkerShell:
 
         Per frame: head pose by weighted Kabsch of the visible markers onto the rest
         markers, handle displacements (NaN markers completed at minimum energy; soft
-        constraints when ``noise_mm`` > 0, :func:`soft_handles`),
+        constraints when ``noise_mm`` > 0, :attr:`denoise`),
         ``neutral + B u_H``, and the pose put back.
 
         Raises
@@ -163,13 +164,20 @@ class MarkerShell:
         if markers.ndim != 3 or markers.shape[1:] != (M, 3):
             raise InvalidInput(f"markers must be (F,{M},3), got {markers.shape}")
         out = np.empty((len(markers),) + self.neutral.shape)
+        poses = []
         for f, P in enumerate(markers):
             visible = np.isfinite(P).all(axis=1)
             if visible.sum() < MIN_VISIBLE_MARKERS:
                 raise InvalidInput(f"frame {f} has {int(visible.sum())} visible markers, at least "
                                    f"{MIN_VISIBLE_MARKERS} are needed")
-            T = rigid_align(P, self.rest, self.weights)
-            out[f] = T.inverse().apply(self.neutral + apply_basis(self.basis, self._handles(P, T)))
+            poses.append(rigid_align(P, self.rest, self.weights))
+        shell = self
+        if isinstance(self.denoise, AdaptiveDenoiser):     # σ estimated once over the request
+            u = np.stack([np.where(np.isfinite(P).all(axis=1)[:, None], T.apply(P) - self.rest, np.nan)
+                          for P, T in zip(markers, poses)])
+            shell = dataclasses.replace(self, denoise=self.denoise.fixed(self.denoise.request_noise(u)))
+        for f, (P, T) in enumerate(zip(markers, poses)):
+            out[f] = T.inverse().apply(self.neutral + apply_basis(self.basis, shell._handles(P, T)))
         return out
 
 

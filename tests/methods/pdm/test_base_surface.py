@@ -157,3 +157,29 @@ def test_marker_noise_softens_the_handles_and_denoises_the_feature_markers(rig_m
     assert old.marker_prior is None and old.denoiser is None
     np.testing.assert_allclose(old.handle_displacements(aligned),
                                soft_handles(exact.energy, aligned - V[handles], 0.09 / tau ** 2), atol=1e-12)
+
+
+def test_auto_marker_noise_denoises_with_the_requests_estimated_sigma(rig_mesh):
+    """marker_noise_mm = "auto": the learned prior's MAP solve at the request's median
+    per-frame σ̂ (frame_noise), features from the denoised markers; with_noise_estimate
+    fixes σ for a request; without a prior "auto" is refused."""
+    from service.geometry.marker_prior import AdaptiveDenoiser, MarkerDenoiser, frame_noise
+
+    V, F = rig_mesh
+    rng = np.random.default_rng(2)
+    handles = rng.choice(len(V), 30, replace=False)
+    uv = (V[:, :2] - V[:, :2].min(0)) / np.ptp(V[:, :2], axis=0).max()
+    exact = bs.BaseSurface.build(V, F, uv, F, handles, V[handles])
+    samples = V[handles] + rng.normal(scale=1.0, size=(40, 30, 3))
+    auto = exact.with_marker_noise("auto", samples=samples)
+    assert isinstance(auto.denoise, AdaptiveDenoiser) and np.isnan(auto.noise_ratio)
+    aligned = samples[:5] + rng.normal(scale=0.2, size=(5, 30, 3))
+    aligned[2, [3, 7]] = np.nan
+    u = aligned - V[handles]
+    sigma = float(np.median(frame_noise(auto.marker_prior, u)))
+    fixed = MarkerDenoiser.build(auto.marker_prior, exact.energy, sigma, np.nan, 0.0)
+    np.testing.assert_allclose(auto.handle_displacements(aligned), fixed(u), atol=1e-9)
+    np.testing.assert_allclose(auto.with_noise_estimate(sigma).handle_displacements(aligned), fixed(u), atol=1e-9)
+    assert auto.denoised_markers(aligned, fixed(u)) is not aligned
+    with pytest.raises(ValueError, match="learned marker prior"):
+        exact.with_marker_noise("auto", 1.0)

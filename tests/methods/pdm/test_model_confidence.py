@@ -57,3 +57,32 @@ def test_the_medium_fallback_is_the_thin_shell_of_the_detailed_neutral(pdm_model
     assert np.abs(out["vertices"][0][faded] - shell[faded]).max() < 1e-3          # mm (float32 frames)
     assert np.allclose(thin_shell_basis(actor.vertices, actor.faces, ev.base.handles, dtype=np.float32),
                        ev.base.basis + ev.shell_correction, atol=1e-5)
+
+
+def test_auto_marker_noise_lowers_each_frames_confidence_by_its_noise_estimate(pdm_model, pdm_data):
+    """marker_noise_mm = "auto" on the same model: the request's markers are denoised with
+    the median σ̂ of its frames, and each frame's confidence is the validity's times
+    noise_confidence(σ̂ of that frame): a noisy frame's drops, a clean one's barely moves."""
+    import dataclasses
+
+    from service.geometry.marker_prior import frame_noise, noise_confidence
+    from service.methods.pdm.model import PdmModel
+
+    _, clips = pdm_data
+    ev = pdm_model.evaluator
+    base = ev.base.with_marker_noise("auto", ev.base.prior_scale_mm, marker_prior=pdm_model.data.marker_prior)
+    model = PdmModel(pdm_model.data, dataclasses.replace(ev, base=base))
+    frames = clips[3].markers[::6][:4].copy()
+    frames[2:] += np.random.default_rng(0).normal(scale=0.5, size=frames[2:].shape)
+    out = model.synthesize(frames, ("mesh",))
+    pose = ev.deformation(frames)[0]
+    sigma = frame_noise(base.marker_prior, pose.remove(frames) - base.rest_markers)
+    assert np.all(sigma[:2] < 0.1) and np.all(np.abs(sigma[2:] / 0.5 - 1) < 0.3), sigma
+    # the same request denoised at its fixed σ̂ (no noise factor): the validity's confidence
+    fixed = PdmModel(pdm_model.data, dataclasses.replace(ev, base=base.with_noise_estimate(float(np.median(sigma)))))
+    ref = fixed.synthesize(frames, ("mesh",))
+    np.testing.assert_array_equal(out["vertices"], ref["vertices"])
+    factor = noise_confidence(base.marker_prior, sigma)
+    np.testing.assert_allclose(out[CONFIDENCE], ref[CONFIDENCE] * factor, rtol=1e-5)
+    np.testing.assert_allclose(out[VERTEX_CONFIDENCE], ref[VERTEX_CONFIDENCE] * factor[:, None], rtol=1e-5)
+    assert factor[0] > 0.95 and factor[2] < 0.5 and out[CONFIDENCE][2] < 0.5 * out[CONFIDENCE][0]
