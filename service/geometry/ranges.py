@@ -1,6 +1,6 @@
 """Run a compiled per-element kernel over contiguous index ranges on a few threads.
 
-The per-frame kernels of the methods (e.g. :mod:`service.methods.pose_space.shell_frames`)
+The per-frame kernels of the methods (e.g. :mod:`service.geometry.shell_frames`)
 are Numba functions compiled with ``nogil=True`` whose first two arguments are a half-open
 range ``[lo, hi)`` of the elements they process. :func:`run` splits ``[0, n)`` into
 ``threads`` contiguous ranges and runs them on a shared thread pool, so one frame can use

@@ -52,7 +52,7 @@ from __future__ import annotations
 import dataclasses
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -79,6 +79,9 @@ from service.methods.pdm.deformation import (
 from service.methods.pdm.extrapolation import training_limit
 from service.methods.outputs import check_outputs
 from service.methods.pdm.data import PdmData, PdmDerived
+
+if TYPE_CHECKING:                          # Numba: imported where an evaluator is built
+    from service.methods.pdm.shell_mesh import ShellMesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
 from service.methods.pdm.validity import (
@@ -219,6 +222,8 @@ class PdmEvaluator:
                                     smooth neutral's (:meth:`shell_fallback`)
     shell_offset : (n,3) float64    detailed minus smooth neutral, world, mm
     uv_vertex : (K,) int64          the vertex of each UV point
+    shell_mesh : ShellMesh          the per-frame medium mesh on the compiled shell kernels
+                                    (:mod:`.shell_mesh`: base surface, fallback, composition)
     """
 
     data: PdmData = dataclasses.field(repr=False)
@@ -234,6 +239,7 @@ class PdmEvaluator:
     shell_correction: np.ndarray
     shell_offset: np.ndarray
     uv_vertex: np.ndarray
+    shell_mesh: "ShellMesh | None" = dataclasses.field(default=None, repr=False)
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -301,12 +307,16 @@ class PdmEvaluator:
         uv_vertex = np.zeros(K, np.int64)
         uv_vertex[np.asarray(d.uv_faces).ravel()] = np.asarray(d.faces).ravel()
         shell = (correction, detailed - base.smooth, uv_vertex)
+        from service.methods.pdm.shell_mesh import ShellMesh     # Numba: only where a model is built
+
+        shell_mesh = ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
+                                     d.neutral_offset, uv_vertex, seam)
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
             normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, n),
             validity=_validity(d, base, bands, orders, seam, shell, texel_rho), shell_correction=shell[0],
-            shell_offset=shell[1], uv_vertex=uv_vertex)
+            shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh)
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -431,8 +441,12 @@ def shell_fallback(base: BaseSurface, neutral_offset: np.ndarray, correction: np
     surfaces ``X = X̄ + B u_H`` (F,n,3; computed when None) in their tangent frames, less the
     static ``neutral_offset`` (n,3): ``Frame(X) (offset + (B_det − B) u_H) − neutral_offset``
     with ``correction`` = B_det − B (n,M), ``offset`` = V − X̄ (n,3), taken at the UV points'
-    vertices ``uv_vertex`` (K,). 0 at the neutral. The frames are float32, as synthesis's
-    (``rows``: X's ``FrameField.rows32``, shared with synthesis's ``to_world``).
+    vertices ``uv_vertex`` (K,). 0 at the neutral. The frames are FrameField's float32 ones
+    (``rows``: X's ``FrameField.rows32`` where already computed). Batched NumPy (BLAS)
+    arithmetic: what training's validity regions (the sector envelope and box) measure the
+    training frames with; synthesis computes the same fallback per frame on the compiled
+    kernels (:meth:`.shell_mesh.ShellMesh.fallback`; the two within ~1e-4 of the largest
+    |fallback|, both against float64, tests/methods/pdm/test_shell_mesh.py).
 
     Computed at every UV point (issue 23 asked for it only where it can change the result):
     a point's fallback is unused exactly when ρ ≤ 1, the box does not clip and the norm is
@@ -607,7 +621,6 @@ class PdmModel:
             except TooFewMarkers as e:
                 raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
                                    f"least {e.required} are needed") from None
-            X = ev.base.deform(u_H)
             d1, d2, clamped = ev.vertex_band.parameters(S, margin)
             lookup = None if valid is None else valid.lookup(d1, d2)    # shared by gauge and envelope
             rho = None if valid is None else valid.gauge(d1, d2, lookup)
@@ -619,13 +632,10 @@ class PdmModel:
                 out[VERTEX_CONFIDENCE][sl] *= noise_conf[sl, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
-            # the frames in float32 (FrameField's precision notes: ~1e-5 mm on the vertices)
-            xrows = ev.base.frame_field.rows32(X)      # X's float32 frames: the fallback's and to_world's
-            fallback = None if rho is None else ev.shell_fallback(u_H, X, xrows)
-            medium = X + ev.base.frame_field.to_world(X, ev.medium_offsets(d1, d2, rho, lookup, fallback), np.float32,
-                                                      xrows)
-            if "vertices" in out:
-                pose.restore32(medium, out=out["vertices"][sl])     # float32 (its bound: tests)
+            need_medium = bool(want & {"mesh_detailed", "normal_map"})
+            if "vertices" in out or need_medium:   # the medium mesh on the compiled kernels (.shell_mesh)
+                medium = self._medium_mesh(u_H, d1, d2, rho, lookup, pose,
+                                           out["vertices"][sl] if "vertices" in out else None, need_medium)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
             if "displacement" in out:          # straight into the (zeroed) output maps
@@ -646,6 +656,27 @@ class PdmModel:
         if "displacement" not in want:
             out.pop("displacement", None)
         return out
+
+    def _medium_mesh(self, u_H, d1, d2, rho, lookup, pose, world, aligned):
+        """The medium meshes of a chunk of frames (:mod:`.shell_mesh`): base surfaces and
+        their float32 frames, the fallback at the UV points where ρ is given, the medium
+        offsets, then ``world`` (f,n,3) float32 filled with the head pose put back (if given)
+        and, with ``aligned``, the neutral-aligned meshes (f,n,3) float64 returned."""
+        ev = self.evaluator
+        sm = ev.shell_mesh
+        surfaces = [sm.surface(u) for u in u_H]
+        fallback = None
+        if rho is not None:
+            fallback = np.empty((len(u_H), len(ev.uv_vertex), 3), np.float32)
+            for k, (u, (_, frames)) in enumerate(zip(u_H, surfaces)):
+                sm.fallback(u, frames, out=fallback[k])
+        C = medium_offsets(ev.vertex_band, sm.seam_average, sm.neutral_offset, d1, d2, ev.validity, rho,
+                           lookup, fallback)                            # (f,n,3), internal order
+        medium = np.empty((len(u_H), self.n_vertices, 3)) if aligned else None
+        for k, (U, frames) in enumerate(surfaces):
+            sm.place(U, frames, C[k], pose.R[k], pose.t[k], False if medium is None else medium[k],
+                     None if world is None else world[k])
+        return medium
 
     # ------------------------------------------------------------------ storage
     def save(self, path) -> dict:

@@ -5,7 +5,7 @@ Modules: :mod:`.params` (PsdParams / WpsdParams), :mod:`.feature_graph` (§3, §
 and its strain features), :mod:`.corrections` (§4 large scale, §5.2 corrections in tangent
 frames), :mod:`.rbf` (§5.2 exact / least-squares RBF weights, greedy basis),
 :mod:`.weighting` (§5.3 eq. 3-4, sparse α), :mod:`.model` (train, the stored data, the
-evaluator, synthesis), :mod:`.correction_sum` and :mod:`.shell_frames` (the compiled
+evaluator, synthesis), :mod:`.correction_sum` and :mod:`service.geometry.shell_frames` (the compiled
 per-frame evaluation of eq. 3/5 and of the shell with its rotated corrections),
 :mod:`.store` (model directory), :mod:`.transfer` (§5.4).
 """

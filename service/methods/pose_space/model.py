@@ -121,7 +121,7 @@ Choices and departures (the paper is silent or differs):
   then two Numba kernels over contiguous vertex ranges in a cache-friendly vertex order
   (:mod:`service.geometry.ranges`): :mod:`.correction_sum` (WPSD: eq. 3's distances, eq. 5's
   sum, the polynomial and the fade, per vertex in float32, α and the polynomial on one CSR
-  pattern) and :mod:`.shell_frames` (the shell's tangent frames from the rest edges plus the
+  pattern) and :mod:`service.geometry.shell_frames` (the shell's tangent frames from the rest edges plus the
   displacement's edges, the corrections rotated into them, the head pose). Training and the
   float64 operators are unchanged. Within 1e-4 mm of the float64 path (tests). The speed
   rows are in issue 18's report (``benchmarks/pose_space_report.py --speed-only``).
@@ -204,9 +204,9 @@ class PoseSpaceEvaluator:
         self.alpha = None if data.alpha is None else data.alpha.astype(np.float64).tocsr()
         # compiled kernels: Numba is imported where a model is built, not with the kinds
         from service.methods.pose_space.correction_sum import CorrectionSum
-        from service.methods.pose_space.shell_frames import ShellFrames
+        from service.geometry.shell_frames import ShellFrames
 
-        # the per-frame mesh path: float32 frames from the displacement (:mod:`.shell_frames`)
+        # the per-frame mesh path: float32 frames from the displacement (:mod:`service.geometry.shell_frames`)
         self.shell_frames = ShellFrames.build(self.base.smooth, self.base.faces, data.uv, data.uv_faces)
         self.smooth_internal = self.shell_frames.to_internal(self.base.smooth)
         self.basis_internal = self.shell_frames.internal_basis(self.base.basis)

@@ -1,7 +1,11 @@
 """Float32 tangent frames of a thin-shell pose from its displacement, and the per-frame mesh
 of bickel2008 §5.3 "at run-time" built on them: the shell plus corrections "stored
 per-vertex in local tangent frames", rotated into the current shell's frames, head pose put
-back — compiled (Numba, ``nogil``) over a cache-friendly vertex order.
+back — compiled (Numba, ``nogil``) over a cache-friendly vertex order. Both methods' per-frame
+meshes use it: the pose-space kinds (:meth:`ShellFrames.shell`, frames and composition in
+one pass) and the PDM (:mod:`service.methods.pdm.shell_mesh`: the frames once with
+:meth:`ShellFrames.rows`, then the medium fallback in them, :meth:`ShellFrames.coordinates`,
+and the mesh, :meth:`ShellFrames.place`, with the rest pose in float64).
 
 The frames are those of :class:`service.geometry.tangent_frames.FrameField` (weights frozen
 at the rest pose; rows T, B, N; N the area-weighted normal, T the rest-corner-angle-weighted
@@ -35,7 +39,11 @@ rows); fused per vertex they read the displacement, the triangles and the incide
 Measured in :mod:`benchmarks.pose_space_report`'s speed section (issue 18's report).
 
 Arrays are component-major (3,n) float32 (contiguous rows per coordinate). Against
-:meth:`FrameField.frames` in float64 the frames agree to ~1e-6 (tests bound it).
+:meth:`FrameField.frames` in float64 of the same shell the frames agree to ~1e-6 (tests
+bound it). The frames of the smallest triangles also turn with the float32 displacement's
+own rounding (~1e-6 mm against the float64 product ``B u_H``; level 1 has edges down to
+0.009 mm): ~5e-5 against the frames of the float64 product at level 1, where FrameField's
+float32 frames of the BLAS float32 product measured 1.3e-4.
 """
 
 from __future__ import annotations
@@ -186,6 +194,64 @@ def compose(lo, hi, T, N, floor, U, rest, C, R, t, order, aligned, world, Bout):
             Bout[0, k], Bout[1, k], Bout[2, k] = bx, by, bz
 
 
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def frame_coordinates(lo, hi, at, dest, T, B, N, W, base, sub, out):
+    """Points [lo, hi) of a list sorted by vertex: ``out[dest[p]] = Frame(v) (base[:, v] +
+    W[:, v]) − sub[:, v]`` (P,3) at the internal position ``v = at[p]``, in the finished
+    frames T, B, N (3,n) of :meth:`ShellFrames.rows` (the vector unrotated where the vertex
+    has no normal, FrameField's identity frame). With ``at`` ascending the vertex rows are
+    read in order and each point costs one scattered 12-byte write."""
+    for p in range(lo, hi):
+        v = at[p]
+        wx = base[0, v] + W[0, v]
+        wy = base[1, v] + W[1, v]
+        wz = base[2, v] + W[2, v]
+        nx, ny, nz = N[0, v], N[1, v], N[2, v]
+        if nx != 0 or ny != 0 or nz != 0:
+            c0 = T[0, v] * wx + T[1, v] * wy + T[2, v] * wz
+            c1 = B[0, v] * wx + B[1, v] * wy + B[2, v] * wz
+            c2 = nx * wx + ny * wy + nz * wz
+        else:
+            c0, c1, c2 = wx, wy, wz
+        q = dest[p]
+        out[q, 0] = c0 - sub[0, v]
+        out[q, 1] = c1 - sub[1, v]
+        out[q, 2] = c2 - sub[2, v]
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def compose_framed(lo, hi, T, B, N, U, rest, C, R, t, order, aligned, world):
+    """Vertices [lo, hi): ``X = (rest + U) + (C₀T + C₁B + C₂N)`` in the finished frames of
+    :meth:`ShellFrames.rows` (C as is where there is no normal), C (n,3) per internal
+    position; the arithmetic in the type of ``rest`` (float64: X̄ exact, the float32 terms
+    added to it). Writes, where the output has rows: ``aligned`` (n,3) X at vertex
+    ``order[k]``; ``world`` (n,3) float32 ``(X − t)`` rounded to float32, then times R
+    (``Rᵀ (X − t)``, R float32) at vertex ``order[k]``."""
+    want_aligned = aligned.shape[0] > 0
+    want_world = world.shape[0] > 0
+    for k in range(lo, hi):
+        nx, ny, nz = N[0, k], N[1, k], N[2, k]
+        c0, c1, c2 = C[k, 0], C[k, 1], C[k, 2]
+        if nx != 0 or ny != 0 or nz != 0:
+            wx = c0 * T[0, k] + c1 * B[0, k] + c2 * nx
+            wy = c0 * T[1, k] + c1 * B[1, k] + c2 * ny
+            wz = c0 * T[2, k] + c1 * B[2, k] + c2 * nz
+        else:
+            wx, wy, wz = c0, c1, c2
+        x = (rest[0, k] + U[0, k]) + wx
+        y = (rest[1, k] + U[1, k]) + wy
+        z = (rest[2, k] + U[2, k]) + wz
+        v = order[k]
+        if want_aligned:
+            aligned[v, 0], aligned[v, 1], aligned[v, 2] = x, y, z
+        if want_world:
+            x32 = np.float32(x - t[0])
+            y32 = np.float32(y - t[1])
+            z32 = np.float32(z - t[2])
+            for i in range(3):
+                world[v, i] = x32 * R[0, i] + y32 * R[1, i] + z32 * R[2, i]
+
+
 @dataclass(frozen=True)
 class ShellFrames:
     """Tangent frames of shells ``X̄ + u`` in an internal vertex order, and the per-frame
@@ -318,6 +384,49 @@ class ShellFrames:
         ranges.run(compose, n, T, N, floor, U, np.ascontiguousarray(rest, np.float32),
                    np.ascontiguousarray(C, np.float32), R32, t32, self.order, Xa, W, _NO_FRAMES,
                    threads=threads)
+        return Xa if aligned else None
+
+
+    def points(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points on the vertices ``vertices`` (P,) (e.g. UV points, several per seam vertex)
+        as :meth:`coordinates` reads them: their internal positions ascending and, for each,
+        the point's index."""
+        at = self.rank[np.asarray(vertices, np.int64)]
+        dest = np.argsort(at, kind="stable")
+        return at[dest], dest
+
+    def coordinates(self, frames: tuple, W: np.ndarray, base: np.ndarray, sub: np.ndarray,
+                    points: tuple, out: np.ndarray | None = None,
+                    threads: int | None = None) -> np.ndarray:
+        """(P,3) float32: the world vectors ``base + W`` (3,n) in the frames T, B, N of
+        :meth:`rows` less ``sub`` (3,n), at the points ``points`` of :meth:`points`
+        (:func:`frame_coordinates`; FrameField's ``to_frame`` of the shell's frames, gathered)."""
+        T, B, N = frames
+        at, dest = points
+        out = np.empty((len(at), 3), np.float32) if out is None else out
+        ranges.run(frame_coordinates, len(at), at, dest, T, B, N, W, base, sub, out, threads=threads)
+        return out
+
+    def place(self, frames: tuple, U: np.ndarray, rest: np.ndarray, C: np.ndarray,
+              R: np.ndarray | None = None, t: np.ndarray | None = None, aligned: bool | np.ndarray = False,
+              world: np.ndarray | None = None, threads: int | None = None) -> np.ndarray | None:
+        """The shell ``X = rest + U + Frame(X̄ + U)ᵀ C`` in frames already computed
+        (:meth:`rows` of U; :func:`compose_framed`), as :meth:`shell` but with C (n,3) per internal
+        position and the vertex-order outputs: ``aligned`` (True, or an (n,3) array of
+        ``rest``'s dtype to fill) returns X (n,3) in vertex order in ``rest``'s dtype (float64
+        keeps the rest pose exact); ``world`` (n,3) float32 is filled with ``Rᵀ (X − t)``
+        (X − t rounded to float32 first)."""
+        T, B, N = frames
+        n = self.n_vertices
+        if isinstance(aligned, np.ndarray):
+            Xa = aligned
+        else:
+            Xa = np.empty((n, 3) if aligned else (0, 3), rest.dtype)
+        aligned = Xa.shape[0] > 0
+        W = _NO_WORLD if world is None else world
+        R32 = _EYE if R is None else np.ascontiguousarray(R, np.float32)
+        t = np.zeros(3, rest.dtype) if t is None else np.ascontiguousarray(t, rest.dtype)
+        ranges.run(compose_framed, n, T, B, N, U, rest, C, R32, t, self.order, Xa, W, threads=threads)
         return Xa if aligned else None
 
 
