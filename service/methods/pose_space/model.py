@@ -117,11 +117,12 @@ Choices and departures (the paper is silent or differs):
 * weights are rounded to float32 when training ends (the stored precision), so a saved and
   reloaded model synthesizes bit-identical results;
 * **per-frame mesh path in float32, compiled** (:meth:`PoseSpaceEvaluator.shell_detail`,
-  :meth:`PoseSpaceModel._corrections`): the displacement ``B u_H`` (float32 basis, BLAS),
-  then two Numba kernels over contiguous vertex ranges in a cache-friendly vertex order
-  (:mod:`service.geometry.ranges`): :mod:`.correction_sum` (WPSD: eq. 3's distances, eq. 5's
-  sum, the polynomial and the fade, per vertex in float32, α and the polynomial on one CSR
-  pattern) and :mod:`service.geometry.shell_frames` (the shell's tangent frames from the rest edges plus the
+  :meth:`PoseSpaceModel._corrections`): Numba kernels over contiguous vertex ranges in a
+  cache-friendly vertex order (:mod:`service.geometry.ranges`): :mod:`.correction_sum`
+  (WPSD: eq. 3's distances, eq. 5's sum, the polynomial and the fade, per vertex in float32,
+  α and the polynomial on one CSR pattern) and :mod:`service.geometry.shell_frames` (the
+  displacement ``B u_H`` from the basis rows in that order, the shell's tangent frames from
+  the rest edges plus the
   displacement's edges, the corrections rotated into them, the head pose). Training and the
   float64 operators are unchanged. Within 1e-4 mm of the float64 path (tests). The speed
   rows are in issue 18's report (``benchmarks/pose_space_report.py --speed-only``).
