@@ -21,7 +21,7 @@ mean over texels seen in every frame); static-to-dynamic edges selected vs candi
 registration error of the static scans (Fig. 11 by-product); the blended albedo maps
 (§7.3) against the ground-truth maps at the performance's map frames (mean |error| over face
 texels and channels), vs the blend by the correspondence strength alone (the paper's
-weights, without :mod:`~service.methods.tracking.maps`' strain similarity), the neutral's
+weights, without :mod:`~service.methods.tracking.maps`' surface-stress similarity), the neutral's
 map alone, and two oracles (the best single scan per frame; the best scan per texel);
 stage timings and time per frame; flows per second (the method's flow + NCC vs OpenCV's DIS
 medium preset alone). Figures: ``error_over_time_<fam>.png``, ``graph_<fam>.png``.
@@ -396,9 +396,9 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
     # per-frame weights and blended albedo maps (§7.3) against the truth maps
     t0 = time.perf_counter()
     inp = TrackingInput.from_sample(sample, views=3)
-    W = scan_weights(inp, full, params)
+    W = scan_weights(inp, full, sample.uv, sample.uv_faces, params)
     weights_s = time.perf_counter() - t0
-    W_conf = scan_weights(inp, full, params, strain_sigma=None)      # the paper's §7.3 alone
+    W_conf = scan_weights(inp, full, sample.uv, sample.uv_faces, params, stress=False)   # §7.3 alone
     frames = sample.truth_map_frames
     A = sample.scan_albedo.astype(np.float32)
     truth = sample.truth_albedo.astype(np.float32)
@@ -420,7 +420,7 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
     lines += [f"Blended albedo maps (§7.3) at the {len(frames)} ground-truth map frames, mean |error| "
               f"over face texels (weights in {weights_s:.0f} s):", "",
               "| maps | mean abs error |", "|---|---|",
-              f"| blended: correspondence strength × strain similarity (maps.py) | {e_blend:.5f} |",
+              f"| blended: correspondence strength × surface-stress similarity (maps.py) | {e_blend:.5f} |",
               f"| blended: correspondence strength alone (§7.3) | {e_conf:.5f} |",
               f"| the neutral's map alone | {e_neutral:.5f} |",
               f"| best single scan per frame (oracle) | {e_frame_best:.5f} |",

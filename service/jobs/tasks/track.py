@@ -269,7 +269,7 @@ def _outputs(job: RunningJob, inp: TrackingInput, extra: dict, result: TrackingR
     mesh = TrackingMesh.build(inp.artist_vertices, inp.faces)
     uv, uv_faces = extra["uv"], extra["uv_faces"]
     size = int(payload.get("map_resolution", 256))
-    weights = scan_weights(inp, result, params)
+    weights = scan_weights(inp, result, uv, uv_faces, params)
     job.progress(overall("maps", 0.4), "maps")
     S = len(inp.scan_images)
     registered = np.isfinite(result.scan_vertices).all(axis=(1, 2))
