@@ -37,27 +37,31 @@ family a at 40 frames — smoothing / p / β: 4 / 2 / 0.5 (stress_blend's defaul
 20 / 2 / 0.5 0.00190; 4 / 4 / 0.5 0.00175; 4 / 8 / 0.5 0.00183; 20 / 4 / 0.5 0.00170;
 4 / 2 / 0.25 0.00178; 2 / 2 / 0 0.00168; 4 / 2 / 0 0.00166; 10 / 2 / 0 0.00164;
 4 / 4 / 0 0.00162; **4 / 3 / 0 0.00158** — and confirmed on b (4 / 2 / 0.5 0.00325,
-4 / 2 / 0 0.00309, 4 / 4 / 0 0.00302, 4 / 3 / 0 0.00304). β = 0 (purely local) is better
-for the tracking than for the game blend: a tracked frame is never exactly a scan, and the
-whole-frame distance pulled skin the expression does not move toward the globally nearest
-scan.
+4 / 2 / 0 0.00309, 4 / 4 / 0 0.00302, 4 / 3 / 0 0.00304). β = 0 (purely local) suits the
+tracking better than the game blend's 0.5, presumably because a tracked frame is never
+exactly a scan and the whole-frame distance pulls skin the expression does not move toward
+the globally nearest scan (not measured further).
 
 Measured (neutral + 5 scans, 256², 3 views, full graph; mean |albedo error| over the face
-texels at the performance's map frames; load 4.9–8 on 2 cores, one tracking per family and
+texels at the performance's map frames; load 2.5–8 on 2 cores, one tracking per family and
 length for every row; the metric of ``benchmarks/tracking_report.py``):
 
-=================================================  ========  ========  =========
-maps                                               a 40 fr   b 40 fr   a 120 fr
-=================================================  ========  ========  =========
-confidence × stress, 4 / 3 / 0 (this)              0.00158   0.00304   0.00218
-confidence × stress, stress_blend's 4 / 2 / 0.5    0.00191   0.00325   0.00233
-confidence × log edge strain (before)              0.00191   0.00338   0.00239
-confidence alone (§7.3)                            0.00304   0.00416   0.00317
-the neutral's map                                  0.00298   0.00372   0.00333
-=================================================  ========  ========  =========
+=================================================  ========  ========  =========  =========
+maps                                               a 40 fr   b 40 fr   a 120 fr   b 120 fr
+=================================================  ========  ========  =========  =========
+confidence × stress, 4 / 3 / 0 (this)              0.00158   0.00304   0.00218    0.00367
+confidence × stress, stress_blend's 4 / 2 / 0.5    0.00191   0.00325   0.00233    0.00387
+confidence × log edge strain (before)              0.00191   0.00338   0.00239    0.00378
+confidence alone (§7.3)                            0.00304   0.00416   0.00317    0.00487
+the neutral's map                                  0.00298   0.00372   0.00333    0.00431
+=================================================  ========  ========  =========  =========
+
+With stress_blend's own parameters the measure is as good as the log strain on a and
+worse on b at 120 frames (0.00387 against 0.00378); with the tracking's parameters it is
+better on all four (−3 % on b at 120 frames to −17 % on a at 40).
 
 (The stress kernel alone, without the correspondence strength: a 0.00164, b 0.00300 at
-40 frames, a 0.00220 at 120.)
+40 frames, a 0.00220, b 0.00372 at 120.)
 Earlier measurements of the log-strain kernel, for the record: on the ground-truth meshes
 instead of the tracked ones (40 frames) a 0.00173, b 0.00270; b's frame 35 is not spanned
 by the scans at all (0.0078 with true geometry, the neutral's map 0.0088).
