@@ -54,6 +54,15 @@ propagation. Family b's monocular error is the head's depth along the view axis 
 0.34-0.86 mm is left once each frame is rigidly aligned to the truth (mean offset along
 the optical axis up to 5.3 mm).
 
+Monocular depth (session 14; 256², 1 view, mean face error mm; 3-view error in brackets,
+unchanged by it: a 0.387 / 0.404, b 0.481 / 0.628 at 40 / 120 frames): the opt-in
+``TrackingParams(monocular_depth=True)`` reads the head's distance from the size of the
+face part no static pose moves (:func:`service.methods.tracking.solve.update_rigid`).
+a 40 frames 0.700 → 0.717, 120 frames 1.273 → 1.503; b 40 frames 3.177 → 1.803, 120
+frames 2.480 → 2.291. It stays off: family a's performance has expressions the scans do not
+show that change that part's size (see the docstring). Measured with one ``track()`` call
+per cell on the report's samples (load 2-4.5).
+
 Speed (512², 30 frames, neutral + 5 scans, graph method, one process, 1 BLAS thread; CPU
 seconds per frame, all threads; load 5-7 on 2 cores throughout). Before: commit 8974d4e;
 after: this file's commit. Family a has 11 248 vertices (the issue's ≈10k), b 21 092:

@@ -75,11 +75,12 @@ class TrackingParams(MethodParams):
         "the scalar belief precision min(1, det(Σ⁻¹)^⅓) of eq. 4 and 11"))
     inertia: float = Field(1e-3, gt=0.0, le=1.0, description=(
         "weight of ‖x − x_current‖² (keeps vertices no term reaches where they are)"))
-    monocular_depth: bool = Field(True, strict=True, description=(
+    monocular_depth: bool = Field(False, strict=True, description=(
         "with one view, the rigid update (§5.6) moves each dynamic pose along the view rays "
         "to the artist mesh's size over the size region (solve.update_rigid): the head's "
-        "distance from its scale. 256², 40 frames, 1 view: family b 3.18 → 1.80 mm (its head "
-        "moves ±8 mm in depth), a 0.700 → 0.717 mm"))
+        "distance from its scale. Off by default: chosen on family a, where it costs "
+        "(256², 1 view: 40 frames 0.700 → 0.717 mm, 120 frames 1.273 → 1.503); family b "
+        "gains (40 frames 3.177 → 1.803, 120 frames 2.480 → 2.291)"))
     monocular_size_fraction: float = Field(0.1, gt=0.0, le=1.0, description=(
         "the fraction of the face's vertices, those no static pose moves (the smallest largest "
         "residual after rigid alignment), whose size sets the head's distance in one view "

@@ -175,9 +175,10 @@ def test_monocular_rigid_update_recovers_the_head_depth_from_its_size():
     # the size region recovers the depth: measured 0.38 mm (mean error 0.40 mm) with no
     # tolerance, and 2.22 mm with the default tolerance (0.006 of the ~290 mm distance is
     # 1.7 mm that the soft threshold leaves)
-    old, old_err = _monocular_depth_case(TrackingParams(monocular_depth=False))
-    exact, exact_err = _monocular_depth_case(TrackingParams(monocular_scale_tolerance=0.0))
-    default, _ = _monocular_depth_case(TrackingParams())
+    old, old_err = _monocular_depth_case(TrackingParams())                 # off by default
+    exact, exact_err = _monocular_depth_case(TrackingParams(monocular_depth=True,
+                                                            monocular_scale_tolerance=0.0))
+    default, _ = _monocular_depth_case(TrackingParams(monocular_depth=True))
     assert old > 10.0, old
     assert abs(exact) < 0.5, exact
     assert exact_err < 0.5 and old_err > 10.0, (exact_err, old_err)
