@@ -21,7 +21,7 @@ mean over texels seen in every frame); static-to-dynamic edges selected vs candi
 registration error of the static scans (Fig. 11 by-product); the blended albedo maps
 (§7.3) against the ground-truth maps at the performance's map frames (mean |error| over face
 texels and channels), vs the blend by the correspondence strength alone (the paper's
-weights, without :mod:`~service.methods.tracking.maps`' strain similarity), the neutral's
+weights, without :mod:`~service.methods.tracking.maps`' surface-stress similarity), the neutral's
 map alone, and two oracles (the best single scan per frame; the best scan per texel);
 stage timings and time per frame; flows per second (the method's flow + NCC vs OpenCV's DIS
 medium preset alone). Figures: ``error_over_time_<fam>.png``, ``graph_<fam>.png``.
@@ -53,6 +53,15 @@ propagation. Family b's monocular error is the head's depth along the view axis 
 622 mm, f = 579 px at 256²): on the first 30 frames the error is 0.6-5.3 mm, of which
 0.34-0.86 mm is left once each frame is rigidly aligned to the truth (mean offset along
 the optical axis up to 5.3 mm).
+
+Monocular depth (session 14; 256², 1 view, mean face error mm; 3-view error in brackets,
+unchanged by it: a 0.387 / 0.404, b 0.481 / 0.628 at 40 / 120 frames): the opt-in
+``TrackingParams(monocular_depth=True)`` reads the head's distance from the size of the
+face part no static pose moves (:func:`service.methods.tracking.solve.update_rigid`).
+a 40 frames 0.700 → 0.717, 120 frames 1.273 → 1.503; b 40 frames 3.177 → 1.803, 120
+frames 2.480 → 2.291. It stays off: family a's performance has expressions the scans do not
+show that change that part's size (see the docstring). Measured with one ``track()`` call
+per cell on the report's samples (load 2-4.5).
 
 Speed (512², 30 frames, neutral + 5 scans, graph method, one process, 1 BLAS thread; CPU
 seconds per frame, all threads; load 5-7 on 2 cores throughout). Before: commit 8974d4e;
@@ -396,9 +405,9 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
     # per-frame weights and blended albedo maps (§7.3) against the truth maps
     t0 = time.perf_counter()
     inp = TrackingInput.from_sample(sample, views=3)
-    W = scan_weights(inp, full, params)
+    W = scan_weights(inp, full, sample.uv, sample.uv_faces, params)
     weights_s = time.perf_counter() - t0
-    W_conf = scan_weights(inp, full, params, strain_sigma=None)      # the paper's §7.3 alone
+    W_conf = scan_weights(inp, full, sample.uv, sample.uv_faces, params, stress=False)   # §7.3 alone
     frames = sample.truth_map_frames
     A = sample.scan_albedo.astype(np.float32)
     truth = sample.truth_albedo.astype(np.float32)
@@ -420,7 +429,7 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
     lines += [f"Blended albedo maps (§7.3) at the {len(frames)} ground-truth map frames, mean |error| "
               f"over face texels (weights in {weights_s:.0f} s):", "",
               "| maps | mean abs error |", "|---|---|",
-              f"| blended: correspondence strength × strain similarity (maps.py) | {e_blend:.5f} |",
+              f"| blended: correspondence strength × surface-stress similarity (maps.py) | {e_blend:.5f} |",
               f"| blended: correspondence strength alone (§7.3) | {e_conf:.5f} |",
               f"| the neutral's map alone | {e_neutral:.5f} |",
               f"| best single scan per frame (oracle) | {e_frame_best:.5f} |",

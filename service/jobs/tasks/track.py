@@ -134,7 +134,10 @@ def _graph_of(d: dict) -> FlowGraph:
 
 
 def _keyframes_of(d: dict) -> KeyframeSolution:
-    return KeyframeSolution(_read_states(d), [int(t) for t in d["keyframes"]], d["rigidity"], {})
+    return KeyframeSolution(_read_states(d), [int(t) for t in d["keyframes"]], d["rigidity"], {},
+                            size_weights=d["size_weights"] if d.get("size_weights") is not None
+                            and d["size_weights"].any() else None,
+                            size_band=float(d["size_band"]) if "size_band" in d else 0.0)
 
 
 def span_key(prefix: str, a: int, b: int) -> str:
@@ -177,7 +180,10 @@ def track(job: RunningJob) -> dict[str, Any]:
         solution = solve_keyframes(inp, graph, params, None, key_progress)
         _keep(store, f"{prefix}/keyframes.npz", npz_bytes(
             **_states_arrays(solution.states), keyframes=np.array(solution.keyframes, np.int64),
-            rigidity=solution.rigidity, static_edges=np.array(graph.static_edges, np.int64).reshape(-1, 2),
+            rigidity=solution.rigidity, size_band=np.float64(solution.size_band),
+            size_weights=np.zeros(len(solution.rigidity)) if solution.size_weights is None
+            else solution.size_weights,
+            static_edges=np.array(graph.static_edges, np.int64).reshape(-1, 2),
             candidates=np.int64(graph.candidates), graph_seconds=np.float64(graph_seconds),
             seconds=np.float64(time.perf_counter() - t0)))
         keyframes = _read(store, f"{prefix}/keyframes.npz")
@@ -263,7 +269,7 @@ def _outputs(job: RunningJob, inp: TrackingInput, extra: dict, result: TrackingR
     mesh = TrackingMesh.build(inp.artist_vertices, inp.faces)
     uv, uv_faces = extra["uv"], extra["uv_faces"]
     size = int(payload.get("map_resolution", 256))
-    weights = scan_weights(inp, result, params)
+    weights = scan_weights(inp, result, uv, uv_faces, params)
     job.progress(overall("maps", 0.4), "maps")
     S = len(inp.scan_images)
     registered = np.isfinite(result.scan_vertices).all(axis=(1, 2))
@@ -337,6 +343,7 @@ def track_span(job: RunningJob) -> dict[str, Any]:
         solution = _keyframes_of(_read(store, f"{payload['prefix']}/keyframes.npz"))
         mesh = TrackingMesh.build(inp.artist_vertices, inp.faces)
         mesh.rigidity = solution.rigidity
+        mesh.size_weights, mesh.size_band = solution.size_weights, solution.size_band
         solved = solve_span(inp, params, mesh, solution.states[("frame", a)],
                             solution.states[("frame", b)], 0, b - a)
         states = {("frame", a + t): s for t, s in solved.items()}

@@ -5,7 +5,7 @@ maps for each dynamic frame of the performance by blending the static pose data"
 "We also compute values for w_i^pq for any dynamic-to-static edge pq that was not present
 in the performance flow graph, to produce weights for every frame" (§7.3).
 
-:func:`scan_weights` computes, for every scan the tracking registered and every
+:func:`correspondence_strength` computes, for every scan the tracking registered and every
 ``stride``-th frame, the flow frame → scan in view 0 at the graph's reduced resolution; a
 vertex's correspondence strength for that scan is the flow's confidence at the tracked
 vertex's projection times its visibility — v · conf of eq. 4, the scalar of w_i^pq —
@@ -20,35 +20,51 @@ the neutral, the neutral got 0.39 of the weight (0.2 among the vertices any scan
 uniform over 6 scans is 0.17), and 24 % of the face vertices matched no scan (view 0 only)
 and took the neutral's map. The blended albedo was then no better than the neutral's map
 alone (40 frames, 256², 3 views; mean |error| family a 0.0030 vs 0.0030, b 0.0042 vs
-0.0037). The weights are therefore multiplied by a local *shape* similarity between the
-tracked frame and each registered scan — the "surface stress" by which Digital Ira blends
+0.0037). The weights are therefore multiplied by the similarity of the tracked frame's
+local *surface stress* to each registered scan's — the measure by which Digital Ira blends
 the scans' maps per vertex at run time (this course, "Real-Time Rendering": "uses surface
 stress values to blend diffuse texture, specular, normal, and displacement maps from the
-different high-resolution expression scans per-vertex"). :func:`strain_similarity`: per
-edge the log strain against the artist mesh, ε = log(ℓ / ℓ_artist); per vertex the mean of
-(ε_frame − ε_scan)² over its edges, averaged ``strain_smooth`` times over the one-ring;
-kernel exp(−d / 2σ²) with σ = ``strain_sigma``, normalized over the scans. Vertices no scan
-matches by flow take the shape kernel alone.
+different high-resolution expression scans per-vertex"), computed by the same functions as
+the game-engine blend (:mod:`service.methods.stress_blend`: the per-vertex Green strain
+against the artist mesh, Shepard weights over the scans; :func:`stress_similarity`).
+Vertices no scan matches by flow take the stress kernel alone (:func:`combine_weights`).
+
+One surface-stress measure (session 14). Until then this module had its own, per-edge log
+strain ε = log(ℓ / ℓ_artist), one-ring averaged 20 times, kernel exp(−d / 2σ²) with
+σ = 0.02. Replaced by the stress_blend measure; its kernel's three parameters
+(:data:`STRESS_SMOOTHING`, :data:`STRESS_POWER`, :data:`STRESS_GLOBAL_WEIGHT`) chosen on
+family a at 40 frames — smoothing / p / β: 4 / 2 / 0.5 (stress_blend's defaults) 0.00191;
+20 / 2 / 0.5 0.00190; 4 / 4 / 0.5 0.00175; 4 / 8 / 0.5 0.00183; 20 / 4 / 0.5 0.00170;
+4 / 2 / 0.25 0.00178; 2 / 2 / 0 0.00168; 4 / 2 / 0 0.00166; 10 / 2 / 0 0.00164;
+4 / 4 / 0 0.00162; **4 / 3 / 0 0.00158** — and confirmed on b (4 / 2 / 0.5 0.00325,
+4 / 2 / 0 0.00309, 4 / 4 / 0 0.00302, 4 / 3 / 0 0.00304). β = 0 (purely local) suits the
+tracking better than the game blend's 0.5, presumably because a tracked frame is never
+exactly a scan and the whole-frame distance pulls skin the expression does not move toward
+the globally nearest scan (not measured further).
 
 Measured (neutral + 5 scans, 256², 3 views, full graph; mean |albedo error| over the face
-texels at the performance's map frames; family a chose σ and the passes at 40 frames —
-σ 0.02 / 0.03 / 0.05 at 20 passes: 0.00191 / 0.00194 / 0.00227; σ 0.01 / 0.02 / 0.03 at 5
-passes: 0.00192 / 0.00196 / 0.00199 — and b confirms; load 4-8 on 2 cores):
+texels at the performance's map frames; load 2.5–8 on 2 cores, one tracking per family and
+length for every row; the metric of ``benchmarks/tracking_report.py``):
 
-=============================  ========  ========  =========  =========
-maps                           a 40 fr   b 40 fr   a 120 fr   b 120 fr
-=============================  ========  ========  =========  =========
-confidence × strain (this)     0.00191   0.00338   0.00239    0.00378
-confidence alone (before)      0.00304   0.00416   0.00317    0.00487
-the neutral's map              0.00298   0.00372   0.00333    0.00431
-best scan per frame (oracle)   0.00275   0.00295   0.00317    0.00391
-best scan per texel (oracle)   0.00140   0.00216   0.00177    0.00264
-=============================  ========  ========  =========  =========
+=================================================  ========  ========  =========  =========
+maps                                               a 40 fr   b 40 fr   a 120 fr   b 120 fr
+=================================================  ========  ========  =========  =========
+confidence × stress, 4 / 3 / 0 (this)              0.00158   0.00304   0.00218    0.00367
+confidence × stress, stress_blend's 4 / 2 / 0.5    0.00191   0.00325   0.00233    0.00387
+confidence × log edge strain (before)              0.00191   0.00338   0.00239    0.00378
+confidence alone (§7.3)                            0.00304   0.00416   0.00317    0.00487
+the neutral's map                                  0.00298   0.00372   0.00333    0.00431
+=================================================  ========  ========  =========  =========
 
-The kernel on the ground-truth meshes instead of the tracked ones (40 frames): a 0.00173,
-b 0.00270 — on b most of what is left is the tracking's error (tracked frames with true
-scans 0.00336, true frames with registered scans 0.00295); b's frame 35 is not spanned by
-the scans at all (0.0078 with true geometry, the neutral's map 0.0088).
+With stress_blend's own parameters the measure is as good as the log strain on a and
+worse on b at 120 frames (0.00387 against 0.00378); with the tracking's parameters it is
+better on all four (−3 % on b at 120 frames to −17 % on a at 40).
+
+(The stress kernel alone, without the correspondence strength: a 0.00164, b 0.00300 at
+40 frames, a 0.00220, b 0.00372 at 120.)
+Earlier measurements of the log-strain kernel, for the record: on the ground-truth meshes
+instead of the tracked ones (40 frames) a 0.00173, b 0.00270; b's frame 35 is not spanned
+by the scans at all (0.0078 with true geometry, the neutral's map 0.0088).
 """
 
 from __future__ import annotations
@@ -57,77 +73,61 @@ import numpy as np
 
 from service.geometry import optical_flow as of
 from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
+from service.methods.stress_blend.stress import StressField
+from service.methods.stress_blend.weights import shepard_weights
 from service.methods.tracking.graph import flow_with_confidence, resize
 from service.methods.tracking.params import TrackingParams
 from service.methods.tracking.solve import TrackingMesh, visibility
 
 
-#: σ of the shape kernel, in log edge strain (0.02: a 2 % strain difference); chosen on family a
-STRAIN_SIGMA = 0.02
-#: one-ring averaging passes of the per-vertex strain difference; chosen on family a
-STRAIN_SMOOTH = 20
+#: Laplacian smoothing steps of the per-vertex stress (stress_blend's default); chosen on family a
+STRESS_SMOOTHING = 4
+#: exponent p of the Shepard weights over the scans; chosen on family a
+STRESS_POWER = 3.0
+#: β, the whole frame's share in the stress distance (0: purely local); chosen on family a
+STRESS_GLOBAL_WEIGHT = 0.0
 
 
-def strain_similarity(mesh: TrackingMesh, frames: np.ndarray, scans: np.ndarray,
-                      sigma: float = STRAIN_SIGMA, smooth: int = STRAIN_SMOOTH) -> np.ndarray:
-    """Per-vertex local shape similarity of each frame to each scan (T,n,S) float32, rows sum to 1.
+def stress_similarity(artist: np.ndarray, faces: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
+                      frames: np.ndarray, scans: np.ndarray, smoothing: int = STRESS_SMOOTHING,
+                      power: float = STRESS_POWER, global_weight: float = STRESS_GLOBAL_WEIGHT
+                      ) -> np.ndarray:
+    """Per-vertex surface-stress similarity of each frame to each scan (T,n,S) float32.
 
-    Digital Ira's "surface stress" blending (this course, "Real-Time Rendering"): a vertex
-    takes the maps of the scans whose skin is stretched or compressed there as in the frame.
-    Per edge the log strain against the artist mesh, ε = log(ℓ / ℓ_artist) (rotation and
-    translation invariant: no head alignment needed); per vertex d = the mean of
-    (ε_frame − ε_scan)² over its edges, averaged ``smooth`` times over the one-ring
-    (``mesh.smooth``); weight exp(−d / 2σ²), normalized over the scans.
+    Digital Ira's stress blend, as the real-time renderer computes it
+    (:mod:`service.methods.stress_blend`): the local Green strain of every frame and scan
+    against the artist mesh (:class:`~service.methods.stress_blend.stress.StressField`,
+    ``smoothing`` Laplacian steps) and Shepard weights over the registered scans
+    (:func:`~service.methods.stress_blend.weights.shepard_weights`, exponent ``power``,
+    whole-frame share ``global_weight``). Rows sum to 1; NaN rows of ``scans`` (a scan
+    the tracking did not register) get weight 0.
 
     Parameters
     ----------
-    mesh : the artist mesh (:class:`~service.methods.tracking.solve.TrackingMesh`)
-    frames : (T,n,3) float   the tracked frames (any rigid pose each, actor's unit)
-    scans : (S,n,3) float    the scans registered to the artist topology; NaN rows (a scan
-                             not registered) get weight 0
-    sigma : kernel width in log strain;  smooth : one-ring averaging passes
+    artist : (n,3) float; faces : (m,3) int; uv : (u,2); uv_faces : (m,3)   the artist mesh
+    frames : (T,n,3) float   the tracked frames (any rigid pose each; Green strain is
+                             rotation and translation invariant)
+    scans : (S,n,3) float    the scans registered to the artist topology
     """
-    E = mesh.E
-    rest = np.linalg.norm(mesh.artist[E[:, 1]] - mesh.artist[E[:, 0]], axis=1)
-
-    def strain(V):
-        return np.log(np.maximum(np.linalg.norm(V[:, E[:, 1]] - V[:, E[:, 0]], axis=-1), 1e-12) / rest)
-
-    frames = np.asarray(frames, np.float64)
     scans = np.asarray(scans, np.float64)
-    incidence = abs(mesh.D).T.tocsr()                                    # (n,e)
-    degree = np.maximum(np.asarray(incidence.sum(axis=1)).ravel(), 1.0)
-    et = strain(frames)                                                  # (T,e)
-    T, n, S = len(frames), mesh.n, len(scans)
-    d = np.full((T, n, S), np.inf)
-    for s in range(S):
-        if not np.isfinite(scans[s]).all():
-            continue
-        ds = np.asarray(incidence @ ((et - strain(scans[s][None])[0]) ** 2).T) / degree[:, None]
-        for _ in range(smooth):
-            ds = mesh.smooth @ ds
-        d[:, :, s] = ds.T
-    d -= d.min(axis=2, keepdims=True)                                    # stable soft-min
-    k = np.exp(-d / (2.0 * sigma ** 2))
-    return (k / k.sum(axis=2, keepdims=True)).astype(np.float32)
+    used = [s for s in range(len(scans)) if np.isfinite(scans[s]).all()]
+    field = StressField.build(artist, faces, uv, uv_faces, smoothing)
+    out = np.zeros((len(frames), len(artist), len(scans)), np.float32)
+    if used:
+        out[:, :, used] = shepard_weights(field.stress(np.asarray(frames, np.float64)),
+                                          field.stress(scans[used]), power, global_weight)
+    return out
 
 
-def scan_weights(inp, result, params: TrackingParams | None = None,
-                 stride: int | None = None, strain_sigma: float | None = STRAIN_SIGMA,
-                 strain_smooth: int = STRAIN_SMOOTH) -> np.ndarray:
-    """Per-frame per-vertex weights over the static scans (T,n,S) float32, rows summing to 1.
+def correspondence_strength(inp, result, params: TrackingParams | None = None,
+                            stride: int | None = None) -> np.ndarray:
+    """The correspondence strength v · conf of every frame's vertices for every registered
+    scan (T,n,S) float64 (§5.3's scalar of w_i^pq, §7.3 for edges not in the graph).
 
-    The correspondence strength v · conf (§5.3, §7.3) times :func:`strain_similarity`
-    (the module's departure); where no scan matches by flow, the shape kernel alone.
-
-    Parameters
-    ----------
-    inp : :class:`~service.methods.tracking.track.TrackingInput`
-    result : :class:`~service.methods.tracking.track.TrackingResult` (its tracked vertices and
-             registered scans; scans it did not register get weight 0)
-    stride : frames between computed correspondence strengths (default ``params.candidate_stride``)
-    strain_sigma, strain_smooth : the shape kernel (None: the correspondence strength alone,
-             the paper's §7.3, where a vertex no scan matches takes the neutral's maps)
+    Every ``stride``-th frame (default ``params.candidate_stride``) and the last: the flow
+    frame → scan in view 0 at the graph's reduced resolution, its NCC confidence at the
+    tracked vertex's projection times the vertex's visibility; linearly interpolated in
+    time in between. Scans the tracking did not register get 0.
     """
     params = params or TrackingParams()
     stride = stride or params.candidate_stride
@@ -147,16 +147,23 @@ def scan_weights(inp, result, params: TrackingParams | None = None,
         for s in used:
             vf = flow_with_confidence(frame, scans[s], params)
             W[k, :, s] = vis * of.sample(vf.confidence, xy, border=0.0)
-    shape = None
-    if strain_sigma is not None:
-        shape = strain_similarity(mesh, result.vertices, result.scan_vertices,
-                                  strain_sigma, strain_smooth)
-    out = np.empty((T, n, S), np.float32)
+    out = np.empty((T, n, S))
     for t in range(T):
         j = min(np.searchsorted(sampled, t, side="right") - 1, len(sampled) - 1)
         j1 = min(j + 1, len(sampled) - 1)
         a = 0.0 if j1 == j else (t - sampled[j]) / (sampled[j1] - sampled[j])
-        w = (1 - a) * W[j] + a * W[j1]
+        out[t] = (1 - a) * W[j] + a * W[j1]
+    return out
+
+
+def combine_weights(strength: np.ndarray, shape: np.ndarray | None) -> np.ndarray:
+    """Scan weights (T,n,S) float32, rows summing to 1, from the correspondence strength
+    (T,n,S) times the shape kernel (T,n,S) (None: the strength alone, §7.3, where a vertex
+    no scan matches takes the neutral's maps). Where no scan matches by flow, or only
+    scans of another shape, the shape kernel alone."""
+    out = np.empty(strength.shape, np.float32)
+    for t in range(len(strength)):
+        w = strength[t]
         none = w.sum(axis=1) <= 1e-6                   # no scan matched by flow
         if shape is not None:
             w = w * shape[t]
@@ -169,6 +176,33 @@ def scan_weights(inp, result, params: TrackingParams | None = None,
             w[none] = shape[t][none]
         out[t] = w
     return out
+
+
+def scan_weights(inp, result, uv: np.ndarray, uv_faces: np.ndarray,
+                 params: TrackingParams | None = None, stride: int | None = None,
+                 stress: bool = True) -> np.ndarray:
+    """Per-frame per-vertex weights over the static scans (T,n,S) float32, rows summing to 1.
+
+    The correspondence strength v · conf (§5.3, §7.3; :func:`correspondence_strength`)
+    times :func:`stress_similarity` (the module's departure); where no scan matches by
+    flow, the stress kernel alone.
+
+    Parameters
+    ----------
+    inp : :class:`~service.methods.tracking.track.TrackingInput`
+    result : :class:`~service.methods.tracking.track.TrackingResult` (its tracked vertices and
+             registered scans; scans it did not register get weight 0)
+    uv : (u,2), uv_faces : (m,3)   the artist mesh's UV layout (the stress's tangent frames)
+    stride : frames between computed correspondence strengths (default ``params.candidate_stride``)
+    stress : False: the correspondence strength alone, the paper's §7.3, where a vertex no
+             scan matches takes the neutral's maps
+    """
+    strength = correspondence_strength(inp, result, params, stride)
+    shape = None
+    if stress:
+        shape = stress_similarity(inp.artist_vertices, inp.faces, uv, uv_faces, result.vertices,
+                                  result.scan_vertices)
+    return combine_weights(strength, shape)
 
 
 def blend_maps(weights: np.ndarray, faces: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,

@@ -75,6 +75,21 @@ class TrackingParams(MethodParams):
         "the scalar belief precision min(1, det(Σ⁻¹)^⅓) of eq. 4 and 11"))
     inertia: float = Field(1e-3, gt=0.0, le=1.0, description=(
         "weight of ‖x − x_current‖² (keeps vertices no term reaches where they are)"))
+    monocular_depth: bool = Field(False, strict=True, description=(
+        "with one view, the rigid update (§5.6) moves each dynamic pose along the view rays "
+        "to the artist mesh's size over the size region (solve.update_rigid): the head's "
+        "distance from its scale. Off by default: chosen on family a, where it costs "
+        "(256², 1 view: 40 frames 0.700 → 0.717 mm, 120 frames 1.273 → 1.503); family b "
+        "gains (40 frames 3.177 → 1.803, 120 frames 2.480 → 2.291)"))
+    monocular_size_fraction: float = Field(0.1, gt=0.0, le=1.0, description=(
+        "the fraction of the face's vertices, those no static pose moves (the smallest largest "
+        "residual after rigid alignment), whose size sets the head's distance in one view "
+        "(solve.size_region)"))
+    monocular_scale_tolerance: float = Field(0.006, ge=0.0, le=0.1, description=(
+        "scale evidence within this relative band (or the static poses' own median scale "
+        "change over the size region, solve.size_band, if larger) moves nothing: the soft "
+        "threshold s ← 1 + sign(s − 1)·max(|s − 1| − tol, 0) (solve.update_rigid); chosen on "
+        "family a (the smallest of 0 / 0.002 / 0.004 / 0.006 that costs it nothing)"))
     keyframe_iterations: int = Field(6, ge=1, le=50, strict=True, description=(
         "outer (model re-fitting) iterations of the keyframe solve (§5.1: 6 DDMS iterations)"))
     span_iterations: int = Field(3, ge=1, le=50, strict=True, description=(

@@ -34,7 +34,8 @@ from service.methods.tracking.graph import (EdgeFlows, FlowGraph, candidate_tabl
                                             edge_flows, vote)
 from service.methods.tracking.params import TrackingParams
 from service.methods.tracking.regions import face_regions
-from service.methods.tracking.solve import PoseState, RawScan, TrackingMesh, solve_poses
+from service.methods.tracking.solve import (PoseState, RawScan, TrackingMesh, size_band, size_region,
+                                            solve_poses)
 
 METHODS = ("graph", "neutral", "sequential")
 
@@ -224,6 +225,8 @@ class KeyframeSolution:
     rigidity: np.ndarray
     timings: dict
     cpu_timings: dict = field(default_factory=dict)
+    size_weights: np.ndarray | None = None
+    size_band: float = 0.0
 
 
 def solve_keyframes(inp: TrackingInput, graph: FlowGraph, params: TrackingParams,
@@ -263,11 +266,14 @@ def solve_keyframes(inp: TrackingInput, graph: FlowGraph, params: TrackingParams
     known = [states[("scan", s)].X for s in used if s != 0
              and np.mean(states[("scan", s)].certainty) > 0.2]
     mesh.rigidity = rigidity_weights(mesh, known, inp.face)
+    mesh.size_weights = size_region(mesh, known, params.monocular_size_fraction, inp.face)
+    mesh.size_band = size_band(mesh, known, mesh.size_weights)
     if params.keyframe_iterations > first:
         states = solve_poses(mesh, inp.cameras, states, free, edges, raw, params,
                              params.keyframe_iterations - first)
     timings["keyframe_solve"], cpu["keyframe_solve"] = time.perf_counter() - t0, time.process_time() - c0
-    return KeyframeSolution(states, keyframes, mesh.rigidity, timings, cpu)
+    return KeyframeSolution(states, keyframes, mesh.rigidity, timings, cpu, mesh.size_weights,
+                            mesh.size_band)
 
 
 def spans(keyframes: list[int]) -> list[tuple[int, int]]:

@@ -48,11 +48,9 @@ def _rigid(V, deg, t):
     return V @ R.T + t
 
 
-def test_strain_similarity_picks_the_scan_stretched_like_the_frame():
-    from service.methods.tracking.maps import strain_similarity
-    from service.methods.tracking.solve import TrackingMesh
+def test_stress_similarity_picks_the_scan_stretched_like_the_frame():
+    from service.methods.tracking.maps import stress_similarity
     V, F = _grid()
-    mesh = TrackingMesh.build(V, F)
     rng = np.random.default_rng(0)
     left = V[:, 0] < 0.2                           # ≥ 5 rings from the stretch's edge
     # scans: the neutral, the left half stretched 10 %, and one the tracking did not register
@@ -60,25 +58,39 @@ def test_strain_similarity_picks_the_scan_stretched_like_the_frame():
     frames = np.stack([_rigid(V, 30, [5.0, 1, 2]),                       # the neutral, moved
                        _rigid(_stretch_left(V, 1.1), -20, [0, 3, 1])])   # scan 1's shape, moved
     frames = frames + rng.normal(0, 1e-4, frames.shape)
-    K = strain_similarity(mesh, frames, scans)
+    K = stress_similarity(V, F, V[:, :2], F, frames, scans)
     assert K.shape == (2, len(V), 3)
     np.testing.assert_allclose(K.sum(axis=2), 1.0, atol=1e-5)
     assert np.all(K[..., 2] == 0)                  # unregistered scan
+    # Shepard weights of the Green strain (p = 3): measured 0.999998 and 0.999997 on the left
     assert K[0, left, 0].min() > 0.99              # neutral frame → neutral on the left
     assert K[1, left, 1].min() > 0.99              # stretched frame → scan 1 on the left
     right = V[:, 0] > 0.8                          # both scans unstretched there: an even split
-    np.testing.assert_allclose(K[:, right, 0], 0.5, atol=0.05)
+    np.testing.assert_allclose(K[:, right, 0], 0.5, atol=0.05)     # measured exactly 0.5
 
 
-def test_shape_weighted_blend_reproduces_the_frames_map_and_beats_every_single_scan():
+def test_stress_similarity_is_the_stress_blend_models_weights():
+    # one surface-stress measure: the tracking's kernel is stress_blend's StressField and
+    # shepard_weights, called with the tracking's parameters
+    from service.methods.stress_blend.stress import StressField
+    from service.methods.stress_blend.weights import shepard_weights
+    from service.methods.tracking.maps import stress_similarity
+    V, F = _grid(9)
+    scans = np.stack([V, _stretch_left(V, 1.1), V * [1.0, 1.05, 1.0]])
+    frames = np.stack([_stretch_left(V, 1.05), V * [1.02, 1.03, 1.0]])
+    field = StressField.build(V, F, V[:, :2], F, 2)
+    ref = shepard_weights(field.stress(frames), field.stress(scans), 4.0, 0.3)
+    out = stress_similarity(V, F, V[:, :2], F, frames, scans, smoothing=2, power=4.0, global_weight=0.3)
+    np.testing.assert_allclose(out, ref, atol=1e-6)
+
+
+def test_stress_weighted_blend_reproduces_the_frames_map_and_beats_every_single_scan():
     # scan 1 stretched 10 % on the left half, scan 2 on the right half; each scan's map is 2
     # where it is stretched, 1 elsewhere (blood flow follows strain). The frame is stretched
     # everywhere: its map is 2 everywhere, which no single scan has (each is off by 0.5 on
-    # average, the neutral by 1), but the shape-weighted blend is
-    from service.methods.tracking.maps import strain_similarity
-    from service.methods.tracking.solve import TrackingMesh
+    # average, the neutral by 1), but the stress-weighted blend is
+    from service.methods.tracking.maps import stress_similarity
     V, F = _grid()
-    mesh = TrackingMesh.build(V, F)
     right = V.copy()
     right[:, 0] = np.where(V[:, 0] < 0.5, V[:, 0], 0.5 + 1.1 * (V[:, 0] - 0.5))
     scans = np.stack([V, _stretch_left(V, 1.1), right])
@@ -86,11 +98,22 @@ def test_shape_weighted_blend_reproduces_the_frames_map_and_beats_every_single_s
     u = np.broadcast_to((np.arange(32) + 0.5) / 32, (32, 32))
     maps = np.stack([np.ones((32, 32)), 1.0 + (u < 0.5), 1.0 + (u >= 0.5)])
     truth = np.full((32, 32), 2.0)
-    W = strain_similarity(mesh, _rigid(frame, 10, [1.0, 2, 3])[None], scans)
+    W = stress_similarity(V, F, V[:, :2], F, _rigid(frame, 10, [1.0, 2, 3])[None], scans)
     out = blend_maps(W, F, V[:, :2], F, maps)[0]
     away = np.abs(u - 0.5) > 0.2                                        # from the seam
     err = np.abs(out - truth)[away].mean()
     single = [np.abs(m - truth)[away].mean() for m in maps]
     np.testing.assert_allclose(single, [1.0, 0.5, 0.5])
-    assert err < 0.05                               # the kernel (σ = 0.02) leaves ~1 % per other scan
+    assert err < 1e-4, err                       # measured 6.5e-8 (the log edge-strain kernel of σ = 0.02 left ~1 % per other scan)
     assert np.abs(out - truth).mean() < min(np.abs(m - truth).mean() for m in maps) / 3
+
+
+def test_combine_weights_falls_back_to_the_stress_kernel_where_no_scan_matches():
+    from service.methods.tracking.maps import combine_weights
+    strength = np.array([[[0.5, 0.5, 0.0], [0.0, 0.0, 0.0]]])        # vertex 1: no flow match
+    shape = np.array([[[0.2, 0.8, 0.0], [0.1, 0.3, 0.6]]], np.float32)
+    W = combine_weights(strength, shape)
+    np.testing.assert_allclose(W[0, 0], [0.2, 0.8, 0.0], atol=1e-6)    # 0.5·0.2 : 0.5·0.8
+    np.testing.assert_allclose(W[0, 1], [0.1, 0.3, 0.6], atol=1e-6)
+    W = combine_weights(strength, None)                               # §7.3: the neutral
+    np.testing.assert_allclose(W[0, 1], [1.0, 0.0, 0.0])

@@ -144,3 +144,60 @@ def test_visibility_on_a_reduced_z_buffer_agrees_with_the_full_one():
     # 11k-vertex mesh at 512² against 256²
     assert not np.array_equal(half, full)
     assert np.abs(half - full).mean() < 0.04, np.abs(half - full).mean()
+
+
+def _monocular_depth_case(params):
+    """One view; the frame is the artist cap 12 mm nearer the camera, slightly turned, with
+    a 3 mm bump on its soft (low-rigidity) half. Exact flows from the ground pose."""
+    V, F, _ = cap_mesh(16)
+    cam = face_cameras(np.zeros(3), distance=300.0, size=128, yaws_deg=(0.0,), field_mm=90.0)[0]
+    R = Rotation.from_euler("xyz", [1.0, -1.5, 0.5], degrees=True).as_matrix()
+    soft = V[:, 0] > 5.0
+    bump = np.zeros_like(V)
+    bump[soft, 2] = 3.0 * np.exp(-((V[soft, 0] - 15) ** 2 + V[soft, 1] ** 2) / (2 * 8.0 ** 2))
+    W1 = (V + bump) @ R.T + np.array([0.5, -0.5, 12.0])          # the camera looks down −z
+    mesh = TrackingMesh.build(V, F)
+    mesh.rigidity = np.where(soft, 0.2, 1.5)                      # as estimated from static poses
+    mesh.size_weights = (~soft).astype(float)                     # the size region (size_region)
+    edge = EdgeFlows(("scan", 0), ("frame", 0), [_exact_flow(cam, V, W1, F)],
+                     [_exact_flow(cam, W1, V, F)])
+    states = {("scan", 0): ground_state(mesh), ("frame", 0): unknown_state(mesh)}
+    s = solve_poses(mesh, [cam], states, [("frame", 0)], [edge], {}, params, 6)[("frame", 0)]
+    rigid = ~soft & (np.abs(V[:, 1]) < 26) & (V[:, 0] > -26)
+    depth = float(np.mean((s.world() - W1)[rigid] @ cam.R[2]))    # + = farther than the truth
+    return depth, float(np.linalg.norm(s.world() - W1, axis=1)[rigid].mean())
+
+
+def test_monocular_rigid_update_recovers_the_head_depth_from_its_size():
+    # §5.6 with one view: ε of eq. 4 keeps every pose at the neutral's distance, so the old
+    # rigid fit leaves the cap 12 mm too far (measured +11.16 mm, the face 4 % too large
+    # instead); the rigid update scaled about the camera centre to the artist's size over
+    # the size region recovers the depth: measured 0.38 mm (mean error 0.40 mm) with no
+    # tolerance, and 2.22 mm with the default tolerance (0.006 of the ~290 mm distance is
+    # 1.7 mm that the soft threshold leaves)
+    old, old_err = _monocular_depth_case(TrackingParams())                 # off by default
+    exact, exact_err = _monocular_depth_case(TrackingParams(monocular_depth=True,
+                                                            monocular_scale_tolerance=0.0))
+    default, _ = _monocular_depth_case(TrackingParams(monocular_depth=True))
+    assert old > 10.0, old
+    assert abs(exact) < 0.5, exact
+    assert exact_err < 0.5 and old_err > 10.0, (exact_err, old_err)
+    assert 1.0 < default < 0.006 * 300.0 + 0.6, default
+
+
+def test_size_region_is_what_no_static_pose_moves_and_size_band_what_they_change():
+    from service.methods.tracking.solve import size_band, size_region
+    V, F, _ = cap_mesh(12)
+    mesh = TrackingMesh.build(V, F)
+    assert size_region(mesh, [], 0.2) is None and size_band(mesh, [], None) == 0.0
+    # pose 1 bumps the right side, pose 2 the lower side: only the upper left stays rigid
+    p1 = V + np.c_[np.zeros((len(V), 2)), 4.0 * np.exp(-((V[:, 0] - 20) ** 2) / 200.0)]
+    p2 = V + np.c_[np.zeros((len(V), 2)), 4.0 * np.exp(-((V[:, 1] + 20) ** 2) / 200.0)]
+    w = size_region(mesh, [p1, p2], 0.2)
+    assert abs(w.sum() - 0.2 * len(V)) <= 1
+    centre = V[w > 0, :2].mean(axis=0)                 # measured (−4.0, 4.0) mm
+    assert centre[0] < -3.0 and centre[1] > 3.0
+    # the bumps barely change that region's size (measured 0.0012); the median over the
+    # poses: two of three poses 2 % larger than the artist mesh give |1/1.02 − 1|
+    assert size_band(mesh, [p1, p2], w) < 0.002
+    assert abs(size_band(mesh, [p1, V * 1.02, V * 1.02], w) - (1 - 1 / 1.02)) < 1e-9
