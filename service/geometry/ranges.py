@@ -10,6 +10,10 @@ one synthesis per slot thread). With one thread the kernel is called directly.
 
 The thread count of a kernel call is :func:`kernel_threads`: ``NUMBA_NUM_THREADS`` (set by
 ``facesynth serve`` with the BLAS threads, :mod:`service.app.threads`), else 1.
+
+:func:`scratch` hands a calling thread the same work array for the same key on every call, so
+a per-frame kernel's temporaries are not fresh allocations (at level 2 a frame's temporaries
+are ~15 MB; freshly mapped pages fault on first touch: measured 2–3 ms of a 10–16 ms step).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import numpy as np
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
+_SCRATCH = threading.local()
 
 
 def kernel_threads() -> int:
@@ -58,3 +63,16 @@ def run(kernel: Callable, n: int, *args, threads: int | None = None) -> None:
     futures = [_pool(threads).submit(kernel, int(lo), int(hi), *args) for lo, hi in zip(b[:-1], b[1:])]
     for fut in futures:
         fut.result()
+
+
+def scratch(key: str, shape: tuple[int, ...], dtype=np.float32) -> np.ndarray:
+    """A work array of ``shape`` and ``dtype`` owned by the calling thread, the same one for
+    the same ``key`` (contents undefined): for temporaries that do not outlive the call that
+    takes them. One array per key and thread; a new shape replaces it."""
+    arrays = getattr(_SCRATCH, "arrays", None)
+    if arrays is None:
+        arrays = _SCRATCH.arrays = {}
+    a = arrays.get(key)
+    if a is None or a.shape != tuple(shape) or a.dtype != np.dtype(dtype):
+        a = arrays[key] = np.empty(shape, dtype)
+    return a

@@ -326,22 +326,24 @@ class ShellFrames:
         float32 (what :meth:`displacement` reads: one vertex's row contiguous)."""
         return np.ascontiguousarray(np.asarray(basis)[self.order], dtype=np.float32)
 
-    def displacement(self, B: np.ndarray, u_H: np.ndarray, threads: int | None = None) -> np.ndarray:
-        """U (3,n) float32, internal order: the shell displacement ``B u_H`` of handle
-        displacements u_H (h,3) mm, B from :meth:`internal_basis`. Equals
+    def displacement(self, B: np.ndarray, u_H: np.ndarray, threads: int | None = None,
+                     out: np.ndarray | None = None) -> np.ndarray:
+        """U (3,n) float32, internal order (into ``out`` if given): the shell displacement
+        ``B u_H`` of handle displacements u_H (h,3) mm, B from :meth:`internal_basis`. Equals
         :func:`~service.geometry.thin_shell.apply_basis` up to float32 summation order."""
         u = np.ascontiguousarray(np.asarray(u_H, np.float32).T)
-        U = np.empty((3, self.n_vertices), np.float32)
+        U = np.empty((3, self.n_vertices), np.float32) if out is None else out
         ranges.run(displacements, self.n_vertices, B, u, U, threads=threads)
         return U
 
-    def _sums(self, U: np.ndarray, threads: int | None) -> tuple[np.ndarray, np.ndarray, np.float32]:
-        """:func:`frame_sums` over every vertex: T, N (3,n) and FrameField's cancellation floor."""
+    def _sums(self, U: np.ndarray, threads: int | None,
+              frames: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.float32]:
+        """:func:`frame_sums` over every vertex: T, N (3,n) (into ``frames`` if given) and
+        FrameField's cancellation floor."""
         n = self.n_vertices
-        T = np.empty((3, n), np.float32)
-        N = np.empty((3, n), np.float32)
-        tmax = np.empty(n, np.float32)
-        terms = np.empty((len(self.faces), 6), np.float32)
+        T, N = frames or (np.empty((3, n), np.float32), np.empty((3, n), np.float32))
+        tmax = ranges.scratch("shell_frames.tmax", (n,))
+        terms = ranges.scratch("shell_frames.terms", (len(self.faces), 6))
         ranges.run(triangle_terms, len(self.faces), U, self.faces, self.rest, terms, threads=threads)
         ranges.run(frame_sums, n, terms, self.ptr, self.tri, self.angle, T, N, tmax, threads=threads)
         floor = np.float32(CANCEL_RTOL * max(float(tmax.max(initial=0.0)), 1e-30)) ** 2
@@ -376,7 +378,8 @@ class ShellFrames:
         """
         U = np.ascontiguousarray(U, np.float32)
         n = self.n_vertices
-        T, N, floor = self._sums(U, threads)
+        T, N, floor = self._sums(U, threads, (ranges.scratch("shell_frames.T", (3, n)),
+                                              ranges.scratch("shell_frames.N", (3, n))))
         Xa = np.empty((3, n), np.float32) if aligned else _NO_ALIGNED
         W = _NO_WORLD if world is None else world
         R32 = _EYE if R is None else np.ascontiguousarray(R, np.float32)

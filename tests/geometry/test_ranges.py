@@ -40,3 +40,17 @@ def test_kernel_threads_reads_numba_num_threads(monkeypatch):
     assert ranges.kernel_threads() == 1
     monkeypatch.setenv("NUMBA_NUM_THREADS", "x")
     assert ranges.kernel_threads() == 1
+
+
+def test_scratch_is_one_array_per_key_and_thread():
+    a = ranges.scratch("t.a", (4, 3))
+    assert ranges.scratch("t.a", (4, 3)) is a and a.dtype == np.float32
+    assert ranges.scratch("t.b", (4, 3)) is not a
+    assert ranges.scratch("t.a", (5, 3)).shape == (5, 3)              # a new shape replaces it
+    assert ranges.scratch("t.a", (5, 3), np.float64).dtype == np.float64
+    from concurrent.futures import ThreadPoolExecutor
+
+    mine = ranges.scratch("t.c", (2,))
+    with ThreadPoolExecutor(1) as ex:
+        theirs = ex.submit(ranges.scratch, "t.c", (2,)).result()
+    assert theirs is not mine

@@ -135,6 +135,7 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from service.geometry import ranges
 from service.geometry.normal_map import NormalMapper
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
@@ -298,7 +299,7 @@ class PoseSpaceEvaluator:
         ``apply_corrections(base, base.deform(u_H), c)`` (tests; one float32 ulp of a
         position at the sample actor's ~190 mm is 1.5e-5 mm)."""
         sf = self.shell_frames
-        U = sf.displacement(self.basis_internal, u_H)
+        U = sf.displacement(self.basis_internal, u_H, out=ranges.scratch("pose_space.U", (3, sf.n_vertices)))
         return sf.shell(U, self.smooth_internal, C, R, t, aligned=aligned, world=world)
 
     # -- fine scale
