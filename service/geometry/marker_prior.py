@@ -279,25 +279,17 @@ class MarkerDenoiser:
             out = soft_handles(self.energy, u, 0.0)
             return out[0] if single else out
         F = len(u)
-        missing = ~np.isfinite(u).all(axis=2)                                  # (F,M)
-        full = ~missing.any(axis=1)
+        full, groups = occlusion_groups(u)
         out = np.empty((F, 3 * M))
         if full.any():
             out[full] = u[full].reshape(-1, 3 * M) @ self.full + self.offset   # full is symmetric
-        if (~full).any():
-            # (I + A − E Eᵀ)⁻¹ by Woodbury from the precomputed (I + A)⁻¹ = P, E selecting the
-            # occluded coordinates: x = y + P E (I − Eᵀ P E)⁻¹ Eᵀ y, y = P (D_V m + b)
-            P = self.full
-            patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
-            frames = np.flatnonzero(~full)
-            for p, miss in enumerate(patterns):
-                if miss.all():
-                    raise ValueError("all markers are unknown; at least one is needed")
-                sel = frames[which.ravel() == p]
-                idx = np.flatnonzero(np.repeat(miss, 3))
-                y = np.nan_to_num(u[sel].reshape(len(sel), 3 * M)) @ P + self.offset
-                S = np.eye(len(idx)) - P[np.ix_(idx, idx)]
-                out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P[idx]
+        # occluded frames: (I + A − E Eᵀ)⁻¹ by Woodbury from the precomputed (I + A)⁻¹ = P, E
+        # selecting the occluded coordinates: x = y + P E (I − Eᵀ P E)⁻¹ Eᵀ y, y = P (D_V m + b)
+        P = self.full
+        for sel, idx in groups:
+            y = np.nan_to_num(u[sel].reshape(len(sel), 3 * M)) @ P + self.offset
+            S = np.eye(len(idx)) - P[np.ix_(idx, idx)]
+            out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P[idx]
         out = out.reshape(F, M, 3)
         return out[0] if single else out
 
@@ -393,25 +385,35 @@ class PriorEigen:
         U, mu = self.vectors, self.mean
         F = len(u)
         x = u.reshape(F, n)
-        missing = ~np.isfinite(u).all(axis=2)
-        full = ~missing.any(axis=1)
+        full, groups = occlusion_groups(u)
         out = np.empty((F, n))
         if full.any():
             out[full] = mu + ((x[full] - mu) @ U * w) @ U.T
-        if (~full).any():
-            patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
-            frames = np.flatnonzero(~full)
-            for p, miss in enumerate(patterns):
-                if miss.all():
-                    raise ValueError("all markers are unknown; at least one is needed")
-                sel = frames[which.ravel() == p]
-                idx = np.flatnonzero(np.repeat(miss, 3))
-                y = mu + ((np.nan_to_num(x[sel]) - mu) @ U * w) @ U.T            # P (D_V m + b)
-                P_rows = (U[idx] * w) @ U.T                                       # P[idx]
-                S = (U[idx] * (s2 / (self.values + s2))) @ U[idx].T              # I − P[idx, idx]
-                out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P_rows
+        for sel, idx in groups:
+            y = mu + ((np.nan_to_num(x[sel]) - mu) @ U * w) @ U.T            # P (D_V m + b)
+            P_rows = (U[idx] * w) @ U.T                                       # P[idx]
+            S = (U[idx] * (s2 / (self.values + s2))) @ U[idx].T              # I − P[idx, idx]
+            out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P_rows
         out = out.reshape(F, n // 3, 3)
         return out[0] if single else out
+
+
+def occlusion_groups(u: np.ndarray) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Frames of marker displacements u (F,M,3), NaN where occluded, grouped for the MAP
+    solves: ``full`` (F,) bool (every marker seen) and, per occlusion pattern of the others,
+    (its frames (k,), its occluded coordinates (3·missing,) of the flattened (3M,) frame).
+
+    Raises ValueError for a frame with no visible marker."""
+    missing = ~np.isfinite(u).all(axis=2)                                      # (F,M)
+    full = ~missing.any(axis=1)
+    if full.all():
+        return full, []
+    patterns, which = np.unique(missing[~full], axis=0, return_inverse=True)
+    frames = np.flatnonzero(~full)
+    if patterns.all(axis=1).any():
+        raise ValueError("all markers are unknown; at least one is needed")
+    return full, [(frames[which.ravel() == p], np.flatnonzero(np.repeat(miss, 3)))
+                  for p, miss in enumerate(patterns)]
 
 
 def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = None,
