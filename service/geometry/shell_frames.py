@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, uint64
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from service.geometry import ranges
@@ -60,7 +60,9 @@ from service.geometry.normals import corner_angles
 from service.geometry.tangent_frames import CANCEL_RTOL, _triangle_signs, uv_handedness
 
 #: LLVM flags of the kernels: reassociation and contraction only (no finite-math
-#: assumptions, so the zero tests of the fallbacks keep their meaning)
+#: assumptions, so the zero tests of the fallbacks keep their meaning). The kernels index
+#: with unsigned integers (loop ranges, ``faces``, ``ptr``, ``tri``): Numba checks every
+#: signed index for a negative value to wrap around (measured ~40 % of a gather-heavy loop)
 FASTMATH = {"reassoc", "contract"}
 
 
@@ -85,8 +87,8 @@ def displacements(lo, hi, B, u, U):
     """Vertices [lo, hi): the shell displacement ``U[:, k] = u B[k]`` (3,n) float32 of handle
     displacements u (3,h) float32 and the thin-shell basis rows B (n,h) float32 in the
     internal order (bickel2008 §4: u = B u_H, one row of B per vertex, read once)."""
-    h = B.shape[1]
-    for k in range(lo, hi):
+    h = uint64(B.shape[1])
+    for k in range(uint64(lo), uint64(hi)):
         x = y = z = np.float32(0.0)
         for j in range(h):
             b = B[k, j]
@@ -101,7 +103,7 @@ def triangle_terms(lo, hi, U, F, rest, out):
     """Triangles [lo, hi): ``out[t] = (dP/du, e1 × e2)`` (m,6) float32 of the shell whose
     displacement is U (3,n) (internal order); ``rest`` (m,8) holds the rest edges e1, e2 and
     the UV coefficients cb, cc of dP/du = cb e1 + cc e2."""
-    for t in range(lo, hi):
+    for t in range(uint64(lo), uint64(hi)):
         a, b, c = F[t, 0], F[t, 1], F[t, 2]
         e1x = (U[0, b] - U[0, a]) + rest[t, 0]
         e1y = (U[1, b] - U[1, a]) + rest[t, 1]
@@ -123,10 +125,10 @@ def frame_sums(lo, hi, terms, ptr, tri, angle, T, N, tmax):
     """Vertices [lo, hi): unit normal N and tangent T projected off it (3,n) float32, and
     tmax (n,) the largest |T| component, from the incident triangles' :func:`triangle_terms`
     (T the angle-weighted sum of dP/du, N the normalized sum of e1 × e2)."""
-    for k in range(lo, hi):
+    for k in range(uint64(lo), uint64(hi)):
         tx = ty = tz = np.float32(0.0)
         nx = ny = nz = np.float32(0.0)
-        for q in range(ptr[k], ptr[k + 1]):
+        for q in range(ptr[k], ptr[k + uint64(1)]):
             t = tri[q]
             w = angle[q]
             tx += w * terms[t, 0]
@@ -154,7 +156,7 @@ def compose(lo, hi, T, N, floor, U, rest, C, R, t, order, aligned, world, Bout):
     want_aligned = aligned.shape[1] > 0
     want_world = world.shape[0] > 0
     want_frames = Bout.shape[1] > 0
-    for k in range(lo, hi):
+    for k in range(uint64(lo), uint64(hi)):
         nx, ny, nz = N[0, k], N[1, k], N[2, k]
         tx, ty, tz = T[0, k], T[1, k], T[2, k]
         has_n = nx != 0 or ny != 0 or nz != 0
@@ -201,7 +203,7 @@ def frame_coordinates(lo, hi, at, dest, T, B, N, W, base, sub, out):
     frames T, B, N (3,n) of :meth:`ShellFrames.rows` (the vector unrotated where the vertex
     has no normal, FrameField's identity frame). With ``at`` ascending the vertex rows are
     read in order and each point costs one scattered 12-byte write."""
-    for p in range(lo, hi):
+    for p in range(uint64(lo), uint64(hi)):
         v = at[p]
         wx = base[0, v] + W[0, v]
         wy = base[1, v] + W[1, v]
@@ -229,7 +231,7 @@ def compose_framed(lo, hi, T, B, N, U, rest, C, R, t, order, aligned, world):
     (``Rᵀ (X − t)``, R float32) at vertex ``order[k]``."""
     want_aligned = aligned.shape[0] > 0
     want_world = world.shape[0] > 0
-    for k in range(lo, hi):
+    for k in range(uint64(lo), uint64(hi)):
         nx, ny, nz = N[0, k], N[1, k], N[2, k]
         c0, c1, c2 = C[k, 0], C[k, 1], C[k, 2]
         if nx != 0 or ny != 0 or nz != 0:
@@ -261,10 +263,10 @@ class ShellFrames:
     ----------
     order : (n,) int64       internal position k holds vertex ``order[k]``
     rank : (n,) int64        the inverse: vertex v is at internal position ``rank[v]``
-    faces : (m,3) int32      triangles over internal positions (sorted by first corner)
+    faces : (m,3) uint32     triangles over internal positions (sorted by first corner)
     rest : (m,8) float32     per triangle the rest edges e1 = P1 − P0, e2 = P2 − P0 of X̄ and
                              cb, cc with dP/du = cb e1 + cc e2 (0 for UV-degenerate ones)
-    ptr : (n+1,) int64, tri : (3m,) int32, angle : (3m,) float32
+    ptr : (n+1,) uint64, tri : (3m,) uint32, angle : (3m,) float32
                              vertex → incident triangles (CSR by internal position, triangles
                              ascending) and the rest corner angle there (0 where the triangle's
                              UV handedness is not the vertex's majority one)
@@ -302,8 +304,8 @@ class ShellFrames:
         inc = np.lexsort((cols, rows))                                            # by vertex, then triangle
         ptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int64)
         rest = np.column_stack([V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]], cb, cc]).astype(np.float32)
-        return cls(order, rank, Fi.astype(np.int32), rest, ptr, cols[inc].astype(np.int32),
-                   w.ravel()[inc].astype(np.float32))
+        return cls(order, rank, Fi.astype(np.uint32), rest, ptr.astype(np.uint64),
+                   cols[inc].astype(np.uint32), w.ravel()[inc].astype(np.float32))
 
     @property
     def n_vertices(self) -> int:

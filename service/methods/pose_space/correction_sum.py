@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, uint64
 
 from service.geometry import ranges
 
@@ -48,14 +48,17 @@ def correction_sums(lo, hi, ptr, edge, values, const, W, G, f, fade, D2, given, 
     D2 where it has rows otherwise). ``const`` (n,3) has no rows without a polynomial.
 
     One pass over a vertex's entries sums the polynomial and the first :data:`LANES`
-    distances; further blocks of distances (P > LANES) take one more pass each."""
+    distances; further blocks of distances (P > LANES) take one more pass each. Vertices and
+    entries are indexed by unsigned integers (``ptr`` uint64, ``edge`` uint32): Numba checks
+    every signed index for a negative value to wrap, which cost ~40 % of this loop."""
     P = W.shape[2]
     Pp = G.shape[1]
     has_poly = const.shape[0] > 0
     keep = D2.shape[0] > 0 and not given
     d2 = np.zeros(Pp, np.float32)
-    for v in range(lo, hi):
-        p0, p1 = ptr[v], ptr[v + 1]
+    one = uint64(1)
+    for v in range(uint64(lo), uint64(hi)):
+        p0, p1 = ptr[v], ptr[v + one]
         s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = np.float32(0.0)
         px = py = pz = np.float32(0.0)
         for q in range(p0, p1):
@@ -82,15 +85,15 @@ def correction_sums(lo, hi, ptr, edge, values, const, W, G, f, fade, D2, given, 
                 s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = np.float32(0.0)
                 for q in range(p0, p1):
                     a = values[q, 0]
-                    i = edge[q]
-                    s0 += a * G[i, b]
-                    s1 += a * G[i, b + 1]
-                    s2 += a * G[i, b + 2]
-                    s3 += a * G[i, b + 3]
-                    s4 += a * G[i, b + 4]
-                    s5 += a * G[i, b + 5]
-                    s6 += a * G[i, b + 6]
-                    s7 += a * G[i, b + 7]
+                    g = G[edge[q]]
+                    s0 += a * g[b]
+                    s1 += a * g[b + 1]
+                    s2 += a * g[b + 2]
+                    s3 += a * g[b + 3]
+                    s4 += a * g[b + 4]
+                    s5 += a * g[b + 5]
+                    s6 += a * g[b + 6]
+                    s7 += a * g[b + 7]
                 d2[b], d2[b + 1], d2[b + 2], d2[b + 3] = s0, s1, s2, s3
                 d2[b + 4], d2[b + 5], d2[b + 6], d2[b + 7] = s4, s5, s6, s7
             if keep:
@@ -116,7 +119,7 @@ class CorrectionSum:
     """α, the polynomial and the RBF weights of a WPSD model on one CSR pattern, rows in a
     given vertex order (:func:`aligned_support`); :meth:`__call__` evaluates one frame.
 
-    ptr (n+1,) int64, edge (nnz,) int32, values (nnz,4) float32 (α and the polynomial's three
+    ptr (n+1,) uint64, edge (nnz,) uint32, values (nnz,4) float32 (α and the polynomial's three
     coefficients; zero coefficients without a polynomial), const (n,3) float32 (no rows
     without a polynomial), weights (n,3,P) float32, basis_features (P,E).
     """
@@ -141,7 +144,8 @@ class CorrectionSum:
         W = np.ascontiguousarray(np.asarray(weights, np.float32)[order].transpose(0, 2, 1))
         const = (np.ascontiguousarray(np.asarray(poly_const, np.float32)[order]) if poly_linear is not None
                  else np.empty((0, 3), np.float32))
-        return cls(ptr, edge.astype(np.int32), values, const, W, np.asarray(basis_features, np.float64))
+        return cls(ptr.astype(np.uint64), edge.astype(np.uint32), values, const, W,
+                   np.asarray(basis_features, np.float64))
 
     @property
     def n_vertices(self) -> int:
