@@ -649,10 +649,16 @@ def posterior_displacements(base: BaseSurface, aligned: np.ndarray, mean: np.nda
     occluded) with ``params.marker_prior = "posterior"``: the in-mode part of
     :func:`marker_posterior` at every marker plus its shrunk residual, completed at the
     occluded markers by the thin shell's minimum energy (the shell is linear, so the two
-    parts are completed separately and added)."""
+    parts are completed separately and added). With marker noise σ > 0 the base's
+    denoiser is affine, D(x) = P x + o (the learned prior's mean gives o): each part's call
+    adds o, so D(0) of the residual's occlusion pattern is taken off once —
+    D(a) + D(b) − D(0) = P (a + b) + o."""
     rest = base.rest_markers
     inmode, resid = marker_posterior(aligned - rest, mean, modes, resid_var, noise_mm)
-    return base.handle_displacements(rest + inmode) + base.handle_displacements(rest + resid)
+    u = base.handle_displacements(rest + inmode) + base.handle_displacements(rest + resid)
+    if not base.denoise.interpolates:
+        u -= base.handle_displacements(rest + np.where(np.isnan(resid), np.nan, 0.0))
+    return u
 
 
 def _even_sample(n: int, k: int) -> np.ndarray:

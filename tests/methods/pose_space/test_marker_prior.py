@@ -125,3 +125,27 @@ def test_the_model_denoises_and_completes_markers_and_transfers_its_prior(wpsd_e
     for k in ("marker_mean", "marker_modes", "marker_residual_var"):
         np.testing.assert_allclose(getattr(moved.data, k), getattr(d, k), atol=1e-6)
     assert isinstance(moved, PoseSpaceModel)
+
+
+def test_posterior_displacements_with_marker_noise_count_the_denoiser_offset_once(ps_data):
+    """σ > 0: the learned prior's denoiser is affine, D(x) = P x + o; the posterior's two
+    parts (in-mode, residual) are denoised separately, so their sum must equal one call on
+    the parts' sum — one offset, not two."""
+    from service.methods.pdm.base_surface import training_head_pose
+    from service.methods.pose_space.corrections import large_scale_surface
+    from service.methods.pose_space.model import posterior_displacements
+
+    actor, clips = ps_data
+    markers = np.concatenate([c.markers for c in clips]).astype(np.float64)
+    rest = actor.marker_positions()
+    pose, _ = training_head_pose(markers, rest, [str(k) for k in range(len(markers))])
+    aligned = pose.remove(markers)
+    base = large_scale_surface(actor).with_marker_noise(0.3, samples=aligned)
+    assert not base.denoise.interpolates
+    assert np.abs(base.handle_displacements(rest)).max() > 1e-3                # D(0) = o ≠ 0
+    mean, modes = marker_statistics(aligned - rest)
+    frames = aligned[[3, 20, 31]]
+    var = np.full(len(rest), 0.2)
+    inmode, resid = marker_posterior(frames - rest, mean, modes, var, 0.3)
+    got = posterior_displacements(base, frames, mean, modes, var, 0.3)
+    np.testing.assert_allclose(got, base.handle_displacements(rest + inmode + resid), atol=1e-9)
