@@ -186,9 +186,13 @@ class PoseSpaceEvaluator:
 
     Attributes: ``base`` the thin shell (basis B, handle energy, tangent-frame field);
     ``node_rest`` (N,3) and ``node_basis`` (N,M) so that node positions are
-    ``node_rest + node_basis @ u_H``; ``alpha`` (n,E) float64 CSR (WPSD); ``weights`` the RBF
-    weights in the layout the per-frame sum reads (WPSD (n,3,P) float32, P innermost; PSD
-    (P,3n)); the map band's vertex → texel interpolation (Pt,n) and texel → vertex sampler (n,Pt).
+    ``node_rest + node_basis @ u_H``; ``alpha`` (n,E) float64 CSR (WPSD; the float64 distances
+    of :meth:`sq_distances`); ``shell_frames`` with ``smooth_internal`` (3,n) and
+    ``basis_internal`` (n,M), the rest pose and a float32 copy of the basis in its vertex
+    order (the compiled per-frame shell); ``correction_sum`` (WPSD: α, the polynomial and the
+    RBF weights as the compiled per-frame sum reads them) or ``weights`` (PSD: (P,3n), one
+    BLAS product per frame); the map band's vertex → texel interpolation (Pt,n) and texel →
+    vertex sampler (n,Pt).
     """
 
     def __init__(self, data: PoseSpaceData, base: BaseSurface | None = None):
