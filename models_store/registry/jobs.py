@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any, Mapping, Sequence
 
-from sqlalchemy import ColumnElement, and_, or_, select, update
+from sqlalchemy import ColumnElement, and_, case, or_, select, update
 from sqlalchemy.orm import Session
 
 from models_store.errors import Conflict, NotFound
@@ -137,20 +137,26 @@ def request_cancel(session: Session, job_id: str, *, tenant: str | None = None) 
 
 def cancel_active_jobs(session: Session, where: ColumnElement[bool], reason: str) -> None:
     """Within the current transaction: cancel matching queued jobs (failing their training
-    models) and flag matching running jobs for cancellation."""
+    models) and flag matching running jobs for cancellation.
+
+    One ``UPDATE`` decides per row from the status it finds, so a job that a worker parks
+    (running → queued) or claims (queued → running) at the same moment is still either
+    cancelled or flagged: a select followed by two updates let a job parked between them
+    slip through unflagged (a tracking job then met its span jobs cancelled and failed).
+    """
     now = utcnow()
+    was_queued = Job.status == "queued"
+    rows = session.execute(
+        update(Job).where(where, Job.status.in_(("queued", "running")))
+        .values(cancel_requested=True,
+                status=case((was_queued, "cancelled"), else_=Job.status),
+                finished_at=case((was_queued, now), else_=Job.finished_at))
+        .returning(Job.status, Job.model_id)
+        .execution_options(synchronize_session=False)).all()
     error = error_record("cancelled", reason)
-    queued = list(session.scalars(select(Job).where(where, Job.status == "queued")))
-    for job in queued:
-        changed = session.execute(
-            update(Job).where(Job.id == job.id, Job.status == "queued")
-            .values(status="cancelled", cancel_requested=True, finished_at=now)
-            .execution_options(synchronize_session=False)).rowcount
-        if changed:
-            fail_training_model(session, job.model_id, error)
-    session.execute(update(Job).where(where, Job.status == "running")
-                    .values(cancel_requested=True)
-                    .execution_options(synchronize_session=False))
+    for status, model_id in rows:
+        if status == "cancelled":
+            fail_training_model(session, model_id, error)
 
 
 def _claimable(now: datetime, max_retries: int) -> ColumnElement[bool]:

@@ -6,7 +6,7 @@ import threading
 from datetime import timedelta
 
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import event, func, select
 
 from models_store import registry as reg
 from models_store.errors import BlobCorrupt, Conflict, NotFound
@@ -391,6 +391,40 @@ def test_cancelling_a_queued_job_is_immediate(session, actor):
     assert cancelled.status == "cancelled" and cancelled.finished_at is not None
     assert reg.get_model(session, model.id).status == "failed"
     assert reg.claim_job(session, "w", lease_seconds=LEASE, max_retries=2) is None
+
+
+@pytest.mark.parametrize("move", ["park", "claim"])
+def test_a_job_parked_or_claimed_while_being_cancelled_still_ends_cancelled(
+        engine, sessions, session, actor, move):
+    """The worker moves the job (running → queued by park_job, or queued → running by
+    claim_job) from its own connection just before the cancellation's UPDATE runs: the job
+    is still either cancelled or flagged, never left queued and unflagged (a select then two
+    updates lost the park: a tracking job then found its span jobs cancelled and failed)."""
+    job = reg.create_job(session, "track", actor.id)
+    if move == "park":
+        reg.claim_job(session, "w", lease_seconds=LEASE, max_retries=2, job_id=job.id)
+    fired = []
+
+    def before(conn, cursor, statement, parameters, context, executemany):
+        if fired or not statement.lstrip().upper().startswith("UPDATE JOB"):
+            return
+        fired.append(statement)
+        with sessions() as worker:
+            if move == "park":
+                reg.park_job(worker, job.id, worker="w")
+            else:
+                reg.claim_job(worker, "w", lease_seconds=LEASE, max_retries=2, job_id=job.id)
+
+    event.listen(engine, "before_cursor_execute", before)
+    try:
+        reg.request_cancel(session, job.id)
+    finally:
+        event.remove(engine, "before_cursor_execute", before)
+    assert fired
+    seen = reg.get_job(session, job.id)
+    assert seen.cancel_requested
+    assert seen.status == ("cancelled" if move == "park" else "running")
+    assert reg.claim_job(session, "v", lease_seconds=LEASE, max_retries=2, job_id=job.id) is None
 
 
 def test_finish_records_result_or_error(session, actor):
