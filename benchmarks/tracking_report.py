@@ -128,6 +128,9 @@ import numpy as np  # noqa: E402
 import harness  # noqa: E402  (the sample actors every report shares)
 
 OUT = ROOT / "benchmarks" / "out" / "tracking"
+#: frames of rest after the performance (its last pose, the neutral, held): the take starts
+#: and ends at rest, so the drift columns compare the same expression at both ends
+REST_FRAMES = 10
 
 
 def texture_variance(sample, vertices: np.ndarray, res: int = 128, sigma: float = 3.0) -> float:
@@ -327,7 +330,7 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
     from service.samples.tracking import TrackingSample, build_tracking_sample
 
     fam = actor.name
-    cache = OUT / f"sample_{fam}_{args.size}_{args.frames}_{args.scans}.npz"
+    cache = OUT / f"sample_{fam}_{args.size}_{args.frames or 'all'}_{args.rest_frames}_{args.scans}.npz"
     t0 = time.perf_counter()
     if cache.exists():
         sample = TrackingSample.load(cache)
@@ -335,7 +338,8 @@ def run_family(actor: Path, args, lines: list, summary: dict) -> None:
         manifest = json.loads((actor / "manifest.json").read_text())
         training = sorted(k for k, v in manifest["performances"].items() if v["kind"] == "training")
         sample = build_tracking_sample(actor, size=args.size, frames=args.frames, views=3,
-                                       scans=tuple(training[:args.scans]), out=cache)
+                                       scans=tuple(training[:args.scans]),
+                                       rest_frames=args.rest_frames, out=cache)
     build_s = time.perf_counter() - t0
     face = sample.region == 0
     T = len(sample.frame_images)
@@ -459,7 +463,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("actors", nargs="*", default=[])
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--frames", type=int, default=120)
+    ap.add_argument("--frames", type=int, default=None,
+                    help="the first N frames of the performance (default: all, 154 in a, 146 in b)")
+    ap.add_argument("--rest-frames", type=int, default=REST_FRAMES,
+                    help=f"frames of rest appended, the last pose held (default {REST_FRAMES})")
     ap.add_argument("--scans", type=int, default=5, help="training clips used as static scans")
     ap.add_argument("--no-monocular", action="store_true", help="skip the 1-view run (quick)")
     ap.add_argument("--speed-size", type=int, default=0, help="images of the speed rows, e.g. 512 (0: none)")
@@ -470,7 +477,8 @@ def main() -> None:
     OUT = args.out
     OUT.mkdir(parents=True, exist_ok=True)
     lines = ["# Performance-flow tracking report (fyffe, Digital Ira course 2014)", "",
-             f"{args.frames} frames of held-out_in_range, {args.size}² images, "
+             f"{args.frames or 'all'} frames of held-out_in_range + {args.rest_frames} of rest, "
+             f"{args.size}² images, "
              f"neutral + {args.scans} scans; errors over the face vertices (region 0). Commit "
              f"{_commit()}, load average at the start {os.getloadavg()[0]:.1f}.", ""]
     summary: dict = {}

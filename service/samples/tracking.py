@@ -195,7 +195,7 @@ def build_tracking_sample(actor_dir: str | Path, size: int = 512, frames: int | 
                           views: int = 3, scans: tuple[str, ...] | None = None,
                           scan_grid: int = 256, noise: float = 1.0,
                           light_swing_deg: float = 20.0, field_mm: float = 230.0,
-                          seed: int = 1, workers: int = 2,
+                          seed: int = 1, workers: int = 2, rest_frames: int = 0,
                           out: str | Path | None = None) -> TrackingSample:
     """Render a performance and static scans for tracking from a sample actor directory.
 
@@ -210,6 +210,10 @@ def build_tracking_sample(actor_dir: str | Path, size: int = 512, frames: int | 
     scan_grid : pixels of the range-scan grid (the raw scans' resolution)
     noise : camera noise σ, 8-bit levels;  light_swing_deg : the light's swing over time
     field_mm : the width of the scene the cameras see at the face
+    rest_frames : frames appended after the last one with its pose held (light, exposure
+                  and camera noise go on): a whole performance ends on the neutral, so with
+                  a rest the take starts and ends at rest and a drift test compares the
+                  same expression at both ends
     out : also write the sample to this ``.npz``
 
     Returns
@@ -257,6 +261,9 @@ def build_tracking_sample(actor_dir: str | Path, size: int = 512, frames: int | 
         map_frames = d["map_frames"].astype(np.int64)
         perf_albedo = d["albedo"]
     keep = map_frames < T
+    if rest_frames:
+        frame_truth = np.concatenate([frame_truth, np.repeat(frame_truth[-1:], rest_frames, 0)])
+        T += int(rest_frames)
 
     def render_scan(s):
         tex = textured(albedo[s])
@@ -290,7 +297,8 @@ def build_tracking_sample(actor_dir: str | Path, size: int = 512, frames: int | 
         frame_truth=frame_truth, truth_map_frames=map_frames[keep],
         truth_albedo=perf_albedo[keep].astype(np.float16), fps=float(manifest["fps"]),
         info={"actor": str(actor_dir), "family": manifest.get("family", "a"), "size": size,
-              "views": views, "frames": T, "noise": noise, "light_swing_deg": light_swing_deg,
+              "views": views, "frames": T, "rest_frames": int(rest_frames), "noise": noise,
+              "light_swing_deg": light_swing_deg,
               "scan_grid": scan_grid, "seed": seed})
     if out is not None:
         sample.save(out)

@@ -44,3 +44,13 @@ def test_tracking_sample_from_an_actor_directory_round_trips(pdm_actor_dir, tmp_
     np.testing.assert_allclose(back.scan_vertices[1], s.scan_vertices[1], atol=1e-4)
     np.testing.assert_allclose(back.cameras[0].K, s.cameras[0].K)
     assert back.info["views"] == 1
+
+
+def test_a_rest_holds_the_last_pose_while_light_and_noise_go_on(pdm_actor_dir):
+    s = build_tracking_sample(pdm_actor_dir, size=32, frames=3, views=1, scans=("train_smile",),
+                              scan_grid=32, rest_frames=2)
+    assert s.frame_truth.shape[0] == len(s.frame_images) == 5 and s.info["rest_frames"] == 2
+    np.testing.assert_array_equal(s.frame_truth[3], s.frame_truth[2])
+    np.testing.assert_array_equal(s.frame_truth[4], s.frame_truth[2])
+    # the held frames are new images (camera noise, light), not copies
+    assert np.abs(s.frame_images[4].astype(int) - s.frame_images[3].astype(int)).max() > 0
