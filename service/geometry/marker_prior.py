@@ -509,7 +509,13 @@ def noise_confidence(prior: MarkerPrior, sigma: np.ndarray) -> np.ndarray:
     Friedman, *Elements of Statistical Learning*, eq. 3.50). 1 at σ = 0; on family a's
     prior 0.25 at σ = 0.3 mm (the floor directions, variance δ ≈ (0.16 mm)², are then
     mostly noise)."""
-    c = np.clip(np.linalg.eigvalsh(prior.covariance), 0.0, None)
+    return dof_fraction(np.clip(np.linalg.eigvalsh(prior.covariance), 0.0, None), sigma)
+
+
+def dof_fraction(values: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """:func:`noise_confidence` from the prior's eigenvalues c (3M,) (:attr:`PriorEigen.values`,
+    mm², so no eigendecomposition per call): ``mean_i c_i / (c_i + σ²)`` for each σ (…), mm."""
+    c = np.asarray(values, np.float64)
     s2 = np.asarray(sigma, np.float64)[..., None] ** 2
     return (c / np.maximum(c + s2, 1e-300)).mean(axis=-1)
 
@@ -622,5 +628,6 @@ def marker_denoiser(energy: np.ndarray, noise_mm: "float | str", prior_scale_mm:
 
 __all__ = ["AUTO", "AdaptiveDenoiser", "FLOOR_FRACTION", "FixedNoise", "MarkerDenoiser", "MarkerPrior",
            "PriorEigen", "SHELL_WEIGHT",
-           "ShellDenoiser", "floor_directions", "frame_noise", "marker_denoiser", "noise_confidence",
+           "ShellDenoiser", "dof_fraction", "floor_directions", "frame_noise", "marker_denoiser",
+           "noise_confidence",
            "temporal_noise"]
