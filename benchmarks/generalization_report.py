@@ -68,57 +68,16 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers, cached builds)
 
-OUT = ROOT / "benchmarks" / "out" / "generalization"
-MODELS = OUT / "models"
-RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations",
-          "out of range": "heldout_amplified"}
-CONDITIONS = {"clean": "", "noisy": "_noisy", "occluded": "_occluded"}
-ORDERS = ("linear", "biquadratic")
+OUT = pdm.GENERALIZATION
+MODELS = pdm.GENERALIZATION_MODELS
+RANGES = pdm.HELDOUT_RANGES
+CONDITIONS = pdm.MARKER_CONDITIONS
+ORDERS = pdm.PDM_ORDERS
 DEFAULT_FRAMES = 8
 SS_MARKERS, SS_RIG = "shape space (markers)", "shape space (rig)"
 WORST_OF = "PDM biquadratic"
 CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the result key)
 HEAT_MM = 2.0                     # heat-map colour range, mm
-
-
-def _noise_arg(text: str) -> float | str:
-    """``--marker-noise``: a number (mm) or "auto" (σ estimated per request)."""
-    return text if text == "auto" else float(text)
-
-
-def pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float | str = 0.0, params: dict | None = None,
-               orders=None) -> dict:
-    """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached),
-    trained with ``marker_noise_mm`` and the other :class:`PdmParams` fields ``params``."""
-    import hashlib
-
-    from service.methods.pdm.model import PdmModel
-    from service.samples.dataset import performance_names
-
-    files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
-    key = pdm.actor_files_key(actor_dir, *files)
-    models = {}
-    for order in orders or ORDERS:
-        noise = marker_noise_mm if isinstance(marker_noise_mm, str) else f"{marker_noise_mm:g}"
-        model_dir = MODELS / (f"pdm_{order}-{key}" + (f"-noise{noise}" if marker_noise_mm else "")
-                              + (f"-p{hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]}"
-                                 if params else ""))
-        if retrain or not (model_dir / "manifest.json").is_file():
-            print(f"  training PDM {order} (fresh process) ...", file=sys.stderr)
-            pdm.pdm_in_fresh_process(actor_dir, order, model_dir, marker_noise_mm, params)
-        models[order] = PdmModel.load(model_dir)
-    return models
-
-
-def _variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float = 0.0) -> np.ndarray:
-    """The performance's markers at ``frames``; with ``filter_frames`` > 0 the whole
-    performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_performance`,
-    as the synthesis job's ``marker_filter_frames`` does)."""
-    from service.geometry.marker_filter import filter_performance
-
-    with np.load(actor_dir / "performances" / f"{name}.npz") as d:
-        markers = d["markers"].astype(np.float64)
-    return (filter_performance(markers, filter_frames) if filter_frames else markers)[frames]
 
 
 def _guard(method):
@@ -147,7 +106,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     actor = load_actor(actor_dir)
     wanted = lambda name: only is None or name in only          # noqa: E731
     # the biquadratic PDM is always built: the baselines and the detail band split use it
-    models = pdm_models(actor_dir, retrain, marker_noise_mm, pdm_params,
+    models = pdm.generalization_pdm_models(actor_dir, retrain, marker_noise_mm, pdm_params,
                         [o for o in ORDERS if o == "biquadratic" or wanted(f"PDM {o}")])
     bq = models["biquadratic"]
     # scored at the actor's map resolution (a level-0 actor's maps are 512², the PDM's fine
@@ -189,7 +148,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
             if conditions is not None and cname not in conditions:
                 continue
             gt = dataclasses.replace(gt_clean, name=perf + suffix,
-                                     markers=_variant_markers(actor_dir, perf + suffix, gt_clean.frames, marker_filter))
+                                     markers=pdm.variant_markers(actor_dir, perf + suffix, gt_clean.frames, marker_filter))
             methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
             methods.update({f"PDM {o}": (lambda m, model=model: pdm_prediction(model, m))
@@ -351,7 +310,7 @@ def main() -> None:
     parser.add_argument("--marker-filter", type=float, default=0.0, metavar="S",
                         help="smooth every performance's markers in time first (σ = S frames, "
                              "the synthesis job's marker_filter_frames; default 0: off)")
-    parser.add_argument("--marker-noise", type=_noise_arg, default=0.0, metavar="SIGMA",
+    parser.add_argument("--marker-noise", type=pdm.noise_arg, default=0.0, metavar="SIGMA",
                         help="train the PDMs and the shape-space model with marker_noise_mm = "
                              "SIGMA (soft marker constraints; \"auto\": σ estimated per request; "
                              "default 0: exact interpolation)")

@@ -40,6 +40,13 @@ GT_ROW = "ground truth (mesh + relative map)"
 OUT = ROOT / "benchmarks" / "out"
 PDM_MODELS = OUT / "pdm" / "models"    # pdm_report's models, one per order (also game_outputs_report's)
 SHAPE_SPACE_MODELS = OUT / "shape_space" / "models"   # shape-space models, PDM, rig registrations
+GENERALIZATION = OUT / "generalization"             # generalization_report's output (issue 17)
+GENERALIZATION_MODELS = GENERALIZATION / "models"   # its PDMs (also confidence_factors')
+#: issue 17's held-out input ranges (report name → performance) and marker conditions (→ file suffix)
+HELDOUT_RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations",
+                  "out of range": "heldout_amplified"}
+MARKER_CONDITIONS = {"clean": "", "noisy": "_noisy", "occluded": "_occluded"}
+PDM_ORDERS = ("linear", "biquadratic")
 SHAPE_SPACE_LIBRARY = ROOT / "service" / "methods" / "shape_space"
 DATABASE = "database"                  # the shape-space database performance
 SS_OUTPUTS = ("mesh", "displacement")  # displacement: the blended fine maps (database with maps)
@@ -656,6 +663,45 @@ def heldout_frames(actor_dir: Path, name: str, limit: int | None) -> Heldout:
         return gt
     keep = np.unique(np.round(np.linspace(0, len(gt.frames) - 1, limit + 2)[1:-1]).astype(np.int64))
     return Heldout(name, *(getattr(gt, f.name)[keep] for f in dataclasses.fields(gt)[1:]))
+
+
+def noise_arg(text: str) -> float | str:
+    """``--marker-noise``: a number (mm) or "auto" (σ estimated per request)."""
+    return text if text == "auto" else float(text)
+
+
+def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float | str = 0.0,
+                              params: dict | None = None, orders=None) -> dict:
+    """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached
+    under :data:`GENERALIZATION_MODELS`), trained with ``marker_noise_mm`` and the other
+    :class:`PdmParams` fields ``params``."""
+    from service.methods.pdm.model import PdmModel
+    from service.samples.dataset import performance_names
+
+    files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
+    key = actor_files_key(actor_dir, *files)
+    models = {}
+    for order in orders or PDM_ORDERS:
+        noise = marker_noise_mm if isinstance(marker_noise_mm, str) else f"{marker_noise_mm:g}"
+        model_dir = GENERALIZATION_MODELS / (
+            f"pdm_{order}-{key}" + (f"-noise{noise}" if marker_noise_mm else "")
+            + (f"-p{hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]}" if params else ""))
+        if retrain or not (model_dir / "manifest.json").is_file():
+            print(f"  training PDM {order} (fresh process) ...", file=sys.stderr)
+            pdm_in_fresh_process(actor_dir, order, model_dir, marker_noise_mm, params)
+        models[order] = PdmModel.load(model_dir)
+    return models
+
+
+def variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float = 0.0) -> np.ndarray:
+    """The performance's markers at ``frames``; with ``filter_frames`` > 0 the whole
+    performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_performance`,
+    as the synthesis job's ``marker_filter_frames`` does)."""
+    from service.geometry.marker_filter import filter_performance
+
+    with np.load(actor_dir / "performances" / f"{name}.npz") as d:
+        markers = d["markers"].astype(np.float64)
+    return (filter_performance(markers, filter_frames) if filter_frames else markers)[frames]
 
 
 WORKERS = {

@@ -68,8 +68,9 @@ prior and the shell prior ``exp(−xᵀ(G⊗I₃)x / 2τ²)``
 a (3M)×(3M) symmetric positive definite system, inverted once for frames with every
 marker; a frame with occluded markers needs only a (3|U|)×(3|U|) solve for its |U|
 occluded ones (Woodbury, :meth:`MarkerDenoiser.__call__`). Occluded markers (NaN) drop
-out of D_V and are completed by the prior's conditional mean given the visible ones. σ → 0
-gives back the visible markers exactly; σ = 0 itself is the paper's exact interpolation
+out of D_V and are completed by the prior's conditional mean given the visible ones, or,
+where the visible ones leave a marker uncertain under the prior, by the shell's minimum
+energy (:func:`shell_completion`). σ → 0 gives back the visible markers exactly; σ = 0 itself is the paper's exact interpolation
 with minimum-energy completion (:func:`~service.geometry.thin_shell.soft_handles`, λ = 0),
 bit for bit.
 """
@@ -92,6 +93,10 @@ LENGTH_FRACTION = 2.0
 TAPER_FLOOR_FRACTION = 0.01
 #: default weight β of the shell prior beside the learned one (0: measured worse on family a)
 SHELL_WEIGHT = 0.0
+#: an occluded marker whose conditional variance under the prior, given the frame's visible
+#: markers, is above this fraction of its prior variance is completed by the shell's minimum
+#: energy instead of the prior's conditional mean (:func:`shell_completion`)
+SHELL_COMPLETION_RATIO = 0.2
 
 
 @dataclass(frozen=True)
@@ -225,6 +230,8 @@ class MarkerDenoiser:
     shell_ratio : float        β σ²/τ² (τ the shell prior's scale; 0 without the shell prior)
     full : (3M,3M) or None     ``(I + A)⁻¹`` for frames with every marker (None when σ = 0)
     offset : (3M,) or None     ``(I + A)⁻¹ b``
+    eigen : PriorEigen or None  the prior's eigendecomposition (:func:`shell_completion`;
+                               None when σ = 0)
     """
 
     prior: MarkerPrior
@@ -233,6 +240,7 @@ class MarkerDenoiser:
     shell_ratio: float
     full: np.ndarray | None = None
     offset: np.ndarray | None = None
+    eigen: "PriorEigen | None" = None
 
     @classmethod
     def build(cls, prior: MarkerPrior, G: np.ndarray, noise_mm: float, prior_scale_mm: float,
@@ -254,7 +262,7 @@ class MarkerDenoiser:
         A, b = _system(prior, G, noise_mm, ratio)
         Ainv = np.linalg.inv(A + np.eye(len(A)))
         Ainv = 0.5 * (Ainv + Ainv.T)
-        return cls(prior, G, float(noise_mm), ratio, Ainv, Ainv @ b)
+        return cls(prior, G, float(noise_mm), ratio, Ainv, Ainv @ b, PriorEigen.of(prior))
 
     @property
     def interpolates(self) -> bool:
@@ -290,7 +298,7 @@ class MarkerDenoiser:
             y = np.nan_to_num(u[sel].reshape(len(sel), 3 * M)) @ P + self.offset
             S = np.eye(len(idx)) - P[np.ix_(idx, idx)]
             out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P[idx]
-        out = out.reshape(F, M, 3)
+        out = shell_completion(self.energy, self.eigen, u, out.reshape(F, M, 3))
         return out[0] if single else out
 
 
@@ -364,6 +372,18 @@ class PriorEigen:
         """(3M,k) the eigenvectors with eigenvalues ≤ :data:`FLOOR_DIRECTIONS` × their median."""
         return np.ascontiguousarray(self.vectors[:, self.values <= FLOOR_DIRECTIONS * np.median(self.values)])
 
+    def conditional_variance_ratio(self, idx: np.ndarray) -> np.ndarray:
+        """Per occluded marker (k,) of the occluded coordinates ``idx`` (3k,) (whole markers, in
+        order): its variance under the prior given every other coordinate,
+        ``tr((Q_UU)⁻¹)_m`` (Q = C⁻¹; the noise-free conditional, Rasmussen & Williams 2006,
+        eq. A.6, in its precision form), over its prior variance ``tr(C_mm)``; in [0, 1], 0
+        when the visible markers determine it, 1 when they say nothing about it."""
+        Ui = self.vectors[idx]
+        Q_UU = (Ui / np.maximum(self.values, 1e-300)) @ Ui.T
+        conditional = np.diag(np.linalg.inv(Q_UU)).reshape(-1, 3).sum(axis=1)
+        prior = ((Ui ** 2) @ self.values).reshape(-1, 3).sum(axis=1)
+        return conditional / np.maximum(prior, 1e-300)
+
     def map(self, u: np.ndarray, noise_mm: float) -> np.ndarray:
         """MAP displacements (F,M,3) (or (M,3)) of head-aligned displacements u, mm, NaN rows
         occluded, under noise σ = ``noise_mm`` > 0 (no shell term).
@@ -414,6 +434,38 @@ def occlusion_groups(u: np.ndarray) -> tuple[np.ndarray, list[tuple[np.ndarray, 
         raise ValueError("all markers are unknown; at least one is needed")
     return full, [(frames[which.ravel() == p], np.flatnonzero(np.repeat(miss, 3)))
                   for p, miss in enumerate(patterns)]
+
+
+def shell_completion(energy: np.ndarray, eigen: "PriorEigen", u: np.ndarray, x: np.ndarray,
+                     ratio: float = SHELL_COMPLETION_RATIO) -> np.ndarray:
+    """The MAP displacements x (F,M,3) of marker displacements u (F,M,3) (NaN rows occluded),
+    with every occluded marker whose :meth:`PriorEigen.conditional_variance_ratio` (given
+    that frame's visible markers) is above ``ratio`` completed again by the shell's minimum
+    energy given all the others (:func:`~service.geometry.thin_shell.soft_handles`, λ = 0, the
+    papers' completion), instead of the prior's conditional mean; x itself when none is.
+
+    Why (issue 17): the prior completes a hidden marker with what the training clips showed
+    near it; where the visible markers leave it uncertain and the pose is a combination the
+    clips never showed (family b's clips never combine), that guess is worse than the smooth
+    shell's. Chosen on family b (``marker_noise_mm = "auto"``, the thin shell's face mean
+    vertex error on every occluded frame of the held-out performances, ratio ∈ {∞, 0.8,
+    0.6, 0.4, 0.2, 0.1, 0}: in range / combinations / out of range 0.290 / 0.511 / 0.541
+    mm at ∞ (the prior for every marker), 0.290 / 0.483 / 0.549 at 0.2 (the lowest mean;
+    max on combinations 7.21 → 6.93 mm), 0.380 / 0.504 / 0.663 at 0 (the shell for every
+    marker)); confirmed harmless on family a (0.2768 / 0.4227 / 0.5039 → 0.2767 / 0.4227 /
+    0.5039), where the prior completes well. At a fixed σ = 0.3 mm the same: b 0.298 /
+    0.566 / 0.561 → 0.298 / 0.538 / 0.569, a 0.3444 / 0.4685 / 0.5187 → 0.3441 / 0.4685 /
+    0.5187. The conditional variance is the prior's alone (noise-free), so the rule is the
+    same for every σ and both MAP solves (:class:`MarkerDenoiser`, :class:`FixedNoise`).
+    """
+    full, groups = occlusion_groups(u)
+    y = None
+    for sel, idx in groups:
+        uncertain = idx[::3][eigen.conditional_variance_ratio(idx) > ratio] // 3
+        if uncertain.size:
+            y = np.array(x, np.float64) if y is None else y
+            y[np.ix_(sel, uncertain)] = np.nan
+    return x if y is None else soft_handles(energy, y, 0.0)
 
 
 def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = None,
@@ -509,7 +561,13 @@ def noise_confidence(prior: MarkerPrior, sigma: np.ndarray) -> np.ndarray:
     Friedman, *Elements of Statistical Learning*, eq. 3.50). 1 at σ = 0; on family a's
     prior 0.25 at σ = 0.3 mm (the floor directions, variance δ ≈ (0.16 mm)², are then
     mostly noise)."""
-    c = np.clip(np.linalg.eigvalsh(prior.covariance), 0.0, None)
+    return dof_fraction(np.clip(np.linalg.eigvalsh(prior.covariance), 0.0, None), sigma)
+
+
+def dof_fraction(values: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """:func:`noise_confidence` from the prior's eigenvalues c (3M,) (:attr:`PriorEigen.values`,
+    mm², so no eigendecomposition per call): ``mean_i c_i / (c_i + σ²)`` for each σ (…), mm."""
+    c = np.asarray(values, np.float64)
     s2 = np.asarray(sigma, np.float64)[..., None] ** 2
     return (c / np.maximum(c + s2, 1e-300)).mean(axis=-1)
 
@@ -560,7 +618,7 @@ class AdaptiveDenoiser:
     def fixed(self, noise_mm: float) -> "FixedNoise":
         """The MAP denoiser of this prior for one request's σ = ``noise_mm`` (floored at
         :data:`FILL_NOISE_MM`)."""
-        return FixedNoise(self.eigen, max(float(noise_mm), FILL_NOISE_MM))
+        return FixedNoise(self.eigen, max(float(noise_mm), FILL_NOISE_MM), self.energy)
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """MAP displacements for the request's σ̂, same shape as u (F,M,3) or (M,3), mm."""
@@ -570,15 +628,20 @@ class AdaptiveDenoiser:
 @dataclass(frozen=True)
 class FixedNoise:
     """The MAP denoiser of a prior (:class:`PriorEigen`) at one request's estimated σ (mm):
-    ``u (F,M,3) → x (F,M,3)`` (:meth:`PriorEigen.map`)."""
+    ``u (F,M,3) → x (F,M,3)`` (:meth:`PriorEigen.map`, then :func:`shell_completion` with the
+    shell's handle energy (M,M))."""
 
     eigen: PriorEigen
     noise_mm: float
+    energy: np.ndarray
     #: visible markers are denoised
     interpolates = False
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
-        return self.eigen.map(u, self.noise_mm)
+        u = np.asarray(u, np.float64)
+        if u.ndim == 2:
+            return self(u[None])[0]
+        return shell_completion(self.energy, self.eigen, u, self.eigen.map(u, self.noise_mm))
 
 
 def marker_denoiser(energy: np.ndarray, noise_mm: "float | str", prior_scale_mm: float,
@@ -621,6 +684,7 @@ def marker_denoiser(energy: np.ndarray, noise_mm: "float | str", prior_scale_mm:
 
 
 __all__ = ["AUTO", "AdaptiveDenoiser", "FLOOR_FRACTION", "FixedNoise", "MarkerDenoiser", "MarkerPrior",
-           "PriorEigen", "SHELL_WEIGHT",
-           "ShellDenoiser", "floor_directions", "frame_noise", "marker_denoiser", "noise_confidence",
+           "PriorEigen", "SHELL_COMPLETION_RATIO", "SHELL_WEIGHT",
+           "ShellDenoiser", "dof_fraction", "floor_directions", "frame_noise", "marker_denoiser",
+           "noise_confidence", "shell_completion",
            "temporal_noise"]

@@ -16,11 +16,32 @@ Two rules of the excess e ≥ 0 (0 inside the training data) are declared here:
 the relative distance outside the hull of the point's training parameters,
 :mod:`service.methods.pdm.validity`) and :func:`exponential` (``exp(−e/scale)``, pose space's
 per-frame confidence, which fades its vertex corrections: ``pose_space.model``, confidence fade).
+
+**The reported confidence** of every marker-driven kind that reports one (``pdm``, ``psd``,
+``wpsd``; shape space reports none) is that *range confidence* times the *input factor* of
+the frame's markers, declared here once (:class:`MarkerEvidence`):
+
+    confidence = range confidence × n(σ̂),
+
+n the fraction of the marker space the frame's markers still determine over their own
+noise estimate σ̂ (the residual against the learned marker prior), whatever
+``marker_noise_mm`` the model denoises with (0 included); 1 without a learned prior (a
+model saved before it). The detail's fade (above) stays on the range confidence: the
+reported confidence is the fade's confidence times n. Fading by n as well was measured
+worse on every noisy row of both families (``benchmarks/confidence_factors.py``, every
+held-out map frame, PDM biquadratic, mean face vertex error: out of range a 0.523 → 0.636
+mm, b 0.586 → 0.692 at ``marker_noise_mm`` = 0; a 0.337 → 0.471, b 0.408 → 0.534 with
+``"auto"``; clean rows unchanged or worse by ≤ 0.011 mm): the markers' noise reaches the
+surface whether or not the detail is faded, so fading only removes correct detail.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+from service.geometry.marker_prior import MarkerPrior, PriorEigen, dof_fraction, frame_noise
 
 #: result keys (API.md: per-frame arrays of the synthesize response)
 CONFIDENCE = "confidence"
@@ -56,3 +77,59 @@ def fade(detail: np.ndarray, fallback: np.ndarray, confidence: np.ndarray) -> np
     """``fallback + confidence · (detail − fallback)`` (broadcast): the detail at confidence 1,
     the fallback at 0."""
     return fallback + confidence * (detail - fallback)
+
+
+@dataclass(frozen=True)
+class MarkerEvidence:
+    """The input factor of a frame's reported confidence (module docstring): the fraction of
+    the marker space the frame's markers still determine over their own noise, under the
+    model's learned marker prior C (3M×3M).
+
+    ``factor(u) = n(σ̂) = tr(C (C + σ̂² I)⁻¹) / 3M`` per frame of head-aligned marker
+    displacements u (F,M,3), mm, NaN rows occluded: the Wiener filter's effective degrees of
+    freedom over its dimension (Hastie, Tibshirani & Friedman, ESL eq. 3.50;
+    :func:`~service.geometry.marker_prior.noise_confidence`) at the frame's own σ̂
+    (:func:`~service.geometry.marker_prior.frame_noise`, which also sees what occlusion does
+    to the visible residual). On the sample families' held-out frames: 0.18–0.37 at σ = 0.3
+    mm; on clean markers a median of 0.86–1.0 per performance, down to 0.28 on frames far
+    from the training span (family a's one-sided in-range expressions, σ̂ up to 0.34 mm:
+    their off-span deformation reads as noise).
+
+    Measured (``benchmarks/confidence_factors.py``, PDM biquadratic, Spearman ρ of 1 −
+    confidence against the frame's mean face vertex error, clean / noisy / occluded frames
+    pooled; every held-out map frame, 69–93 per range; issue 17's 8 frames a performance in
+    the README): the factor lifts ρ at ``marker_noise_mm`` = 0 on both families (out of
+    range a 0.70 → 0.89, b 0.66 → 0.71; in range a 0.71 → 0.87, b 0.64 → 0.71). An
+    occlusion term — 1 minus the occluded markers' share of the frame's displacement energy
+    Σ‖u_m‖² (completed by the prior), the visible fraction, or the prior's conditional
+    variance share — was chosen against on family a (paired bootstrap 5–95 % of Δρ out of
+    range −0.20…+0.02, −0.06…+0.01, 0.00) and did not help on b either (−0.23…+0.02,
+    −0.04…+0.02, 0.00): σ̂ already rises on frames whose occlusion the prior completes
+    badly. So there is none.
+
+    Attributes
+    ----------
+    prior : MarkerPrior         the learned prior over head-aligned marker displacements
+    eigen : PriorEigen          its eigendecomposition (n, and σ̂'s fill of occluded markers)
+    basis : (3M,k) float64      its floor directions (σ̂)
+    """
+
+    prior: MarkerPrior
+    eigen: PriorEigen
+    basis: np.ndarray
+
+    @classmethod
+    def of(cls, prior: MarkerPrior, eigen: PriorEigen | None = None) -> "MarkerEvidence":
+        """Of a prior (``eigen``: its eigendecomposition, where already computed)."""
+        eigen = PriorEigen.of(prior) if eigen is None else eigen
+        return cls(prior, eigen, eigen.floor_directions())
+
+    def noise(self, u: np.ndarray) -> np.ndarray:
+        """σ̂ (F,) mm of displacements u (F,M,3) (:func:`~service.geometry.marker_prior.frame_noise`)."""
+        return frame_noise(self.prior, u, self.basis, self.eigen)
+
+    def factor(self, u: np.ndarray, sigma: np.ndarray | None = None) -> np.ndarray:
+        """n(σ̂) (F,) float64 of displacements u (F,M,3) (or (M,3): a float), mm; ``sigma``
+        (F,): the frames' σ̂ where already estimated."""
+        s = self.noise(u) if sigma is None else np.asarray(sigma, np.float64)
+        return dof_fraction(self.eigen.values, s)

@@ -97,8 +97,9 @@ class MarkerParams(MethodParams):
                     "denoised markers. Used in training and synthesis alike. Set it to the "
                     "capture's noise level (e.g. 0.3 for ordinary optical mocap). \"auto\" "
                     "estimates σ per request (each frame's residual against the learned prior "
-                    "in the directions the training never moved in, the request's median), "
-                    "denoises with it and lowers each frame's confidence by its own estimate "
-                    "(pdm). For whole performances, see also the synthesis job's "
+                    "in the directions the training never moved in, the request's median) "
+                    "and denoises with it. Whatever the setting, each frame's reported "
+                    "confidence is lowered by its own noise estimate (not the detail's "
+                    "fade). For whole performances, see also the synthesis job's "
                     "`marker_filter_frames`.",
         examples=[0.0, 0.3, "auto"])

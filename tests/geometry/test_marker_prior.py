@@ -207,3 +207,37 @@ def test_marker_denoiser_picks_one_rule_for_every_method():
     np.testing.assert_allclose(auto(u), MarkerDenoiser.build(prior, G, sigma, np.nan, 0.0)(u), atol=1e-9)
     with pytest.raises(ValueError, match="learned marker prior"):
         marker_denoiser(G, "auto", np.nan)
+
+
+def test_shell_completion_takes_over_where_the_prior_is_uncertain():
+    """An occluded marker is completed by the shell's minimum energy instead of the prior's
+    conditional mean exactly when its conditional variance ratio (given the visible ones) is
+    above the threshold: a prior of independent markers says nothing about a hidden one
+    (ratio 1), a hidden marker amid visible correlated neighbours is determined (ratio
+    < 0.2 here), one deep inside a hidden 4×4 corner is not; visible markers never move."""
+    from service.geometry.marker_prior import SHELL_COMPLETION_RATIO, PriorEigen, shell_completion
+
+    independent = PriorEigen.of(MarkerPrior(np.zeros((4, 3)), 2.0 * np.eye(12)))
+    np.testing.assert_allclose(independent.conditional_variance_ratio(np.arange(3, 9)), [1.0, 1.0], rtol=1e-12)
+    rest, G, train, test, rng = _data(4)
+    eigen = PriorEigen.of(MarkerPrior.fit_tapered(train, rest))
+    u = test[:3] + rng.normal(scale=0.3, size=test[:3].shape)
+    u[0, 27] = np.nan                                       # one marker amid visible neighbours
+    corner = np.ravel_multi_index(np.meshgrid(range(4), range(4), indexing="ij"), (8, 8)).ravel()
+    u[1, corner] = np.nan                                   # a 4×4 corner of the 8×8 grid
+    ratio = {f: eigen.conditional_variance_ratio(np.flatnonzero(np.repeat(~np.isfinite(u[f]).all(-1), 3)))
+             for f in (0, 1)}
+    assert ratio[0][0] < SHELL_COMPLETION_RATIO and ratio[1].max() > SHELL_COMPLETION_RATIO
+    assert np.all((ratio[1] >= 0) & (ratio[1] <= 1))
+    x = eigen.map(u, 0.3)
+    assert shell_completion(G, eigen, u, x, ratio=np.inf) is x
+    y = shell_completion(G, eigen, u, x)
+    seen = np.isfinite(u).all(-1)
+    np.testing.assert_array_equal(y[seen], x[seen])
+    np.testing.assert_array_equal(y[0], x[0])               # determined: the prior's
+    redo = corner[ratio[1] > SHELL_COMPLETION_RATIO]
+    assert 0 < len(redo) < len(corner)
+    expected = x[1].copy()
+    expected[redo] = np.nan
+    np.testing.assert_allclose(y[1], soft_handles(G, expected, 0.0), atol=1e-12)
+    assert np.abs(y[1, redo] - x[1, redo]).max() > 1e-3

@@ -47,7 +47,8 @@ _RESPONSES = {
         "(`displacement` (F,H,W), `albedo` (F,H,W,3), `normal_map` (F,H,W,3)) and `clamped` "
         "(F,) the fraction of texels held at the extrapolation limit; models that report a "
         "confidence add `confidence` (F,) in [0, 1] (1: the frame's deformation lies inside "
-        "the training data) and, for `pdm`, `confidence_vertices` (F,V). `Accept: model/obj`: one "
+        "the training data and its markers are clean and complete) and, for `pdm`, "
+        "`confidence_vertices` (F,V). `Accept: model/obj`: one "
         "frame as OBJ with UVs; `Accept: image/x-exr` with one map output: that map as EXR.")),
     **problems(400, 404, 406, 409, 413, 415, 422, 503)}
 _RESPONSES[200]["headers"] = {
@@ -55,8 +56,11 @@ _RESPONSES[200]["headers"] = {
         "description": "Per-frame confidence in [0, 1], comma-separated in frame order (4 "
                        "decimals), for models that report one (`pdm`, `psd`, `wpsd`): how far "
                        "the frame's deformation lies outside what the model was trained on (1: "
-                       "inside). A `pdm` fades its detail toward the thin shell and the static "
-                       "neutral map where it is low (with `clamp`).",
+                       "inside), times how much of the marker signal the frame's markers still "
+                       "determine (their own noise estimate and the share of the signal hidden "
+                       "by occlusion). The detail is faded toward the thin shell (and, for "
+                       "`pdm`, the static neutral map) by the first factor alone (`pdm` with "
+                       "`clamp`, `psd`/`wpsd` with `confidence_fade`).",
         "schema": {"type": "string", "example": "1.0000,0.9731"}}}
 
 

@@ -50,12 +50,15 @@ import numpy as np
 
 from service.errors import InvalidInput
 from service.geometry.curvature_flow import LAMBDA_DT, frequency_separation
-from service.geometry.marker_prior import AUTO, MarkerDenoiser, MarkerPrior, ShellDenoiser, marker_denoiser
+from service.geometry.marker_prior import (
+    AUTO, AdaptiveDenoiser, MarkerDenoiser, MarkerPrior, ShellDenoiser, marker_denoiser,
+)
 from service.geometry.rigid import MIN_POINTS, rigid_align, stability_weights_from_rms
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
     KB, KS, apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, thin_shell_basis,
 )
+from service.methods.confidence import MarkerEvidence
 
 #: a frame needs at least this many visible markers (rigid fit and thin shell)
 MIN_VISIBLE_MARKERS = max(MIN_POINTS, 4)
@@ -207,6 +210,9 @@ class BaseSurface:
     denoise : callable         u (F,M,3) → u_H (F,M,3), the marker denoiser of σ, τ and the
                                prior (:func:`~service.geometry.marker_prior.marker_denoiser`;
                                None at construction: exact interpolation)
+    evidence : MarkerEvidence  the input factor of the reported confidence under the learned
+                               prior (:class:`~service.methods.confidence.MarkerEvidence`;
+                               None without a learned prior: factor 1)
     """
 
     smooth: np.ndarray
@@ -220,6 +226,7 @@ class BaseSurface:
     prior_scale_mm: float = float("nan")
     marker_prior: MarkerPrior | None = None
     denoise: MarkerDenoiser | ShellDenoiser | None = None
+    evidence: MarkerEvidence | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
         if self.denoise is None:
@@ -289,9 +296,20 @@ class BaseSurface:
         if marker_prior is None and samples is not None:
             marker_prior = MarkerPrior.fit_tapered(np.asarray(samples, np.float64) - self.rest_markers,
                                                    self.rest_markers)
-        return dataclasses.replace(
-            self, noise_mm=noise_mm, prior_scale_mm=float(prior_scale_mm), marker_prior=marker_prior,
-            denoise=marker_denoiser(self.energy, noise_mm, float(prior_scale_mm), marker_prior))
+        denoise = marker_denoiser(self.energy, noise_mm, float(prior_scale_mm), marker_prior)
+        evidence = None if marker_prior is None else MarkerEvidence.of(
+            marker_prior, denoise.eigen if isinstance(denoise, AdaptiveDenoiser) else None)
+        return dataclasses.replace(self, noise_mm=noise_mm, prior_scale_mm=float(prior_scale_mm),
+                                   marker_prior=marker_prior, denoise=denoise, evidence=evidence)
+
+    def input_confidence(self, aligned: np.ndarray, sigma: np.ndarray | None = None) -> np.ndarray:
+        """The input factor (F,) of the reported confidence of aligned markers (F,M,3), NaN rows
+        occluded (:class:`~service.methods.confidence.MarkerEvidence`; ``sigma`` (F,): their
+        σ̂ where already estimated); 1 without a learned prior."""
+        aligned = np.asarray(aligned, np.float64)
+        if self.evidence is None:
+            return np.ones(len(aligned))
+        return self.evidence.factor(aligned - self.rest_markers, sigma)
 
     def with_noise_estimate(self, noise_mm: float) -> "BaseSurface":
         """This base (``marker_noise_mm = "auto"``) with the denoiser of one request's

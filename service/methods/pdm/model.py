@@ -58,7 +58,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from service.geometry.laplacian import triangle_areas
-from service.geometry.marker_prior import AdaptiveDenoiser, noise_confidence
+from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
 from service.geometry.thin_shell import thin_shell_basis
 from service.geometry.tangent_frames import tangent_frames, uv_handedness
@@ -570,10 +570,11 @@ class PdmModel:
         ``clamp`` the detail outside the hull is continued and faded to the neutral's
         (:mod:`.validity`); without, the raw polynomial. With ``marker_noise_mm = "auto"``
         the request's markers are denoised with σ estimated over the request
-        (:meth:`PdmEvaluator.request_base`), and each frame's confidence (per frame and per
-        vertex) is multiplied by its own noise estimate's
-        :func:`~service.geometry.marker_prior.noise_confidence` (the fraction of the marker
-        space the markers still determine over that noise); the fade stays the validity's.
+        (:meth:`PdmEvaluator.request_base`). Whatever the σ setting, each frame's confidence
+        (per frame and per vertex) is the validity's times the input factor of its markers
+        (:meth:`.base_surface.BaseSurface.input_confidence`, the rule of
+        :mod:`service.methods.confidence`: its own noise estimate's Wiener fraction and the
+        occlusion term); the fade stays the validity's.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -613,7 +614,6 @@ class PdmModel:
         except TooFewMarkers as e:
             raise InvalidInput(f"frame {e.frame} has {e.visible} visible markers, at "
                                f"least {e.required} are needed") from None
-        noise_conf = None if sigma is None else noise_confidence(base.marker_prior, sigma)
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             try:
@@ -627,9 +627,9 @@ class PdmModel:
             if rho is not None:
                 out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
-            if noise_conf is not None:
-                out[CONFIDENCE][sl] *= noise_conf[sl].astype(np.float32)
-                out[VERTEX_CONFIDENCE][sl] *= noise_conf[sl, None].astype(np.float32)
+            factor = base.input_confidence(pose.remove(markers[sl]), None if sigma is None else sigma[sl])
+            out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
+            out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             need_medium = bool(want & {"mesh_detailed", "normal_map"})

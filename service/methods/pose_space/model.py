@@ -91,9 +91,12 @@ Choices and departures (the paper is silent or differs):
   δ = ‖max(0, f − f_max, f_min − f)‖ (per-edge excess beyond the training range, strain
   units, before the clamp), relative to the median feature norm of the training frames δ₀
   (a typical expression's strength): ``confidence = exp(−δ / δ₀)``; 1 inside the training
-  box, 1/e a typical expression's distance beyond it;
+  box, 1/e a typical expression's distance beyond it; the *reported* confidence is that
+  times the input factor of the frame's markers (:class:`service.methods.confidence.MarkerEvidence`:
+  the Wiener fraction of the frame's own noise estimate and the occlusion term, 1 for a
+  model without a learned marker prior), the rule every marker-driven kind shares;
 * **confidence fade** (``params.confidence_fade``, default on) — the frame's vertex
-  corrections are multiplied by its confidence κ, ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
+  corrections are multiplied by its range confidence κ (not the input factor), ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
   :mod:`service.methods.confidence` with the shell as the safe fallback): the biharmonic
   kernel and the linear polynomial extrapolate linearly without bound (§5.2), and a
   combination outside the training box can put a wrong correction where the examples all
@@ -444,8 +447,8 @@ class PoseSpaceModel:
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             pose, u_H = ev.deformation(markers[sl])
             f = ev.features(u_H)
-            conf = ev.confidence(f)
-            out["confidence"][sl] = conf
+            conf = ev.confidence(f)                                 # the range's: it fades
+            out["confidence"][sl] = conf * ev.base.input_confidence(pose.remove(markers[sl]))
             fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
             vis = ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight" else None

@@ -85,7 +85,7 @@ class PoseSpaceParams(MarkerParams):
     confidence_fade: bool = Field(
         default=True,
         description="Synthesis fades every frame's pose-space vertex corrections toward "
-                    "the thin shell by the frame's confidence exp(−δ/δ₀) (δ the features' "
+                    "the thin shell by the frame's range confidence exp(−δ/δ₀) (δ the features' "
                     "distance outside the training range, δ₀ the training frames' median "
                     "feature norm), so a pose far outside the training detail tends to the "
                     "shell (the fine map is kept); false only reports the confidence.")

@@ -7,12 +7,18 @@ import numpy as np
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
 
-def test_confidence_is_one_on_training_frames_and_the_detail_is_the_polynomials(pdm_model, pdm_data):
+def test_confidence_on_training_frames_is_within_a_measured_bound_and_the_detail_is_the_polynomials(
+        pdm_model, pdm_data):
+    """Training frames lie inside the validity hull (range confidence 1: nothing is faded,
+    the detail is the raw polynomials'); the reported confidence is that times the input
+    factor n(σ̂) of their clean markers (service.methods.confidence), not exactly 1: a
+    measured bound, 0.99980–0.99997 on these frames (σ̂ of clean markers is small, not 0)."""
     _, clips = pdm_data
     frames = clips[3].markers[::6][:4]
     out = pdm_model.synthesize(frames, ("mesh", "displacement"))
     raw = pdm_model.synthesize(frames, ("mesh", "displacement"), clamp=False)
-    assert np.all(out[CONFIDENCE] == 1) and np.all(out[VERTEX_CONFIDENCE] == 1)
+    assert np.all(out[CONFIDENCE] >= 0.999) and np.all(out[CONFIDENCE] <= 1)
+    np.testing.assert_array_equal(out[VERTEX_CONFIDENCE], np.repeat(out[CONFIDENCE][:, None], pdm_model.n_vertices, 1))
     assert out[VERTEX_CONFIDENCE].shape == (len(frames), pdm_model.n_vertices)
     assert np.array_equal(out["vertices"], raw["vertices"])
     assert np.array_equal(out["displacement"], raw["displacement"])
@@ -78,11 +84,43 @@ def test_auto_marker_noise_lowers_each_frames_confidence_by_its_noise_estimate(p
     pose = ev.deformation(frames)[0]
     sigma = frame_noise(base.marker_prior, pose.remove(frames) - base.rest_markers)
     assert np.all(sigma[:2] < 0.1) and np.all(np.abs(sigma[2:] / 0.5 - 1) < 0.3), sigma
-    # the same request denoised at its fixed σ̂ (no noise factor): the validity's confidence
+    # the same request denoised at its fixed σ̂: the same meshes and confidence
     fixed = PdmModel(pdm_model.data, dataclasses.replace(ev, base=base.with_noise_estimate(float(np.median(sigma)))))
     ref = fixed.synthesize(frames, ("mesh",))
     np.testing.assert_array_equal(out["vertices"], ref["vertices"])
+    np.testing.assert_array_equal(out[CONFIDENCE], ref[CONFIDENCE])
     factor = noise_confidence(base.marker_prior, sigma)
-    np.testing.assert_allclose(out[CONFIDENCE], ref[CONFIDENCE] * factor, rtol=1e-5)
-    np.testing.assert_allclose(out[VERTEX_CONFIDENCE], ref[VERTEX_CONFIDENCE] * factor[:, None], rtol=1e-5)
+    validity = _range_confidence(fixed, frames)
+    np.testing.assert_allclose(out[CONFIDENCE], validity * factor, rtol=1e-5)
     assert factor[0] > 0.95 and factor[2] < 0.5 and out[CONFIDENCE][2] < 0.5 * out[CONFIDENCE][0]
+
+
+def _range_confidence(model, frames):
+    """The validity's per-frame confidence (F,) of world markers (F,M,3), the fade's."""
+    ev = model.evaluator
+    base, _ = ev.request_base(frames)
+    _, _, S = ev.deformation(frames, base)
+    d1, d2, _ = ev.vertex_band.parameters(S, None)
+    return ev.validity.confidence(ev.validity.gauge(d1, d2))[0]
+
+
+def test_exact_interpolation_also_reports_the_noise_factor_without_fading_by_it(pdm_model, pdm_data):
+    """marker_noise_mm = 0 (the default): each frame's confidence is the validity's times
+    n(σ̂) of its own markers (service.methods.confidence), so σ = 0.5 mm noisy frames
+    report well under half a clean frame's; the fade stays the validity's (a clean frame's
+    mesh is the same alone or beside noisy ones)."""
+    from service.geometry.marker_prior import frame_noise, noise_confidence
+
+    _, clips = pdm_data
+    ev = pdm_model.evaluator
+    assert ev.base.noise_mm == 0 and ev.base.evidence is not None
+    frames = clips[3].markers[::6][:4].copy()
+    frames[2:] += np.random.default_rng(1).normal(scale=0.5, size=frames[2:].shape)
+    out = pdm_model.synthesize(frames, ("mesh",))
+    pose = ev.deformation(frames)[0]
+    factor = noise_confidence(ev.base.marker_prior, frame_noise(ev.base.marker_prior,
+                                                                pose.remove(frames) - ev.base.rest_markers))
+    np.testing.assert_allclose(out[CONFIDENCE], _range_confidence(pdm_model, frames) * factor, rtol=1e-5)
+    assert np.all(factor[:2] > 0.999) and np.all(factor[2:] < 0.5)
+    assert out[CONFIDENCE][2:].max() < 0.5 * out[CONFIDENCE][:2].min()
+    np.testing.assert_array_equal(pdm_model.synthesize(frames[:1], ("mesh",))["vertices"][0], out["vertices"][0])

@@ -232,7 +232,8 @@ def test_the_marker_prior_is_stored_and_an_older_directory_loads_without_it(pdm_
     """Training learns the marker prior (issue 17) and the store round-trips it; a directory
     saved before it existed (no ``marker_prior_*`` arrays) loads with none and synthesizes
     the same at σ = 0 (its params' default; with σ > 0 it would use the shell prior alone,
-    tests/methods/pdm/test_base_surface.py)."""
+    tests/methods/pdm/test_base_surface.py), except that its confidence has no noise factor
+    (no prior to estimate σ̂ with: service.methods.confidence)."""
     import shutil
 
     from service.io.atomic import write_npz
@@ -256,8 +257,13 @@ def test_the_marker_prior_is_stored_and_an_older_directory_loads_without_it(pdm_
     markers = pdm_data[1][2].markers[[3, 11]]
     x, y = loaded.synthesize(markers, outputs=("mesh",)), before.synthesize(markers, outputs=("mesh",))
     assert x.keys() == y.keys() and "vertices" in x
+    factor = loaded.evaluator.base.input_confidence(loaded.evaluator.deformation(markers)[0].remove(markers))
+    assert before.evaluator.base.evidence is None and np.all(factor < 1)
     for key in x:
-        np.testing.assert_array_equal(y[key], x[key], err_msg=key)
+        if key in ("confidence", "confidence_vertices"):
+            np.testing.assert_allclose(y[key] * factor.reshape(-1, *[1] * (y[key].ndim - 1)), x[key], rtol=1e-6)
+        else:
+            np.testing.assert_array_equal(y[key], x[key], err_msg=key)
 
 
 def test_a_directory_the_blob_store_verified_is_not_hashed_again(pdm_model, pdm_data, saved, monkeypatch):
