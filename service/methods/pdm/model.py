@@ -307,7 +307,7 @@ class PdmEvaluator:
         from service.methods.pdm.point_validity import PointValidity
 
         shell_mesh = ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
-                                     d.neutral_offset, uv_vertex, seam)
+                                     d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
         validity = _validity(d, base, bands, orders, seam, shell, texel_rho)
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
@@ -337,14 +337,17 @@ class PdmEvaluator:
         (:data:`OPERATORS_VERSION`); ``<band>_field_*`` the bands' parameter fields
         (:meth:`.deformation.ParameterField.arrays`) and ``<band>_order`` the fine and albedo
         texels' element order; ``shell_correction`` (n,M) float32 the detailed neutral's
-        thin-shell basis less the base's (:meth:`shell_fallback`); the CSR matrices ``seam_average``, ``fine_sampler`` and
+        thin-shell basis less the base's (:meth:`shell_fallback`); ``shell_mesh_*`` the
+        compiled mesh's vertex order and both bases in it (:meth:`.shell_mesh.ShellMesh.stored`:
+        a load maps them instead of permuting 2 × (n,M); a cache without them permutes); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
         rasterization at the fine resolution (not held by the evaluator: rasterized again
         here, ~1 s at 1024²)."""
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
-               **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction}
+               **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
+               **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
         for name, band in self.bands.items():
             out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
             if name != "vertex":
