@@ -19,12 +19,13 @@ written once:
    made (a mesh, a detailed mesh or a normal map is asked).
 
 The same float32 operations in the same order as the NumPy operators (compiled without
-fast-math, so nothing is reassociated or contracted; the directions θ from NumPy's own
-arctan2), so the results are theirs bit for bit (tests/methods/pdm/test_point_validity.py):
-a point inside its region whose detail is within the envelope keeps the polynomial's value,
-as :func:`.validity.fade_detail` promises. The NumPy operators stay as what the kernels are
-tested against (and :meth:`.validity.Validity.evaluate` for any band). Numba is imported
-here, so this module is imported where an evaluator is built, never by ``facesynth serve``.
+fast-math, so nothing is reassociated or contracted; NumPy's error model: IEEE division, no
+zero test; the directions θ from NumPy's own arctan2), so the results are theirs bit for bit
+(tests/methods/pdm/test_point_validity.py): a point inside its region whose detail is within
+the envelope keeps the polynomial's value, as :func:`.validity.fade_detail` promises. The
+NumPy operators stay as what the kernels are tested against (and
+:meth:`.validity.Validity.evaluate` for any band). Numba is imported here, so this module is
+imported where an evaluator is built, never by ``facesynth serve``.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from service.methods.pdm.validity import MARGIN, Validity
 _TWO_PI = np.float32(2 * np.pi)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def gauge_points(lo, hi, d1, d2, theta, hull, rho, lower, t):
     """Points [lo, hi): of d = (d1, d2) (P,) float32 with direction ``theta`` (P,) float32
     (``np.arctan2(d2, d1)``: NumPy's float32 arctan2, which is not libm's — 39 % of random
@@ -68,7 +69,7 @@ def gauge_points(lo, hi, d1, d2, theta, hull, rho, lower, t):
         rho[p] = np.hypot(a, b) / ((np.float32(1) - w) * hull[p, k0] + w * hull[p, k1])
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors, box, fallback,
                  width, slope, grow, out):
     """Points [lo, hi): ``out`` (P,3) float32 = D̃(d) of the polynomial ``terms`` (K',3,P)
@@ -157,7 +158,7 @@ def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors
             out[p, 0], out[p, 1], out[p, 2] = v0, v1, v2
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _falloff(excess, width):
     """:func:`service.methods.confidence.falloff` of one float32 excess > 0."""
     if width <= 0:
