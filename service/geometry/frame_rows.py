@@ -44,32 +44,41 @@ def triangle_rows(lo, hi, ptr, idx, val, V, m, e, fn):
         fn[2, t] = a0 * b1 - a1 * b0
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _row_sums(ptr, idx, val, X, v):
+    """Row v of the float32 CSR (ptr, idx, val) times the three rows of X (3,k): each sum
+    from 0 over the row's entries in their stored order (SciPy's CSR product)."""
+    s0 = s1 = s2 = np.float32(0)
+    for jj in range(ptr[v], ptr[v + uint64(1)]):
+        w, q = val[jj], idx[jj]
+        s0 += w * X[0, q]
+        s1 += w * X[1, q]
+        s2 += w * X[2, q]
+    return s0, s1, s2
+
+
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _unit(x0, x1, x2):
+    """(x0, x1, x2) float32 times 1/|x| (|x|² summed x, y, z in order), zero kept zero (the
+    arithmetic of ``tangent_frames._normalize_rows``)."""
+    nn = x0 * x0
+    nn += x1 * x1
+    nn += x2 * x2
+    norm = np.sqrt(nn)
+    inv = np.float32(1.0) / norm if norm > 0 else np.float32(0)
+    return x0 * inv, x1 * inv, x2 * inv
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def vertex_rows(lo, hi, tptr, tidx, tval, e, nptr, nidx, nval, fn, T, N, tmax):
     """Vertices [lo, hi): ``T`` (3,n) float32 = dP/du accumulated from the edges ``e``
     (float32 CSR ``du_edges``), ``N`` (3,n) the unit sum of the incident ``fn`` (float32 CSR
     ``incidence``; 0 where it vanishes), T projected off N, and ``tmax`` (n,) its largest
     |component|."""
-    zero = np.float32(0)
     for v in range(uint64(lo), uint64(hi)):
-        t0 = t1 = t2 = zero
-        for jj in range(tptr[v], tptr[v + uint64(1)]):
-            w, q = tval[jj], tidx[jj]
-            t0 += w * e[0, q]
-            t1 += w * e[1, q]
-            t2 += w * e[2, q]
-        n0 = n1 = n2 = zero
-        for jj in range(nptr[v], nptr[v + uint64(1)]):
-            w, q = nval[jj], nidx[jj]
-            n0 += w * fn[0, q]
-            n1 += w * fn[1, q]
-            n2 += w * fn[2, q]
-        nn = n0 * n0
-        nn += n1 * n1
-        nn += n2 * n2
-        norm = np.sqrt(nn)
-        inv = np.float32(1.0) / norm if norm > 0 else zero
-        n0, n1, n2 = n0 * inv, n1 * inv, n2 * inv
+        t0, t1, t2 = _row_sums(tptr, tidx, tval, e, v)
+        n0, n1, n2 = _row_sums(nptr, nidx, nval, fn, v)
+        n0, n1, n2 = _unit(n0, n1, n2)
         d = t0 * n0
         d += t1 * n1
         d += t2 * n2
@@ -84,7 +93,6 @@ def finish_rows(lo, hi, T, N, threshold, B, has_n):
     """Vertices [lo, hi): where the vertex has a normal (``has_n``: |N|² > 0.25) and
     ``|T| ≤ threshold`` (float32), T replaced by the least-aligned axis projected off N (in
     float64, rounded once); T normalized (in place); ``B`` (3,n) = N × T."""
-    zero = np.float32(0)
     for v in range(uint64(lo), uint64(hi)):
         t0, t1, t2 = T[0, v], T[1, v], T[2, v]
         n0, n1, n2 = N[0, v], N[1, v], N[2, v]
@@ -103,12 +111,7 @@ def finish_rows(lo, hi, T, N, threshold, B, has_n):
             t0 = np.float32((1.0 if j == 0 else 0.0) - d * np.float64(n0))
             t1 = np.float32((1.0 if j == 1 else 0.0) - d * np.float64(n1))
             t2 = np.float32((1.0 if j == 2 else 0.0) - d * np.float64(n2))
-            tt = t0 * t0
-            tt += t1 * t1
-            tt += t2 * t2
-        norm = np.sqrt(tt)
-        inv = np.float32(1.0) / norm if norm > 0 else zero
-        t0, t1, t2 = t0 * inv, t1 * inv, t2 * inv
+        t0, t1, t2 = _unit(t0, t1, t2)
         T[0, v], T[1, v], T[2, v] = t0, t1, t2
         B[0, v] = n1 * t2 - n2 * t1
         B[1, v] = n2 * t0 - n0 * t2

@@ -25,6 +25,16 @@ import numpy as np
 from numba import njit, uint64
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _interpolate(TN, r, v0, v1, v2, w0, w1, w2):
+    """Row r of TN (6,n) at a texel: ``0 + w0 TN[r,v0] + w1 TN[r,v1] + w2 TN[r,v2]`` summed
+    in that order (SciPy's CSR row sum)."""
+    s = np.float32(0) + w0 * TN[r, v0]
+    s += w1 * TN[r, v1]
+    s += w2 * TN[r, v2]
+    return s
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out):
     """Texels [lo, hi): ``out[texel[i]]`` (H·W,3) float32 = the unit tangent-space normal of
@@ -32,7 +42,6 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out
     float32, rows Ku, Kv), its barycentric weights ``lam`` (N,3) float32 on the vertices
     ``corners`` (N,3), the map's derivatives ``du``, ``dv`` (N,) float32 and the vertex rows
     ``TN`` (6,n) float32 (T, N); ``eps`` the clamp of |T×N|² and |Z|² (FRAME_DEGENERATE)."""
-    zero = np.float32(0)
     one = np.float32(1)
     for i in range(uint64(lo), uint64(hi)):
         q = triangle[i]
@@ -45,24 +54,12 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out
         g2 += K[5, q] * b
         v0, v1, v2 = corners[i, 0], corners[i, 1], corners[i, 2]
         w0, w1, w2 = lam[i, 0], lam[i, 1], lam[i, 2]
-        t0 = zero + w0 * TN[0, v0]
-        t0 += w1 * TN[0, v1]
-        t0 += w2 * TN[0, v2]
-        t1 = zero + w0 * TN[1, v0]
-        t1 += w1 * TN[1, v1]
-        t1 += w2 * TN[1, v2]
-        t2 = zero + w0 * TN[2, v0]
-        t2 += w1 * TN[2, v1]
-        t2 += w2 * TN[2, v2]
-        n0 = zero + w0 * TN[3, v0]
-        n0 += w1 * TN[3, v1]
-        n0 += w2 * TN[3, v2]
-        n1 = zero + w0 * TN[4, v0]
-        n1 += w1 * TN[4, v1]
-        n1 += w2 * TN[4, v2]
-        n2 = zero + w0 * TN[5, v0]
-        n2 += w1 * TN[5, v1]
-        n2 += w2 * TN[5, v2]
+        t0 = _interpolate(TN, 0, v0, v1, v2, w0, w1, w2)
+        t1 = _interpolate(TN, 1, v0, v1, v2, w0, w1, w2)
+        t2 = _interpolate(TN, 2, v0, v1, v2, w0, w1, w2)
+        n0 = _interpolate(TN, 3, v0, v1, v2, w0, w1, w2)
+        n1 = _interpolate(TN, 4, v0, v1, v2, w0, w1, w2)
+        n2 = _interpolate(TN, 5, v0, v1, v2, w0, w1, w2)
         x0 = t1 * n2 - t2 * n1                     # X = T × N
         x1 = t2 * n0 - t0 * n2
         x2 = t0 * n1 - t1 * n0

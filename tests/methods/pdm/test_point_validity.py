@@ -9,17 +9,7 @@ import numpy as np
 import pytest
 
 from service.methods.pdm.point_validity import PointValidity
-
-@pytest.fixture(scope="module")
-def frames(pdm_model, pdm_data):
-    """S of frames inside (two training peaks) and beyond (2.5× and 6× the peaks' motion)."""
-    _, clips = pdm_data
-    ev = pdm_model.evaluator
-    rest = ev.base.rest_markers
-    peak = clips[3].markers[[10, 12]]
-    pose = ev.deformation(peak)[0]
-    far = [pose.restore(rest + s * (pose.remove(peak) - rest)) for s in (2.5, 6.0)]
-    return ev.deformation(np.concatenate([peak, *far]))[2]
+from tests.methods.pdm.test_realtime_paths import frames  # noqa: F401  S inside and beyond the hull
 
 
 def test_gauge_is_the_numpy_gauge_and_sector_lookup_bit_for_bit(pdm_model, frames):
