@@ -50,7 +50,7 @@ Precision and cost
 ------------------
 Edges are differenced in float64; everything after (the operators (1), the per-texel
 interpolation, gradient, frame and normalization) runs in float32, the dtype of the output,
-per texel in blocks of ``CHUNK_TEXELS`` so the temporaries stay in cache. The slopes agree
+per texel in one compiled pass (:mod:`service.geometry.normal_texels`). The slopes agree
 with a float64 evaluation of the definition to ~1e-6 (tests). Cost: see
 :class:`NormalMapper`.
 """
@@ -63,12 +63,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from service.geometry import ranges
 from service.geometry.uv_raster import UVRaster
 
-#: texels per vectorized block of :meth:`NormalMapper.normal_map` (temporaries ~ 0.5 MB each;
-#: 2^17 against 2^15 on the level-1 sample actor's 1024² map: 47 → 42 ms of CPU per map, the
-#: per-call overhead of ~70 NumPy calls per block amortized over 4× the texels)
-CHUNK_TEXELS = 1 << 17
 #: a triangle whose corner-0 angle has a sine below this is degenerate in 3D (no gradient)
 TRIANGLE_DEGENERATE_SIN = 1e-6
 #: clamp of |T×N|² and |N|²|T×N|² of the interpolated frame (both ≈ 1 for unit vertex
@@ -76,7 +73,6 @@ TRIANGLE_DEGENERATE_SIN = 1e-6
 FRAME_DEGENERATE = 1e-6
 
 _EPS = np.float32(FRAME_DEGENERATE)
-_TEXEL = np.dtype((np.void, 12))                        # one float32 (x, y, z) output texel
 
 
 def uv_chart_labels(uv_faces: np.ndarray, K: int) -> np.ndarray:
@@ -168,11 +164,12 @@ class NormalMapper:
     """Tangent-space normal maps for one UV layout and map size, many displacement maps.
 
     Everything that depends only on the layout is precomputed once: the covered texels and
-    their triangles, the barycentric interpolation operator (one sparse block per
-    ``CHUNK_TEXELS`` texels), the UV edges of the used triangles and the finite-difference
-    stencils. Each :meth:`normal_map` call then costs one pass over the used triangles
-    (the gradient operators (1) of the module notes on the current mesh) and a fixed number
-    of vectorized passes over the covered texels.
+    their triangles, the barycentric weights on the triangles' vertices, the UV edges of the
+    used triangles and the finite-difference stencils. Each :meth:`normal_map` call then
+    costs one pass over the used triangles (the gradient operators (1) of the module notes
+    on the current mesh), the finite differences, and one compiled pass over the covered
+    texels (:func:`service.geometry.normal_texels.normal_texels`: interpolation, gradient,
+    frame, normal, written into the map).
 
     Parameters
     ----------
@@ -190,13 +187,14 @@ class NormalMapper:
 
     Notes
     -----
-    Static memory ≈ 57 bytes per covered texel (39 MB for the 672k of a 1024² map).
+    Static memory ≈ 53 bytes per covered texel (38 MB for the 715k of a 1024² map).
 
-    Per call, 1024² map (672k covered texels), 45k-vertex / 89k-triangle mesh, one core of a
-    2-core AMD EPYC VM (NumPy 2.4, SciPy 1.17): 39-42 ms best and ≈ 45 ms median with the
-    machine otherwise idle (55-75 ms median while other jobs share it). Roughly: sparse
-    interpolation of (T, N) 9 ms and its transpose 2, gathering (Ku, Kv) 4.5, per-texel
-    arithmetic 12, finite differences 3.5, operators (1) 3.5, output 5.
+    Per call, 1024² map, 45k-vertex / 89k-triangle mesh, one core of a 2-core AMD EPYC VM
+    (NumPy 2.4, SciPy 1.17): the NumPy passes this replaced took 39-42 ms best, ≈ 45 ms
+    median on an idle machine (sparse interpolation of (T, N) 9 ms and its transpose 2,
+    gathering (Ku, Kv) 4.5, per-texel arithmetic 12, output 5, finite differences 3.5,
+    operators (1) 3.5); the compiled texel pass took a level-1 PDM maps frame from 59.5 to
+    47.2 ms of CPU (issue 23, alternating in one run, load 1.8), the maps bit for bit.
     """
 
     def __init__(self, raster: UVRaster, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
@@ -235,13 +233,9 @@ class NormalMapper:
         self._du = _Stencil.build(texel, chart, H, W, axis=1)
         self._dv = _Stencil.build(texel, chart, H, W, axis=0)
 
-        N = len(texel)
-        lam = raster.barycentric.reshape(-1, 3)[texel].astype(np.float32)
-        corners = F[used][local]
-        interp = sp.csr_matrix((lam.ravel(), corners.ravel(), np.arange(0, 3 * N + 1, 3)),
-                               shape=(N, n))
-        self._blocks = [(s, min(s + CHUNK_TEXELS, N), interp[s:s + CHUNK_TEXELS])
-                        for s in range(0, N, CHUNK_TEXELS)]
+        self._lam = np.ascontiguousarray(raster.barycentric.reshape(-1, 3)[texel], dtype=np.float32)
+        self._corners = F[used][local].astype(np.uint32)                  # (N,3) the texels' vertices
+        import service.geometry.normal_texels  # noqa: F401   Numba, loaded where a mapper (a model) is built
 
     @property
     def texels(self) -> np.ndarray:
@@ -296,7 +290,8 @@ class NormalMapper:
         return K
 
     def normal_map(self, h: np.ndarray, V: np.ndarray, frames: np.ndarray | None,
-                   out: np.ndarray | None = None, rows: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                   out: np.ndarray | None = None, rows: tuple[np.ndarray, np.ndarray] | None = None,
+                   threads: int | None = None) -> np.ndarray:
         """Tangent-space normal map of the displacement map h on the mesh V.
 
         Parameters
@@ -313,6 +308,8 @@ class NormalMapper:
                                    edges, as :meth:`~service.geometry.tangent_frames.FrameField.normal_rows`
                                    gives them (the frames' T and N and the edges
                                    :meth:`gradient_operators` would difference: same result)
+        threads : int, optional    the per-texel kernel's threads (default
+                                   :func:`service.geometry.ranges.kernel_threads`)
 
         Returns
         -------
@@ -354,45 +351,12 @@ class NormalMapper:
             out[...] = 0.0
         flat = out.reshape(H * W, 3)
         flat[:, 2] = 1.0
-        items = flat.view(_TEXEL).reshape(H * W)        # one 12-byte item per texel: fast scatter
-        for s, e, interp in self._blocks:
-            normals = self._block(interp, du[s:e], dv[s:e], self._triangle[s:e], K, TN)
-            np.put(items, self._texel[s:e], normals.view(_TEXEL))
+        from service.geometry.normal_texels import normal_texels
+
+        ranges.run(normal_texels, len(self._texel), self._texel.view(np.uint64), self._triangle.view(np.uint64),
+                   self._lam, self._corners, du, dv, K, np.ascontiguousarray(TN, np.float32), _EPS, flat,
+                   threads=threads)
         return out
-
-    @staticmethod
-    def _block(interp: sp.csr_matrix, du: np.ndarray, dv: np.ndarray, triangle: np.ndarray,
-               K: np.ndarray, TN: np.ndarray) -> np.ndarray:
-        """Unit normals (b,3) float32 of b covered texels (see :meth:`normal_map`).
-
-        interp (b,n) barycentric rows, du/dv (b,) ∂h/∂u and ∂h/∂v, triangle (b,) into the
-        columns of K (6,mu), TN (6,n) float32 vertex (T, N), one row per component (each
-        interpolated by its own sparse product: the same sums as the 6-column product,
-        about 2× faster, and the (6,b) rows come out contiguous without a transpose).
-        """
-        Kb = np.take(K, triangle, axis=1)                                # (6,b)
-        g = Kb[:3] * du
-        g += Kb[3:] * dv                                                 # (3,b) surface gradient
-        Y = np.empty((6, interp.shape[0]), dtype=np.float32)            # (6,b) interpolated T, N
-        for i, row in enumerate(TN):
-            Y[i] = interp @ row
-        T, N = Y[:3], Y[3:]
-        X = _cross(T, N)                        # T × N     = −|T×N| B̂
-        Z = _cross(X, N)                        # (T×N) × N = tn N − nn T = −|N| |T×N| T̂
-        x = _dot(Z, g)                          # −T̂·g |Z|
-        x /= np.sqrt(np.maximum(_dot(Z, Z), _EPS))
-        y = _dot(X, g)                          # −B̂·g |X|
-        y /= np.sqrt(np.maximum(_dot(X, X), _EPS))
-        r = x * x
-        r += y * y
-        r += 1.0
-        np.sqrt(r, out=r)
-        np.divide(1.0, r, out=r)
-        normals = np.empty((len(r), 3), dtype=np.float32)
-        np.multiply(x, r, out=normals[:, 0])
-        np.multiply(y, r, out=normals[:, 1])
-        normals[:, 2] = r
-        return normals
 
 
 def tangent_space_normal_map(h: np.ndarray, raster: UVRaster, V: np.ndarray, F: np.ndarray,

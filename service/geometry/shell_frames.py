@@ -61,8 +61,9 @@ from service.geometry.tangent_frames import CANCEL_RTOL, _triangle_signs, uv_han
 
 #: LLVM flags of the kernels: reassociation and contraction only (no finite-math
 #: assumptions, so the zero tests of the fallbacks keep their meaning). The kernels index
-#: with unsigned integers (loop ranges, ``faces``, ``ptr``, ``tri``): Numba checks every
-#: signed index for a negative value to wrap around (measured ~40 % of a gather-heavy loop)
+#: with unsigned integers (loop ranges, ``faces``, ``ptr``, ``tri``, ``order``, the points'
+#: ``at`` and ``dest``): Numba checks every signed index for a negative value to wrap around
+#: (measured ~40 % of a gather-heavy loop)
 FASTMATH = {"reassoc", "contract"}
 
 
@@ -261,8 +262,8 @@ class ShellFrames:
 
     Attributes
     ----------
-    order : (n,) int64       internal position k holds vertex ``order[k]``
-    rank : (n,) int64        the inverse: vertex v is at internal position ``rank[v]``
+    order : (n,) uint32      internal position k holds vertex ``order[k]``
+    rank : (n,) uint32       the inverse: vertex v is at internal position ``rank[v]``
     faces : (m,3) uint32     triangles over internal positions (sorted by first corner)
     rest : (m,8) float32     per triangle the rest edges e1 = P1 − P0, e2 = P2 − P0 of X̄ and
                              cb, cc with dP/du = cb e1 + cc e2 (0 for UV-degenerate ones)
@@ -304,8 +305,8 @@ class ShellFrames:
         inc = np.lexsort((cols, rows))                                            # by vertex, then triangle
         ptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int64)
         rest = np.column_stack([V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]], cb, cc]).astype(np.float32)
-        return cls(order, rank, Fi.astype(np.uint32), rest, ptr.astype(np.uint64),
-                   cols[inc].astype(np.uint32), w.ravel()[inc].astype(np.float32))
+        return cls(order.astype(np.uint32), rank.astype(np.uint32), Fi.astype(np.uint32), rest,
+                   ptr.astype(np.uint64), cols[inc].astype(np.uint32), w.ravel()[inc].astype(np.float32))
 
     @property
     def n_vertices(self) -> int:
@@ -395,10 +396,10 @@ class ShellFrames:
     def points(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Points on the vertices ``vertices`` (P,) (e.g. UV points, several per seam vertex)
         as :meth:`coordinates` reads them: their internal positions ascending and, for each,
-        the point's index."""
+        the point's index, both (P,) uint32 (the kernel's indices are unsigned)."""
         at = self.rank[np.asarray(vertices, np.int64)]
         dest = np.argsort(at, kind="stable")
-        return at[dest], dest
+        return at[dest], dest.astype(np.uint32)
 
     def coordinates(self, frames: tuple, W: np.ndarray, base: np.ndarray, sub: np.ndarray,
                     points: tuple, out: np.ndarray | None = None,

@@ -348,32 +348,37 @@ class FrameField:
     def _rows32(self, V: np.ndarray, edges: bool = False):
         """T, B, N (3,n) float32, component-major, and has_n (n,) of one pose V (n,3) (with
         ``edges``, also the triangles' float32 edges (3,2m) they were computed from): the
-        float32 path of :meth:`_rows` with every vector a row per component, so the cross
-        and dot products run over contiguous rows instead of (n,3) strides. The same
-        elementwise float32 arithmetic in the same order (the dot products summed x, y, z
-        as einsum does for float32): bit-identical to the pose-major float32 arithmetic it replaced (tests)."""
-        incidence, du_edges = self._float32
-        m = len(self.faces)
-        # differenced in float64, rounded once; one product of the (n,3) pose (each edge's
-        # two terms in the same order as per component: the same values, 1.5 → 1.1 ms at 45k
-        # vertices), then component rows x, y, z
-        e = np.ascontiguousarray((self.edges @ np.asarray(V, np.float64)).T, dtype=np.float32)   # (3,2m)
-        T = np.stack([du_edges @ e[i] for i in range(3)])                          # (3,n)
-        e1, e2 = e[:, :m], e[:, m:]
-        fn = _cross_rows(e1, e2)                                                   # (3,m)
-        N = _normalize_rows(np.stack([incidence @ fn[i] for i in range(3)]))
-        T -= _dot_rows(T, N) * N
-        has_n = _dot_rows(N, N) > 0.25
-        tn = np.sqrt(_dot_rows(T, T))
-        weak = has_n & ~(tn > CANCEL_RTOL * np.maximum(np.abs(T).max(), 1e-300))
-        if weak.any():
-            Nw = N[:, weak].T
-            axis = np.eye(3)[np.argmin(np.abs(Nw), axis=1)]
-            T[:, weak] = (axis - np.einsum("kd,kd->k", axis, Nw)[:, None] * Nw).T
-        T = _normalize_rows(T)
+        float32 path of :meth:`_rows`, on the compiled kernels of
+        :mod:`service.geometry.frame_rows` (issue 23: the sparse products and ~30 passes over
+        (3,n) rows before, the same arithmetic in the same order, bit for bit: tests)."""
+        from service.geometry import ranges
+        from service.geometry.frame_rows import finish_rows, triangle_rows, vertex_rows   # Numba (issue 23)
+
+        edges_op, du_op, inc_op = self._kernel_operators
+        m, n = len(self.faces), self.incidence.shape[0]
+        # the edges differenced in float64 and rounded once, their cross products; T, N per
+        # vertex from the float32 operators; the fallbacks and B (module frame_rows)
+        e = np.empty((3, 2 * m), np.float32)
+        fn = np.empty((3, m), np.float32)
+        ranges.run(triangle_rows, m, *edges_op, np.ascontiguousarray(V, np.float64), m, e, fn)
+        T, N, B = (np.empty((3, n), np.float32) for _ in range(3))
+        tmax = np.empty(n, np.float32)
+        ranges.run(vertex_rows, n, *du_op, e, *inc_op, fn, T, N, tmax)
+        threshold = CANCEL_RTOL * np.maximum(tmax.max(initial=np.float32(0)), np.float32(0))
+        has_n = np.empty(n, np.bool_)
+        ranges.run(finish_rows, n, T, N, np.float32(threshold), B, has_n)
         if edges:
-            return T, _cross_rows(N, T), N, has_n, e
-        return T, _cross_rows(N, T), N, has_n
+            return T, B, N, has_n, e
+        return T, B, N, has_n
+
+    @cached_property
+    def _kernel_operators(self) -> tuple[tuple, tuple, tuple]:
+        """(ptr (r+1,) uint64, idx (nnz,) uint32, val) of ``edges`` (float64) and of the float32
+        ``du_edges`` and ``incidence``: the CSR arrays :mod:`service.geometry.frame_rows` reads,
+        with unsigned indices (Numba then checks no index for wraparound: 4.2 → 2.4 ms of the
+        level-1 frames), made on the first float32 call."""
+        return tuple((A.indptr.astype(np.uint64), A.indices.astype(np.uint32), A.data)
+                     for A in (self.edges, self._float32[1], self._float32[0]))
 
     @cached_property
     def _float32(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:

@@ -59,6 +59,18 @@ def test_internal_order_round_trip_is_exact():
     np.testing.assert_array_equal(sf.to_internal(X)[:, sf.rank], X.T)
 
 
+def test_kernel_indices_are_unsigned():
+    """Every index array a kernel gathers or scatters by is unsigned (Numba then emits no
+    negative-index wraparound check per access)."""
+    V, F, uv = _sphere_patch()
+    sf = ShellFrames.build(V, F, uv, F)
+    at, dest = sf.points(np.array([5, 0, 5, 17]))
+    for a in (sf.order, sf.rank, sf.faces, sf.ptr, sf.tri, at, dest):
+        assert a.dtype.kind == "u", a.dtype
+    np.testing.assert_array_equal(at, np.sort(sf.rank[[5, 0, 5, 17]]))
+    np.testing.assert_array_equal(sf.rank[[5, 0, 5, 17]][dest], at)
+
+
 def _shell_case(k: int = 14):
     """The patch, its ShellFrames, a displacement u (n,3) and the float64 frames of V + u."""
     V, F, uv = _sphere_patch(k)

@@ -227,6 +227,19 @@ def test_frame_field_float32_component_major_is_the_pose_major_path_bit_for_bit(
     np.testing.assert_array_equal(ff.to_world(poses[1], C[1], np.float32), old_world[1])
 
 
+def test_frame_field_float32_rows_are_the_same_on_any_kernel_threads(monkeypatch):
+    """The compiled float32 frames (service.geometry.frame_rows) over vertex and triangle
+    ranges on two threads: the same bits as on one (and as the NumPy passes, test above)."""
+    ff, poses = _face_rig_field()
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "1")
+    one = ff._rows32(poses[0], edges=True)
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "2")
+    two = ff._rows32(poses[0], edges=True)
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(a, b)
+    assert one[3].all() and one[4].shape == (3, 2 * len(ff.faces))
+
+
 def test_frame_field_to_frame_inverts_to_world_and_shares_the_rows():
     """to_frame (world → frame coordinates, the PDM's shell fallback) is the einsum of the
     float32 frames it replaced bit for bit, and the poses' rows (rows32) computed once serve both

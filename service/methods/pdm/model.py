@@ -81,11 +81,12 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.data import PdmData, PdmDerived
 
 if TYPE_CHECKING:                          # Numba: imported where an evaluator is built
+    from service.methods.pdm.point_validity import PointValidity
     from service.methods.pdm.shell_mesh import ShellMesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
 from service.methods.pdm.validity import (
-    BandValidity, SectorLookup, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
+    BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
 )
 from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE
 
@@ -181,20 +182,11 @@ def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: 
     return TexelBand.build(0, np.arange(len(uv)), coeffs.astype(np.float32), field)
 
 
-def medium_offsets(vertex: TexelBand, seam_average: sp.csr_matrix, neutral_offset: np.ndarray,
-                   d1: np.ndarray, d2: np.ndarray, validity: Validity | None = None,
-                   rho: np.ndarray | None = None, lookup: SectorLookup | None = None,
-                   fallback: np.ndarray | None = None) -> np.ndarray:
-    """Medium-band offsets (F,n,3) in the base's tangent frames, for d1, d2 (F,K) at the UV
-    points of the band ``vertex`` (:func:`vertex_band`), seam-averaged ((n,K)) onto the
-    vertices plus the neutral's static ``neutral_offset`` (n,3); with ρ (F,K)
-    (:mod:`.validity`), continued, limited and faded outside the hull towards ``fallback``
-    (F,K,3) (:meth:`PdmEvaluator.shell_fallback`; None: 0) (``lookup``: the sector lookup
-    of d1, d2 the gauge used, :meth:`.validity.Validity.lookup`)."""
-    if rho is None:
-        c = vertex.evaluate(d1, d2)                                             # (F,K,3)
-    else:
-        c = validity.evaluate("vertex", vertex.coeffs, d1, d2, rho, lookup, fallback)
+def medium_offsets(c: np.ndarray, seam_average: sp.csr_matrix, neutral_offset: np.ndarray) -> np.ndarray:
+    """Medium-band offsets (F,n,3) in the base's tangent frames from the medium PDM's values
+    c (F,K,3) at the UV points (:func:`vertex_band`'s ``evaluate``, or its valid values,
+    :meth:`PdmEvaluator.medium_values`), seam-averaged ((n,K)) onto the vertices plus the
+    neutral's static ``neutral_offset`` (n,3)."""
     F, K = c.shape[:2]
     c = (seam_average @ c.transpose(1, 0, 2).reshape(K, 3 * F)).reshape(-1, F, 3)
     return c.transpose(1, 0, 2) + neutral_offset
@@ -224,6 +216,8 @@ class PdmEvaluator:
     uv_vertex : (K,) int64          the vertex of each UV point
     shell_mesh : ShellMesh          the per-frame medium mesh on the compiled shell kernels
                                     (:mod:`.shell_mesh`: base surface, fallback, composition)
+    point_validity : PointValidity | None   the medium band's validity at the UV points on
+                                    compiled kernels (:mod:`.point_validity`; None without validity)
     """
 
     data: PdmData = dataclasses.field(repr=False)
@@ -240,6 +234,7 @@ class PdmEvaluator:
     shell_offset: np.ndarray
     uv_vertex: np.ndarray
     shell_mesh: "ShellMesh | None" = dataclasses.field(default=None, repr=False)
+    point_validity: "PointValidity | None" = dataclasses.field(default=None, repr=False)
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -309,14 +304,18 @@ class PdmEvaluator:
         shell = (correction, detailed - base.smooth, uv_vertex)
         from service.methods.pdm.shell_mesh import ShellMesh     # Numba: only where a model is built
 
+        from service.methods.pdm.point_validity import PointValidity
+
         shell_mesh = ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
-                                     d.neutral_offset, uv_vertex, seam)
+                                     d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
+        validity = _validity(d, base, bands, orders, seam, shell, texel_rho)
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
             normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, n),
-            validity=_validity(d, base, bands, orders, seam, shell, texel_rho), shell_correction=shell[0],
-            shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh)
+            validity=validity, shell_correction=shell[0],
+            shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
+            point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms))
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -338,14 +337,17 @@ class PdmEvaluator:
         (:data:`OPERATORS_VERSION`); ``<band>_field_*`` the bands' parameter fields
         (:meth:`.deformation.ParameterField.arrays`) and ``<band>_order`` the fine and albedo
         texels' element order; ``shell_correction`` (n,M) float32 the detailed neutral's
-        thin-shell basis less the base's (:meth:`shell_fallback`); the CSR matrices ``seam_average``, ``fine_sampler`` and
+        thin-shell basis less the base's (:meth:`shell_fallback`); ``shell_mesh_*`` the
+        compiled mesh's vertex order and both bases in it (:meth:`.shell_mesh.ShellMesh.stored`:
+        a load maps them instead of permuting 2 × (n,M); a cache without them permutes); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
         rasterization at the fine resolution (not held by the evaluator: rasterized again
         here, ~1 s at 1024²)."""
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
-               **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction}
+               **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
+               **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
         for name, band in self.bands.items():
             out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
             if name != "vertex":
@@ -392,13 +394,27 @@ class PdmEvaluator:
         sigma = self.base.denoise.frame_noise(u)
         return self.base.with_noise_estimate(float(np.median(sigma))), sigma
 
+    def gauge(self, d1: np.ndarray, d2: np.ndarray) -> tuple[np.ndarray, tuple]:
+        """ρ (F,K) float32 at the UV points for their parameters d1, d2 (F,K), and the
+        sectors of their directions for :meth:`medium_values`
+        (:meth:`.point_validity.PointValidity.gauge`; a model with validity)."""
+        return self.point_validity.gauge(d1, d2)
+
+    def medium_values(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
+                      sectors: tuple | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
+        """The medium PDM (F,K,3) float32 at the UV points for d1, d2 (F,K); with ρ (F,K) and
+        the ``sectors`` of :meth:`gauge`, continued, limited and faded outside the hull
+        towards ``fallback`` (F,K,3) (:meth:`shell_fallback`; None: 0) (:mod:`.validity`, on
+        the kernels of :mod:`.point_validity`)."""
+        if rho is None:
+            return self.vertex_band.evaluate(d1, d2)
+        return self.point_validity.values(d1, d2, rho, sectors, fallback)
+
     def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
-                       lookup: SectorLookup | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
-        """:func:`medium_offsets` (F,n,3) of this model for d1, d2 (F,K); with ρ (F,K), valid
-        (towards ``fallback`` (F,K,3), :meth:`shell_fallback`; ``lookup``: the gauge's sector
-        lookup of d1, d2, reused)."""
-        return medium_offsets(self.vertex_band, self.seam_average, self.data.neutral_offset, d1, d2,
-                              self.validity, rho, lookup, fallback)
+                       sectors: tuple | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
+        """:func:`medium_offsets` (F,n,3) of this model's :meth:`medium_values`."""
+        return medium_offsets(self.medium_values(d1, d2, rho, sectors, fallback), self.seam_average,
+                              self.data.neutral_offset)
 
     def shell_fallback(self, u_H: np.ndarray, X: np.ndarray, rows: list | None = None) -> np.ndarray:
         """:func:`shell_fallback` (F,K,3) of this model for u_H (F,M,3) and the base surfaces X
@@ -622,8 +638,7 @@ class PdmModel:
                 raise InvalidInput(f"frame {s + e.frame} has {e.visible} visible markers, at "
                                    f"least {e.required} are needed") from None
             d1, d2, clamped = ev.vertex_band.parameters(S, margin)
-            lookup = None if valid is None else valid.lookup(d1, d2)    # shared by gauge and envelope
-            rho = None if valid is None else valid.gauge(d1, d2, lookup)
+            rho, sectors = (None, None) if valid is None else ev.gauge(d1, d2)
             if rho is not None:
                 out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
@@ -634,7 +649,7 @@ class PdmModel:
             out["clamped"][sl] = clamped
             need_medium = bool(want & {"mesh_detailed", "normal_map"})
             if "vertices" in out or need_medium:   # the medium mesh on the compiled kernels (.shell_mesh)
-                medium = self._medium_mesh(u_H, d1, d2, rho, lookup, pose,
+                medium = self._medium_mesh(u_H, d1, d2, rho, sectors, pose,
                                            out["vertices"][sl] if "vertices" in out else None, need_medium)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
@@ -657,7 +672,7 @@ class PdmModel:
             out.pop("displacement", None)
         return out
 
-    def _medium_mesh(self, u_H, d1, d2, rho, lookup, pose, world, aligned):
+    def _medium_mesh(self, u_H, d1, d2, rho, sectors, pose, world, aligned):
         """The medium meshes of a chunk of frames (:mod:`.shell_mesh`): base surfaces and
         their float32 frames, the fallback at the UV points where ρ is given, the medium
         offsets, then ``world`` (f,n,3) float32 filled with the head pose put back (if given)
@@ -670,8 +685,8 @@ class PdmModel:
             fallback = np.empty((len(u_H), len(ev.uv_vertex), 3), np.float32)
             for k, (u, (_, frames)) in enumerate(zip(u_H, surfaces)):
                 sm.fallback(u, frames, out=fallback[k])
-        C = medium_offsets(ev.vertex_band, sm.seam_average, sm.neutral_offset, d1, d2, ev.validity, rho,
-                           lookup, fallback)                            # (f,n,3), internal order
+        C = medium_offsets(ev.medium_values(d1, d2, rho, sectors, fallback), sm.seam_average,
+                           sm.neutral_offset)                           # (f,n,3), internal order
         medium = np.empty((len(u_H), self.n_vertices, 3)) if aligned else None
         for k, (U, frames) in enumerate(surfaces):
             sm.place(U, frames, C[k], pose.R[k], pose.t[k], False if medium is None else medium[k],
@@ -831,7 +846,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         fr = base.frames(X)
-        c = medium_offsets(vertex, seam, neutral_offset, dv1[t0:t1], dv2[t0:t1])
+        c = medium_offsets(vertex.evaluate(dv1[t0:t1], dv2[t0:t1]), seam, neutral_offset)
         result = X + np.einsum("fnji,fnj->fni", fr, c)
         err = pose[t0:t1].remove(world_vertices(t0, t1)) - result
         vert_sq += np.einsum("fnd,fnd->n", err, err)

@@ -66,14 +66,27 @@ class ShellMesh:
     @classmethod
     def build(cls, smooth: np.ndarray, faces: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
               basis: np.ndarray, correction: np.ndarray, offset: np.ndarray, neutral_offset: np.ndarray,
-              uv_vertex: np.ndarray, seam_average: sp.csr_matrix) -> "ShellMesh":
+              uv_vertex: np.ndarray, seam_average: sp.csr_matrix, stored: dict | None = None) -> "ShellMesh":
         """From the evaluator's arrays: the smooth neutral X̄ (n,3), its triangles and UV
         layout, the basis B and ``correction`` (n,M), ``offset`` (n,3) V − X̄, the static
-        ``neutral_offset`` (n,3), the UV points' vertices (K,) and the seam average (n,K)."""
+        ``neutral_offset`` (n,3), the UV points' vertices (K,) and the seam average (n,K).
+
+        ``stored``: the :meth:`stored` arrays of a saved ShellMesh (a model's cache,
+        memory-mapped): its two bases in the internal order are used as they are when they
+        were made in this vertex order (``order`` equal to the one built here) for bases of
+        this shape — then ``basis`` and ``correction`` are not read at all, and a load
+        neither copies nor holds the (n,M) permuted copies (level 1: 2 × 27 MB); else
+        (a model stored without them) they are permuted here."""
         sf = ShellFrames.build(smooth, faces, uv, uv_faces)
         order = sf.order
         neutral = np.ascontiguousarray(np.asarray(neutral_offset, np.float32)[order])
-        return cls(sf, sf.internal_basis(basis), sf.internal_basis(correction),
+        stored = stored or {}
+        ok = ("order" in stored and np.array_equal(stored["order"], order)
+              and all(stored.get(k) is not None and stored[k].shape == np.shape(b) and stored[k].dtype == np.float32
+                      and stored[k].flags.c_contiguous for k, b in (("basis", basis), ("correction", correction))))
+        B, Bc = (stored["basis"], stored["correction"]) if ok else (sf.internal_basis(basis),
+                                                                     sf.internal_basis(correction))
+        return cls(sf, B, Bc,
                    np.ascontiguousarray(np.asarray(smooth, np.float64)[order].T),
                    sf.to_internal(offset), np.ascontiguousarray(neutral.T), neutral,
                    sf.points(uv_vertex), seam_average.tocsr()[order])
@@ -81,6 +94,11 @@ class ShellMesh:
     @property
     def order(self) -> np.ndarray:
         return self.frames.order
+
+    def stored(self) -> dict[str, np.ndarray]:
+        """What :meth:`build` reads back instead of permuting the bases: ``order`` (n,)
+        uint32 the internal vertex order, ``basis`` and ``correction`` (n,M) float32 in it."""
+        return {"order": self.order, "basis": self.basis, "correction": self.correction}
 
     def surface(self, u_H: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, tuple]:
         """One frame's base surface: U = B u_H (3,n) float32 and its frames (T, B, N) (3,n)

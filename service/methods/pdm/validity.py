@@ -120,6 +120,9 @@ HULL_FLOOR = 0.05
 #: training samples within this fraction of a point's largest radius are at rest: their
 #: detail bounds every sector of :func:`sector_envelope`
 REST_RADIUS = 0.02
+#: the detail may exceed its training envelope (and the medium band's sector box) by this
+#: fraction before it is limited (the module docstring's ``margin``)
+MARGIN = 0.25
 
 
 def directions(K: int = DIRECTIONS) -> np.ndarray:
@@ -289,7 +292,7 @@ def training_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np
 
 def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.ndarray,
                  rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray, width: float,
-                 slope: float, margin: float = 0.25) -> np.ndarray:
+                 slope: float, margin: float = MARGIN) -> np.ndarray:
     """D̃ (F,P,C) from ``values`` = D(d1, d2) (F,P,C) (module docstring): points of ρ > 1
     continued from the hull's boundary, every point's detail ``D − a5`` limited to
     ``(1 + margin)`` × its training ``envelope`` (P,) (or per frame (F,P): the sector
@@ -306,7 +309,7 @@ def valid_values(coeffs: np.ndarray, values: np.ndarray, d1: np.ndarray, d2: np.
 
 def valid_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray,
                      envelope: np.ndarray, fallback: np.ndarray, width: float, slope: float,
-                     margin: float = 0.25, box: np.ndarray | None = None) -> np.ndarray:
+                     margin: float = MARGIN, box: np.ndarray | None = None) -> np.ndarray:
     """D̃ (F,P,C) float32, C-contiguous, of the polynomial ``coeffs`` (P,C,K) at d1, d2 (F,P)
     with gauge ρ (F,P) (module docstring): the continued polynomial L
     (:func:`~service.methods.pdm.polynomial.evaluate` with ``rho``, D(d) bit for bit where
@@ -325,7 +328,7 @@ def valid_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np
 SURE_INSIDE = np.float32(1 - 2.0 ** -20)
 
 
-def sure_bound(envelope: np.ndarray, margin: float = 0.25) -> np.ndarray:
+def sure_bound(envelope: np.ndarray, margin: float = MARGIN) -> np.ndarray:
     """(P,) float32: ``SURE_INSIDE · (1 + margin) E`` where (1 + margin) E (float32, as
     :func:`fade_detail` forms it) is in [1e-18, 1e18], else −1 (no detail is surely
     inside): a one-channel detail ``|D − a5|`` at most this has w = 1 in the fade
@@ -338,7 +341,7 @@ def sure_bound(envelope: np.ndarray, margin: float = 0.25) -> np.ndarray:
 
 def valid_scalar_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray,
                             envelope: np.ndarray, fallback: np.ndarray, width: float, slope: float,
-                            margin: float = 0.25, sure: np.ndarray | None = None) -> np.ndarray:
+                            margin: float = MARGIN, sure: np.ndarray | None = None) -> np.ndarray:
     """:func:`valid_polynomial` (F,P,1) float32 of a one-channel band (coefficients (P,1,K),
     envelope (P,), fallback (P,1): the fine displacement), bit for bit, with the work done
     only where it can change a value (issue 23):
@@ -382,7 +385,7 @@ def valid_scalar_polynomial(coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray, 
 
 
 def fade_detail(values: np.ndarray, rho: np.ndarray, envelope: np.ndarray, fallback: np.ndarray,
-                width: float, margin: float = 0.25, box: np.ndarray | None = None) -> np.ndarray:
+                width: float, margin: float = MARGIN, box: np.ndarray | None = None) -> np.ndarray:
     """``fallback + w · (L − fallback)`` (F,P,C) of the continued values L (F,P,C), in place:
     ``w = min(1, (1 + margin) E / ‖L − fallback‖) · falloff(ρ − 1, width)`` (module
     docstring) with E the ``envelope`` (P,) or (F,P), fallback (P,C) or per frame (F,P,C),

@@ -27,8 +27,7 @@ def _float64_path(ev, markers):
     if ev.validity is None:
         C = ev.medium_offsets(d1, d2)
     else:
-        lookup = ev.validity.lookup(d1, d2)
-        C = ev.medium_offsets(d1, d2, ev.validity.gauge(d1, d2, lookup), lookup, fallback.astype(np.float32))
+        C = ev.medium_offsets(d1, d2, *ev.gauge(d1, d2), fallback.astype(np.float32))
     return pose.restore(X + np.einsum("fnji,fnj->fni", frames, C)), fallback
 
 

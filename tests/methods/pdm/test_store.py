@@ -228,6 +228,39 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
+def test_the_shell_mesh_bases_are_stored_in_its_order_and_mapped(pdm_model, pdm_data, saved):
+    """Issue 23: the compiled mesh's two thin-shell bases in its vertex order are in the cache
+    (``op_shell_mesh_*``) and a load maps them instead of permuting (n,M) twice; a cache
+    without them (this operators version, before) or with another vertex order permutes
+    the bases again; every load synthesizes the mesh bit for bit as the trained model."""
+    import dataclasses
+
+    from service.methods.footprint import file_mapped
+    from service.methods.pdm import model as pdm
+    from service.methods.pdm.store import read_model
+
+    path, _ = saved
+    data, derived = read_model(path)
+    ops = derived.operators
+    sm = pdm_model.evaluator.shell_mesh
+    np.testing.assert_array_equal(ops["shell_mesh_order"], sm.order)
+    np.testing.assert_array_equal(ops["shell_mesh_basis"], sm.basis)
+    np.testing.assert_array_equal(ops["shell_mesh_correction"], sm.correction)
+    mapped = PdmModel.load(path)
+    assert file_mapped(mapped.evaluator.shell_mesh.basis) and file_mapped(mapped.evaluator.shell_mesh.correction)
+    without = {k: v for k, v in ops.items() if not k.startswith("shell_mesh_")}
+    other = {**ops, "shell_mesh_order": np.ascontiguousarray(ops["shell_mesh_order"][::-1])}
+    markers = pdm_data[1][4].markers[[0, 9, 15]]
+    want = pdm_model.synthesize(markers, outputs=("mesh",))["vertices"]
+    assert np.array_equal(mapped.synthesize(markers, outputs=("mesh",))["vertices"], want)
+    for operators in (without, other):
+        model = PdmModel(data, pdm.PdmEvaluator.build(data, derived=dataclasses.replace(derived, operators=operators)))
+        sm2 = model.evaluator.shell_mesh
+        assert not file_mapped(sm2.basis) and not file_mapped(sm2.correction)
+        np.testing.assert_array_equal(sm2.basis, sm.basis)
+        assert np.array_equal(model.synthesize(markers, outputs=("mesh",))["vertices"], want)
+
+
 def test_the_marker_prior_is_stored_and_an_older_directory_loads_without_it(pdm_model, pdm_data, saved, tmp_path):
     """Training learns the marker prior (issue 17) and the store round-trips it; a directory
     saved before it existed (no ``marker_prior_*`` arrays) loads with none and synthesizes
