@@ -1,8 +1,10 @@
 """Performance-flow tracking report (fyffe et al., Digital Ira course 2014, §4–7).
 
 Data: :func:`service.samples.tracking.build_tracking_sample` of each actor directory given
-(default: families a and b at level 0, ``benchmarks/out/actor-{a,b}-l0``, built if missing): the held-out performance rendered through 3 cameras (frontal
-first) with light and exposure changes and camera noise, the neutral plus ``--scans``
+(default: families a and b at level 0, ``benchmarks/out/actor-{a,b}-l0``, built if
+missing): the whole held-out in-range performance and ``--rest-frames`` of rest after it,
+rendered through 3 cameras (frontal first) with light and exposure changes and camera
+noise, the neutral plus ``--scans``
 training-clip peaks as static scans re-meshed as range scans (cached in
 ``benchmarks/out/tracking/``).
 
@@ -26,33 +28,39 @@ map alone, and two oracles (the best single scan per frame; the best scan per te
 stage timings and time per frame; flows per second (the method's flow + NCC vs OpenCV's DIS
 medium preset alone). Figures: ``error_over_time_<fam>.png``, ``graph_<fam>.png``.
 
-Measured (level 0, 120 frames, 256² images, neutral + 5 scans, 2 cores, load 4.5-6.8,
-commit 75fecc0; family a and b in separate runs; the drift columns recomputed from the saved
-curves with the head motion taken out of the amplitude, :func:`expression_amplitude`):
+Measured (level 0, 256² images, neutral + 5 scans, 2 cores, commit d7aa43d's report, load
+1.0-4.1): the whole held-out performance, which starts and ends on the neutral (a 154, b 146
+frames), plus :data:`REST_FRAMES` frames of rest, so the start and end windows (10 frames
+each) see the same expression and end/start measures drift alone:
 
-=====================  =====  =======  =====  =====  =========  =======  ===========  ===========
-method                 views  mean mm  start  end    end/start  matched  slope/100fr  texture var
-=====================  =====  =======  =====  =====  =========  =======  ===========  ===========
-a sequential           3      0.977    0.314  1.142  3.63       1.07     +0.503       0.0965
-a neutral anchors      3      0.483    0.236  0.554  2.35       1.01     +0.075       0.0966
-a flow graph           3      0.401    0.187  0.491  2.63       1.07     +0.107       0.0925
-a flow graph, mono     1      1.311    0.471  1.061  2.25       0.53     +0.002       0.0882
-b sequential           3      0.787    0.322  0.799  2.48       1.38     +0.387       0.0826
-b neutral anchors      3      1.000    0.324  0.419  1.29       0.91     +0.243       0.0938
-b flow graph           3      0.642    0.283  0.400  1.41       1.19     +0.215       0.0855
-b flow graph, mono     1      2.484    4.103  1.461  0.36       1.01     −1.316       0.0848
-=====================  =====  =======  =====  =====  =========  =======  ===========  ===========
+=====================  =====  =======  =====  =====  =========  ===========  ===========
+method                 views  mean mm  start  end    end/start  slope/100fr  texture var
+=====================  =====  =======  =====  =====  =========  ===========  ===========
+a sequential           3      1.024    0.316  0.941  2.97       +0.313       0.0927
+a neutral anchors      3      0.544    0.241  0.229  0.95       +0.069       0.0945
+a flow graph           3      0.444    0.194  0.191  0.98       +0.056       0.0881
+a flow graph, mono     1      1.461    0.533  1.291  2.42       +0.279       0.0824
+b sequential           3      0.803    0.303  0.740  2.44       +0.318       0.0803
+b neutral anchors      3      0.676    0.313  0.217  0.70       +0.072       0.0832
+b flow graph           3      0.613    0.298  0.313  1.05       +0.127       0.0840
+b flow graph, mono     1      2.305    4.262  0.860  0.20       −0.600       0.0828
+=====================  =====  =======  =====  =====  =========  ===========  ===========
 
-(no tracking: a 4.43, b 7.16 mm, b's head moving up to ~7 mm; ground-truth texture variance
-a 0.0963, b 0.1006: the metric follows the light swing and does not separate the methods.)
-The full graph has the lowest mean error on both families. Its end/start ratio is above
-1.5 on a because the performance ends on a strong expression (expression amplitude 1.71 mm
-over the last ten frames against 0.45 over the first); with the expression held fixed the
-error grows 0.11 (a) and 0.22 (b) mm per 100 frames, against 0.50 and 0.39 for sequential
-propagation. Family b's monocular error is the head's depth along the view axis (camera at
-622 mm, f = 579 px at 256²): on the first 30 frames the error is 0.6-5.3 mm, of which
-0.34-0.86 mm is left once each frame is rigidly aligned to the truth (mean offset along
-the optical axis up to 5.3 mm).
+(no tracking: a 4.94, b 7.01 mm; ground-truth texture variance a 0.1017, b 0.0959: the metric
+follows the light swing and does not separate the methods.) The full graph has the lowest
+mean error on both families and no drift (back at its start error once the face is at rest
+again), where sequential propagation ends 2.4-3× its start. Monocular: family b's error is
+the head's depth along the view axis (camera at 622 mm, f = 579 px at 256²; on the first 30
+frames 0.6-5.3 mm, of which 0.34-0.86 mm is left once each frame is rigidly aligned to the
+truth).
+
+Until session 15 the report tracked the first 120 frames (commit 75fecc0, load 4.5-6.8):
+a flow graph 0.401 mean, 0.187 start, 0.491 end, ratio 2.63; b 0.642 / 0.283 / 0.400 / 1.41;
+sequential a 3.63, b 2.48. Family a's cut ended on a strong expression (amplitude 1.71 mm
+over the last ten frames against 0.45 over the first), so its end/start measured the
+expression, not drift: against the early frames of like amplitude the end was 1.07× (a)
+and 1.19× (b), and taking all eight training peaks as scans instead of five left it at 2.54
+(d7aa43d's parent, load 1.0-4.0). The whole take with a rest compares like with like.
 
 Monocular depth (session 14; 256², 1 view, mean face error mm; 3-view error in brackets,
 unchanged by it: a 0.387 / 0.404, b 0.481 / 0.628 at 40 / 120 frames): the opt-in
@@ -103,7 +111,7 @@ tangentially), but holding every static pose at its ground truth only moves the 
 from 0.504 to 0.468 mm (mean 0.404 → 0.380, ratio 2.63 → 2.25): the registration is a
 small part; the performance's end expression, outside the scans, is the rest.
 
-Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames 120]
+Run: ``python benchmarks/tracking_report.py [ACTOR_DIR ...] [--size 256] [--frames N] [--rest-frames 10]
 [--scans 5] [--no-monocular] [--speed-size 512 --speed-frames 30] [--speed-only] [--out DIR]``.
 Writes ``benchmarks/out/tracking/report.md`` (or ``DIR/report.md``; and stdout).
 """
