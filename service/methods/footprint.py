@@ -10,7 +10,10 @@ their pages come in as they are read, are shared by every process that maps the 
 file, and the kernel drops them again under memory pressure. A kind that reads all of
 them on every frame (the PDM's coefficient maps) counts them; one that reads a few
 frames of a large mapped database per request (shape space: the K active frames of N,
-bermano2014 §5.4) does not (``Kind.weighs_mapped``).
+bermano2014 §5.4) does not (``Kind.weighs_mapped``). A mapped array that no frame reads at
+all (the PDM's thin-shell bases in vertex order, which training and the NumPy reference
+paths use while synthesis reads their reordered copies) costs no resident memory: its
+dataclass field says so with ``metadata=UNREAD`` and it is not counted while mapped.
 """
 
 from __future__ import annotations
@@ -26,6 +29,9 @@ from service.geometry.sparse_solve import Factor
 
 #: bytes per stored entry of a SuperLU factor (float64 value + int32 row index)
 FACTOR_ENTRY_BYTES = 12
+#: dataclass field metadata of an array no synthesized frame reads: not counted while it
+#: lies over a file mapping (its pages are never touched), counted as usual otherwise
+UNREAD = {"footprint": "unread"}
 #: nesting depth followed into attributes, containers and their items (a served PDM: the
 #: stream's unit check → model → evaluator → validity → texel operators → CSR → arrays)
 MAX_DEPTH = 8
@@ -39,6 +45,16 @@ def file_mapped(array: np.ndarray) -> bool:
     if isinstance(base, memoryview):
         base = base.obj
     return isinstance(base, mmap.mmap)
+
+
+def _counted(holder: Any, field: dataclasses.Field) -> Any:
+    """The value of ``holder``'s dataclass ``field`` as :func:`nbytes` weighs it: None for
+    a file-mapped array its field marks :data:`UNREAD`."""
+    value = getattr(holder, field.name, None)
+    if field.metadata.get("footprint") == UNREAD["footprint"] and isinstance(value, np.ndarray) \
+            and file_mapped(value):
+        return None
+    return value
 
 
 def nbytes(obj: Any, mapped: bool = True) -> int:
@@ -74,8 +90,7 @@ def nbytes(obj: Any, mapped: bool = True) -> int:
         if isinstance(x, (list, tuple, set, frozenset)):
             return sum(walk(v, depth + 1) for v in x)
         if dataclasses.is_dataclass(x) and not isinstance(x, type):
-            names = [f.name for f in dataclasses.fields(x)]
-            return sum(walk(getattr(x, name, None), depth + 1) for name in names)
+            return sum(walk(_counted(x, f), depth + 1) for f in dataclasses.fields(x))
         attrs = getattr(x, "__dict__", None)
         if attrs is not None:
             return sum(walk(v, depth + 1) for v in attrs.values())

@@ -1,6 +1,6 @@
 """A full and a read-only data disk under a running deployment (issue 16, defects 2 and 4).
 
-The data directory (the blob store) is a 96 MiB tmpfs the test mounts (and unmounts;
+The data directory (the blob store) is a 160 MiB tmpfs the test mounts (and unmounts;
 skipped with the reason where mounting is impossible); PostgreSQL and Redis are the
 machine's. With the disk full, uploads answer 507 and read-only 503 (problem+json, no
 server paths), ``/readyz`` says the blob store is not ready, a synthesis job whose result
@@ -27,7 +27,7 @@ from tests.servers import postgres_server, redis_server  # noqa: F401
 
 pytestmark = pytest.mark.e2e
 
-SIZE = 96 << 20
+SIZE = 160 << 20     # the trained level-0 PDM (its cache holds the shell bases in both vertex orders), clips, slack
 
 
 @pytest.fixture(scope="module")

@@ -101,6 +101,25 @@ def test_arrays_over_a_file_mapping_count_only_when_asked(tmp_path):
     assert nbytes(held, mapped=False) == 80
 
 
+def test_a_mapped_array_no_frame_reads_is_not_counted(tmp_path):
+    import dataclasses
+
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_mapped
+    from service.methods.footprint import UNREAD
+
+    @dataclasses.dataclass
+    class Holder:
+        read: np.ndarray
+        unread: np.ndarray = dataclasses.field(metadata=UNREAD)
+
+    write_npz(tmp_path / "a.npz", {"a": np.ones((100, 10), np.float32), "b": np.ones(50)})
+    files = npz_mapped(tmp_path / "a.npz")
+    assert nbytes(Holder(files["b"], files["a"])) == 400                  # mapped: never paged in
+    assert nbytes(Holder(files["b"], np.ones((100, 10), np.float32))) == 400 + 4000   # held: counts
+    assert nbytes(Holder(files["a"], files["a"])) == 4000                 # read elsewhere: counts
+
+
 def test_the_pdm_estimate_is_within_ten_percent_of_its_resident_cost(pdm_model, tmp_path):
     """The model cache weighs a loaded model by ``nbytes`` (issue 23: it counted 143–202 MB
     for ~305 MB resident). Measured in a fresh process as the resident growth of a load,

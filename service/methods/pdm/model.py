@@ -68,6 +68,7 @@ from service.geometry.uv_raster import (
 )
 from service.io.npz import sparse_matrix, sparse_members
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
+from service.methods.footprint import UNREAD
 from service.methods.pdm import polynomial, store
 from service.methods.pdm.base_surface import (
     BaseSurface, HeadPose, TooFewMarkers, handle_vertices, head_alignment, training_head_pose,
@@ -230,7 +231,7 @@ class PdmEvaluator:
     fine_sampler: sp.csr_matrix
     normal_mapper: NormalMapper
     validity: Validity | None
-    shell_correction: np.ndarray
+    shell_correction: np.ndarray = dataclasses.field(metadata=UNREAD)   # synthesis reads shell_mesh's copy
     shell_offset: np.ndarray
     uv_vertex: np.ndarray
     shell_mesh: "ShellMesh | None" = dataclasses.field(default=None, repr=False)
