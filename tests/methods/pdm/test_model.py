@@ -8,6 +8,7 @@ from service.methods.inputs import Clip, InvalidInput, check_clips
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pdm.model import PdmParams
 from service.samples import dataset
+from tests.methods.pdm.beyond import beyond
 
 
 def _face_error(V, truth, actor):
@@ -136,10 +137,7 @@ def test_check_clips_names_what_is_wrong(pdm_data):
 
 def test_mesh_only_skips_the_fine_band_and_reports_the_mesh_clamp(pdm_model, pdm_data, monkeypatch):
     _, clips = pdm_data
-    rest = pdm_model.evaluator.base.rest_markers
-    peak = clips[3].markers[[10]]
-    pose = pdm_model.evaluator.deformation(peak)[0]
-    far = pose.restore(rest + 2.5 * (pose.remove(peak) - rest))
+    far = beyond(pdm_model.evaluator, clips[3].markers[[10]], 2.5)
     full = pdm_model.synthesize(far, outputs=("mesh", "displacement"))
     calls = []
     monkeypatch.setattr(type(pdm_model.evaluator.fine), "synthesize",

@@ -16,6 +16,7 @@ import pytest
 from service.methods.confidence import falloff
 from service.methods.pdm.polynomial import TERM_POWERS
 from service.methods.pdm.validity import valid_polynomial, valid_values
+from tests.methods.pdm.beyond import beyond
 
 #: |new − old| at ρ > 1, relative to the largest |old| detail of the band's frame (measured
 #: 4.5e-6 on the albedo, ≤ 2e-6 on the vertex and fine bands of this model; float32
@@ -46,11 +47,8 @@ def frames(pdm_model, pdm_data):
     """S of frames inside (two training peaks), beyond (2.5× and 6× the peaks' motion)."""
     _, clips = pdm_data
     ev = pdm_model.evaluator
-    rest = ev.base.rest_markers
     peak = clips[3].markers[[10, 12]]
-    pose = ev.deformation(peak)[0]
-    far = [pose.restore(rest + s * (pose.remove(peak) - rest)) for s in (2.5, 6.0)]
-    return ev.deformation(np.concatenate([peak, *far]))[2]
+    return ev.deformation(np.concatenate([peak, *(beyond(ev, peak, s) for s in (2.5, 6.0))]))[2]
 
 
 @pytest.mark.parametrize("name", ["vertex", "fine", "albedo"])

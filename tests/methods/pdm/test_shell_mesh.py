@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.methods.pdm.beyond import beyond
 
 #: |fallback − float64| at the UV points relative to the largest |fallback| (measured 3.5e-5 –
 #: 4.6e-5 on this model's frames, where the NumPy float32 path it replaced (BLAS products,
@@ -35,11 +36,8 @@ def _float64_path(ev, markers):
 def frames(pdm_model, pdm_data):
     """World markers of two training peaks and of the same motion 2.5× beyond them."""
     _, clips = pdm_data
-    ev = pdm_model.evaluator
-    rest = ev.base.rest_markers
     peak = clips[3].markers[[10, 12]]
-    pose = ev.deformation(peak)[0]
-    return np.concatenate([peak, pose.restore(rest + 2.5 * (pose.remove(peak) - rest))])
+    return np.concatenate([peak, beyond(pdm_model.evaluator, peak, 2.5)])
 
 
 def test_the_fallback_on_the_kernels_is_the_float64_one(pdm_model, frames):
