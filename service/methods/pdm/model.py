@@ -590,8 +590,8 @@ class PdmModel:
         (:meth:`PdmEvaluator.request_base`). Whatever the σ setting, each frame's confidence
         (per frame and per vertex) is the validity's times the input factor of its markers
         (:meth:`.base_surface.BaseSurface.input_confidence`, the rule of
-        :mod:`service.methods.confidence`: its own noise estimate's Wiener fraction and the
-        occlusion term); the fade stays the validity's.
+        :mod:`service.methods.confidence`: the Wiener fraction at its own noise estimate,
+        which occlusion enters through); the fade stays the validity's.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
