@@ -28,10 +28,8 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
-from pydantic import Field
 
 from service.geometry import optical_flow as of
 from service.geometry.uv_raster import uv_to_texel
