@@ -26,8 +26,13 @@ average (``os.getloadavg()``) is recorded beside each row: the machine is shared
 ratios within one run compare. ``--profile`` adds a cProfile breakdown of the in-process
 frame (top functions by own time) per output set.
 
+With ``--against REV`` the HTTP rows come instead from a server of commit ``REV``
+(``git archive``, as ``cold_start.py --against``) and one of this tree, started side by
+side, their requests interleaved frame by frame with the in-process frame (a, b, c, c, b,
+a, …), so that old and new compare within the same seconds on a shared machine.
+
 Run: ``python benchmarks/realtime.py [--actor DIR] [--calls 100] [--paths inproc,http,grpc]
-[--profile]`` (``make bench``). The model is trained once into
+[--profile] [--against REV]`` (``make bench``). The model is trained once into
 ``benchmarks/out/realtime/model-<actor>`` (a fresh process, minutes at level 1) and
 reused; the server's data directory is ``benchmarks/out/realtime/work-<actor>``. Writes the
 table to stdout and ``benchmarks/out/realtime.md``.
@@ -106,8 +111,9 @@ def profile(model, markers: np.ndarray, outputs, calls: int, top: int = 14) -> s
 
 
 # ---------------------------------------------------------------------- server
-def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str]:
-    """A ``facesynth serve`` on free ports (no job workers); its HTTP base URL and gRPC address."""
+def start_server(work: Path, http_impl: str, repo: Path = ROOT) -> tuple[subprocess.Popen, str, str]:
+    """A ``facesynth serve`` of the source tree ``repo`` on free ports (no job workers); its
+    HTTP base URL and gRPC address."""
     port, grpc_port = harness.free_port(), harness.free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
@@ -116,9 +122,9 @@ def start_server(work: Path, http_impl: str) -> tuple[subprocess.Popen, str, str
                 # h11 on the plain asyncio loop (uvicorn without extras); httptools on uvloop
                 "FACESYNTH_LOOP": "asyncio" if http_impl == "h11" else "uvloop",
                 # the in-process reference's BLAS threads (BLAS_THREADS: serve's sizing)
-                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS)})
+                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS), "PYTHONPATH": str(repo)})
     log = open(work / "server.log", "ab")
-    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
+    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=repo, env=env,
                               stdout=log, stderr=log, stdin=subprocess.DEVNULL)
     import httpx
 
@@ -143,25 +149,91 @@ def stop_server(server: subprocess.Popen) -> None:
         server.kill()
 
 
+def http_call(client, model_id: str, markers: np.ndarray, outputs, params: dict, size: list):
+    """``call(k)``: one one-frame synthesis of ``markers[k]`` through the httpx ``client``,
+    the response decoded with ``np.load`` (every array read); its body bytes into ``size``."""
+    from service.io.npz import npz_bytes
+
+    bodies = [npz_bytes(markers=m[None]) for m in markers]
+
+    def call(k: int) -> None:
+        r = client.post(f"/v1/models/{model_id}/synthesize", content=bodies[k % len(bodies)],
+                        headers=NPZ, params={"outputs": ",".join(outputs), **params})
+        r.raise_for_status()
+        with np.load(io.BytesIO(r.content)) as d:
+            for key in d.files:
+                d[key]
+        size[0] = len(r.content)
+    return call
+
+
 def http_ms(base: str, model_id: str, markers: np.ndarray, outputs, calls: int,
             params: dict) -> tuple[float, int]:
     """Median round trip (ms) of one-frame syntheses, the response decoded; body bytes."""
     import httpx
 
-    from service.io.npz import npz_bytes
-
-    bodies = [npz_bytes(markers=m[None]) for m in markers]
     size = [0]
     with httpx.Client(base_url=base, timeout=300) as client:
-        def call(k: int) -> None:
-            r = client.post(f"/v1/models/{model_id}/synthesize", content=bodies[k % len(bodies)],
-                            headers=NPZ, params={"outputs": ",".join(outputs), **params})
-            r.raise_for_status()
-            with np.load(io.BytesIO(r.content)) as d:
-                for key in d.files:
-                    d[key]
-            size[0] = len(r.content)
-        return median_ms(call, calls), size[0]
+        return median_ms(http_call(client, model_id, markers, outputs, params, size), calls), size[0]
+
+
+def interleaved_ms(calls_by_path: dict, calls: int) -> dict[str, float]:
+    """Median wall time (ms) of each path's ``call(k)``, the paths taking turns frame by frame
+    (in order, then reversed: a, b, c, c, b, a, …) after ``WARMUP`` calls each: on a shared
+    machine only such interleaved timings compare."""
+    names = list(calls_by_path)
+    for k in range(WARMUP):
+        for name in names:
+            calls_by_path[name](k)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for k in range(calls):
+        for name in names if k % 2 == 0 else names[::-1]:
+            t0 = time.perf_counter()
+            calls_by_path[name](k)
+            times[name].append(time.perf_counter() - t0)
+    return {name: 1e3 * float(np.median(t)) for name, t in times.items()}
+
+
+def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
+                 markers: np.ndarray, calls: int) -> list[dict]:
+    """HTTP of commit ``rev``'s server against this tree's, interleaved frame by frame with
+    the in-process frame (:func:`interleaved_ms`), per parser, output set and variant."""
+    import httpx
+
+    from cold_start import source_tree
+
+    old_tree = source_tree(rev)
+    rows = []
+    variants = [("float32, with faces", {}), ("half maps, topology=false",
+                                              {"half": "true", "topology": "false"})]
+    for impl in http_impls():
+        servers = {}
+        try:
+            for label, repo in ((rev, old_tree), ("this tree", ROOT)):
+                servers[label] = start_server(work, impl, repo)
+            model_id = harness.register_model(servers["this tree"][1], work, actor_dir, model_dir)
+            clients = {label: httpx.Client(base_url=base, timeout=300)
+                       for label, (_, base, _) in servers.items()}
+            for name, outputs in OUTPUT_SETS.items():
+                for variant, params in variants:
+                    sizes = {label: [0] for label in clients}
+                    paths = {"in-process": lambda k, o=outputs: model.synthesize(
+                        markers[k % len(markers)][None], o)}
+                    for label, client in clients.items():
+                        paths[label] = http_call(client, model_id, markers, outputs, params,
+                                                 sizes[label])
+                    ms = interleaved_ms(paths, calls)
+                    for label in clients:
+                        rows.append({"outputs": name, "path": f"HTTP {impl}, {variant}, {label}",
+                                     "ms": ms[label], "ref": ms["in-process"],
+                                     "bytes": sizes[label][0], "load": harness.load_average()})
+                        print(rows[-1], file=sys.stderr, flush=True)
+            for client in clients.values():
+                client.close()
+        finally:
+            for server, _, _ in servers.values():
+                stop_server(server)
+    return rows
 
 
 def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int,
@@ -217,6 +289,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=100, help="calls per median (default 100)")
     parser.add_argument("--paths", default="inproc,http,grpc")
     parser.add_argument("--profile", action="store_true", help="add a cProfile breakdown")
+    parser.add_argument("--against", metavar="REV", default=None,
+                        help="HTTP only: a server of commit REV and one of this tree, their "
+                             "frames interleaved with the in-process one (cold_start.py's "
+                             "unpacked tree; REV must read the same database schema)")
     args = parser.parse_args(argv)
     actor_dir = args.actor
     if actor_dir is None:
@@ -243,6 +319,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.profile:
             profiles[name] = profile(model, markers, outputs, min(args.calls, 30))
 
+    if args.against:
+        work = WORK / f"work-{actor_dir.name}"
+        work.mkdir(parents=True, exist_ok=True)
+        rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
+        paths -= {"http", "grpc"}
     if paths & {"http", "grpc"}:
         work = WORK / f"work-{actor_dir.name}"
         work.mkdir(parents=True, exist_ok=True)

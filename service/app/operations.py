@@ -286,7 +286,7 @@ class Synthesized:
     (None: the model reports none)."""
 
     media_type: str
-    body: bytes
+    body: bytes | memoryview
     frames: int
     confidence: str | None = None
 

@@ -34,7 +34,7 @@ from service.app.uploads import ArraySpec, NpzUpload, npz_limit
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.io.npz import npz_bytes
-from service.methods.correspondence import CorrespondenceParams
+from service.methods.correspondence.params import CorrespondenceParams
 
 #: the job kind of a correspondence (the task of :mod:`service.jobs.tasks.correspond`)
 CORRESPOND_JOB = "correspond"

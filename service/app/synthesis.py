@@ -36,8 +36,7 @@ from service.geometry.uv_raster import resample_map
 from service.io.exr import write_map
 from service.io.markers import read_markers_json
 from service.io.mesh import Mesh, write_obj
-from service.io.half import to_float16
-from service.io.npz import npz_bytes
+from service.io.npz import npz_body, npz_bytes
 from service.methods.inputs import InvalidInput
 
 NPZ = "application/x-npz"
@@ -362,30 +361,32 @@ HALF_RELATIVE_ERROR = 2.0 ** -11
 HALF_ABSOLUTE_ERROR = 2.0 ** -25
 
 
-def npz_arrays(result: dict[str, np.ndarray], *, half: bool = False,
-               topology: bool = True) -> dict[str, np.ndarray]:
-    """The arrays of an NPZ synthesis response: ``half`` stores the UV-space maps
-    (:data:`~service.methods.outputs.MAP_OUTPUTS` of ndim >= 3) as float16 (meshes stay
-    float32: a half-precision position of a 100 mm face would be off by up to 0.03 mm), and
-    ``topology=False`` leaves out :data:`TOPOLOGY_KEYS` (the client has them from the
-    topology resource). With neither, ``result`` itself (bit-exact float32)."""
-    out = {k: v for k, v in result.items() if topology or k not in TOPOLOGY_KEYS}
-    if half:
-        # beyond the half range is +-inf, as in EXR (bit for bit NumPy's astype, float32
-        # maps ~1.6x faster: service/io/half.py)
-        for name in MAP_OUTPUTS:
-            if name in out and np.ndim(out[name]) >= 3:
-                out[name] = to_float16(out[name])
-    return out
+def npz_arrays(result: dict[str, np.ndarray], *, topology: bool = True) -> dict[str, np.ndarray]:
+    """The arrays of an NPZ synthesis response: ``topology=False`` leaves out
+    :data:`TOPOLOGY_KEYS` (the client has them from the topology resource); ``half=true``
+    then stores :func:`half_maps` of them as float16 (:func:`encode`)."""
+    return {k: v for k, v in result.items() if topology or k not in TOPOLOGY_KEYS}
+
+
+def half_maps(arrays: dict[str, np.ndarray]) -> list[str]:
+    """The names in ``arrays`` that ``half=true`` stores as float16: the UV-space maps
+    (:data:`~service.methods.outputs.MAP_OUTPUTS` of ndim >= 3; meshes stay float32: a
+    half-precision position of a 100 mm face would be off by up to 0.03 mm). Beyond the half
+    range is ±inf, as in EXR; NumPy's rounding bit for bit (:func:`service.io.half.to_float16`)."""
+    return [name for name in MAP_OUTPUTS if name in arrays and np.ndim(arrays[name]) >= 3]
 
 
 def encode(media: str, result: dict[str, np.ndarray], loaded: LoadedModel,
-           request: SynthesisInput, half: bool = False, topology: bool = True) -> bytes:
+           request: SynthesisInput, half: bool = False, topology: bool = True
+           ) -> bytes | memoryview:
     """The response body: NPZ of the arrays (:func:`npz_arrays`: ``half`` maps as float16,
-    ``topology=False`` without the triangles), the frame's OBJ (detailed vertices if asked,
-    with the model's UVs), or the one map as EXR (``half``: 16-bit floats)."""
+    ``topology=False`` without the triangles; written by :func:`service.io.npz.npz_body`,
+    each array copied or converted once, into its place in the body), the frame's OBJ
+    (detailed vertices if asked, with the model's UVs), or the one map as EXR (``half``:
+    16-bit floats)."""
     if media == NPZ:
-        return npz_bytes(**npz_arrays(result, half=half, topology=topology))
+        arrays = npz_arrays(result, topology=topology)
+        return npz_body(arrays, {name: np.float16 for name in half_maps(arrays)} if half else None)
     if media == OBJ:
         key = "vertices_detailed" if "mesh_detailed" in request.outputs else "vertices"
         model = loaded.model

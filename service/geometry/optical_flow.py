@@ -170,7 +170,7 @@ def refined_flow(reference: np.ndarray, moving: np.ndarray, passes: int = 2,
     composes: ``f ← f∘(id + r) + r``, i.e. ``f_new(x) = r(x) + f(x + r(x))``. The composed
     field can be polished by :func:`variational_refinement` (off by default). Measured on
     the level-1 sample actor's scans at 1024² after the pre-warp
-    (:class:`~service.methods.correspondence.correspond.CorrespondenceParams` lists the
+    (:class:`~service.methods.correspondence.params.CorrespondenceParams` lists the
     sweep): finest scale 0 instead of the preset's 1 is what makes it sub-texel, the second
     pass lowers the 95th percentile by ~10 %, the variational refinement (α = 10) raised the
     median by ~30 %.

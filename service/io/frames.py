@@ -18,7 +18,6 @@ import zipfile
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-import cv2
 import numpy as np
 
 from service.io.errors import FormatError, SizeLimitError
@@ -85,6 +84,8 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
     width, height = int.from_bytes(raw[16:20].tobytes(), "big"), int.from_bytes(raw[20:24].tobytes(), "big")
     if width * height > MAX_PIXELS:
         raise SizeLimitError(f"pixels ({name}: {width}×{height})", width * height, MAX_PIXELS)
+    import cv2   # here, not at import: the API imports this module (issue 23's cold start)
+
     image = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise FormatError(f"{name}: the PNG could not be decoded (damaged?)")
@@ -151,6 +152,8 @@ def decode_sequence(files: list[tuple[str, bytes]], what: str) -> np.ndarray:
 def read_video(path: str | os.PathLike, what: str, max_frames: int = MAX_FRAMES) -> np.ndarray:
     """Every frame of a video file, decoded with OpenCV's ``cv2.VideoCapture`` → (T,H,W)
     uint8 luminance. FormatError if OpenCV cannot open it or it has no frames."""
+    import cv2   # here, not at import: the API imports this module (issue 23's cold start)
+
     capture = cv2.VideoCapture(str(Path(path)))
     try:
         if not capture.isOpened():

@@ -4,7 +4,11 @@ A :class:`Kind` bundles a method's name, its OpenAPI text, its parameters (the m
 pydantic model: bounds, defaults, ``extra="forbid"`` so a misspelt parameter is a 422), what
 it takes as input, what it outputs, and its ``train``/``load`` functions. Routers and job
 tasks look a kind up here and never import a method module themselves, so a new method is
-one entry in :data:`KINDS` (docs/architecture.md, "Adding a model kind").
+one entry in :data:`KINDS` (docs/architecture.md, "Adding a model kind"). The registry
+imports only each method's light modules (its ``params`` and ``outputs``); ``train`` and
+``load`` are :class:`~service.methods.lazy.LazyFunction` s named ``"module:attr"``, whose
+model module is imported at their first call: a server imports the model modules of the
+kinds it loads and no others (issue 23's cold start).
 
 Examples
 --------
@@ -25,17 +29,14 @@ from pydantic import BaseModel
 
 from service.errors import InvalidInput
 from service.methods.inputs import ActorData, Clip, Progress
+from service.methods.lazy import LazyFunction
 from service.methods.outputs import OUTPUTS
-from service.methods.pdm.model import PdmModel, train as pdm_train
 from service.methods.pdm.params import PdmParams
-from service.methods.pose_space.model import OUTPUTS as POSE_SPACE_OUTPUTS
-from service.methods.pose_space.model import PoseSpaceModel, train as pose_space_train
+from service.methods.pose_space.outputs import OUTPUTS as POSE_SPACE_OUTPUTS
 from service.methods.pose_space.params import PsdParams, WpsdParams
-from service.methods.shape_space.model import OUTPUTS as SHAPE_SPACE_OUTPUTS
-from service.methods.shape_space.model import ShapeSpaceModel, train as shape_space_train
+from service.methods.shape_space.outputs import OUTPUTS as SHAPE_SPACE_OUTPUTS
 from service.methods.shape_space.params import ShapeSpaceParams
-from service.methods.stress_blend.model import OUTPUTS as STRESS_BLEND_OUTPUTS
-from service.methods.stress_blend.model import StressBlendModel, train as stress_blend_train
+from service.methods.stress_blend.outputs import OUTPUTS as STRESS_BLEND_OUTPUTS
 from service.methods.stress_blend.params import StressBlendParams
 
 
@@ -63,8 +64,10 @@ class Kind:
     input : str           ``"markers"`` (``/synthesize``) or ``"meshes"`` (``/enhance``)
     outputs : tuple       the outputs of :data:`~service.methods.outputs.OUTPUTS` it produces
     train : callable      ``(ActorData, list[Clip], params, progress) -> model`` with
-                          ``.save(dir)`` and ``.metrics``
+                          ``.save(dir)`` and ``.metrics`` (a :class:`LazyFunction`: the
+                          method's model module is imported at the first call)
     load : callable       ``(Path) -> model`` with ``.synthesize(frames, outputs, clamp)``
+                          (a :class:`LazyFunction` too)
     weighs_mapped : bool  whether the model cache counts the loaded model's memory-mapped
                           arrays (:func:`~service.methods.footprint.nbytes`): true for a
                           kind that reads all of them per frame
@@ -110,8 +113,8 @@ PDM_KIND = Kind(
     params=PdmParams,
     input="markers",
     outputs=OUTPUTS,
-    train=pdm_train,
-    load=PdmModel.load,
+    train=LazyFunction("service.methods.pdm.model:train"),
+    load=LazyFunction("service.methods.pdm.model:PdmModel.load"),
 )
 
 SHAPE_SPACE_KIND = Kind(
@@ -130,8 +133,8 @@ SHAPE_SPACE_KIND = Kind(
     params=ShapeSpaceParams,
     input="meshes",
     outputs=tuple(o for o in SHAPE_SPACE_OUTPUTS if o in OUTPUTS),
-    train=shape_space_train,
-    load=ShapeSpaceModel.load,
+    train=LazyFunction("service.methods.shape_space.model:train"),
+    load=LazyFunction("service.methods.shape_space.model:ShapeSpaceModel.load"),
     # the database (detail, colours, maps, marker corrections) is mapped and a request reads
     # only its active frames: a level-1 model's 4.4 GB would overflow the cache's budget and
     # reload on every request if it counted
@@ -145,6 +148,10 @@ _BICKEL2008 = ("(Bickel, Lang, Botsch, Otaduy, Gross: 'Pose-space animation and 
                "training maps the detail below the mesh is learned per texel the same way. "
                "Output: meshes, displacement and normal maps, a per-frame confidence.")
 
+#: both pose-space kinds train and load with the one pose-space model
+POSE_SPACE_TRAIN = LazyFunction("service.methods.pose_space.model:train")
+POSE_SPACE_LOAD = LazyFunction("service.methods.pose_space.model:PoseSpaceModel.load")
+
 PSD_KIND = Kind(
     name="psd",
     title="Pose-space deformation of facial details (Bickel et al. 2008, §5.2)",
@@ -153,8 +160,8 @@ PSD_KIND = Kind(
     params=PsdParams,
     input="markers",
     outputs=POSE_SPACE_OUTPUTS,
-    train=pose_space_train,
-    load=PoseSpaceModel.load,
+    train=POSE_SPACE_TRAIN,
+    load=POSE_SPACE_LOAD,
 )
 
 WPSD_KIND = Kind(
@@ -165,8 +172,8 @@ WPSD_KIND = Kind(
     params=WpsdParams,
     input="markers",
     outputs=POSE_SPACE_OUTPUTS,
-    train=pose_space_train,
-    load=PoseSpaceModel.load,
+    train=POSE_SPACE_TRAIN,
+    load=POSE_SPACE_LOAD,
 )
 
 STRESS_BLEND_KIND = Kind(
@@ -183,8 +190,8 @@ STRESS_BLEND_KIND = Kind(
     params=StressBlendParams,
     input="meshes",
     outputs=tuple(o for o in STRESS_BLEND_OUTPUTS if o in OUTPUTS),
-    train=stress_blend_train,
-    load=StressBlendModel.load,
+    train=LazyFunction("service.methods.stress_blend.model:train"),
+    load=LazyFunction("service.methods.stress_blend.model:StressBlendModel.load"),
 )
 
 #: every model kind the service knows, by name

@@ -1,9 +1,12 @@
-"""service.io.half.to_float16 against NumPy's astype(float16), bit for bit."""
+"""service.io.half.to_float16 (compiled) and to_float16_blocks (NumPy) against NumPy's
+astype(float16), bit for bit."""
 
 import numpy as np
 import pytest
 
-from service.io.half import to_float16
+from service.io.half import to_float16, to_float16_blocks
+
+BOTH = pytest.mark.parametrize("convert", [to_float16, to_float16_blocks])
 
 
 def _bits(values: np.ndarray) -> np.ndarray:
@@ -15,7 +18,8 @@ def _numpy(values: np.ndarray) -> np.ndarray:
         return values.astype(np.float16)
 
 
-def test_every_exponent_and_rounding_case_matches_numpy():
+@BOTH
+def test_every_exponent_and_rounding_case_matches_numpy(convert):
     # the top 16 bits (sign, exponent, 7 mantissa bits) all 65536 ways, the low 16 bits
     # every combination of the kept bits 13-15 (odd/even) with the rounding bit 12 and the
     # sticky bits 0-11 (none, lowest, highest, all): every tie and near-tie of every binade
@@ -24,7 +28,7 @@ def test_every_exponent_and_rounding_case_matches_numpy():
                           for kept in (0, 0x2000, 0x4000, 0x6000, 0x8000, 0xE000)
                           for sticky in (0, 1, 0x800, 0xFFF)}), np.uint32)
     x = (hi[:, None] | lo[None, :]).reshape(-1).view(np.float32)
-    got, want = to_float16(x), _numpy(x)
+    got, want = convert(x), _numpy(x)
     assert got.dtype == np.float16 and got.shape == x.shape
     mismatch = np.flatnonzero(_bits(got) != _bits(want))
     assert mismatch.size == 0, [hex(b) for b in x.view(np.uint32)[mismatch[:5]]]
@@ -33,7 +37,7 @@ def test_every_exponent_and_rounding_case_matches_numpy():
     assert ((got != 0) & (np.abs(got) < 2.0 ** -14)).sum() > 1000
 
 
-@pytest.mark.parametrize("block", [1, 7, 1 << 16])
+@pytest.mark.parametrize("block", [1, 7, 1 << 16, None])
 def test_map_like_values_any_block_and_shape(block):
     rng = np.random.default_rng(3)
     maps = rng.standard_normal((2, 64, 48, 3)).astype(np.float32)
@@ -41,23 +45,38 @@ def test_map_like_values_any_block_and_shape(block):
     maps[:, 10:20] *= 1e-6                               # float16 subnormals
     maps[0, 0, 0] = [np.nan, np.inf, -70000.0]
     maps[1, 0, 0] = [65519.0, 65520.0, -0.0]             # just below / at the overflow
-    got = to_float16(maps[:, :, ::-1], block=block)      # a non-contiguous view
+    view = maps[:, :, ::-1]                              # a non-contiguous view
+    got = to_float16(view) if block is None else to_float16_blocks(view, block=block)
     want = _numpy(maps[:, :, ::-1])
     assert got.shape == want.shape and got.flags.c_contiguous
     np.testing.assert_array_equal(_bits(got), _bits(want))
     assert float(got[1, 0, -1, 0]) == 65504.0 and np.isinf(got[1, 0, -1, 1])
 
 
-def test_empty_and_scalar():
-    assert to_float16(np.zeros((0, 3), np.float32)).shape == (0, 3)
-    assert _bits(to_float16(np.float32(1.0 / 3.0)).reshape(1)).tolist() == [0x3555]
+@BOTH
+def test_empty_and_scalar(convert):
+    assert convert(np.zeros((0, 3), np.float32)).shape == (0, 3)
+    assert _bits(convert(np.float32(1.0 / 3.0)).reshape(1)).tolist() == [0x3555]
 
 
-def test_other_dtypes_round_once_as_numpy_does():
+def test_out_is_written_in_place():
+    x = np.random.default_rng(5).standard_normal((4, 5, 3)).astype(np.float32)
+    x[0, 0] = [np.inf, 7e4, np.nan]
+    buffer = np.full(x.size + 2, 0xFFFF, np.uint16)
+    got = to_float16(x[:, ::-1], out=buffer[1:-1])
+    assert np.shares_memory(got, buffer) and got.shape == (4, 5, 3)
+    np.testing.assert_array_equal(_bits(got), _bits(_numpy(x[:, ::-1])))
+    assert buffer[0] == buffer[-1] == 0xFFFF
+    with pytest.raises(ValueError, match="out holds 3 values for 60"):
+        to_float16(x, out=np.empty(3, np.float16))
+
+
+@BOTH
+def test_other_dtypes_round_once_as_numpy_does(convert):
     """float64 goes to float16 directly (NumPy's single rounding), not through float32."""
     x = np.array([1 + 2.0 ** -11 + 2.0 ** -40, -65519.9, 1e-9, np.inf, np.nan])  # ties after float32
-    got = to_float16(x)
+    got = convert(x)
     with np.errstate(over="ignore"):
         expected = x.astype(np.float16)
     assert got.view(np.uint16).tolist() == expected.view(np.uint16).tolist()
-    assert to_float16(x[:1])[0] != np.float32(x[0]).astype(np.float16)    # the double rounding avoided
+    assert convert(x[:1])[0] != np.float32(x[0]).astype(np.float16)    # the double rounding avoided

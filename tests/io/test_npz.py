@@ -1,6 +1,8 @@
-"""NPZ headers: hostile .npy headers are a ValueError the callers turn into a 422."""
+"""NPZ headers: hostile .npy headers are a ValueError the callers turn into a 422; response
+bodies written in one buffer (npz_body)."""
 
 import io
+import struct
 import zipfile
 
 import numpy as np
@@ -8,7 +10,8 @@ import pytest
 
 from service.io.errors import MeshFormatError
 from service.io.mesh_npz import read_npz
-from service.io.npz import ZIP_ERRORS, npy_header
+from models_store.atomic import MAP_ALIGNMENT
+from service.io.npz import ZIP_ERRORS, npy_header, npz_body
 
 
 def _with_vertices_header(header: bytes) -> bytes:
@@ -135,3 +138,52 @@ def test_npz_mapped_reads_the_members_asked_for_and_csr_members_round_trip(tmp_p
         np.testing.assert_array_equal(getattr(back, a), getattr(m, a))
     v = np.random.default_rng(4).normal(size=30)
     assert np.array_equal(back @ v, m @ v)
+
+
+def _body_arrays():
+    rng = np.random.default_rng(11)
+    return {"vertices": rng.standard_normal((2, 5, 3)).astype(np.float32),
+            "faces": np.arange(12, dtype=np.int32).reshape(4, 3)[:, ::-1],   # not contiguous
+            "normal_map": rng.standard_normal((2, 3, 4, 3)).astype(np.float32),
+            "empty": np.zeros((0, 3)), "scalar": np.float64(2.5), "name": np.array("ab")}
+
+
+def test_npz_body_is_what_np_load_reads_with_aligned_members():
+    arrays = _body_arrays()
+    arrays["normal_map"][0, 0, 0] = [np.inf, 7e4, np.nan]
+    body = npz_body(arrays, {"normal_map": np.float16, "faces": np.int64})
+    assert isinstance(body, memoryview) and body.format == "B"
+    archive = zipfile.ZipFile(io.BytesIO(body))
+    assert archive.testzip() is None                    # every member's CRC-32
+    with np.load(io.BytesIO(body), allow_pickle=False) as loaded:
+        assert loaded.files == list(arrays)
+        for name, values in arrays.items():
+            want = np.asarray(values)
+            if name == "normal_map":
+                with np.errstate(over="ignore", invalid="ignore"):
+                    want = want.astype(np.float16)
+            elif name == "faces":
+                want = want.astype(np.int64)
+            got = loaded[name]
+            assert got.dtype == want.dtype and got.shape == want.shape, name
+            assert got.tobytes() == want.tobytes(), name
+    raw = bytes(body)
+    for info in archive.infolist():       # the member's .npy (and so its data) 64-aligned
+        name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26:info.header_offset + 30])
+        assert (info.header_offset + 30 + name_len + extra_len) % MAP_ALIGNMENT == 0
+
+
+def test_npz_body_writes_zip64_bodies_as_write_npz(monkeypatch):
+    import service.io.npz as npz
+
+    arrays = _body_arrays()
+    monkeypatch.setattr(npz, "_ZIP32_LIMIT", 100)
+    body = npz_body(arrays, {"normal_map": np.float16})
+    with np.load(io.BytesIO(body), allow_pickle=False) as loaded:
+        assert loaded["normal_map"].dtype == np.float16
+        np.testing.assert_array_equal(loaded["vertices"], arrays["vertices"])
+
+
+def test_npz_body_refuses_object_arrays():
+    with pytest.raises(ValueError, match="Python objects"):
+        npz_body({"x": np.array([None, 1], dtype=object)})

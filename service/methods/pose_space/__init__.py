@@ -10,7 +10,10 @@ per-frame evaluation of eq. 3/5 and of the shell with its rotated corrections),
 :mod:`.store` (model directory), :mod:`.transfer` (§5.4).
 """
 
-from service.methods.pose_space.model import PoseSpaceData, PoseSpaceModel, train
-from service.methods.pose_space.params import PoseSpaceParams, PsdParams, WpsdParams
+from service.methods.lazy import lazy_exports
 
+# imported at first use (service.methods.lazy): the parameters are read without the model
+__getattr__ = lazy_exports(__name__, {"PoseSpaceData": "model", "PoseSpaceModel": "model",
+                                      "train": "model", "PoseSpaceParams": "params",
+                                      "PsdParams": "params", "WpsdParams": "params"})
 __all__ = ["PoseSpaceData", "PoseSpaceModel", "PoseSpaceParams", "PsdParams", "WpsdParams", "train"]

@@ -153,13 +153,12 @@ from service.methods.pose_space import polynomial, rbf, store
 from service.methods.pose_space.data import PoseSpaceData
 from service.methods.pose_space.corrections import corrections, large_scale_surface
 from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs
+from service.methods.pose_space.outputs import OUTPUTS
 from service.methods.pose_space.params import (
     NOISE_COPIES_SEED, VALIDATION_SEED, Params, PsdParams, WpsdParams,
 )
 from service.methods.pose_space.weighting import edge_weights, weighted_sq_distances
 
-#: outputs of :meth:`PoseSpaceModel.synthesize` (API.md; the PDM's vocabulary without albedo)
-OUTPUTS = ("mesh", "mesh_detailed", "displacement", "normal_map")
 #: frames evaluated at once
 FRAME_CHUNK = 8
 #: vertices / texels per chunk of the per-vertex fits

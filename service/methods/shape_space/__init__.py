@@ -10,8 +10,10 @@ Modules: :mod:`.params` (parameters, constants), :mod:`.alignment` (head motion)
 :mod:`.store` (model directory).
 """
 
-from service.methods.shape_space.data import ShapeSpaceData
-from service.methods.shape_space.model import ShapeSpaceEvaluator, ShapeSpaceModel, train
-from service.methods.shape_space.params import ShapeSpaceParams
+from service.methods.lazy import lazy_exports
 
+# imported at first use (service.methods.lazy): the parameters are read without the model
+__getattr__ = lazy_exports(__name__, {"ShapeSpaceData": "data", "ShapeSpaceEvaluator": "model",
+                                      "ShapeSpaceModel": "model", "train": "model",
+                                      "ShapeSpaceParams": "params"})
 __all__ = ["ShapeSpaceData", "ShapeSpaceEvaluator", "ShapeSpaceModel", "ShapeSpaceParams", "train"]

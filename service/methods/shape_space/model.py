@@ -83,6 +83,7 @@ from service.methods.shape_space.maps import DatabaseMaps, MapBlender
 from service.methods.shape_space.markers import (
     MIN_VISIBLE_MARKERS, MarkerDatabase, MarkerShell, corrected_input,
 )
+from service.methods.shape_space.outputs import OUTPUTS
 from service.methods.shape_space.params import (
     COMPONENTS, ENHANCE_BATCH_TRIANGLES, VOLUNTARY_REGIONS, WEIGHT_EPS, WHOLE_FACE,
     ShapeSpaceParams,
@@ -96,10 +97,6 @@ from service.methods.outputs import check_outputs
 from service.methods.shape_space import store
 from service.methods.shape_space.simplex_qp import solve_simplex_qp
 from service.methods.shape_space.temporal import retime as retime_sequence
-
-#: outputs of :meth:`ShapeSpaceModel.enhance`: every output of the service
-#: (:data:`service.methods.outputs.OUTPUTS`) and per-vertex ``colors``
-OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "colors")
 
 
 #: the stored fields the evaluator is derived from (a change of any other field, e.g. the

@@ -48,16 +48,11 @@ from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, chec
 from service.methods.outputs import check_outputs
 from service.methods.stress_blend import store
 from service.methods.stress_blend.data import StressBlendData
+from service.methods.stress_blend.outputs import DEFAULT_OUTPUTS, OUTPUTS
 from service.methods.stress_blend.params import StressBlendParams
 from service.methods.stress_blend.regions import RegionFit, engine_weights, region_masks
 from service.methods.stress_blend.stress import StressField
 from service.methods.stress_blend.weights import shepard_weights
-
-#: outputs of :meth:`StressBlendModel.synthesize` (``mesh`` is the input mesh, passed through;
-#: ``mesh_detailed`` the input mesh with the blended displacement baked in)
-OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map", "wrinkle_weights",
-           "blend_weights")
-DEFAULT_OUTPUTS = ("displacement", "albedo", "normal_map", "wrinkle_weights")
 
 
 @dataclass(frozen=True)
