@@ -100,6 +100,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import scipy.sparse as sp
@@ -483,6 +484,7 @@ class Validity:
     sector_points: np.ndarray | None = None
     box_points: np.ndarray | None = None
     sure: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → sure_bound, made once
+    compiled: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → TexelValidity, made once
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
@@ -532,17 +534,9 @@ class Validity:
         return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
 
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
-        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points: one sparse
-        product per frame of its (Q,) row as float64 (SciPy's single-vector kernel; the
-        (Q,F) product took the multi-vector one with the same sums in the same order,
-        3.6 → 2.6 ms for the 715k fine texels of the level-1 sample actor), rounded to float32."""
-        R = self.texel_rho[name]
-        rho = np.asarray(rho)
-        dtype = np.result_type(R.dtype, rho.dtype)                        # SciPy's upcast
-        out = np.empty((len(rho), R.shape[0]), np.float32)
-        for f, row in enumerate(rho):
-            out[f] = R @ np.asarray(row, dtype)
-        return out
+        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points
+        (:func:`texel_gauge` of its operator)."""
+        return texel_gauge(self.texel_rho[name], rho)
 
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
                  rho: np.ndarray, lookup: SectorLookup | None = None,
@@ -567,12 +561,21 @@ class Validity:
 
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
-        at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block)."""
+        at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block);
+        a one-channel band on the compiled kernels of :mod:`.texel_validity` (made once per
+        band, kept in ``compiled``)."""
         sure = self.sure.get(name) if coeffs.shape[1] == 1 else None
         if sure is None and coeffs.shape[1] == 1:
             sure = self.sure[name] = sure_bound(self.envelope[name])
-        return BandValidity(self.texels(name, rho), coeffs, self.envelope[name], self.fallback(name, coeffs),
-                            self.width, self.slope, sure)
+        compiled = self.compiled.get(name)
+        if compiled is None and coeffs.shape[1] == 1 and name != "vertex":      # fallback a_last
+            from service.methods.pdm.texel_validity import TexelValidity     # Numba: where synthesis runs
+
+            compiled = self.compiled[name] = TexelValidity.build(
+                self.texel_rho[name], np.asarray(coeffs).transpose(2, 1, 0), self.envelope[name], sure,
+                self.width, self.slope)
+        return BandValidity(np.asarray(rho), self.texel_rho[name], coeffs, self.envelope[name],
+                            self.fallback(name, coeffs), self.width, self.slope, sure, compiled)
 
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
@@ -591,23 +594,61 @@ class Validity:
         return frame_confidence(cv, self.vertex_weight).astype(np.float32), cv.astype(np.float32)
 
 
+def texel_gauge(R: sp.csr_matrix, rho: np.ndarray) -> np.ndarray:
+    """ρ (F,P) float32 of a band's points from ρ (F,Q) at the UV points through its (P,Q)
+    operator R: one sparse product per frame of its (Q,) row as float64 (SciPy's
+    single-vector kernel; the (Q,F) product took the multi-vector one with the same sums in
+    the same order, 3.6 → 2.6 ms for the 715k fine texels of the level-1 sample actor),
+    rounded to float32."""
+    rho = np.asarray(rho)
+    dtype = np.result_type(R.dtype, rho.dtype)                        # SciPy's upcast
+    out = np.empty((len(rho), R.shape[0]), np.float32)
+    for f, row in enumerate(rho):
+        out[f] = R @ np.asarray(row, dtype)
+    return out
+
+
 @dataclass(frozen=True)
 class BandValidity:
-    """The validity of one texel band for a few frames (:meth:`Validity.band`): ρ (F,P) at
-    its points and what :func:`valid_values` needs, applied to any range of points (a block
-    of :meth:`.texel_band.TexelBand.synthesize`, while its values are in the cache).
+    """The validity of one texel band for a few frames (:meth:`Validity.band`): ρ (F,Q) at
+    the UV points, the band's operator to its points and what :func:`valid_values` needs,
+    applied to any range of points (a block of :meth:`.texel_band.TexelBand.synthesize`,
+    while its values are in the cache).
 
-    rho : (F,P) float32;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
+    point_rho : (F,Q);  texel_rho : (P,Q) CSR;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
     sure : (P,) float32 or None   :func:`sure_bound` of the envelope (one-channel bands)
+    compiled : TexelValidity or None   the one-channel band on compiled kernels
+                                  (:mod:`.texel_validity`; :meth:`block` takes it)
     """
 
-    rho: np.ndarray
+    point_rho: np.ndarray
+    texel_rho: sp.csr_matrix
     coeffs: np.ndarray
     envelope: np.ndarray
     fallback: np.ndarray
     width: float
     slope: float
     sure: np.ndarray | None = None
+    compiled: object = None
+
+    @functools.cached_property
+    def rho(self) -> np.ndarray:
+        """ρ (F,P) float32 at the band's points (:func:`texel_gauge`, made on first use: the
+        compiled :meth:`block` forms it per block instead)."""
+        return texel_gauge(self.texel_rho, self.point_rho)
+
+    @functools.cached_property
+    def _point_rho64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.point_rho, np.float64)
+
+    def block(self, d1: np.ndarray, d2: np.ndarray, s: int, e: int, out: np.ndarray) -> np.ndarray:
+        """D̃ of points ``s:e`` at their d1, d2 (F,e−s) into ``out`` (F,e−s,C) float32, and the
+        points outside (ρ > 1) per frame (F,) int: :meth:`evaluate` and :meth:`outside`, on
+        the compiled kernels where there are (the same values bit for bit, tests)."""
+        if self.compiled is not None and out.shape[-1] == 1:
+            return self.compiled.evaluate(d1, d2, self._point_rho64, s, e, out[..., 0])
+        out[...] = self.evaluate(d1, d2, s, e)
+        return self.outside(s, e)
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray, s: int = 0, e: int | None = None) -> np.ndarray:
         """D̃ (F,e−s,C) of points ``s:e`` at their d1, d2 (F,e−s) (:func:`valid_polynomial`):
@@ -623,4 +664,3 @@ class BandValidity:
     def outside(self, s: int = 0, e: int | None = None) -> np.ndarray:
         """Points ``s:e`` outside their validity region (ρ > 1), counted per frame (F,) int."""
         return np.count_nonzero(self.rho[:, s:e] > 1, axis=-1)
-
