@@ -9,9 +9,8 @@ frame, one pass per term over the block's points and about ten passes over the b
 the continuation's and the fade's selections (under cProfile about 9 of a 47 ms maps
 frame). Here, per block of points (:meth:`.texel_band.TexelBand.synthesize`'s blocks):
 
-1. :func:`texel_gauge`: ρ of each texel (its UV points' ρ through the band's CSR operator,
-   in float64 as SciPy's ``csr_matvec`` sums a row, rounded to float32) and the count of
-   points outside (ρ > 1);
+1. :func:`texel_gauge`: ρ of each texel (its ≤ 3 UV points' ρ, in float64 as SciPy's
+   ``csr_matvec`` sums a row, rounded to float32) and the count of points outside (ρ > 1);
 2. :func:`polynomial_flags`: the plain polynomial, one straight-line loop per polynomial
    order that LLVM vectorizes (no branch, contiguous float32 rows), and a flag per point
    where the continuation or the fade can change its value (``valid_scalar_polynomial``'s
@@ -22,9 +21,10 @@ frame). Here, per block of points (:meth:`.texel_band.TexelBand.synthesize`'s bl
 
 The same operations in the same order as the NumPy operators (compiled without fast-math:
 nothing reassociated or contracted; NumPy's error model), so the values, their zeros' signs
-and NaNs are theirs bit for bit (tests/methods/pdm/test_texel_validity.py). The kernels
-read the band's arrays as they are (the CSR operator, the term-major coefficients): no copy.
-Numba is imported here, so this module is
+and NaNs are theirs bit for bit (tests/methods/pdm/test_texel_validity.py). Rows of the ρ
+operator with fewer than 3 entries are padded with weight 0 on an entry of the row: adding
+``+0 · ρ`` to a sum of non-negative products that starts from +0 changes nothing for finite
+ρ (ρ = |d| / h, h > 0, is finite for finite d). Numba is imported here, so this module is
 imported where an evaluator is built, never by ``facesynth serve``.
 """
 
@@ -40,21 +40,30 @@ from service.methods.pdm.point_validity import _falloff
 from service.methods.pdm.polynomial import TERM_POWERS, _order_of
 from service.methods.pdm.validity import MARGIN
 
+#: entries per row of the ρ operator (UV points → texels: a texel's triangle corners)
+CORNERS = 3
+
+
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _rho(p, point_rho, corner, weight):
+    """ρ of point p: ``0 + w0 ρ_0 + w1 ρ_1 + w2 ρ_2`` in float64 (SciPy's CSR row sum), rounded."""
+    r = np.float64(0) + weight[0, p] * point_rho[corner[0, p]]
+    r += weight[1, p] * point_rho[corner[1, p]]
+    r += weight[2, p] * point_rho[corner[2, p]]
+    return np.float32(r)
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def texel_gauge(lo, hi, point_rho, indptr, indices, data, rho):
-    """The band's points [lo, hi): ρ into ``rho`` (hi−lo,) float32, the rows of the ρ operator
-    (CSR ``indptr``, ``indices``, ``data`` float64) times the UV points' ρ (Q,) float64
-    summed from 0 in the row's order (SciPy's ``csr_matvec``) and rounded; returns how many
-    have ρ > 1. (A scalar loop: the gathers of a few float64 per point do not vectorize.)"""
+def texel_gauge(lo, hi, point_rho, corner, weight, rho):
+    """The band's points [lo, hi): ρ into ``rho`` (hi−lo,) float32, from the UV points' ρ
+    (Q,) float64 through the padded operator ``corner`` (3,P) uint32, ``weight`` (3,P)
+    float64; returns how many have ρ > 1. (A scalar loop: LLVM does not vectorize the
+    float64 gathers.)"""
     count = 0
     for q in range(uint64(hi) - uint64(lo)):
-        p = q + uint64(lo)
-        r = np.float64(0)
-        for jj in range(indptr[p], indptr[p + 1]):
-            r += data[jj] * point_rho[indices[jj]]
-        rf = np.float32(r)
-        rho[q] = rf
-        count += rf > 1
+        r = _rho(q + uint64(lo), point_rho, corner, weight)
+        rho[q] = r
+        count += r > 1
     return count
 
 
@@ -175,14 +184,16 @@ class TexelValidity:
     """The compiled validity of a one-channel texel band (module docstring), built once per
     band by :meth:`build` and applied per block by :meth:`evaluate`.
 
-    texel_rho : (P,Q) CSR float64  the ρ operator (UV points → the band's points)
+    corner : (3,P) uint32, weight : (3,P) float64   the ρ operator (UV points → the band's
+                                  points), padded to 3 entries a row
     terms : (K,1,P) float32       the band's coefficients, term-major (:attr:`.texel_band.TexelBand.terms`)
     pi, pj : (K,) uint8           the powers of d1 and d2 of each term
     envelope, sure : (P,) float32 training envelope and its :func:`.validity.sure_bound`
     width, slope : float          the falloff's width and the continuation's order
     """
 
-    texel_rho: sp.csr_matrix
+    corner: np.ndarray
+    weight: np.ndarray
     terms: np.ndarray
     pi: np.ndarray
     pj: np.ndarray
@@ -194,33 +205,40 @@ class TexelValidity:
     @classmethod
     def build(cls, texel_rho: sp.csr_matrix, terms: np.ndarray, envelope: np.ndarray, sure: np.ndarray,
               width: float, slope: float) -> "TexelValidity":
-        """From the band's ρ operator (P,Q) CSR float64 (SciPy's product of it with float32 ρ
-        is float64: a float32 operator would sum in float32, :func:`texel_gauge` does not),
-        its ``terms`` (K,1,P) float32, envelope and sure bound (P,)."""
-        R = texel_rho
-        if not sp.isspmatrix_csr(R) or R.dtype != np.float64 or terms.shape[1:] != (1, R.shape[0]):
-            raise ValueError(f"need a float64 (P,Q) CSR operator and (K,1,P) terms, got "
-                             f"{type(R).__name__} {R.dtype} {R.shape} and {terms.shape}")
+        """From the band's ρ operator (P,Q) CSR float64 with at most 3 entries a row (a
+        barycentric interpolation), its ``terms`` (K,1,P) float32, envelope and sure bound (P,)."""
+        R = sp.csr_matrix(texel_rho)
+        P = R.shape[0]
+        nnz = np.diff(R.indptr)
+        if R.dtype != np.float64 or nnz.max(initial=0) > CORNERS or terms.shape[1] != 1 or terms.shape[2] != P:
+            raise ValueError(f"need a float64 (P,Q) operator of ≤ {CORNERS} entries a row and (K,1,P) terms, "
+                             f"got {R.dtype} {R.shape} (≤ {nnz.max(initial=0)} a row) and {terms.shape}")
+        corner = np.zeros((CORNERS, P), np.uint32)
+        weight = np.zeros((CORNERS, P), np.float64)
+        slot = np.arange(R.nnz) - np.repeat(R.indptr[:-1], nnz)
+        row = np.repeat(np.arange(P), nnz)
+        corner[slot, row], weight[slot, row] = R.indices, R.data
+        first = corner[0].copy()
+        for c in range(1, CORNERS):                       # padding: weight 0 on the row's first point
+            corner[c] = np.where(nnz > c, corner[c], first)
         powers = np.array(TERM_POWERS[_order_of(terms.shape[0])], np.uint8)
-        return cls(R, np.ascontiguousarray(terms, np.float32), powers[:, 0].copy(), powers[:, 1].copy(),
-                   np.ascontiguousarray(envelope, np.float32), np.ascontiguousarray(sure, np.float32),
-                   float(width), float(slope))
+        return cls(corner, weight, np.ascontiguousarray(terms, np.float32), powers[:, 0].copy(),
+                   powers[:, 1].copy(), np.ascontiguousarray(envelope, np.float32),
+                   np.ascontiguousarray(sure, np.float32), float(width), float(slope))
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray, point_rho: np.ndarray, s: int, e: int,
                  out: np.ndarray) -> np.ndarray:
         """D̃ of points ``s:e`` at their d1, d2 (F,e−s) float32 written into ``out`` (F,e−s)
         float32, C-contiguous rows (:func:`.validity.valid_scalar_polynomial` of the block, bit
-        for bit), for ρ (F,Q) float64 at the UV points; returns the points outside (ρ > 1)
-        per frame (F,) int64."""
+        for bit), for ρ (F,Q) float64 at the UV points; returns the points outside (ρ > 1) per frame (F,) int64."""
         F, n = len(d1), e - s
-        R = self.texel_rho
         rho = np.empty((F, n), np.float32)
         flag = np.empty(n, np.bool_)
         count = np.zeros(F, np.int64)
         d1 = np.ascontiguousarray(d1, np.float32)
         d2 = np.ascontiguousarray(d2, np.float32)
         for f in range(F):
-            count[f] = texel_gauge(s, e, point_rho[f], R.indptr, R.indices, R.data, rho[f])
+            count[f] = texel_gauge(s, e, point_rho[f], self.corner, self.weight, rho[f])
         continued = bool(count.any())
         for f in range(F):
             polynomial_flags(s, e, d1[f], d2[f], rho[f], self.terms, self.sure, continued, out[f], flag)

@@ -568,9 +568,7 @@ class Validity:
         if sure is None and coeffs.shape[1] == 1:
             sure = self.sure[name] = sure_bound(self.envelope[name])
         compiled = self.compiled.get(name)
-        R = self.texel_rho[name]
-        if compiled is None and coeffs.shape[1] == 1 and name != "vertex" and R.dtype == np.float64 \
-                and sp.isspmatrix_csr(R):                  # the fallback is a_last; float64 sums
+        if compiled is None and coeffs.shape[1] == 1 and name != "vertex":      # fallback a_last
             from service.methods.pdm.texel_validity import TexelValidity     # Numba: where synthesis runs
 
             compiled = self.compiled[name] = TexelValidity.build(

@@ -74,9 +74,8 @@ def test_compiled_band_is_the_numpy_scalar_path_bit_for_bit_per_block(order, wid
     assert np.signbit(got[got == 0]).any() and not np.signbit(got[got == 0]).all()
 
 
-def test_gauge_is_the_scipy_row_sum_bit_for_bit():
-    """Rows of 1, 2 and 3 entries: ρ the SciPy float64 row sum rounded to float32; d = 0
-    gives the constant, flagged where ρ > 1."""
+def test_gauge_pads_short_rows_with_weight_zero_bit_for_bit():
+    """Rows of 1, 2 and 3 entries: ρ the SciPy float64 row sum rounded to float32."""
     rng = np.random.default_rng(3)
     R = _operator(rng, 500, 40)
     assert set(np.diff(R.indptr)) == {1, 2, 3}
@@ -84,15 +83,15 @@ def test_gauge_is_the_scipy_row_sum_bit_for_bit():
     terms = rng.normal(size=(6, 1, 500)).astype(np.float32)
     tv = TexelValidity.build(R, terms, np.ones(500, np.float32), np.ones(500, np.float32), 1.0, 1.0)
     rho, out, flag = np.empty(500, np.float32), np.empty(500, np.float32), np.empty(500, bool)
-    count = gauge_kernel(0, 500, point_rho.astype(np.float64), R.indptr, R.indices, R.data, rho)
+    count = gauge_kernel(0, 500, point_rho.astype(np.float64), tv.corner, tv.weight, rho)
     want = texel_gauge(R, point_rho[None])[0]
     assert np.array_equal(rho, want) and count == np.count_nonzero(want > 1) > 0
     zero = np.zeros(500, np.float32)
     polynomial_flags(0, 500, zero, zero, rho, tv.terms, tv.sure, True, out, flag)
-    assert np.array_equal(out, terms[5, 0]) and np.array_equal(flag, want > 1)
+    assert np.array_equal(out, terms[5, 0]) and np.array_equal(flag, want > 1)     # d = 0: the constant
 
 
-def test_build_rejects_operators_whose_sums_it_would_not_match():
-    R = sp.csr_matrix(np.ones((2, 5), np.float32))                        # SciPy sums these in float32
-    with pytest.raises(ValueError, match="float64"):
+def test_build_rejects_operators_it_cannot_pad():
+    R = sp.csr_matrix(np.ones((2, 5)))
+    with pytest.raises(ValueError, match="entries a row"):
         TexelValidity.build(R, np.zeros((6, 1, 2), np.float32), np.ones(2), np.ones(2), 1.0, 1.0)
