@@ -234,6 +234,17 @@ class SectorLookup:
         flat = table.ravel()
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
 
+    def sector_values(self, table_sectors: np.ndarray) -> np.ndarray:
+        """:meth:`values` of a sector-major table (K,P,…) (the sector box's bounds as stored,
+        (K,Q,3) each): the same values, gathered at ``k · P + p`` instead of ``p · K + k``."""
+        K, P = table_sectors.shape[:2]
+        if K != self.K:
+            raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {K}")
+        p = np.arange(P)
+        lookup = SectorLookup((self.lower - p * K) * P + p, (self.upper - p * K) * P + p, self.t, K)
+        # the same memory seen as (P,K,…): item k·P + p is what the indices above name
+        return lookup.values(np.ascontiguousarray(table_sectors).reshape(P, K, *table_sectors.shape[2:]))
+
 
 def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, ...]]],
                     fallback: np.ndarray | None, K: int = DIRECTIONS, reach: float = REACH,
@@ -468,10 +479,13 @@ class Validity:
     sector_points : (Q,K) float32 or None   the medium band's sector envelope
                                   (:func:`sector_envelope`), point-major as ``hull_points``
                                   (``sectors`` is the (K,Q) form); None: the scalar envelope only
-    box_points : (Q,K,2,3) float32 or None   the medium band's sector box (lo, hi) point-major,
-                                  both bounds of a sector adjacent (one gather of 6 channels;
-                                  ``sector_box`` is the stored (2,K,Q,3) form), relative to
-                                  the per-frame fallback the vertex band is given
+    sector_box : (2,K,Q,3) float32 or None   the medium band's sector box (lo, hi), relative
+                                  to the per-frame fallback the vertex band is given, in the
+                                  stored (:class:`ValidityData`) layout: sector-major, the
+                                  array the store maps, no copy (issue 23: the point-major
+                                  (Q,K,2,3) copy it replaced, 35 MB at level 1, was read
+                                  with a 768-byte stride between neighbouring points; see
+                                  :mod:`.point_validity` for the measured kernel)
     """
 
     hull_points: np.ndarray
@@ -482,7 +496,7 @@ class Validity:
     vertex_rho: sp.csr_matrix
     vertex_weight: np.ndarray
     sector_points: np.ndarray | None = None
-    box_points: np.ndarray | None = None
+    sector_box: np.ndarray | None = None
     sure: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → sure_bound, made once
     compiled: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → TexelValidity, made once
 
@@ -505,8 +519,7 @@ class Validity:
         return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,
                    seam_average.tocsr(), area,
                    None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T),
-                   None if sector_box is None else np.ascontiguousarray(
-                       np.asarray(sector_box, np.float32).transpose(2, 1, 0, 3)))
+                   None if sector_box is None else np.ascontiguousarray(sector_box, np.float32))
 
     def lookup(self, d1: np.ndarray, d2: np.ndarray) -> SectorLookup:
         """The :class:`SectorLookup` of parameters d1, d2 (F,Q) at the UV points, for
@@ -528,11 +541,6 @@ class Validity:
         """The sector envelope (K,Q) float32 (:func:`sector_envelope`'s layout, as stored)."""
         return None if self.sector_points is None else np.ascontiguousarray(self.sector_points.T)
 
-    @property
-    def sector_box(self) -> np.ndarray | None:
-        """The sector box (2,K,Q,3) float32 (:func:`sector_envelope`'s layout, as stored)."""
-        return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
-
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
         """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points
         (:func:`texel_gauge` of its operator)."""
@@ -547,14 +555,14 @@ class Validity:
         are (the box only with the per-frame fallback it was measured against), both read
         through one :class:`SectorLookup` (``lookup``: the :meth:`lookup` of d1, d2 if made)."""
         envelope, box = self.envelope[name], None
-        if name == "vertex" and (self.sector_points is not None or self.box_points is not None):
+        if name == "vertex" and (self.sector_points is not None or self.sector_box is not None):
             if lookup is None:
-                table = self.sector_points if self.sector_points is not None else self.box_points
-                lookup = SectorLookup.of(d1, d2, table.shape[1])
+                K = self.sector_points.shape[1] if self.sector_points is not None else self.sector_box.shape[1]
+                lookup = SectorLookup.of(d1, d2, K)
             if self.sector_points is not None:
                 envelope = lookup.values(self.sector_points)
-            if self.box_points is not None and fallback is not None:
-                box = np.moveaxis(lookup.values(self.box_points), -2, 0)              # (2,F,Q,3)
+            if self.sector_box is not None and fallback is not None:
+                box = np.stack([lookup.sector_values(bound) for bound in self.sector_box])   # (2,F,Q,3)
         return valid_polynomial(coeffs, d1, d2, rho, envelope,
                                 self.fallback(name, coeffs) if fallback is None else fallback,
                                 self.width, self.slope, box=box)
