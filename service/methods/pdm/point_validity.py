@@ -104,13 +104,7 @@ def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors
         s0 = s1 = s2 = np.float32(0)
         for k in range(last):                      # polynomial.evaluate's order and roundings
             i, j = pi[k], pj[k]
-            x = a
-            for _ in range(1, i):
-                x *= a
-            y = b
-            for _ in range(1, j):
-                y *= b
-            m = x if j == 0 else (y if i == 0 else x * y)
+            m = monomial(a, b, i, j)
             c0, c1, c2 = m * terms[k, 0, p], m * terms[k, 1, p], m * terms[k, 2, p]
             v0 += c0
             v1 += c1
@@ -160,6 +154,19 @@ def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors
             out[p, 0], out[p, 1], out[p, 2] = f0 + s * x0, f1 + s * x1, f2 + s * x2
         else:
             out[p, 0], out[p, 1], out[p, 2] = v0, v1, v2
+
+
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def monomial(a, b, i, j):
+    """``d1^i d2^j`` at (a, b) float32 as :func:`.polynomial.evaluate` rounds it: each power a
+    repeated product from the first, a mixed term the product of the two powers."""
+    x = a
+    for _ in range(1, i):
+        x *= a
+    y = b
+    for _ in range(1, j):
+        y *= b
+    return x if j == 0 else (y if i == 0 else x * y)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

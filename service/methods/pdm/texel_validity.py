@@ -39,7 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit, uint64
 
-from service.methods.pdm.point_validity import _falloff
+from service.methods.pdm.point_validity import _falloff, monomial
 from service.methods.pdm.polynomial import TERM_POWERS, _order_of
 from service.methods.pdm.validity import MARGIN
 
@@ -157,13 +157,7 @@ def repair(lo, points, d1, d2, rho, terms, pi, pj, envelope, width, slope, conti
             s = np.float32(0)
             for k in range(last):
                 i, j = pi[k], pj[k]
-                x = a
-                for _ in range(1, i):
-                    x *= a
-                y = b
-                for _ in range(1, j):
-                    y *= b
-                c = (x if j == 0 else (y if i == 0 else x * y)) * terms[k, 0, p]
+                c = monomial(a, b, i, j) * terms[k, 0, p]
                 v += c
                 if i + j != 1:
                     c *= np.float32(i + j)

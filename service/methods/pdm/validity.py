@@ -567,23 +567,31 @@ class Validity:
                                 self.fallback(name, coeffs) if fallback is None else fallback,
                                 self.width, self.slope, box=box)
 
+    def prepare(self, name: str, coeffs: np.ndarray) -> None:
+        """Make what :meth:`band` reads for texel band ``name`` (coefficients (P,C,K)) once:
+        a one-channel band's :func:`sure_bound` and its compiled validity
+        (:mod:`.texel_validity`; the padded ρ operator, 26 MB for the level-1 fine band), so
+        a model pays for them when it is built, not at its first frame."""
+        if coeffs.shape[1] != 1:
+            return
+        if name not in self.sure:
+            self.sure[name] = sure_bound(self.envelope[name])
+        R = self.texel_rho[name]
+        if name not in self.compiled and name != "vertex" and R.dtype == np.float64 \
+                and sp.isspmatrix_csr(R):                  # the fallback is a_last; float64 sums
+            from service.methods.pdm.texel_validity import TexelValidity     # Numba: where synthesis runs
+
+            self.compiled[name] = TexelValidity.build(R, np.asarray(coeffs).transpose(2, 1, 0), self.envelope[name],
+                                                      self.sure[name], self.width, self.slope)
+
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
         at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block);
-        a one-channel band on the compiled kernels of :mod:`.texel_validity` (made once per
-        band, kept in ``compiled``)."""
-        sure = self.sure.get(name) if coeffs.shape[1] == 1 else None
-        if sure is None and coeffs.shape[1] == 1:
-            sure = self.sure[name] = sure_bound(self.envelope[name])
-        compiled = self.compiled.get(name)
-        if compiled is None and coeffs.shape[1] == 1 and name != "vertex":      # fallback a_last
-            from service.methods.pdm.texel_validity import TexelValidity     # Numba: where synthesis runs
-
-            compiled = self.compiled[name] = TexelValidity.build(
-                self.texel_rho[name], np.asarray(coeffs).transpose(2, 1, 0), self.envelope[name], sure,
-                self.width, self.slope)
+        a one-channel band on the compiled kernels of :mod:`.texel_validity` (:meth:`prepare`)."""
+        self.prepare(name, coeffs)
         return BandValidity(np.asarray(rho), self.texel_rho[name], coeffs, self.envelope[name],
-                            self.fallback(name, coeffs), self.width, self.slope, sure, compiled)
+                            self.fallback(name, coeffs), self.width, self.slope, self.sure.get(name),
+                            self.compiled.get(name))
 
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:

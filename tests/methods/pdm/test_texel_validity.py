@@ -9,6 +9,7 @@ import scipy.sparse as sp
 from service.methods.pdm.polynomial import ORDERS
 from service.methods.pdm.texel_validity import TexelValidity, polynomial_flags, texel_gauge as gauge_kernel
 from service.methods.pdm.validity import sure_bound, texel_gauge, valid_scalar_polynomial
+from tests.methods.pdm.test_realtime_paths import frames  # noqa: F401  S inside and beyond the hull
 
 
 def _operator(rng, P, Q, inner=0):
@@ -95,3 +96,21 @@ def test_build_rejects_operators_it_cannot_pad():
     R = sp.csr_matrix(np.ones((2, 5)))
     with pytest.raises(ValueError, match="entries a row"):
         TexelValidity.build(R, np.zeros((6, 1, 2), np.float32), np.ones(2), np.ones(2), 1.0, 1.0)
+
+
+def test_the_models_fine_band_runs_compiled_as_the_numpy_blocks(pdm_model, frames):
+    """The trained model's fine band: its compiled validity is made at build, and synthesis
+    through it is synthesis through the NumPy operators, values and clamped fraction bit for
+    bit, inside the hull and far out."""
+    import dataclasses
+
+    ev = pdm_model.evaluator
+    v = ev.validity
+    assert "fine" in v.compiled and "albedo" not in v.compiled                   # one channel only
+    d1, d2, _ = ev.vertex_band.parameters(frames, None)
+    bv = v.band("fine", ev.fine.coeffs, v.gauge(d1, d2))
+    assert bv.compiled is v.compiled["fine"]
+    got, frac = ev.fine.synthesize(frames, None, bv)
+    want, want_frac = ev.fine.synthesize(frames, None, dataclasses.replace(bv, compiled=None))
+    assert np.array_equal(got.view(np.uint32), want.view(np.uint32)) and np.array_equal(frac, want_frac)
+    assert frac[2:].min() > 0.05 and frac[:2].max() < frac[2:].min()
