@@ -310,6 +310,8 @@ class PdmEvaluator:
         shell_mesh = ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
                                      d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
         validity = _validity(d, base, bands, orders, seam, shell, texel_rho)
+        if validity is not None:
+            validity.prepare("fine", fine.coeffs)        # the fine band's compiled validity
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,

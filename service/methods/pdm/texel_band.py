@@ -127,7 +127,6 @@ class TexelBand(CoveredTexels):
             if validity is None:
                 out[:, s:e] = polynomial.evaluate(terms[..., s:e].transpose(2, 1, 0), d1, d2)
             else:
-                out[:, s:e] = validity.evaluate(d1, d2, s, e)
-                over += validity.outside(s, e)
+                over += validity.block(d1, d2, s, e, out[:, s:e])
         frac = over / max(P, 1) if margin is not None or validity is not None else np.zeros(T)
         return out, frac

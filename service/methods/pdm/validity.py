@@ -100,6 +100,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import scipy.sparse as sp
@@ -232,6 +233,17 @@ class SectorLookup:
             return out.reshape(*lead, *channels)
         flat = table.ravel()
         return (1 - self.t) * np.take(flat, self.lower) + self.t * np.take(flat, self.upper)
+
+    def sector_values(self, table_sectors: np.ndarray) -> np.ndarray:
+        """:meth:`values` of a sector-major table (K,P,…) (the sector box's bounds as stored,
+        (K,Q,3) each): the same values, gathered at ``k · P + p`` instead of ``p · K + k``."""
+        K, P = table_sectors.shape[:2]
+        if K != self.K:
+            raise ValueError(f"a lookup in {self.K} sectors cannot read a table of {K}")
+        p = np.arange(P)
+        lookup = SectorLookup((self.lower - p * K) * P + p, (self.upper - p * K) * P + p, self.t, K)
+        # the same memory seen as (P,K,…): item k·P + p is what the indices above name
+        return lookup.values(np.ascontiguousarray(table_sectors).reshape(P, K, *table_sectors.shape[2:]))
 
 
 def sector_envelope(coeffs: np.ndarray, chunks: Callable[[], Iterable[tuple[np.ndarray, ...]]],
@@ -467,10 +479,13 @@ class Validity:
     sector_points : (Q,K) float32 or None   the medium band's sector envelope
                                   (:func:`sector_envelope`), point-major as ``hull_points``
                                   (``sectors`` is the (K,Q) form); None: the scalar envelope only
-    box_points : (Q,K,2,3) float32 or None   the medium band's sector box (lo, hi) point-major,
-                                  both bounds of a sector adjacent (one gather of 6 channels;
-                                  ``sector_box`` is the stored (2,K,Q,3) form), relative to
-                                  the per-frame fallback the vertex band is given
+    sector_box : (2,K,Q,3) float32 or None   the medium band's sector box (lo, hi), relative
+                                  to the per-frame fallback the vertex band is given, in the
+                                  stored (:class:`ValidityData`) layout: sector-major, the
+                                  array the store maps, no copy (issue 23: the point-major
+                                  (Q,K,2,3) copy it replaced, 35 MB at level 1, was read
+                                  with a 768-byte stride between neighbouring points; see
+                                  :mod:`.point_validity` for the measured kernel)
     """
 
     hull_points: np.ndarray
@@ -481,8 +496,9 @@ class Validity:
     vertex_rho: sp.csr_matrix
     vertex_weight: np.ndarray
     sector_points: np.ndarray | None = None
-    box_points: np.ndarray | None = None
+    sector_box: np.ndarray | None = None
     sure: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → sure_bound, made once
+    compiled: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → TexelValidity, made once
 
     @classmethod
     def build(cls, hull: np.ndarray, envelope: dict, width: float, slope: float, uv: np.ndarray,
@@ -503,8 +519,7 @@ class Validity:
         return cls(np.ascontiguousarray(np.asarray(hull, np.float32).T), envelope, float(width), float(slope), texel_rho,
                    seam_average.tocsr(), area,
                    None if sectors is None else np.ascontiguousarray(np.asarray(sectors, np.float32).T),
-                   None if sector_box is None else np.ascontiguousarray(
-                       np.asarray(sector_box, np.float32).transpose(2, 1, 0, 3)))
+                   None if sector_box is None else np.ascontiguousarray(sector_box, np.float32))
 
     def lookup(self, d1: np.ndarray, d2: np.ndarray) -> SectorLookup:
         """The :class:`SectorLookup` of parameters d1, d2 (F,Q) at the UV points, for
@@ -526,23 +541,10 @@ class Validity:
         """The sector envelope (K,Q) float32 (:func:`sector_envelope`'s layout, as stored)."""
         return None if self.sector_points is None else np.ascontiguousarray(self.sector_points.T)
 
-    @property
-    def sector_box(self) -> np.ndarray | None:
-        """The sector box (2,K,Q,3) float32 (:func:`sector_envelope`'s layout, as stored)."""
-        return None if self.box_points is None else np.ascontiguousarray(self.box_points.transpose(2, 1, 0, 3))
-
     def texels(self, name: str, rho: np.ndarray) -> np.ndarray:
-        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points: one sparse
-        product per frame of its (Q,) row as float64 (SciPy's single-vector kernel; the
-        (Q,F) product took the multi-vector one with the same sums in the same order,
-        3.6 → 2.6 ms for the 715k fine texels of the level-1 sample actor), rounded to float32."""
-        R = self.texel_rho[name]
-        rho = np.asarray(rho)
-        dtype = np.result_type(R.dtype, rho.dtype)                        # SciPy's upcast
-        out = np.empty((len(rho), R.shape[0]), np.float32)
-        for f, row in enumerate(rho):
-            out[f] = R @ np.asarray(row, dtype)
-        return out
+        """ρ (F,P) of band ``name``'s points from ρ (F,Q) at the UV points
+        (:func:`texel_gauge` of its operator)."""
+        return texel_gauge(self.texel_rho[name], rho)
 
     def evaluate(self, name: str, coeffs: np.ndarray, d1: np.ndarray, d2: np.ndarray,
                  rho: np.ndarray, lookup: SectorLookup | None = None,
@@ -553,26 +555,43 @@ class Validity:
         are (the box only with the per-frame fallback it was measured against), both read
         through one :class:`SectorLookup` (``lookup``: the :meth:`lookup` of d1, d2 if made)."""
         envelope, box = self.envelope[name], None
-        if name == "vertex" and (self.sector_points is not None or self.box_points is not None):
+        if name == "vertex" and (self.sector_points is not None or self.sector_box is not None):
             if lookup is None:
-                table = self.sector_points if self.sector_points is not None else self.box_points
-                lookup = SectorLookup.of(d1, d2, table.shape[1])
+                K = self.sector_points.shape[1] if self.sector_points is not None else self.sector_box.shape[1]
+                lookup = SectorLookup.of(d1, d2, K)
             if self.sector_points is not None:
                 envelope = lookup.values(self.sector_points)
-            if self.box_points is not None and fallback is not None:
-                box = np.moveaxis(lookup.values(self.box_points), -2, 0)              # (2,F,Q,3)
+            if self.sector_box is not None and fallback is not None:
+                box = np.stack([lookup.sector_values(bound) for bound in self.sector_box])   # (2,F,Q,3)
         return valid_polynomial(coeffs, d1, d2, rho, envelope,
                                 self.fallback(name, coeffs) if fallback is None else fallback,
                                 self.width, self.slope, box=box)
 
+    def prepare(self, name: str, coeffs: np.ndarray) -> None:
+        """Make what :meth:`band` reads for texel band ``name`` (coefficients (P,C,K)) once:
+        a one-channel band's :func:`sure_bound` and its compiled validity
+        (:mod:`.texel_validity`; the padded ρ operator, 26 MB for the level-1 fine band), so
+        a model pays for them when it is built, not at its first frame."""
+        if coeffs.shape[1] != 1:
+            return
+        if name not in self.sure:
+            self.sure[name] = sure_bound(self.envelope[name])
+        R = self.texel_rho[name]
+        if name not in self.compiled and name != "vertex" and R.dtype == np.float64 \
+                and sp.isspmatrix_csr(R):                  # the fallback is a_last; float64 sums
+            from service.methods.pdm.texel_validity import TexelValidity     # Numba: where synthesis runs
+
+            self.compiled[name] = TexelValidity.build(R, np.asarray(coeffs).transpose(2, 1, 0), self.envelope[name],
+                                                      self.sure[name], self.width, self.slope)
+
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)
-        at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block)."""
-        sure = self.sure.get(name) if coeffs.shape[1] == 1 else None
-        if sure is None and coeffs.shape[1] == 1:
-            sure = self.sure[name] = sure_bound(self.envelope[name])
-        return BandValidity(self.texels(name, rho), coeffs, self.envelope[name], self.fallback(name, coeffs),
-                            self.width, self.slope, sure)
+        at the UV points (what :meth:`.texel_band.TexelBand.synthesize` applies per block);
+        a one-channel band on the compiled kernels of :mod:`.texel_validity` (:meth:`prepare`)."""
+        self.prepare(name, coeffs)
+        return BandValidity(np.asarray(rho), self.texel_rho[name], coeffs, self.envelope[name],
+                            self.fallback(name, coeffs), self.width, self.slope, self.sure.get(name),
+                            self.compiled.get(name))
 
     @staticmethod
     def fallback(name: str, coeffs: np.ndarray) -> np.ndarray:
@@ -591,23 +610,61 @@ class Validity:
         return frame_confidence(cv, self.vertex_weight).astype(np.float32), cv.astype(np.float32)
 
 
+def texel_gauge(R: sp.csr_matrix, rho: np.ndarray) -> np.ndarray:
+    """ρ (F,P) float32 of a band's points from ρ (F,Q) at the UV points through its (P,Q)
+    operator R: one sparse product per frame of its (Q,) row as float64 (SciPy's
+    single-vector kernel; the (Q,F) product took the multi-vector one with the same sums in
+    the same order, 3.6 → 2.6 ms for the 715k fine texels of the level-1 sample actor),
+    rounded to float32."""
+    rho = np.asarray(rho)
+    dtype = np.result_type(R.dtype, rho.dtype)                        # SciPy's upcast
+    out = np.empty((len(rho), R.shape[0]), np.float32)
+    for f, row in enumerate(rho):
+        out[f] = R @ np.asarray(row, dtype)
+    return out
+
+
 @dataclass(frozen=True)
 class BandValidity:
-    """The validity of one texel band for a few frames (:meth:`Validity.band`): ρ (F,P) at
-    its points and what :func:`valid_values` needs, applied to any range of points (a block
-    of :meth:`.texel_band.TexelBand.synthesize`, while its values are in the cache).
+    """The validity of one texel band for a few frames (:meth:`Validity.band`): ρ (F,Q) at
+    the UV points, the band's operator to its points and what :func:`valid_values` needs,
+    applied to any range of points (a block of :meth:`.texel_band.TexelBand.synthesize`,
+    while its values are in the cache).
 
-    rho : (F,P) float32;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
+    point_rho : (F,Q);  texel_rho : (P,Q) CSR;  coeffs : (P,C,K);  envelope : (P,);  fallback : (P,C)
     sure : (P,) float32 or None   :func:`sure_bound` of the envelope (one-channel bands)
+    compiled : TexelValidity or None   the one-channel band on compiled kernels
+                                  (:mod:`.texel_validity`; :meth:`block` takes it)
     """
 
-    rho: np.ndarray
+    point_rho: np.ndarray
+    texel_rho: sp.csr_matrix
     coeffs: np.ndarray
     envelope: np.ndarray
     fallback: np.ndarray
     width: float
     slope: float
     sure: np.ndarray | None = None
+    compiled: object = None
+
+    @functools.cached_property
+    def rho(self) -> np.ndarray:
+        """ρ (F,P) float32 at the band's points (:func:`texel_gauge`, made on first use: the
+        compiled :meth:`block` forms it per block instead)."""
+        return texel_gauge(self.texel_rho, self.point_rho)
+
+    @functools.cached_property
+    def _point_rho64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.point_rho, np.float64)
+
+    def block(self, d1: np.ndarray, d2: np.ndarray, s: int, e: int, out: np.ndarray) -> np.ndarray:
+        """D̃ of points ``s:e`` at their d1, d2 (F,e−s) into ``out`` (F,e−s,C) float32, and the
+        points outside (ρ > 1) per frame (F,) int: :meth:`evaluate` and :meth:`outside`, on
+        the compiled kernels where there are (the same values bit for bit, tests)."""
+        if self.compiled is not None and out.shape[-1] == 1:
+            return self.compiled.evaluate(d1, d2, self._point_rho64, s, e, out[..., 0])
+        out[...] = self.evaluate(d1, d2, s, e)
+        return self.outside(s, e)
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray, s: int = 0, e: int | None = None) -> np.ndarray:
         """D̃ (F,e−s,C) of points ``s:e`` at their d1, d2 (F,e−s) (:func:`valid_polynomial`):
@@ -623,4 +680,3 @@ class BandValidity:
     def outside(self, s: int = 0, e: int | None = None) -> np.ndarray:
         """Points ``s:e`` outside their validity region (ρ > 1), counted per frame (F,) int."""
         return np.count_nonzero(self.rho[:, s:e] > 1, axis=-1)
-

@@ -127,17 +127,25 @@ def test_one_sector_lookup_serves_the_gauge_and_the_sector_envelope(pdm_model, f
     rho = v.gauge(d1, d2, lookup)
     coeffs = pdm_model.evaluator.vertex_band.coeffs
     assert np.array_equal(v.evaluate("vertex", coeffs, d1, d2, rho, lookup), v.evaluate("vertex", coeffs, d1, d2, rho))
-    # the sector box's bounds (Q,K,2,3) through the same lookup, as each bound's own gather
-    assert v.box_points is not None
-    both = lookup.values(v.box_points)                                          # (F,Q,2,3)
+    # the sector box's bounds (K,Q,3) as stored (sector-major) through the same lookup, as
+    # the point-major (Q,K,3) gather of each bound and of both at once (Q,K,2,3)
+    assert v.sector_box is not None
+    both = lookup.values(_point_major_box(v))                                   # (F,Q,2,3)
     for i, bound in enumerate(v.sector_box):                                    # (K,Q,3) each
-        assert np.array_equal(both[..., i, :], SectorLookup.of(d1, d2, lookup.K).values(np.ascontiguousarray(bound.transpose(1, 0, 2))))
+        got = lookup.sector_values(bound)
+        assert np.array_equal(got, SectorLookup.of(d1, d2, lookup.K).values(np.ascontiguousarray(bound.transpose(1, 0, 2))))
+        assert np.array_equal(got, both[..., i, :])
     fallback = pdm_model.evaluator.shell_fallback(frames[..., :3], None)
     shared = v.evaluate("vertex", coeffs, d1, d2, rho, lookup, fallback)
     assert np.array_equal(shared, v.evaluate("vertex", coeffs, d1, d2, rho, fallback=fallback))
     assert not np.array_equal(shared, v.evaluate("vertex", coeffs, d1, d2, rho, lookup))    # the box and fallback act
     with pytest.raises(ValueError):
         SectorLookup.of(d1, d2, 8).values(v.sector_points)
+
+
+def _point_major_box(v):
+    """The sector box point-major (Q,K,2,3), as Validity held it before (frozen layout)."""
+    return np.ascontiguousarray(v.sector_box.transpose(2, 1, 0, 3))
 
 
 def _old_sector_values(d1, d2, table):
@@ -169,9 +177,9 @@ def test_the_item_gather_of_a_channel_table_is_the_flat_gather_bit_for_bit(pdm_m
     v = pdm_model.evaluator.validity
     d1, d2, _ = pdm_model.evaluator.vertex_band.parameters(frames, None)
     lookup = v.lookup(d1, d2)
-    got = lookup.values(v.box_points)
+    got = lookup.values(_point_major_box(v))
     assert got.shape == d1.shape + (2, 3) and got.dtype == np.float32
-    assert np.array_equal(got, _flat_channel_values(lookup, v.box_points))
+    assert np.array_equal(got, _flat_channel_values(lookup, _point_major_box(v)))
     assert np.abs(got).max() > 0
     # a table that is not contiguous, float64, one frame of 1-D parameters
     rng = np.random.default_rng(4)
@@ -220,9 +228,10 @@ def test_the_medium_fade_toward_the_shell_is_the_old_one_bit_for_bit(pdm_model, 
     fallback = ev.shell_fallback(frames[..., :3], None)
     L = np.ascontiguousarray(polynomial.evaluate(ev.vertex_band.coeffs, d1, d2, rho, v.slope))
     env = lookup.values(v.sector_points)
-    old_box = np.moveaxis(_flat_channel_values(lookup, v.box_points), -2, 0)
+    old_box = np.moveaxis(_flat_channel_values(lookup, _point_major_box(v)), -2, 0)
     old = _any_axis_fade(L.copy(), rho, env, fallback, v.width, 0.25, old_box)
-    new = fade_detail(L.copy(), rho, env, fallback, v.width, 0.25, np.moveaxis(lookup.values(v.box_points), -2, 0))
+    new = fade_detail(L.copy(), rho, env, fallback, v.width, 0.25,
+                      np.stack([lookup.sector_values(bound) for bound in v.sector_box]))
     assert np.array_equal(new, old)
     assert np.array_equal(v.evaluate("vertex", ev.vertex_band.coeffs, d1, d2, rho, lookup, fallback), old)
     changed = np.any(old != L, axis=-1)
