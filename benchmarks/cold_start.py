@@ -81,25 +81,6 @@ def spawn(work: Path, port: int, preload: str | None, repo: Path = ROOT) -> subp
                             stdout=log, stderr=log, stdin=subprocess.DEVNULL)
 
 
-def source_tree(rev: str) -> Path:
-    """The ``service`` and ``models_store`` packages of commit ``rev``, unpacked once into
-    ``WORK/rev-<rev>`` (a server of it runs with that directory first on its path)."""
-    import re
-    import tarfile
-
-    where = WORK / f"rev-{re.sub(r'[^0-9A-Za-z_.-]', '_', rev)}"
-    if not (where / "service" / "__init__.py").is_file():
-        where.mkdir(parents=True, exist_ok=True)
-        archive = where / "source.tar"
-        with open(archive, "wb") as f:
-            subprocess.run(["git", "archive", rev, "service", "models_store"], cwd=ROOT,
-                           stdout=f, check=True)
-        with tarfile.open(archive) as tar:
-            tar.extractall(where, filter="data")
-        archive.unlink()
-    return where
-
-
 def wait_for(url: str, server: subprocess.Popen, t0: float, timeout: float = 600) -> float:
     """Seconds from ``t0`` until ``url`` answers 200."""
     import httpx
@@ -163,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     trees = {"this tree": ROOT}
     if args.against:
-        trees = {args.against: source_tree(args.against), **trees}
+        trees = {args.against: harness.source_tree(args.against, WORK), **trees}
     actor = args.actor.resolve()
     model_dir = (args.model or harness.ensure_realtime_model(actor)).resolve()
     work = WORK / f"work-{actor.name}"

@@ -712,6 +712,25 @@ WORKERS = {
 }
 
 # ---------------------------------------------------------------------------- servers
+def source_tree(rev: str, work: Path) -> Path:
+    """The ``service`` and ``models_store`` packages of commit ``rev``, unpacked once into
+    ``work/rev-<rev>`` (a server of it runs with that directory first on its path)."""
+    import re
+    import tarfile
+
+    where = work / f"rev-{re.sub(r'[^0-9A-Za-z_.-]', '_', rev)}"
+    if not (where / "service" / "__init__.py").is_file():
+        where.mkdir(parents=True, exist_ok=True)
+        archive = where / "source.tar"
+        with open(archive, "wb") as f:
+            subprocess.run(["git", "archive", rev, "service", "models_store"], cwd=ROOT,
+                           stdout=f, check=True)
+        with tarfile.open(archive) as tar:
+            tar.extractall(where, filter="data")
+        archive.unlink()
+    return where
+
+
 REALTIME = OUT / "realtime"            # realtime.py's PDM model (shared with cold_start, realtime_ab)
 REALTIME_PERFORMANCE = "heldout_in_range"
 REALTIME_TRAIN_CLIP = "train_smile"    # the clip the server's model row names (never trained there)

@@ -200,9 +200,7 @@ def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
     the in-process frame (:func:`interleaved_ms`), per parser, output set and variant."""
     import httpx
 
-    from cold_start import source_tree
-
-    old_tree = source_tree(rev)
+    old_tree = harness.source_tree(rev, harness.OUT / "cold_start")
     rows = []
     variants = [("float32, with faces", {}), ("half maps, topology=false",
                                               {"half": "true", "topology": "false"})]

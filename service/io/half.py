@@ -37,18 +37,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.io.binary16 import MAGIC, REBIAS, SMALLEST_NORMAL, SPECIAL
+
 #: values per block: 64 Ki float32 (256 KiB in, a few such temporaries) stays in L2
 BLOCK = 1 << 16
-#: float32 bits of the smallest normal float16, 2⁻¹⁴
-_SMALLEST_NORMAL = 0x38800000
-#: float32 bits of 65536, from which the normal branch would overflow its 15 bits (∞, NaN
-#: and these are left to NumPy)
-_SPECIAL = 0x47800000
-#: the exponent rebias (15 - 127) << 23 plus the rounding bias 0xFFF, modulo 2³²
-_REBIAS = np.uint32((((15 - 127) << 23) + 0xFFF) & 0xFFFFFFFF)
-#: float32 0.5 (bits ((127 - 15) + (23 - 10) + 1) << 23): adding it to a value below 2⁻¹⁴
-#: rounds that value to a multiple of 2⁻²⁴ (the float16 subnormal step) in the low bits
-_MAGIC = np.uint32(((127 - 15) + (23 - 10) + 1) << 23)
 
 
 def to_float16(values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -81,7 +73,7 @@ def to_float16(values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     x = np.ascontiguousarray(values).reshape(-1)
     bits = x.view(np.uint32)
     if half_bits(bits, x, flat):
-        where = np.flatnonzero((bits & 0x7FFFFFFF) >= _SPECIAL)
+        where = np.flatnonzero((bits & 0x7FFFFFFF) >= SPECIAL)
         with np.errstate(over="ignore", invalid="ignore"):
             flat[where] = x[where].astype(np.float16).view(np.uint16)
     return flat.view(np.float16).reshape(values.shape)
@@ -112,7 +104,7 @@ def to_float16_blocks(values: np.ndarray, block: int = BLOCK) -> np.ndarray:
     size = max(1, min(block, n))
     a, t, s = (np.empty(size, np.uint32) for _ in range(3))
     small = np.empty(size, bool)
-    magic = _MAGIC.view(np.float32)
+    magic = MAGIC.view(np.float32)
     special = False
     # the float add of the subnormal branch sees NaN and inf too (their result is NumPy's)
     with np.errstate(invalid="ignore", over="ignore"):
@@ -125,23 +117,23 @@ def to_float16_blocks(values: np.ndarray, block: int = BLOCK) -> np.ndarray:
             np.right_shift(A, 13, out=T)
             np.bitwise_and(T, 1, out=T)
             np.add(T, A, out=T)
-            np.add(T, _REBIAS, out=T)
+            np.add(T, REBIAS, out=T)
             np.right_shift(T, 13, out=T)
             # subnormal or zero: the FPU rounds a + 0.5 to the float16 step; minus 0.5's bits
             np.add(A.view(np.float32), magic, out=S.view(np.float32))
-            np.subtract(S, _MAGIC, out=S)
-            np.less(A, _SMALLEST_NORMAL, out=M)
+            np.subtract(S, MAGIC, out=S)
+            np.less(A, SMALLEST_NORMAL, out=M)
             np.copyto(T, S, where=M)
             # the sign as bit 15
             np.right_shift(u, 16, out=S)
             np.bitwise_and(S, 0x8000, out=S)
             np.bitwise_or(T, S, out=T)
             out[start:start + k] = T
-            special = special or bool(A.max() >= _SPECIAL)
+            special = special or bool(A.max() >= SPECIAL)
     half = out.view(np.float16).reshape(x.shape)
     if special:
         flat, source = half.reshape(-1), x.reshape(-1)
-        where = np.flatnonzero((bits & 0x7FFFFFFF) >= _SPECIAL)
+        where = np.flatnonzero((bits & 0x7FFFFFFF) >= SPECIAL)
         with np.errstate(over="ignore", invalid="ignore"):
             flat[where] = source[where].astype(np.float16)
     return half

@@ -14,10 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from service.io.half import _REBIAS as REBIAS
-from service.io.half import _SMALLEST_NORMAL, _SPECIAL
+from service.io.binary16 import REBIAS, SMALLEST_NORMAL, SPECIAL
 
-SMALLEST_NORMAL, SPECIAL = np.uint32(_SMALLEST_NORMAL), np.uint32(_SPECIAL)
 #: 2²⁴: a value below 2⁻¹⁴ times this is its float16 subnormal mantissa (exact scaling)
 SUBNORMAL_SCALE = np.float32(2.0 ** 24)
 

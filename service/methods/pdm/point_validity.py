@@ -42,6 +42,7 @@ from numba import njit, uint64
 from service.geometry import ranges
 from service.methods.pdm.polynomial import TERM_POWERS, _order_of
 from service.methods.pdm.validity import MARGIN, Validity
+from service.methods.pdm.validity_scalars import falloff, monomial
 
 _TWO_PI = np.float32(2 * np.pi)
 
@@ -149,33 +150,11 @@ def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors
         norm = max(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), np.float32(1e-30))
         s = min(grow * E / norm, one)
         if outside:
-            s *= _falloff(r - one, width)
+            s *= falloff(r - one, width)
         if s < one or clipped:
             out[p, 0], out[p, 1], out[p, 2] = f0 + s * x0, f1 + s * x1, f2 + s * x2
         else:
             out[p, 0], out[p, 1], out[p, 2] = v0, v1, v2
-
-
-@njit(nogil=True, cache=True, error_model="numpy", inline="always")
-def monomial(a, b, i, j):
-    """``d1^i d2^j`` at (a, b) float32 as :func:`.polynomial.evaluate` rounds it: each power a
-    repeated product from the first, a mixed term the product of the two powers."""
-    x = a
-    for _ in range(1, i):
-        x *= a
-    y = b
-    for _ in range(1, j):
-        y *= b
-    return x if j == 0 else (y if i == 0 else x * y)
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _falloff(excess, width):
-    """:func:`service.methods.confidence.falloff` of one float32 excess > 0."""
-    if width <= 0:
-        return np.float32(0)
-    x = min(excess / np.float32(width), np.float32(1))
-    return np.float32(1) - x * x * (np.float32(3) - np.float32(2) * x)
 
 
 @dataclass(frozen=True)

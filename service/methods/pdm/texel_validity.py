@@ -39,9 +39,8 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit, uint64
 
-from service.methods.pdm.point_validity import _falloff, monomial
+from service.methods.pdm.validity_scalars import falloff, monomial
 from service.methods.pdm.polynomial import TERM_POWERS, _order_of
-from service.methods.pdm.validity import MARGIN
 
 #: entries per row of the ρ operator (UV points → texels: a texel's triangle corners)
 CORNERS = 3
@@ -132,17 +131,16 @@ def polynomial_flags(lo, hi, d1, d2, rho, terms, sure, continued, out, flag):
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def repair(lo, points, d1, d2, rho, terms, pi, pj, envelope, width, slope, continued, out):
+def repair(lo, points, d1, d2, rho, terms, pi, pj, envelope, width, slope, grow, continued, out):
     """The flagged points of the block starting at the band's point ``lo``, ``points`` (k,)
     int64 into the block's ``out`` (n,) float32 (the plain polynomial of ``terms`` (K,1,P)
     at d1, d2 (n,) with ρ (n,) float32): ``valid_scalar_polynomial``'s continuation (ρ > 1,
     and ±0 values when ``continued``: some point of the block is outside) and its fade
     (ρ > 1 or ``|v − a_last|`` not ≤ the sure bound), with the training ``envelope`` (P,)
-    float32, the falloff ``width`` and the continuation ``slope`` (float32), in that
-    function's float32 operations and order."""
+    float32, the falloff ``width``, the continuation ``slope`` and ``grow`` = 1 + its
+    ``margin`` (float32), in that function's float32 operations and order."""
     one = np.float32(1)
     last = terms.shape[0] - 1
-    grow = np.float32(1 + MARGIN)
     for q in points:
         p = uint64(q) + uint64(lo)
         v = out[q]
@@ -171,7 +169,7 @@ def repair(lo, points, d1, d2, rho, terms, pi, pj, envelope, width, slope, conti
         w = grow * envelope[p] / norm
         w = w if (w < one or w != w) else one
         if outside:
-            w *= _falloff(r - one, width)
+            w *= falloff(r - one, width)
         if w < one:
             out[q] = detail * w + const
 
@@ -187,6 +185,7 @@ class TexelValidity:
     pi, pj : (K,) uint8           the powers of d1 and d2 of each term
     envelope, sure : (P,) float32 training envelope and its :func:`.validity.sure_bound`
     width, slope : float          the falloff's width and the continuation's order
+    margin : float                how far the detail may exceed its envelope (:data:`.validity.MARGIN`)
     """
 
     corner: np.ndarray
@@ -198,12 +197,14 @@ class TexelValidity:
     sure: np.ndarray
     width: float
     slope: float
+    margin: float
 
     @classmethod
     def build(cls, texel_rho: sp.csr_matrix, terms: np.ndarray, envelope: np.ndarray, sure: np.ndarray,
-              width: float, slope: float) -> "TexelValidity":
+              width: float, slope: float, margin: float) -> "TexelValidity":
         """From the band's ρ operator (P,Q) CSR float64 with at most 3 entries a row (a
-        barycentric interpolation), its ``terms`` (K,1,P) float32, envelope and sure bound (P,)."""
+        barycentric interpolation), its ``terms`` (K,1,P) float32, envelope and sure bound (P,),
+        and the validity's falloff ``width``, continuation ``slope`` and ``margin``."""
         R = sp.csr_matrix(texel_rho)
         P = R.shape[0]
         nnz = np.diff(R.indptr)
@@ -221,7 +222,7 @@ class TexelValidity:
         powers = np.array(TERM_POWERS[_order_of(terms.shape[0])], np.uint8)
         return cls(corner, weight, np.ascontiguousarray(terms, np.float32), powers[:, 0].copy(),
                    powers[:, 1].copy(), np.ascontiguousarray(envelope, np.float32),
-                   np.ascontiguousarray(sure, np.float32), float(width), float(slope))
+                   np.ascontiguousarray(sure, np.float32), float(width), float(slope), float(margin))
 
     def evaluate(self, d1: np.ndarray, d2: np.ndarray, point_rho: np.ndarray, s: int, e: int,
                  out: np.ndarray) -> np.ndarray:
@@ -240,5 +241,5 @@ class TexelValidity:
         for f in range(F):
             polynomial_flags(s, e, d1[f], d2[f], rho[f], self.terms, self.sure, continued, out[f], flag)
             repair(s, np.flatnonzero(flag), d1[f], d2[f], rho[f], self.terms, self.pi, self.pj, self.envelope,
-                   np.float32(self.width), np.float32(self.slope), continued, out[f])
+                   np.float32(self.width), np.float32(self.slope), np.float32(1 + self.margin), continued, out[f])
         return count

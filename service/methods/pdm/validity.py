@@ -582,7 +582,7 @@ class Validity:
             from service.methods.pdm.texel_validity import TexelValidity     # Numba: where synthesis runs
 
             self.compiled[name] = TexelValidity.build(R, np.asarray(coeffs).transpose(2, 1, 0), self.envelope[name],
-                                                      self.sure[name], self.width, self.slope)
+                                                      self.sure[name], self.width, self.slope, MARGIN)
 
     def band(self, name: str, coeffs: np.ndarray, rho: np.ndarray) -> "BandValidity":
         """The validity of texel band ``name`` (coefficients (P,C,K)) for frames of ρ (F,Q)

@@ -8,7 +8,7 @@ import scipy.sparse as sp
 
 from service.methods.pdm.polynomial import ORDERS
 from service.methods.pdm.texel_validity import TexelValidity, polynomial_flags, texel_gauge as gauge_kernel
-from service.methods.pdm.validity import sure_bound, texel_gauge, valid_scalar_polynomial
+from service.methods.pdm.validity import MARGIN, sure_bound, texel_gauge, valid_scalar_polynomial
 from tests.methods.pdm.test_realtime_paths import frames  # noqa: F401  S inside and beyond the hull
 
 
@@ -59,7 +59,7 @@ def test_compiled_band_is_the_numpy_scalar_path_bit_for_bit_per_block(order, wid
     P = len(coeffs)
     with np.errstate(over="ignore"):                                     # 1.25 × 3e38 is inf
         sure = sure_bound(envelope)
-        tv = TexelValidity.build(R, coeffs.transpose(2, 1, 0), envelope, sure, width, slope)
+        tv = TexelValidity.build(R, coeffs.transpose(2, 1, 0), envelope, sure, width, slope, MARGIN)
     rho = texel_gauge(R, point_rho)
     fallback = coeffs[:, :, -1]
     cuts = [0, 1, 70, 71, 333, P]                                        # one-point blocks too
@@ -82,7 +82,7 @@ def test_gauge_pads_short_rows_with_weight_zero_bit_for_bit():
     assert set(np.diff(R.indptr)) == {1, 2, 3}
     point_rho = (np.abs(rng.normal(size=40)) * 2).astype(np.float32)
     terms = rng.normal(size=(6, 1, 500)).astype(np.float32)
-    tv = TexelValidity.build(R, terms, np.ones(500, np.float32), np.ones(500, np.float32), 1.0, 1.0)
+    tv = TexelValidity.build(R, terms, np.ones(500, np.float32), np.ones(500, np.float32), 1.0, 1.0, MARGIN)
     rho, out, flag = np.empty(500, np.float32), np.empty(500, np.float32), np.empty(500, bool)
     count = gauge_kernel(0, 500, point_rho.astype(np.float64), tv.corner, tv.weight, rho)
     want = texel_gauge(R, point_rho[None])[0]
@@ -95,7 +95,7 @@ def test_gauge_pads_short_rows_with_weight_zero_bit_for_bit():
 def test_build_rejects_operators_it_cannot_pad():
     R = sp.csr_matrix(np.ones((2, 5)))
     with pytest.raises(ValueError, match="entries a row"):
-        TexelValidity.build(R, np.zeros((6, 1, 2), np.float32), np.ones(2), np.ones(2), 1.0, 1.0)
+        TexelValidity.build(R, np.zeros((6, 1, 2), np.float32), np.ones(2), np.ones(2), 1.0, 1.0, MARGIN)
 
 
 def test_the_models_fine_band_runs_compiled_as_the_numpy_blocks(pdm_model, frames):
