@@ -10,8 +10,8 @@ was 0.47 ms of CPU for 45,600 points (the level-1 sample actor's, load 10; +0.57
 level-1 mesh frame, 22.62 → 23.19 ms, ``benchmarks/realtime_ab.py``). Here one Numba kernel
 over point ranges, each point read and written once, with the same float32 operations in
 the same order (no fast-math), so the values are the reference's bit for bit
-(tests/methods/pdm/test_rest_onset.py); the mesh frame measured 23.28 → 23.14 ms against
-main (load 10, noise). Numba is imported here, so this module is imported where an
+(tests/methods/pdm/test_rest_onset.py); the mesh frame measured 19.90 → 19.67 ms of CPU
+against main (``benchmarks/realtime_ab.py --rev 6b6c527 --calls 30``, load 3.5). Numba is imported here, so this module is imported where an
 evaluator is built, never by ``facesynth serve``'s start.
 """
 
