@@ -42,9 +42,11 @@ def test_a_new_and_a_sparser_marker_set_drive_the_model(pdm_model, pdm_data, hel
         model = remap_model(pdm_model, layout.triangle, layout.barycentric)
         markers = layout.positions(heldout.vertices, actor.faces)          # the new set, on the truth
         errors[count] = _face_error(model.synthesize(markers), heldout, actor)
-    # measured (level 0, seed 2): training layout 0.236, new 150 markers 0.297, new 100 0.344 mm
+    # measured (level 0, seed 2): training layout 0.236, new 150 markers 0.297, new 100 0.344 mm;
+    # with the medium band's rest onset (issue 17) the training layout 0.202 and new 100 0.325 mm
+    # (both better; the ratio 1.46 → 1.61)
     assert errors[150] < 1.4 * base_error
-    assert errors[100] < 1.6 * base_error
+    assert errors[100] < 1.7 * base_error
 
 
 def test_register_markers_recovers_the_capture_space(pdm_data):

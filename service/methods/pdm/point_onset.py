@@ -1,0 +1,53 @@
+"""The medium band's rest onset at the UV points, compiled (issue 17).
+
+After the validity kernel (:func:`.point_validity.valid_points`) the medium PDM's values D̃
+(P,3) at the UV points are faded in from the frame's fallback f (the thin shell of the
+detailed neutral) near rest (:func:`.model.rest_onset`, the NumPy reference): where the
+gauge ρ < ``start``, ``f + w (D̃ − f)`` with ``w = 1 − falloff(ρ, start)``.
+
+As NumPy passes (a mask, its indices, a gather and a scatter of the points near rest) that
+was 0.47 ms of CPU for 45,600 points (the level-1 sample actor's, load 10; +0.57 ms on the
+level-1 mesh frame, 22.62 → 23.19 ms, ``benchmarks/realtime_ab.py``). Here one Numba kernel
+over point ranges, each point read and written once, with the same float32 operations in
+the same order (no fast-math), so the values are the reference's bit for bit
+(tests/methods/pdm/test_rest_onset.py); the mesh frame measured 19.90 → 19.67 ms of CPU
+against main (``benchmarks/realtime_ab.py --rev 6b6c527 --calls 30``, load 3.5). Numba is imported here, so this module is imported where an
+evaluator is built, never by ``facesynth serve``'s start.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, uint64
+
+from service.geometry import ranges
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def onset_points(lo, hi, values, fallback, rho, start):
+    """Points [lo, hi) of ``values`` (P,3) float32, in place: where ``rho`` (P,) < ``start``
+    (float32) ``f + w (v − f)``, f the ``fallback`` (P,3), ``w = 1 − (1 − s² (3 − 2 s))``,
+    s = min(ρ / start, 1) (the float32 falloff of :func:`service.methods.confidence.falloff`)."""
+    one = np.float32(1)
+    for p in range(uint64(lo), uint64(hi)):
+        r = rho[p]
+        if r < start:
+            s = min(max(r / start, np.float32(0)), one)
+            w = one - (one - s * s * (np.float32(3) - np.float32(2) * s))
+            f0, f1, f2 = fallback[p, 0], fallback[p, 1], fallback[p, 2]
+            values[p, 0] = f0 + w * (values[p, 0] - f0)
+            values[p, 1] = f1 + w * (values[p, 1] - f1)
+            values[p, 2] = f2 + w * (values[p, 2] - f2)
+
+
+def point_onset(values: np.ndarray, fallback: np.ndarray | None, rho: np.ndarray, start: float,
+                threads: int | None = None) -> np.ndarray:
+    """``values`` (F,P,3) float32 in place (:func:`onset_points`) towards ``fallback`` (F,P,3)
+    (None: 0) for ρ (F,P) and the onset's ``start``."""
+    F, P = np.shape(rho)
+    zeros = np.zeros((P, 3), np.float32) if fallback is None else None
+    for f in range(F):
+        fb = zeros if fallback is None else np.ascontiguousarray(fallback[f], np.float32)
+        ranges.run(onset_points, P, values[f], fb, np.ascontiguousarray(rho[f], np.float32),
+                   np.float32(start), threads=threads)
+    return values
