@@ -57,7 +57,6 @@ with a float64 evaluation of the definition to ~1e-6 (tests). Cost: see
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -94,56 +93,37 @@ def uv_chart_labels(uv_faces: np.ndarray, K: int) -> np.ndarray:
     return label[UF[:, 0]].astype(np.int64)
 
 
-@dataclass(frozen=True)
-class _Stencil:
-    """Finite differences of a map along one axis at the covered texels, in uv units.
+def stencil_codes(texel: np.ndarray, chart: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """The finite-difference stencils of the covered texels (module notes), as the compiled
+    texel pass reads them.
 
-    Central where both neighbours along the axis are covered texels of the same chart,
-    one-sided where one is, zero where neither is. Central differences (nearly all texels)
-    are read from one dense difference image; the few others are patched from their stencil.
-
-    Attributes
+    Parameters
     ----------
-    step : int             1 (along a row, +x) or W (along a column, +y), in flat indices
-    odd : (k,) int64       positions (into the covered texels) of the non-central ones
-    plus, minus : (k,) int64   their flat texel indices (the texel itself on an unusable side)
-    scale : (N,) float32   (W or −H) × (1/2, 1 or 0): texel differences → ∂h/∂u or ∂h/∂v
+    texel : (N,) int   flat (row-major) indices of the covered texels, increasing
+    chart : (N,) int   their UV charts (:func:`uv_chart_labels`)
+    H, W : int         map size
+
+    Returns
+    -------
+    code : (N,) uint8      bits :data:`~service.geometry.normal_texels.U_FWD`, ``U_BWD``,
+                           ``V_FWD``, ``V_BWD``: the neighbour along +x, −x, +y, −y is a
+                           covered texel of the same chart
+    scales : (2,3) float32 rows u and v, by the count of usable sides (0, 1, 2): texel
+                           differences → ∂h/∂u (W × (0, 1, 1/2)) or ∂h/∂v (−H × (0, 1, 1/2))
     """
+    from service.geometry.normal_texels import U_BWD, U_FWD, V_BWD, V_FWD
 
-    step: int
-    odd: np.ndarray
-    plus: np.ndarray
-    minus: np.ndarray
-    scale: np.ndarray
-
-    @classmethod
-    def build(cls, texel: np.ndarray, chart: np.ndarray, H: int, W: int, axis: int) -> "_Stencil":
-        """Stencil of the covered texels (N,) (flat, increasing) with chart labels (N,) along
-        ``axis`` 1 (columns: ∂/∂u = W ∂/∂x) or 0 (rows: ∂/∂v = −H ∂/∂y)."""
-        step, size, unit = (1, W, W) if axis == 1 else (W, H, -H)
-        chart_img = np.full(H * W, -1, dtype=np.int64)
-        chart_img[texel] = chart
-        coord = texel % W if axis == 1 else texel // W
-        fwd = (coord < size - 1) & (chart_img[np.minimum(texel + step, H * W - 1)] == chart)
-        bwd = (coord > 0) & (chart_img[np.maximum(texel - step, 0)] == chart)
-        count = fwd.astype(np.int64) + bwd
-        odd = np.flatnonzero(count < 2)
-        scale = np.divide(float(unit), count, out=np.zeros(len(texel)), where=count > 0)
-        return cls(step=step, odd=odd, plus=np.where(fwd, texel + step, texel)[odd],
-                   minus=np.where(bwd, texel - step, texel)[odd], scale=scale.astype(np.float32))
-
-    def derivative(self, hf: np.ndarray, texel: np.ndarray) -> np.ndarray:
-        """∂h/∂u or ∂h/∂v (N,) float32 at the covered texels (N,) of the flat map hf (H·W,)."""
-        s, size = self.step, len(hf)
-        diff = np.zeros(size, dtype=hf.dtype)          # diff[p] = h[p + s] − h[p − s]
-        if size > 2 * s:
-            with np.errstate(invalid="ignore", over="ignore"):    # uncovered texels may be ±inf
-                np.subtract(hf[2 * s:], hf[:size - 2 * s], out=diff[s:size - s])
-        d = np.take(diff, texel)
-        d[self.odd] = hf[self.plus] - hf[self.minus]
-        d = d.astype(np.float32, copy=False)
-        d *= self.scale
-        return d
+    texel = np.asarray(texel, np.int64)
+    chart_img = np.full(H * W, -1, dtype=np.int64)
+    chart_img[texel] = chart
+    code = np.zeros(len(texel), np.uint8)
+    scales = np.zeros((2, 3), np.float32)
+    for row, (step, size, unit, fwd, bwd) in enumerate(((1, W, W, U_FWD, U_BWD), (W, H, -H, V_FWD, V_BWD))):
+        coord = texel % W if step == 1 else texel // W
+        code[(coord < size - 1) & (chart_img[np.minimum(texel + step, H * W - 1)] == chart)] |= fwd
+        code[(coord > 0) & (chart_img[np.maximum(texel - step, 0)] == chart)] |= bwd
+        scales[row] = np.float32([0.0, float(unit), float(unit) / 2])
+    return code, scales
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -220,8 +200,6 @@ class NormalMapper:
 
         texel = np.flatnonzero(triangle.ravel() >= 0)                   # (N,) row-major
         used, local = np.unique(triangle.ravel()[texel], return_inverse=True)
-        self._texel = texel
-        self._triangle = local.astype(np.int64)                          # into the used triangles
         self._faces_t = np.ascontiguousarray(F[used].T)                  # (3,mu)
         self._used = used.astype(np.int64)                               # (mu,) into F
         self._m = len(F)
@@ -230,16 +208,19 @@ class NormalMapper:
         self._uv_edges = np.stack([d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]]).astype(np.float32)
 
         chart = uv_chart_labels(UF, len(uv))[used][local]
-        self._du = _Stencil.build(texel, chart, H, W, axis=1)
-        self._dv = _Stencil.build(texel, chart, H, W, axis=0)
+        self._code, self._scales = stencil_codes(texel, chart, H, W)
+        gap = np.diff(np.concatenate([[0], triangle.ravel() < 0, [0]]).astype(np.int8))
+        self._runs = np.column_stack([np.flatnonzero(gap == 1), np.flatnonzero(gap == -1)]).astype(np.uint32)
 
         self._lam = np.ascontiguousarray(raster.barycentric.reshape(-1, 3)[texel], dtype=np.float32)
         self._corners = F[used][local].astype(np.uint32)                  # (N,3) the texels' vertices
+        self._texel = texel.astype(np.uint32)
+        self._triangle = local.astype(np.uint32)
         import service.geometry.normal_texels  # noqa: F401   Numba, loaded where a mapper (a model) is built
 
     @property
     def texels(self) -> np.ndarray:
-        """(N,) int64 flat (row-major) indices of the covered texels."""
+        """(N,) uint32 flat (row-major) indices of the covered texels."""
         return self._texel
 
     def gradient_operators(self, V: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
@@ -332,9 +313,7 @@ class NormalMapper:
             raise ValueError(f"rows[0] must be float32 (6,{self.n}), got {rows[0].dtype} {rows[0].shape}")
 
         H, W = self.shape
-        hf = h.reshape(-1)
-        du = self._du.derivative(hf, self._texel)                        # (N,) ∂h/∂u
-        dv = self._dv.derivative(hf, self._texel)                        # (N,) ∂h/∂v
+        hf = np.ascontiguousarray(h).reshape(-1)
         if rows is None:
             K = self.gradient_operators(V)
             TN = np.empty((6, self.n), dtype=np.float32)                # rows Tx, Ty, Tz, Nx, Ny, Nz
@@ -344,17 +323,15 @@ class NormalMapper:
             TN, edges = rows
             K = self.gradient_operators(V, edges)
         if out is None:
-            out = np.zeros((H, W, 3), dtype=np.float32)
+            out = np.empty((H, W, 3), dtype=np.float32)
         elif out.shape != (H, W, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError(f"out must be a C-contiguous float32 ({H},{W},3) array")
-        else:
-            out[...] = 0.0
         flat = out.reshape(H * W, 3)
-        flat[:, 2] = 1.0
-        from service.geometry.normal_texels import normal_texels
+        from service.geometry.normal_texels import flat_runs, normal_texels
 
-        ranges.run(normal_texels, len(self._texel), self._texel.view(np.uint64), self._triangle.view(np.uint64),
-                   self._lam, self._corners, du, dv, K, np.ascontiguousarray(TN, np.float32), _EPS, flat,
+        ranges.run(flat_runs, len(self._runs), self._runs, flat, threads=threads)
+        ranges.run(normal_texels, len(self._texel), self._texel, self._triangle, self._lam, self._corners,
+                   self._code, self._scales, W, hf, K, np.ascontiguousarray(TN, np.float32), _EPS, flat,
                    threads=threads)
         return out
 

@@ -40,6 +40,9 @@ from numba import njit, uint64
 #: texels per block of :func:`normal_texels` (its two work arrays, 12 rows of BLOCK float32,
 #: stay in the L1 cache; 64-1024 measured within 0.6 ms of each other)
 BLOCK = 128
+#: bits of a texel's stencil code (:func:`stencil_codes`): the neighbour along +x (+u), −x,
+#: +y (−v), −y is a covered texel of the same chart
+U_FWD, U_BWD, V_FWD, V_BWD = 1, 2, 4, 8
 
 
 @njit(nogil=True, cache=True, error_model="numpy", inline="always")
@@ -77,22 +80,41 @@ def _unit_normal(t0, t1, t2, n0, n1, n2, g0, g1, g2, eps):
     return x * r, y * r, r
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _difference(hf, p, step, code, fwd, bwd, scales):
+    """∂h/∂u or ∂h/∂v (float32) at the flat texel p of the map hf (H·W,): ``h[p + step] −
+    h[p − step]`` with each side replaced by p itself where its bit of ``code`` (``fwd``,
+    ``bwd``) is clear, in hf's dtype, rounded to float32 and times ``scales[count]`` (count the
+    usable sides: central, one-sided, or 0)."""
+    f = uint64(1) if code & fwd else uint64(0)
+    b = uint64(1) if code & bwd else uint64(0)
+    d = np.float32(hf[p + f * step] - hf[p - b * step])
+    return d * scales[f + b]
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out):
+def normal_texels(lo, hi, texel, triangle, lam, corners, code, scales, width, hf, K, TN, eps, out):
     """Texels [lo, hi): ``out[texel[i]]`` (H·W,3) float32 = the unit tangent-space normal of
     covered texel i, from its triangle ``triangle[i]`` (a column of the operators K (6,mu)
     float32, rows Ku, Kv), its barycentric weights ``lam`` (N,3) float32 on the vertices
-    ``corners`` (N,3), the map's derivatives ``du``, ``dv`` (N,) float32 and the vertex rows
-    ``TN`` (6,n) float32 (T, N); ``eps`` the clamp of |T×N|² and |Z|² (FRAME_DEGENERATE).
-    In blocks of :data:`BLOCK` texels (module docstring)."""
+    ``corners`` (N,3), the map's finite differences (:func:`_difference` of hf (H·W,) with
+    the texel's stencil bits ``code[i]`` and the scales (2,3) float32 of u and v; ``width``
+    W the step of a row) and the vertex rows ``TN`` (6,n) float32 (T, N); ``eps`` the clamp
+    of |T×N|² and |Z|² (FRAME_DEGENERATE). In blocks of :data:`BLOCK` texels (module
+    docstring)."""
     rows = np.empty((9, BLOCK), np.float32)        # t0 t1 t2 n0 n1 n2 g0 g1 g2 of the block
     res = np.empty((3, BLOCK), np.float32)
+    su, sv = scales[0], scales[1]
+    one, w = uint64(1), uint64(width)
     for s in range(uint64(lo), uint64(hi), uint64(BLOCK)):
         n = min(uint64(BLOCK), uint64(hi) - s)
         for j in range(n):                         # (a) gathers, interpolation, gradient
             i = s + j
+            p = uint64(texel[i])
+            c = code[i]
+            a = _difference(hf, p, one, c, U_FWD, U_BWD, su)
+            b = _difference(hf, p, w, c, V_FWD, V_BWD, sv)
             q = triangle[i]
-            a, b = du[i], dv[i]
             g0 = K[0, q] * a
             g1 = K[1, q] * a
             g2 = K[2, q] * a
@@ -119,3 +141,14 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out
             out[p, 0] = res[0, j]
             out[p, 1] = res[1, j]
             out[p, 2] = res[2, j]
+
+
+@njit(nogil=True, cache=True)
+def flat_runs(lo, hi, runs, out):
+    """Runs [lo, hi) of uncovered texels: ``out[p] = (0, 0, 1)`` (H·W,3) float32 for
+    ``runs[r, 0] ≤ p < runs[r, 1]`` (the normal of a texel without a gradient)."""
+    for r in range(uint64(lo), uint64(hi)):
+        for p in range(uint64(runs[r, 0]), uint64(runs[r, 1])):
+            out[p, 0] = np.float32(0)
+            out[p, 1] = np.float32(0)
+            out[p, 2] = np.float32(1)

@@ -265,6 +265,29 @@ def test_function_and_mapper_agree_bit_exactly_and_calls_are_independent():
     np.testing.assert_allclose(mapper.normal_map(h1.astype(np.float32), V, fr), a, atol=1e-5)
 
 
+def _numpy_derivatives(mapper, hf):
+    """(∂h/∂u, ∂h/∂v) (N,) float32 at the covered texels as NumPy passes over the map (frozen
+    copy of the mapper's stencils before the compiled pass took them in, issue 23): central
+    differences from one dense difference image, the non-central texels patched."""
+    from service.geometry.normal_texels import U_BWD, U_FWD, V_BWD, V_FWD
+
+    texel = mapper._texel.astype(np.int64)
+    W = mapper.shape[1]
+    out = []
+    for row, (step, fwd, bwd) in enumerate(((1, U_FWD, U_BWD), (W, V_FWD, V_BWD))):
+        f, b = (mapper._code & fwd) > 0, (mapper._code & bwd) > 0
+        odd = np.flatnonzero(~(f & b))
+        diff = np.zeros(len(hf), dtype=hf.dtype)
+        with np.errstate(invalid="ignore", over="ignore"):
+            np.subtract(hf[2 * step:], hf[:len(hf) - 2 * step], out=diff[step:len(hf) - step])
+        d = np.take(diff, texel)
+        d[odd] = hf[np.where(f, texel + step, texel)[odd]] - hf[np.where(b, texel - step, texel)[odd]]
+        d = d.astype(np.float32, copy=False)
+        d *= mapper._scales[row][f.astype(int) + b]
+        out.append(d)
+    return out
+
+
 def _numpy_normal_map(mapper, h, V, frames):
     """The per-texel pass as NumPy blocks of sparse products and elementwise passes
     (frozen copy of NormalMapper.normal_map before its compiled kernel, issue 23)."""
@@ -274,8 +297,7 @@ def _numpy_normal_map(mapper, h, V, frames):
 
     H, W = mapper.shape
     hf = np.asarray(h).reshape(-1)
-    du = mapper._du.derivative(hf, mapper._texel)
-    dv = mapper._dv.derivative(hf, mapper._texel)
+    du, dv = _numpy_derivatives(mapper, hf)
     K = mapper.gradient_operators(V)
     TN = np.empty((6, mapper.n), dtype=np.float32)
     TN[:3] = frames[:, 0].T
