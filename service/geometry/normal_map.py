@@ -72,6 +72,7 @@ TRIANGLE_DEGENERATE_SIN = 1e-6
 FRAME_DEGENERATE = 1e-6
 
 _EPS = np.float32(FRAME_DEGENERATE)
+_SIN2 = np.float32(TRIANGLE_DEGENERATE_SIN ** 2)
 
 
 def uv_chart_labels(uv_faces: np.ndarray, K: int) -> np.ndarray:
@@ -124,20 +125,6 @@ def stencil_codes(texel: np.ndarray, chart: np.ndarray, H: int, W: int) -> tuple
         code[(coord > 0) & (chart_img[np.maximum(texel - step, 0)] == chart)] |= bwd
         scales[row] = np.float32([0.0, float(unit), float(unit) / 2])
     return code, scales
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Column-wise dot product of (3,N) arrays (written out: faster than sum or einsum)."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Column-wise cross product ``a × b`` of (3,N) arrays."""
-    c = np.empty_like(a)
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        np.multiply(a[j], b[k], out=c[i])
-        c[i] -= a[k] * b[j]
-    return c
 
 
 class NormalMapper:
@@ -201,7 +188,7 @@ class NormalMapper:
         texel = np.flatnonzero(triangle.ravel() >= 0)                   # (N,) row-major
         used, local = np.unique(triangle.ravel()[texel], return_inverse=True)
         self._faces_t = np.ascontiguousarray(F[used].T)                  # (3,mu)
-        self._used = used.astype(np.int64)                               # (mu,) into F
+        self._used = used.astype(np.uint32)                              # (mu,) into F
         self._m = len(F)
         U = uv[UF[used]]                                                 # (mu,3,2)
         d1, d2 = U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]
@@ -246,28 +233,21 @@ class NormalMapper:
                              units per mm: ``g = K[:3] ∂h/∂u + K[3:] ∂h/∂v``; zero for
                              triangles degenerate in 3D
         """
+        from service.geometry.normal_texels import triangle_operators
+
         if edges is None:
             Vt = np.ascontiguousarray(np.asarray(V, dtype=np.float64).T)    # (3,n)
             p0 = np.take(Vt, self._faces_t[0], axis=1)
-            e1 = (np.take(Vt, self._faces_t[1], axis=1) - p0).astype(np.float32)
-            e2 = (np.take(Vt, self._faces_t[2], axis=1) - p0).astype(np.float32)
+            edges = np.concatenate([np.take(Vt, self._faces_t[1], axis=1) - p0,
+                                    np.take(Vt, self._faces_t[2], axis=1) - p0], axis=1).astype(np.float32)
+            used, m = np.arange(len(self._used), dtype=np.uint32), len(self._used)
         else:
             if edges.shape != (3, 2 * self._m) or edges.dtype != np.float32:
                 raise ValueError(f"edges must be float32 (3,{2 * self._m}), got {edges.dtype} {edges.shape}")
-            e1 = np.take(edges, self._used, axis=1)
-            e2 = np.take(edges, self._used + self._m, axis=1)
-        nrm = _cross(e1, e2)
-        det = _dot(nrm, nrm)                                             # (2 area)²
-        ok = det > np.float32(TRIANGLE_DEGENERATE_SIN ** 2) * _dot(e1, e1) * _dot(e2, e2)
-        inv = np.divide(np.float32(1.0), det, out=np.zeros_like(det), where=ok)
-        a1 = _cross(e2, nrm)
-        a1 *= inv
-        a2 = _cross(nrm, e1)
-        a2 *= inv
-        du1, dv1, du2, dv2 = self._uv_edges
-        K = np.empty((6, len(det)), dtype=np.float32)
-        K[:3] = a1 * du1 + a2 * du2
-        K[3:] = a1 * dv1 + a2 * dv2
+            used, m = self._used, self._m
+        K = np.empty((6, len(self._used)), dtype=np.float32)
+        ranges.run(triangle_operators, len(used), np.ascontiguousarray(edges), used, m, self._uv_edges,
+                   _SIN2, K)
         return K
 
     def normal_map(self, h: np.ndarray, V: np.ndarray, frames: np.ndarray | None,
