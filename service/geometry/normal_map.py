@@ -94,36 +94,34 @@ def uv_chart_labels(uv_faces: np.ndarray, K: int) -> np.ndarray:
     return label[UF[:, 0]].astype(np.int64)
 
 
-def stencil_codes(texel: np.ndarray, chart: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
-    """The finite-difference stencils of the covered texels (module notes), as the compiled
+def stencil_codes(chart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The finite-difference stencils of a map's texels (module notes), as the compiled
     texel pass reads them.
 
     Parameters
     ----------
-    texel : (N,) int   flat (row-major) indices of the covered texels, increasing
-    chart : (N,) int   their UV charts (:func:`uv_chart_labels`)
-    H, W : int         map size
+    chart : (H,W) int   UV chart of each texel (:func:`uv_chart_labels` of its triangle),
+                        negative where uncovered
 
     Returns
     -------
-    code : (N,) uint8      bits :data:`~service.geometry.normal_texels.U_FWD`, ``U_BWD``,
+    code : (H,W) uint8     bits :data:`~service.geometry.normal_texels.U_FWD`, ``U_BWD``,
                            ``V_FWD``, ``V_BWD``: the neighbour along +x, −x, +y, −y is a
-                           covered texel of the same chart
+                           texel of the same chart (meaningful at covered texels)
     scales : (2,3) float32 rows u and v, by the count of usable sides (0, 1, 2): texel
                            differences → ∂h/∂u (W × (0, 1, 1/2)) or ∂h/∂v (−H × (0, 1, 1/2))
     """
     from service.geometry.normal_texels import U_BWD, U_FWD, V_BWD, V_FWD
 
-    texel = np.asarray(texel, np.int64)
-    chart_img = np.full(H * W, -1, dtype=np.int64)
-    chart_img[texel] = chart
-    code = np.zeros(len(texel), np.uint8)
-    scales = np.zeros((2, 3), np.float32)
-    for row, (step, size, unit, fwd, bwd) in enumerate(((1, W, W, U_FWD, U_BWD), (W, H, -H, V_FWD, V_BWD))):
-        coord = texel % W if step == 1 else texel // W
-        code[(coord < size - 1) & (chart_img[np.minimum(texel + step, H * W - 1)] == chart)] |= fwd
-        code[(coord > 0) & (chart_img[np.maximum(texel - step, 0)] == chart)] |= bwd
-        scales[row] = np.float32([0.0, float(unit), float(unit) / 2])
+    H, W = chart.shape
+    code = np.zeros((H, W), np.uint8)
+    same = (chart[:, 1:] == chart[:, :-1]).view(np.uint8)           # x and x + 1
+    code[:, :-1] |= same * np.uint8(U_FWD)
+    code[:, 1:] |= same * np.uint8(U_BWD)
+    same = (chart[1:] == chart[:-1]).view(np.uint8)                 # y and y + 1
+    code[:-1] |= same * np.uint8(V_FWD)
+    code[1:] |= same * np.uint8(V_BWD)
+    scales = np.float32([[0.0, float(W), W / 2], [0.0, float(-H), -H / 2]])
     return code, scales
 
 
@@ -178,15 +176,21 @@ class NormalMapper:
             raise ValueError(f"F index out of range [0, {n})")
         if len(UF) and (UF.min() < 0 or UF.max() >= len(uv)):
             raise ValueError(f"uv_faces index out of range [0, {len(uv)})")
-        triangle = np.asarray(raster.triangle, dtype=np.int64)
+        triangle = np.asarray(raster.triangle)
+        if not np.issubdtype(triangle.dtype, np.signedinteger):
+            triangle = triangle.astype(np.int64)
         if triangle.max(initial=-1) >= len(F):
             raise ValueError(f"raster refers to triangle {triangle.max()}, but F has {len(F)}")
         H, W = triangle.shape
         self.shape = (H, W)
         self.n = n
 
-        texel = np.flatnonzero(triangle.ravel() >= 0)                   # (N,) row-major
-        used, local = np.unique(triangle.ravel()[texel], return_inverse=True)
+        flat = triangle.ravel()
+        texel = np.flatnonzero(flat >= 0)                               # (N,) row-major
+        tri = flat[texel]
+        used = np.flatnonzero(np.bincount(tri, minlength=len(F)))       # (mu,) increasing
+        into_used = np.zeros(len(F), np.uint32)
+        into_used[used] = np.arange(len(used), dtype=np.uint32)
         self._faces_t = np.ascontiguousarray(F[used].T)                  # (3,mu)
         self._used = used.astype(np.uint32)                              # (mu,) into F
         self._m = len(F)
@@ -194,15 +198,16 @@ class NormalMapper:
         d1, d2 = U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]
         self._uv_edges = np.stack([d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]]).astype(np.float32)
 
-        chart = uv_chart_labels(UF, len(uv))[used][local]
-        self._code, self._scales = stencil_codes(texel, chart, H, W)
-        gap = np.diff(np.concatenate([[0], triangle.ravel() < 0, [0]]).astype(np.int8))
+        label = np.append(uv_chart_labels(UF, len(uv)).astype(np.int32), np.int32(-1))
+        code, self._scales = stencil_codes(label[triangle])             # −1 (uncovered) → −1
+        self._code = code.ravel()[texel]
+        gap = np.diff((flat < 0).view(np.int8), prepend=np.int8(0), append=np.int8(0))
         self._runs = np.column_stack([np.flatnonzero(gap == 1), np.flatnonzero(gap == -1)]).astype(np.uint32)
 
         self._lam = np.ascontiguousarray(raster.barycentric.reshape(-1, 3)[texel], dtype=np.float32)
-        self._corners = F[used][local].astype(np.uint32)                  # (N,3) the texels' vertices
+        self._corners = F.astype(np.uint32)[tri]                         # (N,3) the texels' vertices
         self._texel = texel.astype(np.uint32)
-        self._triangle = local.astype(np.uint32)
+        self._triangle = into_used[tri]                                  # (N,) into the used triangles
         import service.geometry.normal_texels  # noqa: F401   Numba, loaded where a mapper (a model) is built
 
     @property
