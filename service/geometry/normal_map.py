@@ -130,11 +130,14 @@ class NormalMapper:
 
     Everything that depends only on the layout is precomputed once: the covered texels and
     their triangles, the barycentric weights on the triangles' vertices, the UV edges of the
-    used triangles and the finite-difference stencils. Each :meth:`normal_map` call then
-    costs one pass over the used triangles (the gradient operators (1) of the module notes
-    on the current mesh), the finite differences, and one compiled pass over the covered
-    texels (:func:`service.geometry.normal_texels.normal_texels`: interpolation, gradient,
-    frame, normal, written into the map).
+    used triangles, the finite-difference stencils (one byte of neighbour bits per texel,
+    :func:`stencil_codes`) and the runs of uncovered texels. Each :meth:`normal_map` call
+    then costs one compiled pass over the used triangles (the gradient operators (1) of the
+    module notes on the current mesh, :func:`service.geometry.normal_texels.triangle_operators`),
+    one writing (0,0,1) over the uncovered runs, and one over the covered texels
+    (:func:`service.geometry.normal_texels.normal_texels`: finite differences,
+    interpolation, gradient, frame, normal, written into the map): every texel of the
+    output written once, no zero fill.
 
     Parameters
     ----------
@@ -152,7 +155,8 @@ class NormalMapper:
 
     Notes
     -----
-    Static memory ≈ 53 bytes per covered texel (38 MB for the 715k of a 1024² map).
+    Static memory ≈ 33 bytes per covered texel (24 MB for the 715k of a 1024² map; 53
+    with int64 indices and float32 stencil scales before).
 
     Per call, 1024² map, 45k-vertex / 89k-triangle mesh, one core of a 2-core AMD EPYC VM
     (NumPy 2.4, SciPy 1.17): the NumPy passes this replaced took 39-42 ms best, ≈ 45 ms
@@ -160,6 +164,15 @@ class NormalMapper:
     gathering (Ku, Kv) 4.5, per-texel arithmetic 12, output 5, finite differences 3.5,
     operators (1) 3.5); the compiled texel pass took a level-1 PDM maps frame from 59.5 to
     47.2 ms of CPU (issue 23, alternating in one run, load 1.8), the maps bit for bit.
+    Then the finite differences moved into the texel pass (they were two (H·W) difference
+    images, gathers and patches per axis: 5.6 ms of cProfile), the zero fill became the
+    uncovered runs, and the operators (1) a per-triangle kernel (3.3 ms as NumPy passes):
+    one call 18.1 → 9.7 ms of CPU on the level-1 map (main's mapper against this one,
+    alternating in one process, same inputs, load 1.0; bit for bit). Tried and not kept:
+    (T, N) and (Ku, Kv) interleaved per vertex / triangle ((n,6), transposed per call:
+    within noise, 11.4 vs 11.4 ms) and padded to 8 floats (13.3 ms: the strided copies).
+    Built in ≈ 40 ms at 1024² (level-1 PDM load; 100 ms with ``np.unique`` and per-texel
+    int64 stencils).
     """
 
     def __init__(self, raster: UVRaster, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,

@@ -347,8 +347,9 @@ class PdmEvaluator:
         (:meth:`.deformation.ParameterField.arrays`) and ``<band>_order`` the fine and albedo
         texels' element order; ``shell_correction`` (n,M) float32 the detailed neutral's
         thin-shell basis less the base's (:meth:`shell_fallback`); ``shell_mesh_*`` the
-        compiled mesh's vertex order and both bases in it (:meth:`.shell_mesh.ShellMesh.stored`:
-        a load maps them instead of permuting 2 × (n,M); a cache without them permutes); the CSR matrices ``seam_average``, ``fine_sampler`` and
+        compiled mesh's vertex order, both bases in it and its ShellFrames
+        (:meth:`.shell_mesh.ShellMesh.stored`: a load maps them instead of permuting 2 × (n,M)
+        and building the frames' order and incidence; a cache without them does that); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
         rasterization at the fine resolution (not held by the evaluator: rasterized again
