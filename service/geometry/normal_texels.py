@@ -161,42 +161,40 @@ def flat_runs(lo, hi, runs, out):
             out[p, 2] = np.float32(1)
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _cross(a0, a1, a2, b0, b1, b2):
+    """``a × b`` of two float32 3-vectors, each component ``a_j b_k`` less ``a_k b_j`` (the
+    order of the NumPy passes: the product rounded, then the other subtracted)."""
+    c0 = a1 * b2
+    c0 -= a2 * b1
+    c1 = a2 * b0
+    c1 -= a0 * b2
+    c2 = a0 * b1
+    c2 -= a1 * b0
+    return c0, c1, c2
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def triangle_operators(lo, hi, edges, used, m, uv_edges, sin2, K):
     """Used triangles [lo, hi): the gradient operators (1) ``K[:, t]`` (6,mu) float32 =
     (Ku, Kv) of triangle ``used[t]``, whose edges e1, e2 are columns ``used[t]`` and
     ``used[t] + m`` of ``edges`` (3,2m) float32, and whose UV edges are ``uv_edges[:, t]``
     (Δu1, Δv1, Δu2, Δv2); zero where ``|e1×e2|² ≤ sin2 |e1|²|e2|²`` (degenerate in 3D).
-    The float32 operations and order of :meth:`NormalMapper.gradient_operators`' NumPy
-    passes (``_cross``, ``_dot``)."""
+    The float32 operations in the order of the NumPy passes over (3,mu) rows this replaced
+    (tests/geometry/test_normal_map.py pins it against them bit for bit)."""
     for t in range(uint64(lo), uint64(hi)):
         a = uint64(used[t])
         b = a + uint64(m)
         p0, p1, p2 = edges[0, a], edges[1, a], edges[2, a]
         q0, q1, q2 = edges[0, b], edges[1, b], edges[2, b]
-        n0 = p1 * q2
-        n0 -= p2 * q1
-        n1 = p2 * q0
-        n1 -= p0 * q2
-        n2 = p0 * q1
-        n2 -= p1 * q0
+        n0, n1, n2 = _cross(p0, p1, p2, q0, q1, q2)                 # n = e1 × e2
         det = n0 * n0 + n1 * n1 + n2 * n2
         inv = np.float32(0)
         if det > sin2 * (p0 * p0 + p1 * p1 + p2 * p2) * (q0 * q0 + q1 * q1 + q2 * q2):
             inv = np.float32(1) / det
-        a0 = q1 * n2                               # a1 = (e2 × n) / |n|²
-        a0 -= q2 * n1
-        a1 = q2 * n0
-        a1 -= q0 * n2
-        a2 = q0 * n1
-        a2 -= q1 * n0
+        a0, a1, a2 = _cross(q0, q1, q2, n0, n1, n2)                 # a1 = (e2 × n) / |n|²
         a0, a1, a2 = a0 * inv, a1 * inv, a2 * inv
-        b0 = n1 * p2                               # a2 = (n × e1) / |n|²
-        b0 -= n2 * p1
-        b1 = n2 * p0
-        b1 -= n0 * p2
-        b2 = n0 * p1
-        b2 -= n1 * p0
+        b0, b1, b2 = _cross(n0, n1, n2, p0, p1, p2)                 # a2 = (n × e1) / |n|²
         b0, b1, b2 = b0 * inv, b1 * inv, b2 * inv
         du1, dv1, du2, dv2 = uv_edges[0, t], uv_edges[1, t], uv_edges[2, t], uv_edges[3, t]
         K[0, t] = a0 * du1 + b0 * du2
