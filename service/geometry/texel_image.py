@@ -7,8 +7,9 @@ grouped by coarse element), and its output map is that band scattered into an im
 order (level-1 PDM, 715k of 1024² texels: 3.3 ms of a maps frame under cProfile, the freshly
 mapped output's page faults included). Here the map is written in one pass in texel order,
 each texel reading its value through the band's inverse index (:func:`inverse_index`) or
-writing 0: every texel written once, sequentially, no zero fill. The values are copied, so
-the map is the scatter's bit for bit.
+writing 0: every texel written once, sequentially, no zero fill (0.95 ms under cProfile,
+the page faults included; the inverse index costs 4 bytes per texel of the map, 4 MB at
+1024²). The values are copied, so the map is the scatter's bit for bit.
 """
 
 from __future__ import annotations
