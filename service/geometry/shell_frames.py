@@ -58,7 +58,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from service.geometry import ranges
 from service.geometry.normals import corner_angles
-from service.geometry.tangent_frames import CANCEL_RTOL, _triangle_signs, uv_handedness
+from service.geometry.tangent_frames import CANCEL_RTOL, _triangle_signs, _vertex_signs
 
 #: LLVM flags of the kernels: reassociation and contraction only (no finite-math
 #: assumptions, so the zero tests of the fallbacks keep their meaning). The kernels index
@@ -292,7 +292,7 @@ class ShellFrames:
         uv_faces = np.asarray(uv_faces, np.int64)
         n, m = len(V), len(F)
         d1, d2, det, tri_sign = _triangle_signs(uv, uv_faces)
-        use = (tri_sign[:, None] != 0) & (tri_sign[:, None] == uv_handedness(F, uv, uv_faces, n)[F])
+        use = (tri_sign[:, None] != 0) & (tri_sign[:, None] == _vertex_signs(F, tri_sign, n)[F])
         inv_det = np.divide(1.0, det, out=np.zeros(m), where=tri_sign != 0)
         cb, cc = d2[:, 1] * inv_det, -d1[:, 1] * inv_det
         w = corner_angles(V, F) * use                                             # (m,3)
