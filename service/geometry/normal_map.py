@@ -57,7 +57,6 @@ with a float64 evaluation of the definition to ~1e-6 (tests). Cost: see
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -73,6 +72,7 @@ TRIANGLE_DEGENERATE_SIN = 1e-6
 FRAME_DEGENERATE = 1e-6
 
 _EPS = np.float32(FRAME_DEGENERATE)
+_SIN2 = np.float32(TRIANGLE_DEGENERATE_SIN ** 2)
 
 
 def uv_chart_labels(uv_faces: np.ndarray, K: int) -> np.ndarray:
@@ -94,70 +94,35 @@ def uv_chart_labels(uv_faces: np.ndarray, K: int) -> np.ndarray:
     return label[UF[:, 0]].astype(np.int64)
 
 
-@dataclass(frozen=True)
-class _Stencil:
-    """Finite differences of a map along one axis at the covered texels, in uv units.
+def stencil_codes(chart: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The finite-difference stencils of a map's texels (module notes), as the compiled
+    texel pass reads them.
 
-    Central where both neighbours along the axis are covered texels of the same chart,
-    one-sided where one is, zero where neither is. Central differences (nearly all texels)
-    are read from one dense difference image; the few others are patched from their stencil.
-
-    Attributes
+    Parameters
     ----------
-    step : int             1 (along a row, +x) or W (along a column, +y), in flat indices
-    odd : (k,) int64       positions (into the covered texels) of the non-central ones
-    plus, minus : (k,) int64   their flat texel indices (the texel itself on an unusable side)
-    scale : (N,) float32   (W or −H) × (1/2, 1 or 0): texel differences → ∂h/∂u or ∂h/∂v
+    chart : (H,W) int   UV chart of each texel (:func:`uv_chart_labels` of its triangle),
+                        negative where uncovered
+
+    Returns
+    -------
+    code : (H,W) uint8     bits :data:`~service.geometry.normal_texels.U_FWD`, ``U_BWD``,
+                           ``V_FWD``, ``V_BWD``: the neighbour along +x, −x, +y, −y is a
+                           texel of the same chart (meaningful at covered texels)
+    scales : (2,3) float32 rows u and v, by the count of usable sides (0, 1, 2): texel
+                           differences → ∂h/∂u (W × (0, 1, 1/2)) or ∂h/∂v (−H × (0, 1, 1/2))
     """
+    from service.geometry.normal_texels import U_BWD, U_FWD, V_BWD, V_FWD
 
-    step: int
-    odd: np.ndarray
-    plus: np.ndarray
-    minus: np.ndarray
-    scale: np.ndarray
-
-    @classmethod
-    def build(cls, texel: np.ndarray, chart: np.ndarray, H: int, W: int, axis: int) -> "_Stencil":
-        """Stencil of the covered texels (N,) (flat, increasing) with chart labels (N,) along
-        ``axis`` 1 (columns: ∂/∂u = W ∂/∂x) or 0 (rows: ∂/∂v = −H ∂/∂y)."""
-        step, size, unit = (1, W, W) if axis == 1 else (W, H, -H)
-        chart_img = np.full(H * W, -1, dtype=np.int64)
-        chart_img[texel] = chart
-        coord = texel % W if axis == 1 else texel // W
-        fwd = (coord < size - 1) & (chart_img[np.minimum(texel + step, H * W - 1)] == chart)
-        bwd = (coord > 0) & (chart_img[np.maximum(texel - step, 0)] == chart)
-        count = fwd.astype(np.int64) + bwd
-        odd = np.flatnonzero(count < 2)
-        scale = np.divide(float(unit), count, out=np.zeros(len(texel)), where=count > 0)
-        return cls(step=step, odd=odd, plus=np.where(fwd, texel + step, texel)[odd],
-                   minus=np.where(bwd, texel - step, texel)[odd], scale=scale.astype(np.float32))
-
-    def derivative(self, hf: np.ndarray, texel: np.ndarray) -> np.ndarray:
-        """∂h/∂u or ∂h/∂v (N,) float32 at the covered texels (N,) of the flat map hf (H·W,)."""
-        s, size = self.step, len(hf)
-        diff = np.zeros(size, dtype=hf.dtype)          # diff[p] = h[p + s] − h[p − s]
-        if size > 2 * s:
-            with np.errstate(invalid="ignore", over="ignore"):    # uncovered texels may be ±inf
-                np.subtract(hf[2 * s:], hf[:size - 2 * s], out=diff[s:size - s])
-        d = np.take(diff, texel)
-        d[self.odd] = hf[self.plus] - hf[self.minus]
-        d = d.astype(np.float32, copy=False)
-        d *= self.scale
-        return d
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Column-wise dot product of (3,N) arrays (written out: faster than sum or einsum)."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Column-wise cross product ``a × b`` of (3,N) arrays."""
-    c = np.empty_like(a)
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        np.multiply(a[j], b[k], out=c[i])
-        c[i] -= a[k] * b[j]
-    return c
+    H, W = chart.shape
+    code = np.zeros((H, W), np.uint8)
+    same = (chart[:, 1:] == chart[:, :-1]).view(np.uint8)           # x and x + 1
+    code[:, :-1] |= same * np.uint8(U_FWD)
+    code[:, 1:] |= same * np.uint8(U_BWD)
+    same = (chart[1:] == chart[:-1]).view(np.uint8)                 # y and y + 1
+    code[:-1] |= same * np.uint8(V_FWD)
+    code[1:] |= same * np.uint8(V_BWD)
+    scales = np.float32([[0.0, float(W), W / 2], [0.0, float(-H), -H / 2]])
+    return code, scales
 
 
 class NormalMapper:
@@ -165,11 +130,14 @@ class NormalMapper:
 
     Everything that depends only on the layout is precomputed once: the covered texels and
     their triangles, the barycentric weights on the triangles' vertices, the UV edges of the
-    used triangles and the finite-difference stencils. Each :meth:`normal_map` call then
-    costs one pass over the used triangles (the gradient operators (1) of the module notes
-    on the current mesh), the finite differences, and one compiled pass over the covered
-    texels (:func:`service.geometry.normal_texels.normal_texels`: interpolation, gradient,
-    frame, normal, written into the map).
+    used triangles, the finite-difference stencils (one byte of neighbour bits per texel,
+    :func:`stencil_codes`) and the runs of uncovered texels. Each :meth:`normal_map` call
+    then costs one compiled pass over the used triangles (the gradient operators (1) of the
+    module notes on the current mesh, :func:`service.geometry.normal_texels.triangle_operators`),
+    one writing (0,0,1) over the uncovered runs, and one over the covered texels
+    (:func:`service.geometry.normal_texels.normal_texels`: finite differences,
+    interpolation, gradient, frame, normal, written into the map): every texel of the
+    output written once, no zero fill.
 
     Parameters
     ----------
@@ -187,7 +155,8 @@ class NormalMapper:
 
     Notes
     -----
-    Static memory ≈ 53 bytes per covered texel (38 MB for the 715k of a 1024² map).
+    Static memory ≈ 33 bytes per covered texel (24 MB for the 715k of a 1024² map; 53
+    with int64 indices and float32 stencil scales before).
 
     Per call, 1024² map, 45k-vertex / 89k-triangle mesh, one core of a 2-core AMD EPYC VM
     (NumPy 2.4, SciPy 1.17): the NumPy passes this replaced took 39-42 ms best, ≈ 45 ms
@@ -195,6 +164,15 @@ class NormalMapper:
     gathering (Ku, Kv) 4.5, per-texel arithmetic 12, output 5, finite differences 3.5,
     operators (1) 3.5); the compiled texel pass took a level-1 PDM maps frame from 59.5 to
     47.2 ms of CPU (issue 23, alternating in one run, load 1.8), the maps bit for bit.
+    Then the finite differences moved into the texel pass (they were two (H·W) difference
+    images, gathers and patches per axis: 5.6 ms of cProfile), the zero fill became the
+    uncovered runs, and the operators (1) a per-triangle kernel (3.3 ms as NumPy passes):
+    one call 18.1 → 9.7 ms of CPU on the level-1 map (main's mapper against this one,
+    alternating in one process, same inputs, load 1.0; bit for bit). Tried and not kept:
+    (T, N) and (Ku, Kv) interleaved per vertex / triangle ((n,6), transposed per call:
+    within noise, 11.4 vs 11.4 ms) and padded to 8 floats (13.3 ms: the strided copies).
+    Built in ≈ 40 ms at 1024² (level-1 PDM load; 100 ms with ``np.unique`` and per-texel
+    int64 stencils).
     """
 
     def __init__(self, raster: UVRaster, F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
@@ -211,35 +189,43 @@ class NormalMapper:
             raise ValueError(f"F index out of range [0, {n})")
         if len(UF) and (UF.min() < 0 or UF.max() >= len(uv)):
             raise ValueError(f"uv_faces index out of range [0, {len(uv)})")
-        triangle = np.asarray(raster.triangle, dtype=np.int64)
+        triangle = np.asarray(raster.triangle)
+        if not np.issubdtype(triangle.dtype, np.signedinteger):
+            triangle = triangle.astype(np.int64)
         if triangle.max(initial=-1) >= len(F):
             raise ValueError(f"raster refers to triangle {triangle.max()}, but F has {len(F)}")
         H, W = triangle.shape
         self.shape = (H, W)
         self.n = n
 
-        texel = np.flatnonzero(triangle.ravel() >= 0)                   # (N,) row-major
-        used, local = np.unique(triangle.ravel()[texel], return_inverse=True)
-        self._texel = texel
-        self._triangle = local.astype(np.int64)                          # into the used triangles
+        flat = triangle.ravel()
+        texel = np.flatnonzero(flat >= 0)                               # (N,) row-major
+        tri = flat[texel]
+        used = np.flatnonzero(np.bincount(tri, minlength=len(F)))       # (mu,) increasing
+        into_used = np.zeros(len(F), np.uint32)
+        into_used[used] = np.arange(len(used), dtype=np.uint32)
         self._faces_t = np.ascontiguousarray(F[used].T)                  # (3,mu)
-        self._used = used.astype(np.int64)                               # (mu,) into F
+        self._used = used.astype(np.uint32)                              # (mu,) into F
         self._m = len(F)
         U = uv[UF[used]]                                                 # (mu,3,2)
         d1, d2 = U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]
         self._uv_edges = np.stack([d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]]).astype(np.float32)
 
-        chart = uv_chart_labels(UF, len(uv))[used][local]
-        self._du = _Stencil.build(texel, chart, H, W, axis=1)
-        self._dv = _Stencil.build(texel, chart, H, W, axis=0)
+        label = np.append(uv_chart_labels(UF, len(uv)).astype(np.int32), np.int32(-1))
+        code, self._scales = stencil_codes(label[triangle])             # −1 (uncovered) → −1
+        self._code = code.ravel()[texel]
+        gap = np.diff((flat < 0).view(np.int8), prepend=np.int8(0), append=np.int8(0))
+        self._runs = np.column_stack([np.flatnonzero(gap == 1), np.flatnonzero(gap == -1)]).astype(np.uint32)
 
         self._lam = np.ascontiguousarray(raster.barycentric.reshape(-1, 3)[texel], dtype=np.float32)
-        self._corners = F[used][local].astype(np.uint32)                  # (N,3) the texels' vertices
+        self._corners = F.astype(np.uint32)[tri]                         # (N,3) the texels' vertices
+        self._texel = texel.astype(np.uint32)
+        self._triangle = into_used[tri]                                  # (N,) into the used triangles
         import service.geometry.normal_texels  # noqa: F401   Numba, loaded where a mapper (a model) is built
 
     @property
     def texels(self) -> np.ndarray:
-        """(N,) int64 flat (row-major) indices of the covered texels."""
+        """(N,) uint32 flat (row-major) indices of the covered texels."""
         return self._texel
 
     def gradient_operators(self, V: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
@@ -265,28 +251,21 @@ class NormalMapper:
                              units per mm: ``g = K[:3] ∂h/∂u + K[3:] ∂h/∂v``; zero for
                              triangles degenerate in 3D
         """
+        from service.geometry.normal_texels import triangle_operators
+
         if edges is None:
             Vt = np.ascontiguousarray(np.asarray(V, dtype=np.float64).T)    # (3,n)
             p0 = np.take(Vt, self._faces_t[0], axis=1)
-            e1 = (np.take(Vt, self._faces_t[1], axis=1) - p0).astype(np.float32)
-            e2 = (np.take(Vt, self._faces_t[2], axis=1) - p0).astype(np.float32)
+            edges = np.concatenate([np.take(Vt, self._faces_t[1], axis=1) - p0,
+                                    np.take(Vt, self._faces_t[2], axis=1) - p0], axis=1).astype(np.float32)
+            used, m = np.arange(len(self._used), dtype=np.uint32), len(self._used)
         else:
             if edges.shape != (3, 2 * self._m) or edges.dtype != np.float32:
                 raise ValueError(f"edges must be float32 (3,{2 * self._m}), got {edges.dtype} {edges.shape}")
-            e1 = np.take(edges, self._used, axis=1)
-            e2 = np.take(edges, self._used + self._m, axis=1)
-        nrm = _cross(e1, e2)
-        det = _dot(nrm, nrm)                                             # (2 area)²
-        ok = det > np.float32(TRIANGLE_DEGENERATE_SIN ** 2) * _dot(e1, e1) * _dot(e2, e2)
-        inv = np.divide(np.float32(1.0), det, out=np.zeros_like(det), where=ok)
-        a1 = _cross(e2, nrm)
-        a1 *= inv
-        a2 = _cross(nrm, e1)
-        a2 *= inv
-        du1, dv1, du2, dv2 = self._uv_edges
-        K = np.empty((6, len(det)), dtype=np.float32)
-        K[:3] = a1 * du1 + a2 * du2
-        K[3:] = a1 * dv1 + a2 * dv2
+            used, m = self._used, self._m
+        K = np.empty((6, len(self._used)), dtype=np.float32)
+        ranges.run(triangle_operators, len(used), np.ascontiguousarray(edges), used, m, self._uv_edges,
+                   _SIN2, K)
         return K
 
     def normal_map(self, h: np.ndarray, V: np.ndarray, frames: np.ndarray | None,
@@ -332,9 +311,7 @@ class NormalMapper:
             raise ValueError(f"rows[0] must be float32 (6,{self.n}), got {rows[0].dtype} {rows[0].shape}")
 
         H, W = self.shape
-        hf = h.reshape(-1)
-        du = self._du.derivative(hf, self._texel)                        # (N,) ∂h/∂u
-        dv = self._dv.derivative(hf, self._texel)                        # (N,) ∂h/∂v
+        hf = np.ascontiguousarray(h).reshape(-1)
         if rows is None:
             K = self.gradient_operators(V)
             TN = np.empty((6, self.n), dtype=np.float32)                # rows Tx, Ty, Tz, Nx, Ny, Nz
@@ -344,17 +321,15 @@ class NormalMapper:
             TN, edges = rows
             K = self.gradient_operators(V, edges)
         if out is None:
-            out = np.zeros((H, W, 3), dtype=np.float32)
+            out = np.empty((H, W, 3), dtype=np.float32)
         elif out.shape != (H, W, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError(f"out must be a C-contiguous float32 ({H},{W},3) array")
-        else:
-            out[...] = 0.0
         flat = out.reshape(H * W, 3)
-        flat[:, 2] = 1.0
-        from service.geometry.normal_texels import normal_texels
+        from service.geometry.normal_texels import flat_runs, normal_texels
 
-        ranges.run(normal_texels, len(self._texel), self._texel.view(np.uint64), self._triangle.view(np.uint64),
-                   self._lam, self._corners, du, dv, K, np.ascontiguousarray(TN, np.float32), _EPS, flat,
+        ranges.run(flat_runs, len(self._runs), self._runs, flat, threads=threads)
+        ranges.run(normal_texels, len(self._texel), self._texel, self._triangle, self._lam, self._corners,
+                   self._code, self._scales, W, hf, K, np.ascontiguousarray(TN, np.float32), _EPS, flat,
                    threads=threads)
         return out
 

@@ -10,6 +10,13 @@ temporaries and a scatter of the results (the level-1 sample actor's 1024² map,
 covered texels: about 30 of 45 ms per map); here each texel is read and written once, in a
 Numba kernel over texel ranges ``[lo, hi)`` (:func:`service.geometry.ranges.run`).
 
+The texel's finite differences of the map (∂h/∂u, ∂h/∂v: central, one-sided or zero by the
+texel's stencil bits, :func:`service.geometry.normal_map.stencil_codes`) are read in the same
+loop from the map itself (its neighbours along the row and the column: near-sequential
+loads), instead of two difference images, gathers and patches per axis before the pass
+(level-1 1024² map: 5.6 ms of cProfile gone, the pass ≈ 0.5 ms longer). The per-triangle
+operators (1) are a kernel of their own here (:func:`triangle_operators`).
+
 The kernel runs over blocks of :data:`BLOCK` texels in three loops, so that the arithmetic
 is done on SIMD vectors of texels: (a) the gathers — the corners' (T, N) and the triangle's
 (Ku, Kv) — with the interpolation and gradient into nine contiguous float32 rows
@@ -40,6 +47,9 @@ from numba import njit, uint64
 #: texels per block of :func:`normal_texels` (its two work arrays, 12 rows of BLOCK float32,
 #: stay in the L1 cache; 64-1024 measured within 0.6 ms of each other)
 BLOCK = 128
+#: bits of a texel's stencil code (:func:`stencil_codes`): the neighbour along +x (+u), −x,
+#: +y (−v), −y is a covered texel of the same chart
+U_FWD, U_BWD, V_FWD, V_BWD = 1, 2, 4, 8
 
 
 @njit(nogil=True, cache=True, error_model="numpy", inline="always")
@@ -77,22 +87,41 @@ def _unit_normal(t0, t1, t2, n0, n1, n2, g0, g1, g2, eps):
     return x * r, y * r, r
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _difference(hf, p, step, code, fwd, bwd, scales):
+    """∂h/∂u or ∂h/∂v (float32) at the flat texel p of the map hf (H·W,): ``h[p + step] −
+    h[p − step]`` with each side replaced by p itself where its bit of ``code`` (``fwd``,
+    ``bwd``) is clear, in hf's dtype, rounded to float32 and times ``scales[count]`` (count the
+    usable sides: central, one-sided, or 0)."""
+    f = uint64(1) if code & fwd else uint64(0)
+    b = uint64(1) if code & bwd else uint64(0)
+    d = np.float32(hf[p + f * step] - hf[p - b * step])
+    return d * scales[f + b]
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out):
+def normal_texels(lo, hi, texel, triangle, lam, corners, code, scales, width, hf, K, TN, eps, out):
     """Texels [lo, hi): ``out[texel[i]]`` (H·W,3) float32 = the unit tangent-space normal of
     covered texel i, from its triangle ``triangle[i]`` (a column of the operators K (6,mu)
     float32, rows Ku, Kv), its barycentric weights ``lam`` (N,3) float32 on the vertices
-    ``corners`` (N,3), the map's derivatives ``du``, ``dv`` (N,) float32 and the vertex rows
-    ``TN`` (6,n) float32 (T, N); ``eps`` the clamp of |T×N|² and |Z|² (FRAME_DEGENERATE).
-    In blocks of :data:`BLOCK` texels (module docstring)."""
+    ``corners`` (N,3), the map's finite differences (:func:`_difference` of hf (H·W,) with
+    the texel's stencil bits ``code[i]`` and the scales (2,3) float32 of u and v; ``width``
+    W the step of a row) and the vertex rows ``TN`` (6,n) float32 (T, N); ``eps`` the clamp
+    of |T×N|² and |Z|² (FRAME_DEGENERATE). In blocks of :data:`BLOCK` texels (module
+    docstring)."""
     rows = np.empty((9, BLOCK), np.float32)        # t0 t1 t2 n0 n1 n2 g0 g1 g2 of the block
     res = np.empty((3, BLOCK), np.float32)
+    su, sv = scales[0], scales[1]
+    one, w = uint64(1), uint64(width)
     for s in range(uint64(lo), uint64(hi), uint64(BLOCK)):
         n = min(uint64(BLOCK), uint64(hi) - s)
         for j in range(n):                         # (a) gathers, interpolation, gradient
             i = s + j
+            p = uint64(texel[i])
+            c = code[i]
+            a = _difference(hf, p, one, c, U_FWD, U_BWD, su)
+            b = _difference(hf, p, w, c, V_FWD, V_BWD, sv)
             q = triangle[i]
-            a, b = du[i], dv[i]
             g0 = K[0, q] * a
             g1 = K[1, q] * a
             g2 = K[2, q] * a
@@ -119,3 +148,58 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, du, dv, K, TN, eps, out
             out[p, 0] = res[0, j]
             out[p, 1] = res[1, j]
             out[p, 2] = res[2, j]
+
+
+@njit(nogil=True, cache=True)
+def flat_runs(lo, hi, runs, out):
+    """Runs [lo, hi) of uncovered texels: ``out[p] = (0, 0, 1)`` (H·W,3) float32 for
+    ``runs[r, 0] ≤ p < runs[r, 1]`` (the normal of a texel without a gradient)."""
+    for r in range(uint64(lo), uint64(hi)):
+        for p in range(uint64(runs[r, 0]), uint64(runs[r, 1])):
+            out[p, 0] = np.float32(0)
+            out[p, 1] = np.float32(0)
+            out[p, 2] = np.float32(1)
+
+
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _cross(a0, a1, a2, b0, b1, b2):
+    """``a × b`` of two float32 3-vectors, each component ``a_j b_k`` less ``a_k b_j`` (the
+    order of the NumPy passes: the product rounded, then the other subtracted)."""
+    c0 = a1 * b2
+    c0 -= a2 * b1
+    c1 = a2 * b0
+    c1 -= a0 * b2
+    c2 = a0 * b1
+    c2 -= a1 * b0
+    return c0, c1, c2
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def triangle_operators(lo, hi, edges, used, m, uv_edges, sin2, K):
+    """Used triangles [lo, hi): the gradient operators (1) ``K[:, t]`` (6,mu) float32 =
+    (Ku, Kv) of triangle ``used[t]``, whose edges e1, e2 are columns ``used[t]`` and
+    ``used[t] + m`` of ``edges`` (3,2m) float32, and whose UV edges are ``uv_edges[:, t]``
+    (Δu1, Δv1, Δu2, Δv2); zero where ``|e1×e2|² ≤ sin2 |e1|²|e2|²`` (degenerate in 3D).
+    The float32 operations in the order of the NumPy passes over (3,mu) rows this replaced
+    (tests/geometry/test_normal_map.py pins it against them bit for bit)."""
+    for t in range(uint64(lo), uint64(hi)):
+        a = uint64(used[t])
+        b = a + uint64(m)
+        p0, p1, p2 = edges[0, a], edges[1, a], edges[2, a]
+        q0, q1, q2 = edges[0, b], edges[1, b], edges[2, b]
+        n0, n1, n2 = _cross(p0, p1, p2, q0, q1, q2)                 # n = e1 × e2
+        det = n0 * n0 + n1 * n1 + n2 * n2
+        inv = np.float32(0)
+        if det > sin2 * (p0 * p0 + p1 * p1 + p2 * p2) * (q0 * q0 + q1 * q1 + q2 * q2):
+            inv = np.float32(1) / det
+        a0, a1, a2 = _cross(q0, q1, q2, n0, n1, n2)                 # a1 = (e2 × n) / |n|²
+        a0, a1, a2 = a0 * inv, a1 * inv, a2 * inv
+        b0, b1, b2 = _cross(n0, n1, n2, p0, p1, p2)                 # a2 = (n × e1) / |n|²
+        b0, b1, b2 = b0 * inv, b1 * inv, b2 * inv
+        du1, dv1, du2, dv2 = uv_edges[0, t], uv_edges[1, t], uv_edges[2, t], uv_edges[3, t]
+        K[0, t] = a0 * du1 + b0 * du2
+        K[1, t] = a1 * du1 + b1 * du2
+        K[2, t] = a2 * du1 + b2 * du2
+        K[3, t] = a0 * dv1 + b0 * dv2
+        K[4, t] = a1 * dv1 + b1 * dv2
+        K[5, t] = a2 * dv1 + b2 * dv2

@@ -95,8 +95,12 @@ def uv_handedness(F: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray, n: int) -
                           direction at vertex i is ``sign[i] * frames[i, 1]``.
     """
     F, uv, uv_faces = _check(F, uv, uv_faces)
-    sign = _triangle_signs(uv, uv_faces)[3]
-    vote = np.bincount(F.ravel(), weights=np.repeat(sign, 3), minlength=n)
+    return _vertex_signs(F, _triangle_signs(uv, uv_faces)[3], n)
+
+
+def _vertex_signs(F: np.ndarray, tri_sign: np.ndarray, n: int) -> np.ndarray:
+    """:func:`uv_handedness` from the triangles' handedness tri_sign (m,) (of :func:`_triangle_signs`)."""
+    vote = np.bincount(F.ravel(), weights=np.repeat(tri_sign, 3), minlength=n)
     return np.where(vote < 0, -1.0, 1.0)
 
 
@@ -130,7 +134,7 @@ def tangent_frames(
 
     d1, d2, det, tri_sign = _triangle_signs(uv, uv_faces)
     # keep, per corner, only triangles of the vertex's majority handedness
-    vert_sign = uv_handedness(F, uv, uv_faces, n)
+    vert_sign = _vertex_signs(F, tri_sign, n)
     use = (tri_sign[:, None] != 0) & (tri_sign[:, None] == vert_sign[F])        # (m,3)
     inv_det = np.divide(1.0, det, out=np.zeros(m), where=tri_sign != 0)
 
@@ -238,7 +242,7 @@ class FrameField:
         V = np.asarray(V, dtype=np.float64)
         n, m = len(V), len(F)
         d1, d2, det, tri_sign = _triangle_signs(uv, uv_faces)
-        vert_sign = uv_handedness(F, uv, uv_faces, n)
+        vert_sign = _vertex_signs(F, tri_sign, n)
         use = (tri_sign[:, None] != 0) & (tri_sign[:, None] == vert_sign[F])
         inv_det = np.divide(1.0, det, out=np.zeros(m), where=tri_sign != 0)
         # [dP/du]_f = a P0 + b P1 + c P2 with e1 = P1 − P0, e2 = P2 − P0

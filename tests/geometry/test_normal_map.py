@@ -265,18 +265,78 @@ def test_function_and_mapper_agree_bit_exactly_and_calls_are_independent():
     np.testing.assert_allclose(mapper.normal_map(h1.astype(np.float32), V, fr), a, atol=1e-5)
 
 
+def _dot(a, b):
+    """Column-wise dot product of (3,N) arrays (the mapper's NumPy passes, frozen)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a, b):
+    """Column-wise cross product ``a × b`` of (3,N) arrays (the mapper's NumPy passes, frozen)."""
+    c = np.empty_like(a)
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        np.multiply(a[j], b[k], out=c[i])
+        c[i] -= a[k] * b[j]
+    return c
+
+
+def _numpy_gradient_operators(mapper, V):
+    """NormalMapper.gradient_operators as NumPy passes over (3,mu) rows (frozen copy before its
+    compiled kernel, issue 23)."""
+    from service.geometry.normal_map import TRIANGLE_DEGENERATE_SIN
+
+    Vt = np.ascontiguousarray(np.asarray(V, dtype=np.float64).T)
+    p0 = np.take(Vt, mapper._faces_t[0], axis=1)
+    e1 = (np.take(Vt, mapper._faces_t[1], axis=1) - p0).astype(np.float32)
+    e2 = (np.take(Vt, mapper._faces_t[2], axis=1) - p0).astype(np.float32)
+    nrm = _cross(e1, e2)
+    det = _dot(nrm, nrm)
+    ok = det > np.float32(TRIANGLE_DEGENERATE_SIN ** 2) * _dot(e1, e1) * _dot(e2, e2)
+    inv = np.divide(np.float32(1.0), det, out=np.zeros_like(det), where=ok)
+    a1 = _cross(e2, nrm)
+    a1 *= inv
+    a2 = _cross(nrm, e1)
+    a2 *= inv
+    du1, dv1, du2, dv2 = mapper._uv_edges
+    K = np.empty((6, len(det)), dtype=np.float32)
+    K[:3] = a1 * du1 + a2 * du2
+    K[3:] = a1 * dv1 + a2 * dv2
+    return K
+
+
+def _numpy_derivatives(mapper, hf):
+    """(∂h/∂u, ∂h/∂v) (N,) float32 at the covered texels as NumPy passes over the map (frozen
+    copy of the mapper's stencils before the compiled pass took them in, issue 23): central
+    differences from one dense difference image, the non-central texels patched."""
+    from service.geometry.normal_texels import U_BWD, U_FWD, V_BWD, V_FWD
+
+    texel = mapper._texel.astype(np.int64)
+    W = mapper.shape[1]
+    out = []
+    for row, (step, fwd, bwd) in enumerate(((1, U_FWD, U_BWD), (W, V_FWD, V_BWD))):
+        f, b = (mapper._code & fwd) > 0, (mapper._code & bwd) > 0
+        odd = np.flatnonzero(~(f & b))
+        diff = np.zeros(len(hf), dtype=hf.dtype)
+        with np.errstate(invalid="ignore", over="ignore"):
+            np.subtract(hf[2 * step:], hf[:len(hf) - 2 * step], out=diff[step:len(hf) - step])
+        d = np.take(diff, texel)
+        d[odd] = hf[np.where(f, texel + step, texel)[odd]] - hf[np.where(b, texel - step, texel)[odd]]
+        d = d.astype(np.float32, copy=False)
+        d *= mapper._scales[row][f.astype(int) + b]
+        out.append(d)
+    return out
+
+
 def _numpy_normal_map(mapper, h, V, frames):
     """The per-texel pass as NumPy blocks of sparse products and elementwise passes
     (frozen copy of NormalMapper.normal_map before its compiled kernel, issue 23)."""
     import scipy.sparse as sp
 
-    from service.geometry.normal_map import _EPS, _cross, _dot
+    from service.geometry.normal_map import _EPS
 
     H, W = mapper.shape
     hf = np.asarray(h).reshape(-1)
-    du = mapper._du.derivative(hf, mapper._texel)
-    dv = mapper._dv.derivative(hf, mapper._texel)
-    K = mapper.gradient_operators(V)
+    du, dv = _numpy_derivatives(mapper, hf)
+    K = _numpy_gradient_operators(mapper, V)
     TN = np.empty((6, mapper.n), dtype=np.float32)
     TN[:3] = frames[:, 0].T
     TN[3:] = frames[:, 2].T
@@ -410,3 +470,26 @@ def test_rows_of_the_frame_field_give_the_frames_normal_map_bit_for_bit():
         mapper.normal_map(h, pose, None, rows=(TN[:3], edges))
     with pytest.raises(ValueError, match="edges must be"):
         mapper.gradient_operators(pose, edges[:, :-1])
+
+
+def test_compiled_gradient_operators_are_the_numpy_passes_bit_for_bit():
+    """Issue 23: the per-triangle kernel against the NumPy passes it replaced, on a deformed
+    cylinder far from the origin with collapsed triangles (degenerate: zero) and a NaN vertex,
+    from V and from the frames' edges."""
+    from service.geometry.tangent_frames import FrameField
+
+    st, V, F = cylinder()
+    raster = rasterize_uv(st, F, 48, 64)
+    mapper = NormalMapper(raster, F, st, F, len(V))
+    pose = V + 0.05 * np.random.default_rng(8).normal(size=V.shape) + [200.0, -100.0, 50.0]
+    pose[F[:5, 1]] = pose[F[:5, 0]]                              # five triangles collapsed
+    ref = _numpy_gradient_operators(mapper, pose)
+    got = mapper.gradient_operators(pose)
+    assert (ref == 0).all(axis=0).sum() >= 1 and np.abs(ref).max() > 0
+    assert np.array_equal(got.view(np.uint32), ref.view(np.uint32))
+    _, edges = FrameField.build(V, F, st, F).normal_rows(pose)
+    assert np.array_equal(mapper.gradient_operators(pose, edges).view(np.uint32), ref.view(np.uint32))
+    pose[F[7, 2]] = np.nan
+    ref, got = _numpy_gradient_operators(mapper, pose), mapper.gradient_operators(pose)
+    assert np.isnan(ref).any()
+    assert np.array_equal(got.view(np.uint32), ref.view(np.uint32))

@@ -13,13 +13,11 @@ from tests.geometry.test_normal_map import _numpy_normal_map, cylinder
 def _inputs(mapper, h, V, frames):
     """The kernel's arguments after (lo, hi), as NormalMapper.normal_map passes them."""
     hf = np.asarray(h).reshape(-1)
-    du = mapper._du.derivative(hf, mapper._texel)
-    dv = mapper._dv.derivative(hf, mapper._texel)
     TN = np.empty((6, mapper.n), np.float32)
     TN[:3] = frames[:, 0].T
     TN[3:] = frames[:, 2].T
-    return (mapper._texel.view(np.uint64), mapper._triangle.view(np.uint64), mapper._lam, mapper._corners,
-            du, dv, mapper.gradient_operators(V), TN, _EPS)
+    return (mapper._texel, mapper._triangle, mapper._lam, mapper._corners, mapper._code, mapper._scales,
+            mapper.shape[1], hf, mapper.gradient_operators(V), TN, _EPS)
 
 
 def _cylinder_case(seed):

@@ -128,3 +128,21 @@ def test_place_is_the_shell_in_given_frames_with_an_exact_rest_pose():
     # the float32 shell of the same inputs (frames computed in the kernel): the same X to float32
     Xs = sf.to_vertices(sf.shell(U, sf.to_internal(V), sf.to_internal(C), aligned=True))
     assert np.abs(Xs - X).max() < 1e-4
+
+
+def test_arrays_round_trip_and_wrong_shapes_are_built_again():
+    """ShellFrames.arrays → from_arrays gives the same frames (a model's cache stores them);
+    a missing field, a wrong shape or dtype gives None (the caller builds them)."""
+    import dataclasses
+
+    from tests.geometry.test_normal_map import cylinder
+
+    st, V, F = cylinder()
+    sf = ShellFrames.build(V, F, st, F)
+    arrays = sf.arrays()
+    back = ShellFrames.from_arrays(arrays, len(V), len(F))
+    for f in dataclasses.fields(sf):
+        assert np.array_equal(getattr(back, f.name), getattr(sf, f.name)) and getattr(back, f.name).dtype == getattr(sf, f.name).dtype
+    assert ShellFrames.from_arrays(arrays, len(V) + 1, len(F)) is None
+    assert ShellFrames.from_arrays({k: v for k, v in arrays.items() if k != "angle"}, len(V), len(F)) is None
+    assert ShellFrames.from_arrays({**arrays, "rest": arrays["rest"].astype(np.float64)}, len(V), len(F)) is None

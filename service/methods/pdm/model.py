@@ -57,6 +57,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from service.geometry import ranges
 from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
@@ -260,6 +261,9 @@ class PdmEvaluator:
     seam_average : (n,K) CSR        UV points → vertices (seam mean)
     fine_sampler : (n,Pf) CSR       fine texels → vertices (``mesh_detailed``)
     normal_mapper : NormalMapper    tangent-space normal maps at the fine resolution
+    fine_inverse : (Hf·Hf,) uint32  each texel's position in the fine band (``fine.index``),
+                                    :data:`~service.geometry.texel_image.NOT_COVERED` where
+                                    uncovered (:func:`~service.geometry.texel_image.band_image`)
     validity : Validity | None      where the polynomial holds (:mod:`.validity`; None when
                                     ``validity_width`` is None)
     shell_correction : (n,M) float32   thin-shell basis of the detailed neutral minus the
@@ -284,6 +288,7 @@ class PdmEvaluator:
     seam_average: sp.csr_matrix
     fine_sampler: sp.csr_matrix
     normal_mapper: NormalMapper
+    fine_inverse: np.ndarray
     validity: Validity | None
     shell_correction: np.ndarray = dataclasses.field(metadata=UNREAD)   # synthesis reads shell_mesh's copy
     shell_offset: np.ndarray
@@ -358,6 +363,7 @@ class PdmEvaluator:
         uv_vertex = np.zeros(K, np.int64)
         uv_vertex[np.asarray(d.uv_faces).ravel()] = np.asarray(d.faces).ravel()
         shell = (correction, detailed - base.smooth, uv_vertex)
+        from service.geometry.texel_image import inverse_index
         from service.methods.pdm.shell_mesh import ShellMesh     # Numba: only where a model is built
 
         from service.methods.pdm.point_onset import point_onset
@@ -372,7 +378,7 @@ class PdmEvaluator:
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
             normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, n),
-            validity=validity, shell_correction=shell[0],
+            fine_inverse=inverse_index(fine.index, Hf * Hf), validity=validity, shell_correction=shell[0],
             shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
             point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms),
             onset=None if validity is None else point_onset)
@@ -398,8 +404,9 @@ class PdmEvaluator:
         (:meth:`.deformation.ParameterField.arrays`) and ``<band>_order`` the fine and albedo
         texels' element order; ``shell_correction`` (n,M) float32 the detailed neutral's
         thin-shell basis less the base's (:meth:`shell_fallback`); ``shell_mesh_*`` the
-        compiled mesh's vertex order and both bases in it (:meth:`.shell_mesh.ShellMesh.stored`:
-        a load maps them instead of permuting 2 × (n,M); a cache without them permutes); the CSR matrices ``seam_average``, ``fine_sampler`` and
+        compiled mesh's vertex order, both bases in it and its ShellFrames
+        (:meth:`.shell_mesh.ShellMesh.stored`: a load maps them instead of permuting 2 × (n,M)
+        and building the frames' order and incidence; a cache without them does that); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
         rasterization at the fine resolution (not held by the evaluator: rasterized again
@@ -677,7 +684,7 @@ class PdmModel:
             out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
         Hf = ev.fine.resolution
         if want & {"displacement", "normal_map"}:
-            out["displacement"] = np.zeros((nf, Hf, Hf), np.float32)
+            out["displacement"] = np.empty((nf, Hf, Hf), np.float32)
         if "normal_map" in want:
             out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
         if "albedo" in want:
@@ -714,8 +721,10 @@ class PdmModel:
                                            out["vertices"][sl] if "vertices" in out else None, need_medium)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
-            if "displacement" in out:          # straight into the (zeroed) output maps
-                out["displacement"][sl].reshape(len(disp), -1)[:, ev.fine.index] = disp
+            if "displacement" in out:          # straight into the output maps, texel by texel
+                from service.geometry.texel_image import band_image     # Numba: loaded by build
+                for k in range(len(disp)):
+                    ranges.run(band_image, Hf * Hf, ev.fine_inverse, disp[k], out["displacement"][s + k].reshape(-1))
             if want & {"mesh_detailed", "normal_map"}:  # T, N of the medium mesh (float32 frames)
                 rows = [ev.base.frame_field.normal_rows(m) for m in medium]
             if "mesh_detailed" in want:

@@ -76,11 +76,15 @@ class ShellMesh:
         were made in this vertex order (``order`` equal to the one built here) for bases of
         this shape — then ``basis`` and ``correction`` are not read at all, and a load
         neither copies nor holds the (n,M) permuted copies (level 1: 2 × 27 MB); else
-        (a model stored without them) they are permuted here."""
-        sf = ShellFrames.build(smooth, faces, uv, uv_faces)
+        (a model stored without them) they are permuted here. Likewise the ShellFrames
+        (``frames_*``, :meth:`ShellFrames.arrays`): read as stored when all are there with
+        the shapes of this mesh, else built (77 ms at level 1)."""
+        stored = stored or {}
+        sf = ShellFrames.from_arrays({k[len("frames_"):]: v for k, v in stored.items() if k.startswith("frames_")},
+                                     len(smooth), len(faces))
+        sf = sf or ShellFrames.build(smooth, faces, uv, uv_faces)
         order = sf.order
         neutral = np.ascontiguousarray(np.asarray(neutral_offset, np.float32)[order])
-        stored = stored or {}
         ok = ("order" in stored and np.array_equal(stored["order"], order)
               and all(stored.get(k) is not None and stored[k].shape == np.shape(b) and stored[k].dtype == np.float32
                       and stored[k].flags.c_contiguous for k, b in (("basis", basis), ("correction", correction))))
@@ -96,9 +100,12 @@ class ShellMesh:
         return self.frames.order
 
     def stored(self) -> dict[str, np.ndarray]:
-        """What :meth:`build` reads back instead of permuting the bases: ``order`` (n,)
-        uint32 the internal vertex order, ``basis`` and ``correction`` (n,M) float32 in it."""
-        return {"order": self.order, "basis": self.basis, "correction": self.correction}
+        """What :meth:`build` reads back instead of permuting the bases and building the
+        frames: ``order`` (n,) uint32 the internal vertex order, ``basis`` and ``correction``
+        (n,M) float32 in it, ``frames_<field>`` the :class:`ShellFrames` (:meth:`ShellFrames.arrays`,
+        6.5 MB at level 1)."""
+        return {"order": self.order, "basis": self.basis, "correction": self.correction,
+                **{f"frames_{k}": v for k, v in self.frames.arrays().items()}}
 
     def surface(self, u_H: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, tuple]:
         """One frame's base surface: U = B u_H (3,n) float32 and its frames (T, B, N) (3,n)

@@ -29,7 +29,9 @@ Layout (DESIGN.md "Data and storage"):
   derives them at load, as before); ``op_shell_mesh_*`` the compiled mesh's vertex order and
   both bases in it, mapped instead of permuted at load (level 1, +54 MB on disk: load CPU
   0.87 → 0.69 s, resident after load 438 → 336 MB and after three mesh frames 478 → 427 MB,
-  peak 613 → 562 MB; permuted as before when absent); ``size_bytes`` counts the model without it;
+  peak 613 → 562 MB; permuted as before when absent) and its :class:`~service.geometry.shell_frames.ShellFrames`
+  (``op_shell_mesh_frames_*``, +6.8 MB: 77 ms of a level-1 load not spent building the
+  vertex order and incidence; built as before when absent); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the

@@ -248,6 +248,9 @@ def test_the_shell_mesh_bases_are_stored_in_its_order_and_mapped(pdm_model, pdm_
     np.testing.assert_array_equal(ops["shell_mesh_correction"], sm.correction)
     mapped = PdmModel.load(path)
     assert file_mapped(mapped.evaluator.shell_mesh.basis) and file_mapped(mapped.evaluator.shell_mesh.correction)
+    for k, v in sm.frames.arrays().items():                # the ShellFrames too: mapped, not built
+        np.testing.assert_array_equal(ops[f"shell_mesh_frames_{k}"], v)
+        assert file_mapped(getattr(mapped.evaluator.shell_mesh.frames, k)) == (k != "order"), k  # *_order: read
     without = {k: v for k, v in ops.items() if not k.startswith("shell_mesh_")}
     other = {**ops, "shell_mesh_order": np.ascontiguousarray(ops["shell_mesh_order"][::-1])}
     markers = pdm_data[1][4].markers[[0, 9, 15]]
@@ -258,6 +261,8 @@ def test_the_shell_mesh_bases_are_stored_in_its_order_and_mapped(pdm_model, pdm_
         sm2 = model.evaluator.shell_mesh
         assert not file_mapped(sm2.basis) and not file_mapped(sm2.correction)
         np.testing.assert_array_equal(sm2.basis, sm.basis)
+        for k, v in sm.frames.arrays().items():
+            np.testing.assert_array_equal(getattr(sm2.frames, k), v)
         assert np.array_equal(model.synthesize(markers, outputs=("mesh",))["vertices"], want)
 
 
