@@ -114,3 +114,29 @@ def test_the_models_fine_band_runs_compiled_as_the_numpy_blocks(pdm_model, frame
     want, want_frac = ev.fine.synthesize(frames, None, dataclasses.replace(bv, compiled=None))
     assert np.array_equal(got.view(np.uint32), want.view(np.uint32)) and np.array_equal(frac, want_frac)
     assert frac[2:].min() > 0.05 and frac[:2].max() < frac[2:].min()
+
+
+def test_padded_rows_are_the_numpy_scatter_of_the_csr_rows():
+    """Seeded CSR of 0–3 entries a row (an empty row included): the compiled fill equals the
+    NumPy scatter it replaced — each row's entries in order, padded with weight 0 on the
+    row's first entry, 0 for an empty row — element for element."""
+    from service.methods.pdm.texel_validity import CORNERS, padded_rows
+
+    rng = np.random.default_rng(7)
+    nnz = rng.integers(0, CORNERS + 1, 400)
+    nnz[:2] = (0, CORNERS)
+    indptr = np.concatenate([[0], np.cumsum(nnz)]).astype(np.int32)
+    R = sp.csr_matrix((rng.random(indptr[-1]), rng.integers(0, 90, indptr[-1]).astype(np.int32), indptr),
+                      shape=(400, 90))
+    corner = np.zeros((CORNERS, 400), np.uint32)
+    weight = np.zeros((CORNERS, 400), np.float64)
+    slot = np.arange(R.nnz) - np.repeat(R.indptr[:-1], nnz)
+    row = np.repeat(np.arange(400), nnz)
+    corner[slot, row], weight[slot, row] = R.indices, R.data
+    for c in range(1, CORNERS):
+        corner[c] = np.where(nnz > c, corner[c], corner[0])
+    got_c, got_w = np.empty_like(corner), np.empty_like(weight)
+    padded_rows(R.indptr, R.indices, R.data, got_c, got_w)
+    np.testing.assert_array_equal(got_c, corner)
+    np.testing.assert_array_equal(got_w, weight)
+    assert got_w[:, 0].tolist() == [0.0, 0.0, 0.0] and np.all(got_w[:, 1] > 0)
