@@ -64,6 +64,14 @@ _LOCAL_HEADER, _ZIP64_EXTRA = 30, 20
 _PADDING_ID = 0xFA5E
 
 
+def padding_extra(start: int) -> bytes:
+    """The zip extra field (a padding record, 4 bytes plus padding) that moves data which
+    would begin at byte ``start`` of the archive without it to the next multiple of
+    :data:`MAP_ALIGNMENT`."""
+    pad = -(start + 4) % MAP_ALIGNMENT
+    return struct.pack("<HH", _PADDING_ID, pad) + bytes(pad)
+
+
 def aligned_member(archive: zipfile.ZipFile, name: str) -> zipfile.ZipInfo:
     """A stored member ``name`` whose local header is padded (an extra record) so that its
     data starts at a multiple of :data:`MAP_ALIGNMENT` in the archive. NumPy pads a ``.npy``
@@ -71,9 +79,7 @@ def aligned_member(archive: zipfile.ZipFile, name: str) -> zipfile.ZipInfo:
     :func:`service.io.npz.npz_mapped` maps it instead of copying it."""
     info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
     info.compress_type = zipfile.ZIP_STORED
-    start = archive.fp.tell() + _LOCAL_HEADER + len(name.encode()) + _ZIP64_EXTRA + 4
-    pad = -start % MAP_ALIGNMENT
-    info.extra = struct.pack("<HH", _PADDING_ID, pad) + bytes(pad)
+    info.extra = padding_extra(archive.fp.tell() + _LOCAL_HEADER + len(name.encode()) + _ZIP64_EXTRA)
     return info
 
 

@@ -27,7 +27,7 @@ from typing import Any, BinaryIO, Callable, Iterator, Mapping
 
 import numpy as np
 
-from models_store.atomic import MAP_ALIGNMENT, aligned_member
+from models_store.atomic import MAP_ALIGNMENT, aligned_member, padding_extra
 from service.io.arrays import BLOCK_BYTES, blocks
 
 #: what numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)
@@ -268,8 +268,8 @@ _CENTRAL = struct.Struct("<IHHHHHHIIIHHHHHII")
 _END = struct.Struct("<IHHHHIIH")
 #: 1980-01-01 00:00 in DOS form (what :func:`models_store.atomic.aligned_member` stamps)
 _DOS_TIME, _DOS_DATE = 0, (1 << 5) | 1
-#: version 2.0 (stored members, no zip64) and the padding extra record's id
-_VERSION, _PADDING_ID = 20, 0xFA5E
+#: version 2.0 (stored members, no zip64)
+_VERSION = 20
 #: a body this large (or a member) needs zip64 records: written by :func:`write_npz` instead
 _ZIP32_LIMIT = 0xFFFFFFFF - (1 << 20)
 
@@ -325,8 +325,7 @@ def npz_body(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None)
             raise ValueError(f"'{name}' holds Python objects; .npz blobs hold numbers only")
         filename = (name + ".npy").encode()
         header = _npy_header(dtype, values.shape)
-        pad = -(offset + _LOCAL.size + len(filename) + 4) % MAP_ALIGNMENT
-        extra = struct.pack("<HH", _PADDING_ID, pad) + bytes(pad)
+        extra = padding_extra(offset + _LOCAL.size + len(filename))
         size = len(header) + values.size * dtype.itemsize
         members.append((offset, filename, extra, header, values, dtype, size))
         offset += _LOCAL.size + len(filename) + len(extra) + size
