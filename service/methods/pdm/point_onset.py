@@ -21,19 +21,19 @@ import numpy as np
 from numba import njit, uint64
 
 from service.geometry import ranges
+from service.methods.pdm.validity_scalars import falloff
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def onset_points(lo, hi, values, fallback, rho, start):
     """Points [lo, hi) of ``values`` (P,3) float32, in place: where ``rho`` (P,) < ``start``
-    (float32) ``f + w (v − f)``, f the ``fallback`` (P,3), ``w = 1 − (1 − s² (3 − 2 s))``,
-    s = min(ρ / start, 1) (the float32 falloff of :func:`service.methods.confidence.falloff`)."""
+    (float32) ``f + w (v − f)``, f the ``fallback`` (P,3), ``w = 1 − falloff(ρ, start)``
+    (:func:`.validity_scalars.falloff`, float32; ρ ≥ 0)."""
     one = np.float32(1)
     for p in range(uint64(lo), uint64(hi)):
         r = rho[p]
         if r < start:
-            s = min(max(r / start, np.float32(0)), one)
-            w = one - (one - s * s * (np.float32(3) - np.float32(2) * s))
+            w = one - falloff(r, start)
             f0, f1, f2 = fallback[p, 0], fallback[p, 1], fallback[p, 2]
             values[p, 0] = f0 + w * (values[p, 0] - f0)
             values[p, 1] = f1 + w * (values[p, 1] - f1)
