@@ -73,10 +73,53 @@ def test_object_arrays_and_corrupt_bodies_are_refused_as_np_load_does():
     with pytest.raises(ValueError, match="allow_pickle"):
         load_npz(buffer.getvalue(), views=True)
     body = npz_bytes(**_arrays())
-    with pytest.raises(Exception):
+    with pytest.raises(zipfile.BadZipFile):
         load_npz(body[:-30], views=True)                   # truncated: np.load's error
+    end = body.rindex(b"PK\x05\x06")
+    cut = body[:end - 20] + body[end:]                     # the directory's last record cut short
+    with pytest.raises(zipfile.BadZipFile):
+        load_npz(cut, views=True)
     # a header whose shape does not fill its member is not viewed; np.load then finds the
     # member's CRC-32 wrong
     broken = body.replace(b"'shape': (2, 50, 3)", b"'shape': (2, 50, 2)")
     with pytest.raises(zipfile.BadZipFile, match="CRC"):
         load_npz(broken, views=True)
+
+
+def test_corrupt_zip_records_give_np_load_s_answer():
+    """Seeded single-byte corruptions of the zip records (local headers with their names,
+    central directory, end record; not the CRC-32 fields, which ``views=True`` does not
+    check by design): ``views=True`` answers what ``np.load`` answers, arrays or error type."""
+    import struct
+
+    body = _server_body({"vertices": np.arange(12, dtype=np.float32).reshape(1, 4, 3),
+                         "clamped": np.array([0.5], np.float32)})
+    spots: list[int] = []
+    at = 0
+    while body.startswith(b"PK\x03\x04", at):                # local headers and names
+        name_len, extra_len = struct.unpack_from("<HH", body, at + 26)
+        packed, = struct.unpack_from("<I", body, at + 18)
+        spots += [k for k in range(at, at + 30 + name_len) if not at + 14 <= k < at + 18]
+        at += 30 + name_len + extra_len + packed
+    directory = at
+    while body.startswith(b"PK\x01\x02", at):                # central records
+        name_len, extra_len, comment_len = struct.unpack_from("<HHH", body, at + 28)
+        size = 46 + name_len + extra_len + comment_len
+        spots += [k for k in range(at, at + size) if not at + 16 <= k < at + 20]
+        at += size
+    spots += list(range(at, len(body)))                        # the end record
+    assert body.startswith(b"PK\x05\x06", at) and directory < at
+    rng = np.random.default_rng(3)
+    for spot in rng.choice(spots, 300):
+        broken = bytearray(body)
+        broken[spot] ^= int(rng.choice([1, 0x80, 0xFF]))
+        broken = bytes(broken)
+        try:
+            expected = load_npz(broken)
+        except Exception as error:                        # noqa: BLE001 - np.load's own
+            with pytest.raises(type(error)):
+                load_npz(broken, views=True)
+            continue
+        viewed = load_npz(broken, views=True)
+        assert {k: v.tobytes() for k, v in viewed.items()} == \
+            {k: v.tobytes() for k, v in expected.items()}

@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import io
 import os
+import tokenize
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -88,11 +89,27 @@ _CENTRAL_SIGNATURE, _CENTRAL_SIZE = b"PK\x01\x02", 46
 _LOCAL_SIGNATURE, _LOCAL_SIZE = b"PK\x03\x04", 30
 #: a 32-bit size or offset field that defers to a zip64 record
 _ZIP64_MARK = 0xFFFFFFFF
+#: the newest "version needed to extract" viewed (4.5: zip64; np.savez writes 2.0 or 4.5)
+_MAX_VERSION = 45
+#: what NumPy's header parser (``ast.literal_eval`` after ``tokenize``) raises on a header
+#: that is not the dictionary literal it writes
+_HEADER_ERRORS = (ValueError, SyntaxError, TypeError, EOFError, RecursionError, MemoryError,
+                  tokenize.TokenError)
 
 
 def _npz_views(data: bytes) -> dict[str, np.ndarray] | None:
     """The arrays of an uncompressed ``.npz`` as views of ``data``, or None when it is not
     one this reader handles (see :func:`load_npz`)."""
+    import struct
+
+    try:
+        return _walk_directory(data)
+    except (struct.error, UnicodeDecodeError):       # records cut short, a name not UTF-8
+        return None
+
+
+def _walk_directory(data: bytes) -> dict[str, np.ndarray] | None:
+    """:func:`_npz_views` itself (``struct.error`` where a record runs past the body)."""
     import struct
 
     buffer = memoryview(data)
@@ -106,22 +123,30 @@ def _npz_views(data: bytes) -> dict[str, np.ndarray] | None:
     for _ in range(entries):
         if bytes(buffer[at:at + 4]) != _CENTRAL_SIGNATURE:
             return None
-        method, = struct.unpack_from("<H", buffer, at + 10)
+        needed, flags, method = struct.unpack_from("<HHH", buffer, at + 6)
         packed, unpacked, name_len, extra_len, comment_len = struct.unpack_from(
             "<IIHHH", buffer, at + 20)
         local, = struct.unpack_from("<I", buffer, at + 42)
-        name = bytes(buffer[at + _CENTRAL_SIZE:at + _CENTRAL_SIZE + name_len]).decode("utf-8")
+        raw_name = bytes(buffer[at + _CENTRAL_SIZE:at + _CENTRAL_SIZE + name_len])
+        name = raw_name.decode("utf-8")
         at += _CENTRAL_SIZE + name_len + extra_len + comment_len
-        if (method != 0 or packed != unpacked or _ZIP64_MARK in (packed, local)
-                or not name.endswith(".npy")
+        # what zipfile checks before it reads a member: no flags (encryption, data
+        # descriptors, ...), a version it extracts, a stored member, the same name in the
+        # local header as in the directory
+        if (flags or needed > _MAX_VERSION or method != 0 or packed != unpacked
+                or _ZIP64_MARK in (packed, local) or not name.endswith(".npy")
                 or bytes(buffer[local:local + 4]) != _LOCAL_SIGNATURE):
             return None
         local_name, local_extra = struct.unpack_from("<HH", buffer, local + 26)
+        if bytes(buffer[local + _LOCAL_SIZE:local + _LOCAL_SIZE + local_name]) != raw_name:
+            return None
         begin = local + _LOCAL_SIZE + local_name + local_extra
         array = _npy_view(data, begin, begin + packed)
         if array is None:
             return None
         out[name[:-4]] = array
+    if at != start + size:                          # the directory's size does not add up
+        return None
     return out
 
 
@@ -166,7 +191,7 @@ def _npy_header(header: bytes) -> tuple[tuple[int, ...], bool, np.dtype, int] | 
         version = fmt.read_magic(stream)
         read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
         shape, fortran_order, dtype = read(stream)
-    except (ValueError, SyntaxError, TypeError, EOFError):
+    except _HEADER_ERRORS:
         return None
     if dtype.hasobject or stream.read(1):
         return None
