@@ -14,7 +14,10 @@ Paths, each a median over ``--calls`` calls (frames cycle through the first 50 o
    client) against a real ``facesynth serve`` — the round trip includes the server's
    encoding and the client's ``np.load`` of every array; variants: float32 with the
    triangles (the contract's default), and ``half=true&topology=false`` (half-precision
-   maps, triangles left out: the client fetched them once); with uvicorn's pure-Python h11
+   maps, triangles left out: the client fetched them once), and the same through the SDK
+   (``facesynth_client.Client`` on the same httpx client, ``copy=False``: the answer decoded
+   as views of its body; this tree's SDK with ``PYTHONPATH=clients/python/src``); with
+   uvicorn's pure-Python h11
    parser and, when installed, its httptools parser on uvloop (``FACESYNTH_HTTP``), each
    in its own server of the same run;
 3. **gRPC stream**: ``StreamSynthesize`` through the SDK's ``StreamingClient`` with
@@ -29,10 +32,14 @@ frame (top functions by own time) per output set.
 With ``--against REV`` the HTTP rows come instead from a server of commit ``REV``
 (``git archive``, as ``cold_start.py --against``) and one of this tree, started side by
 side, their requests interleaved frame by frame with the in-process frame (a, b, c, c, b,
-a, …), so that old and new compare within the same seconds on a shared machine.
+a, …), so that old and new compare within the same seconds on a shared machine; these rows
+add each frame's CPU time, medians over the frames, of this process (the client; for
+in-process, the synthesis) and of the server process (every thread, from /proc schedstat):
+what a frame costs whatever the scheduler gave it (on a loaded VM, CPU time inflates too).
+``--impls`` and ``--outputs`` restrict the run (e.g. ``--impls httptools --outputs mesh``).
 
 Run: ``python benchmarks/realtime.py [--actor DIR] [--calls 100] [--paths inproc,http,grpc]
-[--profile] [--against REV]`` (``make bench``). The model is trained once into
+[--profile] [--against REV] [--impls h11,httptools] [--outputs mesh,maps]`` (``make bench``). The model is trained once into
 ``benchmarks/out/realtime/model-<actor>`` (a fresh process, minutes at level 1) and
 reused; the server's data directory is ``benchmarks/out/realtime/work-<actor>``. Writes the
 table to stdout and ``benchmarks/out/realtime.md``.
@@ -149,11 +156,37 @@ def stop_server(server: subprocess.Popen) -> None:
         server.kill()
 
 
+#: the variant that calls through the SDK (``facesynth_client.Client`` over the same httpx
+#: client): triangles fetched once (``topology=false`` after the first answer), half maps,
+#: the answer decoded as views of the body (``copy=False``)
+SDK_VARIANT = ("SDK: half maps, topology once, copy=False", {"sdk": "true"})
+
+
+def http_variants() -> list[tuple[str, dict]]:
+    """The HTTP rows' variants that this tree's server (and SDK) support: (label, query)."""
+    variants = [("float32, with faces", {})]
+    if supports("topology"):
+        variants.append(("half maps, topology=false", {"half": "true", "topology": "false"}))
+    if sdk_supports_copy():
+        variants.append(SDK_VARIANT)
+    return variants
+
+
 def http_call(client, model_id: str, markers: np.ndarray, outputs, params: dict, size: list):
     """``call(k)``: one one-frame synthesis of ``markers[k]`` through the httpx ``client``,
-    the response decoded with ``np.load`` (every array read); its body bytes into ``size``."""
+    the response decoded with ``np.load`` (every array read); its body bytes into ``size``.
+    ``params`` of :data:`SDK_VARIANT`: through the SDK instead (``size`` left at 0)."""
     from service.io.npz import npz_bytes
 
+    if params.get("sdk"):
+        from facesynth_client import Client
+
+        sdk = Client(http_client=client)
+
+        def sdk_call(k: int) -> None:
+            sdk.synthesis.synthesize(model_id, markers[k % len(markers)][None],
+                                     outputs=list(outputs), half=True, copy=False)
+        return sdk_call
     bodies = [npz_bytes(markers=m[None]) for m in markers]
 
     def call(k: int) -> None:
@@ -177,21 +210,47 @@ def http_ms(base: str, model_id: str, markers: np.ndarray, outputs, calls: int,
         return median_ms(http_call(client, model_id, markers, outputs, params, size), calls), size[0]
 
 
-def interleaved_ms(calls_by_path: dict, calls: int) -> dict[str, float]:
-    """Median wall time (ms) of each path's ``call(k)``, the paths taking turns frame by frame
-    (in order, then reversed: a, b, c, c, b, a, …) after ``WARMUP`` calls each: on a shared
-    machine only such interleaved timings compare."""
+def server_cpu_seconds(pid: int) -> float:
+    """CPU time (s) that the threads of process ``pid`` have run so far (Linux: the sum of
+    ``/proc/<pid>/task/*/schedstat``, nanoseconds; NaN elsewhere)."""
+    total = 0
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            try:
+                total += int((task / "schedstat").read_text().split()[0])
+            except (OSError, ValueError, IndexError):   # a thread that just ended
+                pass
+    except OSError:
+        return float("nan")
+    return total * 1e-9
+
+
+def interleaved_ms(calls_by_path: dict, calls: int, pids: dict | None = None
+                   ) -> dict[str, dict[str, float]]:
+    """Per path, medians (ms) over its ``call(k)``s of the wall time (``ms``), of this
+    process's CPU time (``client_cpu``: ``time.process_time``) and, for the paths named in
+    ``pids`` (path → server process id), of that server's CPU time (``server_cpu``, NaN
+    without), the paths taking turns frame by frame (in order, then reversed: a, b, c, c, b,
+    a, …) after ``WARMUP`` calls each: on a shared machine only such interleaved timings
+    compare, and the CPU times are what a frame costs whatever the scheduler gave it."""
     names = list(calls_by_path)
+    pids = pids or {}
     for k in range(WARMUP):
         for name in names:
             calls_by_path[name](k)
-    times: dict[str, list[float]] = {name: [] for name in names}
+    times: dict[str, list[tuple[float, float, float]]] = {name: [] for name in names}
     for k in range(calls):
         for name in names if k % 2 == 0 else names[::-1]:
-            t0 = time.perf_counter()
+            pid = pids.get(name)
+            s0 = server_cpu_seconds(pid) if pid else float("nan")
+            c0, t0 = time.process_time(), time.perf_counter()
             calls_by_path[name](k)
-            times[name].append(time.perf_counter() - t0)
-    return {name: 1e3 * float(np.median(t)) for name, t in times.items()}
+            t1, c1 = time.perf_counter(), time.process_time()
+            s1 = server_cpu_seconds(pid) if pid else float("nan")
+            times[name].append((t1 - t0, c1 - c0, s1 - s0))
+    return {name: dict(zip(("ms", "client_cpu", "server_cpu"),
+                           (1e3 * float(np.median(column)) for column in zip(*t))))
+            for name, t in times.items()}
 
 
 def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
@@ -202,8 +261,7 @@ def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
 
     old_tree = harness.source_tree(rev, harness.OUT / "cold_start")
     rows = []
-    variants = [("float32, with faces", {}), ("half maps, topology=false",
-                                              {"half": "true", "topology": "false"})]
+    variants = http_variants()
     for impl in http_impls():
         servers = {}
         try:
@@ -220,11 +278,16 @@ def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
                     for label, client in clients.items():
                         paths[label] = http_call(client, model_id, markers, outputs, params,
                                                  sizes[label])
-                    ms = interleaved_ms(paths, calls)
+                    ms = interleaved_ms(paths, calls, {label: servers[label][0].pid
+                                                       for label in clients})
                     for label in clients:
                         rows.append({"outputs": name, "path": f"HTTP {impl}, {variant}, {label}",
-                                     "ms": ms[label], "ref": ms["in-process"],
-                                     "bytes": sizes[label][0], "load": harness.load_average()})
+                                     "ms": ms[label]["ms"], "ref": ms["in-process"]["ms"],
+                                     "client_cpu": ms[label]["client_cpu"],
+                                     "server_cpu": ms[label]["server_cpu"],
+                                     "ref_cpu": ms["in-process"]["client_cpu"],
+                                     "bytes": sizes[label][0] or "–",
+                                     "load": harness.load_average()})
                         print(rows[-1], file=sys.stderr, flush=True)
             for client in clients.values():
                 client.close()
@@ -252,7 +315,13 @@ def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int
     return 1e3 * seconds / calls
 
 
+#: the HTTP implementations to measure (``--impls``; default every installed one)
+IMPLS: list[str] | None = None
+
+
 def http_impls() -> list[str]:
+    if IMPLS is not None:
+        return IMPLS
     impls = ["h11"]
     try:
         import httptools  # noqa: F401
@@ -269,6 +338,15 @@ def supports(flag: str) -> bool:
 
     import inspect
     return flag in inspect.signature(synthesis.synthesize).parameters
+
+
+def sdk_supports_copy() -> bool:
+    """Whether the SDK on the path decodes answers as views (``synthesize(copy=False)``; run
+    with ``PYTHONPATH=clients/python/src`` for this tree's SDK)."""
+    import inspect
+
+    from facesynth_client.resources.synthesis import Synthesis
+    return "copy" in inspect.signature(Synthesis.synthesize).parameters
 
 
 def grpc_supports_half() -> bool:
@@ -291,7 +369,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="HTTP only: a server of commit REV and one of this tree, their "
                              "frames interleaved with the in-process one (cold_start.py's "
                              "unpacked tree; REV must read the same database schema)")
+    parser.add_argument("--impls", default=None,
+                        help="HTTP implementations, comma-separated (h11, httptools; default "
+                             "every installed one)")
+    parser.add_argument("--outputs", default=None,
+                        help="output sets by name, comma-separated (mesh, maps; default both)")
     args = parser.parse_args(argv)
+    global IMPLS
+    if args.impls:
+        IMPLS = args.impls.split(",")
+    if args.outputs:
+        wanted = {"mesh": "mesh", "maps": "mesh + displacement + normal map"}
+        for key in set(OUTPUT_SETS) - {wanted[o] for o in args.outputs.split(",")}:
+            del OUTPUT_SETS[key]
     actor_dir = args.actor
     if actor_dir is None:
         actor_dir = harness.sample_actor("a", 1)
@@ -325,9 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     if paths & {"http", "grpc"}:
         work = WORK / f"work-{actor_dir.name}"
         work.mkdir(parents=True, exist_ok=True)
-        variants = [("float32, with faces", {})]
-        if supports("topology"):
-            variants.append(("half maps, topology=false", {"half": "true", "topology": "false"}))
+        variants = http_variants()
         for impl in http_impls():
             server, base, target = start_server(work, impl)
             try:
@@ -339,7 +427,8 @@ def main(argv: list[str] | None = None) -> int:
                         for label, params in variants:
                             ms, size = http_ms(base, model_id, markers, outputs, args.calls, params)
                             rows.append({"outputs": name, "path": f"HTTP {impl}, {label}", "ms": ms,
-                                         "ref": ref, "bytes": size, "load": harness.load_average()})
+                                         "ref": ref, "bytes": size or "–",
+                                         "load": harness.load_average()})
                             print(rows[-1], file=sys.stderr, flush=True)
                     if "grpc" in paths and impl == "h11":
                         for half in (False, True) if grpc_supports_half() else (False,):
@@ -359,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
     import numpy
+    cpu = any("server_cpu" in r for r in rows)   # --against: CPU medians per frame too
     lines = [
         "# The real-time path (issue 23): one PDM frame in-process, over HTTP, over gRPC",
         "",
@@ -368,15 +458,21 @@ def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
         f"{meta['blas']} BLAS thread(s) in-process and in the servers, NumPy "
         f"{numpy.__version__}; load average (1, 5, 15 min) {meta['load_start']} at the start, "
         f"{meta['load_end']} at the end. Ratio: against in-process in the same run (for the "
-        "transports, measured again beside each server).",
+        "transports, measured again beside each server)."
+        + (" CPU columns (`--against`): medians per frame of this process's CPU time (the "
+           "client's; for in-process the synthesis itself) and of the server process's (all "
+           "its threads, /proc schedstat)." if cpu else ""),
         "",
-        "| outputs | path | ms/frame | frames/s | × in-process | body bytes | load average |",
-        "|---|---|---:|---:|---:|---:|---|",
+        "| outputs | path | ms/frame | frames/s | × in-process | body bytes | load average |"
+        + (" client CPU ms | server CPU ms | in-process CPU ms |" if cpu else ""),
+        "|---|---|---:|---:|---:|---:|---|" + ("---:|---:|---:|" if cpu else ""),
     ]
     for r in rows:
         ref = r.get("ref", base_ms[r["outputs"]])
         lines.append(f"| {r['outputs']} | {r['path']} | {r['ms']:.1f} | {1e3 / r['ms']:.1f} | "
-                     f"{r['ms'] / ref:.2f}× | {r.get('bytes', '–')} | {r['load']} |")
+                     f"{r['ms'] / ref:.2f}× | {r.get('bytes', '–')} | {r['load']} |"
+                     + ("".join(f" {r[k]:.1f} |" if k in r else " – |"
+                                for k in ("client_cpu", "server_cpu", "ref_cpu")) if cpu else ""))
     lines += ["", "Targets (level 1):", ""]
     for name in OUTPUT_SETS:
         got = base_ms[name]

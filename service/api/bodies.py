@@ -146,7 +146,7 @@ async def read_form(request: Request) -> Any:
                               max_part_size=MULTIPART_MAX_FIELD_BYTES)
 
 
-def require_json(request: Request) -> None:
+async def require_json(request: Request) -> None:
     """Dependency of routes whose body is a JSON model: any other media type is a 415
     (FastAPI alone would answer a 422 'field required')."""
     if request.headers.get("content-length", "0") != "0" or "transfer-encoding" in request.headers:

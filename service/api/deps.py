@@ -4,6 +4,11 @@ session per request, the settings, and the job submitter.
 Nothing here reads the environment: ``create_app(settings)`` puts the services on
 ``app.state`` and every route gets them through these functions, so a test builds an app on
 a temporary directory and overrides what it needs (``app.dependency_overrides``).
+
+The dependencies that only read ``app.state`` are ``async def``: FastAPI runs a plain
+``def`` dependency in its thread pool, one thread hand-off (and back) per dependency and
+request, which on a loaded 2-core machine cost more than the work (issue 23). Only
+:func:`get_session`, which may wait on the database, stays a thread-pool function.
 """
 
 from __future__ import annotations
@@ -17,12 +22,12 @@ from service.app.services import Services, Submit
 from service.config import Settings
 
 
-def get_services(request: Request) -> Services:
+async def get_services(request: Request) -> Services:
     """The app's :class:`Services` (opened by the lifespan)."""
     return request.app.state.services
 
 
-def get_settings(services: Annotated[Services, Depends(get_services)]) -> Settings:
+async def get_settings(services: Annotated[Services, Depends(get_services)]) -> Settings:
     """The app's settings."""
     return services.settings
 
@@ -33,7 +38,7 @@ def get_session(services: Annotated[Services, Depends(get_services)]) -> Iterato
         yield session
 
 
-def get_submit(services: Annotated[Services, Depends(get_services)]) -> Submit:
+async def get_submit(services: Annotated[Services, Depends(get_services)]) -> Submit:
     """The job submitter: :func:`service.jobs.queue.submit` with the app's settings."""
     from service.jobs import queue
 

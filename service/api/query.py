@@ -54,8 +54,10 @@ def _query_aliases(dependant: Dependant) -> set[str]:
     return names
 
 
-def reject_unknown_query(request: Request) -> None:
-    """Refuse (422, ``extra_forbidden``) each query parameter the route does not declare."""
+async def reject_unknown_query(request: Request) -> None:
+    """Refuse (422, ``extra_forbidden``) each query parameter the route does not declare
+    (``async``: it runs on the event loop, without a thread-pool hand-off, as
+    :mod:`service.api.deps` explains)."""
     route = request.scope.get("route")
     if not isinstance(route, APIRoute):
         return
@@ -131,7 +133,7 @@ def _bad_cursor() -> RequestValidationError:
         "msg": "not a cursor of this listing (send back a response's next_cursor as it is)"}])
 
 
-def get_page(
+async def get_page(
     limit: Annotated[int, Query(ge=1, le=MAX_LIMIT, description=(
         f"At most this many items (default {DEFAULT_LIMIT}); when more follow, the answer "
         "has `next_cursor`."))] = DEFAULT_LIMIT,

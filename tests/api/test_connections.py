@@ -166,3 +166,33 @@ def test_connections_per_client_are_bounded(server):
     with connect(server) as s:           # the count went down with the closed connections
         s.sendall(b"GET / HTTP/1.1\r\nhost: x\r\n\r\n")
         assert s.recv(4096).startswith(b"HTTP/1.1 200 ")
+
+
+def test_the_h11_connection_hands_a_content_length_body_back_as_given():
+    """BodyPassthroughConnection.send writes the same bytes as h11's own send, and a
+    Content-Length body is the very object given (no copy); chunked framing is joined."""
+    import h11
+
+    from service.api.connections import BodyPassthroughConnection
+
+    body = memoryview(bytes(range(256)) * 40)
+    written = {}
+    for cls in (h11.Connection, BodyPassthroughConnection):
+        conn = cls(h11.SERVER)
+        conn.receive_data(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert isinstance(conn.next_event(), h11.Request)
+        out = [conn.send(h11.Response(status_code=200,
+                                      headers=[("content-length", str(len(body)))]))]
+        data = conn.send(h11.Data(data=body))
+        out += [data, conn.send(h11.EndOfMessage())]
+        written[cls] = b"".join(bytes(x) for x in out)
+        if cls is BodyPassthroughConnection:
+            assert data is body
+        chunked = cls(h11.SERVER)
+        chunked.receive_data(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        chunked.next_event()
+        chunked.send(h11.Response(status_code=200, headers=[("transfer-encoding", "chunked")]))
+        written[cls, "chunked"] = chunked.send(h11.Data(data=b"abc"))
+    assert written[h11.Connection] == written[BodyPassthroughConnection]
+    assert written[h11.Connection, "chunked"] == written[BodyPassthroughConnection, "chunked"] \
+        == b"3\r\nabc\r\n"

@@ -219,7 +219,8 @@ def test_synthesize_arrays_json_obj_and_exr(client, sheet_actor, pdm_model):
 
 def test_repeated_synthesis_sends_the_topology_once_and_half_maps(server, sheet_actor, pdm_model):
     """The second call asks with ``topology=false`` and gets the kept ``faces`` back; the
-    result equals the first call's bit for bit; ``half`` maps are float16 within 2^-11
+    result equals the first call's bit for bit, and so does ``copy=False``'s (read-only views
+    of the body); ``half`` maps are float16 within 2^-11
     relative (+2^-25) of float32; ``topology()`` revalidates with its ETag (304)."""
     import httpx
 
@@ -240,6 +241,12 @@ def test_repeated_synthesis_sends_the_topology_once_and_half_maps(server, sheet_
         assert set(first) == set(second)
         for key in first:
             np.testing.assert_array_equal(second[key], first[key])
+        viewed = fs.synthesize(pdm_model, markers, outputs=outputs, copy=False)
+        assert set(viewed) == set(first)
+        for key in first:        # views of the body: the same bytes, dtype and shape
+            assert viewed[key].dtype == first[key].dtype and viewed[key].shape == first[key].shape
+            assert viewed[key].tobytes() == first[key].tobytes(), key
+        assert not viewed["vertices"].flags.writeable
         half = fs.synthesize(pdm_model, markers, outputs=outputs, half=True)
         assert seen[-1].url.params["half"] == "true"
         for key in ("displacement", "normal_map"):

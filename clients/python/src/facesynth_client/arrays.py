@@ -14,8 +14,10 @@ A *mesh* argument may be
 
 from __future__ import annotations
 
+import functools
 import io
 import os
+import tokenize
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -61,10 +63,142 @@ def npz_bytes(**arrays: Any) -> bytes:
     return buffer.getvalue()
 
 
-def load_npz(data: bytes) -> dict[str, np.ndarray]:
-    """The arrays of an ``.npz`` archive (read with ``allow_pickle=False``)."""
+def load_npz(data: bytes, *, views: bool = False) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` archive (read with ``allow_pickle=False``).
+
+    ``views=True``: the arrays of an uncompressed archive (what the server answers) are
+    read-only views of ``data`` itself, found through the zip's central directory without
+    copying them and without checking the members' CRC-32 (the HTTP body arrived complete
+    over TCP; its length is the ``Content-Length``). The values are the same as
+    ``np.load``'s, bit for bit. An archive it cannot view so (compressed or zip64 members,
+    a trailing comment, a header that does not add up) is read by ``np.load`` instead,
+    which also raises the errors of a corrupt one.
+    """
+    if views:
+        arrays = _npz_views(data)
+        if arrays is not None:
+            return arrays
     with np.load(io.BytesIO(data), allow_pickle=False) as archive:
         return {name: archive[name] for name in archive.files}
+
+
+#: a zip's end of central directory record, central directory header and local file
+#: header (PKWARE APPNOTE.TXT 4.3.16, 4.3.12, 4.3.7): signature and fixed size
+_END_SIGNATURE, _END_SIZE = b"PK\x05\x06", 22
+_CENTRAL_SIGNATURE, _CENTRAL_SIZE = b"PK\x01\x02", 46
+_LOCAL_SIGNATURE, _LOCAL_SIZE = b"PK\x03\x04", 30
+#: a 32-bit size or offset field that defers to a zip64 record
+_ZIP64_MARK = 0xFFFFFFFF
+#: the newest "version needed to extract" viewed (4.5: zip64; np.savez writes 2.0 or 4.5)
+_MAX_VERSION = 45
+#: what NumPy's header parser (``ast.literal_eval`` after ``tokenize``) raises on a header
+#: that is not the dictionary literal it writes
+_HEADER_ERRORS = (ValueError, SyntaxError, TypeError, EOFError, RecursionError, MemoryError,
+                  tokenize.TokenError)
+
+
+def _npz_views(data: bytes) -> dict[str, np.ndarray] | None:
+    """The arrays of an uncompressed ``.npz`` as views of ``data``, or None when it is not
+    one this reader handles (see :func:`load_npz`)."""
+    import struct
+
+    try:
+        return _walk_directory(data)
+    except (struct.error, UnicodeDecodeError):       # records cut short, a name not UTF-8
+        return None
+
+
+def _walk_directory(data: bytes) -> dict[str, np.ndarray] | None:
+    """:func:`_npz_views` itself (``struct.error`` where a record runs past the body)."""
+    import struct
+
+    buffer = memoryview(data)
+    if len(buffer) < _END_SIZE or bytes(buffer[-_END_SIZE:-_END_SIZE + 4]) != _END_SIGNATURE:
+        return None                                        # absent, or behind a comment
+    entries, size, start = struct.unpack_from("<HII", buffer, len(buffer) - _END_SIZE + 10)
+    if start == _ZIP64_MARK or size == _ZIP64_MARK or start + size > len(buffer) - _END_SIZE:
+        return None
+    out: dict[str, np.ndarray] = {}
+    at = start
+    for _ in range(entries):
+        if bytes(buffer[at:at + 4]) != _CENTRAL_SIGNATURE:
+            return None
+        needed, flags, method = struct.unpack_from("<HHH", buffer, at + 6)
+        packed, unpacked, name_len, extra_len, comment_len = struct.unpack_from(
+            "<IIHHH", buffer, at + 20)
+        local, = struct.unpack_from("<I", buffer, at + 42)
+        raw_name = bytes(buffer[at + _CENTRAL_SIZE:at + _CENTRAL_SIZE + name_len])
+        name = raw_name.decode("utf-8")
+        at += _CENTRAL_SIZE + name_len + extra_len + comment_len
+        # what zipfile checks before it reads a member: no flags (encryption, data
+        # descriptors, ...), a version it extracts, a stored member, the same name in the
+        # local header as in the directory
+        if (flags or needed > _MAX_VERSION or method != 0 or packed != unpacked
+                or _ZIP64_MARK in (packed, local) or not name.endswith(".npy")
+                or bytes(buffer[local:local + 4]) != _LOCAL_SIGNATURE):
+            return None
+        local_name, local_extra = struct.unpack_from("<HH", buffer, local + 26)
+        if bytes(buffer[local + _LOCAL_SIZE:local + _LOCAL_SIZE + local_name]) != raw_name:
+            return None
+        begin = local + _LOCAL_SIZE + local_name + local_extra
+        array = _npy_view(data, begin, begin + packed)
+        if array is None:
+            return None
+        out[name[:-4]] = array
+    if at != start + size:                          # the directory's size does not add up
+        return None
+    return out
+
+
+def _npy_view(data: bytes, begin: int, end: int) -> np.ndarray | None:
+    """The ``.npy`` file at ``data[begin:end]`` as a read-only view of ``data`` (None if its
+    header is not a version 1 or 2 header of a non-object array whose data fills the
+    member)."""
+    import struct
+
+    magic = bytes(data[begin:begin + 8])
+    if magic == b"\x93NUMPY\x01\x00":
+        length_end = begin + 10
+        length, = struct.unpack_from("<H", data, begin + 8) if length_end <= end else (-1,)
+    elif magic == b"\x93NUMPY\x02\x00":
+        length_end = begin + 12
+        length, = struct.unpack_from("<I", data, begin + 8) if length_end <= end else (-1,)
+    else:
+        return None
+    offset = length_end + length
+    if length < 0 or offset > end:
+        return None
+    parsed = _npy_header(bytes(data[begin:offset]))
+    if parsed is None:
+        return None
+    shape, fortran_order, dtype, count = parsed
+    if offset + count * dtype.itemsize != end:
+        return None
+    flat = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+    if fortran_order:
+        return flat.reshape(shape[::-1]).transpose()
+    return flat.reshape(shape)
+
+
+@functools.lru_cache(maxsize=64)
+def _npy_header(header: bytes) -> tuple[tuple[int, ...], bool, np.dtype, int] | None:
+    """(shape, fortran_order, dtype, element count) of a whole ``.npy`` header (magic,
+    length and dictionary) as NumPy parses it, None if NumPy refuses it or it describes an
+    object array; remembered, since a client's answers repeat the same few headers."""
+    fmt = np.lib.format
+    stream = io.BytesIO(header)
+    try:
+        version = fmt.read_magic(stream)
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran_order, dtype = read(stream)
+    except _HEADER_ERRORS:
+        return None
+    if dtype.hasobject or stream.read(1):
+        return None
+    count = 1
+    for n in shape:
+        count *= int(n)
+    return tuple(int(n) for n in shape), bool(fortran_order), dtype, count
 
 
 def _faces(faces: Any) -> np.ndarray:
