@@ -749,16 +749,16 @@ class PdmModel:
         and, with ``aligned``, the neutral-aligned meshes (f,n,3) float64 returned."""
         ev = self.evaluator
         sm = ev.shell_mesh
-        surfaces = [sm.surface(u) for u in u_H]
+        surfaces = [sm.surface(u, correction=rho is not None) for u in u_H]
         fallback = None
         if rho is not None:
             fallback = np.empty((len(u_H), len(ev.uv_vertex), 3), np.float32)
-            for k, (u, (_, frames)) in enumerate(zip(u_H, surfaces)):
-                sm.fallback(u, frames, out=fallback[k])
+            for k, (_, frames, Uc) in enumerate(surfaces):
+                sm.fallback(Uc, frames, out=fallback[k])
         C = medium_offsets(ev.medium_values(d1, d2, rho, sectors, fallback), sm.seam_average,
                            sm.neutral_offset)                           # (f,n,3), internal order
         medium = np.empty((len(u_H), self.n_vertices, 3)) if aligned else None
-        for k, (U, frames) in enumerate(surfaces):
+        for k, (U, frames, _) in enumerate(surfaces):
             sm.place(U, frames, C[k], pose.R[k], pose.t[k], False if medium is None else medium[k],
                      None if world is None else world[k])
         return medium
