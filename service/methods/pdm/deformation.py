@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
+from service.geometry import ranges
 from service.geometry.scan_convert import barycentric_2d
 from service.geometry.topology import adjacency_matrix, edge_face_counts, edges, k_ring_matrix
 
@@ -495,7 +496,6 @@ class ParameterField:
         as its ``(2,6)·(6,run)`` product in float32 (:func:`.element_products.element_products`,
         compiled, bit for bit that product); with ``order`` (P,) (all elements) point
         ``order[p]`` of the result is sorted point p."""
-        from service.geometry import ranges
         from service.methods.pdm.element_products import NO_ORDER, element_products   # Numba
 
         T, s0 = g.shape[0], int(starts[a])
