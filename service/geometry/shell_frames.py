@@ -85,19 +85,35 @@ def _unit(x, y, z, xx):
 
 
 @njit(nogil=True, cache=True, fastmath=FASTMATH)
+def _row_product(B, k, u):
+    """``u B[k]`` (3 float32): row k of a basis B (n,h) times handle displacements u (3,h)."""
+    x = y = z = np.float32(0.0)
+    for j in range(uint64(B.shape[1])):
+        b = B[k, j]
+        x += b * u[0, j]
+        y += b * u[1, j]
+        z += b * u[2, j]
+    return x, y, z
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
 def displacements(lo, hi, B, u, U):
     """Vertices [lo, hi): the shell displacement ``U[:, k] = u B[k]`` (3,n) float32 of handle
     displacements u (3,h) float32 and the thin-shell basis rows B (n,h) float32 in the
     internal order (bickel2008 §4: u = B u_H, one row of B per vertex, read once)."""
-    h = uint64(B.shape[1])
     for k in range(uint64(lo), uint64(hi)):
-        x = y = z = np.float32(0.0)
-        for j in range(h):
-            b = B[k, j]
-            x += b * u[0, j]
-            y += b * u[1, j]
-            z += b * u[2, j]
-        U[0, k], U[1, k], U[2, k] = x, y, z
+        U[0, k], U[1, k], U[2, k] = _row_product(B, k, u)
+
+
+@njit(nogil=True, cache=True, fastmath=FASTMATH)
+def displacement_pair(lo, hi, B, Bc, u, U, Uc):
+    """Vertices [lo, hi): :func:`displacements` of two bases B, Bc (n,h) float32 for the same
+    u (3,h) in one pass, ``U = u Bᵀ`` and ``Uc = u Bcᵀ`` (3,n): row k of both read back to
+    back (two streams in flight instead of one pass each; each row's sum is the same
+    :func:`_row_product`, so both equal :func:`displacements` bit for bit)."""
+    for k in range(uint64(lo), uint64(hi)):
+        U[0, k], U[1, k], U[2, k] = _row_product(B, k, u)
+        Uc[0, k], Uc[1, k], Uc[2, k] = _row_product(Bc, k, u)
 
 
 @njit(nogil=True, cache=True, fastmath=FASTMATH)

@@ -47,6 +47,8 @@ from service.geometry.normals import _cross, _flatten_frames, _normalize, corner
 UV_DEGENERATE_SIN = 1e-8
 #: accumulated tangent shorter than this fraction of the summed weights counts as cancelled
 CANCEL_RTOL = 1e-6
+#: :class:`FrameField`'s sparse operators (its fields after ``faces``, in order)
+OPERATORS = ("incidence", "du", "edges", "du_edges")
 
 
 def _uv_determinants(uv: np.ndarray, uv_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -264,6 +266,27 @@ class FrameField:
         cols = np.stack([np.column_stack([F[:, 1], F[:, 0]]), np.column_stack([F[:, 2], F[:, 0]])]).ravel()
         edges = sp.csr_matrix((np.tile([1.0, -1.0], 2 * m), (rows, cols)), shape=(2 * m, n))
         return cls(F, incidence, du, edges, du_edges)
+
+    def operators(self) -> dict[str, sp.csr_matrix]:
+        """The sparse operators by field name (``incidence``, ``du``, ``edges``,
+        ``du_edges``): what :meth:`from_operators` takes back (e.g. from a model's cache)."""
+        return {k: getattr(self, k) for k in OPERATORS}
+
+    @classmethod
+    def from_operators(cls, F: np.ndarray, operators: dict) -> "FrameField | None":
+        """The FrameField of triangles F (m,3) over n vertices with the CSR ``operators`` of
+        :meth:`operators` (as stored: no copy, so frames are those of the field that was
+        stored bit for bit), if all are there with the shapes :meth:`build` makes, else None
+        (then build it: ~70 ms of a level-1 PDM load)."""
+        F = np.asarray(F, np.int64)
+        m = len(F)
+        inc = operators.get("incidence")
+        n = inc.shape[0] if sp.issparse(inc) else -1
+        want = {"incidence": (n, m), "du": (n, n), "edges": (2 * m, n), "du_edges": (n, 2 * m)}
+        if not all(sp.issparse(a := operators.get(k)) and a.format == "csr" and a.shape == shape
+                   for k, shape in want.items()):
+            return None
+        return cls(F, *(operators[k] for k in OPERATORS))
 
     def frames(self, V: np.ndarray, dtype=np.float64) -> np.ndarray:
         """Frames (n,3,3) or (frames,n,3,3) of ``dtype`` (float64 or float32, see the class

@@ -3,7 +3,8 @@ shell, the shell composed in them, and the per-point frame coordinates."""
 
 import numpy as np
 
-from service.geometry.shell_frames import ShellFrames, locality_order
+from service.geometry import ranges
+from service.geometry.shell_frames import ShellFrames, displacement_pair, locality_order
 from service.geometry.tangent_frames import FrameField
 
 
@@ -69,6 +70,25 @@ def test_kernel_indices_are_unsigned():
         assert a.dtype.kind == "u", a.dtype
     np.testing.assert_array_equal(at, np.sort(sf.rank[[5, 0, 5, 17]]))
     np.testing.assert_array_equal(sf.rank[[5, 0, 5, 17]][dest], at)
+
+
+def test_displacement_pair_is_each_product_alone_bit_for_bit():
+    """One pass over two bases gives each basis' :meth:`ShellFrames.displacement` exactly
+    (the same per-row sum), on any threads; both within float32 rounding of float64."""
+    V, F, uv = _sphere_patch()
+    sf = ShellFrames.build(V, F, uv, F)
+    rng = np.random.default_rng(7)
+    n, h = len(V), 37                                     # h not a multiple of the vector width
+    B, Bc = (sf.internal_basis(rng.normal(size=(n, h)) * s) for s in (1.0, 0.01))
+    u_H = rng.normal(size=(h, 3)) * 4.0
+    u = np.ascontiguousarray(u_H.T, np.float32)
+    for threads in (1, 2):
+        U, Uc = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
+        ranges.run(displacement_pair, n, B, Bc, u, U, Uc, threads=threads)
+        np.testing.assert_array_equal(U, sf.displacement(B, u_H, threads=1))
+        np.testing.assert_array_equal(Uc, sf.displacement(Bc, u_H, threads=1))
+    want = (Bc.astype(np.float64) @ u.T.astype(np.float64)).T
+    assert np.abs(Uc - want).max() < 1e-5 * np.abs(want).max()
 
 
 def _shell_case(k: int = 14):

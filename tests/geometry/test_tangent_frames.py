@@ -255,3 +255,25 @@ def test_frame_field_to_frame_inverts_to_world_and_shares_the_rows():
     np.testing.assert_array_equal(ff.to_world(poses, W, np.float32, rows), ff.to_world(poses, W, np.float32))
     np.testing.assert_allclose(ff.to_world(poses, local, np.float32), W, rtol=0, atol=1e-5)   # orthonormal frames
     np.testing.assert_array_equal(ff.to_frame(poses[1], W[1]), local[1])
+
+
+def test_frame_field_from_its_operators_is_the_same_field_and_wrong_ones_are_refused():
+    """FrameField.from_operators of :meth:`operators` (e.g. mapped from a model's cache) uses
+    the matrices as given and gives the built field's frames bit for bit; a missing matrix,
+    a wrong shape or a non-CSR one gives None (then build it)."""
+    import scipy.sparse as sp
+
+    from service.geometry.tangent_frames import OPERATORS, FrameField
+
+    ff, poses = _face_rig_field()
+    ops = ff.operators()
+    assert tuple(ops) == OPERATORS
+    again = FrameField.from_operators(ff.faces.astype(np.int32), ops)
+    assert all(getattr(again, k) is ops[k] for k in OPERATORS)
+    np.testing.assert_array_equal(again.frames(poses), ff.frames(poses))
+    np.testing.assert_array_equal(again.frames(poses, np.float32), ff.frames(poses, np.float32))
+    n = ops["du"].shape[0]
+    assert FrameField.from_operators(ff.faces, {k: v for k, v in ops.items() if k != "edges"}) is None
+    assert FrameField.from_operators(ff.faces[:-1], ops) is None                  # other triangles
+    assert FrameField.from_operators(ff.faces, {**ops, "du": sp.csr_matrix((n + 1, n + 1))}) is None
+    assert FrameField.from_operators(ff.faces, {**ops, "du_edges": ops["du_edges"].tocsc()}) is None

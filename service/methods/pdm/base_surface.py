@@ -244,16 +244,17 @@ class BaseSurface:
     @classmethod
     def from_smooth(cls, smooth, F, uv, uv_faces, handles, rest_markers,
                     ks: float = KS, kb: float = KB, basis: np.ndarray | None = None,
-                    energy: np.ndarray | None = None) -> "BaseSurface":
+                    energy: np.ndarray | None = None, frame_field: FrameField | None = None) -> "BaseSurface":
         """As :meth:`build` for an already smooth neutral (e.g. loaded from a model); a stored
-        ``basis`` (n,M) float32 and ``energy`` (M,M) of the same inputs skip their solves."""
+        ``basis`` (n,M) float32 and ``energy`` (M,M) of the same inputs skip their solves, a
+        stored ``frame_field`` (:meth:`FrameField.from_operators`) its build."""
         smooth = np.asarray(smooth, dtype=np.float64)
         F = np.asarray(F, dtype=np.int64)
         B = (thin_shell_basis(smooth, F, handles, ks=ks, kb=kb, dtype=np.float32)
              if basis is None else np.asfortranarray(basis))
         G = handle_energy_matrix(smooth, F, B, ks=ks, kb=kb) if energy is None else energy
         return cls(smooth, F, np.asarray(handles, np.int64), np.asarray(rest_markers, np.float64),
-                   B, G, FrameField.build(smooth, F, uv, uv_faces))
+                   B, G, frame_field or FrameField.build(smooth, F, uv, uv_faces))
 
     @property
     def noise_ratio(self) -> float:

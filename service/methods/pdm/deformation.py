@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
+from service.geometry import ranges
 from service.geometry.scan_convert import barycentric_2d
 from service.geometry.topology import adjacency_matrix, edge_face_counts, edges, k_ring_matrix
 
@@ -461,10 +462,7 @@ class ParameterField:
         if self.sorting is None:                    # built directly, without build()
             return self._combine(g[:, :, self.element], self.mono)
         order, counts, mono = self.sorting
-        d = np.empty((2, len(S), len(order)), np.float32)
-        for i, part in enumerate(self._products(g, mono, np.concatenate([[0], np.cumsum(counts)]), 0, E)):
-            d[i][:, order] = part
-        return d[0], d[1]
+        return self._products(g, mono, np.concatenate([[0], np.cumsum(counts)]), 0, E, order)
 
     def element_terms(self, S: np.ndarray) -> np.ndarray:
         """The six symmetric terms of d1 and of d2 per coarse element, (T,12,E) float32."""
@@ -480,28 +478,32 @@ class ParameterField:
         """d1, d2 (T,p) of the points of elements ``a:b`` (sorted points: ``runs`` set),
         for :meth:`element_terms` g (T,12,E): the points' slice is ``run_starts[a]:run_starts[b]``.
 
-        Each element's points by one matrix product ``(2,6) · (6,run)`` (its d1 and d2 terms
+        Each element's points as one matrix product ``(2,6) · (6,run)`` (its d1 and d2 terms
         times its points' monomials) instead of twelve passes over the block's repeated
         terms: float32 sums in BLAS's order, within 3e-7 of the largest |d| of the
         elementwise sum over the points (:meth:`_combine`, the unsorted path; tests, measured
         2e-7), about 4× faster (the 715k fine texels of the level-1 sample actor, 298
-        elements: 5.4 → 1.25 ms of CPU per frame). Elementwise per element, so any split
-        of the elements into ranges gives the same values bit for bit."""
+        elements: 5.4 → 1.25 ms of CPU per frame); since issue 23's compiled pass
+        (:meth:`_products`) without a BLAS call per element. Elementwise per element, so any
+        split of the elements into ranges gives the same values bit for bit."""
         return self._products(g, self.mono, self.run_starts, a, b)
 
     @staticmethod
-    def _products(g: np.ndarray, mono: np.ndarray, starts: np.ndarray, a: int, b: int
-                  ) -> tuple[np.ndarray, np.ndarray]:
-        """d1, d2 (T,p) of the points of elements ``a:b``, sorted by element (element e's
-        points are ``starts[e]:starts[e+1]`` of ``mono`` (6,P)): one (2,6)·(6,run) product each."""
-        T, s0 = g.shape[0], starts[a]
-        G = g[:, :, a:b].reshape(T, 2, 6, b - a)
-        out = np.empty((T, 2, starts[b] - s0), np.float32)
-        for e in range(a, b):
-            s, t = starts[e] - s0, starts[e + 1] - s0
-            if t > s:
-                np.matmul(G[..., e - a], mono[:, s + s0:t + s0], out=out[:, :, s:t])
-        return out[:, 0], out[:, 1]
+    def _products(g: np.ndarray, mono: np.ndarray, starts: np.ndarray, a: int, b: int,
+                  order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """d1, d2 (T,p) float32 of the points of elements ``a:b``, sorted by element (element
+        e's points are ``starts[e]:starts[e+1]`` of ``mono`` (6,P)), each element's points
+        as its ``(2,6)·(6,run)`` product in float32 (:func:`.element_products.element_products`,
+        compiled, bit for bit that product); with ``order`` (P,) (all elements) point
+        ``order[p]`` of the result is sorted point p."""
+        from service.methods.pdm.element_products import NO_ORDER, element_products   # Numba
+
+        T, s0 = g.shape[0], int(starts[a])
+        n = len(order) if order is not None else int(starts[b]) - s0
+        d1, d2 = np.empty((T, n), np.float32), np.empty((T, n), np.float32)
+        ranges.run(element_products, b - a, a, np.ascontiguousarray(g, np.float32), mono,
+                   np.asarray(starts, np.int64), NO_ORDER if order is None else order, s0, d1, d2)
+        return d1, d2
 
     @staticmethod
     def _combine(g: np.ndarray, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -62,7 +62,8 @@ from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
 from service.geometry.thin_shell import thin_shell_basis
-from service.geometry.tangent_frames import tangent_frames, uv_handedness
+from service.geometry.tangent_frames import OPERATORS as FRAME_OPERATORS
+from service.geometry.tangent_frames import FrameField, tangent_frames, uv_handedness
 from service.geometry.uv_raster import (
     UVRaster, interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, seam_average_matrix,
     texel_uv, uv_sampling_matrix,
@@ -319,8 +320,10 @@ class PdmEvaluator:
         if not ops or int(ops.get("version", -1)) != OPERATORS_VERSION:
             ops = {}
         if base is None:
+            frame_field = FrameField.from_operators(d.faces, {k: m for k in FRAME_OPERATORS if (
+                m := sparse_matrix(ops, f"frame_field_{k}")) is not None})
             base = BaseSurface.from_smooth(d.smooth, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,
-                                           basis=derived.basis, energy=derived.energy)
+                                           basis=derived.basis, energy=derived.energy, frame_field=frame_field)
             base = base.with_marker_noise(d.params.marker_noise_mm, d.prior_scale_mm, marker_prior=d.marker_prior)
         n, K = d.n_vertices, len(d.uv)
         fields = {k: ParameterField.from_arrays(d.axes, a) for k in ("vertex", "fine", "albedo")
@@ -337,7 +340,11 @@ class PdmEvaluator:
                 if len(order) != len(m.index) or fld.n_points != len(order):
                     raise ValueError(f"the stored {name} operators do not fit its {len(m.index)} texels")
                 orders[name] = order
-                bands[name] = TexelBand.build(m.resolution, m.index[order], m.coeffs[order], fld)
+                terms = ops.get(f"{name}_terms")          # term-major, as the band reads them
+                ok = (terms is not None and terms.shape == m.coeffs.shape[::-1] and terms.dtype == np.float32
+                      and terms.flags.c_contiguous)
+                bands[name] = TexelBand.build(m.resolution, m.index[order], None if ok else m.coeffs[order], fld,
+                                              terms=terms if ok else None)
         for name, band in bands.items():
             limit = derived.limits.get(name)
             bands[name] = dataclasses.replace(band, limit=_limits(band.field, d.S_train) if limit is None else limit)
@@ -406,7 +413,11 @@ class PdmEvaluator:
         thin-shell basis less the base's (:meth:`shell_fallback`); ``shell_mesh_*`` the
         compiled mesh's vertex order, both bases in it and its ShellFrames
         (:meth:`.shell_mesh.ShellMesh.stored`: a load maps them instead of permuting 2 × (n,M)
-        and building the frames' order and incidence; a cache without them does that); the CSR matrices ``seam_average``, ``fine_sampler`` and
+        and building the frames' order and incidence; a cache without them does that);
+        ``<band>_terms`` (K,C,P) float32 the fine and albedo bands' coefficients term-major in
+        that order (:attr:`.texel_band.TexelBand.terms`; a cache without them copies them from
+        the maps', ~85 ms at level 1); ``frame_field_*`` the base surface's :class:`~service.geometry.tangent_frames.FrameField`
+        operators (CSR; a cache without them builds it, ~70 ms at level 1); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
         rasterization at the fine resolution (not held by the evaluator: rasterized again
@@ -415,10 +426,13 @@ class PdmEvaluator:
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
                **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
+        for k, m in self.base.frame_field.operators().items():
+            out.update(sparse_members(f"frame_field_{k}", m))
         for name, band in self.bands.items():
             out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
             if name != "vertex":
                 out[f"{name}_order"] = self.orders[name]
+                out[f"{name}_terms"] = band.terms
         for name, m in ({} if self.validity is None else self.validity.texel_rho).items():
             out.update(sparse_members(f"{name}_texel_rho", m))
         raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
@@ -749,16 +763,16 @@ class PdmModel:
         and, with ``aligned``, the neutral-aligned meshes (f,n,3) float64 returned."""
         ev = self.evaluator
         sm = ev.shell_mesh
-        surfaces = [sm.surface(u) for u in u_H]
+        surfaces = [sm.surface(u, correction=rho is not None) for u in u_H]
         fallback = None
         if rho is not None:
             fallback = np.empty((len(u_H), len(ev.uv_vertex), 3), np.float32)
-            for k, (u, (_, frames)) in enumerate(zip(u_H, surfaces)):
-                sm.fallback(u, frames, out=fallback[k])
+            for k, (_, frames, Uc) in enumerate(surfaces):
+                sm.fallback(Uc, frames, out=fallback[k])
         C = medium_offsets(ev.medium_values(d1, d2, rho, sectors, fallback), sm.seam_average,
                            sm.neutral_offset)                           # (f,n,3), internal order
         medium = np.empty((len(u_H), self.n_vertices, 3)) if aligned else None
-        for k, (U, frames) in enumerate(surfaces):
+        for k, (U, frames, _) in enumerate(surfaces):
             sm.place(U, frames, C[k], pose.R[k], pose.t[k], False if medium is None else medium[k],
                      None if world is None else world[k])
         return medium

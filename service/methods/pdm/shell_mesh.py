@@ -9,8 +9,9 @@ the composition. Here the same steps run on the kernels of
 :mod:`service.geometry.shell_frames` (Numba, ``nogil``, over vertex ranges on
 :func:`service.geometry.ranges.kernel_threads` threads, in its cache-friendly vertex order):
 
-1. ``U = B u_H`` and ``U_c = (B_det − B) u_H`` (:meth:`ShellFrames.displacement`, the bases'
-   rows stored in the internal order);
+1. ``U = B u_H`` and ``U_c = (B_det − B) u_H`` in one pass over both bases
+   (:func:`~service.geometry.shell_frames.displacement_pair`, the bases' rows stored in the
+   internal order);
 2. the float32 frames T, B, N of X̄ + U from the rest edges plus U's edges
    (:meth:`ShellFrames.rows`; FrameField's frames, ~1e-6 apart);
 3. the fallback at the UV points: ``Frame(X) (V − X̄ + U_c) − neutral_offset``
@@ -33,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from service.geometry.shell_frames import ShellFrames
+from service.geometry import ranges
+from service.geometry.shell_frames import ShellFrames, displacement_pair
 
 
 @dataclass(frozen=True)
@@ -107,17 +109,27 @@ class ShellMesh:
         return {"order": self.order, "basis": self.basis, "correction": self.correction,
                 **{f"frames_{k}": v for k, v in self.frames.arrays().items()}}
 
-    def surface(self, u_H: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, tuple]:
+    def surface(self, u_H: np.ndarray, threads: int | None = None,
+                correction: bool = False) -> tuple[np.ndarray, tuple, np.ndarray | None]:
         """One frame's base surface: U = B u_H (3,n) float32 and its frames (T, B, N) (3,n)
-        float32, internal order, for handle displacements u_H (M,3)."""
-        U = self.frames.displacement(self.basis, u_H, threads)
-        return U, self.frames.rows(U, threads)
+        float32, internal order, for handle displacements u_H (M,3); with ``correction``
+        also ``Uc = (B_det − B) u_H`` (3,n) float32 that :meth:`fallback` reads (else None),
+        both products in one pass over the two bases (:func:`displacement_pair`, each
+        bit for bit the product alone)."""
+        sf = self.frames
+        if correction:
+            u = np.ascontiguousarray(np.asarray(u_H, np.float32).T)
+            U, Uc = (np.empty((3, sf.n_vertices), np.float32) for _ in range(2))
+            ranges.run(displacement_pair, sf.n_vertices, self.basis, self.correction, u, U, Uc, threads=threads)
+        else:
+            U, Uc = sf.displacement(self.basis, u_H, threads), None
+        return U, sf.rows(U, threads), Uc
 
-    def fallback(self, u_H: np.ndarray, frames: tuple, out: np.ndarray | None = None,
+    def fallback(self, Uc: np.ndarray, frames: tuple, out: np.ndarray | None = None,
                  threads: int | None = None) -> np.ndarray:
-        """The medium fallback (K,3) float32 at the UV points of one frame (u_H (M,3), the
-        base surface's ``frames`` of :meth:`surface`): :func:`.model.shell_fallback`."""
-        Uc = self.frames.displacement(self.correction, u_H, threads)
+        """The medium fallback (K,3) float32 at the UV points of one frame, from the
+        correction's displacement ``Uc`` and the base surface's ``frames`` of
+        :meth:`surface` (``correction=True``): :func:`.model.shell_fallback`."""
         return self.frames.coordinates(frames, Uc, self.offset, self.neutral_rows, self.uv_points, out,
                                         threads)
 

@@ -31,7 +31,11 @@ Layout (DESIGN.md "Data and storage"):
   0.87 → 0.69 s, resident after load 438 → 336 MB and after three mesh frames 478 → 427 MB,
   peak 613 → 562 MB; permuted as before when absent) and its :class:`~service.geometry.shell_frames.ShellFrames`
   (``op_shell_mesh_frames_*``, +6.8 MB: 77 ms of a level-1 load not spent building the
-  vertex order and incidence; built as before when absent); ``size_bytes`` counts the model without it;
+  vertex order and incidence; built as before when absent); ``op_fine_terms`` and
+  ``op_albedo_terms``, the bands' coefficients term-major in the evaluator's texel order,
+  and ``op_frame_field_*``, the base surface's FrameField operators (+47 MB at level 1: a
+  load maps them instead of copying the coefficients and building the field, load CPU
+  0.89 → 0.67 s; copied and built as before when absent); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the

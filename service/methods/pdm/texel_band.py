@@ -71,9 +71,14 @@ class TexelBand(CoveredTexels):
     terms: np.ndarray = dataclasses.field(repr=False)
 
     @classmethod
-    def build(cls, resolution: int, index: np.ndarray, coeffs: np.ndarray, field: ParameterField,
-              limit: np.ndarray | None = None) -> "TexelBand":
-        terms = np.ascontiguousarray(np.asarray(coeffs).transpose(2, 1, 0))
+    def build(cls, resolution: int, index: np.ndarray, coeffs: np.ndarray | None, field: ParameterField,
+              limit: np.ndarray | None = None, terms: np.ndarray | None = None) -> "TexelBand":
+        """From the coefficients (P,C,K) in the points' order, or their term-major copy
+        ``terms`` (K,C,P) float32 as stored (a model's cache, C-contiguous: used as it is,
+        ``coeffs`` then not read; issue 23: the fine and albedo bands' copies were ~85 ms of
+        a level-1 load)."""
+        if terms is None:
+            terms = np.ascontiguousarray(np.asarray(coeffs).transpose(2, 1, 0))
         return cls(resolution, index, terms.transpose(2, 1, 0), field, limit, terms)
 
     def parameters(self, S: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

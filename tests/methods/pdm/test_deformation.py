@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.geometry import scan_convert
 from service.methods.pdm import deformation as dm
@@ -301,3 +302,49 @@ def test_an_unsorted_field_combines_by_element_and_puts_the_points_back():
     for got, ref in ((d1, e1), (d2, e2)):
         assert got.dtype == np.float32 and got.shape == (T, P)
         assert np.abs(got - ref).max() <= 3e-7 * np.abs(ref).max()
+
+
+def _matmul_products(g, mono, starts, a, b):
+    """The per-element BLAS products ParameterField._products made before it was compiled:
+    one (T,2,6)·(6,run) ``np.matmul`` per element."""
+    T, s0 = g.shape[0], starts[a]
+    G = g[:, :, a:b].reshape(T, 2, 6, b - a)
+    out = np.empty((T, 2, starts[b] - s0), np.float32)
+    for e in range(a, b):
+        s, t = starts[e] - s0, starts[e + 1] - s0
+        if t > s:
+            np.matmul(G[..., e - a], mono[:, s + s0:t + s0], out=out[:, :, s:t])
+    return out[:, 0], out[:, 1]
+
+
+@pytest.mark.parametrize("T", [1, 3])
+def test_compiled_element_products_are_the_per_element_matmul_bit_for_bit(T, monkeypatch):
+    """The compiled pass (one fused multiply-add per term after the first product) gives the
+    per-element np.matmul's bits, for a block of elements and scattered back through an
+    order, on one and two kernel threads."""
+    from service.methods.pdm.deformation import ParameterField
+
+    rng = np.random.default_rng(11)
+    E, P = 23, 5000
+    counts = np.bincount(rng.integers(0, E, P), minlength=E)
+    counts[5] = 0                                                     # an element without points
+    P = int(counts.sum())
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    g = rng.normal(scale=4.0, size=(T, 12, E)).astype(np.float32)
+    w = rng.dirichlet(np.ones(3), P)
+    mono = np.stack([w[:, 0] ** 2, w[:, 1] ** 2, w[:, 2] ** 2, w[:, 0] * w[:, 1], w[:, 0] * w[:, 2],
+                     w[:, 1] * w[:, 2]]).astype(np.float32)
+    for a, b in ((0, E), (3, 17)):
+        want = _matmul_products(g, mono, starts, a, b)
+        for threads in ("1", "2"):
+            monkeypatch.setenv("NUMBA_NUM_THREADS", threads)
+            got = ParameterField._products(g, mono, starts, a, b)
+            for x, y in zip(got, want):
+                assert x.flags.c_contiguous and x.shape == (T, starts[b] - starts[a])
+                np.testing.assert_array_equal(x, y)
+    order = rng.permutation(P)
+    got = ParameterField._products(g, mono, starts, 0, E, order)
+    for x, y in zip(got, _matmul_products(g, mono, starts, 0, E)):
+        want = np.empty_like(y)
+        want[:, order] = y
+        np.testing.assert_array_equal(x, want)

@@ -46,11 +46,17 @@ def test_the_fallback_on_the_kernels_is_the_float64_one(pdm_model, frames):
     _, u_H, _ = ev.deformation(frames)
     _, ref = _float64_path(ev, frames)
     for k, u in enumerate(u_H):
-        got = sm.fallback(u, sm.surface(u)[1])
+        U, frames, Uc = sm.surface(u, correction=True)
+        got = sm.fallback(Uc, frames)
         assert got.dtype == np.float32 and got.shape == ref[k].shape
         err = np.abs(got - ref[k]).max()
         assert err < FALLBACK_RTOL * np.abs(ref[k]).max(), err
-        assert np.array_equal(sm.fallback(u, sm.surface(u, threads=2)[1], threads=2), got)
+        _, frames2, Uc2 = sm.surface(u, threads=2, correction=True)
+        assert np.array_equal(sm.fallback(Uc2, frames2, threads=2), got)
+        # the pair pass is each product alone, bit for bit
+        assert np.array_equal(U, sm.frames.displacement(sm.basis, u))
+        assert np.array_equal(Uc, sm.frames.displacement(sm.correction, u))
+        assert sm.surface(u)[2] is None
     assert np.abs(ref).max() > 0.1                                      # a fallback the frames rotate
 
 

@@ -310,3 +310,44 @@ def test_a_directory_the_blob_store_verified_is_not_hashed_again(pdm_model, pdm_
     markers = pdm_data[1][4].markers[[0, 9]]
     np.testing.assert_array_equal(loaded.synthesize(markers, outputs=("mesh",))["vertices"],
                                   pdm_model.synthesize(markers, outputs=("mesh",))["vertices"])
+
+
+def test_the_band_terms_and_frame_field_are_stored_mapped_and_synthesize_bit_for_bit(pdm_model, pdm_data, saved):
+    """Issue 23 (cold start): the fine and albedo bands' term-major coefficients
+    (``op_<band>_terms``) and the base surface's FrameField operators (``op_frame_field_*``)
+    are in the cache; a load maps them instead of copying the coefficients and building the
+    field; a cache of this operators version without them (saved before) does both as
+    before; every output synthesizes bit for bit as the trained model either way."""
+    import dataclasses
+
+    from service.geometry.tangent_frames import OPERATORS
+    from service.methods.footprint import file_mapped
+    from service.methods.kinds import get_kind
+    from service.methods.pdm import model as pdm
+    from service.methods.pdm.store import read_model
+
+    path, _ = saved
+    data, derived = read_model(path)
+    ops = derived.operators
+    ev0 = pdm_model.evaluator
+    for name in ("fine", "albedo"):
+        np.testing.assert_array_equal(ops[f"{name}_terms"], getattr(ev0, name).terms)
+    for k in OPERATORS:
+        m = getattr(ev0.base.frame_field, k)
+        for part in ("data", "indices", "indptr"):
+            np.testing.assert_array_equal(ops[f"frame_field_{k}_{part}"], getattr(m, part))
+    mapped = PdmModel.load(path)
+    ev = mapped.evaluator
+    assert file_mapped(ev.fine.terms) and file_mapped(ev.albedo.terms) and np.shares_memory(ev.fine.coeffs, ev.fine.terms)
+    assert all(file_mapped(getattr(ev.base.frame_field, k).data) for k in OPERATORS)
+    without = {k: v for k, v in ops.items() if not (k.startswith("frame_field_") or k.endswith("_terms"))}
+    built = PdmModel(data, pdm.PdmEvaluator.build(data, derived=dataclasses.replace(derived, operators=without)))
+    assert not file_mapped(built.evaluator.fine.terms)
+    assert not any(file_mapped(getattr(built.evaluator.base.frame_field, k).data) for k in OPERATORS)
+    markers = pdm_data[1][4].markers[[0, 9, 15]]
+    outputs = get_kind("pdm").outputs
+    a = pdm_model.synthesize(markers, outputs=outputs)
+    for model in (mapped, built):
+        b = model.synthesize(markers, outputs=outputs)
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)

@@ -44,3 +44,21 @@ def test_blocked_validity_is_the_whole_band_validity_bit_for_bit(pdm_model, pdm_
         assert np.array_equal(values, whole), name
         assert np.array_equal(frac, np.mean(rho_t > 1, axis=-1)), name
         assert frac[:2].max() < frac[2:].min() and frac[2:].min() > 0.05, name   # the far frames are outside
+
+
+def test_a_band_built_from_stored_terms_uses_them_and_equals_the_copy():
+    """TexelBand.build with ``terms`` (K,C,P) (a model's cache) takes them as they are, and
+    the band is the one built from the coefficients (P,C,K) element for element."""
+    from service.methods.pdm.deformation import ParameterField
+
+    rng = np.random.default_rng(3)
+    coeffs = rng.normal(size=(50, 3, 6)).astype(np.float32)
+    field = ParameterField(np.zeros(50, np.int64), np.zeros((1, 3), np.int64), np.ones((6, 50), np.float32),
+                           np.ones((1, 5)), np.ones((1, 5)), np.ones((1, 5)), np.array([50]))
+    copied = texel_band.TexelBand.build(64, np.arange(50), coeffs, field)
+    stored = np.ascontiguousarray(coeffs.transpose(2, 1, 0))
+    band = texel_band.TexelBand.build(64, np.arange(50), None, field, terms=stored)
+    assert band.terms is stored and np.shares_memory(band.coeffs, stored)
+    np.testing.assert_array_equal(band.terms, copied.terms)
+    np.testing.assert_array_equal(band.coeffs, copied.coeffs)
+    assert copied.terms.flags.c_contiguous
