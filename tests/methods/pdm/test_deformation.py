@@ -317,11 +317,19 @@ def _matmul_products(g, mono, starts, a, b):
     return out[:, 0], out[:, 1]
 
 
+def _assert_same_products(got, want):
+    """Within 4 float32 ulp of the products' scale (six terms, each |g m| ≤ scale)."""
+    scale = np.abs(want).max()
+    assert np.abs(got.astype(np.float64) - want).max() <= 4 * np.finfo(np.float32).eps * scale
+
+
 @pytest.mark.parametrize("T", [1, 3])
-def test_compiled_element_products_are_the_per_element_matmul_bit_for_bit(T, monkeypatch):
+def test_compiled_element_products_are_the_per_element_matmul(T, monkeypatch):
     """The compiled pass (one fused multiply-add per term after the first product) gives the
-    per-element np.matmul's bits, for a block of elements and scattered back through an
-    order, on one and two kernel threads."""
+    per-element np.matmul's values, for a block of elements and scattered back through an
+    order, on one and two kernel threads: bit for bit where OpenBLAS's float32 GEMM kernel
+    uses FMA in term order (this machine kind's), so the assertion is a bound of a few float32
+    ulp of the row's scale, which another BLAS kernel's summation order also meets."""
     from service.methods.pdm.deformation import ParameterField
 
     rng = np.random.default_rng(11)
@@ -341,10 +349,10 @@ def test_compiled_element_products_are_the_per_element_matmul_bit_for_bit(T, mon
             got = ParameterField._products(g, mono, starts, a, b)
             for x, y in zip(got, want):
                 assert x.flags.c_contiguous and x.shape == (T, starts[b] - starts[a])
-                np.testing.assert_array_equal(x, y)
+                _assert_same_products(x, y)
     order = rng.permutation(P)
     got = ParameterField._products(g, mono, starts, 0, E, order)
     for x, y in zip(got, _matmul_products(g, mono, starts, 0, E)):
         want = np.empty_like(y)
         want[:, order] = y
-        np.testing.assert_array_equal(x, want)
+        _assert_same_products(x, want)
