@@ -122,16 +122,16 @@ class _Stream:
     clamp: bool
     half: bool = False
 
-    def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> pb.MeshFrame:
-        """Synthesize and encode one frame (``start``: when it was read, for latency_ms)."""
+    def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> bytes:
+        """Synthesize and encode one frame: the serialized MeshFrame (``start``: when it was
+        read; latency_ms is the time until the reply's last copy into the message)."""
         try:
             markers = codec.decode_markers(msg)
             result = self.model.synthesize(markers[None], list(self.outputs), self.clamp)
         except InvalidInput as e:
             raise _invalid(_name_frame(str(e), where)) from None
-        reply = codec.encode_reply(result, self.outputs, msg.frame, faces=first, half=self.half)
-        reply.latency_ms = (time.perf_counter() - start) * 1e3
-        return reply
+        pieces = codec.reply_pieces(result, self.outputs, msg.frame, faces=first, half=self.half)
+        return codec.join_reply(pieces, (time.perf_counter() - start) * 1e3)
 
     def check(self, msg: pb.MarkerFrame, where: str) -> None:
         """Raise INVALID_ARGUMENT if a later message changes what the first one fixed."""
@@ -211,7 +211,7 @@ class _Pipeline:
             self.items.put(error)
         self.items.put(self._END)
 
-    def __iter__(self) -> Iterator[pb.MeshFrame]:
+    def __iter__(self) -> Iterator[bytes]:
         while True:
             item = self.items.get()
             if item is self._END:
@@ -262,7 +262,7 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
                                                      thread_name_prefix="facesynth-grpc-frame")
 
     def StreamSynthesize(self, request_iterator: Iterable[pb.MarkerFrame],
-                         context: grpc.ServicerContext) -> Iterator[pb.MeshFrame]:
+                         context: grpc.ServicerContext) -> Iterator[bytes]:
         try:
             yield from self._replies(request_iterator)
         except StreamError as e:
@@ -277,7 +277,7 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
             log.exception("StreamSynthesize failed")
             context.abort(grpc.StatusCode.INTERNAL, "internal error while synthesizing (see the server log)")
 
-    def _replies(self, requests: Iterable[pb.MarkerFrame]) -> Iterator[pb.MeshFrame]:
+    def _replies(self, requests: Iterable[pb.MarkerFrame]) -> Iterator[bytes]:
         requests = iter(requests)
         first = next(requests, None)
         if first is None:
@@ -438,9 +438,20 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     server = grpc.server(futures.ThreadPoolExecutor(max_workers, thread_name_prefix="facesynth-grpc"),
                          interceptors=[BearerTokenAuth(tokens)] if tokens else None,
                          options=options, maximum_concurrent_rpcs=max_workers)
-    pb_grpc.add_SynthesisServicer_to_server(
-        SynthesisServicer(load_model, pipeline_depth, synthesis_threads), server)
+    add_servicer(SynthesisServicer(load_model, pipeline_depth, synthesis_threads), server)
     return server
+
+
+def add_servicer(servicer: SynthesisServicer, server: grpc.Server) -> None:
+    """``pb_grpc.add_SynthesisServicer_to_server`` with the replies sent as the servicer
+    yields them: serialized MeshFrames (:func:`~service.grpc.codec.serialize_reply`)."""
+    service = pb.DESCRIPTOR.services_by_name["Synthesis"]
+    handlers = {"StreamSynthesize": grpc.stream_stream_rpc_method_handler(
+        servicer.StreamSynthesize, request_deserializer=pb.MarkerFrame.FromString,
+        response_serializer=codec.serialize_reply)}
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(service.full_name,
+                                                                          handlers),))
+    server.add_registered_method_handlers(service.full_name, handlers)
 
 
 def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PORT,

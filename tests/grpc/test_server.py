@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from service.grpc.client import stream_synthesize
+from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.server import serve
 from tests.grpc.conftest import MODEL_ID, TRAINING_ID, running
 
@@ -242,7 +243,7 @@ def test_the_pipeline_synthesizes_the_next_frame_while_one_is_held_and_bounds_th
         rest = list(replies)
     finally:
         pipeline.close()
-    got = [first, second, *rest]
+    got = [pb.MeshFrame.FromString(r) for r in (first, second, *rest)]
     assert [r.frame for r in got] == list(range(6)) and model.calls == list(range(6))
     assert [np.frombuffer(r.vertices, np.float32)[0] for r in got] == list(range(6))
     assert got[0].faces and not any(r.faces for r in got[1:])
@@ -256,7 +257,7 @@ def test_an_invalid_frame_ends_the_stream_after_the_replies_before_it_in_order()
     got = []
     with pytest.raises(StreamError) as e:
         for reply in pipeline:
-            got.append(reply.frame)
+            got.append(pb.MeshFrame.FromString(reply).frame)
     pipeline.close()
     assert got == [0, 1, 2]
     assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
@@ -289,7 +290,7 @@ def test_two_synthesis_threads_overlap_a_streams_frames_and_reply_in_order():
     model = _Overlapping([0.3] + [0.02] * 7)
     pipeline = _pipeline(model, _frames(8), depth=3, synthesis=ThreadPoolExecutor(2))
     try:
-        got = [r.frame for r in pipeline]
+        got = [pb.MeshFrame.FromString(r).frame for r in pipeline]
     finally:
         pipeline.close()
     assert got == list(range(8)) and model.most == 2
@@ -305,7 +306,8 @@ def test_streams_share_the_servers_synthesis_threads():
     servicer = SynthesisServicer(lambda _: model, depth=3, synthesis_threads=1)
     streams = [servicer._replies(iter(_frames(6))) for _ in range(2)]
     got: list[list[int]] = [[], []]
-    threads = [threading.Thread(target=lambda i=i: got[i].extend(r.frame for r in streams[i]))
+    threads = [threading.Thread(target=lambda i=i: got[i].extend(
+        pb.MeshFrame.FromString(r).frame for r in streams[i]))
                for i in range(2)]
     for t in threads:
         t.start()
