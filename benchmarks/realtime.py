@@ -26,10 +26,13 @@ average (``os.getloadavg()``) is recorded beside each row: the machine is shared
 ratios within one run compare. ``--profile`` adds a cProfile breakdown of the in-process
 frame (top functions by own time) per output set.
 
-With ``--against REV`` the HTTP rows come instead from a server of commit ``REV``
+With ``--against REV`` the HTTP and gRPC rows come instead from a server of commit ``REV``
 (``git archive``, as ``cold_start.py --against``) and one of this tree, started side by
-side, their requests interleaved frame by frame with the in-process frame (a, b, c, c, b,
-a, …), so that old and new compare within the same seconds on a shared machine.
+side: HTTP requests interleaved frame by frame with the in-process frame (a, b, c, c, b,
+a, …), gRPC streams of ``--calls`` frames taking turns (a, b, b, a, four each), so that old
+and new compare within the same seconds on a shared machine. gRPC rows also give the CPU
+time per frame of the server process and of the client (this process: the SDK's receiving
+and decoding), the cost that bounds throughput on a loaded machine.
 
 Run: ``python benchmarks/realtime.py [--actor DIR] [--calls 100] [--paths inproc,http,grpc]
 [--profile] [--against REV]`` (``make bench``). The model is trained once into
@@ -234,9 +237,18 @@ def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
     return rows
 
 
-def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int,
-            half: bool) -> float:
-    """Wall time per frame (ms) of a ``calls``-frame stream at ``IN_FLIGHT`` frames ahead."""
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (``/proc/<pid>/stat``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def grpc_stream(target: str, model_id: str, markers: np.ndarray, outputs, calls: int,
+                half: bool, pid: int | None = None) -> dict[str, float]:
+    """One ``calls``-frame stream at ``IN_FLIGHT`` frames ahead (after ``WARMUP`` frames one
+    at a time): ``ms`` wall time per frame, ``server_cpu`` CPU ms per frame of the server
+    process ``pid`` (if given) and ``client_cpu`` of this process (the SDK's sending,
+    receiving and decoding)."""
     from facesynth_client import StreamingClient
 
     frames = [markers[k % len(markers)] for k in range(calls)]
@@ -244,12 +256,53 @@ def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int
     with StreamingClient(target) as stream:
         for _ in stream.synthesize(model_id, frames[:WARMUP], outputs, max_in_flight=1, **kwargs):
             pass
+        server0 = cpu_seconds(pid) if pid else 0.0
+        client0 = time.process_time()
         t0 = time.perf_counter()
         n = sum(1 for _ in stream.synthesize(model_id, frames, outputs, max_in_flight=IN_FLIGHT,
                                              **kwargs))
         seconds = time.perf_counter() - t0
+        client = time.process_time() - client0
+        server = cpu_seconds(pid) - server0 if pid else float("nan")
     assert n == calls
-    return 1e3 * seconds / calls
+    return {"ms": 1e3 * seconds / calls, "server_cpu": 1e3 * server / calls,
+            "client_cpu": 1e3 * client / calls}
+
+
+def against_grpc_rows(rev: str, work: Path, base_ms: dict, model_dir: Path, actor_dir: Path,
+                      markers: np.ndarray, calls: int, rounds: int = 4) -> list[dict]:
+    """gRPC streams of commit ``rev``'s server against this tree's, started side by side,
+    whole streams taking turns (a, b, b, a, … ``rounds`` each) per output set and map
+    precision: medians of the wall time per frame, and the CPU per frame of each server and
+    of the client, over the rounds."""
+    old_tree = harness.source_tree(rev, harness.OUT / "cold_start")
+    servers = {}
+    rows = []
+    try:
+        for label, repo in ((rev, old_tree), ("this tree", ROOT)):
+            servers[label] = start_server(work, "h11", repo)
+        model_id = harness.register_model(servers["this tree"][1], work, actor_dir, model_dir)
+        labels = list(servers)
+        for name, outputs in OUTPUT_SETS.items():
+            maps = len(outputs) > 1
+            for half in (False, True) if maps and grpc_supports_half() else (False,):
+                got: dict[str, list[dict]] = {label: [] for label in labels}
+                for r in range(rounds):
+                    for label in labels if r % 2 == 0 else labels[::-1]:
+                        proc, _, target = servers[label]
+                        got[label].append(grpc_stream(target, model_id, markers, outputs, calls,
+                                                      half, proc.pid))
+                for label in labels:
+                    med = {k: float(np.median([g[k] for g in got[label]])) for k in got[label][0]}
+                    rows.append({"outputs": name, "path": f"gRPC stream, {IN_FLIGHT} in flight"
+                                 + (", half maps" if half else "") + f", {label}",
+                                 "ref": base_ms[name], "load": harness.load_average(), **med,
+                                 "fps_rounds": [round(1e3 / g["ms"], 1) for g in got[label]]})
+                    print(rows[-1], file=sys.stderr, flush=True)
+    finally:
+        for server, _, _ in servers.values():
+            stop_server(server)
+    return rows
 
 
 def http_impls() -> list[str]:
@@ -288,9 +341,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--paths", default="inproc,http,grpc")
     parser.add_argument("--profile", action="store_true", help="add a cProfile breakdown")
     parser.add_argument("--against", metavar="REV", default=None,
-                        help="HTTP only: a server of commit REV and one of this tree, their "
-                             "frames interleaved with the in-process one (cold_start.py's "
-                             "unpacked tree; REV must read the same database schema)")
+                        help="a server of commit REV and one of this tree: HTTP frames "
+                             "interleaved with the in-process one, gRPC streams taking turns "
+                             "(cold_start.py's unpacked tree; REV must read the same database "
+                             "schema)")
     args = parser.parse_args(argv)
     actor_dir = args.actor
     if actor_dir is None:
@@ -320,7 +374,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.against:
         work = WORK / f"work-{actor_dir.name}"
         work.mkdir(parents=True, exist_ok=True)
-        rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
+        if "http" in paths:
+            rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
+        if "grpc" in paths:
+            rows += against_grpc_rows(args.against, work, base_ms, model_dir, actor_dir, markers,
+                                      args.calls)
         paths -= {"http", "grpc"}
     if paths & {"http", "grpc"}:
         work = WORK / f"work-{actor_dir.name}"
@@ -343,9 +401,10 @@ def main(argv: list[str] | None = None) -> int:
                             print(rows[-1], file=sys.stderr, flush=True)
                     if "grpc" in paths and impl == "h11":
                         for half in (False, True) if grpc_supports_half() else (False,):
-                            ms = grpc_ms(target, model_id, markers, outputs, args.calls, half)
+                            got = grpc_stream(target, model_id, markers, outputs, args.calls, half,
+                                              server.pid)
                             rows.append({"outputs": name, "path": f"gRPC stream, {IN_FLIGHT} in flight"
-                                         + (", half maps" if half else ""), "ms": ms, "ref": ref,
+                                         + (", half maps" if half else ""), **got, "ref": ref,
                                          "load": harness.load_average()})
                             print(rows[-1], file=sys.stderr, flush=True)
             finally:
@@ -370,13 +429,15 @@ def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
         f"{meta['load_end']} at the end. Ratio: against in-process in the same run (for the "
         "transports, measured again beside each server).",
         "",
-        "| outputs | path | ms/frame | frames/s | × in-process | body bytes | load average |",
-        "|---|---|---:|---:|---:|---:|---|",
+        "| outputs | path | ms/frame | frames/s | × in-process | body bytes | CPU ms/frame, "
+        "server + client | load average |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         ref = r.get("ref", base_ms[r["outputs"]])
+        cpu = (f"{r['server_cpu']:.1f} + {r['client_cpu']:.1f}" if "server_cpu" in r else "–")
         lines.append(f"| {r['outputs']} | {r['path']} | {r['ms']:.1f} | {1e3 / r['ms']:.1f} | "
-                     f"{r['ms'] / ref:.2f}× | {r.get('bytes', '–')} | {r['load']} |")
+                     f"{r['ms'] / ref:.2f}× | {r.get('bytes', '–')} | {cpu} | {r['load']} |")
     lines += ["", "Targets (level 1):", ""]
     for name in OUTPUT_SETS:
         got = base_ms[name]

@@ -31,7 +31,10 @@ GIL (NumPy and BLAS, SciPy's sparse products, the Numba kernels compiled ``nogil
 frames of one stream are synthesized side by side: with S = 2 on 2 cores the default depth,
 S + 1, keeps both threads busy while one reply is sent. Each frame's result is that of
 ``model.synthesize`` on it alone, whatever thread runs it (the kernels' scratch arrays are
-per thread), so the replies are the one-thread path's bit for bit.
+per thread), so the replies are the one-thread path's bit for bit. The replies are the
+MeshFrames' serialized bytes, written straight from the result arrays on the synthesis thread
+(:func:`~service.grpc.codec.reply_pieces`, one copy of each map; gRPC sends them as they are,
+:func:`add_servicer`).
 """
 
 from __future__ import annotations
