@@ -29,8 +29,9 @@ frame (top functions by own time) per output set.
 With ``--against REV`` the HTTP and gRPC rows come instead from a server of commit ``REV``
 (``git archive``, as ``cold_start.py --against``) and one of this tree, started side by
 side: HTTP requests interleaved frame by frame with the in-process frame (a, b, c, c, b,
-a, …), gRPC streams of ``--calls`` frames taking turns (a, b, b, a, four each), so that old
-and new compare within the same seconds on a shared machine. gRPC rows also give the CPU
+a, …), gRPC streams of ``--calls`` frames taking turns (a, b, c, c, b, a, ``--rounds``
+each; c: this tree with one synthesis slot, ``FACESYNTH_MAX_CONCURRENT_SYNTHESES=1``), so
+that old and new compare within the same seconds on a shared machine. gRPC rows also give the CPU
 time per frame of the server process and of the client (this process: the SDK's receiving
 and decoding), the cost that bounds throughput on a loaded machine.
 
@@ -114,9 +115,11 @@ def profile(model, markers: np.ndarray, outputs, calls: int, top: int = 14) -> s
 
 
 # ---------------------------------------------------------------------- server
-def start_server(work: Path, http_impl: str, repo: Path = ROOT) -> tuple[subprocess.Popen, str, str]:
-    """A ``facesynth serve`` of the source tree ``repo`` on free ports (no job workers); its
-    HTTP base URL and gRPC address."""
+def start_server(work: Path, http_impl: str, repo: Path = ROOT,
+                 settings: dict[str, str] | None = None) -> tuple[subprocess.Popen, str, str]:
+    """A ``facesynth serve`` of the source tree ``repo`` on free ports (no job workers), with
+    ``settings`` (``FACESYNTH_*`` variables) beside the benchmark's; its HTTP base URL and
+    gRPC address."""
     port, grpc_port = harness.free_port(), harness.free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
@@ -125,7 +128,8 @@ def start_server(work: Path, http_impl: str, repo: Path = ROOT) -> tuple[subproc
                 # h11 on the plain asyncio loop (uvicorn without extras); httptools on uvloop
                 "FACESYNTH_LOOP": "asyncio" if http_impl == "h11" else "uvloop",
                 # the in-process reference's BLAS threads (BLAS_THREADS: serve's sizing)
-                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS), "PYTHONPATH": str(repo)})
+                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS), "PYTHONPATH": str(repo),
+                **(settings or {})})
     log = open(work / "server.log", "ab")
     server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=repo, env=env,
                               stdout=log, stderr=log, stdin=subprocess.DEVNULL)
@@ -271,16 +275,19 @@ def grpc_stream(target: str, model_id: str, markers: np.ndarray, outputs, calls:
 
 def against_grpc_rows(rev: str, work: Path, base_ms: dict, model_dir: Path, actor_dir: Path,
                       markers: np.ndarray, calls: int, rounds: int = 4) -> list[dict]:
-    """gRPC streams of commit ``rev``'s server against this tree's, started side by side,
-    whole streams taking turns (a, b, b, a, … ``rounds`` each) per output set and map
-    precision: medians of the wall time per frame, and the CPU per frame of each server and
-    of the client, over the rounds."""
+    """gRPC streams of commit ``rev``'s server against this tree's, and this tree's with one
+    synthesis slot (``FACESYNTH_MAX_CONCURRENT_SYNTHESES=1``, BLAS threads as the others),
+    started side by side, whole streams taking turns (a, b, c, c, b, a, … ``rounds`` each)
+    per output set and map precision: medians of the wall time per frame, and the CPU per
+    frame of each server and of the client, over the rounds."""
     old_tree = harness.source_tree(rev, harness.OUT / "cold_start")
     servers = {}
     rows = []
     try:
-        for label, repo in ((rev, old_tree), ("this tree", ROOT)):
-            servers[label] = start_server(work, "h11", repo)
+        for label, repo, settings in ((rev, old_tree, None), ("this tree", ROOT, None),
+                                      ("this tree, 1 synthesis slot", ROOT,
+                                       {"FACESYNTH_MAX_CONCURRENT_SYNTHESES": "1"})):
+            servers[label] = start_server(work, "h11", repo, settings)
         model_id = harness.register_model(servers["this tree"][1], work, actor_dir, model_dir)
         labels = list(servers)
         for name, outputs in OUTPUT_SETS.items():
@@ -345,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
                              "interleaved with the in-process one, gRPC streams taking turns "
                              "(cold_start.py's unpacked tree; REV must read the same database "
                              "schema)")
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="with --against: streams per server and output set (default 4)")
     args = parser.parse_args(argv)
     actor_dir = args.actor
     if actor_dir is None:
@@ -378,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
             rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
         if "grpc" in paths:
             rows += against_grpc_rows(args.against, work, base_ms, model_dir, actor_dir, markers,
-                                      args.calls)
+                                      args.calls, args.rounds)
         paths -= {"http", "grpc"}
     if paths & {"http", "grpc"}:
         work = WORK / f"work-{actor_dir.name}"
