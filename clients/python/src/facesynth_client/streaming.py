@@ -54,13 +54,14 @@ OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
 DEFAULT_OUTPUTS = ("mesh",)
 #: the server's address when neither ``target`` nor ``$FACESYNTH_GRPC`` is given
 DEFAULT_TARGET = "127.0.0.1:50051"
-#: frames sent and not yet answered, at most (the pipeline's depth). A stream's frames are
-#: synthesized one after another, so depth beyond the frame in work and the next one adds
-#: latency, not throughput. Level-0 PDM, mesh + displacement, loopback, a loaded 2-core
-#: machine (benchmarks/grpc_stream.py, two runs): depth 1 4.4-4.5 frames/s, 190-200 ms round
-#: trip; 2: 4.4-5.0 frames/s, 370-420 ms; 4: 3.1-5.0, 780-1260 ms; 8: 3.6-5.1, 1510-1980 ms
-#: (server 150-250 ms per frame). 2 hides one frame's transfer on a real network.
-DEFAULT_IN_FLIGHT = 2
+#: frames sent and not yet answered, at most (the pipeline's depth). The server synthesizes a
+#: stream's frames on its synthesis threads side by side (one per core by default) and takes
+#: up to threads + 1 of them: on two cores 3 keeps both threads busy while a reply travels;
+#: more adds latency, not throughput. Level-1 PDM, loopback, the shared 2-core machine at
+#: load 14-16 (benchmarks/grpc_stream.py, 80 frames, two alternating runs, medians): mesh
+#: depth 1/2/3/4 30.6/32.6/33.1/34.8 frames/s, round trip 31/55/89/109 ms; mesh + both maps
+#: 6.0/7.2/8.5/7.8 frames/s, 182/270/323/469 ms.
+DEFAULT_IN_FLIGHT = 3
 #: message size limit, both directions: a reply with 1024² displacement, albedo and normal
 #: maps is 28 MiB plus the meshes (gRPC's default of 4 MiB is too small); the server's too
 MAX_MESSAGE_BYTES = 64 * 2**20
