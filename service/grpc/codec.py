@@ -203,17 +203,16 @@ def reply_pieces(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame
     """The MeshFrame of :func:`encode_reply` (same parameters) in its wire encoding, as a
     list of bytes and zero-copy views of ``result``'s arrays, all but ``latency_ms`` (the
     last field): :func:`join_reply` adds it and makes the message's bytes."""
-    f = MESH_FRAME_NUMBERS
-    vertices = [(key, result[key][index]) for output, key in MESH_FIELDS.items() if output in outputs]
+    f = MESH_FRAME_NUMBERS               # fields in number order, as protobuf serializes them
+    meshes = {key: result[key][index] for output, key in MESH_FIELDS.items() if output in outputs}
     pieces = [_scalar(f["frame"], frame),
-              _scalar(f["vertex_count"], len(vertices[-1][1]) if vertices else 0)]
-    for key in ("vertices", "vertices_detailed"):
-        pieces += _length_delimited(f[key], [_payload(V, F32) for k, V in vertices if k == key])
+              _scalar(f["vertex_count"], len(next(iter(meshes.values()))) if meshes else 0)]
+    for key in sorted(meshes, key=f.get):
+        pieces += _length_delimited(f[key], [_payload(meshes[key], F32)])
     if faces:
         pieces += _length_delimited(f["faces"], [_payload(result["faces"], I32)])
-    for key in ("displacement", "albedo", "normal_map"):
-        if key in outputs:
-            pieces += map_pieces(f[key], result[key][index], half)
+    for key in sorted((k for k in MAP_OUTPUTS if k in outputs), key=f.get):
+        pieces += map_pieces(f[key], result[key][index], half)
     pieces.append(_fixed(f["clamped"], result["clamped"][index], F32))
     return pieces
 
