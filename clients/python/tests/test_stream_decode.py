@@ -66,3 +66,12 @@ def test_unknown_fields_are_skipped_and_a_repeated_field_is_the_parsers():
     got = decode_reply(again)
     _same(got, decode_reply(pb.MeshFrame.FromString(again)))
     assert got["frame"] == 7 and got["displacement"].shape == (3, 2)
+
+
+def test_a_truncated_reply_is_the_parsers_error():
+    from google.protobuf.message import DecodeError
+
+    data = _frame(True).SerializeToString()
+    for cut in (1, 2, len(data) // 2, len(data) - 1):
+        with pytest.raises(DecodeError):
+            decode_reply(data[:cut])

@@ -130,11 +130,14 @@ _MAP = _wire_layout(pb.Map)
 def _wire_fields(data: memoryview, layout: dict[int, tuple[str, int]]) -> dict[str, Any] | None:
     """The known fields of one message's wire encoding by name: ints for varints, views of
     ``data`` for the rest; unknown fields skipped. None where the plain parser must decide
-    (a field repeated, which protobuf merges, or of an unexpected wire type)."""
+    (a field repeated, which protobuf merges, one of an unexpected wire type, or a truncated
+    message, which it refuses)."""
     out: dict[str, Any] = {}
     pos, end = 0, len(data)
     while pos < end:
         key, pos = _varint(data, pos)
+        if pos < 0:
+            return None
         number, wire = key >> 3, key & 7
         if wire == 0:
             value, pos = _varint(data, pos)
@@ -146,8 +149,8 @@ def _wire_fields(data: memoryview, layout: dict[int, tuple[str, int]]) -> dict[s
             value, pos = data[pos:pos + size], pos + size
         else:
             return None
-        if pos > end:
-            raise ValueError("truncated MeshFrame")
+        if not 0 <= pos <= end:
+            return None
         if number in layout:
             name, expected = layout[number]
             if wire != expected or name in out:
@@ -157,8 +160,11 @@ def _wire_fields(data: memoryview, layout: dict[int, tuple[str, int]]) -> dict[s
 
 
 def _varint(data: memoryview, pos: int) -> tuple[int, int]:
+    """The varint at ``pos`` and the position after it (-1 past the end of ``data``)."""
     value = shift = 0
     while True:
+        if pos >= len(data):
+            return 0, -1
         byte = data[pos]
         pos += 1
         value |= (byte & 0x7F) << shift
@@ -175,11 +181,11 @@ def _decode_wire(data: bytes) -> dict[str, Any] | None:
     fields = _wire_fields(view, _MESH_FRAME)
     if fields is None:
         return None
-    scalar = lambda name, dtype, default: (  # noqa: E731
-        float(np.frombuffer(fields[name], dtype)[0]) if name in fields else default)
-    out: dict[str, Any] = {"frame": fields.get("frame", 0),
-                           "clamped": scalar("clamped", np.dtype("<f4"), 0.0),
-                           "latency_ms": scalar("latency_ms", np.dtype("<f8"), 0.0)}
+    def number(name: str, dtype: str) -> float:
+        return float(np.frombuffer(fields[name], dtype)[0]) if name in fields else 0.0
+
+    out: dict[str, Any] = {"frame": fields.get("frame", 0), "clamped": number("clamped", "<f4"),
+                           "latency_ms": number("latency_ms", "<f8")}
     count = fields.get("vertex_count", 0)
     for key in MESH_FIELDS:
         if len(fields.get(key, b"")):
