@@ -1,7 +1,7 @@
 """Throughput of the SDK's gRPC stream against a running server, by pipeline depth.
 
 Streams a sample actor's held-out performance through ``facesynth_client.StreamingClient``
-with ``max_in_flight`` 1 (one frame at a time: send, wait, send), 2, 4 and 8, and prints a
+with ``max_in_flight`` 1 (one frame at a time: send, wait, send), 2, 3, 4 and 8, and prints a
 table of frames per second and the client-side round trip per frame (time from a frame
 being taken to its reply) beside the server's own time per frame (``latency_ms``).
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from facesynth_client import StreamingClient
 
-DEPTHS = (1, 2, 4, 8)
+DEPTHS = (1, 2, 3, 4, 8)
 
 
 def run(target: str, model: str, markers: np.ndarray, outputs: tuple[str, ...],

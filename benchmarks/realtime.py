@@ -29,7 +29,7 @@ average (``os.getloadavg()``) is recorded beside each row: the machine is shared
 ratios within one run compare. ``--profile`` adds a cProfile breakdown of the in-process
 frame (top functions by own time) per output set.
 
-With ``--against REV`` the HTTP rows come instead from a server of commit ``REV``
+With ``--against REV`` the HTTP and gRPC rows come instead from a server of commit ``REV``
 (``git archive``, as ``cold_start.py --against``) and one of this tree, started side by
 side, their requests interleaved frame by frame with the in-process frame (a, b, c, c, b,
 a, …), so that old and new compare within the same seconds on a shared machine; these rows
@@ -37,6 +37,9 @@ add each frame's CPU time, medians over the frames, of this process (the client;
 in-process, the synthesis) and of the server process (every thread, from /proc schedstat):
 what a frame costs whatever the scheduler gave it (on a loaded VM, CPU time inflates too).
 ``--impls`` and ``--outputs`` restrict the run (e.g. ``--impls httptools --outputs mesh``).
+gRPC streams of ``--calls`` frames take turns (a, b, c, c, b, a, ``--rounds`` each; c: this
+tree with one synthesis slot, ``FACESYNTH_MAX_CONCURRENT_SYNTHESES=1``), with the CPU time per
+frame of the server process and of the client (the SDK's receiving and decoding).
 
 Run: ``python benchmarks/realtime.py [--actor DIR] [--calls 100] [--paths inproc,http,grpc]
 [--profile] [--against REV] [--impls h11,httptools] [--outputs mesh,maps]`` (``make bench``). The model is trained once into
@@ -118,9 +121,11 @@ def profile(model, markers: np.ndarray, outputs, calls: int, top: int = 14) -> s
 
 
 # ---------------------------------------------------------------------- server
-def start_server(work: Path, http_impl: str, repo: Path = ROOT) -> tuple[subprocess.Popen, str, str]:
-    """A ``facesynth serve`` of the source tree ``repo`` on free ports (no job workers); its
-    HTTP base URL and gRPC address."""
+def start_server(work: Path, http_impl: str, repo: Path = ROOT,
+                 settings: dict[str, str] | None = None) -> tuple[subprocess.Popen, str, str]:
+    """A ``facesynth serve`` of the source tree ``repo`` on free ports (no job workers), with
+    ``settings`` (``FACESYNTH_*`` variables) beside the benchmark's; its HTTP base URL and
+    gRPC address."""
     port, grpc_port = harness.free_port(), harness.free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     env.update({"FACESYNTH_DATA_DIR": str(work / "data"), "FACESYNTH_PORT": str(port),
@@ -129,7 +134,8 @@ def start_server(work: Path, http_impl: str, repo: Path = ROOT) -> tuple[subproc
                 # h11 on the plain asyncio loop (uvicorn without extras); httptools on uvloop
                 "FACESYNTH_LOOP": "asyncio" if http_impl == "h11" else "uvloop",
                 # the in-process reference's BLAS threads (BLAS_THREADS: serve's sizing)
-                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS), "PYTHONPATH": str(repo)})
+                "FACESYNTH_BLAS_THREADS": str(BLAS_THREADS), "PYTHONPATH": str(repo),
+                **(settings or {})})
     log = open(work / "server.log", "ab")
     server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=repo, env=env,
                               stdout=log, stderr=log, stdin=subprocess.DEVNULL)
@@ -297,9 +303,18 @@ def against_rows(rev: str, work: Path, model, model_dir: Path, actor_dir: Path,
     return rows
 
 
-def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int,
-            half: bool) -> float:
-    """Wall time per frame (ms) of a ``calls``-frame stream at ``IN_FLIGHT`` frames ahead."""
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (``/proc/<pid>/stat``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def grpc_stream(target: str, model_id: str, markers: np.ndarray, outputs, calls: int,
+                half: bool, pid: int | None = None) -> dict[str, float]:
+    """One ``calls``-frame stream at ``IN_FLIGHT`` frames ahead (after ``WARMUP`` frames one
+    at a time): ``ms`` wall time per frame, ``server_cpu`` CPU ms per frame of the server
+    process ``pid`` (if given) and ``client_cpu`` of this process (the SDK's sending,
+    receiving and decoding)."""
     from facesynth_client import StreamingClient
 
     frames = [markers[k % len(markers)] for k in range(calls)]
@@ -307,12 +322,56 @@ def grpc_ms(target: str, model_id: str, markers: np.ndarray, outputs, calls: int
     with StreamingClient(target) as stream:
         for _ in stream.synthesize(model_id, frames[:WARMUP], outputs, max_in_flight=1, **kwargs):
             pass
+        server0 = cpu_seconds(pid) if pid else 0.0
+        client0 = time.process_time()
         t0 = time.perf_counter()
         n = sum(1 for _ in stream.synthesize(model_id, frames, outputs, max_in_flight=IN_FLIGHT,
                                              **kwargs))
         seconds = time.perf_counter() - t0
+        client = time.process_time() - client0
+        server = cpu_seconds(pid) - server0 if pid else float("nan")
     assert n == calls
-    return 1e3 * seconds / calls
+    return {"ms": 1e3 * seconds / calls, "server_cpu": 1e3 * server / calls,
+            "client_cpu": 1e3 * client / calls}
+
+
+def against_grpc_rows(rev: str, work: Path, base_ms: dict, model_dir: Path, actor_dir: Path,
+                      markers: np.ndarray, calls: int, rounds: int = 4) -> list[dict]:
+    """gRPC streams of commit ``rev``'s server against this tree's, and this tree's with one
+    synthesis slot (``FACESYNTH_MAX_CONCURRENT_SYNTHESES=1``, BLAS threads as the others),
+    started side by side, whole streams taking turns (a, b, c, c, b, a, … ``rounds`` each)
+    per output set and map precision: medians of the wall time per frame, and the CPU per
+    frame of each server and of the client, over the rounds."""
+    old_tree = harness.source_tree(rev, harness.OUT / "cold_start")
+    servers = {}
+    rows = []
+    try:
+        for label, repo, settings in ((rev, old_tree, None), ("this tree", ROOT, None),
+                                      ("this tree, 1 synthesis slot", ROOT,
+                                       {"FACESYNTH_MAX_CONCURRENT_SYNTHESES": "1"})):
+            servers[label] = start_server(work, "h11", repo, settings)
+        model_id = harness.register_model(servers["this tree"][1], work, actor_dir, model_dir)
+        labels = list(servers)
+        for name, outputs in OUTPUT_SETS.items():
+            maps = len(outputs) > 1
+            for half in (False, True) if maps and grpc_supports_half() else (False,):
+                got: dict[str, list[dict]] = {label: [] for label in labels}
+                for r in range(rounds):
+                    for label in labels if r % 2 == 0 else labels[::-1]:
+                        proc, _, target = servers[label]
+                        got[label].append(grpc_stream(target, model_id, markers, outputs, calls,
+                                                      half, proc.pid))
+                for label in labels:
+                    med = {k: float(np.median([g[k] for g in got[label]])) for k in got[label][0]}
+                    rows.append({"outputs": name, "path": f"gRPC stream, {IN_FLIGHT} in flight"
+                                 + (", half maps" if half else "") + f", {label}",
+                                 "ref": base_ms[name], "load": harness.load_average(), **med,
+                                 "fps_rounds": [round(1e3 / g["ms"], 1) for g in got[label]]})
+                    print(rows[-1], file=sys.stderr, flush=True)
+    finally:
+        for server, _, _ in servers.values():
+            stop_server(server)
+    return rows
 
 
 #: the HTTP implementations to measure (``--impls``; default every installed one)
@@ -366,14 +425,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--paths", default="inproc,http,grpc")
     parser.add_argument("--profile", action="store_true", help="add a cProfile breakdown")
     parser.add_argument("--against", metavar="REV", default=None,
-                        help="HTTP only: a server of commit REV and one of this tree, their "
-                             "frames interleaved with the in-process one (cold_start.py's "
-                             "unpacked tree; REV must read the same database schema)")
+                        help="a server of commit REV and one of this tree: HTTP frames "
+                             "interleaved with the in-process one, gRPC streams taking turns "
+                             "(cold_start.py's unpacked tree; REV must read the same database "
+                             "schema)")
     parser.add_argument("--impls", default=None,
                         help="HTTP implementations, comma-separated (h11, httptools; default "
                              "every installed one)")
     parser.add_argument("--outputs", default=None,
                         help="output sets by name, comma-separated (mesh, maps; default both)")
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="with --against: streams per server and output set (default 4)")
     args = parser.parse_args(argv)
     global IMPLS
     if args.impls:
@@ -410,7 +472,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.against:
         work = WORK / f"work-{actor_dir.name}"
         work.mkdir(parents=True, exist_ok=True)
-        rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
+        if "http" in paths:
+            rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
+        if "grpc" in paths:
+            rows += against_grpc_rows(args.against, work, base_ms, model_dir, actor_dir, markers,
+                                      args.calls, args.rounds)
         paths -= {"http", "grpc"}
     if paths & {"http", "grpc"}:
         work = WORK / f"work-{actor_dir.name}"
@@ -432,9 +498,10 @@ def main(argv: list[str] | None = None) -> int:
                             print(rows[-1], file=sys.stderr, flush=True)
                     if "grpc" in paths and impl == "h11":
                         for half in (False, True) if grpc_supports_half() else (False,):
-                            ms = grpc_ms(target, model_id, markers, outputs, args.calls, half)
+                            got = grpc_stream(target, model_id, markers, outputs, args.calls, half,
+                                              server.pid)
                             rows.append({"outputs": name, "path": f"gRPC stream, {IN_FLIGHT} in flight"
-                                         + (", half maps" if half else ""), "ms": ms, "ref": ref,
+                                         + (", half maps" if half else ""), **got, "ref": ref,
                                          "load": harness.load_average()})
                             print(rows[-1], file=sys.stderr, flush=True)
             finally:

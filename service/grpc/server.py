@@ -11,18 +11,30 @@ by meaning (:data:`CODES`, the most specific class of :mod:`service.errors` winn
 ``load_model`` raising ``NotFound`` (or any ``LookupError``) → NOT_FOUND, ``Conflict``
 (not ready) → FAILED_PRECONDITION, ``Unavailable`` → UNAVAILABLE, ``Corrupt`` → DATA_LOSS.
 
-Each open stream holds one worker thread for its whole life and frames are synthesized one
-at a time, in order (the model's per-frame work is NumPy, which releases the GIL, so streams
-on different threads overlap). A server runs at most ``max_workers`` streams; one more is
-refused with RESOURCE_EXHAUSTED rather than queued behind a live stream.
+Each open stream holds one worker thread for its whole life; a server runs at most
+``max_workers`` streams, and one more is refused with RESOURCE_EXHAUSTED rather than queued
+behind a live stream.
 
 A stream is pipelined (:class:`_Pipeline`): a reader thread takes MarkerFrames off the
-stream and hands them, in order, to the stream's one synthesis thread, which synthesizes
-and encodes each reply while the serving thread sends the previous one; at most
-``pipeline_depth`` frames are in flight (read and their replies not yet handed to gRPC),
-beyond which the reader waits (and gRPC flow control holds the client back). Replies and
-errors come out in the frames' order: frame n's INVALID_ARGUMENT ends the stream after the
-replies of frames 0..n-1.
+stream and submits them, in order, to the server's synthesis threads, which synthesize and
+encode the replies while the serving thread sends the earlier ones; the replies are handed to
+gRPC in the frames' order. At most ``pipeline_depth`` frames of a stream are in flight (read
+and their replies not yet handed to gRPC), beyond which the reader waits (and gRPC flow
+control holds the client back). Errors come out in order too: frame n's INVALID_ARGUMENT ends
+the stream after the replies of frames 0..n-1.
+
+The synthesis threads are one pool of ``synthesis_threads`` per server, shared by its
+streams: the synthesis slots of :mod:`service.app.threads` (one per core by default), against
+which ``facesynth serve`` sizes the BLAS and compiled-kernel threads, so S frames at once
+each get cores / S threads and the cores are not oversubscribed. A frame's work releases the
+GIL (NumPy and BLAS, SciPy's sparse products, the Numba kernels compiled ``nogil``), so
+frames of one stream are synthesized side by side: with S = 2 on 2 cores the default depth,
+S + 1, keeps both threads busy while one reply is sent. Each frame's result is that of
+``model.synthesize`` on it alone, whatever thread runs it (the kernels' scratch arrays are
+per thread), so the replies are the one-thread path's bit for bit. The replies are the
+MeshFrames' serialized bytes, written straight from the result arrays on the synthesis thread
+(:func:`~service.grpc.codec.reply_pieces`, one copy of each map; gRPC sends them as they are,
+:func:`add_servicer`).
 """
 
 from __future__ import annotations
@@ -42,6 +54,7 @@ import grpc
 import numpy as np
 
 from models_store.tenancy import Principal, TokenTable
+from service.app.threads import synthesis_slots
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
@@ -74,9 +87,12 @@ def code_of(error: BaseException) -> grpc.StatusCode:
             return CODES[cls]
     return grpc.StatusCode.NOT_FOUND if isinstance(error, LookupError) else grpc.StatusCode.INTERNAL
 DEFAULT_PORT = 50051
-#: frames of a stream in flight at most (read off the stream, reply not yet handed to gRPC):
-#: the frame being sent and the next one being synthesized
-PIPELINE_DEPTH = 2
+
+
+def default_depth(synthesis_threads: int) -> int:
+    """Frames of a stream in flight at most by default (read off the stream, reply not yet
+    handed to gRPC): one on each synthesis thread and the one being sent."""
+    return int(synthesis_threads) + 1
 
 
 class StreamModel(Protocol):
@@ -109,16 +125,16 @@ class _Stream:
     clamp: bool
     half: bool = False
 
-    def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> pb.MeshFrame:
-        """Synthesize and encode one frame (``start``: when it was read, for latency_ms)."""
+    def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> bytes:
+        """Synthesize and encode one frame: the serialized MeshFrame (``start``: when it was
+        read; latency_ms is the time until the reply's last copy into the message)."""
         try:
             markers = codec.decode_markers(msg)
             result = self.model.synthesize(markers[None], list(self.outputs), self.clamp)
         except InvalidInput as e:
             raise _invalid(_name_frame(str(e), where)) from None
-        reply = codec.encode_reply(result, self.outputs, msg.frame, faces=first, half=self.half)
-        reply.latency_ms = (time.perf_counter() - start) * 1e3
-        return reply
+        pieces = codec.reply_pieces(result, self.outputs, msg.frame, faces=first, half=self.half)
+        return codec.join_reply(pieces, (time.perf_counter() - start) * 1e3)
 
     def check(self, msg: pb.MarkerFrame, where: str) -> None:
         """Raise INVALID_ARGUMENT if a later message changes what the first one fixed."""
@@ -139,26 +155,30 @@ def _where(msg: pb.MarkerFrame, index: int) -> str:
 
 
 class _Pipeline:
-    """One stream's frames in flight: a reader thread, one synthesis thread, and the replies
-    in order (iterate on the serving thread; :meth:`close` when done).
+    """One stream's frames in flight: a reader thread submitting them to the server's
+    synthesis threads, and the replies in order (iterate on the serving thread; :meth:`close`
+    when done).
 
     Parameters
     ----------
     stream : the stream opened from its first message
     first : that first message; requests : the rest of the stream
     depth : frames in flight at most (>= 1)
+    synthesis : the executor that synthesizes and encodes the frames (any number of threads:
+                the replies are taken in submission order)
     """
 
     _END = object()
 
     def __init__(self, stream: _Stream, first: pb.MarkerFrame,
-                 requests: Iterator[pb.MarkerFrame], depth: int):
+                 requests: Iterator[pb.MarkerFrame], depth: int, synthesis: futures.Executor):
         self.stream, self.first, self.requests = stream, first, requests
         self.slots = threading.Semaphore(max(1, int(depth)))
         self.items: queue.SimpleQueue = queue.SimpleQueue()
         self.stopped = threading.Event()
-        self.synthesis = futures.ThreadPoolExecutor(1, thread_name_prefix="facesynth-grpc-frame")
-        # the reader and the synthesis thread run in copies of the call's context (the
+        self.synthesis = synthesis
+        self.submitting = threading.Lock()        # no frame is submitted once close() ran
+        # the reader and the synthesis threads run in copies of the call's context (the
         # tenant scope of the registry is a context variable)
         self.reader = threading.Thread(target=contextvars.copy_context().run,
                                        args=(self._read,), name="facesynth-grpc-reader",
@@ -183,15 +203,18 @@ class _Pipeline:
                 if index > 0:
                     self.stream.check(msg, where)
                 start = time.perf_counter()
-                self.items.put(self.synthesis.submit(contextvars.copy_context().run,
-                                                     self.stream.reply, msg, where, start,
-                                                     index == 0))
+                with self.submitting:
+                    if self.stopped.is_set():
+                        break
+                    self.items.put(self.synthesis.submit(contextvars.copy_context().run,
+                                                         self.stream.reply, msg, where, start,
+                                                         index == 0))
                 index += 1
         except BaseException as error:             # a changed stream, or the call ended
             self.items.put(error)
         self.items.put(self._END)
 
-    def __iter__(self) -> Iterator[pb.MeshFrame]:
+    def __iter__(self) -> Iterator[bytes]:
         while True:
             item = self.items.get()
             if item is self._END:
@@ -203,8 +226,17 @@ class _Pipeline:
             self.slots.release()                   # gRPC took the reply: one more may come
 
     def close(self) -> None:
-        self.stopped.set()
-        self.synthesis.shutdown(wait=False, cancel_futures=True)
+        """Stop reading, and cancel the frames submitted and not yet started (one running
+        finishes on its thread, its reply dropped)."""
+        with self.submitting:
+            self.stopped.set()
+        while True:
+            try:
+                item = self.items.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(item, futures.Future):
+                item.cancel()
 
 
 class SynthesisServicer(pb_grpc.SynthesisServicer):
@@ -214,16 +246,26 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
     ----------
     load_model : model id → model with ``synthesize(markers (F,M,3), outputs, clamp) ->
                  dict`` as :meth:`~service.methods.pdm.model.PdmModel.synthesize`; called
-                 once per stream. Raises ``KeyError`` / a ``NotFound`` for an unknown id,
-                 a ``NotReady`` / ``Conflict`` for a model that cannot synthesize yet.
+                 once per stream (and then from several threads at once). Raises
+                 ``KeyError`` / a ``NotFound`` for an unknown id, a ``NotReady`` /
+                 ``Conflict`` for a model that cannot synthesize yet.
+    depth : int or None          frames of a stream in flight at most (None:
+                                 :func:`default_depth` of the synthesis threads)
+    synthesis_threads : int or None   frames synthesized at once, over all streams (None:
+                                 :func:`~service.app.threads.synthesis_slots`, one per core)
     """
 
-    def __init__(self, load_model: LoadModel, pipeline_depth: int = PIPELINE_DEPTH):
+    def __init__(self, load_model: LoadModel, depth: int | None = None,
+                 synthesis_threads: int | None = None):
         self._load_model = load_model
-        self._depth = int(pipeline_depth)
+        self.synthesis_threads = synthesis_slots(synthesis_threads)
+        self.depth = int(depth) if depth else default_depth(self.synthesis_threads)
+        # idle threads end when the servicer (and its server) is collected
+        self._synthesis = futures.ThreadPoolExecutor(self.synthesis_threads,
+                                                     thread_name_prefix="facesynth-grpc-frame")
 
     def StreamSynthesize(self, request_iterator: Iterable[pb.MarkerFrame],
-                         context: grpc.ServicerContext) -> Iterator[pb.MeshFrame]:
+                         context: grpc.ServicerContext) -> Iterator[bytes]:
         try:
             yield from self._replies(request_iterator)
         except StreamError as e:
@@ -238,12 +280,12 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
             log.exception("StreamSynthesize failed")
             context.abort(grpc.StatusCode.INTERNAL, "internal error while synthesizing (see the server log)")
 
-    def _replies(self, requests: Iterable[pb.MarkerFrame]) -> Iterator[pb.MeshFrame]:
+    def _replies(self, requests: Iterable[pb.MarkerFrame]) -> Iterator[bytes]:
         requests = iter(requests)
         first = next(requests, None)
         if first is None:
             return
-        pipeline = _Pipeline(self._open(first), first, requests, self._depth)
+        pipeline = _Pipeline(self._open(first), first, requests, self.depth, self._synthesis)
         try:
             yield from pipeline
         finally:
@@ -374,7 +416,8 @@ def is_loopback(host: str) -> bool:
 
 def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[str] = (),
                   max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
-                  pipeline_depth: int = PIPELINE_DEPTH) -> grpc.Server:
+                  pipeline_depth: int | None = None,
+                  synthesis_threads: int | None = None) -> grpc.Server:
     """A gRPC server with the Synthesis service, not yet bound or started.
 
     Parameters
@@ -385,7 +428,12 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     tokens : bearer tokens; none: no authentication
     max_message_bytes : int   largest message received or sent, bytes (a reply with a
                               1024² normal map alone is 12 MiB)
-    pipeline_depth : int      frames of a stream in flight at most (see the module docstring)
+    pipeline_depth : int      frames of a stream in flight at most (None: the synthesis
+                              threads + 1; see the module docstring)
+    synthesis_threads : int   frames synthesized at once over all streams (None: one per
+                              core, :func:`~service.app.threads.synthesis_slots`; ``facesynth
+                              serve`` passes ``max_concurrent_syntheses``, the count its BLAS
+                              threads are sized against)
     """
     options = [("grpc.max_send_message_length", max_message_bytes),
                ("grpc.max_receive_message_length", max_message_bytes),
@@ -393,14 +441,27 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     server = grpc.server(futures.ThreadPoolExecutor(max_workers, thread_name_prefix="facesynth-grpc"),
                          interceptors=[BearerTokenAuth(tokens)] if tokens else None,
                          options=options, maximum_concurrent_rpcs=max_workers)
-    pb_grpc.add_SynthesisServicer_to_server(SynthesisServicer(load_model, pipeline_depth), server)
+    add_servicer(SynthesisServicer(load_model, pipeline_depth, synthesis_threads), server)
     return server
+
+
+def add_servicer(servicer: SynthesisServicer, server: grpc.Server) -> None:
+    """``pb_grpc.add_SynthesisServicer_to_server`` with the replies sent as the servicer
+    yields them: serialized MeshFrames (:func:`~service.grpc.codec.serialize_reply`)."""
+    service = pb.DESCRIPTOR.services_by_name["Synthesis"]
+    handlers = {"StreamSynthesize": grpc.stream_stream_rpc_method_handler(
+        servicer.StreamSynthesize, request_deserializer=pb.MarkerFrame.FromString,
+        response_serializer=codec.serialize_reply)}
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(service.full_name,
+                                                                          handlers),))
+    server.add_registered_method_handlers(service.full_name, handlers)
 
 
 def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
           max_workers: int = 4, *, tokens: Sequence[str] = (),
           max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
-          pipeline_depth: int = PIPELINE_DEPTH) -> grpc.Server:
+          pipeline_depth: int | None = None,
+          synthesis_threads: int | None = None) -> grpc.Server:
     """Start a Synthesis server on ``host:port`` (plaintext) and return it.
 
     Stop it with ``server.stop(grace)``; ``server.wait_for_termination()`` blocks until then.
@@ -415,7 +476,8 @@ def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PO
     if not tokens and not is_loopback(host):
         raise ValueError(f"refusing to listen on {host} without tokens: "
                          "give tokens, or listen on loopback (127.0.0.1)")
-    server = create_server(load_model, max_workers, tokens, max_message_bytes, pipeline_depth)
+    server = create_server(load_model, max_workers, tokens, max_message_bytes, pipeline_depth,
+                           synthesis_threads)
     address = f"[{host.strip('[]')}]:{port}" if ":" in host else f"{host}:{port}"
     if server.add_insecure_port(address) == 0:        # older grpcio returns 0, newer raise
         raise RuntimeError(f"cannot listen on {address}")

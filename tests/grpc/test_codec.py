@@ -62,3 +62,38 @@ def test_half_maps_round_trip_as_float16():
     assert out.dtype == np.float16
     np.testing.assert_array_equal(out, rgb.astype(np.float16))
     assert not codec.encode_map(rgb).half
+
+
+@pytest.mark.parametrize("outputs", [("mesh",), ("mesh", "displacement", "normal_map"),
+                                     ("mesh_detailed", "albedo"), ("displacement",),
+                                     ("mesh", "mesh_detailed", "displacement", "albedo",
+                                      "normal_map")])
+@pytest.mark.parametrize("half", [False, True])
+@pytest.mark.parametrize("frame, faces, index", [(0, True, 0), (7, False, 1), (300, True, 1)])
+def test_the_wire_form_is_the_messages_serialization_bit_for_bit(outputs, half, frame, faces, index):
+    """join_reply(reply_pieces(...)) == encode_reply(...) serialized, with latency_ms; also
+    for clamped 0 and frame 0 (left out by proto3), -0.0 (sent), a float64 mesh (converted)
+    and maps with values beyond float16's range."""
+    rng = np.random.default_rng(3)
+    result = {"vertices": rng.normal(size=(2, 5, 3)).astype(np.float32),
+              "vertices_detailed": rng.normal(size=(2, 5, 3)),          # float64: converted
+              "faces": np.array([[0, 1, 2], [2, 3, 4]], np.int64),
+              "displacement": rng.normal(size=(2, 6, 4)).astype(np.float32) * 1e5,
+              "albedo": rng.random((2, 3, 3, 3)).astype(np.float32),
+              "normal_map": rng.normal(size=(2, 6, 4, 3)).astype(np.float32),
+              "clamped": np.array([0.0, -0.0 if frame == 7 else 0.3])}
+    for latency in (0.0, 12.345):
+        wire = codec.join_reply(codec.reply_pieces(result, outputs, frame, faces, index, half), latency)
+        message = codec.encode_reply(result, outputs, frame, faces, index, half)
+        message.latency_ms = latency
+        assert wire == message.SerializeToString()
+        assert codec.serialize_reply(wire) is wire
+        assert codec.serialize_reply(message) == wire
+
+
+def test_varints_and_keys_by_hand():
+    assert codec.varint(0) == b"\x00" and codec.varint(1) == b"\x01" and codec.varint(127) == b"\x7f"
+    assert codec.varint(128) == b"\x80\x01" and codec.varint(300) == b"\xac\x02"
+    assert codec.varint(2**32 - 1) == b"\xff\xff\xff\xff\x0f"
+    assert codec.tag(1, codec.VARINT) == b"\x08" and codec.tag(10, codec.I64) == b"\x51"
+    assert codec.tag(9, codec.I32_WIRE) == b"\x4d" and codec.tag(8, codec.LEN) == b"\x42"

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from service.grpc.client import stream_synthesize
+from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.server import serve
 from tests.grpc.conftest import MODEL_ID, TRAINING_ID, running
 
@@ -207,11 +208,15 @@ def _frames(n, bad=None):
             for k in range(n)]
 
 
-def _pipeline(model, messages, depth):
+def _pipeline(model, messages, depth, synthesis=None):
+    """A pipeline of ``messages`` on ``synthesis`` (default: one thread of its own)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from service.grpc.server import _Pipeline, _Stream
 
     stream = _Stream("m", model, ("mesh",), True)
-    return _Pipeline(stream, messages[0], iter(messages[1:]), depth)
+    return _Pipeline(stream, messages[0], iter(messages[1:]), depth,
+                     synthesis or ThreadPoolExecutor(1))
 
 
 def _wait_for(condition, seconds=2.0):
@@ -238,7 +243,7 @@ def test_the_pipeline_synthesizes_the_next_frame_while_one_is_held_and_bounds_th
         rest = list(replies)
     finally:
         pipeline.close()
-    got = [first, second, *rest]
+    got = [pb.MeshFrame.FromString(r) for r in (first, second, *rest)]
     assert [r.frame for r in got] == list(range(6)) and model.calls == list(range(6))
     assert [np.frombuffer(r.vertices, np.float32)[0] for r in got] == list(range(6))
     assert got[0].faces and not any(r.faces for r in got[1:])
@@ -252,11 +257,101 @@ def test_an_invalid_frame_ends_the_stream_after_the_replies_before_it_in_order()
     got = []
     with pytest.raises(StreamError) as e:
         for reply in pipeline:
-            got.append(reply.frame)
+            got.append(pb.MeshFrame.FromString(reply).frame)
     pipeline.close()
     assert got == [0, 1, 2]
     assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert e.value.details.startswith("frame 3: model expects 2 markers, got 3")
+
+
+class _Overlapping(_Recording):
+    """A stand-in whose frames take ``seconds[k]`` and record how many ran at once."""
+
+    def __init__(self, seconds):
+        super().__init__()
+        self.seconds, self.running, self.most = seconds, 0, 0
+        self.lock = threading.Lock()
+
+    def synthesize(self, markers, outputs=("mesh",), clamp=True):
+        with self.lock:
+            self.running += 1
+            self.most = max(self.most, self.running)
+        time.sleep(self.seconds[int(markers[0, 0, 0])])
+        with self.lock:
+            self.running -= 1
+        return super().synthesize(markers, outputs, clamp)
+
+
+def test_two_synthesis_threads_overlap_a_streams_frames_and_reply_in_order():
+    """Frame 0 takes 0.3 s, the others 0.02 s: on two threads frames 1.. finish before it,
+    yet the replies come 0, 1, 2, … and two frames were synthesized at once."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    model = _Overlapping([0.3] + [0.02] * 7)
+    pipeline = _pipeline(model, _frames(8), depth=3, synthesis=ThreadPoolExecutor(2))
+    try:
+        got = [pb.MeshFrame.FromString(r).frame for r in pipeline]
+    finally:
+        pipeline.close()
+    assert got == list(range(8)) and model.most == 2
+    assert model.calls[0] != 0                        # frame 1 was done before frame 0
+
+
+def test_streams_share_the_servers_synthesis_threads():
+    """Two streams on one server with one synthesis thread never synthesize two frames at
+    once (the threads are the server's slots, not each stream's); each gets its replies."""
+    from service.grpc.server import SynthesisServicer
+
+    model = _Overlapping([0.01] * 6)
+    servicer = SynthesisServicer(lambda _: model, depth=3, synthesis_threads=1)
+    streams = [servicer._replies(iter(_frames(6))) for _ in range(2)]
+    got: list[list[int]] = [[], []]
+    threads = [threading.Thread(target=lambda i=i: got[i].extend(
+        pb.MeshFrame.FromString(r).frame for r in streams[i]))
+               for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert got == [list(range(6))] * 2 and model.most == 1
+
+
+def test_closing_a_pipeline_cancels_its_waiting_frames_only():
+    """A closed stream's frames not yet started are cancelled; a frame of another stream
+    waiting on the same thread still runs."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    model = _Overlapping([0.2] * 6)
+    pool = ThreadPoolExecutor(1)
+    pipeline = _pipeline(model, _frames(6), depth=4, synthesis=pool)
+    _wait_for(lambda: model.running == 1)
+    other = pool.submit(lambda: "other")
+    pipeline.close()
+    assert other.result(2) == "other"                 # after frame 0, on the one thread
+    assert model.calls == [0]                          # frames 1-3 were submitted, never run
+
+
+def test_all_outputs_on_two_threads_equal_one_thread_bit_for_bit_in_order(
+        load_model, pdm_model, heldout_markers):
+    """The same 12 frames streamed (all outputs, float32 and half maps) with one synthesis
+    thread and with two, four frames in flight: the same replies in the same order, and
+    each that of ``synthesize`` on its frame alone."""
+    got = {}
+    for n in (1, 2):
+        with running(load_model, pipeline_depth=4, synthesis_threads=n) as channel:
+            got[n] = [list(stream_synthesize(channel, MODEL_ID, heldout_markers, ALL, half=half))
+                      for half in (False, True)]
+    for half, (one, many) in enumerate(zip(got[1], got[2])):
+        assert [g["frame"] for g in many] == list(range(len(heldout_markers)))
+        for i, (a, b) in enumerate(zip(one, many)):
+            assert a.keys() == b.keys()
+            for key in a:
+                if key != "latency_ms":
+                    np.testing.assert_array_equal(b[key], a[key], err_msg=f"frame {i} {key}")
+            if not half:
+                direct = pdm_model.synthesize(heldout_markers[i:i + 1], ALL, True)
+                for key in _shapes(pdm_model):
+                    np.testing.assert_array_equal(b[key], direct[key][0], err_msg=f"frame {i} {key}")
 
 
 @pytest.mark.parametrize("depth", [1, 4])

@@ -37,12 +37,12 @@ from . import errors
 try:
     import grpc
     import grpc.aio
+    from google.protobuf.descriptor import FieldDescriptor
 except ImportError as error:  # pragma: no cover - depends on the installation
     raise ImportError("facesynth_client.streaming needs grpcio and protobuf: "
                       "pip install 'facesynth-client[grpc]'") from error
 
 from ._proto.facesynth.v1 import synthesis_pb2 as pb
-from ._proto.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
 
 __all__ = ["StreamingClient", "AsyncStreamingClient", "StreamPlan", "OUTPUTS",
            "DEFAULT_OUTPUTS", "DEFAULT_TARGET", "DEFAULT_IN_FLIGHT", "MAX_MESSAGE_BYTES",
@@ -54,13 +54,14 @@ OUTPUTS = ("mesh", "mesh_detailed", "displacement", "albedo", "normal_map")
 DEFAULT_OUTPUTS = ("mesh",)
 #: the server's address when neither ``target`` nor ``$FACESYNTH_GRPC`` is given
 DEFAULT_TARGET = "127.0.0.1:50051"
-#: frames sent and not yet answered, at most (the pipeline's depth). A stream's frames are
-#: synthesized one after another, so depth beyond the frame in work and the next one adds
-#: latency, not throughput. Level-0 PDM, mesh + displacement, loopback, a loaded 2-core
-#: machine (benchmarks/grpc_stream.py, two runs): depth 1 4.4-4.5 frames/s, 190-200 ms round
-#: trip; 2: 4.4-5.0 frames/s, 370-420 ms; 4: 3.1-5.0, 780-1260 ms; 8: 3.6-5.1, 1510-1980 ms
-#: (server 150-250 ms per frame). 2 hides one frame's transfer on a real network.
-DEFAULT_IN_FLIGHT = 2
+#: frames sent and not yet answered, at most (the pipeline's depth). The server synthesizes a
+#: stream's frames on its synthesis threads side by side (one per core by default) and takes
+#: up to threads + 1 of them: on two cores 3 keeps both threads busy while a reply travels;
+#: more adds latency, not throughput. Level-1 PDM, loopback, the shared 2-core machine at
+#: load 14-16 (benchmarks/grpc_stream.py, 80 frames, two alternating runs, medians): mesh
+#: depth 1/2/3/4 30.6/32.6/33.1/34.8 frames/s, round trip 31/55/89/109 ms; mesh + both maps
+#: 6.0/7.2/8.5/7.8 frames/s, 182/270/323/469 ms.
+DEFAULT_IN_FLIGHT = 3
 #: message size limit, both directions: a reply with 1024² displacement, albedo and normal
 #: maps is 28 MiB plus the meshes (gRPC's default of 4 MiB is too small); the server's too
 MAX_MESSAGE_BYTES = 64 * 2**20
@@ -106,8 +107,105 @@ def stream_error(error: grpc.RpcError) -> errors.FacesynthError:
                 "detail": details, "grpc_status": name})
 
 
-def decode_reply(reply: pb.MeshFrame) -> dict[str, Any]:
-    """The arrays of a MeshFrame under ``synthesize``'s keys, for the fields it carries.
+_SERVICE = pb.DESCRIPTOR.services_by_name["Synthesis"]
+#: the streaming method's path, whose replies the clients take as bytes (:func:`decode_reply`)
+_METHOD = f"/{_SERVICE.full_name}/{_SERVICE.methods_by_name['StreamSynthesize'].name}"
+#: wire type of each field type MeshFrame and Map use
+#: (https://protobuf.dev/programming-guides/encoding/: 0 varint, 1 64-bit, 2 length-delimited,
+#: 5 32-bit)
+_WIRE_TYPES = {FieldDescriptor.TYPE_UINT32: 0, FieldDescriptor.TYPE_BOOL: 0,
+               FieldDescriptor.TYPE_DOUBLE: 1, FieldDescriptor.TYPE_BYTES: 2,
+               FieldDescriptor.TYPE_MESSAGE: 2, FieldDescriptor.TYPE_FLOAT: 5}
+
+
+def _wire_layout(message: Any) -> dict[int, tuple[str, int]]:
+    """Field number → (name, wire type) of a message, from its generated descriptor."""
+    return {f.number: (f.name, _WIRE_TYPES[f.type]) for f in message.DESCRIPTOR.fields}
+
+
+_MESH_FRAME = _wire_layout(pb.MeshFrame)
+_MAP = _wire_layout(pb.Map)
+
+
+def _wire_fields(data: memoryview, layout: dict[int, tuple[str, int]]) -> dict[str, Any] | None:
+    """The known fields of one message's wire encoding by name: ints for varints, views of
+    ``data`` for the rest; unknown fields skipped. None where the plain parser must decide
+    (a field repeated, which protobuf merges, one of an unexpected wire type, or a truncated
+    message, which it refuses)."""
+    out: dict[str, Any] = {}
+    pos, end = 0, len(data)
+    while pos < end:
+        key, pos = _varint(data, pos)
+        if pos < 0:
+            return None
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = _varint(data, pos)
+        elif wire in (1, 5):
+            size = 8 if wire == 1 else 4
+            value, pos = data[pos:pos + size], pos + size
+        elif wire == 2:
+            size, pos = _varint(data, pos)
+            value, pos = data[pos:pos + size], pos + size
+        else:
+            return None
+        if not 0 <= pos <= end:
+            return None
+        if number in layout:
+            name, expected = layout[number]
+            if wire != expected or name in out:
+                return None
+            out[name] = value
+    return out
+
+
+def _varint(data: memoryview, pos: int) -> tuple[int, int]:
+    """The varint at ``pos`` and the position after it (-1 past the end of ``data``)."""
+    value = shift = 0
+    while True:
+        if pos >= len(data):
+            return 0, -1
+        byte = data[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, pos
+        shift += 7
+
+
+def _decode_wire(data: bytes) -> dict[str, Any] | None:
+    """:func:`decode_reply` of a serialized MeshFrame read field by field, its arrays views of
+    ``data`` (the message object would copy each array twice); None where the plain parser
+    must decide."""
+    view = memoryview(data)
+    fields = _wire_fields(view, _MESH_FRAME)
+    if fields is None:
+        return None
+    def number(name: str, dtype: str) -> float:
+        return float(np.frombuffer(fields[name], dtype)[0]) if name in fields else 0.0
+
+    out: dict[str, Any] = {"frame": fields.get("frame", 0), "clamped": number("clamped", "<f4"),
+                           "latency_ms": number("latency_ms", "<f8")}
+    count = fields.get("vertex_count", 0)
+    for key in MESH_FIELDS:
+        if len(fields.get(key, b"")):
+            out[key] = np.frombuffer(fields[key], F32).reshape(count, 3)
+    if len(fields.get("faces", b"")):
+        out["faces"] = np.frombuffer(fields["faces"], I32).reshape(-1, 3)
+    for key in MAP_FIELDS:
+        if key in fields:
+            m = _wire_fields(fields[key], _MAP)
+            if m is None:
+                return None
+            channels = m.get("channels", 0)
+            shape = (m.get("height", 0), m.get("width", 0)) + ((channels,) if channels != 1 else ())
+            out[key] = np.frombuffer(m.get("data", b""), F16 if m.get("half") else F32).reshape(shape)
+    return out
+
+
+def decode_reply(reply: pb.MeshFrame | bytes) -> dict[str, Any]:
+    """The arrays of a MeshFrame (or of its serialized bytes, as the clients receive it)
+    under ``synthesize``'s keys, for the fields it carries.
 
     Returns
     -------
@@ -118,6 +216,11 @@ def decode_reply(reply: pb.MeshFrame) -> dict[str, Any]:
         ``albedo`` / ``normal_map`` (H,W,3) float32 (float16 for a stream with ``half``).
         Arrays are read-only views of the message's bytes.
     """
+    if isinstance(reply, (bytes, bytearray, memoryview)):
+        out = _decode_wire(reply)
+        if out is not None:
+            return out
+        reply = pb.MeshFrame.FromString(bytes(reply))
     out: dict[str, Any] = {"frame": reply.frame, "clamped": reply.clamped,
                            "latency_ms": reply.latency_ms}
     for key in MESH_FIELDS:
@@ -181,6 +284,13 @@ class StreamPlan:
         return msg
 
 
+def _stream_method(channel: Any) -> Any:
+    """StreamSynthesize on ``channel`` (sync or ``grpc.aio``) with its replies as the bytes
+    received, for :func:`decode_reply` (the stub's would parse them into a message first)."""
+    return channel.stream_stream(_METHOD, request_serializer=pb.MarkerFrame.SerializeToString,
+                                 response_deserializer=None)
+
+
 def _check_depth(max_in_flight: int) -> int:
     if int(max_in_flight) < 1:
         raise ValueError(f"max_in_flight must be at least 1, got {max_in_flight}")
@@ -212,7 +322,7 @@ class StreamingClient:
             channel = (grpc.secure_channel(self.target, credentials, options) if credentials
                        else grpc.insecure_channel(self.target, options))
         self._channel = channel
-        self._stub = pb_grpc.SynthesisStub(channel)
+        self._stream = _stream_method(channel)
 
     def close(self) -> None:
         """Close the channel made by this client (an injected one stays open)."""
@@ -280,7 +390,7 @@ class StreamingClient:
                 failure.append(error)
                 raise
 
-        call = self._stub.StreamSynthesize(requests(), metadata=plan.metadata, timeout=timeout)
+        call = self._stream(requests(), metadata=plan.metadata, timeout=timeout)
         try:
             for reply in call:
                 window.release()
@@ -320,7 +430,7 @@ class AsyncStreamingClient:
             channel = (grpc.aio.secure_channel(self.target, credentials, options) if credentials
                        else grpc.aio.insecure_channel(self.target, options))
         self._channel = channel
-        self._stub = pb_grpc.SynthesisStub(channel)
+        self._stream = _stream_method(channel)
 
     async def close(self) -> None:
         """Close the channel made by this client (an injected one stays open)."""
@@ -365,7 +475,7 @@ class AsyncStreamingClient:
                 failure.append(error)
                 raise
 
-        call = self._stub.StreamSynthesize(requests(), metadata=plan.metadata, timeout=timeout)
+        call = self._stream(requests(), metadata=plan.metadata, timeout=timeout)
         try:
             async for reply in call:
                 window.release()
