@@ -104,7 +104,7 @@ class MarkerEvidence:
     Measured (``benchmarks/confidence_factors.py``, PDM biquadratic, Spearman ρ of 1 −
     confidence against the frame's mean face vertex error, clean / noisy / occluded frames
     pooled; every held-out map frame, 69–93 per range; issue 17's 8 frames a performance in
-    the README): the factor lifts ρ at ``marker_noise_mm`` = 0 on both families (out of
+    the README): the noise factor lifts ρ at ``marker_noise_mm`` = 0 on both families (out of
     range a 0.70 → 0.89, b 0.66 → 0.71; in range a 0.71 → 0.87, b 0.64 → 0.71). An
     occlusion term — 1 minus the occluded markers' share of the frame's displacement energy
     Σ‖u_m‖² (completed by the prior), the visible fraction, or the prior's conditional
@@ -127,12 +127,15 @@ class MarkerEvidence:
     envelope (‖u_H‖ a median 0.31–0.38 of the largest training frame's; per-marker
     magnitude, per-coordinate box and leading-direction Mahalanobis excesses beyond the
     training frames are 0 on most of them), and every such *excess* term left ρ out of range
-    at 0.32–0.50 on family b (``auto``; 0.45 without), while ρ(‖u_H‖, error) on the clean frames is
-    0.60–0.89 (a) and 0.77–0.92 (b). So the term is not 1 on the training frames: a strong
-    training expression reports its size too. κ chosen on family a (grid κ ∈ {2, 2.5, 3,
+    at 0.32–0.50 on family b (``auto``; 0.45 without), while ρ(‖u_H‖, error) on the clean
+    frames is 0.60–0.89 (a) and 0.77–0.92 (b). So the term is not 1 on the training frames:
+    a strong training expression reports its size too. κ chosen on family a (grid κ ∈ {2, 2.5, 3,
     3.5, 4, 5, 7.5, 10}: the highest mean ρ over the six cells of both ``marker_noise_mm``
-    settings × three ranges with no cell lowered by more than 0.05) and confirmed on b
-    (README, "The confidence rule").
+    settings × three ranges with no cell lowered by more than 0.05) and confirmed on b:
+    ρ out of range (every held-out map frame, ``benchmarks/confidence_factors.py``, range ×
+    n before → range × n × g) at ``marker_noise_mm`` 0 a 0.90 → 0.85, b 0.71 → 0.77; with
+    ``"auto"`` a 0.68 → 0.69, b 0.45 → 0.60; in range and combinations rise on both
+    families, e.g. b ``auto`` 0.56 → 0.70 and 0.51 → 0.65 (README, "The confidence rule").
 
     Attributes
     ----------
