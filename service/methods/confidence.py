@@ -4,8 +4,10 @@ One vocabulary for every marker-driven method (issue 17, "never worse than the i
 
 * ``confidence`` (F,) float32 in [0, 1], one value per synthesized frame: 1 when the
   frame's deformation lies inside what the model was trained on, decreasing with the
-  distance beyond it; ``confidence_vertices`` (F,n) float32 the same per vertex (the
-  per-region confidence, at the finest region the method can resolve; the PDM's);
+  distance beyond it (the *range confidence*; the reported one also falls with the
+  markers' noise and the deformation's size, below); ``confidence_vertices`` (F,n)
+  float32 the same per vertex (the per-region confidence, at the finest region the method
+  can resolve; the PDM's);
 * a method whose detail can go wrong outside its training data fades that detail toward
   its *safe fallback* (the PDM: the thin shell of the detailed neutral and the static neutral map)
   by the confidence: ``fallback + c · (detail − fallback)`` (:func:`fade`), so a frame of
