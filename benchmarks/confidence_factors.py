@@ -11,6 +11,9 @@ the same denoised handles, the PDM's medium fallback). Per frame it records
   and the confidence the model reports;
 * the *noise factor* ``n`` (:func:`service.geometry.marker_prior.noise_confidence` of the
   frame's σ̂, :func:`~service.geometry.marker_prior.frame_noise`);
+* the *size factor* ``g`` of the frame's handle displacements u_H
+  (:meth:`service.methods.confidence.MarkerEvidence.size_factor`; with ``size_mm`` ‖u_H‖
+  and ``scale_mm`` the prior's RMS size s);
 * occlusion candidates: ``visible`` (the fraction of markers seen), ``energy`` (1 − the
   share of the frame's completed displacement energy Σ‖u_m‖² that lies on occluded markers,
   the prior's conditional mean filling them), ``variance`` (1 − the prior's conditional
@@ -24,7 +27,7 @@ PDM when its detail is additionally faded toward the fallback by a candidate fac
 it multiplies the validity's per-point weights, so this is exact for the mesh).
 
 Run: ``python benchmarks/confidence_factors.py [--actor a=DIR] [--actor b=DIR] [--frames 8]
-[--marker-noise 0|auto] [--json PATH]``.
+[--marker-noise 0|auto] [--json PATH] [--models DIR]``.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ CANDIDATES = {            # name → factor of (range r, noise n, occlusion term
     "range·noise·visible": lambda r, n, o: r * n * o["visible"],
     "range·noise·energy": lambda r, n, o: r * n * o["energy"],
     "range·noise·variance": lambda r, n, o: r * n * o["variance"],
+    "range·noise·size": lambda r, n, o: r * n * o["size"],
     "reported (this tree)": lambda r, n, o: o["reported"],
 }
 BOOTSTRAP = 2000          # paired bootstrap resamples of the frames (Δρ of a candidate)
@@ -79,16 +83,19 @@ def occlusion_terms(prior, eigen, u: np.ndarray) -> dict:
     return {"visible": seen.mean(axis=1), "energy": energy, "variance": var}
 
 
-def family_frames(family: str, actor_dir: Path, frames: int | None, noise) -> list[dict]:
+def family_frames(family: str, actor_dir: Path, frames: int | None, noise,
+                  models_dir: Path = pdm.GENERALIZATION_MODELS) -> list[dict]:
     from service.geometry.marker_prior import PriorEigen, frame_noise, noise_confidence
+    from service.methods.confidence import MarkerEvidence
     from service.methods.pdm.base_surface import BaseSurface, head_alignment
     from service.samples.dataset import load_actor
 
     actor = load_actor(actor_dir)
-    model = pdm.generalization_pdm_models(actor_dir, False, noise, None, ["biquadratic"])["biquadratic"]
+    model = pdm.generalization_pdm_models(actor_dir, False, noise, None, ["biquadratic"], models_dir)["biquadratic"]
     ev = model.evaluator
     prior = ev.base.marker_prior
     eigen = PriorEigen.of(prior)
+    evidence = MarkerEvidence.of(prior, eigen)
     det = BaseSurface.from_smooth(actor.vertices, actor.faces, actor.uv, actor.uv_faces, ev.base.handles,
                                   ev.base.rest_markers)
     face = np.asarray(actor.regions[pdm.FACE])
@@ -110,6 +117,7 @@ def family_frames(family: str, actor_dir: Path, frames: int | None, noise) -> li
             n = noise_confidence(prior, sigma)
             reported = out["confidence"].astype(np.float64)
             o = occlusion_terms(prior, eigen, u)
+            o["size"] = evidence.size_factor(u_H)
             err = lambda W: np.linalg.norm(W - gt.vertices, axis=-1)[:, face]          # noqa: E731
             fades = {}
             for g_name, g in FADES.items():
@@ -117,7 +125,8 @@ def family_frames(family: str, actor_dir: Path, frames: int | None, noise) -> li
                 e = err(V_fb + gv * (V - V_fb))
                 fades[g_name] = {"mean": e.mean(axis=1).tolist(), "max": e.max(axis=1).tolist()}
             rows.append({"family": family, "range": rname, "condition": cname, "range_conf": r.tolist(), "reported": reported.tolist(),
-                         "noise": n.tolist(), "sigma": sigma.tolist(), **{k: v.tolist() for k, v in o.items()},
+                         "noise": n.tolist(), "sigma": sigma.tolist(),
+                         "size_mm": np.sqrt((u_H ** 2).sum(axis=(1, 2))).tolist(), "scale_mm": evidence.scale_mm, **{k: v.tolist() for k, v in o.items()},
                          "fallback_mean": err(V_fb).mean(axis=1).tolist(), "fades": fades})
             print(f"  {family} {rname} {cname}: σ̂ {np.median(sigma):.3f}, error "
                   f"{np.mean(fades['none']['mean']):.3f} mm", file=sys.stderr, flush=True)
@@ -153,7 +162,7 @@ def summary(rows: list[dict]) -> str:
         def pooled(cand, rn):
             sel = [r for r in fr if rn in ("all", r["range"])]
             c = np.concatenate([cand(np.asarray(r["range_conf"]), np.asarray(r["noise"]),
-                                     {k: np.asarray(r[k]) for k in ("visible", "energy", "variance", "reported")})
+                                     {k: np.asarray(r[k]) for k in ("visible", "energy", "variance", "reported", "size")})
                                 for r in sel])
             return c, np.concatenate([r["fades"]["none"]["mean"] for r in sel])
 
@@ -182,6 +191,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES)
     parser.add_argument("--marker-noise", type=pdm.noise_arg, default=0.0)
     parser.add_argument("--json", type=Path, default=None, help="also write the per-frame rows here")
+    parser.add_argument("--models", type=Path, default=pdm.GENERALIZATION_MODELS,
+                        help="the PDMs' cache (default the generalization report's)")
     args = parser.parse_args()
     actors = {"a": pdm.actor_dir("a", 0), "b": pdm.actor_dir("b", 0)}
     if args.actor:
@@ -189,7 +200,7 @@ def main() -> None:
     rows = []
     for family, actor_dir in actors.items():
         pdm.ensure_actor(actor_dir.resolve(), level=0, family=family, with_tracking=False)
-        rows += family_frames(family, actor_dir.resolve(), args.frames or None, args.marker_noise)
+        rows += family_frames(family, actor_dir.resolve(), args.frames or None, args.marker_noise, args.models)
     if args.json:
         args.json.write_text(json.dumps(rows))
     print(f"# marker_noise_mm = {args.marker_noise}\n")

@@ -671,10 +671,11 @@ def noise_arg(text: str) -> float | str:
 
 
 def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float | str = 0.0,
-                              params: dict | None = None, orders=None) -> dict:
+                              params: dict | None = None, orders=None,
+                              models_dir: Path = GENERALIZATION_MODELS) -> dict:
     """Linear and biquadratic PDMs of the actor's training clips (fresh process each, cached
-    under :data:`GENERALIZATION_MODELS`), trained with ``marker_noise_mm`` and the other
-    :class:`PdmParams` fields ``params``."""
+    under ``models_dir``, default :data:`GENERALIZATION_MODELS`), trained with
+    ``marker_noise_mm`` and the other :class:`PdmParams` fields ``params``."""
     from service.methods.pdm.model import PdmModel
     from service.samples.dataset import performance_names
 
@@ -683,7 +684,7 @@ def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: f
     models = {}
     for order in orders or PDM_ORDERS:
         noise = marker_noise_mm if isinstance(marker_noise_mm, str) else f"{marker_noise_mm:g}"
-        model_dir = GENERALIZATION_MODELS / (
+        model_dir = models_dir / (
             f"pdm_{order}-{key}" + (f"-noise{noise}" if marker_noise_mm else "")
             + (f"-p{hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]}" if params else ""))
         if retrain or not (model_dir / "manifest.json").is_file():

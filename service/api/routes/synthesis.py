@@ -46,8 +46,9 @@ _RESPONSES = {
         "`vertices_detailed` (F,V,3) for `mesh_detailed`, `faces` (T,3), the asked maps "
         "(`displacement` (F,H,W), `albedo` (F,H,W,3), `normal_map` (F,H,W,3)) and `clamped` "
         "(F,) the fraction of texels held at the extrapolation limit; models that report a "
-        "confidence add `confidence` (F,) in [0, 1] (1: the frame's deformation lies inside "
-        "the training data and its markers are clean and complete) and, for `pdm`, "
+        "confidence add `confidence` (F,) in [0, 1] (1: the neutral, inside the training "
+        "data, with clean markers; lower beyond the training data, for larger deformations "
+        "and for noisier markers) and, for `pdm`, "
         "`confidence_vertices` (F,V). `Accept: model/obj`: one "
         "frame as OBJ with UVs; `Accept: image/x-exr` with one map output: that map as EXR.")),
     **problems(400, 404, 406, 409, 413, 415, 422, 503)}
@@ -58,8 +59,10 @@ _RESPONSES[200]["headers"] = {
                        "the frame's deformation lies outside what the model was trained on (1: "
                        "inside), times how much of the marker signal the frame's markers still "
                        "determine (their own noise estimate and the share of the signal hidden "
-                       "by occlusion). The detail is faded toward the thin shell (and, for "
-                       "`pdm`, the static neutral map) by the first factor alone (`pdm` with "
+                       "by occlusion), times exp(−size / (3.5 × the training's RMS size)) of "
+                       "the frame's marker deformation. The detail is faded toward the thin "
+                       "shell (and, for `pdm`, the static neutral map) by the first factor "
+                       "alone (`pdm` with "
                        "`clamp`, `psd`/`wpsd` with `confidence_fade`).",
         "schema": {"type": "string", "example": "1.0000,0.9731"}}}
 

@@ -304,14 +304,16 @@ class BaseSurface:
         return dataclasses.replace(self, noise_mm=noise_mm, prior_scale_mm=float(prior_scale_mm),
                                    marker_prior=marker_prior, denoise=denoise, evidence=evidence)
 
-    def input_confidence(self, aligned: np.ndarray, sigma: np.ndarray | None = None) -> np.ndarray:
-        """The input factor (F,) of the reported confidence of aligned markers (F,M,3), NaN rows
-        occluded (:class:`~service.methods.confidence.MarkerEvidence`; ``sigma`` (F,): their
-        σ̂ where already estimated); 1 without a learned prior."""
+    def input_confidence(self, aligned: np.ndarray, u_H: np.ndarray,
+                         sigma: np.ndarray | None = None) -> np.ndarray:
+        """The input factor n g (F,) of the reported confidence of aligned markers (F,M,3), NaN
+        rows occluded, whose complete handle displacements are u_H (F,M,3)
+        (:meth:`handle_displacements`) (:class:`~service.methods.confidence.MarkerEvidence`;
+        ``sigma`` (F,): their σ̂ where already estimated); 1 without a learned prior."""
         aligned = np.asarray(aligned, np.float64)
         if self.evidence is None:
             return np.ones(len(aligned))
-        return self.evidence.factor(aligned - self.rest_markers, sigma)
+        return self.evidence.factor(aligned - self.rest_markers, u_H, sigma)
 
     def with_noise_estimate(self, noise_mm: float) -> "BaseSurface":
         """This base (``marker_noise_mm = "auto"``) with the denoiser of one request's

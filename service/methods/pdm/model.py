@@ -672,7 +672,8 @@ class PdmModel:
         (per frame and per vertex) is the validity's times the input factor of its markers
         (:meth:`.base_surface.BaseSurface.input_confidence`, the rule of
         :mod:`service.methods.confidence`: the Wiener fraction at its own noise estimate,
-        which occlusion enters through); the fade stays the validity's.
+        which occlusion enters through, times the size factor of its handle displacements
+        u_H); the fade stays the validity's.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -724,7 +725,7 @@ class PdmModel:
             if rho is not None:
                 out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
-            factor = base.input_confidence(pose.remove(markers[sl]), None if sigma is None else sigma[sl])
+            factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
             out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
             out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
             rho = rho if clamp else None

@@ -93,8 +93,9 @@ Choices and departures (the paper is silent or differs):
   (a typical expression's strength): ``confidence = exp(−δ / δ₀)``; 1 inside the training
   box, 1/e a typical expression's distance beyond it; the *reported* confidence is that
   times the input factor of the frame's markers (:class:`service.methods.confidence.MarkerEvidence`:
-  the Wiener fraction at the frame's own noise estimate, 1 for a model without a learned
-  marker prior; no separate occlusion term), the rule every marker-driven kind shares;
+  the Wiener fraction at the frame's own noise estimate times the size factor of its
+  large-scale deformation u_H, 1 for a model without a learned marker prior; no separate
+  occlusion term), the rule every marker-driven kind shares;
 * **confidence fade** (``params.confidence_fade``, default on) — the frame's vertex
   corrections are multiplied by its range confidence κ (not the input factor), ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
   :mod:`service.methods.confidence` with the shell as the safe fallback): the biharmonic
@@ -447,7 +448,7 @@ class PoseSpaceModel:
             pose, u_H = ev.deformation(markers[sl])
             f = ev.features(u_H)
             conf = ev.confidence(f)                                 # the range's: it fades
-            out["confidence"][sl] = conf * ev.base.input_confidence(pose.remove(markers[sl]))
+            out["confidence"][sl] = conf * ev.base.input_confidence(pose.remove(markers[sl]), u_H)
             fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
             vis = ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight" else None

@@ -295,7 +295,8 @@ def test_the_marker_prior_is_stored_and_an_older_directory_loads_without_it(pdm_
     markers = pdm_data[1][2].markers[[3, 11]]
     x, y = loaded.synthesize(markers, outputs=("mesh",)), before.synthesize(markers, outputs=("mesh",))
     assert x.keys() == y.keys() and "vertices" in x
-    factor = loaded.evaluator.base.input_confidence(loaded.evaluator.deformation(markers)[0].remove(markers))
+    pose, u_H, _ = loaded.evaluator.deformation(markers)
+    factor = loaded.evaluator.base.input_confidence(pose.remove(markers), u_H)
     assert before.evaluator.base.evidence is None and np.all(factor < 1)
     for key in x:
         if key in ("confidence", "confidence_vertices"):
