@@ -43,11 +43,11 @@ actor's files. A method that fails on an input (e.g. occluded markers) gets a ro
 
 Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
 [--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA] [--pdm-only]
-[--pdm-params JSON]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
+[--pdm-params JSON] [--out DIR]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
 parameters, their models cached apart); default actors (built
 when missing, seed 1, level 0):
 ``benchmarks/out/generalization/actor-{a,b}-l0``. Writes the table to stdout and
-``benchmarks/out/generalization/report.md``, figures beside it.
+``benchmarks/out/generalization/report.md`` (``--out DIR``: there), figures beside it.
 """
 
 from __future__ import annotations
@@ -354,6 +354,8 @@ def main() -> None:
     parser.add_argument("--pdm-params", type=json.loads, default=None, metavar="JSON",
                         help="other PdmParams fields of both PDMs, e.g. '{\"neutral_anchor\": false}' "
                              "(cached apart from the defaults)")
+    parser.add_argument("--out", type=Path, default=OUT, metavar="DIR",
+                        help=f"where the report and figures go (default {OUT}; the models stay cached there)")
     args = parser.parse_args()
     defaults = {"a": pdm.actor_dir("a", 0), "b": pdm.actor_dir("b", 0)}
     actors = {} if args.actor else defaults
@@ -363,7 +365,8 @@ def main() -> None:
             parser.error(f"--actor wants a=DIR or b=DIR, got {item!r}")
         actors[family] = Path(path)
     t0 = time.perf_counter()
-    OUT.mkdir(parents=True, exist_ok=True)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
     MODELS.mkdir(parents=True, exist_ok=True)
     pdm.SHAPE_SPACE_MODELS.mkdir(parents=True, exist_ok=True)
     frames = args.frames or None
@@ -378,11 +381,11 @@ def main() -> None:
                                               only is None or SS_MARKERS in only or SS_RIG in only),
                                           args.pdm_params, only, args.ranges, args.conditions)
         if results[family]["worst"] is not None:
-            plot_worst(results[family], family, OUT / f"worst_family_{family}.png")
+            plot_worst(results[family], family, out / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)
     print(text)
-    (OUT / "report.md").write_text(text)
-    (OUT / "report.json").write_text(json.dumps(
+    (out / "report.md").write_text(text)
+    (out / "report.json").write_text(json.dumps(
         {f: {" / ".join(k): v for k, v in r["rows"].items()} for f, r in results.items()}, indent=1))
 
 

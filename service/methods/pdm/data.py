@@ -48,6 +48,9 @@ class PdmData:
     marker_prior : MarkerPrior | None   learned prior over the aligned marker displacements
                                      (:mod:`service.geometry.marker_prior`; None: stored before
                                      it existed, marker noise then uses the shell prior alone)
+    medium_skill : (K,) float32 | None   the medium band's cross-validated fit skill at the UV
+                                     points (:mod:`.fit_skill`; None: stored before it existed,
+                                     no gain then)
 
     The maps' texels are in row-major order (as the EXR files hold them).
     """
@@ -72,6 +75,7 @@ class PdmData:
     validity: ValidityData | None = None
     vertex_coeffs: np.ndarray | None = None
     marker_prior: MarkerPrior | None = None
+    medium_skill: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:

@@ -80,6 +80,7 @@ from service.methods.pdm.deformation import (
     deformation_vectors, marker_mesh,
 )
 from service.methods.pdm.extrapolation import training_limit
+from service.methods.pdm.fit_skill import fit_skill, skill_gain
 from service.methods.outputs import check_outputs
 from service.methods.pdm.data import PdmData, PdmDerived
 
@@ -190,11 +191,13 @@ def vertex_band(medium: CoefficientMap, uv: np.ndarray, mesh: MarkerMesh, axes: 
 
 
 def rest_onset(values: np.ndarray, rho: np.ndarray, fallback: np.ndarray | None,
-               start: float = REST_ONSET) -> np.ndarray:
+               start: float = REST_ONSET, gain: np.ndarray | None = None) -> np.ndarray:
     """The medium band's values (F,K,3) float32 faded in from the ``fallback`` (F,K,3) (None:
     0) near rest, in place: ``fallback + (1 − falloff(ρ, start)) (values − fallback)`` where
     the gauge ρ (F,K) < ``start`` (:func:`service.methods.confidence.falloff`, a smoothstep
     from 0 at ρ = 0 to 1 at ``start``); the values at ρ ≥ ``start`` unchanged (bit for bit).
+    With a per-point ``gain`` g (K,) float32 (:mod:`.fit_skill`; None: 1) the weight is
+    ``g (1 − falloff)`` near rest and ``g`` elsewhere (points of g = 1 as without).
     The NumPy reference of :func:`.point_onset.onset_points`, which synthesis runs (tests pin
     the two bit for bit).
 
@@ -222,11 +225,19 @@ def rest_onset(values: np.ndarray, rho: np.ndarray, fallback: np.ndarray | None,
     the medium band"). Neither the fit (``neutral_anchor``, which
     retrains) nor the fine and albedo bands are touched: their fallback at rest is their own
     constant term, which the polynomial already equals there."""
+    rho = np.asarray(rho)
     near = rho < start
-    if not near.any():
+    damped = near if gain is None else near | (np.asarray(gain, np.float32) < 1)
+    if not damped.any():
         return values
-    idx = np.flatnonzero(near)
-    w = (1 - falloff(np.asarray(rho).reshape(-1)[idx], start, np.float32))[:, None]
+    idx = np.flatnonzero(damped)
+    r = rho.reshape(-1)[idx]
+    w = np.ones(len(idx), np.float32)
+    close = r < start
+    w[close] = 1 - falloff(r[close], start, np.float32)
+    if gain is not None:
+        w *= np.broadcast_to(np.asarray(gain, np.float32), rho.shape).reshape(-1)[idx]
+    w = w[:, None]
     flat = values.reshape(-1, 3)
     if fallback is None:
         flat[idx] *= w
@@ -297,6 +308,7 @@ class PdmEvaluator:
     shell_mesh: "ShellMesh | None" = dataclasses.field(default=None, repr=False)
     point_validity: "PointValidity | None" = dataclasses.field(default=None, repr=False)
     onset: "Callable | None" = dataclasses.field(default=None, repr=False, compare=False)
+    medium_gain: np.ndarray | None = None
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -388,7 +400,7 @@ class PdmEvaluator:
             fine_inverse=inverse_index(fine.index, Hf * Hf), validity=validity, shell_correction=shell[0],
             shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
             point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms),
-            onset=None if validity is None else point_onset)
+            onset=None if validity is None else point_onset, medium_gain=medium_gain(d))
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -490,7 +502,8 @@ class PdmEvaluator:
         (:func:`rest_onset`, on the kernel of :mod:`.point_onset`)."""
         if rho is None:
             return self.vertex_band.evaluate(d1, d2)
-        return self.onset(self.point_validity.values(d1, d2, rho, sectors, fallback), fallback, rho, REST_ONSET)
+        return self.onset(self.point_validity.values(d1, d2, rho, sectors, fallback), fallback, rho, REST_ONSET,
+                          self.medium_gain)
 
     def medium_offsets(self, d1: np.ndarray, d2: np.ndarray, rho: np.ndarray | None = None,
                        sectors: tuple | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
@@ -517,6 +530,13 @@ class PdmEvaluator:
 
     def _band_validity(self, band: TexelBand, name: str, rho: np.ndarray | None) -> BandValidity | None:
         return None if rho is None else self.validity.band(name, band.coeffs, rho)
+
+
+def medium_gain(d: PdmData) -> np.ndarray | None:
+    """The medium band's gain (K,) float32 at the UV points (:func:`.fit_skill.skill_gain` of the
+    stored skill and ``params.fit_skill_floor``); None (no gain) without either."""
+    floor = d.params.fit_skill_floor
+    return None if floor is None or d.medium_skill is None else skill_gain(d.medium_skill, floor)
 
 
 def _members(arrays: dict, prefix: str) -> dict:
@@ -911,9 +931,10 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     # targets with that point's d1, d2 (module docstring)
     field_v = ParameterField.build(axes, barycentric_operator(mesh, uv))
     dv1, dv2 = _parameters(field_v, S)
-    vertex_coeffs = polynomial.fit(dv1, dv2, f_uv, params.order, anchor=np.zeros(f_uv.shape[1:]) if anchored else None,
-                                   **ridge).astype(np.float32)
-    del f_uv
+    anchor_v = np.zeros(f_uv.shape[1:]) if anchored else None
+    vertex_coeffs = polynomial.fit(dv1, dv2, f_uv, params.order, anchor=anchor_v, **ridge).astype(np.float32)
+    # that fit's leave-one-frame-out residuals, for its cross-validated skill (fit_skill)
+    loo_v = polynomial.loo_residuals(dv1, dv2, f_uv, params.order, anchor=anchor_v, **ridge).astype(np.float32)
     vertex = vertex_band(medium, uv, mesh, axes, vertex_coeffs)
 
     # ---- fine band (1D along the normal, high-pass residual)
@@ -993,9 +1014,16 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
                    vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
+    # the medium band's skill against its fallback on the training frames (fit_skill)
+    fallback = np.concatenate([evaluator.shell_fallback(u_H[t:t + FRAME_CHUNK], base.deform(u_H[t:t + FRAME_CHUNK]))
+                               for t in range(0, T, FRAME_CHUNK)])
+    skill = fit_skill(loo_v, f_uv, fallback).astype(np.float32)
+    del loo_v, f_uv, fallback
+    metrics["medium_skill"] = {"median": float(np.median(skill)), "p05": float(np.percentile(skill, 5)),
+                               "below_0": float(np.mean(skill < 0))}
     # the validity regions of the training data are stored with the model (a load reads them)
-    data = dataclasses.replace(data, validity=evaluator.validity_data())
-    model = PdmModel(data, dataclasses.replace(evaluator, data=data))
+    data = dataclasses.replace(data, validity=evaluator.validity_data(), medium_skill=skill)
+    model = PdmModel(data, dataclasses.replace(evaluator, data=data, medium_gain=medium_gain(data)))
     progress(1.0, "done")
     return model
 

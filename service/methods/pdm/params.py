@@ -99,6 +99,15 @@ class PdmParams(MarkerParams):
         description="Order of the continuation outside the hull: 1 continues the polynomial "
                     "linearly along the expression's direction, 0 holds the boundary's detail.",
         examples=[1.0])
+    fit_skill_floor: float | None = Field(
+        default=None, lt=1, allow_inf_nan=False,
+        description="Cross-validated fit skill s0 of the medium band (issue 17): each UV "
+                    "point's detail is scaled towards the thin shell by clip((skill - s0) / "
+                    "(1 - s0), 0, 1), skill = 1 - (leave-one-frame-out error) / (the thin "
+                    "shell's error) over the training frames (fit_skill.py); null (the "
+                    "default): no scaling. 0 lowered family a's frames above the thin shell's "
+                    "max 56 -> 47 of 243 but family b's in-range detail corr 0.55 -> 0.52.",
+        examples=[None, 0.0])
     fine_highpass_mm: float = Field(
         default=2.0, ge=0, allow_inf_nan=False,
         description="σ on the surface, in the actor's unit, of the Gaussian whose complement "

@@ -142,6 +142,7 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
         **({} if model.vertex_coeffs is None else {"vertex_coeffs": model.vertex_coeffs}),
         "marker_prior_scale_mm": np.float64(model.prior_scale_mm),
         **({} if model.marker_prior is None else model.marker_prior.arrays()),
+        **({} if model.medium_skill is None else {"medium_skill": model.medium_skill}),
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
     }
@@ -244,7 +245,8 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
                     mesh=mesh, axes=axes, pose_weights=a["pose_weights"], S_train=a["S_train"],
                     neutral_offset=a["neutral_offset"], medium=bands["medium"], fine=bands["fine"],
                     albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity,
-                    vertex_coeffs=a.get("vertex_coeffs"), marker_prior=MarkerPrior.from_arrays(a))
+                    vertex_coeffs=a.get("vertex_coeffs"), marker_prior=MarkerPrior.from_arrays(a),
+                    medium_skill=a.get("medium_skill"))
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
                          limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")},
                          operators={k[3:]: cache[k] for k in cache if k.startswith("op_")})

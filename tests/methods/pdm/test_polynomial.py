@@ -12,6 +12,7 @@ from service.methods.pdm.polynomial import (
     evaluate,
     fit,
     fit_residual_rms,
+    loo_residuals,
     regularization_weights,
     relative_ridge_weights,
 )
@@ -432,3 +433,51 @@ def test_anchor_none_is_the_free_constant_fit_bit_for_bit_and_bad_anchor_is_refu
         fit(d1, d2, f, anchor=np.zeros((10, 2)))
     with pytest.raises(ValueError, match="anchor"):
         fit(d1, d2, f, anchor=np.full((10, 3), np.nan))
+
+
+# --- leave-one-frame-out residuals (PRESS) -------------------------------------------------
+
+
+def test_loo_residuals_hand_computed_line():
+    """d2 ≡ 0 (its term drops out), f a line in d1 plus misfit: d1 = 0, 1, 2, 3, f = 0, 1, 2, 4.
+    The fit is f̂ = 1.3 d1 − 0.2 (residuals 0.2, −0.1, −0.4, 0.3), leverages 0.7, 0.3, 0.3, 0.7,
+    so the PRESS residuals are 2/3, −1/7, −4/7, 1 (e.g. without frame 3 the line through the
+    other three is f = d1, predicting 3 for 4)."""
+    d1 = np.array([[0.0], [1.0], [2.0], [3.0]])
+    f = np.array([[0.0], [1.0], [2.0], [4.0]])
+    e = loo_residuals(d1, np.zeros_like(d1), f, "linear", ridge=0.0)
+    np.testing.assert_allclose(e[:, 0, 0], [2 / 3, -1 / 7, -4 / 7, 1.0], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("kw", [{"ridge": 0.0}, {"ridge": 0.3}, {"gamma": 2.0}, {"ridge": 0.3, "anchor": True}])
+def test_loo_residuals_are_the_refits_without_each_frame(kw):
+    """Against T explicit refits of the augmented system [Φ₋ₜ; diag(w)] a = [f₋ₜ; 0] by lstsq,
+    with the ridge rows w of all frames held fixed (the PRESS identity's premise)."""
+    rng = np.random.default_rng(3)
+    T, P, C = 14, 6, 2
+    d1, d2 = _params(rng, T, P)
+    f = rng.normal(size=(T, P, C))
+    anchor = rng.normal(size=(P, C)) if kw.get("anchor") else None
+    kw = {k: v for k, v in kw.items() if k != "anchor"}
+    e = loo_residuals(d1, d2, f, anchor=anchor, **kw)
+    for p in range(P):
+        Phi = design_matrix(d1[:, p], d2[:, p])
+        if "gamma" in kw:
+            w = regularization_weights("biquadratic", d1[:, p].std(), d2[:, p].std(), kw["gamma"])
+        else:
+            w = relative_ridge_weights("biquadratic", np.linalg.norm(Phi, axis=0), kw["ridge"])
+        g = f[:, p] - (0 if anchor is None else anchor[p])
+        cols = slice(0, 5) if anchor is not None else slice(None)
+        for t in range(T):
+            keep = np.arange(T) != t
+            A = np.vstack([Phi[keep][:, cols], np.diag(w[cols])])
+            b = np.vstack([g[keep], np.zeros((len(w[cols]), C))])
+            a = np.linalg.lstsq(A, b, rcond=None)[0]
+            np.testing.assert_allclose(e[t, p], g[t] - Phi[t, cols] @ a, rtol=1e-9, atol=1e-12)
+
+
+def test_loo_residuals_of_an_exact_polynomial_are_zero():
+    d1, d2, _, f = _exact("biquadratic", T=20, P=50, C=3)
+    np.testing.assert_allclose(loo_residuals(d1, d2, f, ridge=0.0), 0.0, atol=1e-9)
+
+

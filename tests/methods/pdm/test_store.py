@@ -352,3 +352,40 @@ def test_the_band_terms_and_frame_field_are_stored_mapped_and_synthesize_bit_for
         b = model.synthesize(markers, outputs=outputs)
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_the_fit_skill_is_stored_and_an_older_directory_loads_without_it(pdm_model, pdm_data, saved, tmp_path):
+    """Training measures the medium band's cross-validated skill at every UV point (issue 17,
+    service.methods.pdm.fit_skill) and the store round-trips it; ``fit_skill_floor`` null (the
+    default) applies no gain; a directory saved before the skill existed loads with none and
+    synthesizes bit for bit the same; the floor turns the gain on (skill_gain of the stored skill)."""
+    import dataclasses
+    import shutil
+
+    from service.io.atomic import write_npz
+    from service.methods.pdm.fit_skill import skill_gain
+
+    path, _ = saved
+    skill = pdm_model.data.medium_skill
+    assert skill.shape == (len(pdm_model.data.uv),) and skill.dtype == np.float32 and np.all(skill <= 1)
+    assert pdm_model.evaluator.medium_gain is None
+    loaded = PdmModel.load(path)
+    np.testing.assert_array_equal(loaded.data.medium_skill, skill)
+    old = tmp_path / "old"
+    shutil.copytree(path, old)
+    with np.load(old / "model.npz") as a:
+        arrays = {k: a[k] for k in a.files if k != "medium_skill"}
+    m = json.loads((old / "manifest.json").read_text())
+    m["files"]["model.npz"] = write_npz(old / "model.npz", arrays)
+    m["size_bytes"] = sum((old / f).stat().st_size for f in m["files"])
+    (old / "manifest.json").write_text(json.dumps(m))
+    before = PdmModel.load(old)
+    assert before.data.medium_skill is None and before.evaluator.medium_gain is None
+    markers = pdm_data[1][2].markers[[3, 11]]
+    np.testing.assert_array_equal(before.synthesize(markers, outputs=("mesh",))["vertices"],
+                                  loaded.synthesize(markers, outputs=("mesh",))["vertices"])
+    data = dataclasses.replace(loaded.data, params=loaded.params.model_copy(update={"fit_skill_floor": 0.0}))
+    gained = PdmModel(data)
+    np.testing.assert_array_equal(gained.evaluator.medium_gain, skill_gain(skill, 0.0))
+    assert not np.array_equal(gained.synthesize(markers, outputs=("mesh",))["vertices"],
+                              loaded.synthesize(markers, outputs=("mesh",))["vertices"])
