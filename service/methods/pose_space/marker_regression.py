@@ -91,22 +91,19 @@ def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndar
     G = np.einsum("tmc,smc->mts", U, U).reshape(M, T * T)                  # U_m U_mᵀ
     W = marker_weights(vertices, marker_rest, radius, cutoff)
     mean_y = Y.mean(axis=0)
-    rows, cols, vals = [], [], []
+    blocks = []
     diag = np.arange(T)
+    Uf = U.reshape(T, M * 3)
     for v0 in range(0, n, CHUNK):
         vs = slice(v0, min(v0 + CHUNK, n))
-        Wc = W[vs]
-        K = np.asarray(Wc @ G).reshape(-1, T, T)
+        g2 = W[vs].toarray()                                               # (c,M)
+        c = len(g2)
+        K = (g2 @ G).reshape(c, T, T)
         scale = ridge * np.maximum(np.einsum("vtt->v", K) / T, 1e-30)
         K[:, diag, diag] += scale[:, None]
         A = np.linalg.solve(K, (Y[:, vs] - mean_y[vs]).transpose(1, 0, 2))  # (c,T,3)
-        Wc = Wc.tocoo()
-        # B_v,m = g² U_mᵀ A_v: (3 in, 3 out) per nonzero (v, m)
-        B = np.einsum("k,tkj,kti->kij", Wc.data, U[:, Wc.col], A[Wc.row])   # (nnz,i out,j in)
-        v = Wc.row + v0
-        rows.append(np.repeat(3 * v, 9) + np.tile(np.repeat(np.arange(3), 3), len(v)))
-        cols.append(np.repeat(3 * Wc.col, 9) + np.tile(np.tile(np.arange(3), 3), len(v)))
-        vals.append(B.reshape(-1))
-    L = sp.csr_matrix((np.concatenate(vals).astype(np.float32), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * n, 3 * M))
+        # B_v,m = g²_v,m A_vᵀ U_m: rows (v, out i), columns (m, in j)
+        B = (A.transpose(0, 2, 1).reshape(c * 3, T) @ Uf).reshape(c, 3, M, 3) * g2[:, None, :, None]
+        blocks.append(sp.csr_matrix(B.reshape(c * 3, M * 3).astype(np.float32)))
+    L = sp.vstack(blocks, format="csr")
     return MarkerRegression(L, mean_u, mean_y.astype(np.float32))
