@@ -2,7 +2,9 @@
 nearest training frame and of WPSD split into the part carried by the mesh and the part
 carried by the fine maps, and the per-patch blend of the training frames scored beside them.
 
-Usage: ``python benchmarks/blend_study.py ACTOR_DIR [--frames N] [--conditions clean,noisy]``.
+Usage: ``python benchmarks/blend_study.py ACTOR_DIR [--frames N] [--conditions clean,noisy]
+[--regression S]`` (``--regression``: instead of the decomposition, the nearest frame, WPSD and
+WPSD with ``marker_regression = S`` on the full metric, with mean / max vertex error).
 Output: ``/tmp/blend/<actor>.json`` and a markdown table on stdout.
 
 Metric (``harness.DetailTexels``): the high-passed normal-direction detail height
@@ -174,16 +176,60 @@ def decompose(st: Study, gt) -> dict:
     return rows
 
 
+def regression_model(st: Study, s: float):
+    """WPSD with ``marker_regression = s`` (service path), trained once and cached."""
+    from service.methods.pose_space import PoseSpaceModel, WpsdParams, train
+
+    path = OUT / "models" / st.dir.name / f"WPSD_reg{s}"
+    if (path / "manifest.json").is_file():
+        return PoseSpaceModel.load(path)
+    t0 = time.process_time()
+    m = train(st.actor, pr.training_clips(st.dir, st.actor), WpsdParams(marker_regression=s))
+    print(f"[{st.dir.name}] WPSD + regression trained in {time.process_time() - t0:.0f} s CPU", file=sys.stderr)
+    m.save(path)
+    return m
+
+
+def compare(st: Study, gt, model, s: float) -> dict:
+    """Full-metric rows (rel, r, mean / max face vertex error mm) of the nearest frame, WPSD and
+    WPSD + marker regression on one performance."""
+    pose, _, X, Fr = st.shell(gt.markers)
+    t = st.nearest(gt.markers)
+    rows = {"nearest training frame": (pose.restore(X + to_world(Fr, st.C[t])), st.maps[t])}
+    for name, m in (("WPSD", st.model), (f"WPSD + marker regression (s={s})", model)):
+        o = m.synthesize(gt.markers)
+        rows[name] = (o["vertices"].astype(np.float64), st.tex.texels(o["displacement"]))
+    face = st.actor.regions[pr.FACE]
+    res = {}
+    for k, (V, D) in rows.items():
+        e = np.linalg.norm(V - gt.vertices, axis=-1)[:, face]
+        res[k] = {**st.score(gt, st.hp(gt, V, D)), "mean_mm": float(e.mean()), "max_mm": float(e.max())}
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("actors", nargs="+", type=Path)
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--conditions", default="clean")
     ap.add_argument("--retrain", action="store_true")
+    ap.add_argument("--regression", type=float, default=None,
+                    help="compare nearest / WPSD / WPSD + marker regression with this s instead")
     a = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     for d in a.actors:
         st = Study(d, a.retrain)
+        if a.regression is not None:
+            model, res = regression_model(st, a.regression), {}
+            for rname, perf in RANGES.items():
+                for cond in a.conditions.split(","):
+                    res[f"{rname} / {cond}"] = rows = compare(st, st.heldout(perf, CONDITIONS[cond], a.frames),
+                                                              model, a.regression)
+                    for k, v in rows.items():
+                        print(f"| {d.name} | {rname} | {cond} | {k} | {v['rel']:.3f} | {v['r']:.3f} | "
+                              f"{v['mean_mm']:.3f} | {v['max_mm']:.2f} |", flush=True)
+            (OUT / f"{d.name}_regression{a.regression}.json").write_text(json.dumps(res, indent=1))
+            continue
         res = {}
         for rname, perf in RANGES.items():
             for cond in a.conditions.split(","):

@@ -95,6 +95,17 @@ Choices and departures (the paper is silent or differs):
   times the input factor of the frame's markers (:class:`service.methods.confidence.MarkerEvidence`:
   the Wiener fraction at the frame's own noise estimate, 1 for a model without a learned
   marker prior; no separate occlusion term), the rule every marker-driven kind shares;
+* **marker regression** (``params.marker_regression`` = s, off by default;
+  :mod:`.marker_regression`) — before the corrections, a per-vertex ridge regression of the
+  aligned offsets ``V − X`` on the markers' displacement vectors (weights exp(−d²/s²) of the
+  rest distance, s in median marker spacings) is fitted and subtracted; the RBFs learn the
+  rest, synthesis adds it back (``X + L(u_H) + Frame(X)ᵀ c``, unfaded). Why: the detail
+  metric's high-pass (2 mm) passes the thin shell's medium-scale error (its RMS there is
+  0.9–1.8× the truth's detail RMS, level 0, both families), which the corrections must cancel;
+  measured (``benchmarks/blend_study.py``) the medium band the nearest frame carries to a
+  held-out pose costs rel. err 0.45–0.93 against 0.11–0.53 for its detail, and WPSD's
+  mesh 0.30–1.14 against 0.11–0.31 for its maps. Strain features cannot say which way the
+  skin bulges; the markers' displacement vectors can;
 * **confidence fade** (``params.confidence_fade``, default on) — the frame's vertex
   corrections are multiplied by its range confidence κ (not the input factor), ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
   :mod:`service.methods.confidence` with the shell as the safe fallback): the biharmonic
