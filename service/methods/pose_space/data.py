@@ -45,6 +45,10 @@ class PoseSpaceData:
                                     ``params.marker_completion``); None for a transferred model
     marker_residual_var (M,) float64 | None   their variance outside the modes, per marker and
                                     coordinate, by leaving one clip out (``params.marker_prior``)
+    regression (3n,3M) CSR float32 | None, regression_mean_u (M,3) float64 | None,
+    regression_mean_y (n,3) float32 | None   the marker regression (:mod:`.marker_regression`,
+                                    ``params.marker_regression``), head-pose-aligned offsets
+                                    added to the shell before the corrections
     feature_low, feature_high (E,) float64   training range of every feature
     confidence_scale float          δ₀ of the confidence (module docstring)
     basis_names tuple of str        the basis poses as "clip:frame"
@@ -81,6 +85,9 @@ class PoseSpaceData:
     marker_mean: np.ndarray | None = None
     marker_modes: np.ndarray | None = None
     marker_residual_var: np.ndarray | None = None
+    regression: sp.csr_matrix | None = None
+    regression_mean_u: np.ndarray | None = None
+    regression_mean_y: np.ndarray | None = None
 
     @property
     def kind(self) -> str:

@@ -96,6 +96,17 @@ Choices and departures (the paper is silent or differs):
   the Wiener fraction at the frame's own noise estimate times the size factor of its
   large-scale deformation u_H, 1 for a model without a learned marker prior; no separate
   occlusion term), the rule every marker-driven kind shares;
+* **marker regression** (``params.marker_regression`` = s, off by default;
+  :mod:`.marker_regression`) — before the corrections, a per-vertex ridge regression of the
+  aligned offsets ``V − X`` on the markers' displacement vectors (weights exp(−d²/s²) of the
+  rest distance, s in median marker spacings) is fitted and subtracted; the RBFs learn the
+  rest, synthesis adds it back (``X + L(u_H) + Frame(X)ᵀ c``, unfaded). Why: the detail
+  metric's high-pass (2 mm) passes the thin shell's medium-scale error (its RMS there is
+  0.9–1.8× the truth's detail RMS, level 0, both families), which the corrections must cancel;
+  measured (``benchmarks/blend_study.py``) the medium band the nearest frame carries to a
+  held-out pose costs rel. err 0.45–0.93 against 0.11–0.53 for its detail, and WPSD's
+  mesh 0.30–1.14 against 0.11–0.31 for its maps. Strain features cannot say which way the
+  skin bulges; the markers' displacement vectors can;
 * **confidence fade** (``params.confidence_fade``, default on) — the frame's vertex
   corrections are multiplied by its range confidence κ (not the input factor), ``X + Frame(X)ᵀ (κ c)`` (the fade rule of
   :mod:`service.methods.confidence` with the shell as the safe fallback): the biharmonic
@@ -150,7 +161,7 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
     BaseSurface, HeadPose, TooFewMarkers, head_alignment, training_head_pose,
 )
-from service.methods.pose_space import polynomial, rbf, store
+from service.methods.pose_space import marker_regression, polynomial, rbf, store
 from service.methods.pose_space.data import PoseSpaceData
 from service.methods.pose_space.corrections import corrections, large_scale_surface
 from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs
@@ -227,6 +238,8 @@ class PoseSpaceEvaluator:
             self.correction_sum = CorrectionSum.build(data.alpha, data.weights, data.basis_features,
                                                       data.poly_const, data.poly_linear,
                                                       order=self.shell_frames.order)
+        self.regression = None if data.regression is None else marker_regression.MarkerRegression(
+            data.regression.tocsr(), data.regression_mean_u, data.regression_mean_y)
         self.poly_linear = None if data.poly_linear is None else data.poly_linear.tocsr()
         self.map_poly_linear = None if data.map_poly_linear is None else data.map_poly_linear.tocsr()
         self.map_interp = self.map_sampler = None
@@ -457,12 +470,18 @@ class PoseSpaceModel:
             C, D2 = self._corrections(f, vis, fade, keep_distances=bool(maps))
             if "vertices" in out or need_medium:
                 medium = np.empty((len(f), n, 3), np.float64) if need_medium else None
+                lin = None if ev.regression is None else ev.regression(u_H)              # (f,n,3) aligned
                 for k in range(len(f)):
                     world = out["vertices"][s + k] if "vertices" in out else None
                     Xa = ev.shell_detail(u_H[k], C[k], pose.R[k], pose.t[k], aligned=bool(need_medium),
                                          world=world)
                     if need_medium:
                         medium[k] = ev.shell_frames.to_vertices(Xa)
+                    if lin is not None:            # aligned offsets: world = Rᵀ(· − t) adds Rᵀ y
+                        if world is not None:
+                            world += lin[k] @ pose.R[k].astype(np.float32)
+                        if need_medium:
+                            medium[k] += lin[k]
             if not maps:
                 continue
             disp = ev.fine_map(D2, f)                                            # (f,Pt)
@@ -818,11 +837,26 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
     F = shell_features(u_H)                                                   # (T,E)
 
     progress(0.15, "corrections")
+    regression = None
+    if params.marker_regression is not None:      # the part linear in the markers first
+        Y = np.empty((T, n, 3), np.float32)
+        t0 = 0
+        for c in clips:
+            sl = slice(t0, t0 + c.frames)
+            Y[sl] = pose[sl].remove(c.vertices) - base.deform(u_H[sl])
+            t0 += c.frames
+        regression = marker_regression.fit(u_H, Y, actor.vertices, rest,
+                                           params.marker_regression * marker_regression.marker_spacing(rest),
+                                           params.marker_regression_ridge)
+        del Y
     C = np.empty((T, n, 3), np.float32)
     t0 = 0
     for c in clips:
         sl = slice(t0, t0 + c.frames)
-        C[sl] = corrections(base, u_H[sl], pose[sl].remove(c.vertices))
+        aligned_c = pose[sl].remove(c.vertices)
+        if regression is not None:
+            aligned_c = aligned_c - regression(u_H[sl])
+        C[sl] = corrections(base, u_H[sl], aligned_c)
         t0 += c.frames
     maps = None
     if clips[0].displacement is not None:
@@ -999,7 +1033,10 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         basis_names=tuple(names[j] for j in sel), metrics=metrics,
         poly_const=poly_const, poly_linear=poly_linear,
         map_poly_const=map_poly_const, map_poly_linear=map_poly_linear,
-        marker_mean=marker_mean, marker_modes=marker_modes, marker_residual_var=marker_residual_var)
+        marker_mean=marker_mean, marker_modes=marker_modes, marker_residual_var=marker_residual_var,
+        regression=None if regression is None else regression.L,
+        regression_mean_u=None if regression is None else regression.mean_u,
+        regression_mean_y=None if regression is None else regression.mean_y)
     progress(1.0, "done")
     return PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
 

@@ -122,6 +122,18 @@ class PoseSpaceParams(MarkerParams):
                     "edge's term of the feature distance by its visibility (the share of its "
                     "nodes' shell displacement carried by visible markers) and renormalizes "
                     "α per vertex (eq. 3), so filled strains count less.")
+    marker_regression: float | None = Field(
+        default=None, gt=0.0, le=20.0,
+        description="Learn the part of the corrections that is linear in the markers' "
+                    "displacement vectors first (marker_regression.py: per vertex a ridge "
+                    "regression on the markers, weighted by exp(−d²/s²) of their rest distance "
+                    "d), and the RBFs on what it leaves; the value is s in median nearest-marker "
+                    "spacings of the actor (null: no regression, bickel2008 as printed). The "
+                    "regression is not faded by the confidence.")
+    marker_regression_ridge: float = Field(
+        default=1e-2, gt=0.0, le=10.0,
+        description="Relative ridge λ of the marker regression (× the mean diagonal of each "
+                    "vertex's kernel).")
     selection_vertices: int = Field(
         default=4096, ge=16,
         description="Vertices (an even stride over the mesh) on which WPSD's greedy basis "

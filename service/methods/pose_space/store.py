@@ -5,7 +5,7 @@
   basis features, per-vertex RBF weights (n,P,3) float32, α as CSR arrays ``alpha_data``
   float32 / ``alpha_indices`` / ``alpha_indptr`` (WPSD), the polynomial term (``poly_*``,
   ``map_poly_*``: the linear parts as CSR arrays like α), the map band's texels and weights,
-  the training feature range); a load reproduces the model bit for bit;
+  the training feature range, the marker regression (``regression_*``, CSR like α)); a load reproduces the model bit for bit;
 * ``cache.npz``  the thin-shell basis (n,M) float32 and handle energy: derived (a load
   without it recomputes them), listed under ``derived`` and checksummed like the rest;
 * ``manifest.json``  kind (``psd`` | ``wpsd``), format version, params, metrics, scalars,
@@ -35,8 +35,9 @@ ARRAYS = ("faces", "uv", "uv_faces", "neutral", "handles", "rest_markers", "pose
           "node_triangle", "node_barycentric", "edges", "rest_length", "basis_features", "weights",
           "map_index", "map_weights", "feature_low", "feature_high")
 #: CSR arrays (``NAME_data`` / ``_indices`` / ``_indptr`` / ``_shape``) and optional dense arrays
-SPARSE = ("alpha", "poly_linear", "map_poly_linear")
-OPTIONAL = ("poly_const", "map_poly_const", "marker_mean", "marker_modes", "marker_residual_var")
+SPARSE = ("alpha", "poly_linear", "map_poly_linear", "regression")
+OPTIONAL = ("poly_const", "map_poly_const", "marker_mean", "marker_modes", "marker_residual_var",
+            "regression_mean_u", "regression_mean_y")
 
 
 def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:

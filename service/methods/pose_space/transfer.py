@@ -149,9 +149,13 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     PoseSpaceModel whose ``synthesize`` takes the target's markers (F,M_t,3); its metrics
     hold the source's, and the correspondence's quality under ``"transfer"``.
 
-    Raises :class:`InvalidInput` for bad landmarks or a target whose markers share a handle.
+    Raises :class:`InvalidInput` for bad landmarks, a target whose markers share a handle, or
+    a model trained with ``marker_regression``.
     """
     s = model.data
+    if s.regression is not None:
+        raise InvalidInput("a model trained with marker_regression cannot be transferred (its "
+                           "regression is on the source's markers); train it without")
     Vs, Fs = s.neutral, s.faces
     Vt, Ft = np.asarray(target.vertices, np.float64), np.asarray(target.faces, np.int64)
     L = check_landmarks(landmarks, len(Vs), len(Vt))

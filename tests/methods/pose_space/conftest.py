@@ -32,3 +32,13 @@ def psd_lsq(ps_data):
                   progress=lambda f, s: stages.append((f, s)))
     model.stages = stages
     return model
+
+
+@pytest.fixture(scope="session")
+def wpsd_regression(ps_data):
+    """Exact WPSD whose corrections are learned after the marker regression (s = 2 spacings)."""
+    from service.methods.pose_space import WpsdParams, train
+
+    actor, clips = ps_data
+    return train(actor, clips, WpsdParams(fit="exact", basis_size=5, smoothing=0.0, selection_vertices=512,
+                                          marker_regression=2.0))

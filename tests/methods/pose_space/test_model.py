@@ -232,3 +232,44 @@ def test_confidence_fade_takes_a_pose_outside_the_training_toward_the_shell(wpsd
     np.testing.assert_allclose(a["vertices"][1], shell[1] + k[1] * (b["vertices"][1] - shell[1]), atol=1e-4)
     np.testing.assert_array_equal(a["displacement"], b["displacement"])
     assert np.abs(b["vertices"][1] - shell[1]).max() > 0.5          # there was a correction to fade
+
+
+# --- the marker regression before the RBFs (params.marker_regression, marker_regression.py)
+
+def test_regression_model_reproduces_its_example_poses(wpsd_regression, wpsd_exact, ps_data):
+    """Exact interpolation of the residual corrections plus the regression gives the example
+    meshes back (the regression is added the same way in training and synthesis); the
+    regression alone carries most of the correction on the training frames."""
+    _, clips = ps_data
+    d = wpsd_regression.data
+    assert d.regression is not None and d.regression.shape == (3 * d.n_vertices, 3 * d.n_markers)
+    for name in d.basis_names[:3]:
+        clip = next(c for c in clips if c.name == name.split(":")[0])
+        f = int(name.split(":")[1])
+        out = wpsd_regression.synthesize(clip.markers[f:f + 1], ("mesh", "mesh_detailed", "displacement"),
+                                         clamp=False)
+        np.testing.assert_allclose(out["vertices"][0], clip.vertices[f], atol=2e-4)
+        # the detailed mesh is the same mesh plus the fine map (≤ its largest value) along normals
+        gap = np.linalg.norm(out["vertices_detailed"][0] - out["vertices"][0], axis=-1).max()
+        assert gap <= np.abs(out["displacement"][0]).max() + 1e-3
+    m, m0 = wpsd_regression.metrics, wpsd_exact.metrics
+    assert m["correction_signal_rms_mm"]["face"] < 0.5 * m0["correction_signal_rms_mm"]["face"]
+
+
+def test_regression_model_is_invariant_to_head_pose(wpsd_regression, ps_data):
+    _, clips = ps_data
+    markers = clips[2].markers[[4, 12]]
+    R = Rotation.from_euler("xyz", [10, -25, 5], degrees=True).as_matrix()
+    t = np.array([30.0, -5.0, 12.0])
+    a = wpsd_regression.synthesize(markers, ("mesh", "mesh_detailed"))
+    b = wpsd_regression.synthesize(markers @ R.T + t, ("mesh", "mesh_detailed"))
+    np.testing.assert_allclose(b["vertices"], a["vertices"] @ R.T + t, atol=2e-3)
+    np.testing.assert_allclose(b["vertices_detailed"], a["vertices_detailed"] @ R.T + t, atol=2e-3)
+
+
+def test_regression_model_refuses_transfer(wpsd_regression, ps_data):
+    from service.methods.pose_space.transfer import transfer
+
+    actor, _ = ps_data
+    with pytest.raises(InvalidInput, match="marker_regression"):
+        transfer(wpsd_regression, actor, np.stack([np.arange(40)] * 2, axis=1))

@@ -10,7 +10,7 @@ from tests.methods.verified import load_verified_without_hashing
 OUT = ("mesh", "mesh_detailed", "displacement", "normal_map")
 
 
-@pytest.mark.parametrize("which", ["wpsd_exact", "psd_lsq"])
+@pytest.mark.parametrize("which", ["wpsd_exact", "psd_lsq", "wpsd_regression"])
 def test_save_load_round_trip_is_bit_exact(which, request, ps_data, tmp_path):
     model = request.getfixturevalue(which)
     _, clips = ps_data
