@@ -1,11 +1,11 @@
 """Where marker-driven detail loses accuracy (issue 17, session 17): the detail error of the
 nearest training frame and of WPSD split into the part carried by the mesh and the part
-carried by the fine maps, and the per-patch blend of the training frames scored beside them.
+carried by the fine maps.
 
 Usage: ``python benchmarks/blend_study.py ACTOR_DIR [--frames N] [--conditions clean,noisy]
 [--regression S]`` (``--regression``: instead of the decomposition, the nearest frame, WPSD and
 WPSD with ``marker_regression = S`` on the full metric, with mean / max vertex error).
-Output: ``/tmp/blend/<actor>.json`` and a markdown table on stdout.
+Output: ``benchmarks/out/blend_study/<actor>.json`` and a markdown table on stdout.
 
 Metric (``harness.DetailTexels``): the high-passed normal-direction detail height
 ``hp(n·(V − V_medium) + d)`` at the face texels, over the truth's smooth surface V_medium,
@@ -41,7 +41,7 @@ import numpy as np  # noqa: E402
 
 import harness as pr  # noqa: E402
 
-OUT = Path("/tmp/blend")
+OUT = pr.OUT / "blend_study"
 RANGES = pr.HELDOUT_RANGES
 CONDITIONS = pr.MARKER_CONDITIONS
 

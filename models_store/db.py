@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import sqlite3
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
@@ -108,11 +110,35 @@ def _configure_sqlite_connection(in_memory: bool):
             cursor.execute("PRAGMA foreign_keys = ON")
             cursor.execute(f"PRAGMA busy_timeout = {int(SQLITE_BUSY_TIMEOUT * 1000)}")
             if not in_memory:
-                cursor.execute("PRAGMA journal_mode = WAL")
+                _enable_wal(cursor)
         finally:
             cursor.close()
 
     return on_connect
+
+
+def _enable_wal(cursor: Any, timeout: float = SQLITE_BUSY_TIMEOUT) -> None:
+    """Put the database file in WAL mode (a no-op where it already is), retrying while it is
+    locked, for up to ``timeout`` seconds.
+
+    The switch needs the file's exclusive lock. When two connections that each hold a shared
+    lock both ask for it (two processes opening a new database at once), SQLite answers one
+    of them SQLITE_BUSY at once instead of calling its busy handler (that wait would be a
+    deadlock), so ``busy_timeout`` does not cover it: the loser retries once the winner's
+    switch is done, and then finds the file in WAL mode already.
+    """
+    deadline = time.monotonic() + timeout
+    delay = 0.005
+    while True:
+        try:
+            if cursor.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+                cursor.execute("PRAGMA journal_mode = WAL")
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() + delay > deadline:
+                raise
+            time.sleep(delay)
+            delay = min(2 * delay, 0.1)
 
 
 def make_session_factory(bind: Engine | str | URL) -> sessionmaker[Session]:

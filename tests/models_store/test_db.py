@@ -3,6 +3,7 @@ upgrades are idempotent and safe when processes start at once, timestamps are aw
 
 from __future__ import annotations
 
+import sqlite3
 import subprocess
 import sys
 from datetime import datetime, timedelta, timezone
@@ -180,3 +181,47 @@ def test_the_tenant_migration_gives_existing_rows_the_default_tenant(fresh_db_ur
         assert connection.execute(text("SELECT tenant FROM actors")).scalars().all() == ["default"]
     engine.dispose()
     assert schema_diff(fresh_db_url) == []
+
+
+class _LockedCursor:
+    """A DB-API cursor whose first ``locked`` executes fail as SQLite's immediate
+    SQLITE_BUSY does (the deadlock case the busy handler does not cover)."""
+
+    def __init__(self, locked: int, mode: str = "delete", error: str = "database is locked"):
+        self.locked, self.mode, self.error, self.calls = locked, mode, error, []
+
+    def execute(self, sql):
+        self.calls.append(sql)
+        if self.locked:
+            self.locked -= 1
+            raise sqlite3.OperationalError(self.error)
+        if sql.endswith("= WAL"):
+            self.mode = "wal"
+        self.row = (self.mode,)
+        return self
+
+    def fetchone(self):
+        return self.row
+
+
+def test_wal_switch_retries_while_locked_and_skips_a_file_already_in_wal():
+    from models_store.db import _enable_wal
+
+    cursor = _LockedCursor(locked=3)
+    _enable_wal(cursor, timeout=5.0)
+    assert cursor.mode == "wal" and cursor.calls[-2:] == ["PRAGMA journal_mode", "PRAGMA journal_mode = WAL"]
+    assert len(cursor.calls) == 3 + 2
+    done = _LockedCursor(locked=0, mode="wal")
+    _enable_wal(done)
+    assert done.calls == ["PRAGMA journal_mode"]
+
+
+def test_wal_switch_gives_up_after_its_timeout_and_raises_other_errors_at_once():
+    from models_store.db import _enable_wal
+
+    with pytest.raises(sqlite3.OperationalError, match="locked"):
+        _enable_wal(_LockedCursor(locked=10**6), timeout=0.05)
+    other = _LockedCursor(locked=1, error="disk I/O error")
+    with pytest.raises(sqlite3.OperationalError, match="disk I/O"):
+        _enable_wal(other, timeout=5.0)
+    assert len(other.calls) == 1
