@@ -88,6 +88,9 @@ def encode_reply(result: Mapping[str, np.ndarray], outputs: Sequence[str], frame
                  faces: bool, index: int = 0, half: bool = False) -> pb.MeshFrame:
     """The MeshFrame of frame ``index`` of a ``synthesize`` result.
 
+    The message form of a reply: the server sends :func:`reply_pieces` instead (same bytes,
+    one copy less per array), and this is the definition those bytes are tested against.
+
     Parameters
     ----------
     result : dict       ``synthesize``'s arrays: vertices (F,V,3), vertices_detailed (F,V,3),
