@@ -42,8 +42,9 @@ Per actor:
   correspondence is computed), driven by the target's own markers, scored against the
   target's ground truth beside the target's thin shell and a WPSD trained on the target.
 * **speed** (2 cores) — per-frame synthesis at the actor's level with P = 6 and P = 20, and
-  of WPSD with the marker regression (``--speed-models "WPSD,WPSD + regression"``: what the
-  regression's sparse product adds; its entries counted in the storage columns)
+  of WPSD without its default marker regression (``--speed-models "WPSD,WPSD (no
+  regression)"``: what the regression's sparse product adds; its entries counted in the
+  storage columns)
   (``mesh``: large scale + fine scale + tangent frames; and with the displacement map),
   against scipy's ``RBFInterpolator`` doing the same interpolation in the same run (for PSD
   one interpolator over all 3n values; for WPSD one per vertex, timed on a vertex sample and
@@ -439,7 +440,7 @@ def speed_markers(actor_dir: Path) -> np.ndarray:
 
 
 SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20},
-                "WPSD + regression": {"marker_regression": 2.0}}
+                "WPSD (no regression)": {"marker_regression": None}}
 
 
 def run_speed(actor_dir: Path, train_missing: bool = False, labels: list[str] | None = None) -> dict:
