@@ -14,8 +14,8 @@ synthesized by
 * *shape space (markers)* and, on clean rows, *shape space (rig)*: bermano2014 trained on the
   family's ``database`` performance, given the markers, or the low-resolution rig meshes
   carried to the neutral by the rig registration (the rig input has no markers to corrupt);
-* *WPSD* (bickel2008 §5.3 as printed: WPSD's defaults without the marker regression) and
-  *WPSD + marker regression (s=S, λ=R)* (WPSD's default: s = 3, λ = 0.1;
+* *WPSD* (bickel2008 §5.3 with its defaults: no marker regression) and *WPSD + marker
+  regression (s=S, λ=R)* (default the recommended s = 3, λ = 0.1;
   ``WpsdParams(marker_regression=S, marker_regression_ridge=R)``,
   ``--regression S[:R] ...``), trained on the family's ``train_*`` clips (fresh process,
   cached with the PDMs), with their own marker prior (``marker_prior = "posterior"``: they
@@ -75,7 +75,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers, cached builds)
-from service.methods.pose_space.params import WPSD_MARKER_REGRESSION, WPSD_MARKER_REGRESSION_RIDGE  # noqa: E402
+from service.methods.pose_space.params import MARKER_REGRESSION_RIDGE, RECOMMENDED_MARKER_REGRESSION  # noqa: E402
 
 OUT = pdm.GENERALIZATION
 MODELS = pdm.GENERALIZATION_MODELS
@@ -86,8 +86,8 @@ DEFAULT_FRAMES = 8
 SS_MARKERS, SS_RIG = "shape space (markers)", "shape space (rig)"
 WORST_OF = "PDM biquadratic"
 WPSD = "WPSD"
-#: (s, ridge) of the regression rows: WPSD's default
-DEFAULT_REGRESSION = ((WPSD_MARKER_REGRESSION, WPSD_MARKER_REGRESSION_RIDGE),)
+#: (s, ridge) of the regression rows: the recommended values (service.methods.pose_space.params)
+DEFAULT_REGRESSION = ((RECOMMENDED_MARKER_REGRESSION, MARKER_REGRESSION_RIDGE),)
 #: the rows whose per-frame max is held against the thin shell's (issue 17: never above it)
 AGAINST_SHELL = ("PDM", "WPSD")
 CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the result key)
@@ -113,9 +113,9 @@ class MethodFailed(Exception):
 
 def regression_arg(text: str) -> tuple[float, float]:
     """``--regression S[:R]``: the marker regression's s (median marker spacings) and ridge λ
-    (default WPSD's)."""
+    (default the field's)."""
     s, _, r = text.partition(":")
-    return float(s), float(r) if r else WPSD_MARKER_REGRESSION_RIDGE
+    return float(s), float(r) if r else MARKER_REGRESSION_RIDGE
 
 
 def regression_name(s: float, ridge: float) -> str:
@@ -422,8 +422,8 @@ def main() -> None:
     parser.add_argument("--regression", type=regression_arg, nargs="+", default=list(DEFAULT_REGRESSION),
                         metavar="S[:R]",
                         help="a 'WPSD + marker regression' row per value: marker_regression = S (median marker "
-                             "spacings), marker_regression_ridge = R (default WPSD's); default WPSD's: "
-                             f"{WPSD_MARKER_REGRESSION:g}:{WPSD_MARKER_REGRESSION_RIDGE:g}")
+                             "spacings), marker_regression_ridge = R (default the field's); default the recommended "
+                             f"{RECOMMENDED_MARKER_REGRESSION:g}:{MARKER_REGRESSION_RIDGE:g}")
     parser.add_argument("--out", type=Path, default=OUT, metavar="DIR",
                         help=f"where the report and figures go (default {OUT}; the models stay cached there)")
     args = parser.parse_args()

@@ -42,8 +42,8 @@ Per actor:
   correspondence is computed), driven by the target's own markers, scored against the
   target's ground truth beside the target's thin shell and a WPSD trained on the target.
 * **speed** (2 cores) — per-frame synthesis at the actor's level with P = 6 and P = 20, and
-  of WPSD without its default marker regression (``--speed-models "WPSD,WPSD (no
-  regression)"``: what the regression's sparse product adds; its entries counted in the
+  of WPSD with the recommended marker regression (``--speed-models "WPSD,WPSD +
+  regression"``: what the regression's sparse product adds; its entries counted in the
   storage columns)
   (``mesh``: large scale + fine scale + tangent frames; and with the displacement map),
   against scipy's ``RBFInterpolator`` doing the same interpolation in the same run (for PSD
@@ -85,6 +85,7 @@ BLAS_THREADS = apply_blas_threads(None, None)
 import numpy as np  # noqa: E402
 
 import harness as pr  # noqa: E402  (the reports' shared data, metric and baselines)
+from service.methods.pose_space.params import RECOMMENDED_MARKER_REGRESSION  # noqa: E402
 
 FIG4_FRAMES = 100
 FIG4_MAX_P = 20
@@ -440,7 +441,7 @@ def speed_markers(actor_dir: Path) -> np.ndarray:
 
 
 SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20},
-                "WPSD (no regression)": {"marker_regression": None}}
+                "WPSD + regression": {"marker_regression": RECOMMENDED_MARKER_REGRESSION}}
 
 
 def run_speed(actor_dir: Path, train_missing: bool = False, labels: list[str] | None = None) -> dict:

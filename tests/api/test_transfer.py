@@ -25,11 +25,7 @@ TARGET_MARKERS = (0, 6, 13, 42, 48, 55, 84, 90, 97, 140, 147, 153, 160, 167)
 # marker_prior "none": the markers are interpolated exactly, so the transferred model's large
 # scale must pass through the target's markers (the default posterior treats them as noisy,
 # σ = 0.3 mm, and the one-clip sheet's prior is narrow: 0.61 mm off at a marker, measured)
-#: without WPSD's default marker regression: the checks below hold the transferred model's
-#: surface at the target's markers to the shell's interpolation (0.5 mm); the regression adds
-#: its offsets there too (measured on this sheet: 0.504 mm)
-WPSD = {"basis_size": 4, "selection_vertices": 128, "map_resolution": None, "marker_prior": "none",
-        "marker_regression": None}
+WPSD = {"basis_size": 4, "selection_vertices": 128, "map_resolution": None, "marker_prior": "none"}
 
 
 @pytest.fixture

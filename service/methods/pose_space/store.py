@@ -87,9 +87,8 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     if missing:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
     sparse = {name: sparse_matrix(a, name) for name in SPARSE}
-    # a model stored before marker_noise_mm existed interpolated its markers exactly; one
-    # stored before marker_regression existed has none (wpsd's default is one now)
-    params = parse_params({"marker_noise_mm": 0.0, "marker_regression": None, **manifest["params"]})
+    # a model stored before marker_noise_mm existed interpolated its markers exactly
+    params = parse_params({"marker_noise_mm": 0.0, **manifest["params"]})
     if params.method != kind:
         raise ModelCorrupt(f"{path}: params are for {params.method}, the manifest says {kind}")
     d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL}, map_resolution=int(manifest["map_resolution"]),

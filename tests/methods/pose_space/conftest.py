@@ -1,6 +1,5 @@
 """Fixtures of the pose-space tests: small PSD/WPSD models on the shared level-0 sample actor
-(``pdm_data`` of tests/conftest.py: seed 2, 128² maps), three clips, small bases; ``wpsd_exact`` is
-bickel2008 as printed (no marker regression, WPSD's default since session 18)."""
+(``pdm_data`` of tests/conftest.py: seed 2, 128² maps), three clips, small bases."""
 
 from __future__ import annotations
 
@@ -20,8 +19,7 @@ def wpsd_exact(ps_data):
     from service.methods.pose_space import WpsdParams, train
 
     actor, clips = ps_data
-    return train(actor, clips, WpsdParams(fit="exact", basis_size=5, smoothing=0.0, selection_vertices=512,
-                                          marker_regression=None))
+    return train(actor, clips, WpsdParams(fit="exact", basis_size=5, smoothing=0.0, selection_vertices=512))
 
 
 @pytest.fixture(scope="session")

@@ -120,7 +120,7 @@ def test_noise_copies_without_noise_fit_the_same_weights(ps_data):
     """K copies of the training rows with σ = 0 add K identical blocks to the normal equations;
     with the relative ridge (λ · mean diagonal) the weights are unchanged."""
     actor, clips = ps_data
-    kw = dict(basis_size=4, smoothing=1e-4, selection_vertices=256, validation_noise_mm=0.0, marker_regression=None)
+    kw = dict(basis_size=4, smoothing=1e-4, selection_vertices=256, validation_noise_mm=0.0)
     a = train(actor, clips[:2], WpsdParams(**kw))
     b = train(actor, clips[:2], WpsdParams(noise_copies=2, **kw))
     assert a.data.basis_names == b.data.basis_names
@@ -133,7 +133,7 @@ def test_noise_copies_damp_the_response_to_marker_noise(ps_data):
     """Fitted on noisy copies of its training frames, the model's corrections move less when
     0.3 mm noise is added to a training frame's markers (errors in variables)."""
     actor, clips = ps_data
-    kw = dict(basis_size=4, smoothing=1e-4, selection_vertices=256, marker_regression=None)
+    kw = dict(basis_size=4, smoothing=1e-4, selection_vertices=256)
     a = train(actor, clips[:2], WpsdParams(**kw))
     b = train(actor, clips[:2], WpsdParams(noise_copies=2, validation_noise_mm=0.3, **kw))
     m = clips[1].markers[[4, 10, 16]]

@@ -51,19 +51,3 @@ def test_a_directory_the_blob_store_verified_is_not_hashed_again(wpsd_exact, ps_
     markers = ps_data[1][1].markers[[2, 9]]
     assert np.array_equal(loaded.synthesize(markers, ("mesh",))["vertices"],
                           wpsd_exact.synthesize(markers, ("mesh",))["vertices"])
-
-
-def test_a_model_stored_before_the_marker_regression_loads_without_one(wpsd_exact, tmp_path):
-    """WPSD's default is a marker regression now; a manifest written before the parameter
-    existed (no ``marker_regression`` in its params) is a model without one."""
-    import json
-
-    wpsd_exact.save(tmp_path / "m")
-    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    for k in ("marker_regression", "marker_regression_ridge", "regression_input"):
-        man["params"].pop(k, None)
-        man.pop(k, None)
-    (tmp_path / "m" / "manifest.json").write_text(json.dumps(man))
-    loaded = PoseSpaceModel.load(tmp_path / "m")
-    assert loaded.params.marker_regression is None and loaded.data.regression is None
-    assert loaded.data.regression_input == "handles"
