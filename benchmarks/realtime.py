@@ -15,8 +15,8 @@ Paths, each a median over ``--calls`` calls (frames cycle through the first 50 o
    encoding and the client's ``np.load`` of every array; variants: float32 with the
    triangles (the contract's default), and ``half=true&topology=false`` (half-precision
    maps, triangles left out: the client fetched them once), and the same through the SDK
-   (``facesynth_client.Client`` on the same httpx client, ``copy=False``: the answer decoded
-   as views of its body; this tree's SDK with ``PYTHONPATH=clients/python/src``); with
+   (``facesynth_client.Client`` with its default transport, ``copy=False``: the answer
+   decoded as views of its body; this tree's SDK with ``PYTHONPATH=clients/python/src``); with
    uvicorn's pure-Python h11
    parser and, when installed, its httptools parser on uvloop (``FACESYNTH_HTTP``), each
    in its own server of the same run;
@@ -162,8 +162,8 @@ def stop_server(server: subprocess.Popen) -> None:
         server.kill()
 
 
-#: the variant that calls through the SDK (``facesynth_client.Client`` over the same httpx
-#: client): triangles fetched once (``topology=false`` after the first answer), half maps,
+#: the variant that calls through the SDK (``facesynth_client.Client`` with its default
+#: transport, one keep-alive connection per server): triangles fetched once (``topology=false`` after the first answer), half maps,
 #: the answer decoded as views of the body (``copy=False``)
 SDK_VARIANT = ("SDK: half maps, topology once, copy=False", {"sdk": "true"})
 
@@ -187,7 +187,7 @@ def http_call(client, model_id: str, markers: np.ndarray, outputs, params: dict,
     if params.get("sdk"):
         from facesynth_client import Client
 
-        sdk = Client(http_client=client)
+        sdk = Client(str(client.base_url), timeout=300)   # its own transport (the default)
 
         def sdk_call(k: int) -> None:
             sdk.synthesis.synthesize(model_id, markers[k % len(markers)][None],
