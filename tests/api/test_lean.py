@@ -5,6 +5,7 @@ exactly when the lean path served the request."""
 
 from __future__ import annotations
 
+import errno
 import inspect
 
 import numpy as np
@@ -19,8 +20,10 @@ from service.api.errors import Unauthorized
 from service.api.lean import FLAG_DEFAULTS, FLAGS, plain_query, synthesize_route
 from service.api.query import declared_query
 from service.api.routes import synthesis
+from service.app import operations
 from service.app.services import Services
 from service.config import Settings
+from service.errors import Corrupt, Unavailable
 from starlette.datastructures import QueryParams
 from starlette.requests import Request
 from tests.api.conftest import NPZ, Recorder, make_client, npz, upload_sample_actor
@@ -106,6 +109,9 @@ def _cases(markers: np.ndarray) -> list[tuple[str, dict, str, int]]:
         ("broken json", dict(content=b"{", headers=json_type), "lean", 400),
         ("unsupported media type", dict(content=b"x", headers={"Content-Type": "text/csv"}), "lean", 415),
         ("no content type", dict(content=body), "lean", 415),
+        ("Accept given twice", dict(content=one, headers=[
+            ("Content-Type", "application/x-npz"), ("Accept", "model/obj"),
+            ("Accept", "application/x-npz")]), "lean", 200),
         ("empty body", dict(content=b"", headers=NPZ), "lean", 400),
         ("map resolution over the limit", dict(json={"markers": markers[:1].tolist(),
                                                      "map_resolution": 512}), "lean", 413),
@@ -135,7 +141,8 @@ def _send(client, model_id: str, queued: str, request: dict):
     request = dict(request)
     model = request.pop("model", model_id)
     model = queued if model == "queued" else model
-    headers = {**REQUEST_ID, **request.pop("headers", {})}
+    headers = request.pop("headers", {})
+    headers = [*REQUEST_ID.items(), *(headers if isinstance(headers, list) else headers.items())]
     if callable(request.get("content")):      # a chunked body, made anew for each send
         request["content"] = request["content"]()
     return client.post(f"/v1/models/{model}/synthesize", headers=headers, **request)
@@ -181,6 +188,23 @@ def test_a_busy_synthesis_is_the_same_503_with_retry_after(pair):
     expected, got = answers
     assert got.status_code == expected.status_code == 503
     assert got.headers["retry-after"] == expected.headers["retry-after"]
+    assert got.headers.multi_items() == expected.headers.multi_items()
+    assert got.content == expected.content
+
+
+@pytest.mark.parametrize("error, status", [
+    (RuntimeError("a bug"), 500), (OSError(errno.ENOSPC, "No space left on device"), 507),
+    (OSError(errno.EROFS, "Read-only file system"), 503), (Corrupt("checksum"), 500),
+    (Unavailable("busy", retry_after=3), 503)])
+def test_errors_of_the_synthesis_map_to_the_same_answers(pair, monkeypatch, error, status):
+    lean, fastapi, model_id, queued, markers = pair
+
+    def fail(*args, **kwargs):
+        raise error
+    monkeypatch.setattr(operations, "synthesize", fail)
+    request = dict(content=npz(markers=markers), headers=NPZ)
+    expected, got = (_send(c, model_id, queued, request) for c in (fastapi, lean))
+    assert got.status_code == expected.status_code == status
     assert got.headers.multi_items() == expected.headers.multi_items()
     assert got.content == expected.content
 
