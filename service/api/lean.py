@@ -5,10 +5,22 @@ FastAPI answers this route through its router (the app's included routers walked
 matched for every request), its dependency solver (the app-wide query check, the bearer
 check, the services, four query parameters and a header validated by pydantic) and its
 exception middleware. For a one-frame mesh request that is most of what the server spends
-besides the synthesis itself: measured against a stubbed synthesis (uvicorn + httptools on
-uvloop, 538 kB answer, load 4 on 2 cores), the app took 0.93 ms CPU per request where a bare
-ASGI app serving the same body took 0.37 ms (0.49 ms with the thread-pool hand-off that the
-synthesis needs); see ``benchmarks/http_overhead.py``.
+besides the synthesis and the encoding. Measured with the synthesis stubbed to a fixed
+538 kB answer (``benchmarks/http_overhead.py``: uvicorn + httptools on uvloop, 2 cores, load
+5.3, medians of 200 interleaved calls per pair), server CPU per request:
+
+================================  =====================  ============================
+server                            CPU ms (3 clients)     wall ms, SDK's client
+================================  =====================  ============================
+the app, FastAPI route            0.92 / 0.95 / 1.02     1.60
+the app, this lean path           0.66 / 0.75 / 0.81     1.24
+bare ASGI + thread hand-off       0.47 / 0.53 / 0.62     1.10
+================================  =====================  ============================
+
+In-process (the ASGI app called directly, no sockets) the route costs 0.29 ms CPU through
+FastAPI and 0.13 ms here. With the real model (``benchmarks/realtime.py --against main``,
+load 5, 60 frames), a mesh frame's server CPU went down by 0.4-1.4 ms on every variant and
+parser.
 
 :class:`LeanSynthesize` is the innermost middleware of the app. The request context (id,
 access log, metrics), the URL guard, the body-size limit and the large-upload limiter are

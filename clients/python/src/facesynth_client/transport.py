@@ -5,10 +5,17 @@ httpx's own transport (httpcore over h11) writes a request's headers and body in
 socket writes and reads a response in 64 KiB pieces, each passed through h11's event
 parser. For a per-frame synthesis (a few kB up, a 0.5-9 MB NPZ down) on a loaded machine
 that is where the client's time goes: the server wakes once for the headers and again
-for the body, and the answer is re-assembled from ~9-140 pieces. Measured against one
-server answering a 538 kB body (uvicorn + httptools, load 9.5 on 2 cores, medians of 400
-interleaved calls): httpx 3.51 ms wall / 0.89 ms client CPU per call, ``http.client``
-0.57 ms / 0.39 ms (``benchmarks/http_overhead.py``).
+for the body, and the answer is re-assembled from ~9-140 pieces. Measured against the app
+with its synthesis stubbed (``benchmarks/http_overhead.py``: uvicorn + httptools, 2 cores,
+load 5-6, medians of interleaved calls), per call, wall / client CPU in ms:
+
+=====================  ====================  =====================
+client                 538 kB (mesh) answer  8.9 MB (maps) answer
+=====================  ====================  =====================
+httpx's transport      1.80 / 1.03           25.6 / 10.1
+this transport         1.24 / 0.58           12.7 / 2.9
+``http.client`` alone  1.32 / 0.45           14.2 / 4.5
+=====================  ====================  =====================
 
 :class:`OnePieceTransport` sends plain-``http`` requests whose body is in memory (what
 every JSON and NPZ call of the SDK sends) through ``http.client``: headers and body in one
@@ -20,7 +27,8 @@ request bodies that stream (multipart file uploads from disk) — goes to httpx'
 transport. Connections are kept per host and port and reused while the server keeps them
 open; an idle one that became readable (the server closed it) is dropped before reuse, as
 httpcore does, and a request whose reused connection turns out closed before any answer
-(the server's keep-alive timeout raced it) is sent once more on a new connection. Socket errors are raised as httpx's exception classes (``ConnectError``,
+(the server's keep-alive timeout raced it) is sent once more on a new connection. Socket
+errors are raised as httpx's exception classes (``ConnectError``,
 ``ReadTimeout``, ...), so the client's retry rules are unchanged.
 """
 
@@ -36,8 +44,9 @@ import httpx
 
 __all__ = ["OnePieceTransport", "ONE_PIECE_MAX", "CHUNK"]
 
-#: answers with a Content-Length up to this many bytes are read in one piece
-ONE_PIECE_MAX = 256 << 20
+#: answers with a Content-Length up to this many bytes are read in one piece (a streamed
+#: download of that size is then held in memory once; larger ones stream in pieces)
+ONE_PIECE_MAX = 64 << 20
 #: the piece size of other answers (streams, larger downloads)
 CHUNK = 64 << 10
 
@@ -54,6 +63,10 @@ def _is_closed(connection: http.client.HTTPConnection) -> bool:
     if sock is None:
         return True
     try:
+        if hasattr(select, "poll"):      # any descriptor number (select.select: < 1024)
+            poller = select.poll()
+            poller.register(sock, select.POLLIN)
+            return bool(poller.poll(0))
         readable, _, _ = select.select([sock], [], [], 0)
     except (OSError, ValueError):
         return True
