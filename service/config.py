@@ -162,6 +162,12 @@ class Settings(BaseSettings):
         description="uvicorn's HTTP parser: h11 (pure Python) or httptools (C, from "
                     "uvicorn[standard]); auto: httptools when installed. Both hold the "
                     "header/body timeouts and the per-client bound above.")
+    lean_synthesis: bool = Field(
+        default=True,
+        description="POST /v1/models/{id}/synthesize with a plain query string is served on "
+                    "a lean ASGI path (service/api/lean.py: the same answers, without "
+                    "FastAPI's routing and dependency solving); false: through FastAPI like "
+                    "every other route.")
     loop: Literal["auto", "asyncio", "uvloop"] = Field(
         default="auto",
         description="The HTTP server's event loop: asyncio, or uvloop (from "

@@ -18,6 +18,7 @@ from fastapi.openapi.utils import get_openapi
 from service.api import docs, errors
 from service.api.auth import check_bearer
 from service.api.edge import UrlGuardMiddleware
+from service.api.lean import LeanSynthesize
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
@@ -108,6 +109,8 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                                         settings.synthesis_queue_seconds,
                                         settings.synthesis_queue_depth)
     errors.install(app)
+    if settings.lean_synthesis:   # innermost: inside every middleware below
+        app.add_middleware(LeanSynthesize)
     app.add_middleware(LargeUploadLimiter, limit=settings.max_concurrent_uploads,
                        threshold=settings.spool_body_bytes,
                        wait_seconds=settings.upload_queue_seconds)   # inside the size limit
