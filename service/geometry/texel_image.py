@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, uint64
 
+from service.geometry.half_kernel import binary16
+
 #: the inverse index of a texel that is not in the band
 NOT_COVERED = np.uint32(0xFFFFFFFF)
 
@@ -32,12 +34,21 @@ def inverse_index(index: np.ndarray, size: int) -> np.ndarray:
     return inverse
 
 
-@njit(nogil=True, cache=True)
-def band_image(lo, hi, inverse, values, out):
+@njit(nogil=True, cache=True, error_model="numpy")
+def band_image(lo, hi, inverse, values, out, half=None):
     """Texels [lo, hi) of a flat map ``out`` (H·W,): ``values[inverse[p]]`` (values (P,)) where
     ``inverse[p]`` (:func:`inverse_index`) is a band position, 0 where it is
-    :data:`NOT_COVERED`."""
+    :data:`NOT_COVERED`. With ``half`` (H·W,) uint16 (float32 C-contiguous ``values``), the
+    same texels are also written there as float16 bits (:func:`service.geometry.half_kernel.binary16`:
+    NumPy's ``astype(np.float16)`` of the float32 map bit for bit); ``out`` None writes only
+    those (a half-precision map without its float32 form)."""
     none = uint64(NOT_COVERED)
+    if half is not None:
+        bits = values.view(np.uint32)
     for p in range(uint64(lo), uint64(hi)):
         q = uint64(inverse[p])
-        out[p] = values[q] if q != none else 0
+        v = values[q] if q != none else np.float32(0)
+        if out is not None:
+            out[p] = v
+        if half is not None:
+            half[p] = binary16(bits[q], v) if q != none else np.uint16(0)

@@ -40,6 +40,7 @@ MeshFrames' serialized bytes, written straight from the result arrays on the syn
 from __future__ import annotations
 
 import contextvars
+import inspect
 import ipaddress
 import logging
 import queue
@@ -96,10 +97,22 @@ def default_depth(synthesis_threads: int) -> int:
 
 
 class StreamModel(Protocol):
-    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature."""
+    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature. A model
+    whose ``synthesize`` also takes ``half`` (:meth:`PdmModel.synthesize`) is passed
+    ``half=True`` on a half-precision stream and writes its maps as float16 itself
+    (:func:`takes_half`); any other's float32 maps are converted when the reply is written."""
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
                    clamp: bool = ...) -> dict[str, np.ndarray]: ...
+
+
+def takes_half(model: StreamModel) -> bool:
+    """Whether ``model.synthesize`` has a ``half`` parameter (maps written as float16 by the
+    model, issue 23: a level-1 PDM frame's maps are not written in float32 and converted)."""
+    try:
+        return "half" in inspect.signature(model.synthesize).parameters
+    except (AttributeError, TypeError, ValueError):       # no signature to read: the float32 call
+        return False
 
 
 #: the injected model store: model id → model; raises for unknown or not-ready models
@@ -124,13 +137,16 @@ class _Stream:
     outputs: tuple[str, ...]
     clamp: bool
     half: bool = False
+    #: the model writes the half maps itself (:func:`takes_half`)
+    half_in_model: bool = False
 
     def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> bytes:
         """Synthesize and encode one frame: the serialized MeshFrame (``start``: when it was
         read; latency_ms is the time until the reply's last copy into the message)."""
         try:
             markers = codec.decode_markers(msg)
-            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp)
+            options = {"half": True} if self.half and self.half_in_model else {}
+            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp, **options)
         except InvalidInput as e:
             raise _invalid(_name_frame(str(e), where)) from None
         pieces = codec.reply_pieces(result, self.outputs, msg.frame, faces=first, half=self.half)
@@ -300,8 +316,9 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
         except InvalidInput as e:
             raise _invalid(str(e)) from None
         clamp = first.clamp if first.HasField("clamp") else True
-        return _Stream(first.model_id, self._load(first.model_id), outputs, clamp,
-                       first.HasField("half") and first.half)
+        model = self._load(first.model_id)
+        return _Stream(first.model_id, model, outputs, clamp, first.HasField("half") and first.half,
+                       takes_half(model))
 
     def _load(self, model_id: str) -> StreamModel:
         try:
