@@ -116,7 +116,7 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, code, scales, width, hf
     float32 normals bit for bit), rounded in the block's last loop."""
     rows = np.empty((9, BLOCK), np.float32)        # t0 t1 t2 n0 n1 n2 g0 g1 g2 of the block
     res = np.empty((3, BLOCK), np.float32)
-    bits = res.view(np.uint32)
+    block = _block_of(out, res)                    # the block as out holds it
     su, sv = scales[0], scales[1]
     one, w = uint64(1), uint64(width)
     for s in range(uint64(lo), uint64(hi), uint64(BLOCK)):
@@ -149,23 +149,42 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, code, scales, width, hf
             res[0, j], res[1, j], res[2, j] = _unit_normal(rows[0, j], rows[1, j], rows[2, j], rows[3, j],
                                                            rows[4, j], rows[5, j], rows[6, j], rows[7, j],
                                                            rows[8, j], eps)
+        _round(res, block, n)                      # (b') float16 bits, vectorized too
         for j in range(n):                         # (c) into the map
             p = texel[s + j]
-            out[p, 0] = _store(out, res, bits, 0, j)
-            out[p, 1] = _store(out, res, bits, 1, j)
-            out[p, 2] = _store(out, res, bits, 2, j)
+            out[p, 0] = block[0, j]
+            out[p, 1] = block[1, j]
+            out[p, 2] = block[2, j]
 
 
-def _store(out, res, bits, c, j):
-    """``res[c, j]`` as ``out`` holds it: the float32 value, or its float16 bits for a uint16
-    ``out`` (``bits`` the uint32 view of res). Resolved by out's type at compile time."""
+def _block_of(out, res):
+    """The (3, BLOCK) array a block's normals are written from: ``res`` itself for a float32
+    ``out``, a uint16 one for float16 bits. Resolved by out's type at compile time."""
 
 
-@overload(_store)
-def _store_by_type(out, res, bits, c, j):
+def _round(res, block, n):
+    """Columns [0, n) of the float32 block ``res`` into ``block`` as float16 bits
+    (:func:`~service.geometry.half_kernel.binary16`); nothing where ``block`` is res."""
+
+
+@overload(_block_of)
+def _block_of_type(out, res):
     if out.dtype == types.uint16:
-        return lambda out, res, bits, c, j: binary16(bits[c, j], res[c, j])
-    return lambda out, res, bits, c, j: res[c, j]
+        return lambda out, res: np.empty((3, BLOCK), np.uint16)
+    return lambda out, res: res
+
+
+@overload(_round)
+def _round_type(res, block, n):
+    if block.dtype != types.uint16:
+        return lambda res, block, n: None
+
+    def rounded(res, block, n):
+        bits = res.view(np.uint32)
+        for c in range(3):
+            for j in range(n):
+                block[c, j] = binary16(bits[c, j], res[c, j])
+    return rounded
 
 
 #: the normal of a texel without a gradient, (0, 0, 1), as float32 and as float16 bits

@@ -786,12 +786,12 @@ class PdmModel:
 
     def _fine_images(self, disp: np.ndarray, images: np.ndarray | None, s: int, float32: bool) -> np.ndarray | None:
         """The fine displacement maps of a chunk of frames from the band's values disp (f,Pf),
-        texel by texel (:func:`~service.geometry.texel_image.band_image`): into ``images``
+        texel by texel (:func:`~service.geometry.texel_image.band_image`, ``band_image_half``): into ``images``
         (F,H,H) from frame ``s`` on, the output (float32, or float16 written as such; None:
         not asked), and with ``float32`` their float32 form returned (f,H,H) for the normal
         map: the float32 output itself, or else a work array of the calling thread
         (:func:`~service.geometry.ranges.scratch`, written in the same pass)."""
-        from service.geometry.texel_image import band_image     # Numba: loaded by build
+        from service.geometry.texel_image import band_image, band_image_half     # Numba: loaded by build
 
         ev = self.evaluator
         Hf = ev.fine.resolution
@@ -801,7 +801,10 @@ class PdmModel:
         for k in range(len(disp)):
             flat32 = None if work is None else work[k].reshape(-1)
             half = images[s + k].reshape(-1).view(np.uint16) if images is not None and not direct else None
-            ranges.run(band_image, Hf * Hf, ev.fine_inverse, np.ascontiguousarray(disp[k]), flat32, half)
+            if half is None:
+                ranges.run(band_image, Hf * Hf, ev.fine_inverse, disp[k], flat32)
+            else:
+                ranges.run(band_image_half, Hf * Hf, ev.fine_inverse, disp[k], flat32, half)
         return work if float32 else None
 
     def _medium_mesh(self, u_H, d1, d2, rho, sectors, pose, world, aligned):
