@@ -108,11 +108,18 @@ class StreamModel(Protocol):
 
 def takes_half(model: StreamModel) -> bool:
     """Whether ``model.synthesize`` has a ``half`` parameter (maps written as float16 by the
-    model, issue 23: a level-1 PDM frame's maps are not written in float32 and converted)."""
+    model, issue 23: a level-1 PDM frame's maps are not written in float32 and converted); for
+    a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
+    holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
     try:
-        return "half" in inspect.signature(model.synthesize).parameters
+        parameters = inspect.signature(model.synthesize).parameters
     except (AttributeError, TypeError, ValueError):       # no signature to read: the float32 call
         return False
+    if "half" in parameters:
+        return True
+    passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    inner = getattr(model, "model", None)
+    return passes_on and inner is not None and inner is not model and takes_half(inner)
 
 
 #: the injected model store: model id → model; raises for unknown or not-ready models

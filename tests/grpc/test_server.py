@@ -393,7 +393,15 @@ def test_half_maps_written_by_the_model_are_the_converted_float32_maps_bit_for_b
         def synthesize(self, markers, outputs=("mesh",), clamp=True):
             return pdm_model.synthesize(markers, outputs, clamp)
 
+    class PassesOn:              # a wrapper passing its keyword options on to .model
+        def __init__(self, model):
+            self.model = model
+
+        def synthesize(self, markers, outputs=("mesh",), clamp=True, **options):
+            return self.model.synthesize(markers, outputs, clamp, **options)
+
     assert takes_half(pdm_model) and not takes_half(Float32Maps()) and not takes_half(object())
+    assert takes_half(PassesOn(pdm_model)) and not takes_half(PassesOn(Float32Maps()))
     got = {}
     for name, model in (("model", pdm_model), ("after", Float32Maps())):
         with running(lambda model_id, model=model: model) as channel:
