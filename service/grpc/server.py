@@ -40,6 +40,7 @@ MeshFrames' serialized bytes, written straight from the result arrays on the syn
 from __future__ import annotations
 
 import contextvars
+import dataclasses
 import inspect
 import ipaddress
 import logging
@@ -97,29 +98,31 @@ def default_depth(synthesis_threads: int) -> int:
 
 
 class StreamModel(Protocol):
-    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature. A model
-    whose ``synthesize`` also takes ``half`` (:meth:`PdmModel.synthesize`) is passed
-    ``half=True`` on a half-precision stream and writes its maps as float16 itself
-    (:func:`takes_half`); any other's float32 maps are converted when the reply is written."""
+    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature. Options it
+    may also take (:func:`takes`; :meth:`PdmModel.synthesize` takes both): ``half`` — passed
+    ``half=True`` on a half-precision stream, the model writes its maps as float16 itself
+    (any other model's float32 maps are converted when the reply is written); ``confidence``
+    — passed ``confidence=False``, the model does not compute the confidence a MeshFrame
+    does not carry."""
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
                    clamp: bool = ...) -> dict[str, np.ndarray]: ...
 
 
-def takes_half(model: StreamModel) -> bool:
-    """Whether ``model.synthesize`` has a ``half`` parameter (maps written as float16 by the
-    model, issue 23: a level-1 PDM frame's maps are not written in float32 and converted); for
+def takes(model: StreamModel, option: str) -> bool:
+    """Whether ``model.synthesize`` has the keyword parameter ``option`` (issue 23: ``half``,
+    maps written as float16 by the model, not in float32 and converted; ``confidence``); for
     a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
     holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
     try:
         parameters = inspect.signature(model.synthesize).parameters
-    except (AttributeError, TypeError, ValueError):       # no signature to read: the float32 call
+    except (AttributeError, TypeError, ValueError):       # no signature to read: the plain call
         return False
-    if "half" in parameters:
+    if option in parameters:
         return True
     passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
     inner = getattr(model, "model", None)
-    return passes_on and inner is not None and inner is not model and takes_half(inner)
+    return passes_on and inner is not None and inner is not model and takes(inner, option)
 
 
 #: the injected model store: model id → model; raises for unknown or not-ready models
@@ -144,16 +147,15 @@ class _Stream:
     outputs: tuple[str, ...]
     clamp: bool
     half: bool = False
-    #: the model writes the half maps itself (:func:`takes_half`)
-    half_in_model: bool = False
+    #: the keyword options ``synthesize`` is called with (:func:`stream_options`)
+    options: dict = dataclasses.field(default_factory=dict)
 
     def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> bytes:
         """Synthesize and encode one frame: the serialized MeshFrame (``start``: when it was
         read; latency_ms is the time until the reply's last copy into the message)."""
         try:
             markers = codec.decode_markers(msg)
-            options = {"half": True} if self.half and self.half_in_model else {}
-            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp, **options)
+            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp, **self.options)
         except InvalidInput as e:
             raise _invalid(_name_frame(str(e), where)) from None
         pieces = codec.reply_pieces(result, self.outputs, msg.frame, faces=first, half=self.half)
@@ -171,6 +173,16 @@ class _Stream:
             raise _invalid(f"{where}: clamp {msg.clamp} differs from the first message's {self.clamp}")
         if msg.HasField("half") and msg.half != self.half:
             raise _invalid(f"{where}: half {msg.half} differs from the first message's {self.half}")
+
+
+def stream_options(model: StreamModel, half: bool) -> dict:
+    """The keyword options a stream calls ``model.synthesize`` with, those it takes
+    (:func:`takes`): ``half=True`` on a half-precision stream, ``confidence=False`` (a
+    MeshFrame has no confidence)."""
+    options = {"half": True} if half and takes(model, "half") else {}
+    if takes(model, "confidence"):
+        options["confidence"] = False
+    return options
 
 
 def _where(msg: pb.MarkerFrame, index: int) -> str:
@@ -324,8 +336,8 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
             raise _invalid(str(e)) from None
         clamp = first.clamp if first.HasField("clamp") else True
         model = self._load(first.model_id)
-        return _Stream(first.model_id, model, outputs, clamp, first.HasField("half") and first.half,
-                       takes_half(model))
+        half = first.HasField("half") and first.half
+        return _Stream(first.model_id, model, outputs, clamp, half, stream_options(model, half))
 
     def _load(self, model_id: str) -> StreamModel:
         try:

@@ -385,9 +385,10 @@ def test_half_maps_are_float16_within_the_bound_and_meshes_stay_exact(channel, p
 def test_half_maps_written_by_the_model_are_the_converted_float32_maps_bit_for_bit(load_model, pdm_model,
                                                                                    heldout_markers):
     """Issue 23: a model whose ``synthesize`` takes ``half`` writes the float16 maps itself
-    (``takes_half``); a half stream's replies are then those of a model without the parameter
-    (its float32 maps converted as the reply is written), bit for bit."""
-    from service.grpc.server import takes_half
+    (``takes``), and skips the confidence with ``confidence=False``; a half stream's replies
+    are then those of a model without those parameters (its float32 maps converted as the
+    reply is written), bit for bit."""
+    from service.grpc.server import stream_options, takes
 
     class Float32Maps:           # synthesize without ``half``: the maps are converted after
         def synthesize(self, markers, outputs=("mesh",), clamp=True):
@@ -400,8 +401,11 @@ def test_half_maps_written_by_the_model_are_the_converted_float32_maps_bit_for_b
         def synthesize(self, markers, outputs=("mesh",), clamp=True, **options):
             return self.model.synthesize(markers, outputs, clamp, **options)
 
-    assert takes_half(pdm_model) and not takes_half(Float32Maps()) and not takes_half(object())
-    assert takes_half(PassesOn(pdm_model)) and not takes_half(PassesOn(Float32Maps()))
+    assert takes(pdm_model, "half") and not takes(Float32Maps(), "half") and not takes(object(), "half")
+    assert takes(PassesOn(pdm_model), "half") and not takes(PassesOn(Float32Maps()), "half")
+    assert stream_options(pdm_model, True) == {"half": True, "confidence": False}
+    assert stream_options(PassesOn(pdm_model), False) == {"confidence": False}
+    assert stream_options(Float32Maps(), True) == {}
     got = {}
     for name, model in (("model", pdm_model), ("after", Float32Maps())):
         with running(lambda model_id, model=model: model) as channel:

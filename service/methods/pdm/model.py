@@ -672,7 +672,7 @@ class PdmModel:
 
     # ------------------------------------------------------------------ synthesis
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
-                   clamp: bool = True, half: bool = False) -> dict[str, np.ndarray]:
+                   clamp: bool = True, half: bool = False, confidence: bool = True) -> dict[str, np.ndarray]:
         """Meshes and maps for world-space markers (F,M,3), NaN for occluded (ma2008 §5).
 
         Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
@@ -700,7 +700,10 @@ class PdmModel:
         map kernels (:func:`~service.geometry.texel_image.band_image`, the normal mapper's
         texel pass; :func:`~service.geometry.half_kernel.binary16`), not converted after: a
         half-precision stream frame (issue 23) neither writes the 16 MB of float32 maps nor
-        reads them back.
+        reads them back. With ``confidence`` False the result has no ``confidence`` and
+        ``confidence_vertices``, and neither is computed (for a caller that does not send them,
+        as the gRPC stream's MeshFrame: ~1 ms of a level-1 mesh frame's 16); everything else
+        is the same, bit for bit.
 
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
@@ -715,10 +718,9 @@ class PdmModel:
         if "albedo" in outputs and ev.albedo is None:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
-        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32),
-                                      "clamped": np.zeros(nf, np.float32),
-                                      CONFIDENCE: np.ones(nf, np.float32),
-                                      VERTEX_CONFIDENCE: np.ones((nf, n), np.float32)}
+        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32), "clamped": np.zeros(nf, np.float32)}
+        if confidence:
+            out[CONFIDENCE], out[VERTEX_CONFIDENCE] = np.ones(nf, np.float32), np.ones((nf, n), np.float32)
         want = set(outputs)
         if want & {"mesh", "mesh_detailed"}:
             out["vertices"] = np.empty((nf, n, 3), np.float32)
@@ -751,11 +753,13 @@ class PdmModel:
             d1, d2, clamped = ev.vertex_band.parameters(S, margin)
             rho, sectors = (None, None) if valid is None else ev.gauge(d1, d2)
             if rho is not None:
-                out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
+                if confidence:
+                    out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
-            factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
-            out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
-            out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
+            if confidence:
+                factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
+                out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
+                out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             need_medium = bool(want & {"mesh_detailed", "normal_map"})

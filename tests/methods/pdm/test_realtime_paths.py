@@ -359,3 +359,18 @@ def test_half_maps_are_the_float32_maps_rounded_by_numpy_bit_for_bit(pdm_model, 
     if outputs == ("normal_map",):                               # the map alone is the full call's
         both = pdm_model.synthesize(markers, ("displacement", "normal_map"))
         assert np.array_equal(both["normal_map"], full["normal_map"])
+
+
+def test_without_confidence_the_rest_of_the_result_is_the_same_bit_for_bit(pdm_model, pdm_data):
+    """``confidence=False`` (the gRPC stream, whose MeshFrame has none) leaves out the two
+    confidence arrays and their computation; every other array is the full call's."""
+    _, clips = pdm_data
+    markers = clips[4].markers[[2, 7]].copy()
+    markers[1, :5] = np.nan                                   # occlusion moves the input factor
+    outputs = ("mesh", "displacement", "normal_map")
+    full = pdm_model.synthesize(markers, outputs)
+    lean = pdm_model.synthesize(markers, outputs, confidence=False)
+    assert sorted(lean) == sorted(set(full) - {"confidence", "confidence_vertices"})
+    for key, value in lean.items():
+        assert np.array_equal(value, full[key]), key
+    assert full["confidence"][1] < full["confidence"][0] <= 1
