@@ -311,4 +311,5 @@ def test_edges_from_the_corners_are_the_edge_operators_rows_bit_for_bit():
             assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
     assert (got[0] == 0).sum() > 150 and np.signbit(got[0][got[0] == 0]).sum() == 0
     other = FrameField(ff.faces, ff.incidence, ff.du, sp.csr_matrix(2 * E), ff.du_edges)
-    assert other._edge_faces is None and FrameField(ff.faces, ff.incidence, ff.du, flipped, ff.du_edges)._edge_faces is not None
+    assert other._edge_faces is None
+    assert FrameField(ff.faces, ff.incidence, ff.du, flipped, ff.du_edges)._edge_faces is not None

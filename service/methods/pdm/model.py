@@ -790,11 +790,11 @@ class PdmModel:
 
     def _fine_images(self, disp: np.ndarray, images: np.ndarray | None, s: int, float32: bool) -> np.ndarray | None:
         """The fine displacement maps of a chunk of frames from the band's values disp (f,Pf),
-        texel by texel (:func:`~service.geometry.texel_image.band_image`, ``band_image_half``): into ``images``
-        (F,H,H) from frame ``s`` on, the output (float32, or float16 written as such; None:
-        not asked), and with ``float32`` their float32 form returned (f,H,H) for the normal
-        map: the float32 output itself, or else a work array of the calling thread
-        (:func:`~service.geometry.ranges.scratch`, written in the same pass)."""
+        texel by texel (:func:`~service.geometry.texel_image.band_image`, ``band_image_half``):
+        into ``images`` (F,H,H) from frame ``s`` on, the output (float32, or float16 written
+        as such; None: not asked), and with ``float32`` their float32 form returned (f,H,H)
+        for the normal map: the float32 output itself, or else a work array of the calling
+        thread (:func:`~service.geometry.ranges.scratch`, written in the same pass)."""
         from service.geometry.texel_image import band_image, band_image_half     # Numba: loaded by build
 
         ev = self.evaluator
