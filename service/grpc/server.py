@@ -40,6 +40,8 @@ MeshFrames' serialized bytes, written straight from the result arrays on the syn
 from __future__ import annotations
 
 import contextvars
+import dataclasses
+import inspect
 import ipaddress
 import logging
 import queue
@@ -96,10 +98,31 @@ def default_depth(synthesis_threads: int) -> int:
 
 
 class StreamModel(Protocol):
-    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature."""
+    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature. Options it
+    may also take (:func:`takes`; :meth:`PdmModel.synthesize` takes both): ``half`` — passed
+    ``half=True`` on a half-precision stream, the model writes its maps as float16 itself
+    (any other model's float32 maps are converted when the reply is written); ``confidence``
+    — passed ``confidence=False``, the model does not compute the confidence a MeshFrame
+    does not carry."""
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
                    clamp: bool = ...) -> dict[str, np.ndarray]: ...
+
+
+def takes(model: StreamModel, option: str) -> bool:
+    """Whether ``model.synthesize`` has the keyword parameter ``option`` (issue 23: ``half``,
+    maps written as float16 by the model, not in float32 and converted; ``confidence``); for
+    a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
+    holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
+    try:
+        parameters = inspect.signature(model.synthesize).parameters
+    except (AttributeError, TypeError, ValueError):       # no signature to read: the plain call
+        return False
+    if option in parameters:
+        return True
+    passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    inner = getattr(model, "model", None)
+    return passes_on and inner is not None and inner is not model and takes(inner, option)
 
 
 #: the injected model store: model id → model; raises for unknown or not-ready models
@@ -124,13 +147,15 @@ class _Stream:
     outputs: tuple[str, ...]
     clamp: bool
     half: bool = False
+    #: the keyword options ``synthesize`` is called with (:func:`stream_options`)
+    options: dict = dataclasses.field(default_factory=dict)
 
     def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> bytes:
         """Synthesize and encode one frame: the serialized MeshFrame (``start``: when it was
         read; latency_ms is the time until the reply's last copy into the message)."""
         try:
             markers = codec.decode_markers(msg)
-            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp)
+            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp, **self.options)
         except InvalidInput as e:
             raise _invalid(_name_frame(str(e), where)) from None
         pieces = codec.reply_pieces(result, self.outputs, msg.frame, faces=first, half=self.half)
@@ -148,6 +173,16 @@ class _Stream:
             raise _invalid(f"{where}: clamp {msg.clamp} differs from the first message's {self.clamp}")
         if msg.HasField("half") and msg.half != self.half:
             raise _invalid(f"{where}: half {msg.half} differs from the first message's {self.half}")
+
+
+def stream_options(model: StreamModel, half: bool) -> dict:
+    """The keyword options a stream calls ``model.synthesize`` with, those it takes
+    (:func:`takes`): ``half=True`` on a half-precision stream, ``confidence=False`` (a
+    MeshFrame has no confidence)."""
+    options = {"half": True} if half and takes(model, "half") else {}
+    if takes(model, "confidence"):
+        options["confidence"] = False
+    return options
 
 
 def _where(msg: pb.MarkerFrame, index: int) -> str:
@@ -300,8 +335,9 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
         except InvalidInput as e:
             raise _invalid(str(e)) from None
         clamp = first.clamp if first.HasField("clamp") else True
-        return _Stream(first.model_id, self._load(first.model_id), outputs, clamp,
-                       first.HasField("half") and first.half)
+        model = self._load(first.model_id)
+        half = first.HasField("half") and first.half
+        return _Stream(first.model_id, model, outputs, clamp, half, stream_options(model, half))
 
     def _load(self, model_id: str) -> StreamModel:
         try:

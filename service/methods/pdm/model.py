@@ -672,7 +672,7 @@ class PdmModel:
 
     # ------------------------------------------------------------------ synthesis
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
-                   clamp: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, half: bool = False, confidence: bool = True) -> dict[str, np.ndarray]:
         """Meshes and maps for world-space markers (F,M,3), NaN for occluded (ma2008 §5).
 
         Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
@@ -695,6 +695,16 @@ class PdmModel:
         which occlusion enters through, times the size factor of its handle displacements
         u_H); the fade stays the validity's.
 
+        With ``half`` the maps (``displacement``, ``normal_map``, ``albedo``) are float16:
+        NumPy's ``astype(np.float16)`` of the float32 maps bit for bit, written as such by the
+        map kernels (:func:`~service.geometry.texel_image.band_image`, the normal mapper's
+        texel pass; :func:`~service.geometry.half_kernel.binary16`), not converted after: a
+        half-precision stream frame (issue 23) neither writes the 16 MB of float32 maps nor
+        reads them back. With ``confidence`` False the result has no ``confidence`` and
+        ``confidence_vertices``, and neither is computed (for a caller that does not send them,
+        as the gRPC stream's MeshFrame: ~1 ms of a level-1 mesh frame's 16); everything else
+        is the same, bit for bit.
+
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
         ev, d = self.evaluator, self.data
@@ -708,20 +718,20 @@ class PdmModel:
         if "albedo" in outputs and ev.albedo is None:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
-        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32),
-                                      "clamped": np.zeros(nf, np.float32),
-                                      CONFIDENCE: np.ones(nf, np.float32),
-                                      VERTEX_CONFIDENCE: np.ones((nf, n), np.float32)}
+        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32), "clamped": np.zeros(nf, np.float32)}
+        if confidence:
+            out[CONFIDENCE], out[VERTEX_CONFIDENCE] = np.ones(nf, np.float32), np.ones((nf, n), np.float32)
         want = set(outputs)
         if want & {"mesh", "mesh_detailed"}:
             out["vertices"] = np.empty((nf, n, 3), np.float32)
         if "mesh_detailed" in want:
             out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
         Hf = ev.fine.resolution
-        if want & {"displacement", "normal_map"}:
-            out["displacement"] = np.empty((nf, Hf, Hf), np.float32)
+        maps = np.float16 if half else np.float32
+        if "displacement" in want:
+            out["displacement"] = np.empty((nf, Hf, Hf), maps)
         if "normal_map" in want:
-            out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
+            out["normal_map"] = np.empty((nf, Hf, Hf, 3), maps)
         if "albedo" in want:
             Ha = ev.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
@@ -743,11 +753,13 @@ class PdmModel:
             d1, d2, clamped = ev.vertex_band.parameters(S, margin)
             rho, sectors = (None, None) if valid is None else ev.gauge(d1, d2)
             if rho is not None:
-                out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
+                if confidence:
+                    out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
-            factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
-            out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
-            out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
+            if confidence:
+                factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
+                out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
+                out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             need_medium = bool(want & {"mesh_detailed", "normal_map"})
@@ -756,10 +768,8 @@ class PdmModel:
                                            out["vertices"][sl] if "vertices" in out else None, need_medium)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
-            if "displacement" in out:          # straight into the output maps, texel by texel
-                from service.geometry.texel_image import band_image     # Numba: loaded by build
-                for k in range(len(disp)):
-                    ranges.run(band_image, Hf * Hf, ev.fine_inverse, disp[k], out["displacement"][s + k].reshape(-1))
+            if want & {"displacement", "normal_map"}:
+                fine_maps = self._fine_images(disp, out.get("displacement"), s, "normal_map" in want)
             if want & {"mesh_detailed", "normal_map"}:  # T, N of the medium mesh (float32 frames)
                 rows = [ev.base.frame_field.normal_rows(m) for m in medium]
             if "mesh_detailed" in want:
@@ -768,14 +778,38 @@ class PdmModel:
                 pose.restore32(medium + h[..., None] * normal, out=out["vertices_detailed"][sl])
             if "normal_map" in want:
                 for k in range(sl.stop - sl.start):          # written in place (no copy)
-                    ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], None,
-                                                out=out["normal_map"][s + k], rows=rows[k])
+                    ev.normal_mapper.normal_map(fine_maps[k], medium[k], None, out=out["normal_map"][s + k],
+                                                rows=rows[k])
             if "albedo" in want:
                 a = ev.albedo_band(S, margin, rho)
                 out["albedo"][sl] = ev.albedo.image(np.maximum(a, 0.0), channels=True)
-        if "displacement" not in want:
-            out.pop("displacement", None)
+        if half and "albedo" in out:
+            from service.io.half import to_float16
+            out["albedo"] = to_float16(out["albedo"])
         return out
+
+    def _fine_images(self, disp: np.ndarray, images: np.ndarray | None, s: int, float32: bool) -> np.ndarray | None:
+        """The fine displacement maps of a chunk of frames from the band's values disp (f,Pf),
+        texel by texel (:func:`~service.geometry.texel_image.band_image`, ``band_image_half``):
+        into ``images`` (F,H,H) from frame ``s`` on, the output (float32, or float16 written
+        as such; None: not asked), and with ``float32`` their float32 form returned (f,H,H)
+        for the normal map: the float32 output itself, or else a work array of the calling
+        thread (:func:`~service.geometry.ranges.scratch`, written in the same pass)."""
+        from service.geometry.texel_image import band_image, band_image_half     # Numba: loaded by build
+
+        ev = self.evaluator
+        Hf = ev.fine.resolution
+        direct = images is not None and images.dtype == np.float32          # the output itself
+        work = images[s:s + len(disp)] if direct else \
+            ranges.scratch("pdm.fine_images", (len(disp), Hf, Hf)) if float32 else None
+        for k in range(len(disp)):
+            flat32 = None if work is None else work[k].reshape(-1)
+            half = images[s + k].reshape(-1).view(np.uint16) if images is not None and not direct else None
+            if half is None:
+                ranges.run(band_image, Hf * Hf, ev.fine_inverse, disp[k], flat32)
+            else:
+                ranges.run(band_image_half, Hf * Hf, ev.fine_inverse, disp[k], flat32, half)
+        return work if float32 else None
 
     def _medium_mesh(self, u_H, d1, d2, rho, sectors, pose, world, aligned):
         """The medium meshes of a chunk of frames (:mod:`.shell_mesh`): base surfaces and
