@@ -434,7 +434,7 @@ def test_synthesis_slots_answer_503_when_busy():
     loaded = SimpleNamespace(model=model, kind=SimpleNamespace(name="fake"))
     request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
     assert "faces" in synthesizer.run(loaded, request)
-    synthesizer._slots.acquire()
+    synthesizer.pool.acquire()
     with pytest.raises(Unavailable) as error:
         synthesizer.run(loaded, request)
     status, headers = status_of(error.value)
@@ -491,7 +491,7 @@ def test_busy_syntheses_queue_for_a_bounded_wait_and_the_depth_is_a_metric():
         metrics.render().decode()
     # a wait that runs out is a 503
     short = Synthesizer(Metrics(), limit=1, wait_seconds=0.2)
-    short._slots.acquire()
+    short.pool.acquire()
     start = time.monotonic()
     with pytest.raises(Unavailable, match="waited 0.2 s"):
         short.run(loaded, request)
