@@ -176,9 +176,13 @@ def footprint(model_dir: Path, actor: Path) -> dict:
 
 def footprint_table(model_dir: Path, actor: Path) -> str:
     """:func:`footprint` in a fresh process, as a table."""
+    from service.app.threads import apply_blas_threads
+
+    env = dict(os.environ)
+    apply_blas_threads(None, None, env)           # serve's BLAS threads (before NumPy loads)
     code = subprocess.run([sys.executable, __file__, "--footprint-worker", "--model", str(model_dir),
                            "--actor", str(actor)], cwd=ROOT, check=True, capture_output=True,
-                          text=True).stdout.strip().splitlines()[-1]
+                          text=True, env=env).stdout.strip().splitlines()[-1]
     import json
 
     r = json.loads(code)

@@ -270,12 +270,17 @@ class Services:
 
     def _size_of(self, row: ReadyRow) -> Callable[[LoadedModel], int]:
         """What the cache weighs a loaded model of ``row`` by: what it holds in memory
-        (arrays, operators, factorizations), which can be several times its files (a
-        shape-space model's prefactored solves); at least its files unless the kind maps
-        files it reads only in part."""
+        (arrays, operators, factorizations, :func:`~service.methods.footprint.nbytes`), which
+        can be several times its files (a shape-space model's prefactored solves) or less
+        (files it maps and reads in part, data it reads once at load).
+
+        Not at least its files any more (issue 23): a level-1 PDM's 414 MB of files (the
+        medium map and EXRs it never holds) outweighed its resident cost, 322 MB after a
+        mesh + displacement + normal-map frame and 348 MB after one of every output, by
+        1.19–1.29×; weighed by what it holds, 350 MB: 1.09× and 1.01×
+        (``benchmarks/cold_start.py --footprint``)."""
         kind = get_kind(row.kind)
-        floor = row.size_bytes if kind.weighs_mapped else 0
-        return lambda loaded: max(nbytes(loaded.model, mapped=kind.weighs_mapped), floor)
+        return lambda loaded: nbytes(loaded.model, mapped=kind.weighs_mapped)
 
     def _load(self, model_id: str, row: ReadyRow) -> LoadedModel:
         """Load the ready model of ``row`` from its verified files."""
