@@ -94,11 +94,18 @@ def polar_decomposition(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     For ``det G > 0`` (every non-inverted deformation gradient) by Higham's scaled Newton
     iteration ``X ← ½(ζX + ζ⁻¹X⁻ᵀ)``, ``ζ = |det X|^(-1/3)`` (Higham 1986, "Computing the polar
     decomposition — with applications", §3), with the 3×3 inverse in closed form (cofactors),
-    which converges quadratically to the rotation in a few vectorized steps; ``S = Rᵀ G``
-    symmetrized. Matrices with ``det G <= 0`` or not converged in :data:`POLAR_MAX_ITERATIONS`
-    fall back to the SVD ``G = U Σ Vᵀ``: ``R = U D Vᵀ``, ``S = V D Σ Vᵀ`` with
-    ``D = diag(1, 1, det(U Vᵀ))`` so that ``det R = +1`` (bermano2014 §4.2 encodes rotation
-    and stretch separately).
+    which converges quadratically to the rotation in a few steps (most in 4–5, a few
+    ill-conditioned ones in up to ~9); ``S = Rᵀ G`` symmetrized. Matrices with ``det G <= 0``
+    or not converged in :data:`POLAR_MAX_ITERATIONS` fall back to the SVD ``G = U Σ Vᵀ``:
+    ``R = U D Vᵀ``, ``S = V D Σ Vᵀ`` with ``D = diag(1, 1, det(U Vᵀ))`` so that ``det R = +1``
+    (bermano2014 §4.2 encodes rotation and stretch separately).
+
+    The iteration is compiled, one matrix at a time (:func:`service.geometry.polar_newton.newton_rotations`;
+    89k matrices: 0.26 → 0.05 s under load 8). Departure from the vectorized NumPy steps it
+    replaced: the same operations in the same order, but ζ's cube root is libm's where
+    NumPy's ``cbrt`` is its AVX-512 SIMD one (up to 3 ulp apart), so the rotations differ
+    by at most 4.4e-16 (2 ulp of 1) on 200k random, ill-conditioned (condition 1e8) and
+    mixed-sign matrices, and the same matrices take the SVD fallback.
 
     Parameters
     ----------
@@ -110,32 +117,14 @@ def polar_decomposition(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     S : (...,3,3) float64   symmetric stretch; positive definite when ``det G > 0``
                             (for a reflection, ``det G < 0``, S has one negative eigenvalue)
     """
+    from service.geometry.polar_newton import newton_rotations   # Numba: where it is used
+
     G = np.asarray(G, dtype=np.float64)
     shape = G.shape
     G = G.reshape(-1, 3, 3)
-    out = G.reshape(-1, 9).T.copy()                          # (9,k): entries as rows
-    proper = _det3(out) > 0
-    out[:, ~proper] = np.eye(3).reshape(9, 1)                # SVD below; keep Newton finite
-    # Newton steps on the matrices not converged yet (most converge in 4–5 steps, a few
-    # ill-conditioned ones take up to ~9, and each step costs the same per matrix)
-    active = np.arange(len(G))
-    X = out
-    for _ in range(POLAR_MAX_ITERATIONS):
-        cof = _cofactors(X)
-        det = X[0] * cof[0] + X[1] * cof[1] + X[2] * cof[2]  # > 0 throughout
-        zeta = np.cbrt(det)
-        Y = 0.5 * (X / zeta + cof * (zeta / det))
-        going = np.abs(Y - X).max(axis=0) > POLAR_TOLERANCE
-        out[:, active] = Y
-        if not going.any():
-            active = active[:0]
-            break
-        if not going.all():
-            active, Y = active[going], Y[:, going]
-        X = Y
-    fallback = ~proper
-    fallback[active] = True                                  # not converged
-    R = np.ascontiguousarray(out.T)
+    R = np.empty((len(G), 9))
+    fallback = newton_rotations(np.ascontiguousarray(G.reshape(-1, 9)), POLAR_TOLERANCE,
+                                POLAR_MAX_ITERATIONS, R)
     R = R.reshape(-1, 3, 3)
     S = np.swapaxes(R, -1, -2) @ G
     if fallback.any():
@@ -150,12 +139,6 @@ POLAR_MAX_ITERATIONS = 20
 #: largest entry change of a converged Newton step; quadratic convergence puts the
 #: rotation's error at about its square, far below rounding
 POLAR_TOLERANCE = 1e-9
-
-
-def _det3(X: np.ndarray) -> np.ndarray:
-    """Determinants (k,) of 3×3 matrices given entry-major (9,k), row-major entries."""
-    return (X[0] * (X[4] * X[8] - X[5] * X[7]) - X[1] * (X[3] * X[8] - X[5] * X[6])
-            + X[2] * (X[3] * X[7] - X[4] * X[6]))
 
 
 def _cofactors(X: np.ndarray) -> np.ndarray:
