@@ -32,7 +32,8 @@ cache's weight.
 Run: ``python benchmarks/cold_start.py [--actor DIR] [--model DIR] [--rounds 2]
 [--against REV] [--footprint]``. The model is trained once into ``benchmarks/out/realtime/model-<actor>``
 (shared with realtime.py) unless ``--model`` names one. Writes the table to stdout and
-``benchmarks/out/cold_start.md``. The machine is shared: the load average is recorded beside
+``benchmarks/out/cold_start.md`` (``--out DIR``: ``DIR/cold_start.md``, work under
+``DIR/cold_start``). The machine is shared: the load average is recorded beside
 every row. With ``--against REV`` every round starts a server of the commit REV
 (``git archive REV service models_store``, unpacked once into
 ``benchmarks/out/cold_start/rev-<REV>``) and one of this tree, in alternating order, on the
@@ -56,7 +57,6 @@ import harness  # noqa: E402
 
 ROOT = harness.ROOT
 OUT = ROOT / "benchmarks" / "out"
-WORK = OUT / "cold_start"
 NPZ = harness.NPZ_TYPE
 TARGET_S = 2.0
 MESH = "mesh"
@@ -100,7 +100,7 @@ def wait_for(url: str, server: subprocess.Popen, t0: float, timeout: float = 600
         except httpx.TransportError:
             pass
         if server.poll() is not None or time.perf_counter() - t0 > timeout:
-            raise RuntimeError(f"the server did not get ready; see {WORK / 'server.log'}")
+            raise RuntimeError("the server did not get ready; see server.log in its work directory")
         time.sleep(0.05)
 
 
@@ -206,6 +206,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=10, help="steady-state frames per server")
     parser.add_argument("--against", metavar="REV", default=None,
                         help="also start servers of this older commit, paired and alternating")
+    parser.add_argument("--out", type=Path, default=OUT,
+                        help="where cold_start.md and the cold_start/ work directory go "
+                             "(default benchmarks/out)")
     parser.add_argument("--footprint", action="store_true",
                         help="also the cache weight against the resident cost (fresh process)")
     parser.add_argument("--footprint-worker", action="store_true", help=argparse.SUPPRESS)
@@ -217,10 +220,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     trees = {"this tree": ROOT}
     if args.against:
-        trees = {args.against: harness.source_tree(args.against, WORK), **trees}
+        trees = {args.against: harness.source_tree(args.against, args.out / "cold_start"), **trees}
     actor = args.actor.resolve()
     model_dir = (args.model or harness.ensure_realtime_model(actor)).resolve()
-    work = WORK / f"work-{actor.name}"
+    work = args.out / "cold_start" / f"work-{actor.name}"
     work.mkdir(parents=True, exist_ok=True)
     markers = harness.heldout_markers(actor)
     port = harness.free_port()
@@ -255,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.footprint:
         text += "\n" + footprint_table(model_dir, actor)
     print(text)
-    (OUT / "cold_start.md").write_text("# Cold start (benchmarks/cold_start.py)\n\n" + text)
+    (args.out / "cold_start.md").write_text("# Cold start (benchmarks/cold_start.py)\n\n" + text)
     return 0
 
 
