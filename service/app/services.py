@@ -283,7 +283,15 @@ class Services:
         return lambda loaded: nbytes(loaded.model, mapped=kind.weighs_mapped)
 
     def _load(self, model_id: str, row: ReadyRow) -> LoadedModel:
-        """Load the ready model of ``row`` from its verified files."""
+        """Load the ready model of ``row`` from its verified files.
+
+        The integrity rule: the files are hashed in a thread while the kind reads them (the
+        cold start overlaps the two), and nothing read from them is synthesized with — no
+        warm-up frame, no request, no stream — or cached before :meth:`VerifyingDir.confirm`
+        has matched every file to the recorded sha256; a mismatch raises ``BlobCorrupt``
+        (500 / DATA_LOSS / a failed preload) and nothing is cached. Not overlapped further on
+        purpose: a corrupt index array read by a compiled (unchecked) kernel could write out
+        of bounds, so synthesis waits for the check."""
         kind = get_kind(row.kind)
         with self.session() as session:
             # the files are hashed in a thread while the kind reads them (issue 23's cold
