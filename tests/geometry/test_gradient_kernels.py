@@ -1,12 +1,13 @@
-"""service.geometry.polar_newton: the compiled Newton iteration of the polar decomposition
-against the vectorized NumPy steps it replaced (written out here as the reference)."""
+"""service.geometry.gradient_kernels: the compiled Newton iteration of the polar
+decomposition and the decoding, against the vectorized NumPy passes they replaced (written
+out here as the references)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from service.geometry.deformation_gradient import POLAR_MAX_ITERATIONS, POLAR_TOLERANCE
-from service.geometry.polar_newton import newton_rotations
+from service.geometry.gradient_kernels import decode_rows, newton_rotations
 
 
 def _numpy_steps(G: np.ndarray, iterations: int = POLAR_MAX_ITERATIONS):
@@ -74,3 +75,34 @@ def test_a_matrix_not_converged_in_the_allowed_steps_falls_back():
     R, fallback = _run(G)
     assert fallback.tolist() == [False]
     np.testing.assert_allclose(R.reshape(3, 3), np.eye(3), rtol=0, atol=1e-15)
+
+
+def _numpy_decode(w: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``decode``'s vectorized passes as they were: (k,9)."""
+    x, y, z = w.T
+    th2 = x * x + y * y + z * z
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
+    c = 1.0 - b * th2
+    bx, by, bz = b * x, b * y, b * z
+    ax, ay, az = a * x, a * y, a * z
+    R = ((c + bx * x, bx * y - az, bx * z + ay),
+         (bx * y + az, c + by * y, by * z - ax),
+         (bx * z - ay, by * z + ax, c + bz * z))
+    e = s.T
+    S = ((e[0], e[1], e[2]), (e[1], e[3], e[4]), (e[2], e[4], e[5]))
+    return np.stack([R[i][0] * S[0][j] + R[i][1] * S[1][j] + R[i][2] * S[2][j]
+                     for i in range(3) for j in range(3)], axis=1)
+
+
+def test_the_compiled_decoding_is_the_numpy_passes_bit_for_bit():
+    """Rotations of every size (small-angle series below 1e-4, near π) and stretches."""
+    rng = np.random.default_rng(1)
+    w = rng.standard_normal((30000, 3)) * np.repeat([1e-6, 0.3, 1.0, 3.0], 7500)[:, None]
+    s = 1.0 + 0.2 * rng.standard_normal((30000, 6))
+    out = np.empty((len(w), 9))
+    decode_rows(w, s, out)
+    np.testing.assert_array_equal(out, _numpy_decode(w, s))
