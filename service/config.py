@@ -108,8 +108,9 @@ class Settings(BaseSettings):
                     "work goes to a synthesis job).")
     max_concurrent_syntheses: int | None = Field(
         default=None, ge=1,
-        description="Synchronous syntheses (and enhancements) run at once; None: one per CPU "
-                    "core of the machine.")
+        description="Synchronous syntheses (and enhancements) run at once, HTTP requests and "
+                    "gRPC stream frames together (one pool); None: one per CPU core of the "
+                    "machine.")
     blas_threads: int | None = Field(
         default=None, ge=1,
         description="BLAS/OpenMP threads of each synthesis (OPENBLAS_NUM_THREADS, "

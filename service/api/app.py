@@ -90,7 +90,9 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         own = services is None
-        app.state.services = Services.open(settings) if own else services
+        # one pool of synthesis slots with the synthesizer (and so with the gRPC streams)
+        app.state.services = (Services.open(settings, app.state.synthesizer.pool) if own
+                              else services)
         app.state.metrics.watch_cache(app.state.services.models)
         try:
             yield
@@ -107,7 +109,8 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app.state.metrics = Metrics()
     app.state.synthesizer = Synthesizer(app.state.metrics, settings.max_concurrent_syntheses,
                                         settings.synthesis_queue_seconds,
-                                        settings.synthesis_queue_depth)
+                                        settings.synthesis_queue_depth,
+                                        pool=services.synthesis if services is not None else None)
     errors.install(app)
     if settings.lean_synthesis:   # innermost: inside every middleware below
         app.add_middleware(LeanSynthesize)

@@ -26,7 +26,9 @@ the stream after the replies of frames 0..n-1.
 The synthesis threads are one pool of ``synthesis_threads`` per server, shared by its
 streams: the synthesis slots of :mod:`service.app.threads` (one per core by default), against
 which ``facesynth serve`` sizes the BLAS and compiled-kernel threads, so S frames at once
-each get cores / S threads and the cores are not oversubscribed. A frame's work releases the
+each get cores / S threads and the cores are not oversubscribed. ``facesynth serve`` passes
+the process's pool (``synthesis``, :attr:`service.app.services.Services.synthesis`), whose
+slots the HTTP syntheses take too: S at once over both transports, not S each. A frame's work releases the
 GIL (NumPy and BLAS, SciPy's sparse products, the Numba kernels compiled ``nogil``), so
 frames of one stream are synthesized side by side: with S = 2 on 2 cores the default depth,
 S + 1, keeps both threads busy while one reply is sent. Each frame's result is that of
@@ -56,7 +58,7 @@ import grpc
 import numpy as np
 
 from models_store.tenancy import Principal, TokenTable
-from service.app.threads import synthesis_slots
+from service.app.threads import SynthesisPool
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
@@ -288,16 +290,18 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
                                  :func:`default_depth` of the synthesis threads)
     synthesis_threads : int or None   frames synthesized at once, over all streams (None:
                                  :func:`~service.app.threads.synthesis_slots`, one per core)
+    synthesis : SynthesisPool or None   the process's synthesis slots to synthesize in
+                                 (shared with the HTTP syntheses; replaces
+                                 ``synthesis_threads``); None: a pool of the servicer's own
     """
 
     def __init__(self, load_model: LoadModel, depth: int | None = None,
-                 synthesis_threads: int | None = None):
+                 synthesis_threads: int | None = None, synthesis: SynthesisPool | None = None):
         self._load_model = load_model
-        self.synthesis_threads = synthesis_slots(synthesis_threads)
+        # idle threads end when the pool is collected
+        self._synthesis = synthesis if synthesis is not None else SynthesisPool(synthesis_threads)
+        self.synthesis_threads = self._synthesis.limit
         self.depth = int(depth) if depth else default_depth(self.synthesis_threads)
-        # idle threads end when the servicer (and its server) is collected
-        self._synthesis = futures.ThreadPoolExecutor(self.synthesis_threads,
-                                                     thread_name_prefix="facesynth-grpc-frame")
 
     def StreamSynthesize(self, request_iterator: Iterable[pb.MarkerFrame],
                          context: grpc.ServicerContext) -> Iterator[bytes]:
@@ -453,7 +457,8 @@ def is_loopback(host: str) -> bool:
 def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[str] = (),
                   max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
                   pipeline_depth: int | None = None,
-                  synthesis_threads: int | None = None) -> grpc.Server:
+                  synthesis_threads: int | None = None,
+                  synthesis: SynthesisPool | None = None) -> grpc.Server:
     """A gRPC server with the Synthesis service, not yet bound or started.
 
     Parameters
@@ -470,6 +475,9 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
                               core, :func:`~service.app.threads.synthesis_slots`; ``facesynth
                               serve`` passes ``max_concurrent_syntheses``, the count its BLAS
                               threads are sized against)
+    synthesis : SynthesisPool   the synthesis slots to share (``facesynth serve``: the
+                              process's, :attr:`~service.app.services.Services.synthesis`, which
+                              the HTTP syntheses take too); None: ``synthesis_threads`` of its own
     """
     options = [("grpc.max_send_message_length", max_message_bytes),
                ("grpc.max_receive_message_length", max_message_bytes),
@@ -477,7 +485,8 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     server = grpc.server(futures.ThreadPoolExecutor(max_workers, thread_name_prefix="facesynth-grpc"),
                          interceptors=[BearerTokenAuth(tokens)] if tokens else None,
                          options=options, maximum_concurrent_rpcs=max_workers)
-    add_servicer(SynthesisServicer(load_model, pipeline_depth, synthesis_threads), server)
+    add_servicer(SynthesisServicer(load_model, pipeline_depth, synthesis_threads, synthesis),
+                 server)
     return server
 
 
@@ -497,7 +506,8 @@ def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PO
           max_workers: int = 4, *, tokens: Sequence[str] = (),
           max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
           pipeline_depth: int | None = None,
-          synthesis_threads: int | None = None) -> grpc.Server:
+          synthesis_threads: int | None = None,
+          synthesis: SynthesisPool | None = None) -> grpc.Server:
     """Start a Synthesis server on ``host:port`` (plaintext) and return it.
 
     Stop it with ``server.stop(grace)``; ``server.wait_for_termination()`` blocks until then.
@@ -513,7 +523,7 @@ def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PO
         raise ValueError(f"refusing to listen on {host} without tokens: "
                          "give tokens, or listen on loopback (127.0.0.1)")
     server = create_server(load_model, max_workers, tokens, max_message_bytes, pipeline_depth,
-                           synthesis_threads)
+                           synthesis_threads, synthesis)
     address = f"[{host.strip('[]')}]:{port}" if ":" in host else f"{host}:{port}"
     if server.add_insecure_port(address) == 0:        # older grpcio returns 0, newer raise
         raise RuntimeError(f"cannot listen on {address}")
