@@ -35,7 +35,7 @@ from service.methods.footprint import nbytes
 from service.errors import Conflict
 from service.jobs.job_threads import JobThreads
 from service.jobs.queue_storage import probe as probe_queue
-from service.methods.kinds import Kind, get_kind
+from service.methods.kinds import Kind, get_kind, takes
 from service.store.actors import neutral_arrays
 from service.store.container import Store, get_store
 
@@ -115,13 +115,13 @@ class UnitCheckedModel:
     reference: MarkerReference | None
 
     def synthesize(self, markers: np.ndarray, outputs: Any = ("mesh", "displacement"),
-                   clamp: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, **options: Any) -> dict[str, np.ndarray]:
         frames = np.asarray(markers, np.float64)
         frames = frames[None] if frames.ndim == 2 else frames
         # a wrong marker count is the model's to name ("model expects 150 markers, got 149")
         if self.reference is not None and frames.shape[1:] == self.reference.rest.shape:
             self.reference.check(frames)
-        return self.model.synthesize(markers, outputs, clamp)
+        return self.model.synthesize(markers, outputs, clamp, **options)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.model, name)
@@ -405,6 +405,10 @@ class Services:
                     frame = neutral_arrays(registry.read_neutral(session, self.blobs, loaded.actor_id))[0][None]
             outputs = [o for o in ("mesh", "displacement", "normal_map") if o in loaded.kind.outputs]
             loaded.model.synthesize(np.asarray(frame, np.float64), outputs)
+            if {"displacement", "normal_map"} & set(outputs) and takes(loaded.model, "half"):
+                # the float16 map kernels a half-precision gRPC stream runs (issue 23: ~3.4 s
+                # to compile without Numba's disk cache)
+                loaded.model.synthesize(np.asarray(frame, np.float64), outputs, half=True)
             if {"displacement", "normal_map"} & set(outputs):
                 # the compiled float16 conversion of half=true responses, loaded from its
                 # on-disk cache now rather than by the first such request

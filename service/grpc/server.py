@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
-import inspect
 import ipaddress
 import logging
 import queue
@@ -59,6 +58,7 @@ import numpy as np
 
 from models_store.tenancy import Principal, TokenTable
 from service.app.threads import SynthesisPool
+from service.methods.kinds import takes
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
@@ -109,22 +109,6 @@ class StreamModel(Protocol):
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
                    clamp: bool = ...) -> dict[str, np.ndarray]: ...
-
-
-def takes(model: StreamModel, option: str) -> bool:
-    """Whether ``model.synthesize`` has the keyword parameter ``option`` (issue 23: ``half``,
-    maps written as float16 by the model, not in float32 and converted; ``confidence``); for
-    a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
-    holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
-    try:
-        parameters = inspect.signature(model.synthesize).parameters
-    except (AttributeError, TypeError, ValueError):       # no signature to read: the plain call
-        return False
-    if option in parameters:
-        return True
-    passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
-    inner = getattr(model, "model", None)
-    return passes_on and inner is not None and inner is not model and takes(inner, option)
 
 
 #: the injected model store: model id → model; raises for unknown or not-ready models

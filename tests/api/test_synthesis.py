@@ -3,6 +3,7 @@ synthesis in every encoding, its refusals, the model's maps, and synthesis jobs.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import zipfile
@@ -322,7 +323,17 @@ def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load
         response = client.get("/readyz")
         assert response.status_code == 200 and response.json()["checks"]["models"] == "ok"
         assert model_id in services.models
-        assert services.warm_up(services.loaded_model(model_id)) is True
+        loaded = services.loaded_model(model_id)
+        calls, real = [], loaded.model.synthesize
+
+        @functools.wraps(real)                 # the model's signature: it takes half
+        def recorded(*args, **options):
+            calls.append(options.get("half", False))
+            return real(*args, **options)
+
+        monkeypatch.setattr(loaded.model, "synthesize", recorded)
+        assert services.warm_up(loaded) is True
+        assert calls == [False, True]          # float32 and the float16 map kernels (issue 23)
 
         def broken(mid):
             raise OSError("disk on fire")

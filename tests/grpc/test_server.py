@@ -388,7 +388,8 @@ def test_half_maps_written_by_the_model_are_the_converted_float32_maps_bit_for_b
     (``takes``), and skips the confidence with ``confidence=False``; a half stream's replies
     are then those of a model without those parameters (its float32 maps converted as the
     reply is written), bit for bit."""
-    from service.grpc.server import stream_options, takes
+    from service.grpc.server import stream_options
+    from service.methods.kinds import takes
 
     class Float32Maps:           # synthesize without ``half``: the maps are converted after
         def synthesize(self, markers, outputs=("mesh",), clamp=True):
