@@ -44,7 +44,23 @@ Departures and choices (the paper is silent or differs):
   of the most extreme trained expression instead. A per-axis box would not do: its
   corners are (d1, d2) pairs no training frame visited;
 * coefficients are rounded to float32 when training ends (the stored precision), so a
-  saved and reloaded model synthesizes bit-identical results.
+  saved and reloaded model synthesizes bit-identical results;
+* ``medium_regression`` (issue 17, off by default): the mesh's medium offsets, head-aligned,
+  from a locally weighted ridge regression on the handle displacements u_H
+  (:mod:`service.geometry.marker_regression`, anchored at the detailed neutral's offset
+  from the smooth base, so rest markers give the neutral exactly) instead of the medium
+  polynomial; the polynomial is still trained (the validity regions, the confidence and the
+  fine band's residual come from it). The polynomial in each point's own (d1, d2) cannot
+  tell combinations the training never showed from the expressions it did show, and its
+  max error there exceeds the thin shell's; the regression is linear in every nearby
+  marker's displacement vector. Family a, level 0, 6 frames a performance, clean markers,
+  face mean / max mm (the thin shell's max): in range 0.221 / 3.99 → 0.105 / 1.21 (3.38),
+  combinations 0.300 / 5.86 → 0.097 / 2.57 (5.57), out of range 0.280 / 8.24 → 0.023 /
+  0.65 (7.78) with s = 4; s = 2 gave 0.103 / 2.66, 0.089 / 2.52, 0.041 / 0.76, s = 1 worse
+  (benchmarks/generalization_report.py's rows; noisy and occluded markers in the issue's
+  note). Its cost: the CSR matrix (3n, 3M), nnz ≈ 4.4 M at s = 2 and 12.9 M at s = 4 on
+  11 k vertices, one sparse product per frame (the mesh then takes the float64 path, not
+  the compiled :mod:`.shell_mesh` kernels).
 """
 
 from __future__ import annotations
@@ -57,7 +73,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from service.geometry import ranges
+from service.geometry import marker_regression, ranges
 from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
@@ -783,6 +799,11 @@ class PdmModel:
         offsets, then ``world`` (f,n,3) float32 filled with the head pose put back (if given)
         and, with ``aligned``, the neutral-aligned meshes (f,n,3) float64 returned."""
         ev = self.evaluator
+        if self.data.medium_regression is not None:      # the thin shell plus the regression's offsets
+            A = ev.base.deform(u_H) + self.data.medium_regression(u_H)            # (f,n,3) aligned
+            if world is not None:
+                world[:] = pose.restore(A)
+            return A if aligned else None
         sm = ev.shell_mesh
         surfaces = [sm.surface(u, correction=rho is not None) for u in u_H]
         fallback = None
@@ -907,14 +928,25 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     uv_vertex = np.zeros(len(actor.uv), np.int64)                  # the vertex of each UV point
     uv_vertex[np.asarray(actor.uv_faces).ravel()] = F.ravel()
     f_uv = np.empty((T, len(uv_vertex), 3), np.float32)             # the targets at the UV points
+    # the mesh's medium offsets from the thin shell, head-aligned (medium_regression's targets)
+    Y = np.empty((T, n, 3), np.float32) if params.medium_regression is not None else None
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
-        c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
+        offset = pose[t0:t1].remove(world_vertices(t0, t1)) - X
+        if Y is not None:
+            Y[t0:t1] = offset
+        c = np.einsum("fnij,fnj->fni", base.frames(X), offset)
         c -= neutral_offset
         f_uv[t0:t1] = c[:, uv_vertex]
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
     d1, d2 = _parameters(field_m, S)
+    regression = None
+    if Y is not None:   # through the neutral: its offset from the smooth base at u = 0
+        regression = marker_regression.fit(
+            u_H, Y, actor.vertices, rest, params.medium_regression * marker_regression.marker_spacing(rest),
+            params.medium_regression_ridge, anchor=actor.vertices - base.smooth)
+        del Y
     progress(0.3, "medium band fit")
     ridge = {"ridge": params.ridge, "gamma": params.gamma}         # the fit's regularization
     # the medium target of the neutral is 0 by construction (its offset is kept per vertex)
@@ -1011,7 +1043,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     }
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
                    mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics,
-                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior)
+                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior,
+                   medium_regression=regression)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
     # the medium band's skill against its fallback on the training frames (fit_skill)
