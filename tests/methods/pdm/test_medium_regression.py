@@ -38,8 +38,9 @@ def test_the_neutral_is_reproduced_and_the_regression_is_what_the_mesh_adds(pair
 
 
 def test_held_out_frames_are_closer_than_the_polynomial_and_the_thin_shell(pair, pdm_actor_dir, pdm_data):
-    """On the held-out in-range performance the regression's mesh is closer to the truth than the medium polynomial's trained on the same
-    frames, mean and max over the face, and its max does not exceed the thin shell's."""
+    """On the held-out in-range performance the regression's mesh is closer to the truth than
+    the medium polynomial's trained on the same frames, mean and max over the face, and no
+    frame's max exceeds the thin shell's."""
     poly, reg = pair
     actor, _ = pdm_data
     frames = dataset.map_frames(pdm_actor_dir, "heldout_in_range")
