@@ -53,14 +53,19 @@ Departures and choices (the paper is silent or differs):
   fine band's residual come from it). The polynomial in each point's own (d1, d2) cannot
   tell combinations the training never showed from the expressions it did show, and its
   max error there exceeds the thin shell's; the regression is linear in every nearby
-  marker's displacement vector. Family a, level 0, 6 frames a performance, clean markers,
-  face mean / max mm (the thin shell's max): in range 0.221 / 3.99 → 0.105 / 1.21 (3.38),
-  combinations 0.300 / 5.86 → 0.097 / 2.57 (5.57), out of range 0.280 / 8.24 → 0.023 /
-  0.65 (7.78) with s = 4; s = 2 gave 0.103 / 2.66, 0.089 / 2.52, 0.041 / 0.76, s = 1 worse
-  (benchmarks/generalization_report.py's rows; noisy and occluded markers in the issue's
-  note). Its cost: the CSR matrix (3n, 3M), nnz ≈ 4.4 M at s = 2 and 12.9 M at s = 4 on
-  11 k vertices, one sparse product per frame (the mesh then takes the float64 path, not
-  the compiled :mod:`.shell_mesh` kernels).
+  marker's displacement vector. Level 0, 6 frames a performance of the sample actors
+  ``benchmarks/out/actor-{a,b}-l0``, PDM biquadratic with its defaults otherwise, face
+  mean / max mm, the thin shell's max beside; s chosen on family a, confirmed on b. Family a, clean: in range
+  0.221 / 3.99 → 0.105 / 1.21 (3.38), combinations 0.300 / 5.86 → 0.097 / 2.57 (5.57), out
+  of range 0.280 / 8.24 → 0.023 / 0.65 (7.78) with s = 4, the only s (1, 2, 4) with no
+  frame above the thin shell's max on any of a's nine rows (s = 2: 1 of 6 frames in
+  range; s = 1: max 4.5–5.5 mm). Family b, s = 4, clean: in range 0.183 / 2.34 → 0.010 /
+  0.31 (3.00), combinations 0.436 / 4.97 → 0.193 / 2.43 (4.97), out of range 0.287 / 4.13
+  → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's).
+  Its cost: the CSR matrix (3n, 3M), nnz 12.9 M (a, 11 k vertices) and 21 M (b) at s = 4
+  (4.4 M and 8.8 M at s = 2), one sparse product per frame (the mesh then takes the
+  float64 path, not the compiled :mod:`.shell_mesh` kernels), which is why it is not the
+  default yet: at level 1 that is ~4× the nnz, beyond the real-time path's budget.
 """
 
 from __future__ import annotations

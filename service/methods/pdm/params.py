@@ -118,7 +118,7 @@ class PdmParams(MarkerParams):
                     "null (the default): the medium PDM of ma2008. The maps, the confidence and "
                     "the fine band are unchanged. Costs a sparse product per frame and its "
                     "storage (see model.py).",
-        examples=[None, 2.0])
+        examples=[None, 4.0])
     medium_regression_ridge: float = Field(
         default=0.1, gt=0.0, le=10.0, allow_inf_nan=False,
         description="Relative ridge of medium_regression (x the mean diagonal of each "
