@@ -44,7 +44,28 @@ Departures and choices (the paper is silent or differs):
   of the most extreme trained expression instead. A per-axis box would not do: its
   corners are (d1, d2) pairs no training frame visited;
 * coefficients are rounded to float32 when training ends (the stored precision), so a
-  saved and reloaded model synthesizes bit-identical results.
+  saved and reloaded model synthesizes bit-identical results;
+* ``medium_regression`` (issue 17, off by default): the mesh's medium offsets, head-aligned,
+  from a locally weighted ridge regression on the handle displacements u_H
+  (:mod:`service.geometry.marker_regression`, anchored at the detailed neutral's offset
+  from the smooth base, so rest markers give the neutral exactly) instead of the medium
+  polynomial; the polynomial is still trained (the validity regions, the confidence and the
+  fine band's residual come from it). The polynomial in each point's own (d1, d2) cannot
+  tell combinations the training never showed from the expressions it did show, and its
+  max error there exceeds the thin shell's; the regression is linear in every nearby
+  marker's displacement vector. Level 0, 6 frames a performance of the sample actors
+  ``benchmarks/out/actor-{a,b}-l0``, PDM biquadratic with its defaults otherwise, face
+  mean / max mm, the thin shell's max beside; s chosen on family a, confirmed on b. Family a, clean: in range
+  0.221 / 3.99 → 0.105 / 1.21 (3.38), combinations 0.300 / 5.86 → 0.097 / 2.57 (5.57), out
+  of range 0.280 / 8.24 → 0.023 / 0.65 (7.78) with s = 4, the only s (1, 2, 4) with no
+  frame above the thin shell's max on any of a's nine rows (s = 2: 1 of 6 frames in
+  range; s = 1: max 4.5–5.5 mm). Family b, s = 4, clean: in range 0.183 / 2.34 → 0.010 /
+  0.31 (3.00), combinations 0.436 / 4.97 → 0.193 / 2.43 (4.97), out of range 0.287 / 4.13
+  → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's).
+  Its cost: the CSR matrix (3n, 3M), nnz 12.9 M (a, 11 k vertices) and 21 M (b) at s = 4
+  (4.4 M and 8.8 M at s = 2), one sparse product per frame (the mesh then takes the
+  float64 path, not the compiled :mod:`.shell_mesh` kernels), which is why it is not the
+  default yet: at level 1 that is ~4× the nnz, beyond the real-time path's budget.
 """
 
 from __future__ import annotations
@@ -57,7 +78,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from service.geometry import ranges
+from service.geometry import marker_regression, ranges
 from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
@@ -817,6 +838,11 @@ class PdmModel:
         offsets, then ``world`` (f,n,3) float32 filled with the head pose put back (if given)
         and, with ``aligned``, the neutral-aligned meshes (f,n,3) float64 returned."""
         ev = self.evaluator
+        if self.data.medium_regression is not None:      # the thin shell plus the regression's offsets
+            A = ev.base.deform(u_H) + self.data.medium_regression(u_H)            # (f,n,3) aligned
+            if world is not None:
+                world[:] = pose.restore(A)
+            return A if aligned else None
         sm = ev.shell_mesh
         surfaces = [sm.surface(u, correction=rho is not None) for u in u_H]
         fallback = None
@@ -941,14 +967,25 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     uv_vertex = np.zeros(len(actor.uv), np.int64)                  # the vertex of each UV point
     uv_vertex[np.asarray(actor.uv_faces).ravel()] = F.ravel()
     f_uv = np.empty((T, len(uv_vertex), 3), np.float32)             # the targets at the UV points
+    # the mesh's medium offsets from the thin shell, head-aligned (medium_regression's targets)
+    Y = np.empty((T, n, 3), np.float32) if params.medium_regression is not None else None
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
-        c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
+        offset = pose[t0:t1].remove(world_vertices(t0, t1)) - X
+        if Y is not None:
+            Y[t0:t1] = offset
+        c = np.einsum("fnij,fnj->fni", base.frames(X), offset)
         c -= neutral_offset
         f_uv[t0:t1] = c[:, uv_vertex]
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
     d1, d2 = _parameters(field_m, S)
+    regression = None
+    if Y is not None:   # through the neutral: its offset from the smooth base at u = 0
+        regression = marker_regression.fit(
+            u_H, Y, actor.vertices, rest, params.medium_regression * marker_regression.marker_spacing(rest),
+            params.medium_regression_ridge, anchor=actor.vertices - base.smooth)
+        del Y
     progress(0.3, "medium band fit")
     ridge = {"ridge": params.ridge, "gamma": params.gamma}         # the fit's regularization
     # the medium target of the neutral is 0 by construction (its offset is kept per vertex)
@@ -1045,7 +1082,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     }
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
                    mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics,
-                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior)
+                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior,
+                   medium_regression=regression)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
     # the medium band's skill against its fallback on the training frames (fit_skill)
