@@ -21,10 +21,19 @@ else the machine runs). A preload also synthesizes one neutral frame
 (``Services.warm_up``) before the server reports ready. The target is the first frame
 after ``serve`` is ready ≤ 2 s.
 
+The model cache's weight of the model is checked against its resident cost (issue 23:
+within 10 %) in a fresh process (``--footprint``): the model is loaded and synthesizes a
+frame of every output once and is dropped (imports, compiled kernels, lazily built state
+all in place), then loaded again the way the service loads it and synthesizes one maps
+frame; the resident memory that second load added (VmRSS, file pages of the mapped arrays
+included, the free heap handed back as ``Services`` does) against ``footprint.nbytes``, the
+cache's weight.
+
 Run: ``python benchmarks/cold_start.py [--actor DIR] [--model DIR] [--rounds 2]
-[--against REV]``. The model is trained once into ``benchmarks/out/realtime/model-<actor>``
+[--against REV] [--footprint]``. The model is trained once into ``benchmarks/out/realtime/model-<actor>``
 (shared with realtime.py) unless ``--model`` names one. Writes the table to stdout and
-``benchmarks/out/cold_start.md``. The machine is shared: the load average is recorded beside
+``benchmarks/out/cold_start.md`` (``--out DIR``: ``DIR/cold_start.md``, work under
+``DIR/cold_start``). The machine is shared: the load average is recorded beside
 every row. With ``--against REV`` every round starts a server of the commit REV
 (``git archive REV service models_store``, unpacked once into
 ``benchmarks/out/cold_start/rev-<REV>``) and one of this tree, in alternating order, on the
@@ -48,7 +57,6 @@ import harness  # noqa: E402
 
 ROOT = harness.ROOT
 OUT = ROOT / "benchmarks" / "out"
-WORK = OUT / "cold_start"
 NPZ = harness.NPZ_TYPE
 TARGET_S = 2.0
 MESH = "mesh"
@@ -92,7 +100,7 @@ def wait_for(url: str, server: subprocess.Popen, t0: float, timeout: float = 600
         except httpx.TransportError:
             pass
         if server.poll() is not None or time.perf_counter() - t0 > timeout:
-            raise RuntimeError(f"the server did not get ready; see {WORK / 'server.log'}")
+            raise RuntimeError("the server did not get ready; see server.log in its work directory")
         time.sleep(0.05)
 
 
@@ -132,6 +140,63 @@ def one_server(work: Path, model_id: str, markers: np.ndarray, preload: bool, ca
         harness.stop_server(server)
 
 
+def footprint(model_dir: Path, actor: Path) -> dict:
+    """The cache's weight of the model against the resident memory a load adds (module
+    docstring; run in a fresh process: ``--footprint-worker``)."""
+    import gc
+
+    from service.app.memory import release_free_heap
+    from service.methods.footprint import nbytes
+    from service.methods.kinds import get_kind
+
+    kind = get_kind("pdm")
+    markers = harness.heldout_markers(actor)[:1].astype(np.float64)
+    outputs = [o for o in ("mesh", "displacement", "normal_map") if o in kind.outputs]
+    model = kind.load(model_dir)
+    model.synthesize(markers, outputs)
+    del model
+    gc.collect()
+    release_free_heap()
+    before = harness.status_kb("VmRSS")
+    t = time.process_time()
+    model = kind.load(model_dir)
+    load_cpu = time.process_time() - t
+    release_free_heap()
+    loaded = harness.status_kb("VmRSS")
+    model.synthesize(markers, outputs)
+    release_free_heap()
+    after = harness.status_kb("VmRSS")
+    weight = nbytes(model, mapped=kind.weighs_mapped)
+    files = sum(f.stat().st_size for f in model_dir.rglob("*") if f.is_file())
+    return {"weight_mb": weight / 2**20, "heap_weight_mb": nbytes(model, mapped=False) / 2**20,
+            "resident_loaded_mb": (loaded - before) / 1024,
+            "resident_mb": (after - before) / 1024, "files_mb": files / 2**20,
+            "load_cpu_s": load_cpu, "load": harness.load_average()}
+
+
+def footprint_table(model_dir: Path, actor: Path) -> str:
+    """:func:`footprint` in a fresh process, as a table."""
+    from service.app.threads import apply_blas_threads
+
+    env = dict(os.environ)
+    apply_blas_threads(None, None, env)           # serve's BLAS threads (before NumPy loads)
+    code = subprocess.run([sys.executable, __file__, "--footprint-worker", "--model", str(model_dir),
+                           "--actor", str(actor)], cwd=ROOT, check=True, capture_output=True,
+                          text=True, env=env).stdout.strip().splitlines()[-1]
+    import json
+
+    r = json.loads(code)
+    ratio = r["weight_mb"] / r["resident_mb"]
+    return "\n".join([
+        "Cache weight against resident cost (fresh process, second load; target within 10 %):", "",
+        "| files MB | cache weight MB (mapped + heap) | heap part MB | resident after load MB | "
+        "resident after a maps frame MB | weight / resident | load CPU s | load average |",
+        "|---:|---:|---:|---:|---:|---:|---:|---|",
+        f"| {r['files_mb']:.0f} | {r['weight_mb']:.0f} | {r['heap_weight_mb']:.0f} | "
+        f"{r['resident_loaded_mb']:.0f} | {r['resident_mb']:.0f} | {ratio:.3f} | "
+        f"{r['load_cpu_s']:.2f} | {r['load']} |"]) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--actor", type=Path, default=OUT / "actor-l1")
@@ -141,13 +206,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=10, help="steady-state frames per server")
     parser.add_argument("--against", metavar="REV", default=None,
                         help="also start servers of this older commit, paired and alternating")
+    parser.add_argument("--out", type=Path, default=OUT,
+                        help="where cold_start.md and the cold_start/ work directory go "
+                             "(default benchmarks/out)")
+    parser.add_argument("--footprint", action="store_true",
+                        help="also the cache weight against the resident cost (fresh process)")
+    parser.add_argument("--footprint-worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.footprint_worker:
+        import json
+
+        print(json.dumps(footprint(args.model.resolve(), args.actor.resolve())))
+        return 0
     trees = {"this tree": ROOT}
     if args.against:
-        trees = {args.against: harness.source_tree(args.against, WORK), **trees}
+        trees = {args.against: harness.source_tree(args.against, args.out / "cold_start"), **trees}
     actor = args.actor.resolve()
     model_dir = (args.model or harness.ensure_realtime_model(actor)).resolve()
-    work = WORK / f"work-{actor.name}"
+    work = args.out / "cold_start" / f"work-{actor.name}"
     work.mkdir(parents=True, exist_ok=True)
     markers = harness.heldout_markers(actor)
     port = harness.free_port()
@@ -179,8 +255,10 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['first_after_spawn_s']:.1f} | {r['first_maps_s']:.2f} | "
                      f"{r['steady_ms']:.0f} | {r['rss_mb']:.0f} | {r['load']} |")
     text = "\n".join(lines) + "\n"
+    if args.footprint:
+        text += "\n" + footprint_table(model_dir, actor)
     print(text)
-    (OUT / "cold_start.md").write_text("# Cold start (benchmarks/cold_start.py)\n\n" + text)
+    (args.out / "cold_start.md").write_text("# Cold start (benchmarks/cold_start.py)\n\n" + text)
     return 0
 
 

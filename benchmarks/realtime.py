@@ -15,8 +15,8 @@ Paths, each a median over ``--calls`` calls (frames cycle through the first 50 o
    encoding and the client's ``np.load`` of every array; variants: float32 with the
    triangles (the contract's default), and ``half=true&topology=false`` (half-precision
    maps, triangles left out: the client fetched them once), and the same through the SDK
-   (``facesynth_client.Client`` on the same httpx client, ``copy=False``: the answer decoded
-   as views of its body; this tree's SDK with ``PYTHONPATH=clients/python/src``); with
+   (``facesynth_client.Client`` with its default transport, ``copy=False``: the answer
+   decoded as views of its body; this tree's SDK with ``PYTHONPATH=clients/python/src``); with
    uvicorn's pure-Python h11
    parser and, when installed, its httptools parser on uvloop (``FACESYNTH_HTTP``), each
    in its own server of the same run;
@@ -162,10 +162,13 @@ def stop_server(server: subprocess.Popen) -> None:
         server.kill()
 
 
-#: the variant that calls through the SDK (``facesynth_client.Client`` over the same httpx
-#: client): triangles fetched once (``topology=false`` after the first answer), half maps,
+#: the variant that calls through the SDK (``facesynth_client.Client`` with its default
+#: transport, one keep-alive connection per server): triangles fetched once (``topology=false`` after the first answer), half maps,
 #: the answer decoded as views of the body (``copy=False``)
 SDK_VARIANT = ("SDK: half maps, topology once, copy=False", {"sdk": "true"})
+#: the same through httpx's own transport (httpcore), the SDK's default before its
+#: ``OnePieceTransport``
+SDK_HTTPX_VARIANT = ("SDK over httpx's own transport", {"sdk": "httpx"})
 
 
 def http_variants() -> list[tuple[str, dict]]:
@@ -175,6 +178,8 @@ def http_variants() -> list[tuple[str, dict]]:
         variants.append(("half maps, topology=false", {"half": "true", "topology": "false"}))
     if sdk_supports_copy():
         variants.append(SDK_VARIANT)
+    if sdk_has_transport():
+        variants.append(SDK_HTTPX_VARIANT)
     return variants
 
 
@@ -187,7 +192,10 @@ def http_call(client, model_id: str, markers: np.ndarray, outputs, params: dict,
     if params.get("sdk"):
         from facesynth_client import Client
 
-        sdk = Client(http_client=client)
+        import httpx
+
+        sdk = Client(str(client.base_url), timeout=300,   # its own transport (the default)
+                     transport=httpx.HTTPTransport() if params["sdk"] == "httpx" else None)
 
         def sdk_call(k: int) -> None:
             sdk.synthesis.synthesize(model_id, markers[k % len(markers)][None],
@@ -406,6 +414,13 @@ def sdk_supports_copy() -> bool:
 
     from facesynth_client.resources.synthesis import Synthesis
     return "copy" in inspect.signature(Synthesis.synthesize).parameters
+
+
+def sdk_has_transport() -> bool:
+    """Whether the SDK on the path has its own transport (``facesynth_client.transport``)."""
+    import importlib.util
+
+    return importlib.util.find_spec("facesynth_client.transport") is not None
 
 
 def grpc_supports_half() -> bool:

@@ -9,10 +9,13 @@ time (``time.process_time``: what the frame costs, not what the scheduler gave i
 time, medians over ``--calls`` frames of ``heldout_in_range``; ``--profile`` adds a cProfile
 breakdown (CPU clock) of each, on separate frames (also interleaved frame by frame).
 The outputs of both are compared on every fifth frame (largest |old − new| and how many
-frames are bit-identical).
+frames are bit-identical). ``--stream`` adds the gRPC server's whole work per frame of each
+(``grpc mesh``, ``grpc maps half``: its ``_Stream.reply`` — the marker frame decoded,
+synthesized, the reply's bytes written — without the network), half-precision maps
+included (issue 23).
 
 Run: ``python benchmarks/realtime_ab.py [--rev 7543b2b] [--actor DIR] [--calls 30]
-[--profile]``, with the model of ``benchmarks/realtime.py`` (trained there, reused here).
+[--profile] [--stream]``, with the model of ``benchmarks/realtime.py`` (trained there, reused here).
 BLAS threads: ``serve``'s sizing, as in ``realtime.py``. Writes JSON to stdout.
 """
 
@@ -74,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--actor", type=Path, default=None, help="sample actor (default level 1)")
     parser.add_argument("--calls", type=int, default=30)
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--stream", action="store_true", help="also the gRPC server's work per frame")
     args = parser.parse_args(argv)
     actor_dir = args.actor or harness.sample_actor("a", 1)
     model_dir = harness.ensure_realtime_model(actor_dir)
@@ -81,18 +85,25 @@ def main(argv: list[str] | None = None) -> int:
     import importlib
 
     from service.methods.pdm.model import PdmModel as New
-    Old = importlib.import_module(old_package(args.rev) + ".methods.pdm.model").PdmModel
+    packages = {"before": old_package(args.rev), "after": "service"}
+    Old = importlib.import_module(packages["before"] + ".methods.pdm.model").PdmModel
     models = {"before": Old.load(model_dir), "after": New.load(model_dir)}
     res: dict = {"rev": args.rev, "actor": str(actor_dir), "blas_threads": BLAS_THREADS,
                  "calls": args.calls, "load_start": harness.load_average()}
     sets = {"mesh": ("mesh",), "maps": ("mesh", "displacement", "normal_map")}
-    for name, outs in sets.items():
+    frame_calls = {name: {tag: (lambda k, m=models[tag], o=outs: m.synthesize(markers[k % len(markers)][None], o))
+                          for tag in models} for name, outs in sets.items()}
+    if args.stream:
+        for name, outs, half in (("grpc mesh", sets["mesh"], False), ("grpc maps half", sets["maps"], True)):
+            frame_calls[name] = {tag: stream_frames(packages[tag], models[tag], markers, outs, half)
+                                 for tag in models}
+    for name, calls in frame_calls.items():
         cpu = {k: [] for k in models}
         wall = {k: [] for k in models}
         for k in range(args.calls + harness.WARMUP):
             for tag in alternating(k):
                 c0, w0 = time.process_time(), time.perf_counter()
-                models[tag].synthesize(markers[k % len(markers)][None], outs)
+                calls[tag](k)
                 if k >= harness.WARMUP:
                     cpu[tag].append(time.process_time() - c0)
                     wall[tag].append(time.perf_counter() - w0)
@@ -105,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             for k in range(args.calls):
                 for tag in alternating(k):
                     prof[tag].enable()
-                    models[tag].synthesize(markers[k % len(markers)][None], outs)
+                    calls[tag](k)
                     prof[tag].disable()
             res[f"{name} profile"] = {tag: profile_rows(p, args.calls) for tag, p in prof.items()}
     diff: dict = {}
@@ -120,6 +131,21 @@ def main(argv: list[str] | None = None) -> int:
     res["load_end"] = harness.load_average()
     print(json.dumps(res, indent=1))
     return 0
+
+
+def stream_frames(package: str, model, markers: np.ndarray, outputs, half: bool):
+    """frame k → the gRPC server's work on frame k of a stream of ``outputs`` (``half``: maps
+    in half precision), by ``package``'s own server (``service`` or an old one): its stream
+    opened from a first MarkerFrame, then ``_Stream.reply`` of each MarkerFrame (decoding,
+    synthesis, the reply's bytes), as the server's synthesis threads run it."""
+    import importlib
+
+    server = importlib.import_module(package + ".grpc.server")
+    codec = importlib.import_module(package + ".grpc.codec")
+    first = codec.encode_markers(markers[0], 0, model_id="model", outputs=list(outputs), half=half)
+    stream = server.SynthesisServicer(lambda _: model, synthesis_threads=1)._open(first)
+    messages = [codec.encode_markers(m, i) for i, m in enumerate(markers)]
+    return lambda k: stream.reply(messages[k % len(messages)], f"frame {k}", time.perf_counter(), False)
 
 
 def alternating(k: int) -> tuple[str, str]:

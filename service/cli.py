@@ -269,8 +269,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         try:
             grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
                                 tokens=settings.tokens,
-                                # the synthesis slots the BLAS threads were sized against
-                                synthesis_threads=settings.max_concurrent_syntheses)
+                                # the synthesis slots the BLAS threads were sized
+                                # against, shared with the HTTP syntheses
+                                synthesis=services.synthesis)
         except RuntimeError as error:
             return _serve_error(f"cannot listen on {settings.host}:{settings.grpc_port} for "
                                 f"gRPC ({error}); choose another --grpc-port "

@@ -108,8 +108,9 @@ class Settings(BaseSettings):
                     "work goes to a synthesis job).")
     max_concurrent_syntheses: int | None = Field(
         default=None, ge=1,
-        description="Synchronous syntheses (and enhancements) run at once; None: one per CPU "
-                    "core of the machine.")
+        description="Synchronous syntheses (and enhancements) run at once, HTTP requests and "
+                    "gRPC stream frames together (one pool); None: one per CPU core of the "
+                    "machine.")
     blas_threads: int | None = Field(
         default=None, ge=1,
         description="BLAS/OpenMP threads of each synthesis (OPENBLAS_NUM_THREADS, "
@@ -162,6 +163,12 @@ class Settings(BaseSettings):
         description="uvicorn's HTTP parser: h11 (pure Python) or httptools (C, from "
                     "uvicorn[standard]); auto: httptools when installed. Both hold the "
                     "header/body timeouts and the per-client bound above.")
+    lean_synthesis: bool = Field(
+        default=True,
+        description="POST /v1/models/{id}/synthesize with a plain query string is served on "
+                    "a lean ASGI path (service/api/lean.py: the same answers, without "
+                    "FastAPI's routing and dependency solving); false: through FastAPI like "
+                    "every other route.")
     loop: Literal["auto", "asyncio", "uvloop"] = Field(
         default="auto",
         description="The HTTP server's event loop: asyncio, or uvloop (from "

@@ -18,6 +18,7 @@ from fastapi.openapi.utils import get_openapi
 from service.api import docs, errors
 from service.api.auth import check_bearer
 from service.api.edge import UrlGuardMiddleware
+from service.api.lean import LeanSynthesize
 from service.api.logs import RequestContextMiddleware
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
@@ -89,7 +90,9 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         own = services is None
-        app.state.services = Services.open(settings) if own else services
+        # one pool of synthesis slots with the synthesizer (and so with the gRPC streams)
+        app.state.services = (Services.open(settings, app.state.synthesizer.pool) if own
+                              else services)
         app.state.metrics.watch_cache(app.state.services.models)
         try:
             yield
@@ -106,8 +109,11 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     app.state.metrics = Metrics()
     app.state.synthesizer = Synthesizer(app.state.metrics, settings.max_concurrent_syntheses,
                                         settings.synthesis_queue_seconds,
-                                        settings.synthesis_queue_depth)
+                                        settings.synthesis_queue_depth,
+                                        pool=services.synthesis if services is not None else None)
     errors.install(app)
+    if settings.lean_synthesis:   # innermost: inside every middleware below
+        app.add_middleware(LeanSynthesize)
     app.add_middleware(LargeUploadLimiter, limit=settings.max_concurrent_uploads,
                        threshold=settings.spool_body_bytes,
                        wait_seconds=settings.upload_queue_seconds)   # inside the size limit

@@ -68,7 +68,9 @@ class Metrics:
             "facesynth_synthesis_queue_depth",
             "Synchronous syntheses waiting for a slot", registry=self.registry)
         self.synthesis_running = Gauge(
-            "facesynth_synthesis_running", "Synchronous syntheses running", registry=self.registry)
+            "facesynth_synthesis_running",
+            "Syntheses running (HTTP requests and gRPC stream frames: one pool of slots)",
+            registry=self.registry)
         self._finished_since: datetime = utcnow()
         self._lock = threading.Lock()
         self._cache = _CacheCollector()

@@ -3,7 +3,9 @@
 :class:`Services` opens the metadata database (migrating it to the current schema), the blob
 store and the byte-budgeted cache of loaded models; :meth:`Services.load_model` is the one
 way to get a ready model, used by the HTTP routes and, as ``load_model``, by the gRPC
-server (:func:`service.grpc.server.serve`), so both share one cache.
+server (:func:`service.grpc.server.serve`), so both share one cache. Both also synthesize in
+one pool of ``max_concurrent_syntheses`` slots (:attr:`Services.synthesis`,
+:class:`~service.app.threads.SynthesisPool`), the count the BLAS threads are sized against.
 """
 
 from __future__ import annotations
@@ -27,12 +29,13 @@ from models_store.registry._common import in_tenant
 from service.app.limits import REGISTRATION_CACHE_BYTES
 from service.app.marker_units import MarkerReference, face_unit, layout_positions
 from service.app.memory import release_free_heap
+from service.app.threads import SynthesisPool
 from service.config import Settings
 from service.methods.footprint import nbytes
 from service.errors import Conflict
 from service.jobs.job_threads import JobThreads
 from service.jobs.queue_storage import probe as probe_queue
-from service.methods.kinds import Kind, get_kind
+from service.methods.kinds import Kind, get_kind, takes
 from service.store.actors import neutral_arrays
 from service.store.container import Store, get_store
 
@@ -112,13 +115,13 @@ class UnitCheckedModel:
     reference: MarkerReference | None
 
     def synthesize(self, markers: np.ndarray, outputs: Any = ("mesh", "displacement"),
-                   clamp: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, **options: Any) -> dict[str, np.ndarray]:
         frames = np.asarray(markers, np.float64)
         frames = frames[None] if frames.ndim == 2 else frames
         # a wrong marker count is the model's to name ("model expects 150 markers, got 149")
         if self.reference is not None and frames.shape[1:] == self.reference.rest.shape:
             self.reference.check(frames)
-        return self.model.synthesize(markers, outputs, clamp)
+        return self.model.synthesize(markers, outputs, clamp, **options)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.model, name)
@@ -162,6 +165,9 @@ class Services:
     store : Store               the process's database + blob container (shared with jobs)
     models : ByteLRUCache      loaded models by id, within ``settings.model_cache_bytes``
     registrations : ByteLRUCache   loaded input-rig registrations by (rig id, sha256)
+    synthesis : SynthesisPool  the process's synthesis slots, shared by the HTTP routes
+                               (:class:`~service.app.synthesis.Synthesizer`) and the gRPC
+                               streams (None when built: ``max_concurrent_syntheses`` of them)
     """
 
     settings: Settings
@@ -182,14 +188,20 @@ class Services:
     ready_rows: dict[str, ReadyRow] = field(default_factory=dict, repr=False)
     #: models forgotten so far: a row read before a deletion is not remembered after it
     forgotten: int = field(default=0, repr=False)
+    synthesis: SynthesisPool = field(default=None, repr=False)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.synthesis is None:
+            self.synthesis = SynthesisPool(self.settings.max_concurrent_syntheses)
 
     @classmethod
-    def open(cls, settings: Settings) -> "Services":
+    def open(cls, settings: Settings, synthesis: SynthesisPool | None = None) -> "Services":
         """Connect to the database of ``settings`` (running the migrations), open the blob
-        store and make an empty model cache."""
+        store and make an empty model cache; ``synthesis``: the synthesis slots to share
+        (None: a pool of ``max_concurrent_syntheses``)."""
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         return cls(settings=settings, store=get_store(settings, migrate=True),
-                   models=ByteLRUCache(settings.model_cache_bytes))
+                   models=ByteLRUCache(settings.model_cache_bytes), synthesis=synthesis)
 
     @property
     def engine(self) -> Engine:
@@ -200,7 +212,9 @@ class Services:
         return self.store.blobs
 
     def close(self) -> None:
-        """Drop the cached models and the database connections."""
+        """Drop the cached models and the database connections, and stop the synthesis
+        pool's threads (calls not started are cancelled)."""
+        self.synthesis.shutdown(wait=False, cancel_futures=True)
         self.models.clear()
         self.registrations.clear()
         self.ready_rows.clear()
@@ -256,15 +270,28 @@ class Services:
 
     def _size_of(self, row: ReadyRow) -> Callable[[LoadedModel], int]:
         """What the cache weighs a loaded model of ``row`` by: what it holds in memory
-        (arrays, operators, factorizations), which can be several times its files (a
-        shape-space model's prefactored solves); at least its files unless the kind maps
-        files it reads only in part."""
+        (arrays, operators, factorizations, :func:`~service.methods.footprint.nbytes`), which
+        can be several times its files (a shape-space model's prefactored solves) or less
+        (files it maps and reads in part, data it reads once at load).
+
+        Not at least its files any more (issue 23): a level-1 PDM's 414 MB of files (the
+        medium map and EXRs it never holds) outweighed its resident cost, 322 MB after a
+        mesh + displacement + normal-map frame and 348 MB after one of every output, by
+        1.19–1.29×; weighed by what it holds, 350 MB: 1.09× and 1.01×
+        (``benchmarks/cold_start.py --footprint``)."""
         kind = get_kind(row.kind)
-        floor = row.size_bytes if kind.weighs_mapped else 0
-        return lambda loaded: max(nbytes(loaded.model, mapped=kind.weighs_mapped), floor)
+        return lambda loaded: nbytes(loaded.model, mapped=kind.weighs_mapped)
 
     def _load(self, model_id: str, row: ReadyRow) -> LoadedModel:
-        """Load the ready model of ``row`` from its verified files."""
+        """Load the ready model of ``row`` from its verified files.
+
+        The integrity rule: the files are hashed in a thread while the kind reads them (the
+        cold start overlaps the two), and nothing read from them is synthesized with — no
+        warm-up frame, no request, no stream — or cached before :meth:`VerifyingDir.confirm`
+        has matched every file to the recorded sha256; a mismatch raises ``BlobCorrupt``
+        (500 / DATA_LOSS / a failed preload) and nothing is cached. Not overlapped further on
+        purpose: a corrupt index array read by a compiled (unchecked) kernel could write out
+        of bounds, so synthesis waits for the check."""
         kind = get_kind(row.kind)
         with self.session() as session:
             # the files are hashed in a thread while the kind reads them (issue 23's cold
@@ -378,6 +405,10 @@ class Services:
                     frame = neutral_arrays(registry.read_neutral(session, self.blobs, loaded.actor_id))[0][None]
             outputs = [o for o in ("mesh", "displacement", "normal_map") if o in loaded.kind.outputs]
             loaded.model.synthesize(np.asarray(frame, np.float64), outputs)
+            if {"displacement", "normal_map"} & set(outputs) and takes(loaded.model, "half"):
+                # the float16 map kernels a half-precision gRPC stream runs (issue 23: ~3.4 s
+                # to compile without Numba's disk cache)
+                loaded.model.synthesize(np.asarray(frame, np.float64), outputs, half=True)
             if {"displacement", "normal_map"} & set(outputs):
                 # the compiled float16 conversion of half=true responses, loaded from its
                 # on-disk cache now rather than by the first such request

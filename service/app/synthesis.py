@@ -22,7 +22,7 @@ from service.errors import NotAcceptable, PayloadTooLarge, Unavailable, invalid_
 from service.app.limits import (RETRY_AFTER_SECONDS, SYNTHESIS_QUEUE_DEPTH,
                                 SYNTHESIS_WAIT_SECONDS)
 from service.app.marker_units import MarkerReference
-from service.app.threads import synthesis_slots
+from service.app.threads import SynthesisPool
 from service.app.metrics import Metrics
 from service.app.schemas import SynthesizeBody
 from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
@@ -214,44 +214,51 @@ def parse_synthesis_request(kind: str, data: bytes, expected: Expected, settings
 
 # ---------------------------------------------------------------------------- running
 class Synthesizer:
-    """Runs synchronous syntheses, at most ``limit`` at once; a request finding every slot
+    """Runs synchronous syntheses in the process's synthesis slots (``pool``, shared with the
+    gRPC streams: :class:`~service.app.threads.SynthesisPool`); a request finding every slot
     busy waits for one up to ``wait_seconds`` (at most ``max_queue`` requests wait; beyond
     that, or when the wait runs out, a 503 with ``Retry-After``), and records frames, rate,
-    the running count and the queue depth in the metrics.
+    the running count (HTTP and gRPC) and the queue depth (HTTP) in the metrics.
 
     Parameters
     ----------
     metrics : Metrics
-    limit : int            syntheses at once (``max_concurrent_syntheses``; default: one per
-                           CPU core — a synthesis is CPU-bound)
+    limit : int            syntheses at once when no ``pool`` is given
+                           (``max_concurrent_syntheses``; default: one per CPU core — a
+                           synthesis is CPU-bound)
     wait_seconds : float   longest wait for a slot (``synthesis_queue_seconds``)
     max_queue : int        most requests waiting at once (``synthesis_queue_depth``)
+    pool : SynthesisPool or None   the process's slots (None: a pool of ``limit`` of its own)
     """
 
     def __init__(self, metrics: Metrics, limit: int | None = None,
                  wait_seconds: float = SYNTHESIS_WAIT_SECONDS,
-                 max_queue: int = SYNTHESIS_QUEUE_DEPTH):
-        self.limit = synthesis_slots(limit)
+                 max_queue: int = SYNTHESIS_QUEUE_DEPTH, pool: SynthesisPool | None = None):
+        #: the synthesis slots this synthesizer takes from
+        self.pool = pool if pool is not None else SynthesisPool(limit)
+        self.limit = self.pool.limit
         self.wait_seconds, self.max_queue = float(wait_seconds), int(max_queue)
-        self._slots = threading.BoundedSemaphore(self.limit)
         self._metrics = metrics
+        metrics.synthesis_running.set_function(lambda: self.pool.running)
         self._lock = threading.Lock()
         self.waiting = 0
-        self.running = 0
 
-    def _count(self, waiting: int = 0, running: int = 0) -> None:
+    @property
+    def running(self) -> int:
+        """Syntheses running now in the pool (this one's and any other user's)."""
+        return self.pool.running
+
+    def _count(self, waiting: int) -> None:
         with self._lock:
             self.waiting += waiting
-            self.running += running
             self._metrics.synthesis_queue_depth.set(self.waiting)
-            self._metrics.synthesis_running.set(self.running)
 
     @contextlib.contextmanager
     def slot(self, kind: str, frames: int) -> Iterator[None]:
         """Hold one synthesis slot while the block runs (waiting for one as the class
         docstring says) and record ``frames`` output frames of a ``kind`` model and the
         time taken."""
-        if not self._slots.acquire(blocking=False):
+        if not self.pool.acquire(blocking=False):
             with self._lock:
                 full = self.waiting >= self.max_queue
             if full:
@@ -260,21 +267,19 @@ class Synthesizer:
                                   "submit a synthesis job", retry_after=RETRY_AFTER_SECONDS)
             self._count(waiting=1)
             try:
-                got = self._slots.acquire(timeout=self.wait_seconds)
+                got = self.pool.acquire(timeout=self.wait_seconds)
             finally:
                 self._count(waiting=-1)
             if not got:
                 raise Unavailable(f"every synthesis slot stayed busy (waited "
                                   f"{self.wait_seconds:g} s); retry shortly, or submit a "
                                   "synthesis job", retry_after=RETRY_AFTER_SECONDS)
-        self._count(running=1)
         try:
             start = time.perf_counter()
             yield
             seconds = time.perf_counter() - start
         finally:
-            self._count(running=-1)
-            self._slots.release()
+            self.pool.release()
         self._metrics.observe_synthesis(kind, frames, seconds)
 
     def run(self, loaded: LoadedModel, request: SynthesisInput) -> dict[str, np.ndarray]:

@@ -13,12 +13,23 @@ The thread count is read by the BLAS library when it loads, so :func:`apply_blas
 sets the environment variables before NumPy is imported (``facesynth serve`` calls it first
 thing); a variable already in the environment is the operator's choice and is kept unless
 the ``blas_threads`` setting names a count.
+
+The S slots are one pool per process (:class:`SynthesisPool`, held by
+:class:`service.app.services.Services`): HTTP requests take a slot for their synthesis
+(:class:`service.app.synthesis.Synthesizer`, which queues them and answers 503 when the wait
+runs out) and the gRPC streams' frames are synthesized on the pool's threads, each holding a
+slot while it runs; so with both busy at most S syntheses run at once, not S per transport
+(2 S on 2 cores before: each synthesis then had half the cores its BLAS threads were sized
+for).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
-from typing import MutableMapping
+import threading
+from concurrent import futures
+from typing import Any, Callable, Iterator, MutableMapping
 
 #: the thread-count variables of the BLAS / OpenMP runtimes NumPy and SciPy may load, and
 #: of the compiled per-frame kernels (:func:`service.geometry.ranges.kernel_threads`)
@@ -56,3 +67,90 @@ def apply_blas_threads(max_concurrent: int | None, threads: int | None,
         if threads or name not in environ:
             environ[name] = str(count)
     return count
+
+
+class SynthesisPool(futures.Executor):
+    """The synthesis slots of one process: at most ``limit`` syntheses at once, over the
+    HTTP requests and the gRPC stream frames together (see the module docstring).
+
+    A slot is held as a semaphore (:meth:`acquire`, :meth:`release`, or :meth:`hold` around
+    a block: the HTTP path, which decides itself how long to wait); as an executor,
+    :meth:`submit` runs a call on one of the pool's ``limit`` threads while it holds a slot,
+    waiting as long as it takes for one (the gRPC path: its frames' futures are taken in
+    submission order, so a stream's replies stay in order). A future cancelled before its
+    thread started never takes a slot.
+
+    Parameters
+    ----------
+    limit : int or None   syntheses at once (``max_concurrent_syntheses``; None: one per
+                          core, :func:`synthesis_slots`)
+
+    Attributes
+    ----------
+    limit : int
+    running : int         slots held now
+    waiting : int         callers blocked in :meth:`acquire` now (either transport)
+    """
+
+    def __init__(self, limit: int | None = None):
+        self.limit = synthesis_slots(limit)
+        self._slots = threading.BoundedSemaphore(self.limit)
+        self._lock = threading.Lock()
+        self._threads: futures.ThreadPoolExecutor | None = None
+        self.running = 0
+        self.waiting = 0
+
+    def acquire(self, blocking: bool = True, timeout: float | None = None) -> bool:
+        """Take a slot, as ``threading.Semaphore.acquire``; True if one was taken."""
+        if self._slots.acquire(blocking=False):
+            got = True
+        elif not blocking:
+            return False
+        else:
+            with self._lock:
+                self.waiting += 1
+            try:
+                got = self._slots.acquire(timeout=timeout)
+            finally:
+                with self._lock:
+                    self.waiting -= 1
+        if got:
+            with self._lock:
+                self.running += 1
+        return got
+
+    def release(self) -> None:
+        """Give back a slot taken by :meth:`acquire`."""
+        with self._lock:
+            self.running -= 1
+        self._slots.release()
+
+    @contextlib.contextmanager
+    def hold(self) -> Iterator[None]:
+        """Hold one slot while the block runs (waiting for it as long as it takes)."""
+        self.acquire()
+        try:
+            yield
+        finally:
+            self.release()
+
+    def _run(self, fn: Callable[..., Any], args: tuple, kwargs: dict) -> Any:
+        with self.hold():
+            return fn(*args, **kwargs)
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> futures.Future:
+        """Run ``fn(*args, **kwargs)`` on one of the pool's threads, holding a slot."""
+        with self._lock:
+            if self._threads is None:
+                self._threads = futures.ThreadPoolExecutor(self.limit,
+                                                           thread_name_prefix="facesynth-synthesis")
+            threads = self._threads
+        return threads.submit(self._run, fn, args, kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Stop the pool's threads (calls not yet started are cancelled with
+        ``cancel_futures``); a later :meth:`submit` starts new ones. The slots stay usable."""
+        with self._lock:
+            threads, self._threads = self._threads, None
+        if threads is not None:
+            threads.shutdown(wait=wait, cancel_futures=cancel_futures)

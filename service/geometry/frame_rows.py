@@ -44,6 +44,30 @@ def triangle_rows(lo, hi, ptr, idx, val, V, m, e, fn):
         fn[2, t] = a0 * b1 - a1 * b0
 
 
+@njit(nogil=True, cache=True, error_model="numpy")
+def triangle_edges(lo, hi, F, V, m, e, fn):
+    """:func:`triangle_rows` of the edge operator of the triangles ``F`` (m,3) uint32 itself
+    (rows t: +1 at corner 1, −1 at corner 0; rows m + t: +1 at corner 2, −1 at corner 0), from
+    the corners instead of its CSR arrays: ``e = (0 + P1) − P0`` in float64, rounded once.
+    The CSR row sum is ``0 + P1 − P0`` or ``0 − P0 + P1`` by its stored column order; the
+    products by ±1 are exact and both sums start from +0, so each gives this value and this
+    sign of zero for finite vertices, bit for bit (tests/geometry/test_tangent_frames.py).
+    It does not read the operator (5.7 MB a frame at level 1): a level-1 PDM maps frame
+    42.30 → 41.74 ms of CPU (median of 55, alternating in one process, load 6)."""
+    mm = uint64(m)
+    for t in range(uint64(lo), uint64(hi)):
+        a, b, c = F[t, 0], F[t, 1], F[t, 2]
+        for k in range(3):
+            p0 = V[a, k]
+            e[k, t] = np.float32((0.0 + V[b, k]) - p0)
+            e[k, t + mm] = np.float32((0.0 + V[c, k]) - p0)
+        a0, a1, a2 = e[0, t], e[1, t], e[2, t]
+        b0, b1, b2 = e[0, t + mm], e[1, t + mm], e[2, t + mm]
+        fn[0, t] = a1 * b2 - a2 * b1
+        fn[1, t] = a2 * b0 - a0 * b2
+        fn[2, t] = a0 * b1 - a1 * b0
+
+
 @njit(nogil=True, cache=True, error_model="numpy", inline="always")
 def _row_sums(ptr, idx, val, X, v):
     """Row v of the float32 CSR (ptr, idx, val) times the three rows of X (3,k): each sum

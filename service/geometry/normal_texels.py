@@ -42,7 +42,10 @@ when it is built, i.e. where a model is built, never by ``facesynth serve``'s st
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, uint64
+from numba import njit, types, uint64
+from numba.extending import overload
+
+from service.geometry.half_kernel import binary16
 
 #: texels per block of :func:`normal_texels` (its two work arrays, 12 rows of BLOCK float32,
 #: stay in the L1 cache; 64-1024 measured within 0.6 ms of each other)
@@ -108,9 +111,12 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, code, scales, width, hf
     the texel's stencil bits ``code[i]`` and the scales (2,3) float32 of u and v; ``width``
     W the step of a row) and the vertex rows ``TN`` (6,n) float32 (T, N); ``eps`` the clamp
     of |T×N|² and |Z|² (FRAME_DEGENERATE). In blocks of :data:`BLOCK` texels (module
-    docstring)."""
+    docstring). ``out`` (H·W,3) uint16 instead takes the normals as float16 bits
+    (:func:`service.geometry.half_kernel.binary16`: NumPy's ``astype(np.float16)`` of the
+    float32 normals bit for bit), rounded in the block's last loop."""
     rows = np.empty((9, BLOCK), np.float32)        # t0 t1 t2 n0 n1 n2 g0 g1 g2 of the block
     res = np.empty((3, BLOCK), np.float32)
+    block = _block_of(out, res)                    # the block as out holds it
     su, sv = scales[0], scales[1]
     one, w = uint64(1), uint64(width)
     for s in range(uint64(lo), uint64(hi), uint64(BLOCK)):
@@ -143,22 +149,58 @@ def normal_texels(lo, hi, texel, triangle, lam, corners, code, scales, width, hf
             res[0, j], res[1, j], res[2, j] = _unit_normal(rows[0, j], rows[1, j], rows[2, j], rows[3, j],
                                                            rows[4, j], rows[5, j], rows[6, j], rows[7, j],
                                                            rows[8, j], eps)
+        _round(res, block, n)                      # (b') float16 bits, vectorized too
         for j in range(n):                         # (c) into the map
             p = texel[s + j]
-            out[p, 0] = res[0, j]
-            out[p, 1] = res[1, j]
-            out[p, 2] = res[2, j]
+            out[p, 0] = block[0, j]
+            out[p, 1] = block[1, j]
+            out[p, 2] = block[2, j]
+
+
+def _block_of(out, res):
+    """The (3, BLOCK) array a block's normals are written from: ``res`` itself for a float32
+    ``out``, a uint16 one for float16 bits. Resolved by out's type at compile time."""
+
+
+def _round(res, block, n):
+    """Columns [0, n) of the float32 block ``res`` into ``block`` as float16 bits
+    (:func:`~service.geometry.half_kernel.binary16`); nothing where ``block`` is res."""
+
+
+@overload(_block_of)
+def _block_of_type(out, res):
+    if out.dtype == types.uint16:
+        return lambda out, res: np.empty((3, BLOCK), np.uint16)
+    return lambda out, res: res
+
+
+@overload(_round)
+def _round_type(res, block, n):
+    if block.dtype != types.uint16:
+        return lambda res, block, n: None
+
+    def rounded(res, block, n):
+        bits = res.view(np.uint32)
+        for c in range(3):
+            for j in range(n):
+                block[c, j] = binary16(bits[c, j], res[c, j])
+    return rounded
+
+
+#: the normal of a texel without a gradient, (0, 0, 1), as float32 and as float16 bits
+FLAT = np.float32([0, 0, 1])
+FLAT_HALF = np.uint16([0, 0, 0x3C00])
 
 
 @njit(nogil=True, cache=True)
-def flat_runs(lo, hi, runs, out):
-    """Runs [lo, hi) of uncovered texels: ``out[p] = (0, 0, 1)`` (H·W,3) float32 for
-    ``runs[r, 0] ≤ p < runs[r, 1]`` (the normal of a texel without a gradient)."""
+def flat_runs(lo, hi, runs, out, flat):
+    """Runs [lo, hi) of uncovered texels: ``out[p] = flat`` (H·W,3) for ``runs[r, 0] ≤ p <
+    runs[r, 1]``: :data:`FLAT` for a float32 map, :data:`FLAT_HALF` for one of float16 bits."""
     for r in range(uint64(lo), uint64(hi)):
         for p in range(uint64(runs[r, 0]), uint64(runs[r, 1])):
-            out[p, 0] = np.float32(0)
-            out[p, 1] = np.float32(0)
-            out[p, 2] = np.float32(1)
+            out[p, 0] = flat[0]
+            out[p, 1] = flat[1]
+            out[p, 2] = flat[2]
 
 
 @njit(nogil=True, cache=True, error_model="numpy", inline="always")

@@ -379,15 +379,22 @@ class FrameField:
         :mod:`service.geometry.frame_rows` (issue 23: the sparse products and ~30 passes over
         (3,n) rows before, the same arithmetic in the same order, bit for bit: tests)."""
         from service.geometry import ranges
-        from service.geometry.frame_rows import finish_rows, triangle_rows, vertex_rows   # Numba (issue 23)
+        from service.geometry.frame_rows import (   # Numba (issue 23)
+            finish_rows, triangle_edges, triangle_rows, vertex_rows,
+        )
 
         edges_op, du_op, inc_op = self._kernel_operators
         m, n = len(self.faces), self.incidence.shape[0]
-        # the edges differenced in float64 and rounded once, their cross products; T, N per
-        # vertex from the float32 operators; the fallbacks and B (module frame_rows)
+        # the edges differenced in float64 and rounded once, their cross products (from the
+        # corners where the edge operator is the faces' own); T, N per vertex from the
+        # float32 operators; the fallbacks and B (module frame_rows)
         e = np.empty((3, 2 * m), np.float32)
         fn = np.empty((3, m), np.float32)
-        ranges.run(triangle_rows, m, *edges_op, np.ascontiguousarray(V, np.float64), m, e, fn)
+        V = np.ascontiguousarray(V, np.float64)
+        if self._edge_faces is not None:
+            ranges.run(triangle_edges, m, self._edge_faces, V, m, e, fn)
+        else:
+            ranges.run(triangle_rows, m, *edges_op, V, m, e, fn)
         T, N, B = (np.empty((3, n), np.float32) for _ in range(3))
         tmax = np.empty(n, np.float32)
         ranges.run(vertex_rows, n, *du_op, e, *inc_op, fn, T, N, tmax)
@@ -406,6 +413,25 @@ class FrameField:
         level-1 frames), made on the first float32 call."""
         return tuple((A.indptr.astype(np.uint64), A.indices.astype(np.uint32), A.data)
                      for A in (self.edges, self._float32[1], self._float32[0]))
+
+    @cached_property
+    def _edge_faces(self) -> np.ndarray | None:
+        """``faces`` (m,3) uint32 if ``edges`` is exactly their edge operator (rows t: +1 at
+        corner 1 and −1 at corner 0; rows m + t: +1 at corner 2, −1 at corner 0; as
+        :meth:`build` makes it, in any column order), so that
+        :func:`~service.geometry.frame_rows.triangle_edges` may difference the corners
+        instead of reading the operator; else None."""
+        E, F = self.edges, np.asarray(self.faces, np.int64)
+        m = len(F)
+        if E.shape[0] != 2 * m or not np.array_equal(E.indptr, 2 * np.arange(2 * m + 1)):
+            return None
+        cols, vals = E.indices.reshape(2 * m, 2), E.data.reshape(2 * m, 2)
+        plus = np.where(vals[:, 0] == 1, cols[:, 0], cols[:, 1])
+        minus = np.where(vals[:, 0] == 1, cols[:, 1], cols[:, 0])
+        signs = np.sort(vals, axis=1)
+        ok = ((signs == [-1.0, 1.0]).all() and np.array_equal(plus, np.concatenate([F[:, 1], F[:, 2]]))
+              and np.array_equal(minus, np.concatenate([F[:, 0], F[:, 0]])))
+        return np.ascontiguousarray(F, np.uint32) if ok else None
 
     @cached_property
     def _float32(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:

@@ -17,8 +17,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, uint64
 
+from service.geometry.half_kernel import binary16
+
 #: the inverse index of a texel that is not in the band
 NOT_COVERED = np.uint32(0xFFFFFFFF)
+#: texels per block of a half-precision :func:`band_image` (1 KiB of float32: in L1)
+BLOCK = 256
 
 
 def inverse_index(index: np.ndarray, size: int) -> np.ndarray:
@@ -41,3 +45,24 @@ def band_image(lo, hi, inverse, values, out):
     for p in range(uint64(lo), uint64(hi)):
         q = uint64(inverse[p])
         out[p] = values[q] if q != none else 0
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def band_image_half(lo, hi, inverse, values, out, half):
+    """:func:`band_image` of float32 ``values`` written as float16 bits into ``half`` (H·W,)
+    uint16 (:func:`service.geometry.half_kernel.binary16`: NumPy's ``astype(np.float16)`` of
+    the float32 map bit for bit) and, unless ``out`` is None, as float32 into ``out`` too; a
+    block of :data:`BLOCK` texels at a time (gathered, then rounded in a loop that vectorizes)."""
+    none = uint64(NOT_COVERED)
+    block = np.empty(BLOCK, np.float32)
+    bits = block.view(np.uint32)
+    for s in range(uint64(lo), uint64(hi), uint64(BLOCK)):
+        n = min(uint64(BLOCK), uint64(hi) - s)
+        for j in range(n):
+            q = uint64(inverse[s + j])
+            block[j] = values[q] if q != none else np.float32(0)
+        if out is not None:
+            for j in range(n):
+                out[s + j] = block[j]
+        for j in range(n):
+            half[s + j] = binary16(bits[j], block[j])

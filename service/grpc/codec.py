@@ -187,9 +187,12 @@ def _length_delimited(field: int, pieces: list) -> list:
 def map_pieces(field: int, values: np.ndarray, half: bool = False) -> list:
     """The pieces of a Map field of a (H,W) or (H,W,C) array, as :func:`encode_map`'s message.
     Half maps are converted into the calling thread's work array (``scratch``), valid until
-    its next call: join the pieces before then."""
+    its next call: join the pieces before then; a float16 array (a map the model wrote in
+    half precision) is sent as it is."""
     H, W = values.shape[:2]
-    if half:
+    if half and values.dtype == np.float16:
+        data = _payload(values, F16)
+    elif half:
         data = to_float16(values, out=scratch(f"grpc.half.{field}", (values.size,), np.float16))
         data = memoryview(data).cast("B")
     else:

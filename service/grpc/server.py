@@ -26,7 +26,9 @@ the stream after the replies of frames 0..n-1.
 The synthesis threads are one pool of ``synthesis_threads`` per server, shared by its
 streams: the synthesis slots of :mod:`service.app.threads` (one per core by default), against
 which ``facesynth serve`` sizes the BLAS and compiled-kernel threads, so S frames at once
-each get cores / S threads and the cores are not oversubscribed. A frame's work releases the
+each get cores / S threads and the cores are not oversubscribed. ``facesynth serve`` passes
+the process's pool (``synthesis``, :attr:`service.app.services.Services.synthesis`), whose
+slots the HTTP syntheses take too: S at once over both transports, not S each. A frame's work releases the
 GIL (NumPy and BLAS, SciPy's sparse products, the Numba kernels compiled ``nogil``), so
 frames of one stream are synthesized side by side: with S = 2 on 2 cores the default depth,
 S + 1, keeps both threads busy while one reply is sent. Each frame's result is that of
@@ -40,6 +42,7 @@ MeshFrames' serialized bytes, written straight from the result arrays on the syn
 from __future__ import annotations
 
 import contextvars
+import dataclasses
 import ipaddress
 import logging
 import queue
@@ -54,7 +57,8 @@ import grpc
 import numpy as np
 
 from models_store.tenancy import Principal, TokenTable
-from service.app.threads import synthesis_slots
+from service.app.threads import SynthesisPool
+from service.methods.kinds import takes
 from service.grpc import codec
 from service.grpc.facesynth.v1 import synthesis_pb2 as pb
 from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc
@@ -96,7 +100,12 @@ def default_depth(synthesis_threads: int) -> int:
 
 
 class StreamModel(Protocol):
-    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature."""
+    """What a stream needs of a model: :meth:`PdmModel.synthesize`'s signature. Options it
+    may also take (:func:`takes`; :meth:`PdmModel.synthesize` takes both): ``half`` — passed
+    ``half=True`` on a half-precision stream, the model writes its maps as float16 itself
+    (any other model's float32 maps are converted when the reply is written); ``confidence``
+    — passed ``confidence=False``, the model does not compute the confidence a MeshFrame
+    does not carry."""
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ...,
                    clamp: bool = ...) -> dict[str, np.ndarray]: ...
@@ -124,13 +133,15 @@ class _Stream:
     outputs: tuple[str, ...]
     clamp: bool
     half: bool = False
+    #: the keyword options ``synthesize`` is called with (:func:`stream_options`)
+    options: dict = dataclasses.field(default_factory=dict)
 
     def reply(self, msg: pb.MarkerFrame, where: str, start: float, first: bool) -> bytes:
         """Synthesize and encode one frame: the serialized MeshFrame (``start``: when it was
         read; latency_ms is the time until the reply's last copy into the message)."""
         try:
             markers = codec.decode_markers(msg)
-            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp)
+            result = self.model.synthesize(markers[None], list(self.outputs), self.clamp, **self.options)
         except InvalidInput as e:
             raise _invalid(_name_frame(str(e), where)) from None
         pieces = codec.reply_pieces(result, self.outputs, msg.frame, faces=first, half=self.half)
@@ -148,6 +159,16 @@ class _Stream:
             raise _invalid(f"{where}: clamp {msg.clamp} differs from the first message's {self.clamp}")
         if msg.HasField("half") and msg.half != self.half:
             raise _invalid(f"{where}: half {msg.half} differs from the first message's {self.half}")
+
+
+def stream_options(model: StreamModel, half: bool) -> dict:
+    """The keyword options a stream calls ``model.synthesize`` with, those it takes
+    (:func:`takes`): ``half=True`` on a half-precision stream, ``confidence=False`` (a
+    MeshFrame has no confidence)."""
+    options = {"half": True} if half and takes(model, "half") else {}
+    if takes(model, "confidence"):
+        options["confidence"] = False
+    return options
 
 
 def _where(msg: pb.MarkerFrame, index: int) -> str:
@@ -253,16 +274,18 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
                                  :func:`default_depth` of the synthesis threads)
     synthesis_threads : int or None   frames synthesized at once, over all streams (None:
                                  :func:`~service.app.threads.synthesis_slots`, one per core)
+    synthesis : SynthesisPool or None   the process's synthesis slots to synthesize in
+                                 (shared with the HTTP syntheses; replaces
+                                 ``synthesis_threads``); None: a pool of the servicer's own
     """
 
     def __init__(self, load_model: LoadModel, depth: int | None = None,
-                 synthesis_threads: int | None = None):
+                 synthesis_threads: int | None = None, synthesis: SynthesisPool | None = None):
         self._load_model = load_model
-        self.synthesis_threads = synthesis_slots(synthesis_threads)
+        # idle threads end when the pool is collected
+        self._synthesis = synthesis if synthesis is not None else SynthesisPool(synthesis_threads)
+        self.synthesis_threads = self._synthesis.limit
         self.depth = int(depth) if depth else default_depth(self.synthesis_threads)
-        # idle threads end when the servicer (and its server) is collected
-        self._synthesis = futures.ThreadPoolExecutor(self.synthesis_threads,
-                                                     thread_name_prefix="facesynth-grpc-frame")
 
     def StreamSynthesize(self, request_iterator: Iterable[pb.MarkerFrame],
                          context: grpc.ServicerContext) -> Iterator[bytes]:
@@ -300,8 +323,9 @@ class SynthesisServicer(pb_grpc.SynthesisServicer):
         except InvalidInput as e:
             raise _invalid(str(e)) from None
         clamp = first.clamp if first.HasField("clamp") else True
-        return _Stream(first.model_id, self._load(first.model_id), outputs, clamp,
-                       first.HasField("half") and first.half)
+        model = self._load(first.model_id)
+        half = first.HasField("half") and first.half
+        return _Stream(first.model_id, model, outputs, clamp, half, stream_options(model, half))
 
     def _load(self, model_id: str) -> StreamModel:
         try:
@@ -417,7 +441,8 @@ def is_loopback(host: str) -> bool:
 def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[str] = (),
                   max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
                   pipeline_depth: int | None = None,
-                  synthesis_threads: int | None = None) -> grpc.Server:
+                  synthesis_threads: int | None = None,
+                  synthesis: SynthesisPool | None = None) -> grpc.Server:
     """A gRPC server with the Synthesis service, not yet bound or started.
 
     Parameters
@@ -434,6 +459,9 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
                               core, :func:`~service.app.threads.synthesis_slots`; ``facesynth
                               serve`` passes ``max_concurrent_syntheses``, the count its BLAS
                               threads are sized against)
+    synthesis : SynthesisPool   the synthesis slots to share (``facesynth serve``: the
+                              process's, :attr:`~service.app.services.Services.synthesis`, which
+                              the HTTP syntheses take too); None: ``synthesis_threads`` of its own
     """
     options = [("grpc.max_send_message_length", max_message_bytes),
                ("grpc.max_receive_message_length", max_message_bytes),
@@ -441,7 +469,8 @@ def create_server(load_model: LoadModel, max_workers: int = 4, tokens: Sequence[
     server = grpc.server(futures.ThreadPoolExecutor(max_workers, thread_name_prefix="facesynth-grpc"),
                          interceptors=[BearerTokenAuth(tokens)] if tokens else None,
                          options=options, maximum_concurrent_rpcs=max_workers)
-    add_servicer(SynthesisServicer(load_model, pipeline_depth, synthesis_threads), server)
+    add_servicer(SynthesisServicer(load_model, pipeline_depth, synthesis_threads, synthesis),
+                 server)
     return server
 
 
@@ -461,7 +490,8 @@ def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PO
           max_workers: int = 4, *, tokens: Sequence[str] = (),
           max_message_bytes: int = codec.MAX_MESSAGE_BYTES,
           pipeline_depth: int | None = None,
-          synthesis_threads: int | None = None) -> grpc.Server:
+          synthesis_threads: int | None = None,
+          synthesis: SynthesisPool | None = None) -> grpc.Server:
     """Start a Synthesis server on ``host:port`` (plaintext) and return it.
 
     Stop it with ``server.stop(grace)``; ``server.wait_for_termination()`` blocks until then.
@@ -477,7 +507,7 @@ def serve(load_model: LoadModel, host: str = "127.0.0.1", port: int = DEFAULT_PO
         raise ValueError(f"refusing to listen on {host} without tokens: "
                          "give tokens, or listen on loopback (127.0.0.1)")
     server = create_server(load_model, max_workers, tokens, max_message_bytes, pipeline_depth,
-                           synthesis_threads)
+                           synthesis_threads, synthesis)
     address = f"[{host.strip('[]')}]:{port}" if ":" in host else f"{host}:{port}"
     if server.add_insecure_port(address) == 0:        # older grpcio returns 0, newer raise
         raise RuntimeError(f"cannot listen on {address}")

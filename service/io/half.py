@@ -26,18 +26,21 @@ rounding cases of the dropped bits (ties, sticky bits, odd and even kept mantiss
 the real maps (``tests/io/test_half.py``).
 
 :func:`to_float16` runs the same rounding as one compiled loop
-(:func:`service.io.half_kernel.half_bits`, imported at the first call): on 4.2 M map-like
+(:func:`service.geometry.half_kernel.half_bits`, imported at the first call): on 4.2 M map-like
 float32 values (2 cores, load ~2) 1.9–2.3 ms against 7.8–8.0 ms for the NumPy blocks
 (:func:`to_float16_blocks`, kept as the reference it is pinned against) and 15.6 ms for
 ``astype``. It can write into a caller's buffer (``out``: an NPZ response's member, so the
-converted map is not copied again).
+converted map is not copied again). The compiled rounding of one value
+(:func:`service.geometry.half_kernel.binary16`) also gives NumPy's bits for |x| ≥ 65536, ∞
+and NaN, so the loop needs no NumPy pass after it; the PDM's map kernels write float16 maps
+with it directly (issue 23).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from service.io.binary16 import MAGIC, REBIAS, SMALLEST_NORMAL, SPECIAL
+from service.geometry.binary16 import MAGIC, REBIAS, SMALLEST_NORMAL, SPECIAL
 
 #: values per block: 64 Ki float32 (256 KiB in, a few such temporaries) stays in L2
 BLOCK = 1 << 16
@@ -45,7 +48,7 @@ BLOCK = 1 << 16
 
 def to_float16(values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``values`` as float16, bit for bit NumPy's ``astype(np.float16)``: float32 by the
-    compiled loop (:func:`service.io.half_kernel.half_bits`), any other dtype by NumPy
+    compiled loop (:func:`service.geometry.half_kernel.half_bits`), any other dtype by NumPy
     (which rounds it once, not through float32).
 
     Parameters
@@ -68,14 +71,10 @@ def to_float16(values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         with np.errstate(over="ignore"):
             flat[...] = values.astype(np.float16).reshape(-1).view(np.uint16)
         return flat.view(np.float16).reshape(values.shape)
-    from service.io.half_kernel import half_bits   # Numba: at the first call, not at import
+    from service.geometry.half_kernel import half_bits   # Numba: at the first call, not at import
 
     x = np.ascontiguousarray(values).reshape(-1)
-    bits = x.view(np.uint32)
-    if half_bits(bits, x, flat):
-        where = np.flatnonzero((bits & 0x7FFFFFFF) >= SPECIAL)
-        with np.errstate(over="ignore", invalid="ignore"):
-            flat[where] = x[where].astype(np.float16).view(np.uint16)
+    half_bits(x.view(np.uint32), x, flat)
     return flat.view(np.float16).reshape(values.shape)
 
 

@@ -20,6 +20,7 @@ Examples
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Literal, Mapping, Protocol, Sequence
@@ -206,3 +207,19 @@ def get_kind(name: str) -> Kind:
     except KeyError:
         raise InvalidInput(f"unknown model kind '{name}'; known kinds: "
                            f"{', '.join(sorted(KINDS))}") from None
+
+
+def takes(model: Any, option: str) -> bool:
+    """Whether ``model.synthesize`` has the keyword parameter ``option`` (issue 23: ``half``,
+    maps written as float16 by the model, not in float32 and converted; ``confidence``); for
+    a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
+    holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
+    try:
+        parameters = inspect.signature(model.synthesize).parameters
+    except (AttributeError, TypeError, ValueError):       # no signature to read: the plain call
+        return False
+    if option in parameters:
+        return True
+    passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    inner = getattr(model, "model", None)
+    return passes_on and inner is not None and inner is not model and takes(inner, option)

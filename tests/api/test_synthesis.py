@@ -3,6 +3,7 @@ synthesis in every encoding, its refusals, the model's maps, and synthesis jobs.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import zipfile
@@ -248,6 +249,46 @@ def test_a_model_file_altered_on_disk_is_refused_as_corrupt_and_never_cached(rea
     assert synth(client, model_id, npz(markers=markers)).status_code == 200
 
 
+def test_a_corrupt_model_is_never_warmed_up_streamed_or_cached(ready, monkeypatch):
+    """The integrity rule of a load (``Services._load``): nothing read from a model's files
+    is synthesized with before they match their sha256. One flipped byte in the largest file
+    (hashed in a thread while the kind reads it): the preload fails and /readyz names the
+    corrupt blob, the warm-up frame never runs, the gRPC path's loader raises what the stream
+    ends with as DATA_LOSS, and nothing is cached."""
+    import grpc
+
+    from service.app.services import Services
+    from service.errors import Corrupt
+    from service.grpc.server import code_of
+
+    client, _, model_id, markers, _ = ready
+    services = client.app.state.services
+    services.forget_model(model_id)
+    with services.session() as session:
+        blob = registry.get_model(session, model_id).blob
+    target = services.blobs.path(blob) / "cache.npz"
+    original = target.read_bytes()
+    altered = bytearray(original)
+    altered[len(altered) // 3] ^= 0x10
+    warmed: list[str] = []
+    monkeypatch.setattr(Services, "warm_up", lambda self, loaded: warmed.append(loaded.id))
+    target.write_bytes(bytes(altered))
+    try:
+        state = services.start_preload([model_id])
+        assert state.done.wait(60) and state.loaded == []
+        assert "BlobCorrupt" in state.error and "is corrupt: sha256" in state.error
+        checks = client.get("/readyz").json()["checks"]
+        assert checks["models"].startswith(f"preload failed: {model_id}: BlobCorrupt")
+        with pytest.raises(Corrupt) as error:
+            services.load_model(model_id)
+        assert code_of(error.value) == grpc.StatusCode.DATA_LOSS
+        assert warmed == [] and model_id not in services.models
+    finally:
+        target.write_bytes(original)
+        services.preloading = None
+    assert services.load_model(model_id) is not None and model_id in services.models
+
+
 def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load(ready, monkeypatch):
     """``Services.start_preload`` (``facesynth serve --preload`` / ``FACESYNTH_PRELOAD``)
     checks the ids at once, loads in a thread, and /readyz answers 503 (check ``models``)
@@ -282,7 +323,17 @@ def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load
         response = client.get("/readyz")
         assert response.status_code == 200 and response.json()["checks"]["models"] == "ok"
         assert model_id in services.models
-        assert services.warm_up(services.loaded_model(model_id)) is True
+        loaded = services.loaded_model(model_id)
+        calls, real = [], loaded.model.synthesize
+
+        @functools.wraps(real)                 # the model's signature: it takes half
+        def recorded(*args, **options):
+            calls.append(options.get("half", False))
+            return real(*args, **options)
+
+        monkeypatch.setattr(loaded.model, "synthesize", recorded)
+        assert services.warm_up(loaded) is True
+        assert calls == [False, True]          # float32 and the float16 map kernels (issue 23)
 
         def broken(mid):
             raise OSError("disk on fire")
@@ -399,12 +450,11 @@ def test_services_load_model_serves_the_grpc_path(ready):
     services = client.app.state.services
     model = services.load_model(model_id)
     assert model is services.load_model(model_id)        # cached
-    # weighed by the memory it held when loaded, at least its files (a PDM can hold less than
-    # its files: the validity tables are read where the store maps them); what it builds
-    # lazily while synthesizing can only add to that
-    with services.session() as session:
-        size = registry.get_model(session, model_id).size_bytes
-    assert size <= services.models.total_bytes <= max(nbytes(model), size)
+    # weighed by the memory it held when loaded (mapped arrays included: a PDM reads its
+    # coefficient maps on every frame), not by its files; what it builds lazily while
+    # synthesizing can only add to that
+    weight = services.models.total_bytes
+    assert nbytes(model, mapped=False) < weight <= nbytes(model)
     assert model.synthesize(markers[:1], ["mesh"])["vertices"].shape[0] == 1
 
 
@@ -434,7 +484,7 @@ def test_synthesis_slots_answer_503_when_busy():
     loaded = SimpleNamespace(model=model, kind=SimpleNamespace(name="fake"))
     request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
     assert "faces" in synthesizer.run(loaded, request)
-    synthesizer._slots.acquire()
+    synthesizer.pool.acquire()
     with pytest.raises(Unavailable) as error:
         synthesizer.run(loaded, request)
     status, headers = status_of(error.value)
@@ -491,7 +541,7 @@ def test_busy_syntheses_queue_for_a_bounded_wait_and_the_depth_is_a_metric():
         metrics.render().decode()
     # a wait that runs out is a 503
     short = Synthesizer(Metrics(), limit=1, wait_seconds=0.2)
-    short._slots.acquire()
+    short.pool.acquire()
     start = time.monotonic()
     with pytest.raises(Unavailable, match="waited 0.2 s"):
         short.run(loaded, request)

@@ -33,7 +33,7 @@ print(json.dumps({"modules": sorted(before), "added": sorted(after - before)}))
 NOT_AT_START = ("cv2", "numba", "service.geometry.optical_flow",
                 "service.methods.correspondence.correspond", "service.methods.pdm.model",
                 "service.methods.shape_space.model", "service.methods.stress_blend.model",
-                "service.io.half_kernel")
+                "service.geometry.half_kernel")
 
 
 def _imported(code: str) -> dict:

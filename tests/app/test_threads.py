@@ -37,3 +37,38 @@ def test_serve_sets_the_threads_before_numpy_loads():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=os.getcwd(), check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_pool_bounds_slot_holders_and_its_threads_together():
+    """Two slots: with both held by semaphore users (the HTTP path), a submitted call (the
+    gRPC path) waits, counted as waiting, and runs once one is given back; a call cancelled
+    before its thread started never takes a slot; a shut-down pool starts new threads."""
+    import threading
+    import time
+
+    from service.app.threads import SynthesisPool
+
+    pool = SynthesisPool(2)
+    assert pool.limit == 2 and pool.acquire() and pool.acquire(blocking=False)
+    assert not pool.acquire(blocking=False) and not pool.acquire(timeout=0.05)
+    assert (pool.running, pool.waiting) == (2, 0)
+    ran = threading.Event()
+    first = pool.submit(lambda x: (ran.set(), x * 2)[1], 21)
+    deadline = time.monotonic() + 2
+    while pool.waiting < 1 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert pool.waiting == 1 and not ran.is_set()
+    second = pool.submit(lambda: "never")             # behind `first` on the pool's 2nd thread
+    third = pool.submit(lambda: "never")              # queued: no thread free
+    assert third.cancel()
+    pool.release()
+    assert first.result(2) == 42
+    pool.release()
+    assert second.result(2) == "never" and third.cancelled()
+    assert (pool.running, pool.waiting) == (0, 0)
+    pool.shutdown()
+    assert pool.submit(lambda: 1).result(2) == 1     # new threads after a shutdown
+    with pool.hold():
+        assert pool.running == 1
+    assert pool.running == 0
+    pool.shutdown()

@@ -447,6 +447,25 @@ def test_out_is_written_in_place():
         mapper.normal_map(h, V, fr, out=np.zeros((H, W, 3)))
 
 
+def test_a_float16_out_is_the_float32_map_rounded_by_numpy_bit_for_bit():
+    """Issue 23: the texel pass and the uncovered runs write float16 themselves; the map is
+    ``astype(np.float16)`` of the float32 one, on one thread and on two, NaN texels too."""
+    st, V, F = cylinder()
+    H, W = 48, 64
+    raster = rasterize_uv(st, F, H, W)
+    fr = tangent_frames(V, F, st, F).astype(np.float32)
+    fr[:5, 0] = np.nan                                               # NaN normals near those vertices
+    h = 0.3 * np.random.default_rng(8).normal(size=(H, W)).astype(np.float32)
+    mapper = NormalMapper(raster, F, st, F, len(V))
+    ref = mapper.normal_map(h, V, fr)
+    assert np.isnan(ref).any() and (ref[~raster.mask] == [0, 0, 1]).all()
+    for threads in (1, 2):
+        out = np.full((H, W, 3), np.nan, np.float16)                  # dirty: every texel is written
+        got = mapper.normal_map(h, V, fr, out=out, threads=threads)
+        assert got is out
+        np.testing.assert_array_equal(out.view(np.uint16), ref.astype(np.float16).view(np.uint16))
+
+
 def test_rows_of_the_frame_field_give_the_frames_normal_map_bit_for_bit():
     """normal_map(rows=FrameField.normal_rows(V)) (T, N rows and the frames' float32 edges,
     no (n,3,3) frames formed, no edges gathered again) is normal_map(frames=frames(V, float32))."""

@@ -4,7 +4,7 @@ pinned bit for bit against the NumPy passes it replaced (issue 23)."""
 import numpy as np
 
 from service.geometry.normal_map import _EPS, NormalMapper
-from service.geometry.normal_texels import BLOCK, normal_texels
+from service.geometry.normal_texels import BLOCK, FLAT, FLAT_HALF, flat_runs, normal_texels
 from service.geometry.tangent_frames import tangent_frames
 from service.geometry.uv_raster import rasterize_uv
 from tests.geometry.test_normal_map import _numpy_normal_map, cylinder
@@ -64,3 +64,23 @@ def test_degenerate_and_nan_frames_follow_the_numpy_clamp():
     flat = (ref[mapper.texels] == [0, 0, 1]).all(axis=1)      # clamped: slopes 0 despite h
     assert np.isnan(ref).any() and flat.sum() > len(mapper.texels) // 10
     assert np.array_equal(out.view(np.uint32), ref.view(np.uint32))
+
+
+def test_float16_bits_out_is_the_float32_pass_rounded_by_numpy():
+    """A uint16 ``out`` takes each texel's normal as float16 bits (NaN and clamped texels
+    included), ``astype(np.float16)`` of the float32 pass bit for bit; the uncovered runs
+    take FLAT_HALF, (0, 0, 1)."""
+    mapper, h, V, frames = _cylinder_case(4)
+    frames = frames.copy()
+    frames[:40] = 0.0
+    frames[40:43, 0, 1] = np.nan
+    args = _inputs(mapper, h, V, frames)
+    full, bits = np.zeros((h.size, 3), np.float32), np.full((h.size, 3), 0xFFFF, np.uint16)
+    for lo, hi in ((0, 5), (5, BLOCK + 9), (BLOCK + 9, len(mapper.texels))):
+        normal_texels(lo, hi, *args, full)
+        normal_texels(lo, hi, *args, bits)
+    runs = np.array([[0, 7], [100, 140]], np.uint32)                 # as if uncovered
+    flat_runs(0, len(runs), runs, full, FLAT)
+    flat_runs(0, len(runs), runs, bits, FLAT_HALF)
+    assert np.isnan(full).any() and (full == FLAT).all(axis=1).sum() >= 47
+    assert np.array_equal(bits, full.astype(np.float16).view(np.uint16))

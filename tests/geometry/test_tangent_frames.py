@@ -277,3 +277,39 @@ def test_frame_field_from_its_operators_is_the_same_field_and_wrong_ones_are_ref
     assert FrameField.from_operators(ff.faces[:-1], ops) is None                  # other triangles
     assert FrameField.from_operators(ff.faces, {**ops, "du": sp.csr_matrix((n + 1, n + 1))}) is None
     assert FrameField.from_operators(ff.faces, {**ops, "du_edges": ops["du_edges"].tocsc()}) is None
+
+
+def test_edges_from_the_corners_are_the_edge_operators_rows_bit_for_bit():
+    """frame_rows.triangle_edges (the corners differenced, issue 23) against the CSR rows of
+    the edge operator it stands for, in either stored column order, on vertices with +0 and
+    −0 coordinates and corners sharing coordinates (the signs of zero included); FrameField
+    uses it for the operator build makes, not for another one."""
+    import scipy.sparse as sp
+
+    from service.geometry.frame_rows import triangle_edges, triangle_rows
+    from service.geometry.tangent_frames import FrameField
+
+    ff, poses = _face_rig_field()
+    assert ff._edge_faces is not None
+    rng = np.random.default_rng(9)
+    V = poses[0].copy()
+    V[rng.choice(len(V), 300, replace=False), rng.integers(0, 3, 300)] = 0.0
+    V[rng.choice(len(V), 300, replace=False), rng.integers(0, 3, 300)] = -0.0
+    F = ff.faces
+    V[F[:50, 1]] = V[F[:50, 0]]                                     # e1 = 0 exactly
+    m = len(F)
+    E = ff.edges.tocsr()
+    flipped = E.copy()                                              # the other column order per row
+    flipped.indices = flipped.indices.reshape(-1, 2)[:, ::-1].copy().ravel()
+    flipped.data = flipped.data.reshape(-1, 2)[:, ::-1].copy().ravel()
+    got = (np.empty((3, 2 * m), np.float32), np.empty((3, m), np.float32))
+    triangle_edges(0, m, ff._edge_faces, V, m, *got)
+    for op in (E, flipped):
+        want = (np.empty((3, 2 * m), np.float32), np.empty((3, m), np.float32))
+        triangle_rows(0, m, op.indptr.astype(np.uint64), op.indices.astype(np.uint32), op.data, V, m, *want)
+        for a, b in zip(got, want):
+            assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    assert (got[0] == 0).sum() > 150 and np.signbit(got[0][got[0] == 0]).sum() == 0
+    other = FrameField(ff.faces, ff.incidence, ff.du, sp.csr_matrix(2 * E), ff.du_edges)
+    assert other._edge_faces is None
+    assert FrameField(ff.faces, ff.incidence, ff.du, flipped, ff.du_edges)._edge_faces is not None

@@ -71,7 +71,8 @@ def test_half_maps_round_trip_as_float16():
 @pytest.mark.parametrize("half", [False, True])
 @pytest.mark.parametrize("frame, faces, index", [(0, True, 0), (7, False, 1), (300, True, 1)])
 def test_the_wire_form_is_the_messages_serialization_bit_for_bit(outputs, half, frame, faces, index):
-    """join_reply(reply_pieces(...)) == encode_reply(...) serialized, with latency_ms; also
+    """join_reply(reply_pieces(...)) == encode_reply(...) serialized, with latency_ms (and with
+    half, for maps already float16 as the model writes them); also
     for clamped 0 and frame 0 (left out by proto3), -0.0 (sent), a float64 mesh (converted)
     and maps with values beyond float16's range."""
     rng = np.random.default_rng(3)
@@ -89,6 +90,11 @@ def test_the_wire_form_is_the_messages_serialization_bit_for_bit(outputs, half, 
         assert wire == message.SerializeToString()
         assert codec.serialize_reply(wire) is wire
         assert codec.serialize_reply(message) == wire
+        if half:                  # maps the model wrote as float16 (synthesize(half=True)): sent as they are
+            with np.errstate(over="ignore"):
+                written = {k: v.astype(np.float16) if k in ("displacement", "albedo", "normal_map") else v
+                           for k, v in result.items()}
+            assert codec.join_reply(codec.reply_pieces(written, outputs, frame, faces, index, half), latency) == wire
 
 
 def test_varints_and_keys_by_hand():

@@ -382,6 +382,42 @@ def test_half_maps_are_float16_within_the_bound_and_meshes_stay_exact(channel, p
             assert np.all(error <= 2.0 ** -11 * np.abs(f) + 2.0 ** -25) and error.max() > 0
 
 
+def test_half_maps_written_by_the_model_are_the_converted_float32_maps_bit_for_bit(load_model, pdm_model,
+                                                                                   heldout_markers):
+    """Issue 23: a model whose ``synthesize`` takes ``half`` writes the float16 maps itself
+    (``takes``), and skips the confidence with ``confidence=False``; a half stream's replies
+    are then those of a model without those parameters (its float32 maps converted as the
+    reply is written), bit for bit."""
+    from service.grpc.server import stream_options
+    from service.methods.kinds import takes
+
+    class Float32Maps:           # synthesize without ``half``: the maps are converted after
+        def synthesize(self, markers, outputs=("mesh",), clamp=True):
+            return pdm_model.synthesize(markers, outputs, clamp)
+
+    class PassesOn:              # a wrapper passing its keyword options on to .model
+        def __init__(self, model):
+            self.model = model
+
+        def synthesize(self, markers, outputs=("mesh",), clamp=True, **options):
+            return self.model.synthesize(markers, outputs, clamp, **options)
+
+    assert takes(pdm_model, "half") and not takes(Float32Maps(), "half") and not takes(object(), "half")
+    assert takes(PassesOn(pdm_model), "half") and not takes(PassesOn(Float32Maps()), "half")
+    assert stream_options(pdm_model, True) == {"half": True, "confidence": False}
+    assert stream_options(PassesOn(pdm_model), False) == {"confidence": False}
+    assert stream_options(Float32Maps(), True) == {}
+    got = {}
+    for name, model in (("model", pdm_model), ("after", Float32Maps())):
+        with running(lambda model_id, model=model: model) as channel:
+            got[name] = list(stream_synthesize(channel, MODEL_ID, heldout_markers[:3], ALL, half=True))
+    for a, b in zip(got["model"], got["after"]):
+        assert a.keys() == b.keys()
+        for key in set(a) - {"latency_ms"}:
+            assert np.array_equal(np.atleast_1d(a[key]).view(np.uint8), np.atleast_1d(b[key]).view(np.uint8)), key
+        assert a["normal_map"].dtype == np.float16
+
+
 def test_a_later_message_changing_half_is_invalid_argument(channel, heldout_markers):
     from service.grpc import codec
     from service.grpc.facesynth.v1 import synthesis_pb2_grpc as pb_grpc

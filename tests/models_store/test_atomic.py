@@ -28,3 +28,23 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
             raise RuntimeError("crash")
     assert path.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["c.bin"]
+
+
+def test_sha256_file_mapped_or_read_is_hashlib_of_the_bytes(tmp_path):
+    """The mapped path (regular files), an empty file (cannot be mapped) and a pipe (read in
+    chunks) all give hashlib's digest of the content."""
+    import hashlib
+    import threading
+
+    data = np.random.default_rng(0).bytes(3 << 20)
+    path = tmp_path / "blob.bin"
+    path.write_bytes(data)
+    assert sha256_file(path) == hashlib.sha256(data).hexdigest()
+    (tmp_path / "empty").write_bytes(b"")
+    assert sha256_file(tmp_path / "empty") == hashlib.sha256(b"").hexdigest()
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=lambda: fifo.write_bytes(data[:100_000]))
+    writer.start()
+    assert sha256_file(fifo, chunk=4096) == hashlib.sha256(data[:100_000]).hexdigest()
+    writer.join(5)

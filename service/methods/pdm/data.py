@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service.geometry.marker_prior import MarkerPrior
+from service.geometry.marker_regression import MarkerRegression
 from service.methods.pdm.deformation import DeformationAxes, MarkerMesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.texel_band import CoefficientMap
@@ -51,6 +52,9 @@ class PdmData:
     medium_skill : (K,) float32 | None   the medium band's cross-validated fit skill at the UV
                                      points (:mod:`.fit_skill`; None: stored before it existed,
                                      no gain then)
+    medium_regression : MarkerRegression | None   the mesh's medium offsets as a marker
+                                     regression (``params.medium_regression``; None: the
+                                     medium polynomial)
 
     The maps' texels are in row-major order (as the EXR files hold them).
     """
@@ -76,6 +80,7 @@ class PdmData:
     vertex_coeffs: np.ndarray | None = None
     marker_prior: MarkerPrior | None = None
     medium_skill: np.ndarray | None = None
+    medium_regression: MarkerRegression | None = None
 
     @property
     def n_vertices(self) -> int:

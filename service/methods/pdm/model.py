@@ -44,7 +44,28 @@ Departures and choices (the paper is silent or differs):
   of the most extreme trained expression instead. A per-axis box would not do: its
   corners are (d1, d2) pairs no training frame visited;
 * coefficients are rounded to float32 when training ends (the stored precision), so a
-  saved and reloaded model synthesizes bit-identical results.
+  saved and reloaded model synthesizes bit-identical results;
+* ``medium_regression`` (issue 17, off by default): the mesh's medium offsets, head-aligned,
+  from a locally weighted ridge regression on the handle displacements u_H
+  (:mod:`service.geometry.marker_regression`, anchored at the detailed neutral's offset
+  from the smooth base, so rest markers give the neutral exactly) instead of the medium
+  polynomial; the polynomial is still trained (the validity regions, the confidence and the
+  fine band's residual come from it). The polynomial in each point's own (d1, d2) cannot
+  tell combinations the training never showed from the expressions it did show, and its
+  max error there exceeds the thin shell's; the regression is linear in every nearby
+  marker's displacement vector. Level 0, 6 frames a performance of the sample actors
+  ``benchmarks/out/actor-{a,b}-l0``, PDM biquadratic with its defaults otherwise, face
+  mean / max mm, the thin shell's max beside; s chosen on family a, confirmed on b. Family a, clean: in range
+  0.221 / 3.99 → 0.105 / 1.21 (3.38), combinations 0.300 / 5.86 → 0.097 / 2.57 (5.57), out
+  of range 0.280 / 8.24 → 0.023 / 0.65 (7.78) with s = 4, the only s (1, 2, 4) with no
+  frame above the thin shell's max on any of a's nine rows (s = 2: 1 of 6 frames in
+  range; s = 1: max 4.5–5.5 mm). Family b, s = 4, clean: in range 0.183 / 2.34 → 0.010 /
+  0.31 (3.00), combinations 0.436 / 4.97 → 0.193 / 2.43 (4.97), out of range 0.287 / 4.13
+  → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's).
+  Its cost: the CSR matrix (3n, 3M), nnz 12.9 M (a, 11 k vertices) and 21 M (b) at s = 4
+  (4.4 M and 8.8 M at s = 2), one sparse product per frame (the mesh then takes the
+  float64 path, not the compiled :mod:`.shell_mesh` kernels), which is why it is not the
+  default yet: at level 1 that is ~4× the nnz, beyond the real-time path's budget.
 """
 
 from __future__ import annotations
@@ -57,7 +78,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from service.geometry import ranges
+from service.geometry import marker_regression, ranges
 from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
@@ -672,7 +693,7 @@ class PdmModel:
 
     # ------------------------------------------------------------------ synthesis
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
-                   clamp: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, half: bool = False, confidence: bool = True) -> dict[str, np.ndarray]:
         """Meshes and maps for world-space markers (F,M,3), NaN for occluded (ma2008 §5).
 
         Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
@@ -695,6 +716,16 @@ class PdmModel:
         which occlusion enters through, times the size factor of its handle displacements
         u_H); the fade stays the validity's.
 
+        With ``half`` the maps (``displacement``, ``normal_map``, ``albedo``) are float16:
+        NumPy's ``astype(np.float16)`` of the float32 maps bit for bit, written as such by the
+        map kernels (:func:`~service.geometry.texel_image.band_image`, the normal mapper's
+        texel pass; :func:`~service.geometry.half_kernel.binary16`), not converted after: a
+        half-precision stream frame (issue 23) neither writes the 16 MB of float32 maps nor
+        reads them back. With ``confidence`` False the result has no ``confidence`` and
+        ``confidence_vertices``, and neither is computed (for a caller that does not send them,
+        as the gRPC stream's MeshFrame: ~1 ms of a level-1 mesh frame's 16); everything else
+        is the same, bit for bit.
+
         Raises :class:`InvalidInput` for a wrong marker count or too few visible markers.
         """
         ev, d = self.evaluator, self.data
@@ -708,20 +739,20 @@ class PdmModel:
         if "albedo" in outputs and ev.albedo is None:
             raise InvalidInput("this model was trained without albedo maps; 'albedo' is not available")
         nf, n = len(markers), self.n_vertices
-        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32),
-                                      "clamped": np.zeros(nf, np.float32),
-                                      CONFIDENCE: np.ones(nf, np.float32),
-                                      VERTEX_CONFIDENCE: np.ones((nf, n), np.float32)}
+        out: dict[str, np.ndarray] = {"faces": d.faces.astype(np.int32), "clamped": np.zeros(nf, np.float32)}
+        if confidence:
+            out[CONFIDENCE], out[VERTEX_CONFIDENCE] = np.ones(nf, np.float32), np.ones((nf, n), np.float32)
         want = set(outputs)
         if want & {"mesh", "mesh_detailed"}:
             out["vertices"] = np.empty((nf, n, 3), np.float32)
         if "mesh_detailed" in want:
             out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
         Hf = ev.fine.resolution
-        if want & {"displacement", "normal_map"}:
-            out["displacement"] = np.empty((nf, Hf, Hf), np.float32)
+        maps = np.float16 if half else np.float32
+        if "displacement" in want:
+            out["displacement"] = np.empty((nf, Hf, Hf), maps)
         if "normal_map" in want:
-            out["normal_map"] = np.empty((nf, Hf, Hf, 3), np.float32)
+            out["normal_map"] = np.empty((nf, Hf, Hf, 3), maps)
         if "albedo" in want:
             Ha = ev.albedo.resolution
             out["albedo"] = np.zeros((nf, Ha, Ha, 3), np.float32)
@@ -743,11 +774,13 @@ class PdmModel:
             d1, d2, clamped = ev.vertex_band.parameters(S, margin)
             rho, sectors = (None, None) if valid is None else ev.gauge(d1, d2)
             if rho is not None:
-                out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
+                if confidence:
+                    out[CONFIDENCE][sl], out[VERTEX_CONFIDENCE][sl] = valid.confidence(rho)
                 clamped = np.mean(rho > 1, axis=-1)
-            factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
-            out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
-            out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
+            if confidence:
+                factor = base.input_confidence(pose.remove(markers[sl]), u_H, None if sigma is None else sigma[sl])
+                out[CONFIDENCE][sl] *= factor.astype(np.float32)           # the fade's × the input's
+                out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
             need_medium = bool(want & {"mesh_detailed", "normal_map"})
@@ -756,10 +789,8 @@ class PdmModel:
                                            out["vertices"][sl] if "vertices" in out else None, need_medium)
             if fine:                            # mesh only: the fine band is not evaluated
                 disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
-            if "displacement" in out:          # straight into the output maps, texel by texel
-                from service.geometry.texel_image import band_image     # Numba: loaded by build
-                for k in range(len(disp)):
-                    ranges.run(band_image, Hf * Hf, ev.fine_inverse, disp[k], out["displacement"][s + k].reshape(-1))
+            if want & {"displacement", "normal_map"}:
+                fine_maps = self._fine_images(disp, out.get("displacement"), s, "normal_map" in want)
             if want & {"mesh_detailed", "normal_map"}:  # T, N of the medium mesh (float32 frames)
                 rows = [ev.base.frame_field.normal_rows(m) for m in medium]
             if "mesh_detailed" in want:
@@ -768,14 +799,38 @@ class PdmModel:
                 pose.restore32(medium + h[..., None] * normal, out=out["vertices_detailed"][sl])
             if "normal_map" in want:
                 for k in range(sl.stop - sl.start):          # written in place (no copy)
-                    ev.normal_mapper.normal_map(out["displacement"][s + k], medium[k], None,
-                                                out=out["normal_map"][s + k], rows=rows[k])
+                    ev.normal_mapper.normal_map(fine_maps[k], medium[k], None, out=out["normal_map"][s + k],
+                                                rows=rows[k])
             if "albedo" in want:
                 a = ev.albedo_band(S, margin, rho)
                 out["albedo"][sl] = ev.albedo.image(np.maximum(a, 0.0), channels=True)
-        if "displacement" not in want:
-            out.pop("displacement", None)
+        if half and "albedo" in out:
+            from service.io.half import to_float16
+            out["albedo"] = to_float16(out["albedo"])
         return out
+
+    def _fine_images(self, disp: np.ndarray, images: np.ndarray | None, s: int, float32: bool) -> np.ndarray | None:
+        """The fine displacement maps of a chunk of frames from the band's values disp (f,Pf),
+        texel by texel (:func:`~service.geometry.texel_image.band_image`, ``band_image_half``):
+        into ``images`` (F,H,H) from frame ``s`` on, the output (float32, or float16 written
+        as such; None: not asked), and with ``float32`` their float32 form returned (f,H,H)
+        for the normal map: the float32 output itself, or else a work array of the calling
+        thread (:func:`~service.geometry.ranges.scratch`, written in the same pass)."""
+        from service.geometry.texel_image import band_image, band_image_half     # Numba: loaded by build
+
+        ev = self.evaluator
+        Hf = ev.fine.resolution
+        direct = images is not None and images.dtype == np.float32          # the output itself
+        work = images[s:s + len(disp)] if direct else \
+            ranges.scratch("pdm.fine_images", (len(disp), Hf, Hf)) if float32 else None
+        for k in range(len(disp)):
+            flat32 = None if work is None else work[k].reshape(-1)
+            half = images[s + k].reshape(-1).view(np.uint16) if images is not None and not direct else None
+            if half is None:
+                ranges.run(band_image, Hf * Hf, ev.fine_inverse, disp[k], flat32)
+            else:
+                ranges.run(band_image_half, Hf * Hf, ev.fine_inverse, disp[k], flat32, half)
+        return work if float32 else None
 
     def _medium_mesh(self, u_H, d1, d2, rho, sectors, pose, world, aligned):
         """The medium meshes of a chunk of frames (:mod:`.shell_mesh`): base surfaces and
@@ -783,6 +838,11 @@ class PdmModel:
         offsets, then ``world`` (f,n,3) float32 filled with the head pose put back (if given)
         and, with ``aligned``, the neutral-aligned meshes (f,n,3) float64 returned."""
         ev = self.evaluator
+        if self.data.medium_regression is not None:      # the thin shell plus the regression's offsets
+            A = ev.base.deform(u_H) + self.data.medium_regression(u_H)            # (f,n,3) aligned
+            if world is not None:
+                world[:] = pose.restore(A)
+            return A if aligned else None
         sm = ev.shell_mesh
         surfaces = [sm.surface(u, correction=rho is not None) for u in u_H]
         fallback = None
@@ -907,14 +967,25 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     uv_vertex = np.zeros(len(actor.uv), np.int64)                  # the vertex of each UV point
     uv_vertex[np.asarray(actor.uv_faces).ravel()] = F.ravel()
     f_uv = np.empty((T, len(uv_vertex), 3), np.float32)             # the targets at the UV points
+    # the mesh's medium offsets from the thin shell, head-aligned (medium_regression's targets)
+    Y = np.empty((T, n, 3), np.float32) if params.medium_regression is not None else None
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
-        c = np.einsum("fnij,fnj->fni", base.frames(X), pose[t0:t1].remove(world_vertices(t0, t1)) - X)
+        offset = pose[t0:t1].remove(world_vertices(t0, t1)) - X
+        if Y is not None:
+            Y[t0:t1] = offset
+        c = np.einsum("fnij,fnj->fni", base.frames(X), offset)
         c -= neutral_offset
         f_uv[t0:t1] = c[:, uv_vertex]
         f_med[t0:t1] = (interp_m @ c.transpose(1, 0, 2).reshape(n, -1)).reshape(-1, t1 - t0, 3).transpose(1, 0, 2)
     d1, d2 = _parameters(field_m, S)
+    regression = None
+    if Y is not None:   # through the neutral: its offset from the smooth base at u = 0
+        regression = marker_regression.fit(
+            u_H, Y, actor.vertices, rest, params.medium_regression * marker_regression.marker_spacing(rest),
+            params.medium_regression_ridge, anchor=actor.vertices - base.smooth)
+        del Y
     progress(0.3, "medium band fit")
     ridge = {"ridge": params.ridge, "gamma": params.gamma}         # the fit's regularization
     # the medium target of the neutral is 0 by construction (its offset is kept per vertex)
@@ -1011,7 +1082,8 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     }
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
                    mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics,
-                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior)
+                   vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior,
+                   medium_regression=regression)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
     # the medium band's skill against its fallback on the training frames (fit_skill)

@@ -108,6 +108,22 @@ class PdmParams(MarkerParams):
                     "default): no scaling. 0 lowered family a's frames above the thin shell's "
                     "max 56 -> 47 of 243 but family b's in-range detail corr 0.55 -> 0.52.",
         examples=[None, 0.0])
+    medium_regression: float | None = Field(
+        default=None, gt=0.0, le=20.0, allow_inf_nan=False,
+        description="The mesh's medium-scale offsets from a locally weighted linear regression "
+                    "on the markers' displacement vectors instead of the medium polynomial "
+                    "(issue 17; service/geometry/marker_regression.py: per vertex a ridge "
+                    "regression weighted by exp(-d^2/s^2) of the markers' rest distance d, "
+                    "through the neutral). The value is s in median nearest-marker spacings; "
+                    "null (the default): the medium PDM of ma2008. The maps, the confidence and "
+                    "the fine band are unchanged. Costs a sparse product per frame and its "
+                    "storage (see model.py).",
+        examples=[None, 4.0])
+    medium_regression_ridge: float = Field(
+        default=0.1, gt=0.0, le=10.0, allow_inf_nan=False,
+        description="Relative ridge of medium_regression (x the mean diagonal of each "
+                    "vertex's kernel).",
+        examples=[0.1])
     fine_highpass_mm: float = Field(
         default=2.0, ge=0, allow_inf_nan=False,
         description="σ on the surface, in the actor's unit, of the Gaussian whose complement "

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.methods.footprint import UNREAD
 from service.methods.pdm import polynomial
 from service.methods.pdm.deformation import ParameterField
 from service.methods.pdm.extrapolation import limit_parameters
@@ -45,9 +46,16 @@ class CoveredTexels:
 @dataclass(frozen=True)
 class CoefficientMap(CoveredTexels):
     """A stored PDM (:class:`~service.methods.pdm.data.PdmData`): the polynomial coefficients
-    ``coeffs`` (P,C,K) float32 (§4.2) of the covered texels, row-major."""
+    ``coeffs`` (P,C,K) float32 (§4.2) of the covered texels, row-major.
 
-    coeffs: np.ndarray
+    Synthesis never reads ``coeffs``: it evaluates :class:`TexelBand`'s term-major copy
+    (stored in the model's cache, or made from ``coeffs`` once at load). So the model
+    cache does not weigh them while they are mapped (:data:`~service.methods.footprint.UNREAD`;
+    a level-1 PDM's fine and albedo maps: 28.6 MB of the 379 MB it was weighed at, never
+    paged in by any output; issue 23's weight against the resident cost).
+    """
+
+    coeffs: np.ndarray = dataclasses.field(metadata=UNREAD)
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,7 @@ class PoseSpaceData:
     marker_residual_var (M,) float64 | None   their variance outside the modes, per marker and
                                     coordinate, by leaving one clip out (``params.marker_prior``)
     regression (3n,3M) CSR float32 | None, regression_mean_u (M,3) float64 | None,
-    regression_mean_y (n,3) float32 | None   the marker regression (:mod:`.marker_regression`,
+    regression_mean_y (n,3) float32 | None   the marker regression (:mod:`service.geometry.marker_regression`,
                                     ``params.marker_regression``), head-pose-aligned offsets
                                     added to the shell before the corrections
     regression_input str            what the regression reads: ``"handles"`` the handle

@@ -97,7 +97,7 @@ Choices and departures (the paper is silent or differs):
   large-scale deformation u_H, 1 for a model without a learned marker prior; no separate
   occlusion term), the rule every marker-driven kind shares;
 * **marker regression** (``params.marker_regression`` = s, off by default, recommended s = 3, λ = 0.1;
-  :mod:`.marker_regression`) — before the corrections, a per-vertex ridge regression of the
+  :mod:`service.geometry.marker_regression`) — before the corrections, a per-vertex ridge regression of the
   aligned offsets ``V − X`` on the markers' displacement vectors (weights exp(−d²/s²) of the
   rest distance, s in median marker spacings) is fitted and subtracted; the RBFs learn the
   rest, synthesis adds it back (``X + L(u_H) + Frame(X)ᵀ c``, unfaded). Why: the detail
@@ -161,7 +161,8 @@ from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
     BaseSurface, HeadPose, TooFewMarkers, head_alignment, training_head_pose,
 )
-from service.methods.pose_space import marker_regression, polynomial, rbf, store
+from service.geometry import marker_regression
+from service.methods.pose_space import polynomial, rbf, store
 from service.methods.pose_space.data import PoseSpaceData
 from service.methods.pose_space.corrections import corrections, large_scale_surface
 from service.methods.pose_space.feature_graph import automatic_graph, graph_from_pairs

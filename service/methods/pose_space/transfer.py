@@ -30,9 +30,9 @@ barycentric correspondence (a sparse product: the union of the supports) and rot
 map's by a sparse bilinear lookup. Detail amplitudes stay in the
 source's millimetres (no scaling by face size).
 
-The marker regression (:mod:`.marker_regression`, ``params.marker_regression``) is a linear map
-from the source's marker displacements to the source's head-aligned vertex offsets, both
-world vectors of the source's rest pose. It carries over as the corrections do (§5.4: the
+The marker regression (:mod:`service.geometry.marker_regression`, ``params.marker_regression``)
+is a linear map from the source's marker displacements to the source's head-aligned vertex
+offsets, both world vectors of the source's rest pose. It carries over as the corrections do (§5.4: the
 pose-space detail only needs a dense correspondence): its input becomes the feature nodes'
 displacements on the target — the source markers' corresponding surface points, moved by the
 target's own thin shell, exactly the points whose strains drive the RBFs — rotated into the

@@ -393,6 +393,13 @@ class ShapeSpaceModel:
                       for k, m in texel_maps.items() if m is not None}
         if "colors" in outputs:
             out["colors"] = np.empty((nf, n, self.data.colors.shape[2]), np.float32)
+        # the fine maps' images at their stored size (the ``fine_displacement`` output): the
+        # displacement's per-batch images when that is its size too (not made twice: 2 % of
+        # a level-1 mesh + displacement frame), none when only the normal map or the detailed
+        # mesh needed the displacement (dropped below)
+        fine_image = None
+        if fine and "displacement" in want and ev.fine_maps.shape == (self.data.params.map_resolution,) * 2:
+            fine_image = np.empty((nf,) + ev.fine_maps.shape, np.float32)
         batch = max(1, ENHANCE_BATCH_TRIANGLES // max(len(self.data.faces), 1))
         for a in range(0, nf, batch):
             b = min(nf, a + batch)
@@ -419,8 +426,11 @@ class ShapeSpaceModel:
             if disp:      # per batch: a whole request's (F,H²) float64 maps are GBs at 1024²
                 out["displacement"][a:b] = self.vertex_map(out["vertex_displacement"][a:b])
                 if fine:
-                    out["displacement"][a:b] += ev.fine_maps.image(
-                        texel_maps["fine_displacement"][1][a:b], self.data.params.map_resolution)
+                    image = ev.fine_maps.image(texel_maps["fine_displacement"][1][a:b],
+                                               self.data.params.map_resolution)
+                    out["displacement"][a:b] += image
+                    if fine_image is not None:   # the output's own image, made once
+                        fine_image[a:b] = image
             if "mesh_detailed" in want:
                 detailed = world
                 if fine:
@@ -432,7 +442,10 @@ class ShapeSpaceModel:
                 for f in range(b - a):
                     out["colors"][a + f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W[f])
         for key, (maps, values) in texel_maps.items():
-            out[key] = maps.image(values)
+            if key == "fine_displacement" and "displacement" not in want:
+                continue                         # dropped below
+            out[key] = fine_image if key == "fine_displacement" and fine_image is not None \
+                else maps.image(values)
         if "normal_map" in want:
             out["normal_map"] = np.stack([
                 ev.normal_mapper.normal_map(h, V, ev.frame_field.frames(V))

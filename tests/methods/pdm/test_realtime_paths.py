@@ -334,3 +334,43 @@ def test_the_shell_fallback_gathered_by_items_is_the_strided_gather_bit_for_bit(
     got = ev.shell_fallback(u_H, X)
     assert got.dtype == np.float32 and got.flags.c_contiguous and np.array_equal(got, old)
     assert np.abs(old).max() > 0.1
+
+
+@pytest.mark.parametrize("outputs", [("mesh", "displacement", "normal_map", "albedo"), ("normal_map",),
+                                     ("displacement",)])
+def test_half_maps_are_the_float32_maps_rounded_by_numpy_bit_for_bit(pdm_model, pdm_data, outputs):
+    """Issue 23: ``synthesize(half=True)`` writes the maps as float16 in the map kernels;
+    each is ``astype(np.float16)`` of the float32 call's map bit for bit, the rest of the
+    result (meshes, clamped, confidence) is the float32 call's, two frames in one chunk."""
+    _, clips = pdm_data
+    markers = clips[2].markers[[3, 9]]
+    full = pdm_model.synthesize(markers, outputs)
+    half = pdm_model.synthesize(markers, outputs, half=True)
+    assert sorted(full) == sorted(half)
+    maps = [k for k in ("displacement", "normal_map", "albedo") if k in outputs]
+    for key, value in full.items():
+        if key in maps:
+            assert value.dtype == np.float32 and half[key].dtype == np.float16 and half[key].shape == value.shape
+            assert np.array_equal(half[key].view(np.uint16), value.astype(np.float16).view(np.uint16)), key
+        else:
+            assert np.array_equal(half[key], value), key
+    if "displacement" in outputs:
+        assert np.abs(full["displacement"]).max() > 1e-4          # a real map, not zeros
+    if outputs == ("normal_map",):                               # the map alone is the full call's
+        both = pdm_model.synthesize(markers, ("displacement", "normal_map"))
+        assert np.array_equal(both["normal_map"], full["normal_map"])
+
+
+def test_without_confidence_the_rest_of_the_result_is_the_same_bit_for_bit(pdm_model, pdm_data):
+    """``confidence=False`` (the gRPC stream, whose MeshFrame has none) leaves out the two
+    confidence arrays and their computation; every other array is the full call's."""
+    _, clips = pdm_data
+    markers = clips[4].markers[[2, 7]].copy()
+    markers[1, :5] = np.nan                                   # occlusion moves the input factor
+    outputs = ("mesh", "displacement", "normal_map")
+    full = pdm_model.synthesize(markers, outputs)
+    lean = pdm_model.synthesize(markers, outputs, confidence=False)
+    assert sorted(lean) == sorted(set(full) - {"confidence", "confidence_vertices"})
+    for key, value in lean.items():
+        assert np.array_equal(value, full[key]), key
+    assert full["confidence"][1] < full["confidence"][0] <= 1

@@ -89,7 +89,7 @@ def test_regression_rows_and_input_follow_the_correspondence_and_rotation():
     got = _regression(src, C, R)
     assert got["regression_input"] == "nodes" and got["regression"].shape == (3 * n_t, 3 * M)
     u = rng.normal(size=(2, M, 3))
-    from service.methods.pose_space.marker_regression import MarkerRegression
+    from service.geometry.marker_regression import MarkerRegression
 
     y_t = MarkerRegression(got["regression"], got["regression_mean_u"], got["regression_mean_y"])(u)
     for f in range(2):

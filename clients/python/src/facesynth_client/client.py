@@ -42,6 +42,7 @@ from ._core import Call, Close, Core, DEFAULT_BASE_URL, Emit, Op, Read, Send, Sl
 from .resources import (Actors, Artifacts, BoneRigs, Clips, Jobs, Models, Rigs, Scans,
                         Synthesis,
                         Tracking)
+from .transport import OnePieceTransport
 from .types import Readiness
 
 __all__ = ["Client", "AsyncClient", "SHORTCUTS"]
@@ -167,7 +168,10 @@ class Client(_Api):
     poll_interval : float       seconds between polls when waiting without events
     http_client : httpx.Client, optional   use this client (not closed by :meth:`close`)
     transport : httpx.BaseTransport, optional   transport of the client made here (e.g.
-                                ``httpx.MockTransport`` in tests)
+                                ``httpx.MockTransport`` in tests); default
+                                :class:`~facesynth_client.transport.OnePieceTransport` (plain
+                                ``http`` requests in one write, answers read in one piece;
+                                ``https`` through httpx's own transport)
     sleep : callable, optional  ``sleep(seconds)`` for backoff and polling (default
                                 ``time.sleep``; tests inject a recorder)
     headers : dict, optional    extra headers on every request
@@ -189,7 +193,8 @@ class Client(_Api):
                  random: Callable[[], float] | None = None):
         self._own = http_client is None
         self._http = http_client if http_client is not None else httpx.Client(
-            transport=transport, timeout=_timeout(timeout))
+            transport=transport if transport is not None else OnePieceTransport(),
+            timeout=_timeout(timeout))
         self._sleep = sleep if sleep is not None else time.sleep
         super().__init__(base_url, token, timeout=timeout, max_retries=max_retries,
                          backoff=backoff, backoff_max=backoff_max, poll_interval=poll_interval,

@@ -1,6 +1,6 @@
 """IEEE 754 binary16 constants of the float32 → float16 conversion: the bit patterns that
 :func:`service.io.half.to_float16`'s NumPy blocks and its compiled loop
-(:mod:`service.io.half_kernel`) both round with, declared once (plain NumPy, so importing
+(:mod:`service.geometry.half_kernel`) both round with, declared once (plain NumPy, so importing
 them imports no Numba)."""
 
 from __future__ import annotations

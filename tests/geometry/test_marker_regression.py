@@ -1,8 +1,8 @@
-"""Locally weighted marker regression (service/methods/pose_space/marker_regression.py)."""
+"""Locally weighted marker regression (service/geometry/marker_regression.py)."""
 
 import numpy as np
 
-from service.methods.pose_space.marker_regression import fit, marker_weights
+from service.geometry.marker_regression import fit, marker_weights
 
 
 def _data(seed=0, T=40, M=5, n=7):
@@ -42,3 +42,25 @@ def test_mean_input_gives_mean_offset_and_locality():
     if len(unused):
         far[0, unused] += 100.0
         assert np.allclose(reg(far)[0], Y.mean(axis=0), atol=1e-5)
+
+
+def test_an_anchored_fit_passes_through_the_anchor_and_recovers_a_linear_map():
+    """Anchored at y₀: u = 0 gives y₀ exactly (the neutral), and offsets y₀ + B u with wide
+    weights are recovered on new frames although the training frames' mean is not 0."""
+    rng, rest, verts, u = _data(2)
+    T, M, n = len(u), len(rest), len(verts)
+    u = u + 3.0                                                  # mean far from the rest pose
+    Btrue = rng.normal(size=(3 * n, 3 * M))
+    y0 = rng.normal(size=(n, 3))
+    Y = (u.reshape(T, -1) @ Btrue.T).reshape(T, n, 3) + y0
+    reg = fit(u, Y, verts, rest, radius=1e6, ridge=1e-12, anchor=y0)
+    np.testing.assert_array_equal(reg(np.zeros((1, M, 3)))[0], y0.astype(np.float32))
+    new = rng.normal(size=(3, M, 3))
+    want = (new.reshape(3, -1) @ Btrue.T).reshape(3, n, 3) + y0
+    assert np.abs(reg(new) - want).max() < 1e-3
+    # without the anchor the same data's fit need not pass through y₀ at rest once noise is added
+    Yn = Y + rng.normal(0.0, 0.5, Y.shape)
+    free = fit(u, Yn, verts, rest, radius=1e6, ridge=1e-2)
+    held = fit(u, Yn, verts, rest, radius=1e6, ridge=1e-2, anchor=y0)
+    assert np.abs(free(np.zeros((1, M, 3)))[0] - y0).max() > 1e-2
+    np.testing.assert_array_equal(held(np.zeros((1, M, 3)))[0], y0.astype(np.float32))

@@ -27,6 +27,11 @@ K_v = Σ_m g_v,m² U_m U_mᵀ (T,T) (U_m (T,3) the centred training displacement
 A_v = (K_v + λ tr(K_v)/T · I)⁻¹ (Y_v − ȳ_v) (T,3) and B_v,m = g_v,m² U_mᵀ A_v (3,3).
 Stored as one CSR matrix (3n, 3M) and the means, so evaluation is one sparse product per
 frame: ``y = ȳ + L (u − ū)``.
+
+Anchored (``anchor`` y₀ given): the regression passes through the rest pose instead of the
+training means, ū = 0 and ȳ = y₀ (the offsets of the neutral), and the ridge regression of
+Y − y₀ on the uncentred u: the neutral is reproduced exactly, whatever the training frames'
+mean (the PDM's medium band, :mod:`service.methods.pdm.model`).
 """
 
 from __future__ import annotations
@@ -74,7 +79,8 @@ def marker_weights(vertices: np.ndarray, marker_rest: np.ndarray, radius: float,
 
 
 def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndarray,
-        radius: float, ridge: float, cutoff: float = 1e-3) -> MarkerRegression:
+        radius: float, ridge: float, cutoff: float = 1e-3,
+        anchor: np.ndarray | None = None) -> MarkerRegression:
     """Fit the regression (module docstring).
 
     Parameters
@@ -83,14 +89,15 @@ def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndar
     Y : (T,n,3) float        training vertex offsets (head pose removed), mm
     vertices : (n,3)         rest vertices;  marker_rest (M,3) rest markers, mm
     radius : float           s, mm;  ridge: λ (relative to tr(K_v)/T);  cutoff: g² dropped below
+    anchor : (n,3) | None    y₀, the offsets at u = 0 the fit passes through (None: the means)
     """
     T, M = u.shape[:2]
     n = Y.shape[1]
-    mean_u = u.mean(axis=0)
+    mean_u = u.mean(axis=0) if anchor is None else np.zeros(u.shape[1:])
     U = (u - mean_u).astype(np.float64)                                    # (T,M,3)
     G = np.einsum("tmc,smc->mts", U, U).reshape(M, T * T)                  # U_m U_mᵀ
     W = marker_weights(vertices, marker_rest, radius, cutoff)
-    mean_y = Y.mean(axis=0)
+    mean_y = Y.mean(axis=0) if anchor is None else np.asarray(anchor, np.float64)
     blocks = []
     diag = np.arange(T)
     Uf = U.reshape(T, M * 3)
@@ -101,9 +108,19 @@ def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndar
         K = (g2 @ G).reshape(c, T, T)
         scale = ridge * np.maximum(np.einsum("vtt->v", K) / T, 1e-30)
         K[:, diag, diag] += scale[:, None]
-        A = np.linalg.solve(K, (Y[:, vs] - mean_y[vs]).transpose(1, 0, 2))  # (c,T,3)
+        A = _spd_solve(K, (Y[:, vs] - mean_y[vs]).transpose(1, 0, 2))      # (c,T,3)
         # B_v,m = g²_v,m A_vᵀ U_m: rows (v, out i), columns (m, in j)
         B = (A.transpose(0, 2, 1).reshape(c * 3, T) @ Uf).reshape(c, 3, M, 3) * g2[:, None, :, None]
         blocks.append(sp.csr_matrix(B.reshape(c * 3, M * 3).astype(np.float32)))
     L = sp.vstack(blocks, format="csr")
     return MarkerRegression(L, mean_u, mean_y.astype(np.float32))
+
+
+def _spd_solve(K: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A (c,T,k) with K_i A_i = B_i for symmetric positive definite K (c,T,T): one Cholesky
+    factorization each. (NumPy's stacked ``solve`` runs an LU per matrix ~10× slower at
+    T = 120: 0.40 s against 0.04 s CPU for 256 matrices; measured agreement 6e-15.)"""
+    from scipy.linalg import cho_factor, cho_solve
+
+    return np.stack([cho_solve(cho_factor(k, lower=True, check_finite=False), b, check_finite=False)
+                     for k, b in zip(K, B)])

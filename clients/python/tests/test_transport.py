@@ -1,0 +1,213 @@
+"""The sync client's transport (facesynth_client.transport.OnePieceTransport) against a small
+HTTP/1.1 server on a loopback port: the same answers as httpx's own transport, a sized
+answer in one piece, streams in pieces, kept-alive connections reused and stale ones
+replaced, httpx's exception classes, and httpx's transport for what it does not take."""
+
+from __future__ import annotations
+
+import hashlib
+import http.server
+import json
+import threading
+import time
+
+import httpx
+import pytest
+
+from facesynth_client import Client
+from facesynth_client.transport import CHUNK, OnePieceTransport
+
+BIG = bytes(range(256)) * 4099          # 1,049,344 bytes: several of httpx's 64 KiB reads
+
+
+class Handler(http.server.BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+    connections: list[int] = []
+
+    def setup(self) -> None:
+        super().setup()
+        self.connections.append(id(self.connection))
+
+    def log_message(self, *args) -> None:
+        pass
+
+    def _answer(self, body: bytes, status: int = 200, headers: dict | None = None) -> None:
+        self.send_response(status)
+        for name, value in {"Content-Length": str(len(body)), **(headers or {})}.items():
+            self.send_header(name, value)
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_GET(self) -> None:
+        if self.path == "/big":
+            self._answer(BIG, headers={"Content-Type": "application/octet-stream"})
+        elif self.path == "/chunked":
+            self.send_response(200)
+            self.send_header("Transfer-Encoding", "chunked")
+            self.end_headers()
+            for part in (b"data: 1\n\n", b"data: 2\n\n", BIG):
+                self.wfile.write(b"%x\r\n%s\r\n" % (len(part), part))
+                self.wfile.flush()
+            self.wfile.write(b"0\r\n\r\n")
+        elif self.path == "/close":
+            self._answer(b"bye", headers={"Connection": "close"})
+            self.close_connection = True
+        elif self.path == "/slow":
+            time.sleep(1.0)
+            self._answer(b"late")
+        elif self.path == "/missing":
+            self._answer(b'{"detail": "no"}', 404, {"Content-Type": "application/problem+json"})
+        else:
+            self._answer(b"")
+
+    def do_POST(self) -> None:
+        body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
+        echo = {"path": self.path, "sha256": hashlib.sha256(body).hexdigest(),
+                "headers": {k.lower(): v for k, v in self.headers.items()}}
+        self._answer(json.dumps(echo).encode(), headers={"Content-Type": "application/json"})
+
+
+@pytest.fixture(scope="module")
+def origin():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    server.daemon_threads = True
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}", Handler.connections
+    server.shutdown()
+    server.server_close()
+
+
+@pytest.fixture
+def one_piece(origin):
+    with httpx.Client(base_url=origin[0], transport=OnePieceTransport(), timeout=5) as client:
+        yield client
+
+
+def test_answers_equal_httpx_transport(origin, one_piece):
+    with httpx.Client(base_url=origin[0], timeout=5) as plain:
+        for method, path, kwargs in (("GET", "/big", {}), ("GET", "/chunked", {}),
+                                     ("GET", "/missing", {}), ("GET", "/empty", {}),
+                                     ("POST", "/echo?outputs=mesh&half=true",
+                                      {"content": BIG[:5000],
+                                       "headers": {"Content-Type": "application/x-npz"}})):
+            a, b = (c.request(method, path, **kwargs) for c in (plain, one_piece))
+            assert a.status_code == b.status_code and a.content == b.content
+            assert [h for h in a.headers.multi_items() if h[0] != "date"] == \
+                [h for h in b.headers.multi_items() if h[0] != "date"]
+            assert a.http_version == b.http_version and a.reason_phrase == b.reason_phrase
+    echo = one_piece.post("/echo?x=1", content=b"abc").json()
+    assert echo["path"] == "/echo?x=1" and echo["sha256"] == hashlib.sha256(b"abc").hexdigest()
+    assert echo["headers"]["content-length"] == "3" and "host" in echo["headers"]
+
+
+def test_a_sized_answer_is_read_in_one_piece_and_a_stream_in_pieces(one_piece):
+    with one_piece.stream("GET", "/big") as response:
+        pieces = list(response.iter_raw())
+    assert [len(p) for p in pieces] == [len(BIG)] and pieces[0] == BIG
+    with one_piece.stream("GET", "/chunked") as response:
+        pieces = list(response.iter_raw())
+    assert pieces[:2] == [b"data: 1\n\n", b"data: 2\n\n"]
+    assert b"".join(pieces[2:]) == BIG and max(len(p) for p in pieces) <= CHUNK
+
+
+def test_connections_are_kept_alive_and_a_closed_one_is_replaced(origin, one_piece):
+    connections = origin[1]
+    one_piece.get("/empty")
+    before = len(connections)
+    for _ in range(5):
+        assert one_piece.get("/big").content == BIG
+    assert len(connections) == before                  # one connection for all five
+    assert one_piece.get("/close").content == b"bye"   # the server closes this one
+    assert one_piece.get("/big").content == BIG
+    assert len(connections) == before + 1
+
+
+class ShortKeepAlive(Handler):
+    """Closes a kept-alive connection after 0.2 s without a request."""
+
+    timeout = 0.2
+    connections: list[int] = []
+
+
+@pytest.fixture(scope="module")
+def short_origin():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), ShortKeepAlive)
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{server.server_address[1]}", ShortKeepAlive.connections
+    server.shutdown()
+    server.server_close()
+
+
+@pytest.mark.parametrize("noticed", [True, False])
+def test_a_kept_connection_the_server_closed_is_replaced(short_origin, monkeypatch, noticed):
+    """Closed while idle: dropped when it is checked out (noticed), or — when the server
+    closes it between that check and the request — the request is sent once more on a new
+    connection."""
+    import facesynth_client.transport as transport_module
+
+    if not noticed:
+        monkeypatch.setattr(transport_module, "_is_closed", lambda connection: False)
+    url, connections = short_origin
+    transport = OnePieceTransport()
+    exchanges = []
+    exchange = transport._exchange
+    monkeypatch.setattr(transport, "_exchange", lambda *a: exchanges.append(1) or exchange(*a))
+    with httpx.Client(base_url=url, transport=transport, timeout=5) as client:
+        assert client.get("/big").content == BIG
+        before = len(connections)
+        time.sleep(0.6)                    # the server closes the idle connection
+        exchanges.clear()
+        assert client.post("/echo", content=b"again").json()["sha256"] == \
+            hashlib.sha256(b"again").hexdigest()
+        assert len(connections) == before + 1
+        assert len(exchanges) == (1 if noticed else 2)
+
+
+def test_errors_are_httpx_exceptions():
+    import socket
+
+    with socket.socket() as unused:
+        unused.bind(("127.0.0.1", 0))
+        port = unused.getsockname()[1]
+    with httpx.Client(transport=OnePieceTransport(), timeout=2) as client:
+        with pytest.raises(httpx.ConnectError):
+            client.get(f"http://127.0.0.1:{port}/")
+
+
+def test_a_slow_answer_is_a_read_timeout(origin):
+    with httpx.Client(base_url=origin[0], transport=OnePieceTransport(),
+                      timeout=httpx.Timeout(5, read=0.2)) as client:
+        with pytest.raises(httpx.ReadTimeout):
+            client.get("/slow")
+        assert client.get("/big").content == BIG       # the timed-out connection was dropped
+
+
+class Recording(httpx.BaseTransport):
+    def __init__(self):
+        self.urls: list[str] = []
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        request.read()
+        self.urls.append(str(request.url))
+        return httpx.Response(200, content=b"fallback")
+
+
+def test_https_and_streamed_bodies_go_to_httpx_transport(origin):
+    fallback = Recording()
+    with httpx.Client(transport=OnePieceTransport(fallback=fallback), timeout=5) as client:
+        assert client.get("https://fs.test/x").content == b"fallback"
+        streamed = client.post(f"{origin[0]}/echo", content=iter([b"a", b"b"]))
+        assert streamed.content == b"fallback"
+        assert client.post(f"{origin[0]}/echo", content=b"ab").json()["sha256"] == \
+            hashlib.sha256(b"ab").hexdigest()
+    assert fallback.urls == ["https://fs.test/x", f"{origin[0]}/echo"]
+
+
+def test_the_client_sends_through_it_by_default(origin):
+    with Client(origin[0]) as fs:
+        assert isinstance(fs._http._transport, OnePieceTransport)
+        assert fs.health is not None
+    with Client(origin[0], transport=Recording()) as fs:
+        assert isinstance(fs._http._transport, Recording)
