@@ -13,7 +13,15 @@ synthesized by
   clips, with their extrapolation limit;
 * *shape space (markers)* and, on clean rows, *shape space (rig)*: bermano2014 trained on the
   family's ``database`` performance, given the markers, or the low-resolution rig meshes
-  carried to the neutral by the rig registration (the rig input has no markers to corrupt).
+  carried to the neutral by the rig registration (the rig input has no markers to corrupt);
+* *WPSD* (bickel2008 §5.3 with its defaults: no marker regression) and *WPSD + marker
+  regression (s=S, λ=R)* (default the recommended s = 3, λ = 0.1;
+  ``WpsdParams(marker_regression=S, marker_regression_ridge=R)``,
+  ``--regression S[:R] ...``), trained on the family's ``train_*`` clips (fresh process,
+  cached with the PDMs), with their own marker prior (``marker_prior = "posterior"``: they
+  do not take ``--marker-noise``). Their rows also give the median synthesis time per frame
+  (``mesh`` + ``displacement``, one call for the performance's frames, level 0 here) and the
+  report their training time.
 
 Performances: ``heldout_in_range``, ``heldout_combinations`` (combinations no training clip
 shows) and ``heldout_amplified`` (every training expression 25–40 % beyond its peak), and
@@ -37,13 +45,13 @@ range with every marker condition pooled (issue 17: ≥ 0.6 out of range).
 Also writes, per family, a heat map PNG of the vertex errors of every method on the worst
 frame (the largest PDM-biquadratic vertex error over all rows).
 
-Models are cached: the PDM under ``benchmarks/out/generalization/models/`` and the
+Models are cached: the PDMs and pose-space models under ``benchmarks/out/generalization/models/`` and the
 shape-space model and rig registration in shape_space_report's cache, all keyed by the
 actor's files. A method that fails on an input (e.g. occluded markers) gets a row saying so.
 
 Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
 [--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA] [--pdm-only]
-[--pdm-params JSON] [--out DIR]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
+[--pdm-params JSON] [--regression S[:R] ...] [--out DIR]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
 parameters, their models cached apart); default actors (built
 when missing, seed 1, level 0):
 ``benchmarks/out/generalization/actor-{a,b}-l0``. Writes the table to stdout and
@@ -67,6 +75,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers, cached builds)
+from service.methods.pose_space.params import MARKER_REGRESSION_RIDGE, RECOMMENDED_MARKER_REGRESSION  # noqa: E402
 
 OUT = pdm.GENERALIZATION
 MODELS = pdm.GENERALIZATION_MODELS
@@ -76,6 +85,11 @@ ORDERS = pdm.PDM_ORDERS
 DEFAULT_FRAMES = 8
 SS_MARKERS, SS_RIG = "shape space (markers)", "shape space (rig)"
 WORST_OF = "PDM biquadratic"
+WPSD = "WPSD"
+#: (s, ridge) of the regression rows: the recommended values (service.methods.pose_space.params)
+DEFAULT_REGRESSION = ((RECOMMENDED_MARKER_REGRESSION, MARKER_REGRESSION_RIDGE),)
+#: the rows whose per-frame max is held against the thin shell's (issue 17: never above it)
+AGAINST_SHELL = ("PDM", "WPSD")
 CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the result key)
 HEAT_MM = 2.0                     # heat-map colour range, mm
 #: a PDM frame's max error counts as above the thin shell's beyond this (the PDM's vertices
@@ -97,12 +111,36 @@ class MethodFailed(Exception):
     pass
 
 
+def regression_arg(text: str) -> tuple[float, float]:
+    """``--regression S[:R]``: the marker regression's s (median marker spacings) and ridge λ
+    (default the field's)."""
+    s, _, r = text.partition(":")
+    return float(s), float(r) if r else MARKER_REGRESSION_RIDGE
+
+
+def regression_name(s: float, ridge: float) -> str:
+    return f"WPSD + marker regression (s={s:g}, λ={ridge:g})"
+
+
+def pose_space_variants(regressions) -> dict:
+    """Row name → WpsdParams: plain WPSD and one row per (s, ridge) of the marker regression."""
+    from service.methods.pose_space import WpsdParams
+
+    out = {WPSD: WpsdParams(marker_regression=None)}
+    out.update({regression_name(s, r): WpsdParams(marker_regression=s, marker_regression_ridge=r)
+                for s, r in regressions})
+    return out
+
+
 def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
                     marker_filter: float = 0.0, marker_noise_mm: float | str = 0.0,
                     shape_space_rows: bool = True, pdm_params: dict | None = None,
-                    only: set | None = None, ranges=None, conditions=None) -> dict:
+                    only: set | None = None, ranges=None, conditions=None,
+                    pose_space: dict | None = None) -> dict:
     """Rows {(range, condition, method): metrics} and the worst frame's data of one family;
-    ``only`` (method names), ``ranges`` and ``conditions`` restrict the rows (None: all)."""
+    ``only`` (method names), ``ranges`` and ``conditions`` restrict the rows (None: all);
+    ``pose_space``: row name → pose-space params (:func:`pose_space_variants`)."""
+    from service.methods.pose_space import PoseSpaceModel
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
 
@@ -117,13 +155,27 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     H = json.loads((actor_dir / "manifest.json").read_text())["map_resolution"]
     tex = pdm.DetailTexels.build(actor, H, bq.metrics["highpass_sigma_texels"] * H / bq.data.fine.resolution)
 
+    def at_map_resolution(D):
+        k = D.shape[-1] // H
+        return D.reshape(len(D), H, k, H, k).mean(axis=(2, 4)) if k > 1 else D
+
     def pdm_prediction(model, markers):
         out = model.synthesize(markers, pdm.BASIC_OUTPUTS)
-        D = out["displacement"]
-        k = D.shape[-1] // H
-        if k > 1:
-            D = D.reshape(len(D), H, k, H, k).mean(axis=(2, 4))
-        return out["vertices"].astype(np.float64), tex.texels(D), out["clamped"], out.get(CONFIDENCE)
+        return (out["vertices"].astype(np.float64), tex.texels(at_map_resolution(out["displacement"])),
+                out["clamped"], out.get(CONFIDENCE))
+
+    ps_models, ps_train, synth_ms = {}, {}, {}
+    for name, params in (pose_space or {}).items():
+        if wanted(name):
+            path, ps_train[name] = pdm.pose_space_model(actor_dir, params, retrain)
+            ps_models[name] = PoseSpaceModel.load(path)
+
+    def pose_space_prediction(name, markers):
+        t0 = time.perf_counter()
+        out = ps_models[name].synthesize(markers, pdm.BASIC_OUTPUTS)
+        synth_ms.setdefault(name, []).append(1e3 * (time.perf_counter() - t0) / len(markers))
+        return (out["vertices"].astype(np.float64), tex.texels(at_map_resolution(out["displacement"])),
+                None, out.get(CONFIDENCE))
 
     clips = pdm.training_clips(actor_dir, actor)
     base = pdm.Baselines.build(actor, clips, bq, tex)
@@ -160,6 +212,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                 methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
             if shape_space_rows and cname == "clean":
                 methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
+            methods.update({k: (lambda m, k=k: pose_space_prediction(k, m)) for k in ps_models})
             methods = {k: m for k, m in methods.items() if wanted(k)}
             t0 = time.perf_counter()
             try:                # every method in one pass: the ground-truth row is scored once
@@ -185,6 +238,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                     "frames": len(gt.frames), "seconds": time.perf_counter() - t0,
                     "frame_max": face_err.max(axis=1).tolist()}
                 r_ = rows[(rname, cname, name)]
+                if name in synth_ms:            # this performance's call (the last one timed)
+                    r_["synth_ms_per_frame"] = synth_ms[name][-1]
                 if r["extra"].get(name) is not None:        # per-frame confidence (PDM)
                     r_["confidence"] = np.asarray(r["extra"][name], np.float64).tolist()
                     r_["frame_error"] = face_err.mean(axis=1).tolist()
@@ -209,21 +264,22 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
     # the worst frame, every method
     errors = {}
     if worst is None:
-        return {"rows": rows, "worst": None, "actor": actor,
+        return {"rows": rows, "worst": None, "actor": actor, "pose_space_training": ps_train,
                 "meta": {"vertices": actor.n_vertices, "markers": actor.n_markers}}
-    for name in ("no detail", "nearest training frame", "PDM linear", "PDM biquadratic") + (
-            (SS_MARKERS,) if shape_space_rows else ()):
-        fn = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
-              "PDM linear": lambda m: pdm_prediction(models["linear"], m),
-              "PDM biquadratic": lambda m: pdm_prediction(bq, m),
-              SS_MARKERS: lambda m: shape_space(m, "markers")}[name]
+    fns = {"no detail": base.no_detail, "nearest training frame": lambda m: base.nearest(m)[:3],
+           "PDM linear": lambda m: pdm_prediction(models["linear"], m),
+           "PDM biquadratic": lambda m: pdm_prediction(bq, m)}
+    if shape_space_rows:
+        fns[SS_MARKERS] = lambda m: shape_space(m, "markers")
+    fns.update({k: (lambda m, k=k: pose_space_prediction(k, m)) for k in ps_models})
+    for name, fn in fns.items():
         try:
             V = fn(worst["markers"])[0][0]
             errors[name] = np.linalg.norm(V - worst["gt"], axis=-1)
         except Exception as e:          # noqa: BLE001
             print(f"  worst frame, {name}: failed ({e})", file=sys.stderr)
     worst["errors"] = errors
-    return {"rows": rows, "worst": worst, "actor": actor,
+    return {"rows": rows, "worst": worst, "actor": actor, "pose_space_training": ps_train,
             "meta": {"vertices": actor.n_vertices, "markers": actor.n_markers}}
 
 
@@ -252,12 +308,13 @@ def _n(x, d=3):
 
 
 def worse_frames(rows: dict) -> dict:
-    """Per PDM row with a *no detail* row of the same input: (frames whose max face vertex
-    error exceeds the thin shell's by more than :data:`WORSE_TOL_MM`, frames, largest excess mm)."""
+    """Per PDM and pose-space row (:data:`AGAINST_SHELL`) with a *no detail* row of the same
+    input: (frames whose max face vertex error exceeds the thin shell's by more than
+    :data:`WORSE_TOL_MM`, frames, largest excess mm)."""
     out = {}
     for (rname, cname, name), r in rows.items():
         shell = rows.get((rname, cname, "no detail"), {})
-        if name.startswith("PDM") and "frame_max" in r and "frame_max" in shell:
+        if name.startswith(AGAINST_SHELL) and "frame_max" in r and "frame_max" in shell:
             excess = np.asarray(r["frame_max"]) - np.asarray(shell["frame_max"])
             out[(rname, cname, name)] = (int(np.sum(excess > WORSE_TOL_MM)), len(excess), float(excess.max()))
     return out
@@ -303,6 +360,14 @@ def report(results: dict, frames: int | None, seconds: float) -> str:
                 continue
             lines.append(f"| {rname} | {cname} | {name} | {_n(r['mean'])} | {_n(r['p95'])} | {_n(r['max'], 2)} "
                          f"| {_n(r['corr'], 2)} | {_n(r['rel'], 2)} |")
+        timed = {k: r["synth_ms_per_frame"] for k, r in res["rows"].items() if "synth_ms_per_frame" in r}
+        if timed or res.get("pose_space_training"):
+            lines += ["", "Pose space, level 0 as run here (load at the end of the run below): training wall / CPU "
+                          "s, and median synthesis ms per frame (mesh + displacement, one call a performance):", ""]
+            for name, rec in res.get("pose_space_training", {}).items():
+                ms = [v for (_, _, k), v in timed.items() if k == name]
+                lines.append(f"- {name}: training {rec['train_s']:.0f} s / {rec.get('train_cpu_s', float('nan')):.0f} s "
+                             f"CPU" + (f", synthesis {np.median(ms):.1f} ms/frame" if ms else ""))
         worse = worse_frames(res["rows"])
         if worse:
             lines += ["", "Frames whose max face vertex error exceeds the thin shell's (*no detail*) by more "
@@ -354,6 +419,11 @@ def main() -> None:
     parser.add_argument("--pdm-params", type=json.loads, default=None, metavar="JSON",
                         help="other PdmParams fields of both PDMs, e.g. '{\"neutral_anchor\": false}' "
                              "(cached apart from the defaults)")
+    parser.add_argument("--regression", type=regression_arg, nargs="+", default=list(DEFAULT_REGRESSION),
+                        metavar="S[:R]",
+                        help="a 'WPSD + marker regression' row per value: marker_regression = S (median marker "
+                             "spacings), marker_regression_ridge = R (default the field's); default the recommended "
+                             f"{RECOMMENDED_MARKER_REGRESSION:g}:{MARKER_REGRESSION_RIDGE:g}")
     parser.add_argument("--out", type=Path, default=OUT, metavar="DIR",
                         help=f"where the report and figures go (default {OUT}; the models stay cached there)")
     args = parser.parse_args()
@@ -379,7 +449,8 @@ def main() -> None:
         results[family] = evaluate_family(family, actor_dir, frames, args.retrain, args.marker_filter,
                                           args.marker_noise, not args.pdm_only and (
                                               only is None or SS_MARKERS in only or SS_RIG in only),
-                                          args.pdm_params, only, args.ranges, args.conditions)
+                                          args.pdm_params, only, args.ranges, args.conditions,
+                                          None if args.pdm_only else pose_space_variants(args.regression))
         if results[family]["worst"] is not None:
             plot_worst(results[family], family, out / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)

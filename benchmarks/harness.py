@@ -1,12 +1,13 @@
 """What the benchmark reports share: the sample actor's data, fresh-process workers with
-peak-memory measurement, the cached model builds (PDM per order, shape-space model per
-parameter set, input-rig registration) and their workers, the fine-detail metric at the map
-texels, the PDM baseline, and figure helpers. Each report imports this module (``import
+peak-memory measurement, the cached model builds (PDM per order, shape-space and pose-space
+model per parameter set, input-rig registration) and their workers, the fine-detail metric at
+the map texels, the PDM baseline, and figure helpers. Each report imports this module (``import
 harness``); no report imports another.
 
 Workers (fresh processes, :func:`run_worker`): ``python benchmarks/harness.py train-pdm
 ACTOR ORDER MODEL_DIR``, ``train-shape-space ACTOR PARAMS_JSON MODEL_DIR``,
-``register-rig ACTOR OUT_NPZ``; each prints its JSON record as the last line.
+``register-rig ACTOR OUT_NPZ``, ``train-pose-space ACTOR PARAMS_JSON MODEL_DIR``; each prints
+its JSON record as the last line.
 
 Peak memory: a worker resets the resident-set high-water mark (``echo 5 >
 /proc/self/clear_refs``) and reports ``VmHWM − VmRSS`` at the reset, the peak resident
@@ -41,7 +42,7 @@ OUT = ROOT / "benchmarks" / "out"
 PDM_MODELS = OUT / "pdm" / "models"    # pdm_report's models, one per order (also game_outputs_report's)
 SHAPE_SPACE_MODELS = OUT / "shape_space" / "models"   # shape-space models, PDM, rig registrations
 GENERALIZATION = OUT / "generalization"             # generalization_report's output (issue 17)
-GENERALIZATION_MODELS = GENERALIZATION / "models"   # its PDMs (also confidence_factors')
+GENERALIZATION_MODELS = GENERALIZATION / "models"   # its PDMs (also confidence_factors') and pose-space models
 #: issue 17's held-out input ranges (report name → performance) and marker conditions (→ file suffix)
 HELDOUT_RANGES = {"in range": "heldout_in_range", "combinations": "heldout_combinations",
                   "out of range": "heldout_amplified"}
@@ -670,6 +671,50 @@ def noise_arg(text: str) -> float | str:
     return text if text == "auto" else float(text)
 
 
+def train_pose_space(actor_dir: Path, params: str, model_dir: Path) -> dict:
+    """Train a pose-space model (``params``: the JSON of a :class:`WpsdParams` or
+    :class:`PsdParams`, told apart by ``method``) on the actor's training clips and save it into
+    ``model_dir``; wall and CPU time and peak RSS of ``train`` (run it in a fresh process)."""
+    from service.methods.pose_space import train
+    from service.methods.pose_space.params import parse_params
+    from service.samples.dataset import load_actor
+
+    actor = load_actor(actor_dir)
+    clips = training_clips(actor_dir, actor)
+    p = parse_params(json.loads(params))
+    load0 = os.getloadavg()[0]
+    rss0 = reset_peak()
+    t0, c0 = time.perf_counter(), time.process_time()
+    model = train(actor, clips, p)
+    res = {"train_s": time.perf_counter() - t0, "train_cpu_s": time.process_time() - c0,
+           "peak_rss_mb": peak_mb(rss0), "load_average": [load0, os.getloadavg()[0]],
+           "frames": sum(c.frames for c in clips), "params": json.loads(params)}
+    model.save(model_dir)
+    return res
+
+
+def pose_space_model(actor_dir: Path, params, retrain: bool,
+                     models_dir: Path = GENERALIZATION_MODELS) -> tuple[Path, dict]:
+    """The model directory of pose-space ``params`` (every field, so a changed default is
+    another model) on the actor's training clips, built in a fresh process unless cached under
+    ``models_dir``, and its build record."""
+    from service.samples.dataset import performance_names
+
+    files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
+    key = f"{actor_files_key(actor_dir, *files)}-{params.method}-{sha(params_json(params))}"
+    model_dir, record = models_dir / f"pose_space-{key}", models_dir / f"pose_space-{key}.train.json"
+
+    def build():
+        print(f"  training pose-space model {model_dir.name} (fresh process) ...", file=sys.stderr)
+        return run_worker(__file__, "train-pose-space", str(actor_dir), params_json(params), str(model_dir))
+
+    models_dir.mkdir(parents=True, exist_ok=True)
+    rec = cached(record, (model_dir / "manifest.json").is_file(), retrain, build)
+    print(f"  pose-space {model_dir.name}: {'reused' if rec['reused'] else 'built'}, "
+          f"training {rec['train_s']:.0f} s ({rec['train_cpu_s']:.0f} s CPU)", file=sys.stderr)
+    return model_dir, rec
+
+
 def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: float | str = 0.0,
                               params: dict | None = None, orders=None,
                               models_dir: Path = GENERALIZATION_MODELS) -> dict:
@@ -710,6 +755,7 @@ WORKERS = {
         Path(actor), order, Path(model), noise if noise == "auto" else float(noise), params),
     "train-shape-space": lambda actor, params, model: train_shape_space(Path(actor), params, Path(model)),
     "register-rig": lambda actor, out: register_input_rig(Path(actor), Path(out)),
+    "train-pose-space": lambda actor, params, model: train_pose_space(Path(actor), params, Path(model)),
 }
 
 # ---------------------------------------------------------------------------- servers
@@ -853,5 +899,6 @@ if __name__ == "__main__":
     code, n = (worker.__code__, len(sys.argv) - 2) if worker else (None, 0)
     if worker is None or not code.co_argcount - len(worker.__defaults__ or ()) <= n <= code.co_argcount:
         sys.exit("usage: harness.py train-pdm ACTOR_DIR ORDER MODEL_DIR [MARKER_NOISE_MM [PARAMS_JSON]] | train-shape-space ACTOR_DIR "
-                 "PARAMS_JSON MODEL_DIR | register-rig ACTOR_DIR OUT_NPZ (the reports' workers)")
+                 "PARAMS_JSON MODEL_DIR | register-rig ACTOR_DIR OUT_NPZ | train-pose-space ACTOR_DIR PARAMS_JSON "
+                 "MODEL_DIR (the reports' workers)")
     print(json.dumps(worker(*sys.argv[2:])))

@@ -41,7 +41,10 @@ Per actor:
   come from one rig, so vertex i corresponds — only these 40 pairs are given, the dense
   correspondence is computed), driven by the target's own markers, scored against the
   target's ground truth beside the target's thin shell and a WPSD trained on the target.
-* **speed** (2 cores) — per-frame synthesis at the actor's level with P = 6 and P = 20
+* **speed** (2 cores) — per-frame synthesis at the actor's level with P = 6 and P = 20, and
+  of WPSD with the recommended marker regression (``--speed-models "WPSD,WPSD +
+  regression"``: what the regression's sparse product adds; its entries counted in the
+  storage columns)
   (``mesh``: large scale + fine scale + tangent frames; and with the displacement map),
   against scipy's ``RBFInterpolator`` doing the same interpolation in the same run (for PSD
   one interpolator over all 3n values; for WPSD one per vertex, timed on a vertex sample and
@@ -82,6 +85,7 @@ BLAS_THREADS = apply_blas_threads(None, None)
 import numpy as np  # noqa: E402
 
 import harness as pr  # noqa: E402  (the reports' shared data, metric and baselines)
+from service.methods.pose_space.params import RECOMMENDED_MARKER_REGRESSION  # noqa: E402
 
 FIG4_FRAMES = 100
 FIG4_MAX_P = 20
@@ -372,19 +376,23 @@ def speed(model, markers: np.ndarray) -> dict:
 def storage(model) -> dict:
     """Floats and ints per vertex that one frame's evaluation reads (the shell's basis row, the
     RBF weights, the correction sum's entries — α and the polynomial's coefficients on one
-    pattern, WPSD — the polynomial's constant, the rest position), and per map texel."""
+    pattern, WPSD — the polynomial's constant, the rest position, the marker regression's
+    entries and its mean offset), and per map texel."""
     d, cs = model.data, model.evaluator.correction_sum
     n, P, M = d.n_vertices, d.basis_size, d.n_markers
     entries = 0.0 if cs is None else len(cs.edge) / n
     poly = cs is not None and len(cs.const) > 0
-    floats = M + 3 * P + 4 * entries + (3 if poly else 0) + 3
-    return {"floats_per_vertex": floats, "ints_per_vertex": entries,
+    reg = 0.0 if d.regression is None else d.regression.nnz / n
+    floats = M + 3 * P + 4 * entries + (3 if poly else 0) + 3 + (reg + 3 if reg else 0)
+    return {"floats_per_vertex": floats, "ints_per_vertex": entries + reg,
             "floats_per_texel": P if d.map_resolution else 0,
             "texels_per_vertex": len(d.map_index) / n,
             "layout": f"B row {M} + weights 3P = {3 * P}"
                       + (f" + α and polynomial 4 × {entries:.1f} entries" if cs is not None else "")
                       + (" + polynomial constant 3" if poly else "") + " + rest position 3"
-                      + (f"; ints: the entries' edges {entries:.1f}" if cs is not None else "")}
+                      + (f" + marker regression {reg:.0f} entries + its mean 3" if reg else "")
+                      + (f"; ints: the entries' edges {entries:.1f}" if cs is not None else "")
+                      + (f", the regression's columns {reg:.0f}" if reg else "")}
 
 
 # --------------------------------------------------------------------------------------
@@ -432,7 +440,8 @@ def speed_markers(actor_dir: Path) -> np.ndarray:
     return mk[np.linspace(0, len(mk) - 1, k).round().astype(np.int64)]
 
 
-SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20}}
+SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20},
+                "WPSD + regression": {"marker_regression": RECOMMENDED_MARKER_REGRESSION}}
 
 
 def run_speed(actor_dir: Path, train_missing: bool = False, labels: list[str] | None = None) -> dict:

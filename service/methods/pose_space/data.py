@@ -49,6 +49,10 @@ class PoseSpaceData:
     regression_mean_y (n,3) float32 | None   the marker regression (:mod:`service.geometry.marker_regression`,
                                     ``params.marker_regression``), head-pose-aligned offsets
                                     added to the shell before the corrections
+    regression_input str            what the regression reads: ``"handles"`` the handle
+                                    displacements u_H (a trained model), ``"nodes"`` the
+                                    feature nodes' shell displacements ``node_basis @ u_H`` (a
+                                    transferred model: the source markers' corresponding points)
     feature_low, feature_high (E,) float64   training range of every feature
     confidence_scale float          δ₀ of the confidence (module docstring)
     basis_names tuple of str        the basis poses as "clip:frame"
@@ -88,6 +92,7 @@ class PoseSpaceData:
     regression: sp.csr_matrix | None = None
     regression_mean_u: np.ndarray | None = None
     regression_mean_y: np.ndarray | None = None
+    regression_input: str = "handles"
 
     @property
     def kind(self) -> str:

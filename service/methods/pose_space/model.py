@@ -96,7 +96,7 @@ Choices and departures (the paper is silent or differs):
   the Wiener fraction at the frame's own noise estimate times the size factor of its
   large-scale deformation u_H, 1 for a model without a learned marker prior; no separate
   occlusion term), the rule every marker-driven kind shares;
-* **marker regression** (``params.marker_regression`` = s, off by default;
+* **marker regression** (``params.marker_regression`` = s, off by default, recommended s = 3, λ = 0.1;
   :mod:`service.geometry.marker_regression`) — before the corrections, a per-vertex ridge regression of the
   aligned offsets ``V − X`` on the markers' displacement vectors (weights exp(−d²/s²) of the
   rest distance, s in median marker spacings) is fitted and subtracted; the RBFs learn the
@@ -278,6 +278,17 @@ class PoseSpaceEvaluator:
         """Features f (F,E) of complete handle displacements (F,M,3) (§5.1)."""
         nodes = self.node_rest + np.einsum("nm,fmd->fnd", self.node_basis, u_H)
         return self.graph.features(nodes)
+
+    def regression_offsets(self, u_H: np.ndarray) -> np.ndarray | None:
+        """The marker regression's head-aligned vertex offsets (F,n,3) float32 for handle
+        displacements u_H (F,M,3), None without one. It reads u_H itself, or for a transferred
+        model (``data.regression_input == "nodes"``) the feature nodes' shell displacements
+        ``node_basis @ u_H`` (the source markers' corresponding points on the target)."""
+        if self.regression is None:
+            return None
+        if self.data.regression_input == "nodes":
+            u_H = np.einsum("nm,fmd->fnd", self.node_basis, u_H)
+        return self.regression(u_H)
 
     def limit(self, f: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
         """Features limited to the widened training range, and the fraction limited (F,)."""
@@ -471,7 +482,7 @@ class PoseSpaceModel:
             C, D2 = self._corrections(f, vis, fade, keep_distances=bool(maps))
             if "vertices" in out or need_medium:
                 medium = np.empty((len(f), n, 3), np.float64) if need_medium else None
-                lin = None if ev.regression is None else ev.regression(u_H)              # (f,n,3) aligned
+                lin = ev.regression_offsets(u_H)                                         # (f,n,3) aligned
                 for k in range(len(f)):
                     world = out["vertices"][s + k] if "vertices" in out else None
                     Xa = ev.shell_detail(u_H[k], C[k], pose.R[k], pose.t[k], aligned=bool(need_medium),

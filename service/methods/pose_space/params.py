@@ -23,6 +23,12 @@ SMOOTHING_GRID = (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
 VALIDATION_SEED = 0
 #: seed of the noisy copies of the training frames (``noise_copies``)
 NOISE_COPIES_SEED = 1
+#: the marker regression to opt in with: s (median marker spacings) and ridge λ (the field's
+#: default), chosen on sample family a, confirmed on family b (benchmarks/generalization_report.py,
+#: level 0, 6 frames a row, every range × clean / noisy / occluded markers; README "Pose-space
+#: detail"). Off by default: at level 1 it costs 5× the frame time (README)
+RECOMMENDED_MARKER_REGRESSION = 3.0
+MARKER_REGRESSION_RIDGE = 0.1
 
 
 class PoseSpaceParams(MarkerParams):
@@ -128,10 +134,12 @@ class PoseSpaceParams(MarkerParams):
                     "displacement vectors first (marker_regression.py: per vertex a ridge "
                     "regression on the markers, weighted by exp(−d²/s²) of their rest distance "
                     "d), and the RBFs on what it leaves; the value is s in median nearest-marker "
-                    "spacings of the actor (null: no regression, bickel2008 as printed). The "
-                    "regression is not faded by the confidence.")
+                    "spacings of the actor (null, the default: no regression, bickel2008 as "
+                    f"printed; measured best: {RECOMMENDED_MARKER_REGRESSION:g}, at a cost in frame "
+                    "time and model size that grows with the mesh). The regression is not faded "
+                    "by the confidence.")
     marker_regression_ridge: float = Field(
-        default=1e-2, gt=0.0, le=10.0,
+        default=MARKER_REGRESSION_RIDGE, gt=0.0, le=10.0,
         description="Relative ridge λ of the marker regression (× the mean diagonal of each "
                     "vertex's kernel).")
     selection_vertices: int = Field(

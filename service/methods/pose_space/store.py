@@ -8,8 +8,8 @@
   the training feature range, the marker regression (``regression_*``, CSR like α)); a load reproduces the model bit for bit;
 * ``cache.npz``  the thin-shell basis (n,M) float32 and handle energy: derived (a load
   without it recomputes them), listed under ``derived`` and checksummed like the rest;
-* ``manifest.json``  kind (``psd`` | ``wpsd``), format version, params, metrics, scalars,
-  basis names and the sha256 of every file (:mod:`service.methods.model_dir`).
+* ``manifest.json``  kind (``psd`` | ``wpsd``), format version, params, metrics, scalars
+  (the regression's input: ``regression_input``, ``"handles"`` where absent), basis names and the sha256 of every file (:mod:`service.methods.model_dir`).
 
 Every file is written atomically, the manifest last.
 """
@@ -62,6 +62,7 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
         "metrics": d.metrics, "map_resolution": d.map_resolution,
         "confidence_scale": d.confidence_scale, "basis_names": list(d.basis_names),
         "marker_prior_scale_mm": _finite_or_none(base.prior_scale_mm),
+        "regression_input": d.regression_input,
         "files": files, "derived": derived,
         "size_bytes": sum((path / f).stat().st_size for f in files),
     }
@@ -93,6 +94,7 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL}, map_resolution=int(manifest["map_resolution"]),
                       confidence_scale=float(manifest["confidence_scale"]),
                       basis_names=tuple(manifest["basis_names"]), metrics=manifest["metrics"],
+                      regression_input=manifest.get("regression_input", "handles"),
                       **{k: a[k] for k in ARRAYS})
     cache = npz_arrays(data[CACHE]) if CACHE in data else {}
     base = BaseSurface.from_smooth(d.neutral, d.faces, d.uv, d.uv_faces, d.handles, d.rest_markers,

@@ -29,6 +29,20 @@ moves like the weights: its constant and linear coefficients are interpolated wi
 barycentric correspondence (a sparse product: the union of the supports) and rotated; the
 map's by a sparse bilinear lookup. Detail amplitudes stay in the
 source's millimetres (no scaling by face size).
+
+The marker regression (:mod:`service.geometry.marker_regression`, ``params.marker_regression``)
+is a linear map from the source's marker displacements to the source's head-aligned vertex
+offsets, both world vectors of the source's rest pose. It carries over as the corrections do (§5.4: the
+pose-space detail only needs a dense correspondence): its input becomes the feature nodes'
+displacements on the target — the source markers' corresponding surface points, moved by the
+target's own thin shell, exactly the points whose strains drive the RBFs — rotated into the
+source's axes by the rigid pre-alignment R; its output rows are interpolated with the
+barycentric correspondence and rotated back by R:
+``L_t = (I_n ⊗ R) (C ⊗ I_3) L_s (I_M ⊗ Rᵀ)``, ``ū_t = R ū_s``, ``ȳ_t = R (C ȳ_s)``, all sparse
+(``data.regression_input = "nodes"``). World vectors rotate by the rigid R alone, not by the
+per-vertex frame rotation of the weights: the source's shell fit to the landmarks bends the
+surface locally, a correction stored in tangent frames follows that bend, a regression
+stored in world axes does not (its departure on a bent target: the fit's local rotation).
 """
 
 from __future__ import annotations
@@ -130,6 +144,20 @@ def _marker_prior(model: PoseSpaceModel, C_handles: sp.csr_matrix, R: np.ndarray
             "marker_residual_var": A @ s.marker_residual_var}
 
 
+def _regression(s: PoseSpaceData, C: sp.csr_matrix, R: np.ndarray) -> dict:
+    """The source's marker regression on the target (module docstring): rows interpolated with
+    the dense correspondence C (n_t,n_s) and rotated by the rigid pre-alignment R (3,3), input
+    the feature nodes' displacements in the target's axes (the source's markers, in order)."""
+    n_t = C.shape[0]
+    M = len(s.regression_mean_u)
+    L = (sp.kron(sp.identity(n_t), R) @ sp.kron(C, sp.identity(3)) @ s.regression.astype(np.float64)
+         @ sp.kron(sp.identity(M), R.T))
+    return {"regression": L.tocsr().astype(np.float32),
+            "regression_mean_u": s.regression_mean_u @ R.T,
+            "regression_mean_y": ((C @ s.regression_mean_y.astype(np.float64)) @ R.T).astype(np.float32),
+            "regression_input": "nodes"}
+
+
 def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
              pose_weights: np.ndarray | None = None, progress: Progress = no_progress) -> PoseSpaceModel:
     """A pose-space model of the same kind for ``target``, from ``model``'s details (§5.4).
@@ -149,13 +177,9 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     PoseSpaceModel whose ``synthesize`` takes the target's markers (F,M_t,3); its metrics
     hold the source's, and the correspondence's quality under ``"transfer"``.
 
-    Raises :class:`InvalidInput` for bad landmarks, a target whose markers share a handle, or
-    a model trained with ``marker_regression``.
+    Raises :class:`InvalidInput` for bad landmarks or a target whose markers share a handle.
     """
     s = model.data
-    if s.regression is not None:
-        raise InvalidInput("a model trained with marker_regression cannot be transferred (its "
-                           "regression is on the source's markers); train it without")
     Vs, Fs = s.neutral, s.faces
     Vt, Ft = np.asarray(target.vertices, np.float64), np.asarray(target.faces, np.int64)
     L = check_landmarks(landmarks, len(Vs), len(Vt))
@@ -221,6 +245,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
     if w.shape != (M,):
         raise InvalidInput(f"pose_weights must be ({M},), got {w.shape}")
     prior = _marker_prior(model, C[base.handles], rigid.R)
+    regression = {} if s.regression is None else _regression(s, C, rigid.R)
     metrics = dict(s.metrics)
     metrics["transfer"] = {
         "landmarks": len(L),
@@ -239,7 +264,7 @@ def transfer(model: PoseSpaceModel, target: ActorData, landmarks: np.ndarray,
         map_index=map_index, map_weights=map_weights, feature_low=s.feature_low,
         feature_high=s.feature_high, confidence_scale=s.confidence_scale,
         basis_names=s.basis_names, metrics=metrics, poly_const=poly_const, poly_linear=poly_linear,
-        map_poly_const=map_poly_const, map_poly_linear=map_poly_linear, **prior)
+        map_poly_const=map_poly_const, map_poly_linear=map_poly_linear, **prior, **regression)
     model = PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
     progress(1.0, "done")
     return model

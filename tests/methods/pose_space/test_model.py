@@ -260,11 +260,3 @@ def test_regression_model_reproduces_its_example_poses(wpsd_regression, wpsd_exa
         assert gap <= np.abs(out["displacement"][0]).max() + 1e-3
     m, m0 = wpsd_regression.metrics, wpsd_exact.metrics
     assert m["correction_signal_rms_mm"]["face"] < 0.5 * m0["correction_signal_rms_mm"]["face"]
-
-
-def test_regression_model_refuses_transfer(wpsd_regression, ps_data):
-    from service.methods.pose_space.transfer import transfer
-
-    actor, _ = ps_data
-    with pytest.raises(InvalidInput, match="marker_regression"):
-        transfer(wpsd_regression, actor, np.stack([np.arange(40)] * 2, axis=1))
