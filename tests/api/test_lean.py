@@ -186,7 +186,7 @@ def test_a_busy_synthesis_is_the_same_503_with_retry_after(pair):
     lean, fastapi, model_id, queued, markers = pair
     answers = []
     for client in (fastapi, lean):
-        slots = client.app.state.synthesizer._slots
+        slots = client.app.state.synthesizer.pool
         held = [slots.acquire(blocking=False) for _ in range(client.app.state.synthesizer.limit)]
         try:
             answers.append(_send(client, model_id, queued,
