@@ -368,7 +368,7 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
     if loaded_rig is not None:
         request = replace(request, frames=loaded_rig.propagate(request.frames))
     check_response_request(media, request)
-    result = synthesizer.run(loaded, request)
+    result = synthesizer.run(loaded, request, half=half and media == NPZ)
     return Synthesized(media, encode(media, result, loaded, request, half, topology),
                        len(request.frames), confidence_header(result))
 

@@ -370,9 +370,11 @@ class Services:
         self.preloading = state
 
         def run() -> None:
+            warmed = []
             try:
                 for model_id in state.models:
-                    self.warm_up(self.loaded_model(model_id))
+                    warmed.append(self.loaded_model(model_id))
+                    self.warm_up(warmed[-1])
                     state.loaded.append(model_id)
                 log.info("preloaded %d model(s): %s", len(state.loaded),
                          ", ".join(state.loaded) or "none",
@@ -383,16 +385,21 @@ class Services:
                 log.error("preload of %s failed: %s", model_id, error)
             finally:
                 state.done.set()
+            for loaded in warmed[:len(state.loaded)]:   # once ready: the first frame does not wait
+                self.warm_up(loaded, half=True)
 
         threading.Thread(target=run, name="facesynth-preload", daemon=True).start()
         return state
 
-    def warm_up(self, loaded: LoadedModel) -> bool:
+    def warm_up(self, loaded: LoadedModel, half: bool = False) -> bool:
         """Synthesize one neutral frame (the actor's marker layout on its neutral, or the
         neutral itself for mesh-driven kinds) with the mesh and the maps, and drop it: the
         first request after a preload then finds the model's memory-mapped arrays paged in
         and every code path imported, the float16 conversion of ``half=true`` too (measured on the level-1 PDM under load: the first
-        frame took 1.9 s after a preload without it, 8× the next ones). Returns whether a
+        frame took 1.9 s after a preload without it, 8× the next ones). With ``half``, the
+        same frame with the maps written as float16 by the model where it takes ``half``
+        (the kernels of a half-precision stream or answer: ~3.4 s to compile without Numba's
+        disk cache); :meth:`start_preload` runs it once the model is ready. Returns whether a
         frame was synthesized; a failure is logged, never raised (the model is loaded)."""
         try:
             if loaded.kind.input == "markers":
@@ -404,12 +411,11 @@ class Services:
                 with self.session() as session:
                     frame = neutral_arrays(registry.read_neutral(session, self.blobs, loaded.actor_id))[0][None]
             outputs = [o for o in ("mesh", "displacement", "normal_map") if o in loaded.kind.outputs]
-            loaded.model.synthesize(np.asarray(frame, np.float64), outputs)
-            if {"displacement", "normal_map"} & set(outputs) and takes(loaded.model, "half"):
-                # the float16 map kernels a half-precision gRPC stream runs (issue 23: ~3.4 s
-                # to compile without Numba's disk cache)
-                loaded.model.synthesize(np.asarray(frame, np.float64), outputs, half=True)
-            if {"displacement", "normal_map"} & set(outputs):
+            maps = bool({"displacement", "normal_map"} & set(outputs))
+            if half and not (maps and takes(loaded.model, "half")):
+                return False
+            loaded.model.synthesize(np.asarray(frame, np.float64), outputs, **({"half": True} if half else {}))
+            if maps and not half:
                 # the compiled float16 conversion of half=true responses, loaded from its
                 # on-disk cache now rather than by the first such request
                 from service.io.half import to_float16

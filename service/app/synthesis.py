@@ -25,6 +25,7 @@ from service.app.marker_units import MarkerReference
 from service.app.threads import SynthesisPool
 from service.app.metrics import Metrics
 from service.app.schemas import SynthesizeBody
+from service.methods.kinds import takes
 from service.methods.outputs import DEFAULT_OUTPUTS, MAP_OUTPUTS, check_outputs
 from service.app.services import LoadedModel
 from service.app.uploads import (JSON_TYPE, MARKER_FILE_TYPES, NPZ_TYPES, ArraySpec, NpzUpload,
@@ -282,11 +283,16 @@ class Synthesizer:
             self.pool.release()
         self._metrics.observe_synthesis(kind, frames, seconds)
 
-    def run(self, loaded: LoadedModel, request: SynthesisInput) -> dict[str, np.ndarray]:
-        """The model's outputs for ``request``, maps resampled to ``map_resolution``."""
+    def run(self, loaded: LoadedModel, request: SynthesisInput, half: bool = False) -> dict[str, np.ndarray]:
+        """The model's outputs for ``request``, maps resampled to ``map_resolution``. With
+        ``half`` (an NPZ answer of ``half=true``) a model whose ``synthesize`` takes ``half``
+        writes its maps as float16 itself (issue 23: NumPy's rounding of its float32 maps bit
+        for bit, without the float32 maps and the conversion); others, and resampled maps,
+        stay float32 and are converted by :func:`encode`."""
+        options = {"half": True} if half and request.map_resolution is None and takes(loaded.model, "half") else {}
         with self.slot(loaded.kind.name, len(request.frames)):
             result = loaded.model.synthesize(request.frames, outputs=list(request.outputs),
-                                             clamp=request.clamp)
+                                             clamp=request.clamp, **options)
         if request.map_resolution is not None:
             result = resample_maps(result, request.map_resolution)
         return result

@@ -119,6 +119,8 @@ def test_half_maps_and_topology_false_against_the_float32_response(ready, pdm_mo
         error = np.abs(half[key].astype(np.float64) - f)
         assert np.all(error <= HALF_RELATIVE_ERROR * np.abs(f) + HALF_ABSOLUTE_ERROR)
         assert error.max() > 0                                     # it is rounded
+        # the model's own float16 kernels (Synthesizer.run(half=True)): NumPy's rounding
+        np.testing.assert_array_equal(half[key], full[key].astype(np.float16))
     for key in set(half) - {"displacement", "normal_map"}:
         np.testing.assert_array_equal(half[key], full[key])
     assert len(response.content) < 0.6 * len(
@@ -332,8 +334,9 @@ def test_background_preload_holds_readiness_until_loaded_and_names_a_failed_load
             return real(*args, **options)
 
         monkeypatch.setattr(loaded.model, "synthesize", recorded)
-        assert services.warm_up(loaded) is True
-        assert calls == [False, True]          # float32 and the float16 map kernels (issue 23)
+        assert services.warm_up(loaded) is True and calls == [False]
+        # the float16 map kernels (issue 23), which start_preload runs once the model is ready
+        assert services.warm_up(loaded, half=True) is True and calls == [False, True]
 
         def broken(mid):
             raise OSError("disk on fire")
@@ -489,6 +492,33 @@ def test_synthesis_slots_answer_503_when_busy():
         synthesizer.run(loaded, request)
     status, headers = status_of(error.value)
     assert status == 503 and headers["Retry-After"] == "1"
+
+
+def test_half_is_passed_to_a_model_that_takes_it_unless_maps_are_resampled():
+    """issue 23: an NPZ ``half=true`` answer has the model write float16 maps itself where
+    its ``synthesize`` takes ``half``; a model without it, or a resampled map, is converted
+    after (service.app.synthesis.encode)."""
+    from types import SimpleNamespace
+
+    from service.app.metrics import Metrics
+    from service.app.synthesis import SynthesisInput, Synthesizer
+
+    calls = []
+
+    def takes_half(frames, outputs, clamp, half=False):
+        calls.append(half)
+        return {"faces": np.zeros((1, 3))}
+
+    synthesizer = Synthesizer(Metrics(), limit=1, wait_seconds=0.0)
+    plain = SimpleNamespace(model=SimpleNamespace(synthesize=lambda frames, outputs, clamp: {}),
+                            kind=SimpleNamespace(name="fake"))
+    loaded = SimpleNamespace(model=SimpleNamespace(synthesize=takes_half), kind=SimpleNamespace(name="fake"))
+    request = SynthesisInput(np.zeros((1, 2, 3)), ("mesh",))
+    synthesizer.run(loaded, request, half=True)
+    synthesizer.run(loaded, request)
+    synthesizer.run(loaded, SynthesisInput(request.frames, ("mesh",), map_resolution=64), half=True)
+    synthesizer.run(plain, request, half=True)                    # no half parameter: not passed
+    assert calls == [True, False, False]
 
 
 def test_busy_syntheses_queue_for_a_bounded_wait_and_the_depth_is_a_metric():
