@@ -61,7 +61,8 @@ Departures and choices (the paper is silent or differs):
   frame above the thin shell's max on any of a's nine rows (s = 2: 1 of 6 frames in
   range; s = 1: max 4.5–5.5 mm). Family b, s = 4, clean: in range 0.183 / 2.34 → 0.010 /
   0.31 (3.00), combinations 0.436 / 4.97 → 0.193 / 2.43 (4.97), out of range 0.287 / 4.13
-  → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's).
+  → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's);
+  over every held-out map frame a 49 → 6 of 243 and b 27 → 1 of 225.
   Its cost: the CSR matrix (3n, 3M), nnz 12.9 M (a, 11 k vertices) and 21 M (b) at s = 4
   (4.4 M and 8.8 M at s = 2), one sparse product per frame (the mesh then takes the
   float64 path, not the compiled :mod:`.shell_mesh` kernels), which is why it is not the
