@@ -382,17 +382,16 @@ def storage(model) -> dict:
     n, P, M = d.n_vertices, d.basis_size, d.n_markers
     entries = 0.0 if cs is None else len(cs.edge) / n
     poly = cs is not None and len(cs.const) > 0
-    reg = 0.0 if d.regression is None else d.regression.nnz / n
+    reg = 0.0 if d.regression is None else d.regression.P.size / n   # its P (3n,r); Q is per model
     floats = M + 3 * P + 4 * entries + (3 if poly else 0) + 3 + (reg + 3 if reg else 0)
-    return {"floats_per_vertex": floats, "ints_per_vertex": entries + reg,
+    return {"floats_per_vertex": floats, "ints_per_vertex": entries,
             "floats_per_texel": P if d.map_resolution else 0,
             "texels_per_vertex": len(d.map_index) / n,
             "layout": f"B row {M} + weights 3P = {3 * P}"
                       + (f" + α and polynomial 4 × {entries:.1f} entries" if cs is not None else "")
                       + (" + polynomial constant 3" if poly else "") + " + rest position 3"
-                      + (f" + marker regression {reg:.0f} entries + its mean 3" if reg else "")
-                      + (f"; ints: the entries' edges {entries:.1f}" if cs is not None else "")
-                      + (f", the regression's columns {reg:.0f}" if reg else "")}
+                      + (f" + marker regression 3r = {reg:.0f} (its P) + its mean 3" if reg else "")
+                      + (f"; ints: the entries' edges {entries:.1f}" if cs is not None else "")}
 
 
 # --------------------------------------------------------------------------------------

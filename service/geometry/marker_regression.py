@@ -25,8 +25,21 @@ g_v,m² = exp(−‖x_v − r_m‖² / s²) (x_v, r_m rest vertex and marker, s 
 below ``cutoff``. Solved in dual form over the T training frames: the kernel
 K_v = Σ_m g_v,m² U_m U_mᵀ (T,T) (U_m (T,3) the centred training displacements of marker m),
 A_v = (K_v + λ tr(K_v)/T · I)⁻¹ (Y_v − ȳ_v) (T,3) and B_v,m = g_v,m² U_mᵀ A_v (3,3).
-Stored as one CSR matrix (3n, 3M) and the means, so evaluation is one sparse product per
-frame: ``y = ȳ + L (u − ū)``.
+Kept in low-rank form, ``L ≈ P Q`` with ``Q = V_rᵀ`` the leading right singular vectors of
+L (the eigenvectors of LᵀL, (3M,3M)) and ``P = L V_r``, so evaluation is two dense products
+per frame, ``y = ȳ + P (Q (u − ū))``. For any input the truncation adds at most
+σ_{r+1} ‖u − ū‖ (σ L's singular values); r keeps every σ above ``RANK_TOL`` σ₁. L is
+neither sparse nor low-rank in the usual sense (at s = 4 marker spacings a vertex reaches
+85 % of the markers, and σ decays slowly: σ_r/σ₁ = 0.11, 0.024, 0.011, 0.004 at r = 32, 96,
+160, 256 of 450; family a level 0, the PDM's ``medium_regression``), but the tail carries
+little: measured on the held-out performances of family a level 0 (6 frames each, PDM mesh
+against the full L), RANK_TOL = 1e-2 (r = 160) moves the vertices by a mean 0.002–0.004 mm,
+max 0.07–0.09 mm (r = 96: 0.010–0.021 / 0.25–0.59; r = 128: 0.004–0.006 / 0.15–0.21),
+against a CSR of nnz 12.9 M (85 % of 3n × 3M) it reads 3n × r + r × 3M floats, 2.6× fewer.
+A projection on the training inputs' principal directions instead (their span is
+16-dimensional there) fails on the held-out in-range and combination performances (mean
+0.06–0.08, max 1.8–2.3 mm at r = 32–120): the local regression answers inputs outside the
+training frames' span, which is what it is for.
 
 Anchored (``anchor`` y₀ given): the regression passes through the rest pose instead of the
 training means, ū = 0 and ȳ = y₀ (the offsets of the neutral), and the ridge regression of
@@ -45,19 +58,62 @@ import scipy.sparse as sp
 CHUNK = 256
 
 
+#: the stored fields, in the constructor's order (:meth:`MarkerRegression.arrays`)
+MEMBERS = ("P", "Q", "mean_u", "mean_y")
+#: singular values of L kept: those above RANK_TOL × the largest (module docstring)
+RANK_TOL = 1e-2
+
+
 @dataclass(frozen=True)
 class MarkerRegression:
-    """``y = mean_y + L (u − mean_u)``: L (3n,3M) CSR float32 (row 3v + i, column 3m + j),
-    mean_u (M,3), mean_y (n,3) float32, mm."""
+    """``y = mean_y + P Q (u − mean_u)``: P (3n,r) float32 (row 3v + i), Q (r,3M) float32
+    (column 3m + j, orthonormal rows), mean_u (M,3), mean_y (n,3) float32, mm."""
 
-    L: sp.csr_matrix
+    P: np.ndarray
+    Q: np.ndarray
     mean_u: np.ndarray
     mean_y: np.ndarray
 
+    @classmethod
+    def from_matrix(cls, L, mean_u: np.ndarray, mean_y: np.ndarray, tol: float = RANK_TOL) -> "MarkerRegression":
+        """The regression of a full matrix L (3n,3M) (dense or sparse), truncated at ``tol``
+        (σ_k > tol σ₁ kept; 0 keeps every σ above 1e-6 σ₁, L's float32 rounding: L reproduced)."""
+        L = L.tocsr() if sp.issparse(L) else np.asarray(L)
+
+        def row_blocks():                       # float64 rows of L, a block at a time
+            for r0 in range(0, L.shape[0], 4096):
+                B = L[r0:r0 + 4096]
+                yield r0, np.asarray(B.toarray() if sp.issparse(B) else B, np.float64)
+
+        G = np.zeros((L.shape[1], L.shape[1]))
+        for _, B in row_blocks():
+            G += B.T @ B
+        w, V = np.linalg.eigh(G)                        # ascending
+        V = V[:, ::-1][:, w[::-1] > max(tol, 1e-6) ** 2 * max(w[-1], 1e-300)]   # σ ≤ 1e-6 σ₁: rounding
+        P = np.empty((L.shape[0], V.shape[1]), np.float32)
+        for r0, B in row_blocks():
+            P[r0:r0 + len(B)] = B @ V
+        return cls(P, np.ascontiguousarray(V.T, np.float32), np.asarray(mean_u, np.float64),
+                   np.asarray(mean_y, np.float32))
+
+    @property
+    def rank(self) -> int:
+        return len(self.Q)
+
+    @property
+    def L(self) -> np.ndarray:
+        """The full (3n,3M) float32 matrix P Q."""
+        return self.P @ self.Q
+
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """Offsets (F,n,3) float32 for handle displacements u (F,M,3)."""
-        du = (np.asarray(u, np.float64) - self.mean_u).reshape(len(u), -1).T.astype(np.float32)
-        return (self.L @ du).T.reshape(len(u), -1, 3) + self.mean_y
+        du = (np.asarray(u, np.float64) - self.mean_u).reshape(len(u), -1).astype(np.float32)
+        return ((du @ self.Q.T) @ self.P.T).reshape(len(u), -1, 3) + self.mean_y
+
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """The model-file members ``PREFIX_P``, ``_Q``, ``_mean_u``, ``_mean_y``
+        (:func:`service.methods.model_dir.read_regression` reads them back)."""
+        return {f"{prefix}_{k}": getattr(self, k) for k in MEMBERS}
 
 
 def marker_spacing(marker_rest: np.ndarray) -> float:
@@ -80,7 +136,7 @@ def marker_weights(vertices: np.ndarray, marker_rest: np.ndarray, radius: float,
 
 def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndarray,
         radius: float, ridge: float, cutoff: float = 1e-3,
-        anchor: np.ndarray | None = None) -> MarkerRegression:
+        anchor: np.ndarray | None = None, tol: float = RANK_TOL) -> MarkerRegression:
     """Fit the regression (module docstring).
 
     Parameters
@@ -90,6 +146,7 @@ def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndar
     vertices : (n,3)         rest vertices;  marker_rest (M,3) rest markers, mm
     radius : float           s, mm;  ridge: λ (relative to tr(K_v)/T);  cutoff: g² dropped below
     anchor : (n,3) | None    y₀, the offsets at u = 0 the fit passes through (None: the means)
+    tol : float              the rank truncation (:meth:`MarkerRegression.from_matrix`)
     """
     T, M = u.shape[:2]
     n = Y.shape[1]
@@ -98,7 +155,7 @@ def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndar
     G = np.einsum("tmc,smc->mts", U, U).reshape(M, T * T)                  # U_m U_mᵀ
     W = marker_weights(vertices, marker_rest, radius, cutoff)
     mean_y = Y.mean(axis=0) if anchor is None else np.asarray(anchor, np.float64)
-    blocks = []
+    L = np.empty((3 * n, 3 * M), np.float32)
     diag = np.arange(T)
     Uf = U.reshape(T, M * 3)
     for v0 in range(0, n, CHUNK):
@@ -111,9 +168,8 @@ def fit(u: np.ndarray, Y: np.ndarray, vertices: np.ndarray, marker_rest: np.ndar
         A = _spd_solve(K, (Y[:, vs] - mean_y[vs]).transpose(1, 0, 2))      # (c,T,3)
         # B_v,m = g²_v,m A_vᵀ U_m: rows (v, out i), columns (m, in j)
         B = (A.transpose(0, 2, 1).reshape(c * 3, T) @ Uf).reshape(c, 3, M, 3) * g2[:, None, :, None]
-        blocks.append(sp.csr_matrix(B.reshape(c * 3, M * 3).astype(np.float32)))
-    L = sp.vstack(blocks, format="csr")
-    return MarkerRegression(L, mean_u, mean_y.astype(np.float32))
+        L[3 * v0:3 * v0 + 3 * c] = B.reshape(c * 3, M * 3)
+    return MarkerRegression.from_matrix(L, mean_u, mean_y, tol)
 
 
 def _spd_solve(K: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -84,3 +84,18 @@ def read_model_files(path, kind: str, format_version: int,
         if name not in data:
             raise ModelCorrupt(f"{path}: the manifest lists no {name}")
     return manifest, data
+
+
+def read_regression(arrays, prefix: str):
+    """The marker regression (:class:`service.geometry.marker_regression.MarkerRegression`)
+    a model file stored as ``prefix`` (its :meth:`~.MarkerRegression.arrays`), None if it has
+    none. A model written before the low-rank form stored the full CSR
+    (:func:`service.io.npz.sparse_members`): truncated on reading as training truncates."""
+    from service.geometry.marker_regression import MEMBERS, MarkerRegression
+    from service.io.npz import sparse_matrix
+
+    if f"{prefix}_P" in arrays:
+        return MarkerRegression(*(arrays[f"{prefix}_{k}"] for k in MEMBERS))
+    L = sparse_matrix(arrays, prefix)
+    return None if L is None else MarkerRegression.from_matrix(L, arrays[f"{prefix}_mean_u"],
+                                                                arrays[f"{prefix}_mean_y"])

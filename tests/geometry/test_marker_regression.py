@@ -2,7 +2,9 @@
 
 import numpy as np
 
-from service.geometry.marker_regression import fit, marker_weights
+import scipy.sparse as sp
+
+from service.geometry.marker_regression import MarkerRegression, fit, marker_weights
 
 
 def _data(seed=0, T=40, M=5, n=7):
@@ -31,17 +33,18 @@ def test_mean_input_gives_mean_offset_and_locality():
     """u = ū gives ȳ exactly; a vertex's row only holds markers with g² ≥ cutoff."""
     rng, rest, verts, u = _data(1)
     Y = rng.normal(size=(len(u), len(verts), 3))
-    reg = fit(u, Y, verts, rest, radius=8.0, ridge=1e-2, cutoff=0.05)
+    reg = fit(u, Y, verts, rest, radius=8.0, ridge=1e-2, cutoff=0.05, tol=0.0)
     assert np.allclose(reg(u.mean(axis=0)[None])[0], Y.mean(axis=0), atol=1e-5)
     W = marker_weights(verts, rest, 8.0, 0.05).toarray() > 0
-    used = np.abs(reg.L.toarray()).reshape(len(verts), 3, len(rest), 3).sum(axis=(1, 3)) > 0
+    L = np.abs(reg.L)                               # P Q: L to float32 rounding
+    used = L.reshape(len(verts), 3, len(rest), 3).max(axis=(1, 3)) > 1e-5 * L.max()
     assert not (used & ~W).any()
     # a marker outside every vertex's reach moves nothing
     far = u.mean(axis=0)[None].copy()
     unused = np.flatnonzero(~W.any(axis=0))
     if len(unused):
         far[0, unused] += 100.0
-        assert np.allclose(reg(far)[0], Y.mean(axis=0), atol=1e-5)
+        assert np.allclose(reg(far)[0], Y.mean(axis=0), atol=1e-4)
 
 
 def test_an_anchored_fit_passes_through_the_anchor_and_recovers_a_linear_map():
@@ -64,3 +67,23 @@ def test_an_anchored_fit_passes_through_the_anchor_and_recovers_a_linear_map():
     held = fit(u, Yn, verts, rest, radius=1e6, ridge=1e-2, anchor=y0)
     assert np.abs(free(np.zeros((1, M, 3)))[0] - y0).max() > 1e-2
     np.testing.assert_array_equal(held(np.zeros((1, M, 3)))[0], y0.astype(np.float32))
+
+
+def test_the_rank_truncation_keeps_the_singular_values_above_tol():
+    """L = U diag(σ) Vᵀ with σ = 10, 5, 1, 0.05, 0.01: tol = 1e-2 keeps σ > 0.1 (r = 3) and
+    leaves L − P Q = the dropped terms, so ‖(L − P Q) u‖ ≤ σ₄ ‖u‖; tol = 0 keeps all five."""
+    rng = np.random.default_rng(5)
+    U, _ = np.linalg.qr(rng.normal(size=(12, 5)))
+    V, _ = np.linalg.qr(rng.normal(size=(6, 5)))
+    sigma = np.array([10.0, 5.0, 1.0, 0.05, 0.01])
+    L = (U * sigma) @ V.T
+    reg = MarkerRegression.from_matrix(L, np.zeros((2, 3)), np.zeros((4, 3), np.float32), tol=1e-2)
+    assert reg.rank == 3 and reg.P.dtype == reg.Q.dtype == np.float32
+    np.testing.assert_allclose(reg.Q @ reg.Q.T, np.eye(3), atol=1e-6)
+    np.testing.assert_allclose(reg.L, (U[:, :3] * sigma[:3]) @ V[:, :3].T, atol=1e-5)
+    u = rng.normal(size=(20, 2, 3))
+    err = np.linalg.norm((reg(u) - (u.reshape(20, 6) @ L.T).reshape(20, 4, 3)).reshape(20, -1), axis=1)
+    assert (err <= 0.05 * np.linalg.norm(u.reshape(20, -1), axis=1) + 1e-5).all()
+    full = MarkerRegression.from_matrix(sp.csr_matrix(L), np.zeros((2, 3)), np.zeros((4, 3)), tol=0.0)
+    assert full.rank == 5
+    np.testing.assert_allclose(full.L, L, atol=1e-6)

@@ -11,7 +11,8 @@ Layout (DESIGN.md "Data and storage"):
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived); with
-  ``medium_regression``, its CSR matrix and means (``medium_regression_*``);
+  ``medium_regression``, its low-rank factors and means (``medium_regression_P``, ``_Q``,
+  ``_mean_u``, ``_mean_y``; a model stored with the full CSR matrix is truncated on reading);
 * ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
   ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
   order, the medium band's ``sectors`` and ``sector_box`` against the thin shell of the
@@ -61,12 +62,11 @@ from pathlib import Path
 import numpy as np
 
 from service.geometry.marker_prior import MarkerPrior
-from service.geometry.marker_regression import MarkerRegression
 from service.geometry.uv_raster import dilate, rasterize_uv
 from service.io.atomic import sha256_file, write_bytes, write_npz
 from service.io.exr import read_exr, write_exr
-from service.io.npz import npz_mapped, sparse_matrix, sparse_members
-from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.io.npz import npz_mapped
+from service.methods.model_dir import ModelCorrupt, read_model_files, read_regression
 from service.methods.pdm import polynomial
 from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
@@ -147,10 +147,7 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
         "marker_prior_scale_mm": np.float64(model.prior_scale_mm),
         **({} if model.marker_prior is None else model.marker_prior.arrays()),
         **({} if model.medium_skill is None else {"medium_skill": model.medium_skill}),
-        **({} if model.medium_regression is None else {
-            **sparse_members(REGRESSION, model.medium_regression.L),
-            f"{REGRESSION}_mean_u": model.medium_regression.mean_u,
-            f"{REGRESSION}_mean_y": model.medium_regression.mean_y}),
+        **({} if model.medium_regression is None else model.medium_regression.arrays(REGRESSION)),
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
     }
@@ -255,8 +252,7 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
                     albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity,
                     vertex_coeffs=a.get("vertex_coeffs"), marker_prior=MarkerPrior.from_arrays(a),
                     medium_skill=a.get("medium_skill"),
-                    medium_regression=None if f"{REGRESSION}_data" not in a else MarkerRegression(
-                        sparse_matrix(a, REGRESSION), a[f"{REGRESSION}_mean_u"], a[f"{REGRESSION}_mean_y"]))
+                    medium_regression=read_regression(a, REGRESSION))
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
                          limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")},
                          operators={k[3:]: cache[k] for k in cache if k.startswith("op_")})

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from service.geometry.marker_regression import MarkerRegression
 from service.methods.pose_space.feature_graph import FeatureGraph
 from service.methods.pose_space.params import Params
 
@@ -45,8 +46,7 @@ class PoseSpaceData:
                                     ``params.marker_completion``); None for a transferred model
     marker_residual_var (M,) float64 | None   their variance outside the modes, per marker and
                                     coordinate, by leaving one clip out (``params.marker_prior``)
-    regression (3n,3M) CSR float32 | None, regression_mean_u (M,3) float64 | None,
-    regression_mean_y (n,3) float32 | None   the marker regression (:mod:`service.geometry.marker_regression`,
+    regression MarkerRegression | None   the marker regression (:mod:`service.geometry.marker_regression`,
                                     ``params.marker_regression``), head-pose-aligned offsets
                                     added to the shell before the corrections
     regression_input str            what the regression reads: ``"handles"`` the handle
@@ -89,9 +89,7 @@ class PoseSpaceData:
     marker_mean: np.ndarray | None = None
     marker_modes: np.ndarray | None = None
     marker_residual_var: np.ndarray | None = None
-    regression: sp.csr_matrix | None = None
-    regression_mean_u: np.ndarray | None = None
-    regression_mean_y: np.ndarray | None = None
+    regression: MarkerRegression | None = None
     regression_input: str = "handles"
 
     @property

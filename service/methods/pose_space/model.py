@@ -239,8 +239,7 @@ class PoseSpaceEvaluator:
             self.correction_sum = CorrectionSum.build(data.alpha, data.weights, data.basis_features,
                                                       data.poly_const, data.poly_linear,
                                                       order=self.shell_frames.order)
-        self.regression = None if data.regression is None else marker_regression.MarkerRegression(
-            data.regression.tocsr(), data.regression_mean_u, data.regression_mean_y)
+        self.regression = data.regression
         self.poly_linear = None if data.poly_linear is None else data.poly_linear.tocsr()
         self.map_poly_linear = None if data.map_poly_linear is None else data.map_poly_linear.tocsr()
         self.map_interp = self.map_sampler = None
@@ -1046,9 +1045,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         poly_const=poly_const, poly_linear=poly_linear,
         map_poly_const=map_poly_const, map_poly_linear=map_poly_linear,
         marker_mean=marker_mean, marker_modes=marker_modes, marker_residual_var=marker_residual_var,
-        regression=None if regression is None else regression.L,
-        regression_mean_u=None if regression is None else regression.mean_u,
-        regression_mean_y=None if regression is None else regression.mean_y)
+        regression=regression)
     progress(1.0, "done")
     return PoseSpaceModel(data, PoseSpaceEvaluator(data, base))
 

@@ -5,7 +5,7 @@
   basis features, per-vertex RBF weights (n,P,3) float32, α as CSR arrays ``alpha_data``
   float32 / ``alpha_indices`` / ``alpha_indptr`` (WPSD), the polynomial term (``poly_*``,
   ``map_poly_*``: the linear parts as CSR arrays like α), the map band's texels and weights,
-  the training feature range, the marker regression (``regression_*``, CSR like α)); a load reproduces the model bit for bit;
+  the training feature range, the marker regression (``regression_*``: low-rank factors and means; a model stored with its full CSR is truncated on reading)); a load reproduces the model bit for bit;
 * ``cache.npz``  the thin-shell basis (n,M) float32 and handle energy: derived (a load
   without it recomputes them), listed under ``derived`` and checksummed like the rest;
 * ``manifest.json``  kind (``psd`` | ``wpsd``), format version, params, metrics, scalars
@@ -24,7 +24,7 @@ import numpy as np
 from service.geometry.marker_prior import MarkerPrior
 from service.io.atomic import write_bytes, write_npz
 from service.io.npz import npz_arrays, sparse_matrix, sparse_members
-from service.methods.model_dir import ModelCorrupt, read_model_files
+from service.methods.model_dir import ModelCorrupt, read_model_files, read_regression
 from service.methods.pdm.base_surface import BaseSurface
 from service.methods.pose_space.data import PoseSpaceData
 from service.methods.pose_space.params import parse_params
@@ -35,9 +35,10 @@ ARRAYS = ("faces", "uv", "uv_faces", "neutral", "handles", "rest_markers", "pose
           "node_triangle", "node_barycentric", "edges", "rest_length", "basis_features", "weights",
           "map_index", "map_weights", "feature_low", "feature_high")
 #: CSR arrays (``NAME_data`` / ``_indices`` / ``_indptr`` / ``_shape``) and optional dense arrays
-SPARSE = ("alpha", "poly_linear", "map_poly_linear", "regression")
-OPTIONAL = ("poly_const", "map_poly_const", "marker_mean", "marker_modes", "marker_residual_var",
-            "regression_mean_u", "regression_mean_y")
+SPARSE = ("alpha", "poly_linear", "map_poly_linear")
+OPTIONAL = ("poly_const", "map_poly_const", "marker_mean", "marker_modes", "marker_residual_var")
+#: model.npz members of the marker regression (:meth:`.MarkerRegression.arrays`)
+REGRESSION = "regression"
 
 
 def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
@@ -53,6 +54,8 @@ def write_model(d: PoseSpaceData, base: BaseSurface, path) -> dict:
     for name in OPTIONAL:
         if getattr(d, name) is not None:
             arrays[name] = getattr(d, name)
+    if d.regression is not None:
+        arrays.update(d.regression.arrays(REGRESSION))
     if base.marker_prior is not None:
         arrays.update(base.marker_prior.arrays())
     files = {"model.npz": write_npz(path / "model.npz", arrays)}
@@ -91,7 +94,8 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     params = parse_params({"marker_noise_mm": 0.0, **manifest["params"]})
     if params.method != kind:
         raise ModelCorrupt(f"{path}: params are for {params.method}, the manifest says {kind}")
-    d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL}, map_resolution=int(manifest["map_resolution"]),
+    d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL},
+                      regression=read_regression(a, REGRESSION), map_resolution=int(manifest["map_resolution"]),
                       confidence_scale=float(manifest["confidence_scale"]),
                       basis_names=tuple(manifest["basis_names"]), metrics=manifest["metrics"],
                       regression_input=manifest.get("regression_input", "handles"),

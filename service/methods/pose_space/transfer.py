@@ -38,8 +38,8 @@ displacements on the target — the source markers' corresponding surface points
 target's own thin shell, exactly the points whose strains drive the RBFs — rotated into the
 source's axes by the rigid pre-alignment R; its output rows are interpolated with the
 barycentric correspondence and rotated back by R:
-``L_t = (I_n ⊗ R) (C ⊗ I_3) L_s (I_M ⊗ Rᵀ)``, ``ū_t = R ū_s``, ``ȳ_t = R (C ȳ_s)``, all sparse
-(``data.regression_input = "nodes"``). World vectors rotate by the rigid R alone, not by the
+``L_t = (I_n ⊗ R) (C ⊗ I_3) L_s (I_M ⊗ Rᵀ)``, ``ū_t = R ū_s``, ``ȳ_t = R (C ȳ_s)``, applied to
+L's low-rank factors (``data.regression_input = "nodes"``). World vectors rotate by the rigid R alone, not by the
 per-vertex frame rotation of the weights: the source's shell fit to the landmarks bends the
 surface locally, a correction stored in tangent frames follows that bend, a regression
 stored in world axes does not (its departure on a bent target: the fit's local rotation).
@@ -52,6 +52,7 @@ import scipy.sparse as sp
 
 from service.geometry.closest_point import closest_points, surface_points
 from service.geometry.deformation_gradient import polar_decomposition
+from service.geometry.marker_regression import MarkerRegression
 from service.geometry.rigid import rigid_align
 from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import ThinShellSolver
@@ -147,14 +148,15 @@ def _marker_prior(model: PoseSpaceModel, C_handles: sp.csr_matrix, R: np.ndarray
 def _regression(s: PoseSpaceData, C: sp.csr_matrix, R: np.ndarray) -> dict:
     """The source's marker regression on the target (module docstring): rows interpolated with
     the dense correspondence C (n_t,n_s) and rotated by the rigid pre-alignment R (3,3), input
-    the feature nodes' displacements in the target's axes (the source's markers, in order)."""
-    n_t = C.shape[0]
-    M = len(s.regression_mean_u)
-    L = (sp.kron(sp.identity(n_t), R) @ sp.kron(C, sp.identity(3)) @ s.regression.astype(np.float64)
-         @ sp.kron(sp.identity(M), R.T))
-    return {"regression": L.tocsr().astype(np.float32),
-            "regression_mean_u": s.regression_mean_u @ R.T,
-            "regression_mean_y": ((C @ s.regression_mean_y.astype(np.float64)) @ R.T).astype(np.float32),
+    the feature nodes' displacements in the target's axes (the source's markers, in order).
+    On the low-rank factors: P ← (I ⊗ R)(C ⊗ I₃) P and Q ← Q (I ⊗ Rᵀ) (rows still orthonormal)."""
+    reg = s.regression
+    r, n_s = reg.rank, len(reg.mean_y)
+    P = np.einsum("dc,tck->tdk", R, (C @ reg.P.astype(np.float64).reshape(n_s, 3 * r)).reshape(-1, 3, r))
+    P = P.reshape(-1, r)                                                   # (3n_t, r), row 3t + d
+    Q = (reg.Q.astype(np.float64).reshape(r, -1, 3) @ R.T).reshape(r, -1)
+    return {"regression": MarkerRegression(P.astype(np.float32), Q.astype(np.float32), reg.mean_u @ R.T,
+                                           ((C @ reg.mean_y.astype(np.float64)) @ R.T).astype(np.float32)),
             "regression_input": "nodes"}
 
 

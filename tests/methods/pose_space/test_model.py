@@ -248,7 +248,7 @@ def test_regression_model_reproduces_its_example_poses(wpsd_regression, wpsd_exa
     regression alone carries most of the correction on the training frames."""
     _, clips = ps_data
     d = wpsd_regression.data
-    assert d.regression is not None and d.regression.shape == (3 * d.n_vertices, 3 * d.n_markers)
+    assert d.regression is not None and d.regression.L.shape == (3 * d.n_vertices, 3 * d.n_markers)
     for name in d.basis_names[:3]:
         clip = next(c for c in clips if c.name == name.split(":")[0])
         f = int(name.split(":")[1])

@@ -76,28 +76,28 @@ def test_regression_rows_and_input_follow_the_correspondence_and_rotation():
 
     from service.methods.pose_space.transfer import _regression
 
+    from service.geometry.marker_regression import MarkerRegression
+
     rng = np.random.default_rng(3)
     n_s, n_t, M = 7, 5, 4
-    L = sp.random(3 * n_s, 3 * M, density=0.4, random_state=4, format="csr", dtype=np.float32)
-    src = types.SimpleNamespace(regression=L, regression_mean_u=rng.normal(size=(M, 3)),
-                                regression_mean_y=rng.normal(size=(n_s, 3)).astype(np.float32))
-    y_s = lambda u: src.regression_mean_y + (L.toarray() @ (u - src.regression_mean_u).ravel()).reshape(n_s, 3)
+    L = sp.random(3 * n_s, 3 * M, density=0.4, random_state=4, format="csr", dtype=np.float32).toarray()
+    reg = MarkerRegression.from_matrix(L, rng.normal(size=(M, 3)), rng.normal(size=(n_s, 3)).astype(np.float32), tol=0.0)
+    src = types.SimpleNamespace(regression=reg)
+    y_s = lambda u: reg.mean_y + (L @ (u - reg.mean_u).ravel()).reshape(n_s, 3)
     bary = rng.dirichlet(np.ones(3), n_t)
     C = sp.csr_matrix((bary.ravel(), (np.repeat(np.arange(n_t), 3), rng.integers(0, n_s, 3 * n_t))),
                       shape=(n_t, n_s))
     R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
     got = _regression(src, C, R)
-    assert got["regression_input"] == "nodes" and got["regression"].shape == (3 * n_t, 3 * M)
+    assert got["regression_input"] == "nodes" and got["regression"].L.shape == (3 * n_t, 3 * M)
     u = rng.normal(size=(2, M, 3))
-    from service.geometry.marker_regression import MarkerRegression
-
-    y_t = MarkerRegression(got["regression"], got["regression_mean_u"], got["regression_mean_y"])(u)
+    y_t = got["regression"](u)
     for f in range(2):
         want = (C.toarray() @ y_s(u[f] @ R)) @ R.T                    # R Σ C y_s(Rᵀ u)
         np.testing.assert_allclose(y_t[f], want, rtol=1e-5, atol=1e-5)
-    same = _regression(src, sp.identity(n_s, format="csr"), np.eye(3))
-    assert abs(same["regression"] - L).max() == 0.0
-    np.testing.assert_array_equal(same["regression_mean_y"], src.regression_mean_y)
+    same = _regression(src, sp.identity(n_s, format="csr"), np.eye(3))["regression"]
+    np.testing.assert_allclose(same.L, L, atol=1e-6)
+    np.testing.assert_array_equal(same.mean_y, reg.mean_y)
 
 
 def test_transfer_of_the_marker_regression_to_a_moved_face_rotates_it(wpsd_regression, ps_data, tmp_path):
