@@ -45,7 +45,7 @@ Departures and choices (the paper is silent or differs):
   corners are (d1, d2) pairs no training frame visited;
 * coefficients are rounded to float32 when training ends (the stored precision), so a
   saved and reloaded model synthesizes bit-identical results;
-* ``medium_regression`` (issue 17, off by default): the mesh's medium offsets, head-aligned,
+* ``medium_regression`` (issue 17, s = 4 by default; null: the polynomial): the mesh's medium offsets, head-aligned,
   from a locally weighted ridge regression on the handle displacements u_H
   (:mod:`service.geometry.marker_regression`, anchored at the detailed neutral's offset
   from the smooth base, so rest markers give the neutral exactly) instead of the medium
@@ -63,10 +63,13 @@ Departures and choices (the paper is silent or differs):
   0.31 (3.00), combinations 0.436 / 4.97 → 0.193 / 2.43 (4.97), out of range 0.287 / 4.13
   → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's);
   over every held-out map frame a 49 → 6 of 243 and b 27 → 1 of 225.
-  Its cost: the CSR matrix (3n, 3M), nnz 12.9 M (a, 11 k vertices) and 21 M (b) at s = 4
-  (4.4 M and 8.8 M at s = 2), one sparse product per frame (the mesh then takes the
-  float64 path, not the compiled :mod:`.shell_mesh` kernels), which is why it is not the
-  default yet: at level 1 that is ~4× the nnz, beyond the real-time path's budget.
+  Its cost, kept in low-rank form (:class:`~service.geometry.marker_regression.MarkerRegression`,
+  rank 155 of 450 at level 1): two dense products per frame, reading P (3n, r) float32
+  (83 MB at level 1; the model directory 415 → 495 MB), and the mesh takes the float64
+  path, not the compiled :mod:`.shell_mesh` kernels. Paired on the level-1 sample actor
+  (load ~9, 40 frames alternating): mesh 55.9 → 59.7 ms, mesh + displacement + normal map
+  (half) 130.2 → 143.4 ms. Training fits it from the same frames (per vertex a T×T
+  Cholesky solve).
 """
 
 from __future__ import annotations

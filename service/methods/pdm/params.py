@@ -109,16 +109,16 @@ class PdmParams(MarkerParams):
                     "max 56 -> 47 of 243 but family b's in-range detail corr 0.55 -> 0.52.",
         examples=[None, 0.0])
     medium_regression: float | None = Field(
-        default=None, gt=0.0, le=20.0, allow_inf_nan=False,
+        default=4.0, gt=0.0, le=20.0, allow_inf_nan=False,
         description="The mesh's medium-scale offsets from a locally weighted linear regression "
                     "on the markers' displacement vectors instead of the medium polynomial "
                     "(issue 17; service/geometry/marker_regression.py: per vertex a ridge "
                     "regression weighted by exp(-d^2/s^2) of the markers' rest distance d, "
-                    "through the neutral). The value is s in median nearest-marker spacings; "
-                    "null (the default): the medium PDM of ma2008. The maps, the confidence and "
-                    "the fine band are unchanged. Costs a sparse product per frame and its "
-                    "storage (see model.py).",
-        examples=[None, 4.0])
+                    "through the neutral, kept in low-rank form). The value is s in median "
+                    "nearest-marker spacings (default 4: chosen on one sample actor family, "
+                    "confirmed on the other; see model.py); null: the medium PDM of ma2008. "
+                    "The maps, the confidence and the fine band are unchanged.",
+        examples=[4.0, None])
     medium_regression_ridge: float = Field(
         default=0.1, gt=0.0, le=10.0, allow_inf_nan=False,
         description="Relative ridge of medium_regression (x the mean diagonal of each "
