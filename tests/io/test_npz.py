@@ -1,5 +1,5 @@
 """NPZ headers: hostile .npy headers are a ValueError the callers turn into a 422; response
-bodies written in one buffer (npz_body)."""
+bodies as pieces (npz_parts) or in one buffer (npz_body)."""
 
 import io
 import struct
@@ -11,7 +11,7 @@ import pytest
 from service.io.errors import MeshFormatError
 from service.io.mesh_npz import read_npz
 from models_store.atomic import MAP_ALIGNMENT
-from service.io.npz import ZIP_ERRORS, npy_header, npz_body
+from service.io.npz import PIECE_BYTES, ZIP_ERRORS, npy_header, npz_body, npz_parts
 
 
 def _with_vertices_header(header: bytes) -> bytes:
@@ -187,3 +187,38 @@ def test_npz_body_writes_zip64_bodies_as_write_npz(monkeypatch):
 def test_npz_body_refuses_object_arrays():
     with pytest.raises(ValueError, match="Python objects"):
         npz_body({"x": np.array([None, 1], dtype=object)})
+
+
+def _answer_arrays():
+    rng = np.random.default_rng(23)
+    return {"vertices": rng.standard_normal((1, 6000, 3)).astype(np.float32),
+            "clamped": np.zeros(1, np.float32),
+            "faces": np.arange(30000, dtype=np.int32).reshape(-1, 3)[:, ::-1],   # not contiguous
+            "displacement": rng.standard_normal((1, 128, 160)).astype(np.float32),
+            "normal_map": rng.standard_normal((1, 128, 96, 3)).astype(np.float16),
+            "scalar": np.float64(2.5)}
+
+
+@pytest.mark.parametrize("dtypes, digest", [
+    ({"displacement": np.float16}, "a733dc53a134cafcd838aeabe156ccbff30a16434ce9d10ba4ffe23ed8994234"),
+    (None, "2dfa8f43e810a4d578a9bb6a4bf2b861cfe36ade52d82b5f29ffd29007845184")])
+def test_npz_parts_are_the_bytes_npz_body_wrote_before_with_large_arrays_not_copied(dtypes, digest):
+    """issue 23: the pieces joined are byte for byte what the one-buffer npz_body answered
+    before them (sha256 of its body for these seeded arrays, zlib's CRC-32 in it); the
+    members stored as they are (C-contiguous, their own dtype, >= PIECE_BYTES) are views of
+    the arrays, the converted and the small ones are not."""
+    import hashlib
+
+    arrays = _answer_arrays()
+    parts = npz_parts(arrays, dtypes)
+    joined = b"".join(bytes(piece) for piece in parts.pieces)
+    assert len(parts) == len(joined) and hashlib.sha256(joined).hexdigest() == digest
+    assert bytes(npz_body(arrays, dtypes)) == joined
+    views = [name for name, values in arrays.items()
+             if any(np.shares_memory(np.frombuffer(p, np.uint8), np.asarray(values))
+                    for p in parts.pieces)]
+    assert views == ["vertices", "normal_map"] if dtypes else \
+        views == ["vertices", "displacement", "normal_map"]
+    assert all(arrays[name].nbytes >= PIECE_BYTES for name in views)
+    # a piece before each large member's data (faces: converted, so a copy) and the last
+    assert len(parts.pieces) == 2 * (3 if dtypes else 4) + 1
