@@ -222,3 +222,60 @@ def test_npz_parts_are_the_bytes_npz_body_wrote_before_with_large_arrays_not_cop
     assert all(arrays[name].nbytes >= PIECE_BYTES for name in views)
     # a piece before each large member's data (faces: converted, so a copy) and the last
     assert len(parts.pieces) == 2 * (3 if dtypes else 4) + 1
+
+
+def _npy(values, header: bytes | None = None, version=(1, 0)) -> bytes:
+    """The .npy bytes NumPy writes for ``values`` (its header replaced by ``header``)."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, values, version=version)
+    raw = buffer.getvalue()
+    if header is None:
+        return raw
+    size = 2 if version == (1, 0) else 4
+    length = int.from_bytes(raw[8:8 + size], "little")
+    return raw[:8] + len(header).to_bytes(size, "little") + header + raw[8 + size + length:]
+
+
+@pytest.mark.parametrize("values", [
+    np.zeros((1, 150, 3), np.float32), np.arange(7, dtype=">i8"), np.float64(2.5),
+    np.zeros((0, 3)), np.array(["ab", "c"]), np.array([True, False]),
+    np.asfortranarray(np.arange(12.0).reshape(3, 4)), np.zeros(3, "M8[ns]"),
+    np.zeros(2, [("x", "<f4"), ("y", "<i2")]), np.zeros((2, 1, 1, 1, 1), np.complex128)])
+@pytest.mark.parametrize("version", [(1, 0), (2, 0)])
+def test_headers_and_arrays_read_as_numpy_reads_them(values, version):
+    """issue 23: a header in NumPy's own form is read without NumPy's parser (a regular
+    expression), any other by NumPy's; either way shape, order, dtype and data are NumPy's."""
+    from service.io.npz import NpyMember, _read_header
+
+    raw = _npy(values, version=version)
+    want = np.lib.format.read_array(io.BytesIO(raw))
+    stream = io.BytesIO(raw)
+    shape, fortran, dtype = _read_header(stream)
+    assert (shape, dtype) == (want.shape, want.dtype) and fortran == (
+        want.ndim > 1 and want.flags.f_contiguous and not want.flags.c_contiguous)
+    assert stream.tell() == len(raw) - want.nbytes
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("v.npy", raw)
+    archive = zipfile.ZipFile(buffer)
+    got = NpyMember(archive, archive.infolist()[0]).read()
+    assert got.dtype == want.dtype and got.shape == want.shape and got.flags.writeable
+    assert got.tobytes("A") == want.tobytes("A") and got.flags.f_contiguous == want.flags.f_contiguous
+
+
+@pytest.mark.parametrize("header, error", [
+    (b"{'shape': (2,), 'fortran_order': False, 'descr': '<f8', }" + b" " * 6 + b"\n", None),
+    (b"{'descr':'<f8','fortran_order':False,'shape':(2,)}" + b" " * 12 + b"\n", None),
+    (b"{'descr': '<f8', 'fortran_order': False, 'shape': (2,), }" + b" " * 20000 + b"\n",
+     "Header info length"),
+    (b"{'descr': '<f8', 'fortran_order': False, 'shape': (-2,), }\n", "shape"),
+    (b"{'descr': '<f8', 'fortran_order': 0, 'shape': (2,), }\n", "fortran_order")])
+def test_other_headers_go_to_numpy_s_parser(header, error):
+    from service.io.npz import _read_header
+
+    stream = io.BytesIO(_npy(np.array([1.0, 2.0]), header))
+    if error is None:
+        assert _read_header(stream) == ((2,), False, np.dtype("<f8"))
+    else:
+        with pytest.raises(ValueError, match=error):
+            _read_header(stream)
