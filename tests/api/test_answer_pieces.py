@@ -6,18 +6,15 @@ from __future__ import annotations
 
 import http.client
 import io
-import threading
-import time
 
 import numpy as np
 import pytest
-import uvicorn
 from starlette.responses import Response
 
 from service.api.connections import GuardedHttpToolsProtocol, protocol_class
 from service.api.routes.synthesis import PiecesResponse
 from service.io.npz import npz_parts
-from tests.servers import free_port
+from tests.servers import uvicorn_thread
 
 IMPLEMENTATIONS = ["h11"] + (["httptools"] if GuardedHttpToolsProtocol is not None else [])
 
@@ -46,19 +43,9 @@ async def app(scope, receive, send):
 
 @pytest.fixture(scope="module", params=IMPLEMENTATIONS)
 def port(request):
-    port = free_port()
-    http = protocol_class(5.0, 200.0, 1.0, 4, http=request.param)
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
-                                           http=http, access_log=False))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
-    yield port
-    server.should_exit = True
-    thread.join(10)
+    with uvicorn_thread(app, http=protocol_class(5.0, 200.0, 1.0, 4, http=request.param),
+                        access_log=False) as port:
+        yield port
 
 
 def test_pieces_are_the_joined_body_on_the_wire(port):
