@@ -63,6 +63,30 @@ def free_port(host: str = LOOPBACK) -> int:
         return s.getsockname()[1]
 
 
+@contextlib.contextmanager
+def uvicorn_thread(app, **options) -> Iterator[int]:
+    """``app`` (ASGI) served by uvicorn in a daemon thread on a free loopback port, which
+    is yielded; ``options`` go to ``uvicorn.Config`` (e.g. ``http=`` a protocol class)."""
+    import threading
+
+    import uvicorn
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host=LOOPBACK, port=port, log_config=None,
+                                           **options))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.05)
+    try:
+        yield port
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
 def _package_dir(name: str) -> Path:
     """Directory of an installed package, found without importing it."""
     spec = importlib.util.find_spec(name)

@@ -39,7 +39,7 @@ from service.app.synthesis import (NPZ, Expected, SynthesisInput, Synthesizer,
                                    parse_synthesis_request)
 from service.io.atomic import sha256_file
 from service.io.exr import read_exr, write_exr
-from service.io.npz import npz_bytes
+from service.io.npz import NpzParts, npz_bytes
 from service.jobs.formats import check_result_format
 from service.errors import BlobCorrupt, Conflict, InvalidInput, NotFound, Unavailable
 from service.methods.confidence import CONFIDENCE
@@ -286,7 +286,7 @@ class Synthesized:
     (None: the model reports none)."""
 
     media_type: str
-    body: bytes | memoryview
+    body: bytes | memoryview | NpzParts      # NpzParts: an NPZ sent as its pieces
     frames: int
     confidence: str | None = None
 

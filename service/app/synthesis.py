@@ -37,7 +37,7 @@ from service.geometry.uv_raster import resample_map
 from service.io.exr import write_map
 from service.io.markers import read_markers_json
 from service.io.mesh import Mesh, write_obj
-from service.io.npz import npz_body, npz_bytes
+from service.io.npz import NpzParts, npz_bytes, npz_parts
 from service.methods.inputs import InvalidInput
 
 NPZ = "application/x-npz"
@@ -389,15 +389,16 @@ def half_maps(arrays: dict[str, np.ndarray]) -> list[str]:
 
 def encode(media: str, result: dict[str, np.ndarray], loaded: LoadedModel,
            request: SynthesisInput, half: bool = False, topology: bool = True
-           ) -> bytes | memoryview:
+           ) -> bytes | NpzParts:
     """The response body: NPZ of the arrays (:func:`npz_arrays`: ``half`` maps as float16,
-    ``topology=False`` without the triangles; written by :func:`service.io.npz.npz_body`,
-    each array copied or converted once, into its place in the body), the frame's OBJ
+    ``topology=False`` without the triangles) as the pieces it is sent in
+    (:func:`service.io.npz.npz_parts`: the result's arrays not copied where they are stored
+    as they are, others converted once), the frame's OBJ
     (detailed vertices if asked, with the model's UVs), or the one map as EXR (``half``:
     16-bit floats)."""
     if media == NPZ:
         arrays = npz_arrays(result, topology=topology)
-        return npz_body(arrays, {name: np.float16 for name in half_maps(arrays)} if half else None)
+        return npz_parts(arrays, {name: np.float16 for name in half_maps(arrays)} if half else None)
     if media == OBJ:
         key = "vertices_detailed" if "mesh_detailed" in request.outputs else "vertices"
         model = loaded.model

@@ -8,8 +8,9 @@ blocks along axis 0 (stored or deflated members alike, through :mod:`zipfile`, s
 member's CRC is still checked) and written back with :func:`write_npz`, which takes arrays in
 memory or in a file: an archive of hundreds of MiB is validated and rewritten holding a few
 MiB of it (issue 16, defect 11). :func:`npz_arrays` and :func:`npz_bytes` are the plain
-in-memory round trip for trusted data (stored models, results); :func:`npz_body` writes a
-response body in one buffer, each array copied (or converted to float16) once.
+in-memory round trip for trusted data (stored models, results); :func:`npz_parts` gives a
+response body as the pieces it is sent in, the arrays stored as they are not copied
+(:func:`npz_body`: in one buffer).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import io
 import math
 import mmap
+import re
 import struct
 import tokenize
 import zipfile
@@ -29,6 +31,11 @@ import numpy as np
 
 from models_store.atomic import MAP_ALIGNMENT, aligned_member, padding_extra
 from service.io.arrays import BLOCK_BYTES, blocks
+
+try:   # zlib-ng's CRC-32 (folded carry-less multiplies): the same values, ~13x zlib 1.2's speed
+    from zlib_ng.zlib_ng import crc32
+except ImportError:                      # pragma: no cover - a declared dependency
+    from zlib import crc32
 
 #: what numpy and zipfile raise on a corrupt archive (RuntimeError: unsupported zip features)
 ZIP_ERRORS = (ValueError, OSError, EOFError, KeyError, RuntimeError, struct.error,
@@ -52,15 +59,35 @@ def npy_header(archive: zipfile.ZipFile, member: str | zipfile.ZipInfo) -> tuple
     return shape, dtype
 
 
+#: the header NumPy writes (``{'descr': '<f4', 'fortran_order': False, 'shape': (1, 150, 3), }``
+#: padded with spaces and a newline), for a plain dtype: read without NumPy's parser
+_PLAIN_HEADER = re.compile(rb"\{'descr': '([<>|=][a-zA-Z][0-9]{0,4})', 'fortran_order': "
+                           rb"(False|True), 'shape': \(((?:[0-9]{1,19}, )*[0-9]{1,19},?|)\), \} *\n")
+#: NumPy's bound on a header's length (``max_header_size``): longer ones go to its parser
+_MAX_PLAIN_HEADER = 10_000
+
+
 def _read_header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
-    """(shape, fortran_order, dtype) of the ``.npy`` stream ``f``, left at its first data byte."""
+    """(shape, fortran_order, dtype) of the ``.npy`` stream ``f``, left at its first data byte.
+
+    A header in the form NumPy writes for a plain dtype (:data:`_PLAIN_HEADER`) is read by a
+    regular expression; any other goes to NumPy's parser (``ast.literal_eval`` of the
+    header, twice per uploaded array: 0.1-0.2 ms of a one-frame synthesis request, issue 23),
+    which also gives every error. Either way the result is NumPy's."""
     version = np.lib.format.read_magic(f)
     if version not in ((1, 0), (2, 0)):
         raise ValueError(f"unsupported .npy format version {version}; expected 1.0 or 2.0")
+    prefix = f.read(2 if version == (1, 0) else 4)
+    header = f.read(int.from_bytes(prefix, "little")) if len(prefix) in (2, 4) else b""
+    plain = _PLAIN_HEADER.fullmatch(header) if len(header) <= _MAX_PLAIN_HEADER else None
+    if plain is not None:
+        descr, fortran, dims = plain.groups()
+        return (tuple(int(n) for n in dims.split(b",") if n.strip()), fortran == b"True",
+                np.dtype(descr.decode("ascii")))
     read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
             else np.lib.format.read_array_header_2_0)
     try:
-        shape, fortran_order, dtype = read(f)
+        shape, fortran_order, dtype = read(io.BytesIO(prefix + header))
     except _HEADER_ERRORS as error:
         # numpy tokenizes the header (a Python literal) before its own checks
         raise ValueError(f"malformed .npy header: {error}") from None
@@ -103,9 +130,22 @@ class NpyMember:
         return self.shape[0]
 
     def read(self) -> np.ndarray:
-        """The whole array."""
+        """The whole array (what ``np.lib.format.read_array`` reads, its header read once
+        more by :func:`_read_header`, not NumPy's parser)."""
         with self.archive.open(self.info) as f:
-            return np.lib.format.read_array(f, allow_pickle=False)
+            shape, fortran_order, dtype = _read_header(f)
+            if dtype.hasobject or dtype.itemsize == 0:
+                f.seek(0)
+                return np.lib.format.read_array(f, allow_pickle=False)
+            values = np.empty(math.prod(shape), dtype)
+            data = memoryview(values.view(np.uint8).reshape(-1))
+            got = 0
+            while got < len(data):
+                n = f.readinto(data[got:])
+                if not n:
+                    raise ValueError(f"EOF: reading array data, expected {len(data)} bytes got {got}")
+                got += n
+        return values.reshape(shape, order="F" if fortran_order else "C")
 
     def blocks(self, max_bytes: int) -> Iterator[tuple[int, np.ndarray]]:
         """``(first row, block)`` along axis 0, each of about ``max_bytes`` (at least one row),
@@ -286,34 +326,87 @@ def _npy_header(dtype: np.dtype, shape: tuple[int, ...]) -> bytes:
     return header.getvalue()
 
 
-def npz_body(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None) -> memoryview:
+class NpzParts:
+    """An uncompressed ``.npz`` (what ``np.savez`` writes) as the pieces a response sends in
+    order: :func:`npz_parts`' answer.
+
+    Attributes
+    ----------
+    pieces : tuple of bytes or memoryview (format ``B``)   the archive's bytes, in order: the
+             large members' data as views of their arrays, everything between joined
+    size : int   the archive's length in bytes (also ``len(parts)``)
+    """
+
+    __slots__ = ("pieces", "size")
+
+    def __init__(self, pieces: tuple[bytes | memoryview, ...], size: int):
+        self.pieces, self.size = pieces, size
+
+    def __len__(self) -> int:
+        return self.size
+
+    def join(self) -> memoryview:
+        """The whole archive in one buffer (each piece copied once)."""
+        if len(self.pieces) == 1:
+            return memoryview(self.pieces[0]).cast("B")
+        body = np.empty(self.size, np.uint8)
+        at = 0
+        for piece in self.pieces:
+            n = len(piece)
+            body[at:at + n] = np.frombuffer(piece, np.uint8)
+            at += n
+        return body.data
+
+
+#: a member's data of at least this many bytes is a piece of its own (a view of the array,
+#: not copied); smaller data is joined with the headers around it (fewer, larger writes)
+PIECE_BYTES = 1 << 16
+
+
+def _stored(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """``values`` as its member stores them, flat uint8 in C order: a view of ``values``
+    when it is C-contiguous of ``dtype`` already, else converted once into a new array
+    (float32 → float16 by :func:`service.io.half.to_float16`, NumPy's rounding; others by
+    ``np.copyto`` with ``casting="unsafe"``, as ``astype``)."""
+    if values.dtype == dtype and values.flags.c_contiguous:
+        return values.reshape(-1).view(np.uint8)
+    out = np.empty(values.size, dtype)
+    if out.size:
+        if dtype == np.float16 and values.dtype == np.float32:
+            from service.io.half import to_float16   # Numba: at the first half map
+
+            to_float16(values, out=out.view(np.uint16))
+        else:
+            np.copyto(out.reshape(values.shape), values, casting="unsafe")
+    return out.view(np.uint8)
+
+
+def npz_parts(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None) -> NpzParts:
     """An uncompressed ``.npz`` of ``arrays`` (what ``np.savez`` writes, read by ``np.load``)
-    written once into one buffer: a response body without the copies of :func:`npz_bytes`.
+    as the pieces of a response body, without copying the arrays that are stored as they
+    are (issue 23, the per-frame HTTP route).
 
     ``np.savez`` copies each array into ``tobytes()``, zipfile copies it into the
-    ``BytesIO`` and ``getvalue()`` once more; here each array is copied (or converted) once
-    into its place and the zip's CRC-32 computed over it there, and the buffer is returned
-    as it is. Each member's data starts at a multiple of :data:`MAP_ALIGNMENT` (a padding
-    extra record, as :func:`models_store.atomic.aligned_member`), so a reader can view the
-    arrays in the body without copying them. Measured on level-1 sized arrays (vertices
-    44,786×3 float32, displacement and normal map 1024² float32 stored as float16, 8.9 MB;
-    2 cores, load 1.8-2.0): 5.6-6.3 ms against 7.2-7.7 ms for ``to_float16`` then
-    ``np.savez`` (of which the CRC-32 is 1.8 ms and the conversion 1.9-2.3 ms); float32 maps
-    8.7-9.4 against 9.7-13.3 ms. Over HTTP (``benchmarks/realtime.py --against``, the old
-    and new server interleaved frame by frame, load 6-7), a maps frame with ``half=true``
-    went from 1.78× to 1.47× in-process (h11) and 1.69× to 1.47× (httptools). Bodies of
-    4 GiB or more (zip64) are written by :func:`write_npz`.
+    ``BytesIO`` and ``getvalue()`` once more. Here an array that is C-contiguous in the
+    dtype it is stored as is not copied at all: its member's data is a piece of its own, a
+    view of the array (at least :data:`PIECE_BYTES`; smaller ones are joined with the zip
+    and ``.npy`` headers around them), and the zip's CRC-32 is computed over it in place
+    (zlib-ng's: 0.16 ms for 9 MB against 2.15 ms for zlib 1.2's, 2 cores, load 1.7). An
+    array of another dtype or layout is converted (or copied) once. Each member's data
+    starts at a multiple of :data:`MAP_ALIGNMENT` (a padding extra record, as
+    :func:`models_store.atomic.aligned_member`), so a reader can view the arrays in the body
+    without copying them. The caller must not write the arrays while the pieces are in use
+    (a synthesis answer's arrays are its own). Bodies of 4 GiB or more (zip64) are written
+    by :func:`write_npz`, as one piece.
 
     Parameters
     ----------
     arrays : name → array (any shape; object arrays refused)
-    dtypes : name → dtype to store the array as (default its own); float32 → float16 by
-             :func:`service.io.half.to_float16` (NumPy's rounding), others by ``np.copyto``
-             (``casting="unsafe"``, as ``astype``)
+    dtypes : name → dtype to store the array as (default its own)
 
     Returns
     -------
-    memoryview of bytes (format ``B``), the whole archive
+    NpzParts   the archive's pieces; ``.join()`` is the archive in one buffer
     """
     dtypes = dtypes or {}
     members = []
@@ -326,37 +419,45 @@ def npz_body(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None)
         filename = (name + ".npy").encode()
         header = _npy_header(dtype, values.shape)
         extra = padding_extra(offset + _LOCAL.size + len(filename))
-        size = len(header) + values.size * dtype.itemsize
-        members.append((offset, filename, extra, header, values, dtype, size))
-        offset += _LOCAL.size + len(filename) + len(extra) + size
+        members.append((offset, filename, extra, header, values, dtype))
+        offset += _LOCAL.size + len(filename) + len(extra) + len(header) + values.size * dtype.itemsize
     directory = offset
     total = directory + sum(_CENTRAL.size + len(m[1]) for m in members) + _END.size
     if total > _ZIP32_LIMIT or len(members) > 0xFFFF:
         buffer = io.BytesIO()
         write_npz(buffer, arrays, dtypes)
-        return buffer.getbuffer()
-    body = np.empty(total, np.uint8)
+        body = buffer.getbuffer()
+        return NpzParts((body,), len(body))
+    pieces: list[bytes | memoryview] = []
+    joined = bytearray()          # the bytes since the last piece of its own
     central = bytearray()
-    for start, filename, extra, header, values, dtype, size in members:
-        data = start + _LOCAL.size + len(filename) + len(extra)
-        member = body[data:data + size]
-        member[:len(header)] = np.frombuffer(header, np.uint8)
-        target = member[len(header):]
-        if target.size:
-            if dtype == np.float16 and values.dtype == np.float32:
-                from service.io.half import to_float16   # Numba: at the first half map
-
-                to_float16(values, out=target.view(np.uint16))
-            else:
-                np.copyto(target.view(dtype).reshape(values.shape), values, casting="unsafe")
-        crc = zlib.crc32(member)
-        body[start:data] = np.frombuffer(
-            _LOCAL.pack(0x04034B50, _VERSION, 0, zipfile.ZIP_STORED, _DOS_TIME, _DOS_DATE, crc,
-                        size, size, len(filename), len(extra)) + filename + extra, np.uint8)
+    for start, filename, extra, header, values, dtype in members:
+        data = _stored(values, dtype)
+        size = len(header) + data.size
+        crc = crc32(data, crc32(header))
+        joined += _LOCAL.pack(0x04034B50, _VERSION, 0, zipfile.ZIP_STORED, _DOS_TIME, _DOS_DATE,
+                              crc, size, size, len(filename), len(extra))
+        joined += filename + extra + header
+        if data.size >= PIECE_BYTES:
+            pieces += [bytes(joined), data.data]
+            joined.clear()
+        else:
+            joined += data.data
         central += _CENTRAL.pack(0x02014B50, _VERSION, _VERSION, 0, zipfile.ZIP_STORED,
                                  _DOS_TIME, _DOS_DATE, crc, size, size, len(filename), 0, 0, 0,
                                  0, 0o644 << 16, start) + filename
-    central += _END.pack(0x06054B50, 0, 0, len(members), len(members), len(central),
-                         directory, 0)
-    body[directory:] = np.frombuffer(bytes(central), np.uint8)
-    return body.data
+    joined += central
+    joined += _END.pack(0x06054B50, 0, 0, len(members), len(members), len(central), directory, 0)
+    pieces.append(bytes(joined))
+    return NpzParts(tuple(pieces), total)
+
+
+def npz_body(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None) -> memoryview:
+    """:func:`npz_parts` of ``arrays`` in one buffer (each array copied or converted once,
+    the archive's bytes the same).
+
+    Returns
+    -------
+    memoryview of bytes (format ``B``), the whole archive
+    """
+    return npz_parts(arrays, dtypes).join()

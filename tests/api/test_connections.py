@@ -4,15 +4,13 @@ are cut off within their bounds (issue 16, defect 10). A real uvicorn server on 
 from __future__ import annotations
 
 import socket
-import threading
 import time
 
 import pytest
-import uvicorn
 
 from service.api.connections import (ConnectionGuard, GuardedH11Protocol,
                                       GuardedHttpToolsProtocol, protocol_class, resolve_http)
-from tests.servers import free_port
+from tests.servers import uvicorn_thread
 
 HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT = 1.0, 200.0, 1.0, 4
 
@@ -38,21 +36,10 @@ IMPLEMENTATIONS = ["h11"] + (["httptools"] if GuardedHttpToolsProtocol is not No
 
 @pytest.fixture(scope="module", params=IMPLEMENTATIONS)
 def server(request):
-    port = free_port()
     http = protocol_class(HEADER_TIMEOUT, MIN_RATE, GRACE, PER_CLIENT, http=request.param)
     assert issubclass(http, ConnectionGuard)
-    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, http=http,
-                            timeout_keep_alive=5)
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
-    yield port
-    server.should_exit = True
-    thread.join(10)
+    with uvicorn_thread(app, http=http, timeout_keep_alive=5) as port:
+        yield port
 
 
 def connect(port) -> socket.socket:

@@ -1,5 +1,5 @@
 """NPZ headers: hostile .npy headers are a ValueError the callers turn into a 422; response
-bodies written in one buffer (npz_body)."""
+bodies as pieces (npz_parts) or in one buffer (npz_body)."""
 
 import io
 import struct
@@ -11,7 +11,7 @@ import pytest
 from service.io.errors import MeshFormatError
 from service.io.mesh_npz import read_npz
 from models_store.atomic import MAP_ALIGNMENT
-from service.io.npz import ZIP_ERRORS, npy_header, npz_body
+from service.io.npz import PIECE_BYTES, ZIP_ERRORS, npy_header, npz_body, npz_parts
 
 
 def _with_vertices_header(header: bytes) -> bytes:
@@ -187,3 +187,95 @@ def test_npz_body_writes_zip64_bodies_as_write_npz(monkeypatch):
 def test_npz_body_refuses_object_arrays():
     with pytest.raises(ValueError, match="Python objects"):
         npz_body({"x": np.array([None, 1], dtype=object)})
+
+
+def _answer_arrays():
+    rng = np.random.default_rng(23)
+    return {"vertices": rng.standard_normal((1, 6000, 3)).astype(np.float32),
+            "clamped": np.zeros(1, np.float32),
+            "faces": np.arange(30000, dtype=np.int32).reshape(-1, 3)[:, ::-1],   # not contiguous
+            "displacement": rng.standard_normal((1, 128, 160)).astype(np.float32),
+            "normal_map": rng.standard_normal((1, 128, 96, 3)).astype(np.float16),
+            "scalar": np.float64(2.5)}
+
+
+@pytest.mark.parametrize("dtypes, digest", [
+    ({"displacement": np.float16}, "a733dc53a134cafcd838aeabe156ccbff30a16434ce9d10ba4ffe23ed8994234"),
+    (None, "2dfa8f43e810a4d578a9bb6a4bf2b861cfe36ade52d82b5f29ffd29007845184")])
+def test_npz_parts_are_the_bytes_npz_body_wrote_before_with_large_arrays_not_copied(dtypes, digest):
+    """issue 23: the pieces joined are byte for byte what the one-buffer npz_body answered
+    before them (sha256 of its body for these seeded arrays, zlib's CRC-32 in it); the
+    members stored as they are (C-contiguous, their own dtype, >= PIECE_BYTES) are views of
+    the arrays, the converted and the small ones are not."""
+    import hashlib
+
+    arrays = _answer_arrays()
+    parts = npz_parts(arrays, dtypes)
+    joined = b"".join(bytes(piece) for piece in parts.pieces)
+    assert len(parts) == len(joined) and hashlib.sha256(joined).hexdigest() == digest
+    assert bytes(npz_body(arrays, dtypes)) == joined
+    views = [name for name, values in arrays.items()
+             if any(np.shares_memory(np.frombuffer(p, np.uint8), np.asarray(values))
+                    for p in parts.pieces)]
+    assert views == ["vertices", "normal_map"] if dtypes else \
+        views == ["vertices", "displacement", "normal_map"]
+    assert all(arrays[name].nbytes >= PIECE_BYTES for name in views)
+    # a piece before each large member's data (faces: converted, so a copy) and the last
+    assert len(parts.pieces) == 2 * (3 if dtypes else 4) + 1
+
+
+def _npy(values, header: bytes | None = None, version=(1, 0)) -> bytes:
+    """The .npy bytes NumPy writes for ``values`` (its header replaced by ``header``)."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, values, version=version)
+    raw = buffer.getvalue()
+    if header is None:
+        return raw
+    size = 2 if version == (1, 0) else 4
+    length = int.from_bytes(raw[8:8 + size], "little")
+    return raw[:8] + len(header).to_bytes(size, "little") + header + raw[8 + size + length:]
+
+
+@pytest.mark.parametrize("values", [
+    np.zeros((1, 150, 3), np.float32), np.arange(7, dtype=">i8"), np.float64(2.5),
+    np.zeros((0, 3)), np.array(["ab", "c"]), np.array([True, False]),
+    np.asfortranarray(np.arange(12.0).reshape(3, 4)), np.zeros(3, "M8[ns]"),
+    np.zeros(2, [("x", "<f4"), ("y", "<i2")]), np.zeros((2, 1, 1, 1, 1), np.complex128)])
+@pytest.mark.parametrize("version", [(1, 0), (2, 0)])
+def test_headers_and_arrays_read_as_numpy_reads_them(values, version):
+    """issue 23: a header in NumPy's own form is read without NumPy's parser (a regular
+    expression), any other by NumPy's; either way shape, order, dtype and data are NumPy's."""
+    from service.io.npz import NpyMember, _read_header
+
+    raw = _npy(values, version=version)
+    want = np.lib.format.read_array(io.BytesIO(raw))
+    stream = io.BytesIO(raw)
+    shape, fortran, dtype = _read_header(stream)
+    assert (shape, dtype) == (want.shape, want.dtype) and fortran == (
+        want.ndim > 1 and want.flags.f_contiguous and not want.flags.c_contiguous)
+    assert stream.tell() == len(raw) - want.nbytes
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("v.npy", raw)
+    archive = zipfile.ZipFile(buffer)
+    got = NpyMember(archive, archive.infolist()[0]).read()
+    assert got.dtype == want.dtype and got.shape == want.shape and got.flags.writeable
+    assert got.tobytes("A") == want.tobytes("A") and got.flags.f_contiguous == want.flags.f_contiguous
+
+
+@pytest.mark.parametrize("header, error", [
+    (b"{'shape': (2,), 'fortran_order': False, 'descr': '<f8', }" + b" " * 6 + b"\n", None),
+    (b"{'descr':'<f8','fortran_order':False,'shape':(2,)}" + b" " * 12 + b"\n", None),
+    (b"{'descr': '<f8', 'fortran_order': False, 'shape': (2,), }" + b" " * 20000 + b"\n",
+     "Header info length"),
+    (b"{'descr': '<f8', 'fortran_order': False, 'shape': (-2,), }\n", "shape"),
+    (b"{'descr': '<f8', 'fortran_order': 0, 'shape': (2,), }\n", "fortran_order")])
+def test_other_headers_go_to_numpy_s_parser(header, error):
+    from service.io.npz import _read_header
+
+    stream = io.BytesIO(_npy(np.array([1.0, 2.0]), header))
+    if error is None:
+        assert _read_header(stream) == ((2,), False, np.dtype("<f8"))
+    else:
+        with pytest.raises(ValueError, match=error):
+            _read_header(stream)

@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from facesynth_client import Client
-from facesynth_client.transport import CHUNK, OnePieceTransport
+from facesynth_client.transport import CHUNK, ONE_WRITE_MAX, OnePieceTransport
 
 BIG = bytes(range(256)) * 4099          # 1,049,344 bytes: several of httpx's 64 KiB reads
 
@@ -99,6 +99,29 @@ def test_answers_equal_httpx_transport(origin, one_piece):
     echo = one_piece.post("/echo?x=1", content=b"abc").json()
     assert echo["path"] == "/echo?x=1" and echo["sha256"] == hashlib.sha256(b"abc").hexdigest()
     assert echo["headers"]["content-length"] == "3" and "host" in echo["headers"]
+
+
+def test_headers_and_a_small_body_go_out_in_one_write(one_piece, monkeypatch):
+    """issue 23: http.client writes them in two (the server woken twice per request)."""
+    import socket
+
+    writes: list[bytes] = []
+    sendall = socket.socket.sendall
+    client = threading.get_ident()          # the origin's answers are written by its threads
+
+    def spy(sock, data, *args):
+        if threading.get_ident() == client:
+            writes.append(bytes(data))
+        return sendall(sock, data, *args)
+
+    monkeypatch.setattr(socket.socket, "sendall", spy)
+    for size in (3600, ONE_WRITE_MAX, ONE_WRITE_MAX + 1):
+        writes.clear()
+        body = BIG[:size]
+        echo = one_piece.post("/echo", content=body).json()
+        assert echo["sha256"] == hashlib.sha256(body).hexdigest()
+        assert len(writes) == (1 if size <= ONE_WRITE_MAX else 2)
+        assert writes[-1].endswith(body) and writes[0].startswith(b"POST /echo HTTP/1.1\r\n")
 
 
 def test_a_sized_answer_is_read_in_one_piece_and_a_stream_in_pieces(one_piece):

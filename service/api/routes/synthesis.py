@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
+from starlette.types import Receive, Scope, Send
 
 from service.api import bodies
 from service.app import operations, schemas, uploads
@@ -15,6 +16,7 @@ from service.api.routes import (binary_response, body, etag_matches, inline_sche
                                 set_job_location)
 from service.app.synthesis import EXR, JOB_INPUT_TYPES, NPZ, OBJ, RESPONSE_TYPES, parse_outputs
 from service.geometry.marker_filter import MAX_SIGMA_FRAMES
+from service.io.npz import NpzParts
 from service.methods.outputs import DEFAULT_OUTPUTS
 
 router = APIRouter(prefix="/v1/models/{model_id}", tags=["synthesis"])
@@ -80,13 +82,32 @@ async def _synthesize(model_id: str, request: Request, services: ServicesDep, ou
     return _answer(answer, "synthesis")
 
 
+class PiecesResponse(Response):
+    """A response whose body is an NPZ's :class:`~service.io.npz.NpzParts`, sent as its
+    pieces, one ``http.response.body`` message each: the server writes the arrays' own
+    memory instead of a copy of them joined into one buffer (a level-1 maps frame: 8.9 MB
+    not copied). The status, headers and bytes are those of ``Response(parts.join())``."""
+
+    def render(self, content: NpzParts) -> NpzParts:     # type: ignore[override]
+        return content              # its len() is the Content-Length
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        await send({"type": "http.response.start", "status": self.status_code,
+                    "headers": self.raw_headers})
+        pieces = self.body.pieces
+        for k, piece in enumerate(pieces):
+            await send({"type": "http.response.body", "body": piece,
+                        "more_body": k + 1 < len(pieces)})
+
+
 def _answer(answer: operations.Synthesized, name: str) -> Response:
     suffix = {NPZ: "npz", OBJ: "obj", EXR: "exr"}[answer.media_type]
     headers = {"Content-Disposition": f'attachment; filename="{name}.{suffix}"',
                "X-Frames": str(answer.frames)}
     if answer.confidence is not None:
         headers[operations.CONFIDENCE_HEADER] = answer.confidence
-    return Response(answer.body, media_type=answer.media_type, headers=headers)
+    kind = PiecesResponse if isinstance(answer.body, NpzParts) else Response
+    return kind(answer.body, media_type=answer.media_type, headers=headers)
 
 
 @router.post(
