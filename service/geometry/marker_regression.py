@@ -35,7 +35,8 @@ neither sparse nor low-rank in the usual sense (at s = 4 marker spacings a verte
 little: measured on the held-out performances of family a level 0 (6 frames each, PDM mesh
 against the full L), RANK_TOL = 1e-2 (r = 160) moves the vertices by a mean 0.002–0.004 mm,
 max 0.07–0.09 mm (r = 96: 0.010–0.021 / 0.25–0.59; r = 128: 0.004–0.006 / 0.15–0.21),
-against a CSR of nnz 12.9 M (85 % of 3n × 3M) it reads 3n × r + r × 3M floats, 2.6× fewer.
+against a CSR of nnz 12.9 M (85 % of 3n × 3M, 8 bytes each) a frame reads P's 3n × r
+entries as int16 (quantized per column, :class:`MarkerRegression`): 10 MB instead of 103 MB.
 A projection on the training inputs' principal directions instead (their span is
 16-dimensional there) fails on the held-out in-range and combination performances (mean
 0.06–0.08, max 1.8–2.3 mm at r = 32–120): the local regression answers inputs outside the
@@ -59,25 +60,44 @@ CHUNK = 256
 
 
 #: the stored fields, in the constructor's order (:meth:`MarkerRegression.arrays`)
-MEMBERS = ("P", "Q", "mean_u", "mean_y")
+MEMBERS = ("Pq", "scale", "Q", "mean_u", "mean_y")
 #: singular values of L kept: those above RANK_TOL × the largest (module docstring)
 RANK_TOL = 1e-2
+#: largest |int16| a quantized column reaches
+INT16_MAX = 32767
 
 
 @dataclass(frozen=True)
 class MarkerRegression:
-    """``y = mean_y + P Q (u − mean_u)``: P (3n,r) float32 (row 3v + i), Q (r,3M) float32
-    (column 3m + j, orthonormal rows), mean_u (M,3), mean_y (n,3) float32, mm."""
+    """``y = mean_y + P Q (u − mean_u)`` with ``P = Pq diag(scale)``: Pq (3n,r) int16 (row
+    3v + i), scale (r,) float32 per column, Q (r,3M) float32 (column 3m + j, orthonormal
+    rows), mean_u (M,3), mean_y (n,3) float32, mm.
 
-    P: np.ndarray
+    P is quantized per column (``scale = max |P[:,k]| / 32767``, each entry within half a
+    step: 1.5e-5 of its column's largest) so a frame reads 2 bytes per entry
+    (:mod:`.int16_rows`)."""
+
+    Pq: np.ndarray
+    scale: np.ndarray
     Q: np.ndarray
     mean_u: np.ndarray
     mean_y: np.ndarray
 
     @classmethod
+    def from_factors(cls, P: np.ndarray, Q: np.ndarray, mean_u: np.ndarray, mean_y: np.ndarray) -> "MarkerRegression":
+        """The regression of factors P (3n,r) float and Q (r,3M), P quantized per column."""
+        P = np.asarray(P, np.float64)
+        top = np.abs(P).max(axis=0) if len(P) else np.zeros(P.shape[1])
+        scale = np.where(top > 0, top / INT16_MAX, 1.0)
+        return cls(np.rint(P / scale).astype(np.int16), scale.astype(np.float32),
+                   np.ascontiguousarray(Q, np.float32), np.asarray(mean_u, np.float64),
+                   np.asarray(mean_y, np.float32))
+
+    @classmethod
     def from_matrix(cls, L, mean_u: np.ndarray, mean_y: np.ndarray, tol: float = RANK_TOL) -> "MarkerRegression":
         """The regression of a full matrix L (3n,3M) (dense or sparse), truncated at ``tol``
-        (σ_k > tol σ₁ kept; 0 keeps every σ above 1e-6 σ₁, L's float32 rounding: L reproduced)."""
+        (σ_k > tol σ₁ kept; 0 keeps every σ above 1e-6 σ₁, L's float32 rounding: L reproduced
+        up to P's quantization)."""
         L = L.tocsr() if sp.issparse(L) else np.asarray(L)
 
         def row_blocks():                       # float64 rows of L, a block at a time
@@ -90,15 +110,19 @@ class MarkerRegression:
             G += B.T @ B
         w, V = np.linalg.eigh(G)                        # ascending
         V = V[:, ::-1][:, w[::-1] > max(tol, 1e-6) ** 2 * max(w[-1], 1e-300)]   # σ ≤ 1e-6 σ₁: rounding
-        P = np.empty((L.shape[0], V.shape[1]), np.float32)
+        P = np.empty((L.shape[0], V.shape[1]))
         for r0, B in row_blocks():
             P[r0:r0 + len(B)] = B @ V
-        return cls(P, np.ascontiguousarray(V.T, np.float32), np.asarray(mean_u, np.float64),
-                   np.asarray(mean_y, np.float32))
+        return cls.from_factors(P, V.T, mean_u, mean_y)
 
     @property
     def rank(self) -> int:
         return len(self.Q)
+
+    @property
+    def P(self) -> np.ndarray:
+        """(3n,r) float32 ``Pq diag(scale)``."""
+        return self.Pq * self.scale
 
     @property
     def L(self) -> np.ndarray:
@@ -107,11 +131,18 @@ class MarkerRegression:
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """Offsets (F,n,3) float32 for handle displacements u (F,M,3)."""
+        from service.geometry import ranges
+        from service.geometry.int16_rows import row_products      # Numba: loaded on first use
+
         du = (np.asarray(u, np.float64) - self.mean_u).reshape(len(u), -1).astype(np.float32)
-        return ((du @ self.Q.T) @ self.P.T).reshape(len(u), -1, 3) + self.mean_y
+        z = np.ascontiguousarray((du @ self.Q.T) * self.scale, np.float32)     # (F,r), scale folded in
+        y = np.empty((len(u), len(self.Pq)), np.float32)
+        for f in range(len(u)):
+            ranges.run(row_products, len(self.Pq), self.Pq, z[f], y[f])
+        return y.reshape(len(u), -1, 3) + self.mean_y
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        """The model-file members ``PREFIX_P``, ``_Q``, ``_mean_u``, ``_mean_y``
+        """The model-file members ``PREFIX_Pq``, ``_scale``, ``_Q``, ``_mean_u``, ``_mean_y``
         (:func:`service.methods.model_dir.read_regression` reads them back)."""
         return {f"{prefix}_{k}": getattr(self, k) for k in MEMBERS}
 

@@ -155,8 +155,8 @@ def _regression(s: PoseSpaceData, C: sp.csr_matrix, R: np.ndarray) -> dict:
     P = np.einsum("dc,tck->tdk", R, (C @ reg.P.astype(np.float64).reshape(n_s, 3 * r)).reshape(-1, 3, r))
     P = P.reshape(-1, r)                                                   # (3n_t, r), row 3t + d
     Q = (reg.Q.astype(np.float64).reshape(r, -1, 3) @ R.T).reshape(r, -1)
-    return {"regression": MarkerRegression(P.astype(np.float32), Q.astype(np.float32), reg.mean_u @ R.T,
-                                           ((C @ reg.mean_y.astype(np.float64)) @ R.T).astype(np.float32)),
+    return {"regression": MarkerRegression.from_factors(P, Q, reg.mean_u @ R.T,
+                                                        (C @ reg.mean_y.astype(np.float64)) @ R.T),
             "regression_input": "nodes"}
 
 

@@ -63,9 +63,9 @@ def test_the_regression_round_trips_bit_for_bit(pair, pdm_data, tmp_path):
     poly.save(tmp_path / "poly")
     back = PdmModel.load(tmp_path / "reg")
     a, b = reg.data.medium_regression, back.data.medium_regression
-    for k in ("P", "Q", "mean_u", "mean_y"):
+    for k in ("Pq", "scale", "Q", "mean_u", "mean_y"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
-    assert b.P.dtype == b.Q.dtype == np.float32
+    assert b.Pq.dtype == np.int16 and b.Q.dtype == np.float32
     markers = clips[0].markers[[3, 9]]
     np.testing.assert_array_equal(back.synthesize(markers, outputs=("mesh",))["vertices"],
                                   reg.synthesize(markers, outputs=("mesh",))["vertices"])

@@ -94,9 +94,9 @@ def test_regression_rows_and_input_follow_the_correspondence_and_rotation():
     y_t = got["regression"](u)
     for f in range(2):
         want = (C.toarray() @ y_s(u[f] @ R)) @ R.T                    # R Σ C y_s(Rᵀ u)
-        np.testing.assert_allclose(y_t[f], want, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(y_t[f], want, rtol=1e-5, atol=2e-4)     # P's int16 quantization
     same = _regression(src, sp.identity(n_s, format="csr"), np.eye(3))["regression"]
-    np.testing.assert_allclose(same.L, L, atol=1e-6)
+    np.testing.assert_allclose(same.L, L, atol=5 * same.scale.max())
     np.testing.assert_array_equal(same.mean_y, reg.mean_y)
 
 
