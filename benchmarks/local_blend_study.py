@@ -40,6 +40,7 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import harness as pr  # noqa: E402
+from blend_study import DetailMetric  # noqa: E402
 from service.geometry.marker_regression import marker_weights  # noqa: E402
 
 OUT = pr.OUT / "local_blend_study"
@@ -144,7 +145,7 @@ class PatchBlend:
         return out
 
 
-class Study:
+class Study(DetailMetric):
     """One actor: the cached WPSD + regression model, its training data on the model's shell."""
 
     def __init__(self, actor_dir: Path, params=None):
@@ -196,31 +197,11 @@ class Study:
         del clips
 
     def heldout(self, perf: str, suffix: str, frames: int | None):
-        from service.samples.dataset import vertex_detail_map
-
+        """The report's held-out frames of a performance (``suffix``: its marker variant)."""
         gt = pr.heldout_frames(self.dir, perf, frames)
         if suffix:
             gt.markers = pr.variant_markers(self.dir, perf + suffix, gt.frames)
-        tex = self.tex
-        gt.normals = tex.normals(gt.medium, self.actor.faces)
-        gt.hp = np.stack([tex.highpass(tex.texels(d)) for d in gt.displacement])
-        gt.rel_map = tex.texels(gt.displacement - vertex_detail_map(self.actor, gt.vertices, gt.medium, tex.H))
-        return gt
-
-    def hp(self, gt, V: np.ndarray, D: np.ndarray | None) -> np.ndarray:
-        tex = self.tex
-        return np.stack([tex.highpass(tex.heights(V[f], gt.medium[f], gt.normals[f], None if D is None else D[f]))
-                         for f in range(len(V))])
-
-    def score(self, gt, hp: np.ndarray, V: np.ndarray | None = None) -> dict:
-        face = self.tex.face
-        x, y = hp[:, face].ravel(), gt.hp[:, face].ravel()
-        out = {"rel": float(np.sqrt(np.sum((x - y) ** 2) / np.sum(y ** 2))),
-               "r": float(np.corrcoef(x, y)[0, 1])}
-        if V is not None:
-            e = np.linalg.norm(V - gt.vertices, axis=-1)[:, np.asarray(self.actor.regions[pr.FACE])]
-            out.update(mean=float(e.mean()), max=float(e.max()))
-        return out
+        return self.prepared(gt)
 
 
 def run(st: Study, gt, blenders: dict) -> dict:
