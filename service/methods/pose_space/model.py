@@ -74,6 +74,24 @@ Choices and departures (the paper is silent or differs):
   ``"none"`` uses the markers as given (then ``marker_completion`` applies). A transferred
   model carries the statistics to the target's markers through the source's shell
   (:mod:`.transfer`);
+* **posterior noise per frame** (``params.posterior_noise = "frame"``, opt-in;
+  :func:`posterior_noise`) — the posterior's σ is each frame's own estimate σ̂ (the
+  confidence's, :func:`~service.geometry.marker_prior.frame_noise` against the base's learned
+  marker prior) clipped to [:data:`POSTERIOR_NOISE_FLOOR_MM`, ``validation_noise_mm``], in
+  training and synthesis. Why (``benchmarks/local_blend_study.py``, level 0, 6 frames a row,
+  WPSD + regression s = 3, λ = 0.1, detail rel. err): the fixed σ = 0.3 mm also shrinks the
+  off-mode part of *clean* markers — an expression the training did not show — and the shell
+  then misses it; the markers as given (``"none"``, evaluation-only) give a in range 0.365 →
+  0.317, combinations 0.398 → 0.376, b combinations 0.770 → 0.701, but noisy a in range 0.593
+  → 0.761. σ̂ cannot tell such a frame from noise everywhere (clean sneer markers of a model
+  trained on brow raise, smile and pucker: σ̂ 0.7–1.1 mm), hence the cap: no frame is filtered
+  more than with the fixed σ. Measured (``generalization_report.py --pose-space-params``,
+  trained with it): clean and occluded rows a in range 0.365 / 0.376 → 0.344 / 0.356,
+  combinations 0.398 / 0.410 → 0.380 / 0.389; b combinations 0.770 / 1.049 → 0.708 / 1.003;
+  noisy rows within +0.006 (b out of range 0.665 → 0.671), b out of range occluded 0.377 →
+  0.401 (mean error 0.085 → 0.072 mm); README "Pose-space detail". Not the default: it does
+  not win on every row. Cost: one posterior per frame (+0.3 ms CPU a frame single, +0.5 ms in
+  8-frame calls, 150 markers; independent of the mesh);
 * **occlusion** — with ``marker_prior = "none"`` occluded markers (NaN) are completed before the shell: by default by the
   shell's minimum energy; with ``marker_completion = "training"`` by the training frames'
   marker statistics (the MAP of the missing markers under the Gaussian of the aligned
