@@ -713,7 +713,8 @@ def posterior_noise(base: BaseSurface, aligned: np.ndarray, params: Params) -> f
     ``validation_noise_mm``]: a clean frame is filtered less, never more than the capture
     system's stated noise (an expression far from the training reads as noise to σ̂: 0.7–1.1 mm
     on clean sneer markers of a model trained on brow raise, smile and pucker) (module
-    docstring: marker prior)."""
+    docstring: marker prior). A base without a learned marker prior (a transferred model's)
+    takes ``validation_noise_mm``."""
     if params.posterior_noise == "validation" or base.evidence is None:
         return params.validation_noise_mm
     return np.clip(base.evidence.noise(np.asarray(aligned, np.float64) - base.rest_markers),

@@ -129,7 +129,8 @@ class PoseSpaceParams(MarkerParams):
                     "moved, the confidence's noise estimate) clipped to [0.01 mm, "
                     "validation_noise_mm], so clean markers of an expression the training did "
                     "not show are shrunk less toward the training's modes, and no frame more "
-                    "than with 'validation'.")
+                    "than with 'validation'. A transferred model (no learned marker prior of its "
+                    "own) uses 'validation'.")
     occlusion: Literal["shell", "reweight"] = Field(
         default="shell",
         description="Features of edges at occluded markers: 'shell' uses them as the thin "
