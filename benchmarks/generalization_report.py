@@ -51,7 +51,7 @@ actor's files. A method that fails on an input (e.g. occluded markers) gets a ro
 
 Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
 [--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA] [--pdm-only]
-[--pdm-params JSON] [--regression S[:R] ...] [--out DIR]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
+[--pdm-params JSON] [--regression S[:R] ...] [--pose-space-params JSON] [--out DIR]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
 parameters, their models cached apart); default actors (built
 when missing, seed 1, level 0):
 ``benchmarks/out/generalization/actor-{a,b}-l0``. Writes the table to stdout and
@@ -122,13 +122,18 @@ def regression_name(s: float, ridge: float) -> str:
     return f"WPSD + marker regression (s={s:g}, λ={ridge:g})"
 
 
-def pose_space_variants(regressions) -> dict:
-    """Row name → WpsdParams: plain WPSD and one row per (s, ridge) of the marker regression."""
+def pose_space_variants(regressions, extra: dict | None = None) -> dict:
+    """Row name → WpsdParams: plain WPSD and one row per (s, ridge) of the marker regression;
+    with ``extra`` (other WpsdParams fields, ``--pose-space-params``) also each of those rows
+    with them, named with the fields appended (e.g. ``..., posterior_noise=frame``)."""
     from service.methods.pose_space import WpsdParams
 
     out = {WPSD: WpsdParams(marker_regression=None)}
     out.update({regression_name(s, r): WpsdParams(marker_regression=s, marker_regression_ridge=r)
                 for s, r in regressions})
+    if extra:
+        tag = ", ".join(f"{k}={v}" for k, v in extra.items())
+        out.update({f"{name} + {tag}": p.model_copy(update=extra) for name, p in list(out.items())})
     return out
 
 
@@ -424,6 +429,9 @@ def main() -> None:
                         help="a 'WPSD + marker regression' row per value: marker_regression = S (median marker "
                              "spacings), marker_regression_ridge = R (default the field's); default the recommended "
                              f"{RECOMMENDED_MARKER_REGRESSION:g}:{MARKER_REGRESSION_RIDGE:g}")
+    parser.add_argument("--pose-space-params", type=json.loads, default=None, metavar="JSON",
+                        help="other WpsdParams fields, e.g. '{\"posterior_noise\": \"frame\"}': every "
+                             "pose-space row also with them (named with the fields appended; cached apart)")
     parser.add_argument("--out", type=Path, default=OUT, metavar="DIR",
                         help=f"where the report and figures go (default {OUT}; the models stay cached there)")
     args = parser.parse_args()
@@ -450,7 +458,8 @@ def main() -> None:
                                           args.marker_noise, not args.pdm_only and (
                                               only is None or SS_MARKERS in only or SS_RIG in only),
                                           args.pdm_params, only, args.ranges, args.conditions,
-                                          None if args.pdm_only else pose_space_variants(args.regression))
+                                          None if args.pdm_only else pose_space_variants(args.regression,
+                                                                                         args.pose_space_params))
         if results[family]["worst"] is not None:
             plot_worst(results[family], family, out / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)

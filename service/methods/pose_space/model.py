@@ -74,6 +74,24 @@ Choices and departures (the paper is silent or differs):
   ``"none"`` uses the markers as given (then ``marker_completion`` applies). A transferred
   model carries the statistics to the target's markers through the source's shell
   (:mod:`.transfer`);
+* **posterior noise per frame** (``params.posterior_noise = "frame"``, opt-in;
+  :func:`posterior_noise`) — the posterior's σ is each frame's own estimate σ̂ (the
+  confidence's, :func:`~service.geometry.marker_prior.frame_noise` against the base's learned
+  marker prior) clipped to [:data:`POSTERIOR_NOISE_FLOOR_MM`, ``validation_noise_mm``], in
+  training and synthesis. Why (``benchmarks/local_blend_study.py``, level 0, 6 frames a row,
+  WPSD + regression s = 3, λ = 0.1, detail rel. err): the fixed σ = 0.3 mm also shrinks the
+  off-mode part of *clean* markers — an expression the training did not show — and the shell
+  then misses it; the markers as given (``"none"``, evaluation-only) give a in range 0.365 →
+  0.317, combinations 0.398 → 0.376, b combinations 0.770 → 0.701, but noisy a in range 0.593
+  → 0.761. σ̂ cannot tell such a frame from noise everywhere (clean sneer markers of a model
+  trained on brow raise, smile and pucker: σ̂ 0.7–1.1 mm), hence the cap: no frame is filtered
+  more than with the fixed σ. Measured (``generalization_report.py --pose-space-params``,
+  trained with it): clean and occluded rows a in range 0.365 / 0.376 → 0.344 / 0.356,
+  combinations 0.398 / 0.410 → 0.380 / 0.389; b combinations 0.770 / 1.049 → 0.708 / 1.003;
+  noisy rows within +0.006 (b out of range 0.665 → 0.671), b out of range occluded 0.377 →
+  0.401 (mean error 0.085 → 0.072 mm); README "Pose-space detail". Not the default: it does
+  not win on every row. Cost: one posterior per frame (+0.3 ms CPU a frame single, +0.5 ms in
+  8-frame calls, 150 markers; independent of the mesh);
 * **occlusion** — with ``marker_prior = "none"`` occluded markers (NaN) are completed before the shell: by default by the
   shell's minimum energy; with ``marker_completion = "training"`` by the training frames'
   marker statistics (the MAP of the missing markers under the Gaussian of the aligned
@@ -181,6 +199,9 @@ TEXEL_CHUNK = 4096
 MARKER_MODES = 64
 #: occlusion: a vertex whose visible α mass is below this keeps its unweighted distance
 OCCLUSION_FLOOR = 0.05
+#: ``posterior_noise = "frame"``: the posterior's σ is at least this, mm (a clean frame's σ̂
+#: can be ~0: the Wiener gain then keeps its off-mode part whole)
+POSTERIOR_NOISE_FLOOR_MM = 0.01
 
 
 # ---------------------------------------------------------------------------------------
@@ -267,7 +288,7 @@ class PoseSpaceEvaluator:
         d = self.data
         if d.params.marker_prior == "posterior" and d.marker_residual_var is not None:
             return pose, posterior_displacements(self.base, aligned, d.marker_mean, d.marker_modes,
-                                                 d.marker_residual_var, d.params.validation_noise_mm)
+                                                 d.marker_residual_var, posterior_noise(self.base, aligned, d.params))
         if d.params.marker_completion == "training" and d.marker_modes is not None:
             aligned = complete_markers(aligned, d.rest_markers + d.marker_mean, d.marker_modes,
                                        d.params.validation_noise_mm)
@@ -636,7 +657,7 @@ def residual_variance(u: np.ndarray, clip_frames: Sequence[int], max_modes: int 
 
 
 def marker_posterior(u: np.ndarray, mean: np.ndarray, modes: np.ndarray, resid_var: np.ndarray,
-                     noise_mm: float) -> tuple[np.ndarray, np.ndarray]:
+                     noise_mm: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Posterior mean of aligned marker displacements from noisy, partly occluded ones.
 
     Prior (a Gaussian of the training markers): u = mean + Σ_k z_k mode_k + r with
@@ -658,6 +679,9 @@ def marker_posterior(u: np.ndarray, mean: np.ndarray, modes: np.ndarray, resid_v
     estimate at visible markers is their sum.
     """
     u = np.asarray(u, np.float64)
+    if np.ndim(noise_mm):                       # σ per frame: each frame its own filter
+        parts = [marker_posterior(u[k:k + 1], mean, modes, resid_var, float(s)) for k, s in enumerate(noise_mm)]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     F, M, _ = u.shape
     r = len(modes)
     seen = np.isfinite(u).all(axis=-1)                                          # (F,M)
@@ -678,6 +702,22 @@ def marker_posterior(u: np.ndarray, mean: np.ndarray, modes: np.ndarray, resid_v
     inmode = mean.ravel() + Z @ L.T                                             # (F,3M)
     resid = np.where(np.repeat(seen, 3, axis=1), keep * (np.nan_to_num(d) + mean.ravel() - inmode), np.nan)
     return inmode.reshape(F, M, 3), resid.reshape(F, M, 3)
+
+
+def posterior_noise(base: BaseSurface, aligned: np.ndarray, params: Params) -> float | np.ndarray:
+    """The observation noise σ (mm) of the marker posterior for aligned markers (F,M,3):
+    ``validation_noise_mm``, or with ``posterior_noise = "frame"`` each frame's own estimate σ̂
+    (F,) (:func:`~service.geometry.marker_prior.frame_noise` against the base's learned marker
+    prior, the confidence's estimate) clipped to [:data:`POSTERIOR_NOISE_FLOOR_MM`,
+    ``validation_noise_mm``]: a clean frame is filtered less, never more than the capture
+    system's stated noise (an expression far from the training reads as noise to σ̂: 0.7–1.1 mm
+    on clean sneer markers of a model trained on brow raise, smile and pucker) (module
+    docstring: marker prior). A base without a learned marker prior (a transferred model's)
+    takes ``validation_noise_mm``."""
+    if params.posterior_noise == "validation" or base.evidence is None:
+        return params.validation_noise_mm
+    return np.clip(base.evidence.noise(np.asarray(aligned, np.float64) - base.rest_markers),
+                   POSTERIOR_NOISE_FLOOR_MM, params.validation_noise_mm)
 
 
 def posterior_displacements(base: BaseSurface, aligned: np.ndarray, mean: np.ndarray, modes: np.ndarray,
@@ -832,7 +872,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: Params | None = None,
         """u_H of aligned markers a (T,M,3) as synthesis computes them (the marker prior)."""
         if params.marker_prior == "posterior":
             return posterior_displacements(base, a, marker_mean, marker_modes, marker_residual_var,
-                                           params.validation_noise_mm)
+                                           posterior_noise(base, a, params))
         return base.handle_displacements(a)
 
     u_H = shell_input(aligned)

@@ -121,6 +121,16 @@ class PoseSpaceParams(MarkerParams):
                     "ratio, and completes occluded markers by the modes plus the thin shell's "
                     "minimum-energy completion of the residual (model.marker_posterior); it "
                     "supersedes marker_completion. 'none': the markers as given.")
+    posterior_noise: Literal["validation", "frame"] = Field(
+        default="validation",
+        description="Observation noise σ of marker_prior = 'posterior': 'validation' uses "
+                    "validation_noise_mm for every frame; 'frame' each frame's own estimate σ̂ "
+                    "(the median deviation of its markers in the directions the training never "
+                    "moved, the confidence's noise estimate) clipped to [0.01 mm, "
+                    "validation_noise_mm], so clean markers of an expression the training did "
+                    "not show are shrunk less toward the training's modes, and no frame more "
+                    "than with 'validation'. A transferred model (no learned marker prior of its "
+                    "own) uses 'validation'.")
     occlusion: Literal["shell", "reweight"] = Field(
         default="shell",
         description="Features of edges at occluded markers: 'shell' uses them as the thin "

@@ -22,6 +22,25 @@ def test_without_modes_it_is_the_wiener_gain():
     np.testing.assert_allclose(resid, u * (tau2 / (tau2 + 0.25))[None, :, None], rtol=1e-12)
 
 
+def test_a_noise_per_frame_filters_each_frame_with_its_own():
+    """σ (F,): frame k's posterior is the one at σ_k (bit for bit); without modes the gain
+    τ²/(τ² + σ_k²) per frame."""
+    rng = np.random.default_rng(3)
+    modes, mean = _modes(rng), rng.normal(0.0, 1.0, (M, 3))
+    tau2 = rng.uniform(0.1, 2.0, M)
+    u = mean + rng.normal(0.0, 2.0, (3, M, 3))
+    u[2, 4] = np.nan
+    sigma = np.array([0.01, 0.3, 1.0])
+    inmode, resid = marker_posterior(u, mean, modes, tau2, sigma)
+    for k, s in enumerate(sigma):
+        one = marker_posterior(u[k:k + 1], mean, modes, tau2, float(s))
+        np.testing.assert_array_equal(inmode[k:k + 1], one[0])
+        np.testing.assert_array_equal(resid[k:k + 1], one[1])
+    inmode, resid = marker_posterior(u, np.zeros((M, 3)), np.zeros((0, M, 3)), tau2, sigma)
+    gain = tau2[None, :, None] / (tau2[None, :, None] + sigma[:, None, None] ** 2)
+    np.testing.assert_allclose(resid, u * gain, rtol=1e-12)
+
+
 def test_it_is_the_dense_gaussian_posterior_mean():
     """E[u_v | x_v] = μ_v + Σ_vv (Σ_vv + σ²I)⁻¹ (x_v − μ_v), Σ = LLᵀ + diag(τ²), at the visible
     markers, and μ_o + L_o ẑ at the occluded ones (ẑ = Lᵀ (Σ_vv + σ²I)⁻¹ (x_v − μ_v))."""
@@ -149,3 +168,35 @@ def test_posterior_displacements_with_marker_noise_count_the_denoiser_offset_onc
     inmode, resid = marker_posterior(frames - rest, mean, modes, var, 0.3)
     got = posterior_displacements(base, frames, mean, modes, var, 0.3)
     np.testing.assert_allclose(got, base.handle_displacements(rest + inmode + resid), atol=1e-9)
+
+
+
+def test_a_noise_per_frame_passes_clean_markers_and_still_filters_noisy_ones(wpsd_exact, pdm_data):
+    """posterior_noise = "frame" (σ = the frame's σ̂ clipped to [0.01, 0.3] mm): clean
+    markers of a trained expression reach the shell as given (σ̂ at the floor), where the fixed
+    σ = 0.3 mm shrinks them; clean markers of an expression the model never saw (sneer: σ̂ reads
+    its off-span part as noise, capped at 0.3 mm) are filtered as with the fixed σ; noisy
+    markers are still filtered."""
+    import dataclasses
+
+    from service.methods.pose_space.model import PoseSpaceEvaluator
+
+    _, clips = pdm_data
+    d, base = wpsd_exact.data, wpsd_exact.evaluator.base
+
+    def evaluator(**update):
+        return PoseSpaceEvaluator(dataclasses.replace(d, params=d.params.model_copy(update=update)), base)
+
+    fixed, frame, raw = evaluator(), evaluator(posterior_noise="frame"), evaluator(marker_prior="none")
+
+    def err(ev, markers, clean):
+        return float(np.sqrt(np.mean((ev.deformation(markers)[1] - raw.deformation(clean)[1]) ** 2)))
+
+    smile = next(c for c in clips if c.name == "train_smile").markers[[6, 10, 14]]
+    # measured: 1.3e-6 mm (frame) against 9.0e-4 mm (fixed)
+    assert err(frame, smile, smile) < 1e-4 < err(fixed, smile, smile)
+    sneer = next(c for c in clips if c.name == "train_sneer").markers[[6, 10, 14]]
+    np.testing.assert_allclose(frame.deformation(sneer)[1], fixed.deformation(sneer)[1], atol=1e-9)
+    noisy = smile + np.random.default_rng(6).normal(0.0, 0.3, smile.shape)
+    # measured: 0.250 (frame), 0.248 (fixed), 0.296 mm (markers as given)
+    assert err(frame, noisy, smile) < 0.9 * err(raw, noisy, smile)
