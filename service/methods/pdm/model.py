@@ -64,12 +64,13 @@ Departures and choices (the paper is silent or differs):
   → 0.017 / 0.40 (5.77); no frame of b's 54 above the thin shell's max (the polynomial: 4 of b's, 14 of a's);
   over every held-out map frame a 49 → 6 of 243 and b 27 → 1 of 225.
   Its cost, kept in low-rank form (:class:`~service.geometry.marker_regression.MarkerRegression`,
-  rank 155 of 450 at level 1): two dense products per frame, reading P (3n, r) float32
-  (83 MB at level 1; the model directory 415 → 495 MB), and the mesh takes the float64
-  path, not the compiled :mod:`.shell_mesh` kernels. Paired on the level-1 sample actor
-  (load ~9, 40 frames alternating): mesh 55.9 → 59.7 ms, mesh + displacement + normal map
-  (half) 130.2 → 143.4 ms. Training fits it from the same frames (per vertex a T×T
-  Cholesky solve).
+  rank 155 of 450 at level 1, P int16): two products per frame, reading P (3n, r) int16
+  (42 MB at level 1; the model directory 415 → 495 MB with P in float32), and the mesh
+  takes the float64 path, not the compiled :mod:`.shell_mesh` kernels, nor the medium
+  polynomial's evaluation and fallback. Paired on the level-1 sample actor (load ~5, 40
+  frames alternating, the polynomial model against the regression model): mesh 31.2 →
+  28.7 ms, mesh + displacement + normal map (half) 114.8 → 103.5 ms. Training fits it
+  from the same frames (per vertex a T×T Cholesky solve).
 """
 
 from __future__ import annotations
