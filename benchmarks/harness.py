@@ -792,8 +792,11 @@ def load_average() -> str:
 
 
 def ensure_realtime_model(actor_dir: Path) -> Path:
-    """The benchmark's PDM model of ``actor_dir`` (default parameters), trained once."""
-    model_dir = REALTIME / f"model-{actor_dir.name}"
+    """The benchmark's PDM model of ``actor_dir`` (default parameters), trained once per set
+    of defaults (the directory is keyed by them: a changed default trains a new model)."""
+    from service.methods.pdm.params import PdmParams
+
+    model_dir = REALTIME / f"model-{actor_dir.name}-{sha(PdmParams().model_dump_json(), 8)}"
     if not (model_dir / "manifest.json").is_file():
         print(f"training the PDM of {actor_dir} into {model_dir} ...", file=sys.stderr, flush=True)
         code = ("import sys, json; sys.path.insert(0, %r); import harness; from pathlib import Path; "
