@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         trees = {args.against: harness.source_tree(args.against, args.out / "cold_start"), **trees}
     actor = args.actor.resolve()
     model_dir = (args.model or harness.ensure_realtime_model(actor)).resolve()
-    work = args.out / "cold_start" / f"work-{actor.name}"
+    work = args.out / "cold_start" / f"work-{model_dir.name}"      # per model: its registered id is reused
     work.mkdir(parents=True, exist_ok=True)
     markers = harness.heldout_markers(actor)
     port = harness.free_port()

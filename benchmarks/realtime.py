@@ -43,8 +43,8 @@ frame of the server process and of the client (the SDK's receiving and decoding)
 
 Run: ``python benchmarks/realtime.py [--actor DIR] [--calls 100] [--paths inproc,http,grpc]
 [--profile] [--against REV] [--impls h11,httptools] [--outputs mesh,maps]`` (``make bench``). The model is trained once into
-``benchmarks/out/realtime/model-<actor>`` (a fresh process, minutes at level 1) and
-reused; the server's data directory is ``benchmarks/out/realtime/work-<actor>``. Writes the
+``benchmarks/out/realtime/model-<actor>-<defaults key>`` (a fresh process, minutes at level 1) and
+reused; the server's data directory is ``benchmarks/out/realtime/work-<model directory>``. Writes the
 table to stdout and ``benchmarks/out/realtime.md``.
 """
 
@@ -485,7 +485,7 @@ def main(argv: list[str] | None = None) -> int:
             profiles[name] = profile(model, markers, outputs, min(args.calls, 30))
 
     if args.against:
-        work = WORK / f"work-{actor_dir.name}"
+        work = WORK / f"work-{model_dir.name}"      # per model: its registered id is reused
         work.mkdir(parents=True, exist_ok=True)
         if "http" in paths:
             rows += against_rows(args.against, work, model, model_dir, actor_dir, markers, args.calls)
@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
                                       args.calls, args.rounds)
         paths -= {"http", "grpc"}
     if paths & {"http", "grpc"}:
-        work = WORK / f"work-{actor_dir.name}"
+        work = WORK / f"work-{model_dir.name}"      # per model: its registered id is reused
         work.mkdir(parents=True, exist_ok=True)
         variants = http_variants()
         for impl in http_impls():
