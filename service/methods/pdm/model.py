@@ -424,7 +424,8 @@ class PdmEvaluator:
             normal_mapper=normal_mapper,
             fine_inverse=inverse_index(fine.index, Hf * Hf), validity=validity, shell_correction=shell[0],
             shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
-            point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms),
+            point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms,
+                                                                               ops.get("point_box")),
             onset=None if validity is None else point_onset, medium_gain=medium_gain(d))
 
     @property
@@ -460,7 +461,9 @@ class PdmEvaluator:
         27 MB at 1024²: a load maps them instead of reading the rasterization, 16 MB, and
         building the mapper, ~40 ms at level 1; a cache of this version with ``raster_triangle``
         (H,H) int32 and ``raster_barycentric`` (H,H,3) float32 instead, as stored before,
-        builds it from them)."""
+        builds it from them); ``point_box`` (D,P,2,3) float32 the medium band's sector box in
+        the layout its kernel reads (:meth:`.point_validity.PointValidity.point_box`, 35 MB at
+        level 1: mapped instead of transposed at load; a cache without it transposes)."""
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
@@ -475,6 +478,8 @@ class PdmEvaluator:
         for name, m in ({} if self.validity is None else self.validity.texel_rho).items():
             out.update(sparse_members(f"{name}_texel_rho", m))
         out.update({f"normal_mapper_{k}": v for k, v in self.normal_mapper.arrays().items()})
+        if self.point_validity is not None and len(self.point_validity.box):
+            out["point_box"] = self.point_validity.box
         return out
 
     def validity_data(self) -> ValidityData | None:

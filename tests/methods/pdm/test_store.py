@@ -192,7 +192,7 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     cache = npz_arrays((path / "cache.npz").read_bytes())
     assert {"op_version", "op_fine_order", "op_fine_field_mono", "op_vertex_field_sorting_order",
             "op_fine_sampler_data", "op_seam_average_indptr", "op_fine_texel_rho_data",
-            "op_albedo_texel_rho_data", "op_normal_mapper_texel", "op_normal_mapper_lam",
+            "op_albedo_texel_rho_data", "op_normal_mapper_texel", "op_normal_mapper_lam", "op_point_box",
             "op_shell_correction"} <= cache.keys()
     assert cache["op_normal_mapper_shape"].tolist() == [128, 128] and "op_raster_triangle" not in cache
     older = tmp_path / "older"
@@ -223,6 +223,9 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     assert file_mapped(ev.validity.texel_rho["fine"].data) and not file_mapped(ev.fine.field.element)
     assert not file_mapped(ev.orders["fine"])          # read at load only: into memory, not mapped
     assert file_mapped(ev.normal_mapper.texels)          # issue 23: mapped, not built
+    assert file_mapped(ev.point_validity.box) and ev.point_validity.box.shape[2:] == (2, 3)   # the kernel's layout
+    assert not file_mapped(built.evaluator.point_validity.box)                                # transposed at load
+    np.testing.assert_array_equal(built.evaluator.point_validity.box, ev.point_validity.box)
     for model in (built, rebuilt):
         assert not file_mapped(model.evaluator.fine.field.mono)
         np.testing.assert_array_equal(model.evaluator.orders["fine"], ev.orders["fine"])
