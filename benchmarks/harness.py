@@ -778,6 +778,35 @@ def source_tree(rev: str, work: Path) -> Path:
     return where
 
 
+def renamed_package(rev: str) -> str:
+    """Unpack ``rev``'s ``service`` as the package ``service_<rev>`` (imports renamed) under
+    ``benchmarks/out/realtime_ab/<rev>`` on ``sys.path``, and return its name: an older
+    commit's code imported beside this tree's in one process, for paired A/B timings
+    (``realtime_ab.py``, ``enhance_speed.py --against``; ``models_store`` is shared)."""
+    import re
+    import tarfile
+
+    name = "service_" + re.sub(r"\W", "_", rev)
+    where = OUT / "realtime_ab" / rev
+    target = where / name
+    if not (target / "__init__.py").is_file():
+        where.mkdir(parents=True, exist_ok=True)
+        archive = where / "service.tar"
+        with open(archive, "wb") as f:
+            subprocess.run(["git", "archive", rev, "service"], cwd=ROOT, stdout=f, check=True)
+        with tarfile.open(archive) as tar:
+            tar.extractall(where / "tmp", filter="data")
+        (where / "tmp" / "service").rename(target)
+        pattern = re.compile(r"\b(from|import) service(\.| )|\"service\.")
+        for py in target.rglob("*.py"):
+            text = py.read_text()
+            py.write_text(pattern.sub(lambda m: (f"{m.group(1)} {name}{m.group(2)}" if m.group(1)
+                                                 else f'"{name}.'), text))
+    if str(where) not in sys.path:
+        sys.path.insert(0, str(where))
+    return name
+
+
 REALTIME = OUT / "realtime"            # realtime.py's PDM model (shared with cold_start, realtime_ab)
 REALTIME_PERFORMANCE = "heldout_in_range"
 REALTIME_TRAIN_CLIP = "train_smile"    # the clip the server's model row names (never trained there)

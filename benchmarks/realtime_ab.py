@@ -26,10 +26,7 @@ import cProfile
 import json
 import os
 import pstats
-import re
-import subprocess
 import sys
-import tarfile
 import time
 from pathlib import Path
 
@@ -48,29 +45,6 @@ ROOT = harness.ROOT
 COMPARED = ("vertices", "displacement", "normal_map", "clamped", "confidence", "confidence_vertices")
 
 
-def old_package(rev: str) -> str:
-    """Unpack ``rev``'s ``service`` as the package ``service_<rev>`` (imports renamed) under
-    ``benchmarks/out/realtime_ab/<rev>`` on ``sys.path``; its name."""
-    name = "service_" + re.sub(r"\W", "_", rev)
-    where = ROOT / "benchmarks" / "out" / "realtime_ab" / rev
-    target = where / name
-    if not (target / "__init__.py").is_file():
-        where.mkdir(parents=True, exist_ok=True)
-        archive = where / "service.tar"
-        with open(archive, "wb") as f:
-            subprocess.run(["git", "archive", rev, "service"], cwd=ROOT, stdout=f, check=True)
-        with tarfile.open(archive) as tar:
-            tar.extractall(where / "tmp", filter="data")
-        (where / "tmp" / "service").rename(target)
-        pattern = re.compile(r"\b(from|import) service(\.| )|\"service\.")
-        for py in target.rglob("*.py"):
-            text = py.read_text()
-            py.write_text(pattern.sub(lambda m: (f"{m.group(1)} {name}{m.group(2)}" if m.group(1)
-                                                 else f'"{name}.'), text))
-    sys.path.insert(0, str(where))
-    return name
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rev", default="7543b2b", help="the older commit (default 7543b2b)")
@@ -85,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     import importlib
 
     from service.methods.pdm.model import PdmModel as New
-    packages = {"before": old_package(args.rev), "after": "service"}
+    packages = {"before": harness.renamed_package(args.rev), "after": "service"}
     Old = importlib.import_module(packages["before"] + ".methods.pdm.model").PdmModel
     models = {"before": Old.load(model_dir), "after": New.load(model_dir)}
     res: dict = {"rev": args.rev, "actor": str(actor_dir), "blas_threads": BLAS_THREADS,

@@ -207,15 +207,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """The HTTP API (uvicorn), the gRPC streaming server (same host) and embedded job
     workers, sharing one database, blob store and model cache, until SIGINT/SIGTERM.
 
-    Both addresses are bound before anything else starts: a port that cannot be bound is
+    Both addresses are bound before anything is served: a port that cannot be bound is
     one line naming ``--port`` or ``--grpc-port`` and exit status 2, and so is a queue URL
     of an unsupported form (or ``memory://`` with workers). With ``--preload`` (setting
     ``preload``) the named models (or ``all`` ready ones) are checked at once (an unknown or
-    unready one: exit status 2) and loaded into the cache in the background while the
-    process serves; /readyz answers 503 until they are loaded, and the job threads (embedded
-    workers, or the maintenance rounds with ``--workers 0``) start only 2 s after that, so
-    that Huey's import and their first rounds compete neither with the load nor with the
-    first frames (issue 23's cold start; :mod:`service.jobs.job_threads`: a start that
+    unready one: exit status 2) and loaded into the cache in the background (started before
+    the gRPC server, issue 23's cold start) while the process serves; /readyz answers 503
+    until they are loaded, and the job threads (embedded workers, or the maintenance rounds
+    with ``--workers 0``) start only 2 s after that, so that Huey's import and their first
+    rounds compete neither with the load nor with the first frames (issue 23's cold start; :mod:`service.jobs.job_threads`: a start that
     fails then is logged and fails /readyz)."""
     import logging
     import signal
@@ -266,6 +266,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     jobs = services.job_threads = JobThreads(settings)
     grpc_server = preloading = None
     try:
+        if preload:   # checked now, loaded in the background; /readyz waits for them. Started
+            try:      # first: the gRPC server's start (~40 ms) and the API's imports overlap it
+                preloading = services.start_preload(preload)
+            except FacesynthError as error:
+                return _serve_error(f"--preload: {error}")
         try:
             grpc_server = serve(services.load_model, settings.host, settings.grpc_port,
                                 tokens=settings.tokens,
@@ -276,11 +281,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
             return _serve_error(f"cannot listen on {settings.host}:{settings.grpc_port} for "
                                 f"gRPC ({error}); choose another --grpc-port "
                                 "(FACESYNTH_GRPC_PORT)")
-        if preload:   # checked now, loaded in the background; /readyz waits for them
-            try:
-                preloading = services.start_preload(preload)
-            except FacesynthError as error:
-                return _serve_error(f"--preload: {error}")
         # imported only now, while the preload thread loads (issue 23: the API's imports,
         # ~0.5 s CPU, then overlap the model load instead of delaying its start)
         import uvicorn

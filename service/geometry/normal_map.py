@@ -225,6 +225,54 @@ class NormalMapper:
         self._triangle = into_used[tri]                                  # (N,) into the used triangles
         import service.geometry.normal_texels  # noqa: F401   Numba, loaded where a mapper (a model) is built
 
+    #: what :meth:`arrays` holds: name → (dtype, shape with ``N`` covered texels, ``mu`` used
+    #: triangles, ``r`` uncovered runs)
+    _ARRAYS = {"faces_t": (np.int64, (3, "mu")), "used": (np.uint32, ("mu",)),
+               "uv_edges": (np.float32, (4, "mu")), "scales": (np.float32, (2, 3)),
+               "code": (np.uint8, ("N",)), "runs": (np.uint32, ("r", 2)), "lam": (np.float32, ("N", 3)),
+               "corners": (np.uint32, ("N", 3)), "texel": (np.uint32, ("N",)), "triangle": (np.uint32, ("N",))}
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """What the mapper holds, by name, with its size ``shape`` (2,) and ``counts`` (n, m):
+        what :meth:`from_arrays` reads back (a model's cache; issue 23's cold start)."""
+        return {"shape": np.array(self.shape, np.int64), "counts": np.array([self.n, self._m], np.int64),
+                **{k: getattr(self, f"_{k}") for k in self._ARRAYS}}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, n: int, m: int) -> "NormalMapper | None":
+        """The mapper of :meth:`arrays` (e.g. memory-mapped from a model's cache) for n
+        vertices and m triangles if every array is there with the dtype and a consistent
+        shape and its indices are in range, else None (then build it from the rasterization:
+        ≈ 40 ms at 1024², and the 16 MB rasterization read)."""
+        try:
+            shape = tuple(int(x) for x in arrays["shape"])
+            counts = [int(x) for x in arrays["counts"]]
+            a = {k: arrays[k] for k in cls._ARRAYS}
+        except (KeyError, TypeError, ValueError):
+            return None
+        if len(shape) != 2 or counts != [int(n), int(m)]:
+            return None
+        size = {"N": len(a["texel"]), "mu": len(a["used"]), "r": len(a["runs"])}
+        for k, (dtype, dims) in cls._ARRAYS.items():
+            x = a[k]
+            if (not isinstance(x, np.ndarray) or x.dtype != dtype or not x.flags.c_contiguous
+                    or x.shape != tuple(size.get(d, d) for d in dims)):
+                return None
+        H, W = shape
+        if size["N"] and (a["texel"].max() >= H * W or a["triangle"].max() >= size["mu"]
+                          or a["corners"].max() >= n):
+            return None
+        if size["mu"] and (a["used"].max() >= m or a["faces_t"].min() < 0 or a["faces_t"].max() >= n):
+            return None
+        if size["r"] and a["runs"].max() > H * W:
+            return None
+        mapper = cls.__new__(cls)
+        mapper.shape, mapper.n, mapper._m = (H, W), int(n), int(m)
+        for k, x in a.items():
+            setattr(mapper, f"_{k}", x)
+        import service.geometry.normal_texels  # noqa: F401   Numba, as __init__
+        return mapper
+
     @property
     def texels(self) -> np.ndarray:
         """(N,) uint32 flat (row-major) indices of the covered texels."""

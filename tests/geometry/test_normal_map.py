@@ -512,3 +512,26 @@ def test_compiled_gradient_operators_are_the_numpy_passes_bit_for_bit():
     ref, got = _numpy_gradient_operators(mapper, pose), mapper.gradient_operators(pose)
     assert np.isnan(ref).any()
     assert np.array_equal(got.view(np.uint32), ref.view(np.uint32))
+
+
+def test_a_mapper_from_its_arrays_maps_bit_for_bit_and_bad_arrays_are_refused():
+    """issue 23 (cold start): NormalMapper.arrays() → from_arrays() (a model's cache) gives
+    the same maps bit for bit; missing, mistyped, misshaped or out-of-range arrays give None."""
+    st, V, F = cylinder()
+    raster = rasterize_uv(st, F, 48, 40)
+    mapper = NormalMapper(raster, F, st, F, len(V))
+    arrays = mapper.arrays()
+    again = NormalMapper.from_arrays(arrays, len(V), len(F))
+    rng = np.random.default_rng(7)
+    h = rng.normal(0, 0.05, mapper.shape)
+    Vd = V + rng.normal(0, 0.01, V.shape)
+    fr = tangent_frames(Vd, F, st, F)
+    assert again is not None and again.shape == mapper.shape
+    np.testing.assert_array_equal(again.normal_map(h, Vd, fr), mapper.normal_map(h, Vd, fr))
+    assert NormalMapper.from_arrays(arrays, len(V) + 1, len(F)) is None
+    assert NormalMapper.from_arrays({k: v for k, v in arrays.items() if k != "lam"}, len(V), len(F)) is None
+    assert NormalMapper.from_arrays({**arrays, "lam": arrays["lam"].astype(np.float64)}, len(V), len(F)) is None
+    assert NormalMapper.from_arrays({**arrays, "texel": arrays["texel"][:-1]}, len(V), len(F)) is None
+    bad = arrays["corners"].copy()
+    bad[0, 0] = len(V)
+    assert NormalMapper.from_arrays({**arrays, "corners": bad}, len(V), len(F)) is None

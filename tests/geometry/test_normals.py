@@ -87,3 +87,39 @@ def test_unreferenced_vertex_gets_zero_normal_and_bad_input_is_rejected():
         vertex_normals(V, np.array([[0, 1, 2]]), weighting="uniform")
     with pytest.raises(ValueError, match=r"\(n,3\)"):
         vertex_normals(V[:, :2], np.array([[0, 1, 2]]))
+
+
+def test_compiled_angle_normals_are_the_numpy_passes_bit_for_bit():
+    """issue 23: vertex_normals' compiled angle-weighted path equals the NumPy passes it
+    replaced (corner contributions summed in corner order by bincount, normalized) bit for
+    bit, on the ICT-like random mesh below, a batch of frames, a degenerate triangle and an
+    unreferenced vertex."""
+    from service.geometry.normals import _angle_weighted_normals, _normalize
+
+    rng = np.random.default_rng(11)
+    n = 400
+    V = rng.normal(size=(3, n, 3)) * [30.0, 40.0, 20.0] + [0.0, 0.0, 100.0]
+    F = np.array([rng.choice(n - 1, 3, replace=False) for _ in range(900)], np.int64)
+    F[5] = [7, 7, 9]                                   # degenerate: zero area, zero normal
+    V[1, 3] = V[1, 4]                                  # a zero-length edge in one frame
+    got = vertex_normals(V, F)
+    want = np.empty_like(got)
+    for f in range(len(V)):
+        contrib = _angle_weighted_normals(V[f:f + 1], F).reshape(3 * len(F), 3)
+        acc = np.stack([np.bincount(F.ravel(), contrib[:, d], minlength=n) for d in range(3)], axis=1)
+        want[f] = _normalize(acc)
+    np.testing.assert_array_equal(got, want)
+    assert not got[:, n - 1].any()                     # unreferenced vertex: zero normal
+    np.testing.assert_array_equal(vertex_normals(V[2], F), got[2])
+
+
+def test_a_numpy_whose_einsum_sums_otherwise_keeps_the_numpy_passes(monkeypatch):
+    import service.geometry.normals as normals
+
+    rng = np.random.default_rng(4)
+    V = rng.normal(size=(60, 3)) * 20.0
+    F = np.array([rng.choice(60, 3, replace=False) for _ in range(100)], np.int64)
+    compiled = normals.vertex_normals(V, F)
+    monkeypatch.setattr(normals, "_EINSUM_ORDER", [False])
+    monkeypatch.setattr(normals, "_compiled_angle_normals", None)       # not called
+    np.testing.assert_array_equal(normals.vertex_normals(V, F), compiled)

@@ -394,11 +394,14 @@ class PdmEvaluator:
         fine_sampler = sparse_matrix(ops, "fine_sampler")
         if fine_sampler is None:
             fine_sampler = sampling_matrix(d.uv, d.uv_faces, d.faces, n, fine.mask())[:, fine.index].tocsr()
-        if "raster_triangle" in ops:        # the normal mapper's rasterization (float32: all it reads)
-            triangle = ops["raster_triangle"]
-            raster = UVRaster(triangle, ops["raster_barycentric"], triangle >= 0)
-        else:
-            raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
+        normal_mapper = NormalMapper.from_arrays(_members(ops, "normal_mapper"), n, len(d.faces))
+        if normal_mapper is None or normal_mapper.shape != (Hf, Hf):
+            if "raster_triangle" in ops:    # the rasterization of an older cache (float32: all it reads)
+                triangle = ops["raster_triangle"]
+                raster = UVRaster(triangle, ops["raster_barycentric"], triangle >= 0)
+            else:
+                raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
+            normal_mapper = NormalMapper(raster, d.faces, d.uv, d.uv_faces, n)
         texel_rho = {k: m for k in ("fine", "albedo") if (m := sparse_matrix(ops, f"{k}_texel_rho")) is not None}
         detailed = detailed_neutral(base, d.neutral_offset)
         correction = ops.get("shell_correction")
@@ -422,10 +425,11 @@ class PdmEvaluator:
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
-            normal_mapper=NormalMapper(raster, d.faces, d.uv, d.uv_faces, n),
+            normal_mapper=normal_mapper,
             fine_inverse=inverse_index(fine.index, Hf * Hf), validity=validity, shell_correction=shell[0],
             shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
-            point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms),
+            point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms,
+                                                                               ops.get("point_box")),
             onset=None if validity is None else point_onset, medium_gain=medium_gain(d))
 
     @property
@@ -456,10 +460,14 @@ class PdmEvaluator:
         that order (:attr:`.texel_band.TexelBand.terms`; a cache without them copies them from
         the maps', ~85 ms at level 1); ``frame_field_*`` the base surface's :class:`~service.geometry.tangent_frames.FrameField`
         operators (CSR; a cache without them builds it, ~70 ms at level 1); the CSR matrices ``seam_average``, ``fine_sampler`` and
-        ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``raster_triangle``
-        (H,H) int32 and ``raster_barycentric`` (H,H,3) float32, the normal mapper's
-        rasterization at the fine resolution (not held by the evaluator: rasterized again
-        here, ~1 s at 1024²)."""
+        ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``normal_mapper_*``
+        the normal mapper's arrays (:meth:`~service.geometry.normal_map.NormalMapper.arrays`,
+        27 MB at 1024²: a load maps them instead of reading the rasterization, 16 MB, and
+        building the mapper, ~40 ms at level 1; a cache of this version with ``raster_triangle``
+        (H,H) int32 and ``raster_barycentric`` (H,H,3) float32 instead, as stored before,
+        builds it from them); ``point_box`` (D,P,2,3) float32 the medium band's sector box in
+        the layout its kernel reads (:meth:`.point_validity.PointValidity.point_box`, 35 MB at
+        level 1: mapped instead of transposed at load; a cache without it transposes)."""
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
@@ -473,9 +481,9 @@ class PdmEvaluator:
                 out[f"{name}_terms"] = band.terms
         for name, m in ({} if self.validity is None else self.validity.texel_rho).items():
             out.update(sparse_members(f"{name}_texel_rho", m))
-        raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
-        out["raster_triangle"] = raster.triangle.astype(np.int32)
-        out["raster_barycentric"] = raster.barycentric.astype(np.float32)
+        out.update({f"normal_mapper_{k}": v for k, v in self.normal_mapper.arrays().items()})
+        if self.point_validity is not None and len(self.point_validity.box):
+            out["point_box"] = self.point_validity.box
         return out
 
     def validity_data(self) -> ValidityData | None:

@@ -16,11 +16,14 @@ written once:
    validity read, so it is computed for every frame with validity;
 2. :func:`valid_points`: D̃ (P,3) of the continued polynomial, clipped to the sector box,
    limited to the envelope and faded towards the fallback — only where a medium mesh is
-   made (a mesh, a detailed mesh or a normal map is asked). The sector box is read as
-   stored, sector-major (2,D,P,3): neighbouring points in one sector are 12 bytes apart
-   (point-major (P,D,2,3), a 35 MB copy at level 1, put them 768 bytes apart): 4.7 → 2.9
-   ms per frame on the level-1 sample actor (alternating in one process, load 8), the
-   values bit for bit.
+   made (a mesh, a detailed mesh or a normal map is asked). The sector box is read
+   sector-major with a point's lo and hi adjacent, (D,P,2,3): each point reads one 24-byte
+   run in the sector below θ and one in the sector above (the stored (2,D,P,3), lo and hi
+   in separate planes, read four: 3.30 → 2.64 ms per level-1 frame, the kernel alone,
+   alternating in one process, load 8.7; point-major (P,D,2,3), 768 bytes between
+   neighbouring points, 3.16; before that, 4.7 → 2.9 ms from point-major to the stored
+   layout), the values bit for bit. A model's cache holds it in that layout
+   (``op_point_box``, mapped); one stored before transposes the stored box at load.
 
 The same float32 operations in the same order as the NumPy operators (compiled without
 fast-math, so nothing is reassociated or contracted; NumPy's error model: IEEE division, no
@@ -83,13 +86,14 @@ def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors
 
     * L = Σ a_k m_k(d/ρ) (1 + slope deg_k (ρ − 1)) where ρ > 1, else D(d);
     * the detail L − fallback clipped per channel to ``(1 + margin)`` × the sector box
-      ``box`` (2,D,P,3) (lo, hi; sector-major, as stored) at θ, when it has sectors (D > 0),
+      ``box`` (D,P,2,3) (sector-major, a point's lo and hi adjacent) at θ, when it has
+      sectors (D > 0),
       ``grow`` = 1 + margin (float32);
     * ``w = min(1, (1 + margin) E / |detail|) · falloff(ρ − 1, width)``, E the sector
       envelope ``sectors`` (P,D) at θ when it has sectors, else ``envelope`` (P,);
     * ``fallback + w · detail`` where w < 1 or the box clipped, else L unchanged."""
     D = uint64(sectors.shape[1])
-    DB = uint64(box.shape[1])
+    DB = uint64(box.shape[0])
     K = uint64(terms.shape[0])
     one = np.float32(1)
     for p in range(uint64(lo), uint64(hi)):
@@ -131,12 +135,12 @@ def valid_points(lo, hi, d1, d2, rho, lower, t, terms, pi, pj, envelope, sectors
             k1 = k0 + uint64(1)
             if k1 == DB:
                 k1 = uint64(0)
-            lo0 = (u * box[0, k0, p, 0] + w * box[0, k1, p, 0]) * grow
-            lo1 = (u * box[0, k0, p, 1] + w * box[0, k1, p, 1]) * grow
-            lo2 = (u * box[0, k0, p, 2] + w * box[0, k1, p, 2]) * grow
-            hi0 = (u * box[1, k0, p, 0] + w * box[1, k1, p, 0]) * grow
-            hi1 = (u * box[1, k0, p, 1] + w * box[1, k1, p, 1]) * grow
-            hi2 = (u * box[1, k0, p, 2] + w * box[1, k1, p, 2]) * grow
+            lo0 = (u * box[k0, p, 0, 0] + w * box[k1, p, 0, 0]) * grow
+            lo1 = (u * box[k0, p, 0, 1] + w * box[k1, p, 0, 1]) * grow
+            lo2 = (u * box[k0, p, 0, 2] + w * box[k1, p, 0, 2]) * grow
+            hi0 = (u * box[k0, p, 1, 0] + w * box[k1, p, 1, 0]) * grow
+            hi1 = (u * box[k0, p, 1, 1] + w * box[k1, p, 1, 1]) * grow
+            hi2 = (u * box[k0, p, 1, 2] + w * box[k1, p, 1, 2]) * grow
             y0, y1, y2 = min(max(x0, lo0), hi0), min(max(x1, lo1), hi1), min(max(x2, lo2), hi2)
             clipped = y0 != x0 or y1 != x1 or y2 != x2
             x0, x1, x2 = y0, y1, y2
@@ -164,8 +168,9 @@ class PointValidity:
     hull : (P,D) float32          radius functions, point-major (:attr:`.validity.Validity.hull_points`)
     sectors : (P,D) or (P,0)      the sector envelope, point-major (none: ``envelope`` alone)
     envelope : (P,) float32       the training envelope (read where there are no sectors)
-    box : (2,D,P,3) or (2,0,P,3)  the sector box (lo, hi), sector-major: the stored array
-                                  (:attr:`.validity.Validity.sector_box`, no copy; none: no clip)
+    box : (D,P,2,3) or (0,P,2,3)  the sector box, sector-major, each point's (lo, hi) adjacent
+                                  (:attr:`.validity.Validity.sector_box` transposed, or the
+                                  cache's copy, mapped; none: no clip)
     terms : (K',3,P) float32      the band's coefficients, term-major (:attr:`.texel_band.TexelBand.terms`)
     pi, pj : (K',) uint8          the powers of d1 and d2 of each term
     width, slope : float          the falloff's width and the continuation's order
@@ -182,18 +187,32 @@ class PointValidity:
     slope: float
 
     @classmethod
-    def build(cls, validity: Validity, terms: np.ndarray) -> "PointValidity":
-        """From the model's :class:`~.validity.Validity` and the vertex band's ``terms`` (K',3,P)."""
+    def build(cls, validity: Validity, terms: np.ndarray, box: np.ndarray | None = None) -> "PointValidity":
+        """From the model's :class:`~.validity.Validity` and the vertex band's ``terms`` (K',3,P);
+        ``box``: the sector box already in the kernel's layout (:meth:`point_box` of this
+        validity, e.g. mapped from a model's cache), used when its shape is that layout's."""
         P, D = validity.hull_points.shape
         sectors = validity.sector_points if validity.sector_points is not None else np.empty((P, 0), np.float32)
-        box = validity.sector_box if validity.sector_box is not None else np.empty((2, 0, P, 3), np.float32)
-        if sectors.shape[1] not in (0, D) or box.shape[1] not in (0, D):
-            raise ValueError(f"the validity tables have {sectors.shape[1]} and {box.shape[1]} sectors, the hull {D}")
+        stored = validity.sector_box
+        want = (0 if stored is None else stored.shape[1], P, 2, 3)
+        if box is None or box.shape != want or box.dtype != np.float32 or not box.flags.c_contiguous:
+            box = cls.point_box(validity)
+        if sectors.shape[1] not in (0, D) or box.shape[0] not in (0, D):
+            raise ValueError(f"the validity tables have {sectors.shape[1]} and {box.shape[0]} sectors, the hull {D}")
         powers = np.array(TERM_POWERS[_order_of(terms.shape[0])], np.uint8)
         f32 = lambda a: np.ascontiguousarray(a, np.float32)            # noqa: E731
         return cls(f32(validity.hull_points), f32(sectors), f32(validity.envelope["vertex"]), f32(box),
                    f32(terms), powers[:, 0].copy(), powers[:, 1].copy(), float(validity.width),
                    float(validity.slope))
+
+    @staticmethod
+    def point_box(validity: Validity) -> np.ndarray:
+        """The sector box of ``validity`` (2,D,P,3) in the kernel's layout (D,P,2,3) float32
+        (a copy; (0,P,2,3) without a box)."""
+        P = validity.hull_points.shape[0]
+        if validity.sector_box is None:
+            return np.empty((0, P, 2, 3), np.float32)
+        return np.ascontiguousarray(np.asarray(validity.sector_box, np.float32).transpose(1, 2, 0, 3))
 
     def gauge(self, d1: np.ndarray, d2: np.ndarray, threads: int | None = None
               ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
@@ -216,7 +235,7 @@ class PointValidity:
         lower, t = sectors
         F, P = np.shape(d1)
         out = np.empty((F, P, 3), np.float32)
-        box = self.box if fallback is not None else self.box[:, :0]
+        box = self.box if fallback is not None else self.box[:0]
         for f in range(F):
             fb = np.zeros((P, 3), np.float32) if fallback is None else np.ascontiguousarray(fallback[f], np.float32)
             ranges.run(valid_points, P, np.ascontiguousarray(d1[f], np.float32), np.ascontiguousarray(d2[f], np.float32),

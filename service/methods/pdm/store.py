@@ -37,7 +37,11 @@ Layout (DESIGN.md "Data and storage"):
   ``op_albedo_terms``, the bands' coefficients term-major in the evaluator's texel order,
   and ``op_frame_field_*``, the base surface's FrameField operators (+47 MB at level 1: a
   load maps them instead of copying the coefficients and building the field, load CPU
-  0.89 → 0.67 s; copied and built as before when absent); ``size_bytes`` counts the model without it;
+  0.89 → 0.67 s; copied and built as before when absent); ``op_normal_mapper_*``, the normal
+  mapper's arrays (+27 MB, in place of its rasterization ``op_raster_*``, 16 MB, which a
+  cache stored before holds and a load then reads to build the mapper); ``op_point_box``,
+  the medium band's sector box in its kernel's (D,P,2,3) layout (+34 MB; transposed from
+  ``validity.npz``'s at load when absent); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the

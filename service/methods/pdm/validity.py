@@ -108,6 +108,7 @@ import scipy.sparse as sp
 from service.geometry.laplacian import triangle_areas
 from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
 from service.methods.confidence import falloff, frame_confidence
+from service.methods.footprint import UNREAD
 from service.methods.pdm import polynomial
 
 #: angular sectors of the star-shaped validity region
@@ -462,7 +463,7 @@ class ValidityData:
     hull: np.ndarray
     envelope: dict
     sectors: np.ndarray | None = None
-    sector_box: np.ndarray | None = None
+    sector_box: np.ndarray | None = dataclasses.field(default=None, metadata=UNREAD)   # (as Validity's)
 
 
 @dataclass(frozen=True)
@@ -482,10 +483,9 @@ class Validity:
     sector_box : (2,K,Q,3) float32 or None   the medium band's sector box (lo, hi), relative
                                   to the per-frame fallback the vertex band is given, in the
                                   stored (:class:`ValidityData`) layout: sector-major, the
-                                  array the store maps, no copy (issue 23: the point-major
-                                  (Q,K,2,3) copy it replaced, 35 MB at level 1, was read
-                                  with a 768-byte stride between neighbouring points; see
-                                  :mod:`.point_validity` for the measured kernel)
+                                  array the store maps, no copy; what the NumPy operators
+                                  read (synthesis reads :mod:`.point_validity`'s (K,Q,2,3)
+                                  layout of it: the field is not weighed while mapped)
     """
 
     hull_points: np.ndarray
@@ -496,7 +496,8 @@ class Validity:
     vertex_rho: sp.csr_matrix
     vertex_weight: np.ndarray
     sector_points: np.ndarray | None = None
-    sector_box: np.ndarray | None = None
+    # synthesis reads the point validity's copy in its kernel's layout (.point_validity)
+    sector_box: np.ndarray | None = dataclasses.field(default=None, metadata=UNREAD)
     sure: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → sure_bound, made once
     compiled: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)   # name → TexelValidity, made once
 

@@ -117,15 +117,20 @@ class DatabaseMaps:
             return self.maps.astype(np.float32)
         return self.maps.astype(np.float32) * self.scale[:, None, None]
 
-    def image(self, values: np.ndarray) -> np.ndarray:
+    def image(self, values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Covered-texel values (F,P,C) as maps (F,H,W) for C = 1, else (F,H,W,C), float32, at
-        the stored size; 0 where no triangle covers a texel."""
+        the stored size; 0 where no triangle covers a texel. ``out``: zeros of that shape
+        (C-contiguous), written at the covered texels and returned."""
         values = np.asarray(values, dtype=np.float32)
         F, C = len(values), values.shape[-1]
         Hs, Ws = self.shape
-        out = np.zeros((F, Hs * Ws, C), np.float32)
-        out[:, self.texels] = values
-        return out.reshape((F, Hs, Ws) if C == 1 else (F, Hs, Ws, C))
+        shape = (F, Hs, Ws) if C == 1 else (F, Hs, Ws, C)
+        if out is None:
+            out = np.zeros(shape, np.float32)
+        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be C-contiguous float32 {shape}, got {out.dtype} {out.shape}")
+        out.reshape(F, Hs * Ws, C)[:, self.texels] = values
+        return out
 
 
 @dataclass(frozen=True)
@@ -195,17 +200,21 @@ class MapBlender:
     def shape(self) -> tuple[int, int]:
         return self.database.shape
 
-    def blend(self, weights: np.ndarray) -> np.ndarray:
+    def blend(self, weights: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """The blended map m (P,C) float32 for convex weights (R,N) over every database frame
-        (eq. 4 per texel; the module docstring's rule when only some frames have maps)."""
+        (eq. 4 per texel; the module docstring's rule when only some frames have maps),
+        written into ``out`` (P,C) float32 if given."""
         frames, scale = self.database.frames, self.database.scale
         if frames is None:
-            return blend(self.database.maps, self.omega_hat, weights, scale).astype(np.float32)
+            return blend(self.database.maps, self.omega_hat, weights, scale, dtype=np.float32, out=out)
         W = np.asarray(weights, dtype=np.float64)[:, frames]
         missing = np.clip(1.0 - W.sum(axis=1), 0.0, 1.0)                  # (R,)
-        out = blend(self.database.maps, self.omega_hat, W, scale)
-        out += (self.omega_hat.T @ missing)[:, None] * self.mean
-        return out.astype(np.float32)
+        m = blend(self.database.maps, self.omega_hat, W, scale)
+        m += (self.omega_hat.T @ missing)[:, None] * self.mean
+        if out is None:
+            return m.astype(np.float32)
+        out[...] = m
+        return out
 
     def image(self, values: np.ndarray, H: int | None = None) -> np.ndarray:
         """Covered-texel values (F,P,C) as maps (F,H,W) for C = 1, else (F,H,W,C), float32;

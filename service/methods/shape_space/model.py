@@ -387,20 +387,25 @@ class ShapeSpaceModel:
         if "mesh_detailed" in want:
             out["vertices_detailed"] = np.empty((nf, n, 3), np.float32)
         ev = self.evaluator
+        batch = max(1, ENHANCE_BATCH_TRIANGLES // max(len(self.data.faces), 1))
+        # the blended maps at the covered texels: one batch's at a time, in work arrays reused
+        # by every batch (a whole request's (F,P,C) values were fresh memory: 86 MB of first
+        # touches for 30 level-1 frames), made into images straight into the outputs
         texel_maps = {"fine_displacement": ev.fine_maps if fine else None,
                       "albedo": ev.albedo_maps if "albedo" in outputs else None}
-        texel_maps = {k: (m, np.empty((nf,) + m.maps.shape[1:], np.float32))
+        texel_maps = {k: (m, np.empty((min(batch, nf),) + m.maps.shape[1:], np.float32))
                       for k, m in texel_maps.items() if m is not None}
+        if "albedo" in texel_maps:
+            C = ev.albedo_maps.maps.shape[2]
+            out["albedo"] = np.zeros((nf,) + ev.albedo_maps.shape + ((C,) if C > 1 else ()), np.float32)
+        # the fine maps' images at their stored size (the ``fine_displacement`` output), none
+        # when only the normal map or the detailed mesh needed the displacement; when that
+        # is the displacement's size too, they are the images added to it (not made twice)
+        if fine and "displacement" in want:
+            out["fine_displacement"] = np.zeros((nf,) + ev.fine_maps.shape, np.float32)
+        same_size = ev.fine_maps is not None and ev.fine_maps.shape == (self.data.params.map_resolution,) * 2
         if "colors" in outputs:
             out["colors"] = np.empty((nf, n, self.data.colors.shape[2]), np.float32)
-        # the fine maps' images at their stored size (the ``fine_displacement`` output): the
-        # displacement's per-batch images when that is its size too (not made twice: 2 % of
-        # a level-1 mesh + displacement frame), none when only the normal map or the detailed
-        # mesh needed the displacement (dropped below)
-        fine_image = None
-        if fine and "displacement" in want and ev.fine_maps.shape == (self.data.params.map_resolution,) * 2:
-            fine_image = np.empty((nf,) + ev.fine_maps.shape, np.float32)
-        batch = max(1, ENHANCE_BATCH_TRIANGLES // max(len(self.data.faces), 1))
         for a in range(0, nf, batch):
             b = min(nf, a + batch)
             inputs = frames[a:b]
@@ -420,36 +425,36 @@ class ShapeSpaceModel:
             if disp:
                 normals = vertex_normals(inputs, self.data.faces)
                 out["vertex_displacement"][a:b] = np.einsum("fnd,fnd->fn", world - inputs, normals)
-            for maps, values in texel_maps.values():
+            values = {}
+            for key, (maps, work) in texel_maps.items():
+                values[key] = work[:b - a]
                 for f in range(b - a):
-                    values[a + f] = maps.blend(W[f])
+                    maps.blend(W[f], out=values[key][f])
+            if "albedo" in values:
+                ev.albedo_maps.database.image(values["albedo"], out=out["albedo"][a:b])
             if disp:      # per batch: a whole request's (F,H²) float64 maps are GBs at 1024²
-                out["displacement"][a:b] = self.vertex_map(out["vertex_displacement"][a:b])
+                self.vertex_map(out["vertex_displacement"][a:b], out=out["displacement"][a:b])
                 if fine:
-                    image = ev.fine_maps.image(texel_maps["fine_displacement"][1][a:b],
-                                               self.data.params.map_resolution)
+                    if "fine_displacement" in out:
+                        image = ev.fine_maps.database.image(values["fine_displacement"], out=out["fine_displacement"][a:b])
+                    if "fine_displacement" not in out or not same_size:
+                        image = ev.fine_maps.image(values["fine_displacement"], self.data.params.map_resolution)
                     out["displacement"][a:b] += image
-                    if fine_image is not None:   # the output's own image, made once
-                        fine_image[a:b] = image
             if "mesh_detailed" in want:
                 detailed = world
                 if fine:
-                    h = np.stack([ev.fine_maps.vertex_sampler @ texel_maps["fine_displacement"][1][a + f][:, 0]
+                    h = np.stack([ev.fine_maps.vertex_sampler @ values["fine_displacement"][f][:, 0]
                                   for f in range(b - a)])
                     detailed = world + h[..., None] * vertex_normals(world, self.data.faces)
                 out["vertices_detailed"][a:b] = detailed
             if "colors" in outputs:
                 for f in range(b - a):
                     out["colors"][a + f] = blend(self.data.colors, self.evaluator.vertex_omega_hat, W[f])
-        for key, (maps, values) in texel_maps.items():
-            if key == "fine_displacement" and "displacement" not in want:
-                continue                         # dropped below
-            out[key] = fine_image if key == "fine_displacement" and fine_image is not None \
-                else maps.image(values)
         if "normal_map" in want:
-            out["normal_map"] = np.stack([
-                ev.normal_mapper.normal_map(h, V, ev.frame_field.frames(V))
-                for h, V in zip(out["displacement"], frames)])
+            H = self.data.params.map_resolution
+            out["normal_map"] = np.empty((nf, H, H, 3), np.float32)
+            for f, (h, V) in enumerate(zip(out["displacement"], frames)):
+                ev.normal_mapper.normal_map(h, V, ev.frame_field.frames(V), out=out["normal_map"][f])
         if "displacement" not in want:        # computed for the normal map or the detailed mesh
             for key in ("displacement", "vertex_displacement", "fine_displacement"):
                 out.pop(key, None)
@@ -474,16 +479,21 @@ class ShapeSpaceModel:
             X = X + enc["low"] - self.low_frequencies(X)
         return np.stack([T.inverse().apply(x) for T, x in zip(enc["transforms"], X)])
 
-    def vertex_map(self, values: np.ndarray) -> np.ndarray:
-        """Per-vertex values (F,n) as UV maps (F,H,H) float32 over the neutral's layout.
+    def vertex_map(self, values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Per-vertex values (F,n) as UV maps (F,H,H) float32 over the neutral's layout
+        (written into ``out`` (F,H,H) float32 if given, and returned).
 
         Barycentric interpolation into every texel a triangle covers (0 elsewhere), at
-        ``params.map_resolution`` texels per side (the evaluator's sparse (H², n) operator).
+        ``params.map_resolution`` texels per side (the evaluator's sparse (H², n) operator),
+        in float64, rounded to float32 once.
         """
         H = self.data.params.map_resolution
         values = np.asarray(values, dtype=np.float64)
         maps = (self.evaluator.map_operator @ values.T).T                   # (F,H²)
-        return maps.reshape(len(values), H, H).astype(np.float32)
+        if out is None:
+            return maps.reshape(len(values), H, H).astype(np.float32)
+        out[...] = maps.reshape(len(values), H, H)
+        return out
 
     def synthesize(self, frames: np.ndarray, outputs: Sequence[str] = ("mesh",),
                    clamp: bool = True) -> dict[str, np.ndarray]:

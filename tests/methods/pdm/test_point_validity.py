@@ -54,7 +54,7 @@ def test_hand_computed_continuation_and_fade():
     terms = np.zeros((3, 3, P), np.float32)
     terms[0, 0, 0] = 2.0                                           # a_d1 of channel x
     pv = PointValidity(np.full((P, D), 2.0, np.float32), np.empty((P, 0), np.float32),
-                       np.full(P, 100.0, np.float32), np.empty((2, 0, P, 3), np.float32), terms,
+                       np.full(P, 100.0, np.float32), np.empty((0, P, 2, 3), np.float32), terms,
                        np.array([1, 0, 0], np.uint8), np.array([0, 1, 0], np.uint8), 1.0, 1.0)
     d1 = np.array([[1.0], [3.0], [5.0], [0.0]], np.float32)
     d2 = np.array([[0.0], [0.0], [0.0], [1.0]], np.float32)

@@ -192,9 +192,9 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     cache = npz_arrays((path / "cache.npz").read_bytes())
     assert {"op_version", "op_fine_order", "op_fine_field_mono", "op_vertex_field_sorting_order",
             "op_fine_sampler_data", "op_seam_average_indptr", "op_fine_texel_rho_data",
-            "op_albedo_texel_rho_data", "op_raster_triangle", "op_raster_barycentric",
+            "op_albedo_texel_rho_data", "op_normal_mapper_texel", "op_normal_mapper_lam", "op_point_box",
             "op_shell_correction"} <= cache.keys()
-    assert cache["op_raster_triangle"].shape == (128, 128) and cache["op_raster_barycentric"].dtype == np.float32
+    assert cache["op_normal_mapper_shape"].tolist() == [128, 128] and "op_raster_triangle" not in cache
     older = tmp_path / "older"
     shutil.copytree(path, older)
     m = json.loads((older / "manifest.json").read_text())
@@ -205,6 +205,14 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     other = dataclasses.replace(derived, operators={**derived.operators, "version": np.int64(pdm.OPERATORS_VERSION + 1)})
     no_shell = dataclasses.replace(derived, operators={k: v for k, v in derived.operators.items()
                                                        if k != "shell_correction"})    # this version, before it
+    from service.geometry.uv_raster import rasterize_uv
+
+    raster = rasterize_uv(data.uv, data.uv_faces, 128, 128)    # a cache stored before the mapper's arrays
+    rasterized = dataclasses.replace(derived, operators={
+        **{k: v for k, v in derived.operators.items() if not k.startswith("normal_mapper_")},
+        "raster_triangle": raster.triangle.astype(np.int32), "raster_barycentric": raster.barycentric.astype(np.float32)})
+    from_raster = PdmModel(data, pdm.PdmEvaluator.build(data, derived=rasterized))
+    assert not file_mapped(from_raster.evaluator.normal_mapper.texels)
     mapped, built = PdmModel.load(path), PdmModel.load(older)
     rebuilt = PdmModel(data, pdm.PdmEvaluator.build(data, derived=other))
     shell = PdmModel(data, pdm.PdmEvaluator.build(data, derived=no_shell))
@@ -214,6 +222,10 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     assert file_mapped(ev.fine.field.mono) and file_mapped(ev.fine_sampler.data) and file_mapped(ev.seam_average.indices)
     assert file_mapped(ev.validity.texel_rho["fine"].data) and not file_mapped(ev.fine.field.element)
     assert not file_mapped(ev.orders["fine"])          # read at load only: into memory, not mapped
+    assert file_mapped(ev.normal_mapper.texels)          # issue 23: mapped, not built
+    assert file_mapped(ev.point_validity.box) and ev.point_validity.box.shape[2:] == (2, 3)   # the kernel's layout
+    assert not file_mapped(built.evaluator.point_validity.box)                                # transposed at load
+    np.testing.assert_array_equal(built.evaluator.point_validity.box, ev.point_validity.box)
     for model in (built, rebuilt):
         assert not file_mapped(model.evaluator.fine.field.mono)
         np.testing.assert_array_equal(model.evaluator.orders["fine"], ev.orders["fine"])
@@ -221,7 +233,7 @@ def test_the_evaluator_operators_are_stored_mapped_and_synthesize_bit_for_bit(pd
     outputs = get_kind("pdm").outputs
     a = pdm_model.synthesize(markers, outputs=outputs)
     assert {"vertices", "vertices_detailed", "normal_map", "albedo", "displacement"} <= a.keys()
-    for model in (mapped, built, rebuilt, shell):
+    for model in (mapped, built, rebuilt, shell, from_raster):
         b = model.synthesize(markers, outputs=outputs)
         assert a.keys() == b.keys()
         for key in a:

@@ -71,6 +71,22 @@ def test_blend_follows_the_region_weights_per_texel(sheet_maps):
     assert np.all(np.abs(m - exact) <= bound + 1e-6)
 
 
+def test_blend_and_image_into_given_arrays_are_the_same_values(sheet_maps):
+    """issue 23: /enhance blends into a request's work array and writes the images into its
+    outputs; the values are those of the calls that allocate."""
+    fm, _, _, _ = sheet_maps
+    W = np.array([[0.5, 0.5, 0.0], [0.0, 0.25, 0.75]])
+    work = np.full((2, len(fm.texels), 1), np.nan, np.float32)
+    assert np.shares_memory(fm.blend(W, out=work[1]), work)
+    np.testing.assert_array_equal(work[1], fm.blend(W))
+    images = np.zeros((2, H, H), np.float32)
+    assert fm.database.image(work[1:], out=images[1:]) is not None
+    np.testing.assert_array_equal(images[1:], fm.image(work[1:]))
+    assert not images[0].any()
+    with pytest.raises(ValueError):
+        fm.database.image(work[1:], out=np.zeros((1, H, H), np.float64))
+
+
 def test_float16_maps_of_older_models_blend_as_stored(sheet_maps):
     """A model stored before the int16 maps holds float16 values and no steps."""
     fm, maps, actor, omega_hat = sheet_maps

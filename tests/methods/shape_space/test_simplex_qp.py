@@ -108,3 +108,15 @@ def test_single_column_and_shape_errors():
     assert res.w.tolist() == [1.0]
     with pytest.raises(ValueError):
         solve_simplex_qp(np.eye(3), np.zeros(2))
+
+
+def test_ridged_is_the_sum_with_the_identity_bit_for_bit():
+    from service.methods.shape_space.simplex_qp import ridged
+
+    rng = np.random.default_rng(5)
+    D = rng.normal(size=(40, 25))
+    G = D.T @ D
+    c = 1e-8 * float(np.mean(np.diag(G)))
+    got = ridged(G, c)
+    np.testing.assert_array_equal(got, G + c * np.eye(len(G)))
+    assert got is not G and not np.shares_memory(got, G)
