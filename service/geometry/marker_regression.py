@@ -34,7 +34,8 @@ neither sparse nor low-rank in the usual sense (at s = 4 marker spacings a verte
 160, 256 of 450; family a level 0, the PDM's ``medium_regression``), but the tail carries
 little: measured on the held-out performances of family a level 0 (6 frames each, PDM mesh
 against the full L), RANK_TOL = 1e-2 (r = 160) moves the vertices by a mean 0.002–0.004 mm,
-max 0.07–0.09 mm (r = 96: 0.010–0.021 / 0.25–0.59; r = 128: 0.004–0.006 / 0.15–0.21),
+max 0.07–0.09 mm (r = 96: 0.010–0.021 / 0.25–0.59; r = 128: 0.004–0.006 / 0.15–0.21);
+confirmed on family b (the same tol keeps r ≈ 100 of 354: ≤ 0.0015 mm mean, ≤ 0.09 max);
 against a CSR of nnz 12.9 M (85 % of 3n × 3M, 8 bytes each) a frame reads P's 3n × r
 entries as int16 (quantized per column, :class:`MarkerRegression`): 10 MB instead of 103 MB.
 A projection on the training inputs' principal directions instead (their span is
