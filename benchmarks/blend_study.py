@@ -46,41 +46,7 @@ RANGES = pr.HELDOUT_RANGES
 CONDITIONS = pr.MARKER_CONDITIONS
 
 
-class DetailMetric:
-    """The metric on held-out frames, for a study with ``actor`` and ``tex``
-    (``harness.DetailTexels``)."""
-
-    def prepared(self, gt):
-        """A held-out performance (``harness.Heldout``) with the truth's normals (k,P,3), detail
-        ``hp`` (k,P) and map relative to its mesh ``rel_map`` (k,P) added."""
-        from service.samples.dataset import vertex_detail_map
-
-        tex = self.tex
-        gt.normals = tex.normals(gt.medium, self.actor.faces)
-        gt.hp = np.stack([tex.highpass(tex.texels(d)) for d in gt.displacement])
-        gt.rel_map = tex.texels(gt.displacement - vertex_detail_map(self.actor, gt.vertices, gt.medium, tex.H))
-        return gt
-
-    def hp(self, gt, V: np.ndarray, D: np.ndarray | None) -> np.ndarray:
-        """(k,P) high-passed detail heights of meshes V (k,n,3) world, maps D (k,P)."""
-        tex = self.tex
-        return np.stack([tex.highpass(tex.heights(V[f], gt.medium[f], gt.normals[f], None if D is None else D[f]))
-                         for f in range(len(V))])
-
-    def score(self, gt, hp: np.ndarray, V: np.ndarray | None = None) -> dict:
-        """rel err and r of detail heights hp (k,P) at the face texels; with meshes V (k,n,3)
-        also the mean and max face vertex error (mm)."""
-        face = self.tex.face
-        x, y = hp[:, face].ravel(), gt.hp[:, face].ravel()
-        out = {"rel": float(np.sqrt(np.sum((x - y) ** 2) / np.sum(y ** 2))),
-               "r": float(np.corrcoef(x, y)[0, 1])}
-        if V is not None:
-            e = np.linalg.norm(V - gt.vertices, axis=-1)[:, np.asarray(self.actor.regions[pr.FACE])]
-            out.update(mean=float(e.mean()), max=float(e.max()))
-        return out
-
-
-class Study(DetailMetric):
+class Study(pr.DetailMetric):
     """One actor's training data on the WPSD model's shell, and the metric."""
 
     def __init__(self, actor_dir: Path, retrain: bool = False):

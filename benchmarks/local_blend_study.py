@@ -40,7 +40,6 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import harness as pr  # noqa: E402
-from blend_study import DetailMetric  # noqa: E402
 from service.geometry.marker_regression import marker_weights  # noqa: E402
 
 OUT = pr.OUT / "local_blend_study"
@@ -145,7 +144,7 @@ class PatchBlend:
         return out
 
 
-class Study(DetailMetric):
+class Study(pr.DetailMetric):
     """One actor: the cached WPSD + regression model, its training data on the model's shell."""
 
     def __init__(self, actor_dir: Path, params=None):
