@@ -65,7 +65,7 @@ MEMBERS = ("Pq", "scale", "Q", "mean_u", "mean_y")
 #: singular values of L kept: those above RANK_TOL × the largest (module docstring)
 RANK_TOL = 1e-2
 #: largest |int16| a quantized column reaches
-INT16_MAX = 32767
+INT16_MAX = int(np.iinfo(np.int16).max)
 
 
 @dataclass(frozen=True)

@@ -96,8 +96,6 @@ def read_regression(arrays, prefix: str):
 
     if f"{prefix}_Pq" in arrays:
         return MarkerRegression(*(arrays[f"{prefix}_{k}"] for k in MEMBERS))
-    if f"{prefix}_P" in arrays:         # float32 P (written by 4a2b991–ece4288): quantized here
-        return MarkerRegression.from_factors(*(arrays[f"{prefix}_{k}"] for k in ("P", "Q", "mean_u", "mean_y")))
     L = sparse_matrix(arrays, prefix)
     return None if L is None else MarkerRegression.from_matrix(L, arrays[f"{prefix}_mean_u"],
                                                                 arrays[f"{prefix}_mean_y"])

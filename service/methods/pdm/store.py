@@ -11,8 +11,9 @@ Layout (DESIGN.md "Data and storage"):
 * ``model.npz``   the marker-space data: smooth neutral, mesh and layout, handles, coarse
   marker mesh, texture axes, PCA axes q̂ r̂ and scales, pose weights, and the training
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived); with
-  ``medium_regression``, its low-rank factors and means (``medium_regression_P``, ``_Q``,
-  ``_mean_u``, ``_mean_y``; a model stored with the full CSR matrix is truncated on reading);
+  ``medium_regression``, its low-rank factors and means (``medium_regression_Pq``,
+  ``_scale``, ``_Q``, ``_mean_u``, ``_mean_y``: :meth:`.MarkerRegression.arrays`; a model
+  stored with the full CSR matrix is truncated on reading);
 * ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
   ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
   order, the medium band's ``sectors`` and ``sector_box`` against the thin shell of the

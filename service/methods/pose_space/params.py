@@ -26,7 +26,8 @@ NOISE_COPIES_SEED = 1
 #: the marker regression to opt in with: s (median marker spacings) and ridge λ (the field's
 #: default), chosen on sample family a, confirmed on family b (benchmarks/generalization_report.py,
 #: level 0, 6 frames a row, every range × clean / noisy / occluded markers; README "Pose-space
-#: detail"). Off by default: at level 1 it costs 5× the frame time (README)
+#: detail"). Off by default: at level 1 the full sparse form cost 5× the frame time (README);
+#: the low-rank form it is kept in now has not been timed for pose space
 RECOMMENDED_MARKER_REGRESSION = 3.0
 MARKER_REGRESSION_RIDGE = 0.1
 

@@ -27,8 +27,9 @@ BLOCK = 1024
 
 
 def _add(o, v, w):
-    """``o += w · v`` per element of a block (compiled: :func:`_add_typed`)."""
-    raise NotImplementedError("compiled only")
+    """``o += w · v`` per element of a block: this NumPy form is what runs uncompiled; in
+    :func:`blend_rows` Numba runs :func:`_add_typed` instead."""
+    o += v.astype(o.dtype) * (w[:, None] if o.ndim == 2 else w)
 
 
 @overload(_add, jit_options={"nogil": True})
