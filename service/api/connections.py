@@ -82,6 +82,7 @@ class ConnectionGuard(abc.ABC):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._header_timer: asyncio.TimerHandle | None = None
+        self._header_deadline = 0.0               # time.monotonic() the headers are due by
         self._body_timer: asyncio.TimerHandle | None = None
         self._body_started = 0.0
         self._body_bytes = 0
@@ -159,11 +160,16 @@ class ConnectionGuard(abc.ABC):
     # -- timers ----------------------------------------------------------------------------
     def _arm_header_timer(self) -> None:
         self._cancel_header_timer()
+        self._header_deadline = time.monotonic() + self.header_timeout
         self._header_timer = self.loop.call_later(  # type: ignore[attr-defined]
             self.header_timeout, self._headers_too_slow)
 
     def _headers_too_slow(self) -> None:
         self._header_timer = None
+        early = self._header_deadline - time.monotonic()
+        if early > 0:       # uvloop's timers round to the millisecond: not before the bound
+            self._header_timer = self.loop.call_later(early, self._headers_too_slow)  # type: ignore[attr-defined]
+            return
         transport = self.transport  # type: ignore[attr-defined]
         if transport.is_closing() or self._phase() != "headers":
             return
