@@ -20,6 +20,7 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import Callable
 
 from service.progress_bar import progress_bar as _progress_bar
 
@@ -217,9 +218,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     with ``--workers 0``) start only 2 s after that, so that Huey's import and their first
     rounds compete neither with the load nor with the first frames (issue 23's cold start; :mod:`service.jobs.job_threads`: a start that
     fails then is logged and fails /readyz)."""
+    from service.app.collection import pause_collection
+
+    # until the server is ready: the start's imports and the preload allocate mostly live
+    # objects, which the cyclic collector would scan for nothing (service.app.collection)
+    resume_collection = pause_collection()
+    try:
+        return _serve(args, resume_collection)
+    finally:
+        resume_collection()
+
+
+def _serve(args: argparse.Namespace, resume_collection: Callable[[], None]) -> int:
+    """:func:`cmd_serve` with the collector paused; ``resume_collection`` turns it back on."""
     import logging
     import signal
 
+    from service.app.collection import resume_when
     from service.app.threads import apply_blas_threads
     from service.config import Settings
     from service.jobs.queue_storage import queue_storage, worker_storage
@@ -313,6 +328,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         config = uvicorn.Config(create_app(settings, services=services), host=settings.host,
                                 port=settings.port, log_config=None, access_log=False, http=http,
                                 loop=settings.loop)
+        # the imports are done; the preload (if any) may still be loading
+        resume_when(resume_collection, preloading.done if preloading is not None else None)
         try:
             uvicorn.Server(config).run(sockets=[http_socket])
         except KeyboardInterrupt:  # as uvicorn.run: SIGINT after the graceful shutdown
