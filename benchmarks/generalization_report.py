@@ -43,7 +43,10 @@ per-frame mean face vertex error: Spearman ρ of ``1 − confidence`` and the er
 range with every marker condition pooled (issue 17: ≥ 0.6 out of range).
 
 Also writes, per family, a heat map PNG of the vertex errors of every method on the worst
-frame (the largest PDM-biquadratic vertex error over all rows).
+frame (the largest PDM-biquadratic vertex error over all rows): the ground truth and one tile
+per method, four to a row, the colour scale (0 … 2 mm) below. The rows held against the thin
+shell (PDM, WPSD) list the frames whose max face error exceeds the shell's, and the frame
+number of the largest excess.
 
 Models are cached: the PDMs and pose-space models under ``benchmarks/out/generalization/models/`` and the
 shape-space model and rig registration in shape_space_report's cache, all keyed by the
@@ -241,7 +244,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                     "mean": s["medium_mean_mm"], "p95": s["medium_p95_mm"], "max": float(face_err.max()),
                     "corr": s["fine_r"], "rel": s["fine_rms_mm"] / r["signal_rms_mm"][pdm.FACE],
                     "frames": len(gt.frames), "seconds": time.perf_counter() - t0,
-                    "frame_max": face_err.max(axis=1).tolist()}
+                    "frame_max": face_err.max(axis=1).tolist(), "frame_numbers": gt.frames.tolist()}
                 r_ = rows[(rname, cname, name)]
                 if name in synth_ms:            # this performance's call (the last one timed)
                     r_["synth_ms_per_frame"] = synth_ms[name][-1]
@@ -288,8 +291,41 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
             "meta": {"vertices": actor.n_vertices, "markers": actor.n_markers}}
 
 
+#: tiles per row of the worst-frame figure (8 tiles of 420 px in one row were 3360 px wide:
+#: unreadable wherever the figure is shown scaled to a page)
+FIGURE_COLUMNS = 4
+#: caption characters the renderer's font lacks (PIL's default font draws λ as a box)
+ASCII = str.maketrans({"λ": "lambda", "σ": "sigma", "ρ": "rho", "–": "-", "—": "-"})
+
+
+def heat_colour(err: np.ndarray) -> np.ndarray:
+    """Linear RGB (…,3) of vertex errors (…) mm: blue at 0, yellow at HEAT_MM / 2, red at and
+    beyond HEAT_MM."""
+    t = np.clip(np.asarray(err, np.float64) / HEAT_MM, 0, 1)[..., None]
+    blue, yellow, red = np.array([0.1, 0.2, 0.8]), np.array([0.95, 0.9, 0.2]), np.array([0.8, 0.05, 0.05])
+    return np.where(t < 0.5, (1 - 2 * t) * blue + 2 * t * yellow, (2 - 2 * t) * yellow + (2 * t - 1) * red)
+
+
+def heat_legend(width: int, height: int = 36) -> np.ndarray:
+    """(height, width, 3) uint8 strip: the heat colours from 0 to HEAT_MM, labelled."""
+    from PIL import Image, ImageDraw
+
+    from service.samples.render import to_srgb8
+
+    bar = np.zeros((height, width, 3), np.uint8)
+    x0, x1 = 80, width - 80
+    bar[8:20, x0:x1] = to_srgb8(heat_colour(np.linspace(0, HEAT_MM, x1 - x0)))[None]
+    img = Image.fromarray(bar)
+    draw = ImageDraw.Draw(img)
+    draw.text((8, 8), "0 mm", fill=(255, 255, 255))
+    draw.text(((x0 + x1) // 2 - 20, 22), f"{HEAT_MM / 2:g} mm", fill=(255, 255, 255))
+    draw.text((x1 + 8, 8), f">= {HEAT_MM:g} mm", fill=(255, 255, 255))
+    return np.asarray(img)
+
+
 def plot_worst(result: dict, family: str, path: Path) -> None:
-    """Vertex-error heat maps (0 … HEAT_MM) of every method on the family's worst frame."""
+    """Vertex-error heat maps (0 … HEAT_MM) of every method on the family's worst frame: the
+    ground truth and one tile per method, FIGURE_COLUMNS to a row, the colour scale below."""
     from service.samples.gallery import caption, front_camera
     from service.samples.render import shade, to_srgb8, write_png
 
@@ -297,15 +333,14 @@ def plot_worst(result: dict, family: str, path: Path) -> None:
     cam = front_camera(worst["gt"], 420)
     tiles = [caption(to_srgb8(shade(cam, worst["gt"], actor.faces, np.full((actor.n_vertices, 3), 0.6),
                                     light_dir=(0.15, 1.0, 0.45), ambient=0.05)),
-                     f"family {family}: ground truth, {worst['performance']} frame {worst['frame']}")]
+                     f"family {family}: ground truth, {worst['performance']} frame {worst['frame']}".translate(ASCII))]
     for name, err in worst["errors"].items():
-        t = np.clip(err / HEAT_MM, 0, 1)[:, None]
-        colour = np.where(t < 0.5, (1 - 2 * t) * np.array([0.1, 0.2, 0.8]) + 2 * t * np.array([0.95, 0.9, 0.2]),
-                          (2 - 2 * t) * np.array([0.95, 0.9, 0.2]) + (2 * t - 1) * np.array([0.8, 0.05, 0.05]))
-        img = shade(cam, worst["gt"], actor.faces, colour, light_dir=(0.0, 0.3, 1.0), ambient=0.6)
+        img = shade(cam, worst["gt"], actor.faces, heat_colour(err), light_dir=(0.0, 0.3, 1.0), ambient=0.6)
         tiles.append(caption(to_srgb8(img), f"{name}: max {err[np.asarray(actor.regions[pdm.FACE])].max():.2f} mm "
-                                            f"(0-{HEAT_MM:g} mm)"))
-    write_png(path, np.concatenate(tiles, axis=1))
+                                            f"(0-{HEAT_MM:g} mm)".translate(ASCII)))
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % FIGURE_COLUMNS)
+    rows = [np.concatenate(tiles[i:i + FIGURE_COLUMNS], axis=1) for i in range(0, len(tiles), FIGURE_COLUMNS)]
+    write_png(path, np.concatenate(rows + [heat_legend(rows[0].shape[1])], axis=0))
 
 
 def _n(x, d=3):
@@ -315,13 +350,16 @@ def _n(x, d=3):
 def worse_frames(rows: dict) -> dict:
     """Per PDM and pose-space row (:data:`AGAINST_SHELL`) with a *no detail* row of the same
     input: (frames whose max face vertex error exceeds the thin shell's by more than
-    :data:`WORSE_TOL_MM`, frames, largest excess mm)."""
+    :data:`WORSE_TOL_MM`, frames, largest excess mm, the performance's frame number of that
+    largest excess)."""
     out = {}
     for (rname, cname, name), r in rows.items():
         shell = rows.get((rname, cname, "no detail"), {})
         if name.startswith(AGAINST_SHELL) and "frame_max" in r and "frame_max" in shell:
             excess = np.asarray(r["frame_max"]) - np.asarray(shell["frame_max"])
-            out[(rname, cname, name)] = (int(np.sum(excess > WORSE_TOL_MM)), len(excess), float(excess.max()))
+            k = int(np.argmax(excess))
+            out[(rname, cname, name)] = (int(np.sum(excess > WORSE_TOL_MM)), len(excess), float(excess.max()),
+                                         r["frame_numbers"][k] if "frame_numbers" in r else None)
     return out
 
 
@@ -377,8 +415,9 @@ def report(results: dict, frames: int | None, seconds: float) -> str:
         if worse:
             lines += ["", "Frames whose max face vertex error exceeds the thin shell's (*no detail*) by more "
                           f"than {WORSE_TOL_MM * 1000:g} µm (issue 17: none), of the frames scored:", ""]
-            lines += [f"- {name}, {rname}, {cname}: {n} of {k}" + (f" (by up to {by:.2f} mm)" if n else "")
-                      for (rname, cname, name), (n, k, by) in worse.items()]
+            lines += [f"- {name}, {rname}, {cname}: {n} of {k}" + (
+                          f" (by up to {by:.2f} mm" + (f", frame {f})" if f is not None else ")") if n else "")
+                      for (rname, cname, name), (n, k, by, f) in worse.items()]
         ranks = confidence_rank(res["rows"])
         if ranks:
             keys = list(RANGES) + ["all"]
