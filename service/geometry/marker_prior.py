@@ -77,6 +77,7 @@ bit for bit.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -329,6 +330,64 @@ class ShellDenoiser:
         return soft_handles(self.energy, u, self.ratio, self.operator)
 
 
+@dataclass(frozen=True)
+class PriorCompletion:
+    """σ = 0 with a learned prior: the papers' exact interpolation of the visible markers,
+    the occluded ones completed by the prior's conditional mean given them
+    (:meth:`PriorEigen.conditional_mean`, the σ → 0 limit of :class:`MarkerDenoiser`'s MAP
+    estimate), or by the shell's minimum energy where the visible ones leave a marker
+    uncertain under the prior (:func:`shell_completion`, the same rule as at σ > 0). Frames
+    with every marker pass unchanged (bit for bit :class:`ShellDenoiser` at λ = 0).
+
+    Why (issue 17): a burst of occluded markers left the thin shell's minimum-energy fill
+    flat under them (a cheek or a mouth corner that stays at rest while the face moves),
+    and every marker-driven method built on it inherited the error. Measured with
+    ``generalization_report.py`` (level 0, 8 frames per performance, the cached σ = 0
+    models; PDM biquadratic, face mean / max mm on the occluded performances, before →
+    after): family b in range 0.221 / 6.87 → 0.024 / 0.45, combinations 0.242 / 3.91 →
+    0.182 / 2.99, out of range 0.298 / 10.98 → 0.091 / 3.62; family a in range 0.131 /
+    2.60 → 0.112 / 1.34, combinations 0.134 / 2.61 → 0.119 / 2.57, out of range 0.154 /
+    6.45 → 0.039 / 0.59 (chosen from b's failure, confirmed on a). Clean and noisy
+    performances (no occlusion) are bit for bit unchanged, every method.
+
+    Attributes
+    ----------
+    energy : (M,M) float64     handle energy G of the thin shell
+    prior : MarkerPrior
+    """
+
+    energy: np.ndarray
+    prior: MarkerPrior
+
+    @property
+    def interpolates(self) -> bool:
+        """True: visible markers pass unchanged."""
+        return True
+
+    @functools.cached_property
+    def eigen(self) -> "PriorEigen":
+        """The prior's eigendecomposition, made on the first occluded frame (a level-1
+        model's load does not pay for it)."""
+        return PriorEigen.of(self.prior)
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """Complete displacements, same shape as u (F,M,3) or (M,3), mm (NaN rows: occluded
+        markers).
+
+        Raises
+        ------
+        ValueError   a frame with no visible marker
+        """
+        u = np.asarray(u, dtype=np.float64)
+        single = u.ndim == 2
+        u = u[None] if single else u
+        if np.isfinite(u).all():
+            out = soft_handles(self.energy, u, 0.0)
+        else:
+            out = shell_completion(self.energy, self.eigen, u, self.eigen.conditional_mean(u))
+        return out[0] if single else out
+
+
 #: ``marker_noise_mm`` value asking for σ estimated per request (:class:`AdaptiveDenoiser`)
 AUTO = "auto"
 #: prior directions whose variance is at most this multiple of the median eigenvalue of C
@@ -383,6 +442,30 @@ class PriorEigen:
         conditional = np.diag(np.linalg.inv(Q_UU)).reshape(-1, 3).sum(axis=1)
         prior = ((Ui ** 2) @ self.values).reshape(-1, 3).sum(axis=1)
         return conditional / np.maximum(prior, 1e-300)
+
+    def conditional_mean(self, u: np.ndarray) -> np.ndarray:
+        """Complete displacements (F,M,3) of head-aligned displacements u (F,M,3), mm, NaN rows
+        occluded: the visible markers as they are and the occluded ones the prior's mean given
+        them, ``x_U = μ_U − (Q_UU)⁻¹ Q_UV (m_V − μ_V)`` (Q = C⁻¹; the noise-free conditional,
+        Rasmussen & Williams 2006, eq. A.6, in its precision form) — the σ → 0 limit of the MAP
+        estimate :meth:`map`. One (3k)×(3k) solve per occlusion pattern of k hidden markers.
+
+        Raises
+        ------
+        ValueError   a frame with no visible marker
+        """
+        u = np.asarray(u, np.float64)
+        n = len(self.mean)
+        F = len(u)
+        full, groups = occlusion_groups(u)
+        out = u.reshape(F, n).copy()
+        inverse = 1.0 / np.maximum(self.values, 1e-300)
+        for sel, idx in groups:
+            Qi = (self.vectors[idx] * inverse) @ self.vectors.T                    # Q[idx] (3k,3M)
+            d = np.nan_to_num(out[sel] - self.mean)                                # occluded rows 0
+            d[:, idx] = 0.0
+            out[np.ix_(sel, idx)] = self.mean[idx] - np.linalg.solve(Qi[:, idx], (d @ Qi.T).T).T
+        return out.reshape(u.shape)
 
     def map(self, u: np.ndarray, noise_mm: float) -> np.ndarray:
         """MAP displacements (F,M,3) (or (M,3)) of head-aligned displacements u, mm, NaN rows
@@ -650,8 +733,10 @@ def marker_denoiser(energy: np.ndarray, noise_mm: "float | str", prior_scale_mm:
     taking head-aligned marker displacements u (F,M,3) or (M,3), mm, NaN rows for occluded
     markers, to complete handle displacements of the same shape.
 
-    * σ = ``noise_mm`` = 0: the papers' exact interpolation with minimum-energy completion
-      (:class:`ShellDenoiser`, λ = 0);
+    * σ = ``noise_mm`` = 0: the papers' exact interpolation of the visible markers; occluded
+      ones completed by the learned ``prior``'s conditional mean given them
+      (:class:`PriorCompletion`), or, without a prior, by minimum energy (:class:`ShellDenoiser`,
+      λ = 0);
     * σ > 0 with a learned ``prior``: its MAP estimate (:class:`MarkerDenoiser`, no shell term);
     * σ > 0 without one (a model saved before the learned prior existed): the shell prior's
       soft constraints, λ = σ²/τ² with τ = ``prior_scale_mm``
@@ -677,14 +762,14 @@ def marker_denoiser(energy: np.ndarray, noise_mm: "float | str", prior_scale_mm:
         return AdaptiveDenoiser.build(prior, energy)
     ratio = 0.0 if noise_mm == 0 else marker_noise_ratio(noise_mm, prior_scale_mm)
     if ratio == 0:
-        return ShellDenoiser(energy, 0.0)
+        return ShellDenoiser(energy, 0.0) if prior is None else PriorCompletion(np.asarray(energy, np.float64), prior)
     if prior is not None:
         return MarkerDenoiser.build(prior, energy, noise_mm, prior_scale_mm)
     return ShellDenoiser(energy, ratio, soft_handle_operator(energy, ratio))
 
 
 __all__ = ["AUTO", "AdaptiveDenoiser", "FLOOR_FRACTION", "FixedNoise", "MarkerDenoiser", "MarkerPrior",
-           "PriorEigen", "SHELL_COMPLETION_RATIO", "SHELL_WEIGHT",
+           "PriorCompletion", "PriorEigen", "SHELL_COMPLETION_RATIO", "SHELL_WEIGHT",
            "ShellDenoiser", "dof_fraction", "floor_directions", "frame_noise", "marker_denoiser",
            "noise_confidence", "shell_completion",
            "temporal_noise"]

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from service.geometry.marker_prior import (
-    AdaptiveDenoiser, MarkerDenoiser, MarkerPrior, ShellDenoiser, floor_directions, frame_noise, gaspari_cohn,
-    marker_denoiser, noise_confidence, temporal_noise,
+    AdaptiveDenoiser, MarkerDenoiser, MarkerPrior, PriorCompletion, PriorEigen, ShellDenoiser, floor_directions,
+    frame_noise, gaspari_cohn, marker_denoiser, noise_confidence, shell_completion, temporal_noise,
 )
 from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handles
 
@@ -192,8 +192,13 @@ def test_marker_denoiser_picks_one_rule_for_every_method():
     u = test[:6] + rng.normal(scale=0.3, size=test[:6].shape)
     u[1, [4, 9]] = np.nan
     exact = marker_denoiser(G, 0.0, np.nan, prior)
-    assert isinstance(exact, ShellDenoiser) and exact.interpolates
-    np.testing.assert_array_equal(exact(u), soft_handles(G, u, 0.0))
+    assert isinstance(exact, PriorCompletion) and exact.interpolates
+    np.testing.assert_array_equal(exact(u[[0, 2]]), soft_handles(G, u[[0, 2]], 0.0))   # every marker seen
+    eigen = PriorEigen.of(prior)
+    np.testing.assert_array_equal(exact(u), shell_completion(G, eigen, u, eigen.conditional_mean(u)))
+    without = marker_denoiser(G, 0.0, np.nan)
+    assert isinstance(without, ShellDenoiser) and without.interpolates
+    np.testing.assert_array_equal(without(u), soft_handles(G, u, 0.0))
     learned = marker_denoiser(G, 0.3, 2.0, prior)
     assert isinstance(learned, MarkerDenoiser) and not learned.interpolates
     np.testing.assert_array_equal(learned(u), MarkerDenoiser.build(prior, G, 0.3, 2.0)(u))
@@ -241,3 +246,43 @@ def test_shell_completion_takes_over_where_the_prior_is_uncertain():
     expected[redo] = np.nan
     np.testing.assert_allclose(y[1], soft_handles(G, expected, 0.0), atol=1e-12)
     assert np.abs(y[1, redo] - x[1, redo]).max() > 1e-3
+
+
+def test_conditional_mean_is_the_gaussian_conditional_and_keeps_the_visible_markers():
+    """Operator identity: the precision form equals μ_U + C_UV C_VV⁻¹ (m_V − μ_V) computed
+    from the covariance; visible markers pass bit for bit; a frame without occlusion is
+    unchanged; it is the σ → 0 limit of the MAP estimate."""
+    rest, G, train, test, rng = _data(4)
+    prior = MarkerPrior.fit_tapered(train, rest)
+    eigen = PriorEigen.of(prior)
+    u = test[:3].copy()
+    u[0, [5, 6, 30]] = np.nan
+    u[1, 40:44] = np.nan
+    x = eigen.conditional_mean(u)
+    for f in (0, 1):
+        hid = np.repeat(~np.isfinite(u[f]).all(axis=1), 3)
+        C, mu, m = prior.covariance, prior.mean.ravel(), u[f].ravel()
+        direct = mu[hid] + C[np.ix_(hid, ~hid)] @ np.linalg.solve(C[np.ix_(~hid, ~hid)], m[~hid] - mu[~hid])
+        np.testing.assert_allclose(x[f].ravel()[hid], direct, atol=1e-8)
+        np.testing.assert_array_equal(x[f].ravel()[~hid], m[~hid])
+    np.testing.assert_array_equal(x[2], u[2])
+    np.testing.assert_allclose(x, eigen.map(u, 1e-5), atol=1e-4)
+
+
+def test_prior_completion_fills_an_occlusion_burst_better_than_minimum_energy():
+    """σ = 0 (the default): visible markers exact, a burst of hidden ones completed from the
+    prior far closer to the truth than the shell's minimum-energy fill (seeded)."""
+    rest, G, train, test, rng = _data(2)
+    prior = MarkerPrior.fit_tapered(train, rest)
+    hidden = np.zeros(test.shape[:2], bool)
+    hidden[:, 8:12] = True
+    hidden[::2, 40:44] = True
+    occluded = np.where(hidden[..., None], np.nan, test)
+    out = PriorCompletion(G, prior)(occluded)
+    np.testing.assert_array_equal(out[~hidden], test[~hidden])
+    e_prior = _rms((out - test)[hidden])
+    e_shell = _rms((soft_handles(G, occluded, 0.0) - test)[hidden])
+    assert e_prior < 0.5 * e_shell, (e_prior, e_shell)
+    np.testing.assert_allclose(PriorCompletion(G, prior)(occluded[1]), out[1], atol=1e-10)   # one frame (M,3)
+    with pytest.raises(ValueError, match="at least one"):
+        PriorCompletion(G, prior)(np.full_like(test[0], np.nan))
