@@ -197,6 +197,13 @@ class MarkerPrior:
         return cls(np.asarray(a[f"{prefix}mean"], np.float64), np.asarray(a[f"{prefix}covariance"], np.float64))
 
 
+def _frames(u: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Marker displacements u (F,M,3) or one frame (M,3) as float64 (F,M,3), and whether
+    it was one frame (the caller answers in the shape it was given)."""
+    u = np.asarray(u, np.float64)
+    return (u[None], True) if u.ndim == 2 else (u, False)
+
+
 def gaspari_cohn(r: np.ndarray) -> np.ndarray:
     """Gaspari & Cohn (1999, eq. 4.10) compactly supported correlation of r = distance / L
     (any shape): a fifth-order piecewise rational, 1 at 0, 0 for r ≥ 2, positive definite in
@@ -278,9 +285,7 @@ class MarkerDenoiser:
         ------
         ValueError   a frame with no visible marker
         """
-        u = np.asarray(u, dtype=np.float64)
-        single = u.ndim == 2
-        u = u[None] if single else u
+        u, single = _frames(u)
         M = self.prior.n_markers
         if u.shape[1:] != (M, 3):
             raise ValueError(f"displacements must be (F,{M},3), got {u.shape}")
@@ -378,9 +383,7 @@ class PriorCompletion:
         ------
         ValueError   a frame with no visible marker
         """
-        u = np.asarray(u, dtype=np.float64)
-        single = u.ndim == 2
-        u = u[None] if single else u
+        u, single = _frames(u)
         if np.isfinite(u).all():
             out = soft_handles(self.energy, u, 0.0)
         else:
@@ -477,9 +480,7 @@ class PriorEigen:
         """
         if not (noise_mm > 0 and np.isfinite(noise_mm)):
             raise ValueError(f"the MAP solve needs a finite σ > 0, got {noise_mm}")
-        u = np.asarray(u, np.float64)
-        single = u.ndim == 2
-        u = u[None] if single else u
+        u, single = _frames(u)
         n = len(self.mean)
         if u.shape[1:] != (n // 3, 3):
             raise ValueError(f"displacements must be (F,{n // 3},3), got {u.shape}")
@@ -588,9 +589,7 @@ def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = No
     -------
     sigma : (F,) float64 (a float for one frame), mm
     """
-    u = np.asarray(u, np.float64)
-    single = u.ndim == 2
-    u = u[None] if single else u
+    u, single = _frames(u)
     M = prior.n_markers
     if u.shape[1:] != (M, 3):
         raise ValueError(f"displacements must be (F,{M},3), got {u.shape}")
