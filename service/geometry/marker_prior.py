@@ -70,9 +70,10 @@ marker; a frame with occluded markers needs only a (3|U|)×(3|U|) solve for its 
 occluded ones (Woodbury, :meth:`MarkerDenoiser.__call__`). Occluded markers (NaN) drop
 out of D_V and are completed by the prior's conditional mean given the visible ones, or,
 where the visible ones leave a marker uncertain under the prior, by the shell's minimum
-energy (:func:`shell_completion`). σ → 0 gives back the visible markers exactly; σ = 0 itself is the paper's exact interpolation
-with minimum-energy completion (:func:`~service.geometry.thin_shell.soft_handles`, λ = 0),
-bit for bit.
+energy (:func:`shell_completion`). σ → 0 gives back the visible markers exactly; σ = 0
+itself is the papers' exact interpolation of the visible markers, bit for bit, with the
+occluded ones completed by that limit (:class:`PriorCompletion`; without a learned prior by
+minimum energy, :func:`~service.geometry.thin_shell.soft_handles` at λ = 0).
 """
 
 from __future__ import annotations
@@ -460,7 +461,7 @@ class PriorEigen:
         u = np.asarray(u, np.float64)
         n = len(self.mean)
         F = len(u)
-        full, groups = occlusion_groups(u)
+        _, groups = occlusion_groups(u)
         out = u.reshape(F, n).copy()
         inverse = 1.0 / np.maximum(self.values, 1e-300)
         for sel, idx in groups:

@@ -88,7 +88,9 @@ class MarkerParams(MethodParams):
         | Literal["auto"])] = Field(
         default=MARKER_NOISE_MM,
         description="Assumed noise of the input markers, σ per coordinate in the actor's unit "
-                    "(mm). 0 (default) interpolates the markers exactly, as the papers do; "
+                    "(mm). 0 (default) interpolates the markers exactly, as the papers do "
+                    "(occluded, NaN, markers are completed from the visible ones by the "
+                    "learned prior below); "
                     "σ > 0 makes them soft constraints: the handles are the MAP estimate "
                     "under Gaussian marker noise σ and a Gaussian prior over the head-aligned "
                     "marker displacements learned from the training frames (a tapered "

@@ -21,8 +21,10 @@ Choices where the paper is silent:
   ``1 / (m_i² + m̄²)`` with m_i its RMS offset from the neutral over the training frames
   and m̄ the median of the m_i, so markers on the jaw and lips, which move with the
   expression, do not drag the head estimate (:func:`stability_weights`);
-* a marker's handle is the vertex of its triangle nearest to it; missing (NaN) markers
-  drop their constraints exactly (:func:`~service.geometry.thin_shell.complete_handles`).
+* a marker's handle is the vertex of its triangle nearest to it; missing (NaN) markers are
+  completed from the visible ones, by the learned marker prior's conditional mean where the
+  model has one (:class:`~service.geometry.marker_prior.PriorCompletion`), else by the
+  shell's minimum energy (:func:`~service.geometry.thin_shell.complete_handles`).
 
 Marker noise (issue 17): with ``marker_noise_mm`` σ > 0 the handles are no longer
 interpolated exactly but are the MAP estimate under the shell prior
@@ -322,7 +324,9 @@ class BaseSurface:
 
     def handle_displacements(self, aligned: np.ndarray) -> np.ndarray:
         """u_H (F,M,3) of aligned markers (F,M,3): the markers' displacements, missing rows
-        completed by minimum energy; with marker noise σ > 0 the MAP estimate under the
+        completed by the learned prior's conditional mean given the visible ones
+        (:class:`~service.geometry.marker_prior.PriorCompletion`; without a prior, by minimum
+        energy); with marker noise σ > 0 the MAP estimate under the
         learned marker prior (:class:`~service.geometry.marker_prior.MarkerDenoiser`) or,
         without one, of the shell's soft constraints
         (:func:`~service.geometry.thin_shell.soft_handles`)."""
