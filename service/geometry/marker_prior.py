@@ -83,7 +83,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.geometry.thin_shell import marker_noise_ratio, soft_handle_operator, soft_handles
+from service.geometry.thin_shell import as_frames, marker_noise_ratio, soft_handle_operator, soft_handles
 
 #: default floor δ of :meth:`MarkerPrior.fit_ppca`, a fraction of the mean per-coordinate
 #: training variance tr S / 3M (its best on family a, benchmarks/marker_denoise.py)
@@ -198,13 +198,6 @@ class MarkerPrior:
         return cls(np.asarray(a[f"{prefix}mean"], np.float64), np.asarray(a[f"{prefix}covariance"], np.float64))
 
 
-def _frames(u: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Marker displacements u (F,M,3) or one frame (M,3) as float64 (F,M,3), and whether
-    it was one frame (the caller answers in the shape it was given)."""
-    u = np.asarray(u, np.float64)
-    return (u[None], True) if u.ndim == 2 else (u, False)
-
-
 def gaspari_cohn(r: np.ndarray) -> np.ndarray:
     """Gaspari & Cohn (1999, eq. 4.10) compactly supported correlation of r = distance / L
     (any shape): a fifth-order piecewise rational, 1 at 0, 0 for r ≥ 2, positive definite in
@@ -286,13 +279,11 @@ class MarkerDenoiser:
         ------
         ValueError   a frame with no visible marker
         """
-        u, single = _frames(u)
         M = self.prior.n_markers
-        if u.shape[1:] != (M, 3):
-            raise ValueError(f"displacements must be (F,{M},3), got {u.shape}")
+        u, batched = as_frames(u, M)
         if self.noise_mm == 0:
             out = soft_handles(self.energy, u, 0.0)
-            return out[0] if single else out
+            return out if batched else out[0]
         F = len(u)
         full, groups = occlusion_groups(u)
         out = np.empty((F, 3 * M))
@@ -306,7 +297,7 @@ class MarkerDenoiser:
             S = np.eye(len(idx)) - P[np.ix_(idx, idx)]
             out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P[idx]
         out = shell_completion(self.energy, self.eigen, u, out.reshape(F, M, 3))
-        return out[0] if single else out
+        return out if batched else out[0]
 
 
 @dataclass(frozen=True)
@@ -384,12 +375,12 @@ class PriorCompletion:
         ------
         ValueError   a frame with no visible marker
         """
-        u, single = _frames(u)
+        u, batched = as_frames(u, self.prior.n_markers)
         if np.isfinite(u).all():
             out = soft_handles(self.energy, u, 0.0)
         else:
             out = shell_completion(self.energy, self.eigen, u, self.eigen.conditional_mean(u))
-        return out[0] if single else out
+        return out if batched else out[0]
 
 
 #: ``marker_noise_mm`` value asking for σ estimated per request (:class:`AdaptiveDenoiser`)
@@ -481,10 +472,8 @@ class PriorEigen:
         """
         if not (noise_mm > 0 and np.isfinite(noise_mm)):
             raise ValueError(f"the MAP solve needs a finite σ > 0, got {noise_mm}")
-        u, single = _frames(u)
         n = len(self.mean)
-        if u.shape[1:] != (n // 3, 3):
-            raise ValueError(f"displacements must be (F,{n // 3},3), got {u.shape}")
+        u, batched = as_frames(u, n // 3)
         s2 = float(noise_mm) ** 2
         w = self.values / (self.values + s2)
         U, mu = self.vectors, self.mean
@@ -500,7 +489,7 @@ class PriorEigen:
             S = (U[idx] * (s2 / (self.values + s2))) @ U[idx].T              # I − P[idx, idx]
             out[sel] = y + np.linalg.solve(S, y[:, idx].T).T @ P_rows
         out = out.reshape(F, n // 3, 3)
-        return out[0] if single else out
+        return out if batched else out[0]
 
 
 def occlusion_groups(u: np.ndarray) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
@@ -590,10 +579,8 @@ def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = No
     -------
     sigma : (F,) float64 (a float for one frame), mm
     """
-    u, single = _frames(u)
     M = prior.n_markers
-    if u.shape[1:] != (M, 3):
-        raise ValueError(f"displacements must be (F,{M},3), got {u.shape}")
+    u, batched = as_frames(u, M)
     if basis is None or (eigen is None and not np.isfinite(u).all()):
         eigen = PriorEigen.of(prior) if eigen is None else eigen
         basis = eigen.floor_directions() if basis is None else basis
@@ -604,7 +591,7 @@ def frame_noise(prior: MarkerPrior, u: np.ndarray, basis: np.ndarray | None = No
     z2 = ((u.reshape(len(u), 3 * M) - prior.mean.ravel()) @ W) ** 2              # (F,k)
     s2 = np.median(z2, axis=1) / CHI2_1_MEDIAN / np.maximum(visible.mean(axis=1), 1.0 / M)
     sigma = np.sqrt(s2)
-    return float(sigma[0]) if single else sigma
+    return sigma if batched else float(sigma[0])
 
 
 def floor_directions(prior: MarkerPrior) -> np.ndarray:

@@ -414,14 +414,17 @@ def complete_handles(G: np.ndarray, u_H: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- soft handle constraints
-def _as_batch(u_H: np.ndarray, h: int) -> tuple[np.ndarray, bool]:
-    """(F,h,3) float64 copy of (h,3) or (F,h,3) handle values (NaN allowed), and whether batched."""
+def as_frames(u_H: np.ndarray, h: int) -> tuple[np.ndarray, bool]:
+    """(F,h,3) float64 copy of (h,3) or (F,h,3) per-handle (or per-marker) values (NaN
+    allowed), and whether they were batched (the caller answers in the shape it was given).
+
+    Raises ValueError for any other shape."""
     u = np.array(u_H, dtype=np.float64)
     if u.ndim == 2 and u.shape == (h, 3):
         return u[None], False
     if u.ndim == 3 and u.shape[1:] == (h, 3):
         return u, True
-    raise ValueError(f"handle displacements must be ({h},3) or (frames,{h},3), got {u.shape}")
+    raise ValueError(f"displacements must be ({h},3) or (frames,{h},3), got {u.shape}")
 
 
 def marker_noise_ratio(noise_mm: float, prior_scale_mm: float) -> float:
@@ -461,7 +464,7 @@ def shell_prior_scale(G: np.ndarray, u_H: np.ndarray) -> float:
     ValueError   no complete sample frame
     """
     G = np.asarray(G, dtype=np.float64)
-    u, _ = _as_batch(u_H, len(G))
+    u, _ = as_frames(u_H, len(G))
     u = u[np.isfinite(u).all(axis=(1, 2))]
     if not len(u):
         raise ValueError("no sample frame has every handle; cannot estimate the shell prior")
@@ -535,7 +538,7 @@ def soft_handles(G: np.ndarray, u_H: np.ndarray, ratio: float,
     """
     G = np.asarray(G, dtype=np.float64)
     h = len(G)
-    u, batched = _as_batch(u_H, h)
+    u, batched = as_frames(u_H, h)
     missing = ~np.isfinite(u).all(axis=2)                                 # (F,h)
     full = ~missing.any(axis=1)
     if ratio == 0:
