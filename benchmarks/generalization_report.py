@@ -141,7 +141,7 @@ def pose_space_variants(regressions, extra: dict | None = None) -> dict:
 
 
 def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: bool,
-                    marker_filter: float = 0.0, marker_noise_mm: float | str = 0.0,
+                    marker_filter: float | str = 0.0, marker_noise_mm: float | str = 0.0,
                     shape_space_rows: bool = True, pdm_params: dict | None = None,
                     only: set | None = None, ranges=None, conditions=None,
                     pose_space: dict | None = None) -> dict:
@@ -444,9 +444,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                         help=f"held-out map frames per performance (default {DEFAULT_FRAMES}; 0 = all)")
     parser.add_argument("--retrain", action="store_true", help="rebuild the cached models")
-    parser.add_argument("--marker-filter", type=float, default=0.0, metavar="S",
+    parser.add_argument("--marker-filter", type=pdm.noise_arg, default=0.0, metavar="S",
                         help="smooth every performance's markers in time first (σ = S frames, "
-                             "the synthesis job's marker_filter_frames; default 0: off)")
+                             "or \"auto\": the windows chosen per marker and frame; the "
+                             "synthesis job's marker_filter_frames; default 0: off)")
     parser.add_argument("--marker-noise", type=pdm.noise_arg, default=0.0, metavar="SIGMA",
                         help="train the PDMs and the shape-space model with marker_noise_mm = "
                              "SIGMA (soft marker constraints; \"auto\": σ estimated per request; "

@@ -701,7 +701,8 @@ def heldout_frames(actor_dir: Path, name: str, limit: int | None) -> Heldout:
 
 
 def noise_arg(text: str) -> float | str:
-    """``--marker-noise``: a number (mm) or "auto" (σ estimated per request)."""
+    """``--marker-noise`` and ``--marker-filter``: a number (mm; frames) or "auto" (estimated
+    from the input)."""
     return text if text == "auto" else float(text)
 
 
@@ -773,8 +774,8 @@ def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: f
     return models
 
 
-def variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float = 0.0) -> np.ndarray:
-    """The performance's markers at ``frames``; with ``filter_frames`` > 0 the whole
+def variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float | str = 0.0) -> np.ndarray:
+    """The performance's markers at ``frames``; with ``filter_frames`` > 0 or "auto" the whole
     performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_performance`,
     as the synthesis job's ``marker_filter_frames`` does)."""
     from service.geometry.marker_filter import filter_performance

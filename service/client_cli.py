@@ -206,16 +206,18 @@ def _file(path: str | Path, what: str = "file") -> Path:
     return path
 
 
-def _filter_frames(text: str) -> float:
+def _filter_frames(text: str) -> float | str:
     """argparse type of ``--marker-filter``: σ in frames, a finite number ≥ 0 (the server
-    refuses one above its limit)."""
+    refuses one above its limit), or ``auto``."""
+    if text == "auto":
+        return text
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
     if not (value >= 0 and value != float("inf")):
         raise argparse.ArgumentTypeError(
-            f"{text!r} is not a number of frames >= 0 (e.g. 3; 0 is off)")
+            f"{text!r} is not a number of frames >= 0 (e.g. 3; 0 is off) or 'auto'")
     return value
 
 
@@ -1180,7 +1182,8 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                            help="smooth the markers in time on the server before synthesis "
                                 "(the job's marker_filter_frames: σ in frames of a local "
                                 "quadratic fit over the whole take; 3 at 30 fps for ordinary "
-                                "mocap noise; default 0: off)")
+                                "mocap noise; auto: the take's noise estimated and each "
+                                "marker's window chosen per frame; default 0: off)")
 
     p = command(sub, "correspond", correspond,
                 "bring a source scan into a target scan's UV space (a correspondence job) "

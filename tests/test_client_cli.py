@@ -9,6 +9,7 @@ give the documented exit codes.
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
@@ -235,3 +236,12 @@ def test_synthesize_marker_filter_smooths_the_take_on_the_server(capsys, server,
                        str(tmp_path / "y"), "--marker-filter", "1000")
     assert code == EXIT_REJECTED and "marker_filter_frames" in err and not (tmp_path / "y").exists()
     assert run(capsys, server, "actors", "delete", actor, "--cascade")[0] == EXIT_OK
+
+
+def test_marker_filter_argument_takes_frames_or_auto():
+    from service.client_cli import _filter_frames
+
+    assert _filter_frames("3") == 3.0 and _filter_frames("auto") == "auto"
+    for bad in ("-1", "inf", "smooth"):
+        with pytest.raises(argparse.ArgumentTypeError, match="'auto'"):
+            _filter_frames(bad)

@@ -376,7 +376,7 @@ def synthesize(services: Services, synthesizer: Synthesizer, model_id: str, kind
 def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, kind: str,
                          data: bytes, filename: str | None, *, outputs: tuple[str, ...],
                          result_format: str, clamp: bool, rig: str | None = None,
-                         marker_filter_frames: float = 0.0) -> Job:
+                         marker_filter_frames: float | str = 0.0) -> Job:
     """Store a performance and queue a ``synthesize`` job for it.
 
     The job's payload is ``{"model_id", "markers_blob", "markers_sha256", "frames",
@@ -387,8 +387,8 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
     the vertices are on that ready input rig's topology, stored as given; the payload adds
     ``{"rig_id", "rig", "registration_blob", "registration_sha256"}`` and the job
     propagates the frames with exactly that registration. ``marker_filter_frames`` > 0 (σ in
-    frames, marker-driven kinds only) adds ``"marker_filter_frames"``: the job smooths the
-    markers in time first (:func:`service.geometry.marker_filter.filter_performance`).
+    frames) or ``"auto"`` (marker-driven kinds only) adds ``"marker_filter_frames"``: the job
+    smooths the markers in time first (:func:`service.geometry.marker_filter.filter_performance`).
     """
     check_result_format(result_format, outputs)
     with services.session() as session:
@@ -423,7 +423,7 @@ def submit_synthesis_job(services: Services, submit_job: Submit, model_id: str, 
                 payload={"model_id": model_id, f"{key}_blob": info.key,
                          f"{key}_sha256": info.sha256, "frames": frames,
                          "outputs": list(outputs), "format": result_format, "clamp": clamp,
-                         **({"marker_filter_frames": float(marker_filter_frames)}
+                         **({"marker_filter_frames": marker_filter_frames}
                             if marker_filter_frames else {}),
                          **(loaded_rig.payload() if loaded_rig is not None else {})})
             return submit(session, submit_job, job)

@@ -420,8 +420,13 @@ def test_synthesis_job_marker_filter_option_reaches_the_payload(ready):
 
     assert "marker_filter_frames" not in payload()
     assert payload(marker_filter_frames=3)["marker_filter_frames"] == 3.0
+    assert payload(marker_filter_frames="auto")["marker_filter_frames"] == "auto"
     assert_problem(client.post(url, content=npz(markers=markers), headers=NPZ,
                                params={"marker_filter_frames": -1}), 422)
+    refused = client.post(url, content=npz(markers=markers), headers=NPZ,
+                          params={"marker_filter_frames": "smooth"})
+    assert_problem(refused, 422)
+    assert "marker_filter_frames" in refused.text and "auto" in refused.text
     assert_problem(client.post(url, content=npz(markers=markers), headers=NPZ,
                                params={"marker_filter_frames": 1000}), 422)
 

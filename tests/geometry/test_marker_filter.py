@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from service.geometry.marker_filter import filter_markers
+from service.geometry.marker_filter import AUTO_BANDWIDTHS, filter_markers, filter_markers_auto
 
 
 def _signal(frames=300, fps=30.0):
@@ -94,3 +94,66 @@ def test_filter_performance_smooths_the_expression_under_a_shaking_head():
     assert err(filter_markers(noisy, 2.0)) > err(noisy)                      # the jitter blurred in
     assert err(filter_performance(noisy, 2.0)) < 0.6 * err(noisy)
     np.testing.assert_allclose(filter_performance(clean, 0.0), clean)
+
+
+def _onset_rest_and_sine(frames=300, fps=30.0):
+    """(F,3,3) mm: a marker at rest that jumps by 8 mm in ~0.3 s at 4 s, a slow 3-D sine
+    (:func:`_signal`'s first marker), a marker at rest."""
+    t = np.arange(frames) / fps
+    onset = np.stack([np.where(t < 4, 0.0, 8 * np.tanh((t - 4) * 6)), 0 * t, 0 * t], -1)
+    return np.stack([onset, _signal(frames, fps)[:, 0], np.zeros_like(onset)], axis=1)
+
+
+def test_auto_window_beats_every_fixed_window_of_the_take():
+    """σ = 0.3 mm on a fast onset, a slow sine and a still marker: the risk-chosen windows
+    beat every fixed window over the take (the onset needs a narrow window, the still
+    marker the widest) and stay within 10 % of each marker's own best fixed window (an
+    oracle that knows the truth)."""
+    truth = _onset_rest_and_sine()
+    noisy = truth + np.random.default_rng(3).normal(0, 0.3, truth.shape)
+    rms = lambda x: np.sqrt(np.mean(np.sum((x - truth) ** 2, -1), axis=0))      # noqa: E731
+    out, chosen = filter_markers_auto(noisy)
+    fixed = np.stack([rms(filter_markers(noisy, s)) for s in AUTO_BANDWIDTHS[1:]])
+    total = lambda e: np.sqrt(np.mean(e ** 2, axis=-1))                      # noqa: E731
+    assert total(rms(out)) < total(fixed).min(), (total(rms(out)), total(fixed))
+    assert (rms(out) < 1.1 * fixed.min(axis=0)).all(), (rms(out), fixed.min(axis=0))
+    assert (rms(out) < 0.45 * rms(noisy)).all()
+    # the onset's frames take narrower windows than the still marker's
+    assert chosen[110:135, 0].mean() < chosen[110:135, 2].mean()
+    assert chosen[:, 2].mean() > 6.0
+
+
+def test_auto_keeps_clean_markers_and_matches_the_risk_it_estimates():
+    """Noise-free motion is returned as given (σ̂ = 0: no window has less risk than the
+    sample itself); SURE is unbiased: with σ known, the estimated risk of a fixed window
+    over a still marker's noise equals its measured squared error on average."""
+    truth = _onset_rest_and_sine()
+    out, chosen = filter_markers_auto(truth)
+    np.testing.assert_array_equal(out, truth)
+    assert (chosen == 0).all()
+    from service.geometry.marker_filter import _local_fit
+
+    rng = np.random.default_rng(4)
+    noise = rng.normal(0, 0.3, (2000, 50, 3))
+    fit, hat = _local_fit(noise, 2.0, 2, None, None)
+    sure = np.sum(noise ** 2, -1) - 2 * np.sum(noise * fit, -1) + np.sum(fit ** 2, -1) \
+        - 3 * 0.09 + 6 * 0.09 * hat                              # ‖x − x̂‖² − 3σ² + 6σ²h
+    assert np.mean(sure) == pytest.approx(np.mean(np.sum(fit ** 2, -1)), rel=0.02)
+
+
+def test_auto_fills_short_gaps_where_it_smooths_and_passes_through_filter_performance():
+    truth = _onset_rest_and_sine()
+    noisy = truth + np.random.default_rng(5).normal(0, 0.3, truth.shape)
+    noisy[50:52, 2] = np.nan                               # inside the still marker's wide windows
+    out = filter_markers(noisy, "auto")
+    assert np.isfinite(out[50:52, 2]).all() and np.abs(out[50:52, 2]).max() < 0.3
+    from service.geometry.marker_filter import filter_performance
+
+    rng = np.random.default_rng(6)
+    clean = rng.normal(0, 40.0, (20, 3)) + np.repeat(truth, 7, axis=1)[:, :20]
+    world = clean + rng.normal(0, 0.3, clean.shape)
+    err = lambda x: np.sqrt(np.nanmean(np.sum((x - clean) ** 2, -1)))           # noqa: E731
+    assert err(filter_performance(world, "auto")) < min(0.5 * err(world),
+                                                        err(filter_performance(world, 3.0)))
+    with pytest.raises(ValueError, match="auto"):
+        filter_markers(noisy, "smooth")

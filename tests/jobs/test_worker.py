@@ -89,10 +89,11 @@ def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, traine
     markers = _markers(pdm_actor_dir, 12)
     # float32-exact, as the job's stored input is
     markers = (markers + np.random.default_rng(0).normal(0, 0.3, markers.shape)).astype(np.float32).astype(np.float64)
-    _, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
-                                       outputs=["mesh"], marker_filter_frames=2.0)
-    expected = kinds.get_kind("pdm").load(path).synthesize(filter_performance(markers, 2.0), ("mesh",))
-    np.testing.assert_array_equal(npz_arrays(data)["vertices"], expected["vertices"])
+    for sigma in (2.0, "auto"):
+        _, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
+                                           outputs=["mesh"], marker_filter_frames=sigma)
+        expected = kinds.get_kind("pdm").load(path).synthesize(filter_performance(markers, sigma), ("mesh",))
+        np.testing.assert_array_equal(npz_arrays(data)["vertices"], expected["vertices"])
 
 
 def test_training_job_on_the_redis_queue(deployment, redis_server, start_worker):

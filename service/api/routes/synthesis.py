@@ -3,9 +3,10 @@ performances."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, Query, Request, Response, status
+from pydantic import Field
 from fastapi.concurrency import run_in_threadpool
 from starlette.types import Receive, Scope, Send
 
@@ -230,15 +231,19 @@ async def submit_synthesis_job(
                 "maps (`frame_0000_displacement.exr`, ...) that its UsdPreviewSurface reads, "
                 "plus `clamped.csv`."))] = "npz",
         rig: RigQuery = None,
-        marker_filter_frames: Annotated[float, Query(
-            ge=0, le=MAX_SIGMA_FRAMES, allow_inf_nan=False, description=(
+        marker_filter_frames: Annotated[
+            Annotated[float, Field(ge=0, le=MAX_SIGMA_FRAMES, allow_inf_nan=False)]
+            | Literal["auto"], Query(description=(
                 "Smooth the markers in time before synthesis (marker-driven kinds): σ in "
                 "frames of a Gaussian-weighted local quadratic fit over the whole "
                 "performance, in a head-aligned frame (each frame's pose is kept), robust to "
                 "occlusion (a gap of up to ⌈σ⌉ frames is filled, a "
                 "longer one left to the thin shell's completion). 0 (default) is off; 3 "
                 "frames at 30 fps cut σ = 0.3 mm marker noise reaching the surface by more "
-                "than half at < 2 % cost on clean markers. Not for mesh input."))] = 0.0,
+                "than half at < 2 % cost on clean markers. `auto`: the performance's noise "
+                "is estimated and each marker's window chosen per frame by Stein's unbiased "
+                "risk estimate (clean markers are kept as they are, a marker at rest is "
+                "smoothed widely, a fast onset narrowly). Not for mesh input."))] = 0.0,
 ) -> schemas.JobAccepted:
     """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and
     `Location`. The job's result is an artifact (`GET /v1/artifacts/{id}`)."""

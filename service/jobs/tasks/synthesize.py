@@ -7,7 +7,7 @@ Payload::
        | "markers_blob": "<key>", "markers_sha256": "<hex>",   # … or a blob of the store
      "outputs": ["mesh", "displacement"],          # optional (API.md's outputs)
      "clamp": true,                                # optional: the extrapolation limit
-     "marker_filter_frames": 3.0,                  # optional: temporal marker filter σ, frames
+     "marker_filter_frames": 3.0,                  # optional: temporal marker filter σ, frames, or "auto"
      "format": "npz"}                              # optional: "npz", "obj-exr-zip", "usd"
 
 A mesh-driven model (``shape_space``) takes ``vertices`` instead of ``markers``
@@ -79,7 +79,7 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     registration = read_registration(store.blobs, payload) if payload.get("rig_id") else None
     if payload.get("marker_filter_frames") and key == "markers":
         # the whole performance at once: the filter looks ahead and behind (geometry/marker_filter.py)
-        inputs = filter_performance(inputs, float(payload["marker_filter_frames"]))
+        inputs = filter_performance(inputs, payload["marker_filter_frames"])
     if registration is not None and key != "vertices":
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)

@@ -255,7 +255,7 @@ class Synthesis(Resource):
                    vertices: Any = None, fps: float | None = None,
                    outputs: str | Sequence[str] | None = None, format: str = "npz",
                    clamp: bool = True, rig: str | None = None,
-                   marker_filter_frames: float = 0.0) -> JobAccepted:
+                   marker_filter_frames: float | str = 0.0) -> JobAccepted:
         """Queue the synthesis of a whole performance (a job; its result is an artifact).
 
         Parameters
@@ -273,9 +273,10 @@ class Synthesis(Resource):
                         and the EXR maps it references when maps are among the outputs;
                         needs ``mesh`` or ``mesh_detailed``)
         rig : str, optional
-        marker_filter_frames : float   σ in frames of the server's temporal marker filter
-                                       (marker-driven kinds; 0: off, 3 at 30 fps for
-                                       ordinary mocap noise)
+        marker_filter_frames : float or "auto"   σ in frames of the server's temporal
+                                       marker filter (marker-driven kinds; 0: off, 3 at 30
+                                       fps for ordinary mocap noise; ``"auto"``: the take's
+                                       noise estimated, each marker's window chosen per frame)
 
         Returns
         -------
