@@ -170,12 +170,12 @@ def filter_markers(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES
     x = np.asarray(markers, dtype=np.float64)
     if x.ndim != 3 or x.shape[-1] != 3:
         raise ValueError(f"markers must be (frames, markers, 3), got {x.shape}")
+    if degree not in (0, 1, 2, 3):
+        raise ValueError(f"degree must be 0, 1, 2 or 3, got {degree}")
     if sigma_frames == AUTO:
         return filter_markers_auto(x, degree=degree)[0]
     if isinstance(sigma_frames, str) or not (np.isfinite(sigma_frames) and sigma_frames >= 0):
         raise ValueError(f"sigma_frames must be finite and >= 0 or {AUTO!r}, got {sigma_frames!r}")
-    if degree not in (0, 1, 2, 3):
-        raise ValueError(f"degree must be 0, 1, 2 or 3, got {degree}")
     if sigma_frames == 0 or len(x) < 2:
         return x.copy()
     return _local_fit(x, float(sigma_frames), degree, min_support, max_gap)[0]
@@ -188,9 +188,10 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
     risk estimate (SURE; Stein 1981), locally in time.
 
     For a linear smoother x̂ = S x of samples x = x* + ε, ε white with σ per coordinate,
-    ``‖x − x̂‖² − Nσ² + 2σ² tr S`` is an unbiased estimate of the risk ``‖x̂ − x*‖²``
-    (Stein 1981, eq. 2; the local polynomial fit's trace terms are its hat values h(t),
-    :func:`_local_fit`). Per sample of marker m and window s the three coordinates give
+    ``‖x − x̂‖² − Nσ² + 2σ² tr S`` is an unbiased estimate of the risk ``E‖x̂ − x*‖²``
+    (Stein 1981, *Ann. Statist.* 9(6); for a linear smoother it is Mallows' C_p, Hastie,
+    Tibshirani & Friedman, *Elements of Statistical Learning* §7.5); the local polynomial
+    fit's trace terms are its hat values h(t) (:func:`_local_fit`). Per sample of marker m and window s the three coordinates give
 
         r_t(s) = ‖x_t − x̂_t(s)‖² + 6σ² h_t(s)     (the −3σ² the same for every s),
 
