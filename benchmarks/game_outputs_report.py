@@ -261,9 +261,7 @@ def map_scores(model, gt, tex, actor, store: dict) -> dict:
     """The maps alone: each row's displacement map against the ground truth's map relative
     to the same (ground-truth) mesh, ``displacement − vertex_detail_map`` (what the scans'
     maps hold), face texels, no high-pass: Pearson r and RMS / RMS(truth)."""
-    from service.samples.dataset import vertex_detail_map
-
-    truth = tex.texels(gt.displacement - vertex_detail_map(actor, gt.vertices, gt.medium, tex.H))
+    truth = tex.truth_map(actor, gt)
     rows = {"stress blend (tracked mesh)": tex.texels(store["tracked"]["displacement"]),
             "engine: masks × weights (tracked mesh)": tex.texels(model.engine_maps(store["tracked"]["wrinkle_weights"])),
             "static neutral map": np.broadcast_to(tex.texels(model.displacement[0]), truth.shape)}

@@ -53,7 +53,7 @@ shape-space model and rig registration in shape_space_report's cache, all keyed 
 actor's files. A method that fails on an input (e.g. occluded markers) gets a row saying so.
 
 Run: ``python benchmarks/generalization_report.py [--actor a=DIR] [--actor b=DIR]
-[--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA] [--pdm-only]
+[--frames K] [--retrain] [--marker-filter S] [--marker-noise SIGMA] [--split] [--pdm-only]
 [--pdm-params JSON] [--regression S[:R] ...] [--pose-space-params JSON] [--out DIR]`` (``--pdm-params '{"neutral_anchor": true}'``: other PDM training
 parameters, their models cached apart); default actors (built
 when missing, seed 1, level 0):
@@ -93,6 +93,10 @@ WPSD = "WPSD"
 DEFAULT_REGRESSION = ((RECOMMENDED_MARKER_REGRESSION, MARKER_REGRESSION_RIDGE),)
 #: the rows whose per-frame max is held against the thin shell's (issue 17: never above it)
 AGAINST_SHELL = ("PDM", "WPSD")
+#: ``--split``: each PDM, pose-space and shape-space row's detail error carried by its mesh (its
+#: mesh with the truth's map) and by its map (the truth's mesh with its map), rows named with
+#: these prefixes
+SPLIT_PARTS = ("mesh part of", "map part of")
 CONFIDENCE = "confidence"          # service.methods.confidence.CONFIDENCE (the result key)
 HEAT_MM = 2.0                     # heat-map colour range, mm
 #: a PDM frame's max error counts as above the thin shell's beyond this (the PDM's vertices
@@ -112,6 +116,18 @@ def _guard(method):
 
 class MethodFailed(Exception):
     pass
+
+
+def _once(method):
+    """``method`` answering the same markers array (the one performance's) from its last call:
+    a split row and its method's row share one synthesis."""
+    last = {}
+
+    def run(markers):
+        if last.get("key") is not markers:
+            last.update(key=markers, value=method(markers))
+        return last["value"]
+    return run
 
 
 def regression_arg(text: str) -> tuple[float, float]:
@@ -144,10 +160,11 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                     marker_filter: float | str = 0.0, marker_noise_mm: float | str = 0.0,
                     shape_space_rows: bool = True, pdm_params: dict | None = None,
                     only: set | None = None, ranges=None, conditions=None,
-                    pose_space: dict | None = None) -> dict:
+                    pose_space: dict | None = None, split: bool = False) -> dict:
     """Rows {(range, condition, method): metrics} and the worst frame's data of one family;
     ``only`` (method names), ``ranges`` and ``conditions`` restrict the rows (None: all);
-    ``pose_space``: row name → pose-space params (:func:`pose_space_variants`)."""
+    ``pose_space``: row name → pose-space params (:func:`pose_space_variants`); ``split``:
+    the :data:`SPLIT_PARTS` rows beside each PDM, pose-space and shape-space row."""
     from service.methods.pose_space import PoseSpaceModel
     from service.methods.shape_space import ShapeSpaceModel, ShapeSpaceParams
     from service.samples.dataset import load_actor
@@ -222,6 +239,13 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                 methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
             methods.update({k: (lambda m, k=k: pose_space_prediction(k, m)) for k in ps_models})
             methods = {k: m for k, m in methods.items() if wanted(k)}
+            if split:
+                truth_map = tex.truth_map(actor, gt)
+                for name in [k for k in methods if k.startswith(AGAINST_SHELL) or k in (SS_MARKERS, SS_RIG)]:
+                    methods[name] = once = _once(methods[name])
+                    mesh_part, map_part = (f"{part} {name}" for part in SPLIT_PARTS)
+                    methods[mesh_part] = lambda m, f=once, t=truth_map: (f(m)[0], t, None)
+                    methods[map_part] = lambda m, f=once, gt=gt: (gt.vertices, f(m)[1], None)
             t0 = time.perf_counter()
             try:                # every method in one pass: the ground-truth row is scored once
                 together = pdm.evaluate_performance(gt, {k: _guard(m) for k, m in methods.items()}, tex, actor,
@@ -472,6 +496,9 @@ def main() -> None:
     parser.add_argument("--pose-space-params", type=json.loads, default=None, metavar="JSON",
                         help="other WpsdParams fields, e.g. '{\"posterior_noise\": \"frame\"}': every "
                              "pose-space row also with them (named with the fields appended; cached apart)")
+    parser.add_argument("--split", action="store_true",
+                        help="beside each PDM, pose-space and shape-space row, the detail error of its mesh "
+                             "with the truth's map and of the truth's mesh with its map")
     parser.add_argument("--out", type=Path, default=OUT, metavar="DIR",
                         help=f"where the report and figures go (default {OUT}; the models stay cached there)")
     args = parser.parse_args()
@@ -499,7 +526,8 @@ def main() -> None:
                                               only is None or SS_MARKERS in only or SS_RIG in only),
                                           args.pdm_params, only, args.ranges, args.conditions,
                                           None if args.pdm_only else pose_space_variants(args.regression,
-                                                                                         args.pose_space_params))
+                                                                                         args.pose_space_params),
+                                          args.split)
         if results[family]["worst"] is not None:
             plot_worst(results[family], family, out / f"worst_family_{family}.png")
     text = report(results, frames, time.perf_counter() - t0)

@@ -265,6 +265,14 @@ class DetailTexels:
         """Covered texels (…,P) of maps (…,H,H)."""
         return image.reshape(*image.shape[:-2], -1)[..., self.index]
 
+    def truth_map(self, actor, gt) -> np.ndarray:
+        """The ground truth's map relative to its own mesh at the covered texels (k,P):
+        ``displacement − vertex_detail_map`` (what its scans' maps hold; with the truth's
+        mesh it scores the metric's floor)."""
+        from service.samples.dataset import vertex_detail_map
+
+        return self.texels(gt.displacement - vertex_detail_map(actor, gt.vertices, gt.medium, self.H))
+
     def image(self, values: np.ndarray, only_face: bool = True) -> np.ndarray:
         """(P,) texel values → (H,H) map, NaN off the covered (face) texels."""
         img = np.full(self.H * self.H, np.nan)
@@ -342,12 +350,10 @@ class DetailMetric:
     def prepared(self, gt):
         """A held-out performance (``harness.Heldout``) with the truth's normals (k,P,3), detail
         ``hp`` (k,P) and map relative to its mesh ``rel_map`` (k,P) added."""
-        from service.samples.dataset import vertex_detail_map
-
         tex = self.tex
         gt.normals = tex.normals(gt.medium, self.actor.faces)
         gt.hp = np.stack([tex.highpass(tex.texels(d)) for d in gt.displacement])
-        gt.rel_map = tex.texels(gt.displacement - vertex_detail_map(self.actor, gt.vertices, gt.medium, tex.H))
+        gt.rel_map = tex.truth_map(self.actor, gt)
         return gt
 
     def hp(self, gt, V: np.ndarray, D: np.ndarray | None) -> np.ndarray:
@@ -450,8 +456,6 @@ def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, k
     Returns {"scores": region → name → metrics, "clamped": name → mean fraction,
     "signal_rms_mm": region → GT high-passed RMS, "figure": {...}, "extra": name → extra}.
     """
-    from service.samples.dataset import vertex_detail_map
-
     normals = tex.normals(gt.medium, actor.faces)
     gt_hp = np.stack([tex.highpass(tex.texels(d)) for d in gt.displacement])       # (k,P)
     signal = {r: float(np.sqrt(np.mean(gt_hp[:, tex.regions[r]] ** 2))) for r in SCORED_REGIONS}
@@ -461,7 +465,7 @@ def evaluate_performance(gt: Heldout, methods: dict, tex: DetailTexels, actor, k
     clamped_mean, extra = {}, {}
 
     # the metric's floor: the ground truth's mesh and relative map through the same pipeline
-    relative = tex.texels(gt.displacement - vertex_detail_map(actor, gt.vertices, gt.medium, tex.H))
+    relative = tex.truth_map(actor, gt)
     methods = {GT_ROW: lambda m: (gt.vertices, relative, None), **methods}
     for name, method in methods.items():
         t0 = time.perf_counter()
