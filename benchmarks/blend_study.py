@@ -64,7 +64,7 @@ class Study(pr.DetailMetric):
             self.model = PoseSpaceModel.load(path)
         else:
             t0 = time.process_time()
-            self.model = train(actor, clips, WpsdParams())
+            self.model = train(actor, clips, WpsdParams(marker_regression=None))
             print(f"[{actor_dir.name}] WPSD trained in {time.process_time() - t0:.0f} s CPU", file=sys.stderr)
             self.model.save(path)
         H = clips[0].displacement.shape[1]

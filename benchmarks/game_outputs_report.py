@@ -526,9 +526,9 @@ def pose_space_model(actor, clips, actor_dir: Path, reuse: bool, family: str):
                   FIGURES / "models" / family / "wpsd"):
         if (saved / "manifest.json").is_file() and (reuse or saved.parent.name != family):
             m = PoseSpaceModel.load(saved)
-            if m.params == WpsdParams() and m.data.n_vertices == actor.n_vertices:
+            if m.params == WpsdParams(marker_regression=None) and m.data.n_vertices == actor.n_vertices:
                 return m
-    model = train(actor, clips, WpsdParams())
+    model = train(actor, clips, WpsdParams(marker_regression=None))
     model.save(FIGURES / "models" / family / "wpsd")
     return model
 

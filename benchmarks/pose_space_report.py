@@ -87,6 +87,10 @@ import numpy as np  # noqa: E402
 import harness as pr  # noqa: E402  (the reports' shared data, metric and baselines)
 from service.methods.pose_space.params import RECOMMENDED_MARKER_REGRESSION  # noqa: E402
 
+#: WPSD as bickel2008 prints it (the rows named "WPSD" here; the service's default adds the
+#: marker regression, issue 17: the "WPSD + regression" rows)
+AS_PRINTED = {"marker_regression": None}
+
 FIG4_FRAMES = 100
 FIG4_MAX_P = 20
 NOISE_MM = 0.3
@@ -169,7 +173,7 @@ def fig4_study(actor, clips, max_p: int) -> dict:
     nodes = node_operator(actor.faces, actor.marker_triangle, actor.marker_barycentric, n)
     node_rest = nodes @ actor.vertices
     F = graph.features(node_rest + np.einsum("nm,fmd->fnd", np.asarray(nodes @ base.basis.astype(np.float64)), u_H))
-    wp = WpsdParams(basis_size=max_p, smoothing=0.0)
+    wp = WpsdParams(basis_size=max_p, smoothing=0.0, marker_regression=None)
     alpha = edge_weights(actor.vertices, node_rest, graph)
     first = int(np.argmin(np.linalg.norm(F, axis=1)))
     sample = _even_sample(n, wp.selection_vertices)
@@ -439,7 +443,8 @@ def speed_markers(actor_dir: Path) -> np.ndarray:
     return mk[np.linspace(0, len(mk) - 1, k).round().astype(np.int64)]
 
 
-SPEED_MODELS = {"PSD": {}, "WPSD": {}, "WPSD P=6": {"basis_size": 6}, "WPSD P=20": {"basis_size": 20},
+SPEED_MODELS = {"PSD": {}, "WPSD": AS_PRINTED, "WPSD P=6": {"basis_size": 6, **AS_PRINTED},
+                "WPSD P=20": {"basis_size": 20, **AS_PRINTED},
                 "WPSD + regression": {"marker_regression": RECOMMENDED_MARKER_REGRESSION}}
 
 
@@ -527,10 +532,10 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
     pdm, train_s["PDM biquadratic"] = cached_model(models / "pdm", reuse, lambda: pdm_train(actor, clips, PdmParams(
         fine_resolution=clips[0].displacement.shape[1])),
                                                    PdmModel.load)
-    variants = {"PSD": PsdParams(), "WPSD": WpsdParams(), "WPSD P=6": WpsdParams(basis_size=6),
-                "WPSD P=20": WpsdParams(basis_size=20)}
+    variants = {"PSD": PsdParams(), "WPSD": WpsdParams(**AS_PRINTED),
+                "WPSD P=6": WpsdParams(basis_size=6, **AS_PRINTED), "WPSD P=20": WpsdParams(basis_size=20, **AS_PRINTED)}
     if quick:
-        variants = {"PSD": PsdParams(), "WPSD": WpsdParams()}
+        variants = {"PSD": PsdParams(), "WPSD": WpsdParams(**AS_PRINTED)}
     if only:
         variants = {k: v for k, v in variants.items() if k in only}
     ps = {}
@@ -591,7 +596,7 @@ def run_actor(actor_dir: Path, target_dir: Path | None, quick: bool, reuse: bool
         transfer_s = time.perf_counter() - t0
         tclips = pr.training_clips(target_dir, target)
         own, own_s = cached_model(models / f"target_{target_dir.name}_WPSD", reuse,
-                                  lambda: train(target, tclips, WpsdParams()), PoseSpaceModel.load)
+                                  lambda: train(target, tclips, WpsdParams(**AS_PRINTED)), PoseSpaceModel.load)
         del tclips
         ttex = pr.DetailTexels.build(target, moved.data.map_resolution, sigma)
         tmethods = {"thin shell (no detail)": shell_method(own),

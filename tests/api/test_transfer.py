@@ -24,8 +24,11 @@ TARGET_SHAPE, TARGET_SIZE = (14, 12), 36.0
 TARGET_MARKERS = (0, 6, 13, 42, 48, 55, 84, 90, 97, 140, 147, 153, 160, 167)
 # marker_prior "none": the markers are interpolated exactly, so the transferred model's large
 # scale must pass through the target's markers (the default posterior treats them as noisy,
-# σ = 0.3 mm, and the one-clip sheet's prior is narrow: 0.61 mm off at a marker, measured)
-WPSD = {"basis_size": 4, "selection_vertices": 128, "map_resolution": None, "marker_prior": "none"}
+# σ = 0.3 mm, and the one-clip sheet's prior is narrow: 0.61 mm off at a marker, measured);
+# marker_regression null: bickel2008's WPSD, whose corrections vanish at the markers (the
+# default regression's rows move with the correspondence: tests/methods/pose_space/test_transfer.py)
+WPSD = {"basis_size": 4, "selection_vertices": 128, "map_resolution": None, "marker_prior": "none",
+        "marker_regression": None}
 
 
 @pytest.fixture

@@ -114,7 +114,7 @@ Choices and departures (the paper is silent or differs):
   the Wiener fraction at the frame's own noise estimate times the size factor of its
   large-scale deformation u_H, 1 for a model without a learned marker prior; no separate
   occlusion term), the rule every marker-driven kind shares;
-* **marker regression** (``params.marker_regression`` = s, off by default, recommended s = 3, λ = 0.1;
+* **marker regression** (``params.marker_regression`` = s; WPSD's default s = 3, λ = 0.1, PSD's none;
   :mod:`service.geometry.marker_regression`) — before the corrections, a per-vertex ridge regression of the
   aligned offsets ``V − X`` on the markers' displacement vectors (weights exp(−d²/s²) of the
   rest distance, s in median marker spacings) is fitted and subtracted; the RBFs learn the

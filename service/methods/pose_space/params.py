@@ -32,6 +32,19 @@ RECOMMENDED_MARKER_REGRESSION = 3.0
 MARKER_REGRESSION_RIDGE = 0.1
 
 
+def _marker_regression(default: float | None, which: str):
+    """The ``marker_regression`` field, declared once for both methods; ``default`` and the
+    sentence ``which`` that says why differ (PSD: none; WPSD: issue 17, :class:`WpsdParams`)."""
+    return Field(
+        default=default, gt=0.0, le=20.0,
+        description="Learn the part of the corrections that is linear in the markers' "
+                    "displacement vectors first (marker_regression.py: per vertex a ridge "
+                    "regression on the markers, weighted by exp(−d²/s²) of their rest distance "
+                    "d), and the RBFs on what it leaves; the value is s in median nearest-marker "
+                    "spacings of the actor; null: none, bickel2008 as printed. The regression is "
+                    f"not faded by the confidence. {which}")
+
+
 class PoseSpaceParams(MarkerParams):
     """Parameters shared by PSD and WPSD (bickel2008 §5.1-5.2)."""
 
@@ -139,16 +152,7 @@ class PoseSpaceParams(MarkerParams):
                     "edge's term of the feature distance by its visibility (the share of its "
                     "nodes' shell displacement carried by visible markers) and renormalizes "
                     "α per vertex (eq. 3), so filled strains count less.")
-    marker_regression: float | None = Field(
-        default=None, gt=0.0, le=20.0,
-        description="Learn the part of the corrections that is linear in the markers' "
-                    "displacement vectors first (marker_regression.py: per vertex a ridge "
-                    "regression on the markers, weighted by exp(−d²/s²) of their rest distance "
-                    "d), and the RBFs on what it leaves; the value is s in median nearest-marker "
-                    "spacings of the actor (null, the default: no regression, bickel2008 as "
-                    f"printed; measured best: {RECOMMENDED_MARKER_REGRESSION:g}, at a cost in frame "
-                    "time and model size that grows with the mesh). The regression is not faded "
-                    "by the confidence.")
+    marker_regression: float | None = _marker_regression(None, "Default null.")
     marker_regression_ridge: float = Field(
         default=MARKER_REGRESSION_RIDGE, gt=0.0, le=10.0,
         description="Relative ridge λ of the marker regression (× the mean diagonal of each "
@@ -181,9 +185,31 @@ class PsdParams(PoseSpaceParams):
 
 
 class WpsdParams(PoseSpaceParams):
-    """Weighted pose-space deformation (bickel2008 §5.3, eq. 3-5)."""
+    """Weighted pose-space deformation (bickel2008 §5.3, eq. 3-5).
+
+    Notes
+    -----
+    ``marker_regression`` is on by default (s = 3 median marker spacings, λ = 0.1; issue 17).
+    On the generalization report's held-out performances (level 0, 8 frames each, both
+    sample families × in range / combinations / out of range × clean / noisy / occluded
+    markers) WPSD with it has a lower mean and max face vertex error, a lower detail rel err
+    and a higher detail correlation than without on all 18 rows (e.g. a in range clean 0.198
+    / 2.21 mm / 0.53 → 0.155 / 1.72 / 0.39, b combinations clean 0.295 / 5.39 / 0.91 → 0.163 /
+    2.25 / 0.65). Its cost was why it was off: measured when the regression was one sparse
+    product per frame, level 1 `mesh` went 12.5 → 62 ms. Kept low-rank with int16 rows since
+    (:class:`~service.geometry.marker_regression.MarkerRegression`), level 1 (44,786
+    vertices, 160 training frames; ``pose_space_report.py --speed-only``, load 1.0, 1
+    thread): ``mesh`` 11.8 → 11.2 ms a frame, ``mesh`` + ``displacement`` 58.8 → 48.0 ms,
+    training 87 → 106 s, the model 194 → 246 MB. The price: the confidence ranks the error
+    less well out of range (Spearman ρ a 0.89 → 0.65, b 0.75 → 0.74; issue 17 asks ≥ 0.6).
+    ``marker_regression: null`` is bickel2008 as printed.
+    """
 
     method: Literal["wpsd"] = Field(default="wpsd", description="Per-vertex weighted PSD.")
+    marker_regression: float | None = _marker_regression(
+        RECOMMENDED_MARKER_REGRESSION,
+        f"Default {RECOMMENDED_MARKER_REGRESSION:g} (issue 17): better than none on every "
+        "metric of every held-out row of both sample families, at about the same frame time.")
     polynomial: Literal["none", "linear"] = Field(
         default="linear",
         description="Polynomial term of the biharmonic RBF ([CBC*01]; polynomial.py): "

@@ -19,7 +19,8 @@ def wpsd_exact(ps_data):
     from service.methods.pose_space import WpsdParams, train
 
     actor, clips = ps_data
-    return train(actor, clips, WpsdParams(fit="exact", basis_size=5, smoothing=0.0, selection_vertices=512))
+    return train(actor, clips, WpsdParams(fit="exact", basis_size=5, smoothing=0.0, selection_vertices=512,
+                                          marker_regression=None))
 
 
 @pytest.fixture(scope="session")
