@@ -90,8 +90,9 @@ def read_model(path) -> tuple[PoseSpaceData, BaseSurface]:
     if missing:
         raise ModelCorrupt(f"{path}: model.npz lacks {missing}")
     sparse = {name: sparse_matrix(a, name) for name in SPARSE}
-    # a model stored before marker_noise_mm existed interpolated its markers exactly
-    params = parse_params({"marker_noise_mm": 0.0, **manifest["params"]})
+    # a model stored before marker_noise_mm existed interpolated its markers exactly, and one
+    # stored before marker_regression existed has none (WPSD's default is s = 3 since)
+    params = parse_params({"marker_noise_mm": 0.0, "marker_regression": None, **manifest["params"]})
     if params.method != kind:
         raise ModelCorrupt(f"{path}: params are for {params.method}, the manifest says {kind}")
     d = PoseSpaceData(params=params, **sparse, **{k: a.get(k) for k in OPTIONAL},

@@ -51,3 +51,19 @@ def test_a_directory_the_blob_store_verified_is_not_hashed_again(wpsd_exact, ps_
     markers = ps_data[1][1].markers[[2, 9]]
     assert np.array_equal(loaded.synthesize(markers, ("mesh",))["vertices"],
                           wpsd_exact.synthesize(markers, ("mesh",))["vertices"])
+
+
+def test_a_model_stored_before_the_marker_regression_existed_loads_without_it(wpsd_exact, tmp_path):
+    """Its manifest's params lack the field: it loads as bickel2008's WPSD (null), not as
+    today's default (s = 3), and equals the model it was."""
+    import json
+
+    from service.methods.pose_space import WpsdParams
+
+    assert WpsdParams().marker_regression == 3.0 and wpsd_exact.params.marker_regression is None
+    wpsd_exact.save(tmp_path / "m")
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    del man["params"]["marker_regression"]
+    (tmp_path / "m" / "manifest.json").write_text(json.dumps(man))
+    loaded = PoseSpaceModel.load(tmp_path / "m")
+    assert loaded.params == wpsd_exact.params and loaded.evaluator.data.regression is None
