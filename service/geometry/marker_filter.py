@@ -90,6 +90,13 @@ def _moments(x: np.ndarray, kernels: np.ndarray) -> np.ndarray:
     return np.stack([correlate1d(x, k, axis=0, mode="constant", cval=0.0) for k in kernels])
 
 
+def _gaussian(sigma_frames: float) -> np.ndarray:
+    """exp(−τ²/2s²) over |τ| ≤ ⌈3s⌉ frames."""
+    r = int(np.ceil(3 * sigma_frames))
+    tau = np.arange(-r, r + 1, dtype=np.float64)
+    return np.exp(-0.5 * (tau / sigma_frames) ** 2)
+
+
 def _gap_distances(visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Frames since the previous and until the next visible sample (F,M) (0 if visible; a
     large number where there is none)."""
@@ -107,9 +114,9 @@ def _local_fit(x: np.ndarray, sigma_frames: float, degree: int, min_support: int
     weight of each sample in its own estimate ((A⁻¹)₀₀: only τ = 0 puts x(t) in the
     moments, with g(0) = 1); both NaN where the fit is undefined (:func:`filter_markers`)."""
     min_support = degree + 2 if min_support is None else int(min_support)
-    r = int(np.ceil(3 * sigma_frames))
+    g = _gaussian(sigma_frames)
+    r = len(g) // 2
     tau = np.arange(-r, r + 1, dtype=np.float64)
-    g = np.exp(-0.5 * (tau / sigma_frames) ** 2)
     visible = np.isfinite(x).all(axis=2).astype(np.float64)              # (F,M)
     xv = np.where(visible[..., None] > 0, x, 0.0)
     p = degree + 1
@@ -240,12 +247,6 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
     best = np.argmin(np.stack(risks), axis=0)                                     # (F,M)
     out = np.take_along_axis(np.stack(fits), best[None, ..., None], axis=0)[0]
     return out, np.asarray(bandwidths, np.float64)[best]
-
-
-def _gaussian(sigma_frames: float) -> np.ndarray:
-    """exp(−τ²/2s²) over |τ| ≤ ⌈3s⌉."""
-    tau = np.arange(-int(np.ceil(3 * sigma_frames)), int(np.ceil(3 * sigma_frames)) + 1)
-    return np.exp(-0.5 * (tau / sigma_frames) ** 2)
 
 
 def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES, degree: int = DEGREE,
