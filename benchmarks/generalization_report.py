@@ -411,10 +411,10 @@ def confidence_rank(rows: dict) -> dict:
     return out
 
 
-def report(results: dict, frames: int | None, seconds: float) -> str:
+def report(results: dict, frames: int | None, seconds: float, settings: str = "") -> str:
     lines = ["# Generalization report (issue 17)", "",
              f"Face region; {frames or 'all'} held-out map frames per performance; "
-             "rel err = detail RMS error / detail RMS of the ground truth.", ""]
+             "rel err = detail RMS error / detail RMS of the ground truth." + (f" {settings}" if settings else ""), ""]
     for family, res in results.items():
         m = res["meta"]
         w = res["worst"]
@@ -530,7 +530,10 @@ def main() -> None:
                                           args.split)
         if results[family]["worst"] is not None:
             plot_worst(results[family], family, out / f"worst_family_{family}.png")
-    text = report(results, frames, time.perf_counter() - t0)
+    settings = [f"Markers filtered in time: {args.marker_filter}." if args.marker_filter else "",
+                f"PDMs and shape space trained with marker_noise_mm {args.marker_noise}." if args.marker_noise else "",
+                f"PDM params {json.dumps(args.pdm_params)}." if args.pdm_params else ""]
+    text = report(results, frames, time.perf_counter() - t0, " ".join(x for x in settings if x))
     print(text)
     (out / "report.md").write_text(text)
     (out / "report.json").write_text(json.dumps(
