@@ -90,6 +90,14 @@ def _moments(x: np.ndarray, kernels: np.ndarray) -> np.ndarray:
     return np.stack([correlate1d(x, k, axis=0, mode="constant", cval=0.0) for k in kernels])
 
 
+def _as_markers(markers: np.ndarray) -> np.ndarray:
+    """``markers`` as float64 (F,M,3), or a ValueError naming the shape."""
+    x = np.asarray(markers, dtype=np.float64)
+    if x.ndim != 3 or x.shape[-1] != 3:
+        raise ValueError(f"markers must be (frames, markers, 3), got {x.shape}")
+    return x
+
+
 def _gaussian(sigma_frames: float) -> np.ndarray:
     """exp(−τ²/2s²) over |τ| ≤ ⌈3s⌉ frames."""
     r = int(np.ceil(3 * sigma_frames))
@@ -174,9 +182,7 @@ def filter_markers(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES
     ------
     ValueError   wrong shape, negative or non-finite σ, degree outside 0 … 3
     """
-    x = np.asarray(markers, dtype=np.float64)
-    if x.ndim != 3 or x.shape[-1] != 3:
-        raise ValueError(f"markers must be (frames, markers, 3), got {x.shape}")
+    x = _as_markers(markers)
     if degree not in (0, 1, 2, 3):
         raise ValueError(f"degree must be 0, 1, 2 or 3, got {degree}")
     if sigma_frames == AUTO:
@@ -223,9 +229,7 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
     filtered : (F,M,3) float64
     chosen : (F,M) float64     the window s each sample took, frames
     """
-    x = np.asarray(markers, dtype=np.float64)
-    if x.ndim != 3 or x.shape[-1] != 3:
-        raise ValueError(f"markers must be (frames, markers, 3), got {x.shape}")
+    x = _as_markers(markers)
     if len(x) < 3:
         return x.copy(), np.zeros(x.shape[:2])
     if noise_mm is None:
@@ -235,18 +239,18 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
             noise_mm = 0.0
     sigma = float(noise_mm)
     visible = np.isfinite(x).all(axis=2)
-    fits, risks = [], []
+    window = _gaussian(window_frames)[None]
+    out, chosen, least = x.copy(), np.zeros(x.shape[:2]), np.full(x.shape[:2], np.inf)
     for s in bandwidths:
         fit, hat = (x, np.ones(x.shape[:2])) if s == 0 else _local_fit(x, float(s), degree, None, None)
         undefined = visible & ~np.isfinite(hat)
         fit = np.where(undefined[..., None], x, fit)
         hat = np.where(undefined, 1.0, hat)
         r = np.where(visible, np.sum((x - fit) ** 2, axis=-1) + 6.0 * sigma ** 2 * hat, 0.0)
-        fits.append(fit)
-        risks.append(_moments(r, _gaussian(window_frames)[None])[0])
-    best = np.argmin(np.stack(risks), axis=0)                                     # (F,M)
-    out = np.take_along_axis(np.stack(fits), best[None, ..., None], axis=0)[0]
-    return out, np.asarray(bandwidths, np.float64)[best]
+        risk = _moments(r, window)[0]
+        better = risk < least               # strict: the first of equal risks wins
+        out[better], chosen[better], least[better] = fit[better], s, risk[better]
+    return out, chosen
 
 
 def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES, degree: int = DEGREE,
@@ -270,9 +274,7 @@ def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FR
                                  them; a frame with fewer than 3 visible markers is
                                  returned as given (and is a gap for its neighbours)
     """
-    x = np.asarray(markers, dtype=np.float64)
-    if x.ndim != 3 or x.shape[-1] != 3:
-        raise ValueError(f"markers must be (frames, markers, 3), got {x.shape}")
+    x = _as_markers(markers)
     if sigma_frames == 0 or len(x) < 2:
         return filter_markers(x, sigma_frames, degree)
     visible = np.isfinite(x).all(axis=2)
