@@ -761,10 +761,12 @@ def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: f
     under ``models_dir``, default :data:`GENERALIZATION_MODELS`), trained with
     ``marker_noise_mm`` and the other :class:`PdmParams` fields ``params``."""
     from service.methods.pdm.model import PdmModel
+    from service.methods.pdm.params import PdmParams
     from service.samples.dataset import performance_names
 
     files = ["neutral.npz", "markers.json"] + [f"performances/{n}.npz" for n in performance_names(actor_dir, "train_")]
-    key = actor_files_key(actor_dir, *files)
+    # the defaults are part of the key: a changed default trains new models
+    key = f"{actor_files_key(actor_dir, *files)}-d{sha(PdmParams().model_dump_json(), 6)}"
     models = {}
     for order in orders or PDM_ORDERS:
         noise = marker_noise_mm if isinstance(marker_noise_mm, str) else f"{marker_noise_mm:g}"

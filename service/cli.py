@@ -411,7 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clips", nargs="*", help="performance names (default: every train_* clip)")
     p.add_argument("--order", choices=("linear", "biquadratic", "bicubic"), default="biquadratic")
     p.add_argument("--medium-resolution", type=int, default=512)
-    p.add_argument("--fine-resolution", type=int, default=1024)
+    p.add_argument("--fine-resolution", type=int, default=None,
+                   help="texels per side of the fine band (default: the clips' map resolution)")
     # defaults: PdmParams' own (not imported here: the method's import would slow every command)
     p.add_argument("--gamma", type=float,
                    help="the paper's regularization γ of ma2008 §4.2 (rows γ/σ; overrides --ridge)")

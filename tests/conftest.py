@@ -56,9 +56,11 @@ def pdm_model(pdm_data):
 
     actor, clips = pdm_data
     stages = []
-    # the polynomial medium band (ma2008), which most PDM tests are about; the default's marker
-    # regression has its own model in tests/methods/pdm/test_medium_regression.py
-    model = train(actor, clips, PdmParams(medium_resolution=256, fine_resolution=128, medium_regression=None),
+    # the polynomial medium and fine bands (ma2008), which most PDM tests are about; the
+    # defaults' marker regression and strain-driven fine band have their own models in
+    # tests/methods/pdm/test_medium_regression.py and test_strain_band.py
+    model = train(actor, clips, PdmParams(medium_resolution=256, fine_resolution=128, medium_regression=None,
+                                          fine_driver="deformation"),
                   progress=lambda f, s: stages.append((f, s)))
     model.stages = stages
     return model

@@ -14,8 +14,8 @@ Examples
 --------
 >>> kind = get_kind("pdm")
 >>> params = kind.parse_params({"order": "linear", "medium_resolution": 64})
->>> params.fine_resolution
-1024
+>>> params.medium_resolution
+64
 """
 
 from __future__ import annotations

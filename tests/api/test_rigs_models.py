@@ -78,7 +78,7 @@ def test_train_model_answers_202_with_a_queued_job(client, grid_actor, submitted
     assert submitted == [accepted["job_id"]]
     model = client.get(f"/v1/models/{accepted['model_id']}").json()
     assert (model["status"], model["kind"], model["actor_id"]) == ("training", "pdm", grid_actor)
-    assert model["params"]["order"] == "linear" and model["params"]["fine_resolution"] == 1024
+    assert model["params"]["order"] == "linear" and model["params"]["fine_resolution"] is None
     job = client.get(f"/v1/jobs/{accepted['job_id']}").json()
     assert (job["kind"], job["model_id"], job["status"]) == ("train", accepted["model_id"], "queued")
     listed = client.get(f"/v1/actors/{grid_actor}/models").json()["items"]

@@ -13,6 +13,7 @@ from service.geometry.marker_prior import MarkerPrior
 from service.geometry.marker_regression import MarkerRegression
 from service.methods.pdm.deformation import DeformationAxes, MarkerMesh
 from service.methods.pdm.params import PdmParams
+from service.methods.pdm.strain_band import StrainBand
 from service.methods.pdm.texel_band import CoefficientMap
 from service.methods.pdm.validity import ValidityData
 
@@ -55,6 +56,9 @@ class PdmData:
     medium_regression : MarkerRegression | None   the mesh's medium offsets as a marker
                                      regression (``params.medium_regression``; None: the
                                      medium polynomial)
+    fine_strain : StrainBand | None  the fine band as a polynomial of the mesh's strain
+                                     (``params.fine_driver`` "strain"; :mod:`.strain_band`;
+                                     None: ``fine`` drives it, as ma2008)
 
     The maps' texels are in row-major order (as the EXR files hold them).
     """
@@ -81,6 +85,7 @@ class PdmData:
     marker_prior: MarkerPrior | None = None
     medium_skill: np.ndarray | None = None
     medium_regression: MarkerRegression | None = None
+    fine_strain: StrainBand | None = None
 
     @property
     def n_vertices(self) -> int:

@@ -89,6 +89,7 @@ from service.geometry import marker_regression, ranges
 from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
+from service.geometry.surface_strain import StressField
 from service.geometry.thin_shell import thin_shell_basis
 from service.geometry.tangent_frames import OPERATORS as FRAME_OPERATORS
 from service.geometry.tangent_frames import FrameField, tangent_frames, uv_handedness
@@ -118,6 +119,7 @@ if TYPE_CHECKING:                          # Numba: imported where an evaluator 
     from service.methods.pdm.point_validity import PointValidity
     from service.methods.pdm.shell_mesh import ShellMesh
 from service.methods.pdm.params import PdmParams
+from service.methods.pdm.strain_band import StrainBand, StrainFit, TexelStrain, strain_order, texel_strain
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
 from service.methods.pdm.validity import (
     BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
@@ -126,6 +128,8 @@ from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE, falloff
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
+#: the fine band's resolution for clips without maps (ma2008's 1024)
+DEFAULT_FINE_RESOLUTION = 1024
 #: training frames whose largest handle displacement is at most this fraction of the
 #: largest over all frames are rest frames: their targets give the fine and albedo bands'
 #: value at zero deformation (``neutral_anchor``)
@@ -317,6 +321,11 @@ class PdmEvaluator:
     onset : callable | None         the medium band's rest onset (:func:`rest_onset`) on its
                                     compiled kernel (:func:`.point_onset.point_onset`; None
                                     without validity)
+    fine_strain : StrainBand | None  the strain-driven fine band in ``fine``'s texel order
+                                    (:mod:`.strain_band`; None: ``fine`` drives the fine band)
+    strain_field : StressField | None   the detailed neutral's strain operators
+    strain_interp : (Pf,n) CSR | None   vertices → fine texels (barycentric), ``fine``'s order
+    strain_texels : TexelStrain | None   the same as the compiled pass reads it
     """
 
     data: PdmData = dataclasses.field(repr=False)
@@ -337,6 +346,10 @@ class PdmEvaluator:
     point_validity: "PointValidity | None" = dataclasses.field(default=None, repr=False)
     onset: "Callable | None" = dataclasses.field(default=None, repr=False, compare=False)
     medium_gain: np.ndarray | None = None
+    fine_strain: StrainBand | None = None
+    strain_field: StressField | None = dataclasses.field(default=None, repr=False)
+    strain_interp: sp.csr_matrix | None = dataclasses.field(default=None, repr=False)
+    strain_texels: TexelStrain | None = dataclasses.field(default=None, repr=False)
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -424,6 +437,14 @@ class PdmEvaluator:
         validity = _validity(d, base, bands, orders, seam, shell, texel_rho)
         if validity is not None:
             validity.prepare("fine", fine.coeffs)        # the fine band's compiled validity
+        strain = {}
+        if d.fine_strain is not None:
+            interp = sparse_matrix(ops, "strain_interp")
+            if interp is None:
+                interp = interpolation_matrix(rasterize_uv(d.uv, d.uv_faces, Hf, Hf), d.faces, n)[fine.index].tocsr()
+            strain = {"fine_strain": d.fine_strain.permuted(orders["fine"]), "strain_interp": interp,
+                      "strain_texels": TexelStrain.from_csr(interp),
+                      "strain_field": StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)}
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
@@ -432,7 +453,7 @@ class PdmEvaluator:
             shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
             point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms,
                                                                                ops.get("point_box")),
-            onset=None if validity is None else point_onset, medium_gain=medium_gain(d))
+            onset=None if validity is None else point_onset, medium_gain=medium_gain(d), **strain)
 
     @property
     def bands(self) -> dict[str, TexelBand]:
@@ -473,6 +494,7 @@ class PdmEvaluator:
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
+               **({} if self.strain_interp is None else sparse_members("strain_interp", self.strain_interp)),
                **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
         for k, m in self.base.frame_field.operators().items():
             out.update(sparse_members(f"frame_field_{k}", m))
@@ -553,12 +575,28 @@ class PdmEvaluator:
         return shell_fallback(self.base, self.data.neutral_offset, self.shell_correction, self.shell_offset,
                               self.uv_vertex, u_H, X, rows)
 
-    def fine_band(self, S: np.ndarray, margin: float | None,
-                  rho: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def fine_band(self, S: np.ndarray, margin: float | None, rho: np.ndarray | None = None,
+                  medium: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Fine displacement (F,Pf) at the fine texels and the clamped fraction (F,); with ρ
-        (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`)."""
-        values, frac = self.fine.synthesize(S, margin, self._band_validity(self.fine, "fine", rho))
-        return values[..., 0], frac
+        (F,K) at the UV points, continued and faded outside the hull (:mod:`.validity`).
+
+        With a strain-driven band (``fine_strain``) the values come from the strain of the
+        head-aligned medium meshes ``medium`` (F,n,3) instead, clamped to the training
+        (``params.extrapolation_margin``, whatever ``margin`` says: the band's own guards)
+        and faded by the texels' w(ρ) (:mod:`.strain_band`)."""
+        if self.fine_strain is None:
+            values, frac = self.fine.synthesize(S, margin, self._band_validity(self.fine, "fine", rho))
+            return values[..., 0], frac
+        weight = None
+        if rho is not None:
+            v = self._band_validity(self.fine, "fine", rho)
+            weight = falloff(v.rho - 1.0, v.width, np.float32)
+        guard = self.data.params.extrapolation_margin if margin is not None or rho is not None else None
+        out, frac = np.empty((len(medium), len(self.fine.index)), np.float32), np.empty(len(medium))
+        for k, V in enumerate(medium):
+            frac[k] = self.fine_strain.compiled(self.strain_field.stress32(V), self.strain_texels, guard,
+                                                None if weight is None else weight[k], out[k])
+        return out, frac
 
     def albedo_band(self, S: np.ndarray, margin: float | None, rho: np.ndarray | None = None) -> np.ndarray:
         """Albedo (F,Pa,3) at the albedo texels; with ρ (F,K) valid as :meth:`fine_band`."""
@@ -798,12 +836,13 @@ class PdmModel:
                 out[VERTEX_CONFIDENCE][sl] *= factor[:, None].astype(np.float32)
             rho = rho if clamp else None
             out["clamped"][sl] = clamped
-            need_medium = bool(want & {"mesh_detailed", "normal_map"})
+            need_medium = bool(want & {"mesh_detailed", "normal_map"}) or (fine and ev.fine_strain is not None)
+            medium = None
             if "vertices" in out or need_medium:   # the medium mesh on the compiled kernels (.shell_mesh)
                 medium = self._medium_mesh(u_H, d1, d2, rho, sectors, pose,
                                            out["vertices"][sl] if "vertices" in out else None, need_medium)
             if fine:                            # mesh only: the fine band is not evaluated
-                disp, out["clamped"][sl] = ev.fine_band(S, margin, rho)
+                disp, out["clamped"][sl] = ev.fine_band(S, margin, rho, medium)
             if want & {"displacement", "normal_map"}:
                 fine_maps = self._fine_images(disp, out.get("displacement"), s, "normal_map" in want)
             if want & {"mesh_detailed", "normal_map"}:  # T, N of the medium mesh (float32 frames)
@@ -912,6 +951,15 @@ def mean_texel_size(actor: ActorData, H: int) -> float:
     e1, e2 = U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]
     Auv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
     return float(np.sqrt(A3 / Auv) / H)
+
+
+def fine_resolution(params: PdmParams, clips: Sequence[Clip]) -> int:
+    """The fine band's resolution: ``params.fine_resolution``, or (None) the clips' map
+    resolution, or :data:`DEFAULT_FINE_RESOLUTION` for clips without maps."""
+    if params.fine_resolution is not None:
+        return params.fine_resolution
+    maps = [c.displacement for c in clips if c.displacement is not None]
+    return int(maps[0].shape[1]) if maps else DEFAULT_FINE_RESOLUTION
 
 
 def _band_raster(actor: ActorData, H: int):
@@ -1025,7 +1073,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
 
     # ---- fine band (1D along the normal, high-pass residual)
     progress(0.45, "fine band")
-    Hf = params.fine_resolution
+    Hf = fine_resolution(params, clips)
     raster_f, idx_f, interp_f = _band_raster(actor, Hf)
     order_f, field_f = element_field(mesh, axes, idx_f, Hf)
     idx_f_stored, idx_f, interp_f = idx_f, idx_f[order_f], interp_f[order_f]
@@ -1034,12 +1082,19 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     uv_f = texel_uv(idx_f, Hf)
     f_fine = np.empty((T, len(idx_f)), np.float32)
     vert_sq = np.zeros(n)
+    strain = None
+    if params.fine_driver == "strain":       # the strain of the mesh synthesis makes (strain_band)
+        strain_field = StressField.build(detailed_neutral(base, neutral_offset), F, uv, uvf, 0)
+        strain = StrainFit(len(idx_f), strain_order(params.order))
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
         fr = base.frames(X)
-        c = medium_offsets(vertex.evaluate(dv1[t0:t1], dv2[t0:t1]), seam, neutral_offset)
-        result = X + np.einsum("fnji,fnj->fni", fr, c)
+        if regression is None:
+            c = medium_offsets(vertex.evaluate(dv1[t0:t1], dv2[t0:t1]), seam, neutral_offset)
+            result = X + np.einsum("fnji,fnj->fni", fr, c)
+        else:       # the mesh synthesis makes: the shell plus the regression's offsets
+            result = X + regression(u_H[t0:t1])
         err = pose[t0:t1].remove(world_vertices(t0, t1)) - result
         vert_sq += np.einsum("fnd,fnd->n", err, err)
         r = interp_f @ np.einsum("fnd,fnd->nf", err, fr[..., 2, :])           # (Pf,f)
@@ -1052,12 +1107,20 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
         with ThreadPoolExecutor(WORKERS) as pool:
             cols = list(pool.map(lambda k: split_f.highpass(r[:, k]), range(t1 - t0)))
         f_fine[t0:t1] = np.stack(cols)
+        if strain is not None:
+            strain.add(texel_strain(strain_field, interp_f, result), f_fine[t0:t1])
     d1, d2 = _parameters(field_f, S)
     progress(0.6, "fine band fit")
     anchor_f = _neutral_target(f_fine, rest_frames) if anchored else None
     coeffs_f = polynomial.fit(d1, d2, f_fine, params.order, anchor=anchor_f, **ridge).astype(np.float32)
     fine = CoefficientMap(Hf, idx_f_stored, _unpermute(coeffs_f, order_f))
     fine_rms = polynomial.fit_residual_rms(coeffs_f, d1, d2, f_fine)[:, 0]
+    fine_strain = None
+    if strain is not None:
+        fine_strain = strain.solve(anchor=anchor_f)
+        fine_rms = np.sqrt(strain.residual_sq(fine_strain) / T)
+        fine_strain = fine_strain.permuted(np.argsort(order_f))      # stored in row-major texel order
+        del strain
     fine_signal = np.sqrt(np.mean(f_fine.astype(np.float64) ** 2, axis=0))
     del f_fine, d1, d2
 
@@ -1098,7 +1161,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     data = PdmData(params, F, uv, uvf, base.smooth, base.handles, base.rest_markers, base.prior_scale_mm,
                    mesh, axes, weights, S, neutral_offset, medium, fine, albedo, metrics,
                    vertex_coeffs=vertex_coeffs, marker_prior=base.marker_prior,
-                   medium_regression=regression)
+                   medium_regression=regression, fine_strain=fine_strain)
     progress(0.95, "prepare")
     evaluator = PdmEvaluator.build(data, base)
     # the medium band's skill against its fallback on the training frames (fit_skill)

@@ -45,11 +45,16 @@ class PdmParams(MarkerParams):
         default=512, ge=16, le=8192, strict=True,
         description="Texels per side of the 3D medium-band PDM (the paper uses 512).",
         examples=[512])
-    fine_resolution: int = Field(
-        default=1024, ge=16, le=8192, strict=True,
+    fine_resolution: int | None = Field(
+        default=None, ge=16, le=8192, strict=True,
         description="Texels per side of the 1D fine-band PDM and of the synthesized "
-                    "displacement/normal maps (the paper uses 1024).",
-        examples=[1024])
+                    "displacement/normal maps (the paper uses 1024). Null (the default): the "
+                    "training clips' map resolution, or 1024 when they have no maps (issue 17: "
+                    "a band finer than its data learns only the data's interpolation, and "
+                    "brought back to the data's resolution it loses that much detail: level-0 "
+                    "sample actors, 512² maps, fine band 1024² → 512², held-out map part of the "
+                    "detail error 0.50 → 0.21 on family a, see README).",
+        examples=[None, 1024])
     gamma: float | None = Field(
         default=None, ge=0, allow_inf_nan=False,
         description="The paper's regularization constant γ of the per-texel least-squares fit "
@@ -124,6 +129,14 @@ class PdmParams(MarkerParams):
         description="Relative ridge of medium_regression (x the mean diagonal of each "
                     "vertex's kernel).",
         examples=[0.1])
+    fine_driver: Literal["deformation", "strain"] = Field(
+        default="strain",
+        description="What drives the fine band at synthesis: 'deformation', ma2008's polynomial "
+                    "in the texel's d1, d2; 'strain', a polynomial of the same order (linear: "
+                    "4 terms, biquadratic or bicubic: the 10 of a quadratic) in the Green "
+                    "strain of the synthesized mesh at the texel (issue 17; strain_band.py). "
+                    "fine.exr holds ma2008's fine PDM either way.",
+        examples=["strain", "deformation"])
     fine_highpass_mm: float = Field(
         default=2.0, ge=0, allow_inf_nan=False,
         description="σ on the surface, in the actor's unit, of the Gaussian whose complement "

@@ -13,7 +13,9 @@ Layout (DESIGN.md "Data and storage"):
   deformation vectors S (from which the extrapolation limits of d1, d2 are derived); with
   ``medium_regression``, its low-rank factors and means (``medium_regression_Pq``,
   ``_scale``, ``_Q``, ``_mean_u``, ``_mean_y``: :meth:`.MarkerRegression.arrays`; a model
-  stored with the full CSR matrix is truncated on reading);
+  stored with the full CSR matrix is truncated on reading); with ``fine_driver`` "strain", the
+  strain-driven fine band (``fine_strain_coeffs``, ``_scale``, ``_box``, ``_target_range``:
+  :meth:`.strain_band.StrainBand.arrays`, row-major texel order);
 * ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
   ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
   order, the medium band's ``sectors`` and ``sector_box`` against the thin shell of the
@@ -76,6 +78,7 @@ from service.methods.pdm import polynomial
 from service.methods.pdm.data import PdmData, PdmDerived
 from service.methods.pdm.deformation import DeformationAxes, marker_mesh
 from service.methods.pdm.params import PdmParams
+from service.methods.pdm.strain_band import StrainBand
 from service.methods.pdm.texel_band import CoefficientMap, CoveredTexels
 from service.methods.pdm.validity import ValidityData
 
@@ -94,6 +97,8 @@ REGRESSION = "medium_regression"
 #: the normal mapper's rasterization, the element orders, the fields' ``element`` — are read
 #: into memory, not mapped: their mapped pages would stay resident with the mapping, uncounted
 #: by the model cache (level 1: +29 MB resident, estimate/measured 1.03 -> 0.93)
+#: the prefix of the strain-driven fine band's members in ``model.npz``
+FINE_STRAIN = "fine_strain"
 READ_OPERATORS = ("op_raster_", "_order", "_field_element")
 
 
@@ -153,6 +158,7 @@ def write_model(model: PdmData, derived: PdmDerived, path) -> dict:
         **({} if model.marker_prior is None else model.marker_prior.arrays()),
         **({} if model.medium_skill is None else {"medium_skill": model.medium_skill}),
         **({} if model.medium_regression is None else model.medium_regression.arrays(REGRESSION)),
+        **({} if model.fine_strain is None else model.fine_strain.arrays(FINE_STRAIN)),
         "resolutions": np.array([model.medium.resolution, model.fine.resolution,
                                  0 if model.albedo is None else model.albedo.resolution]),
     }
@@ -209,8 +215,9 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
     # carries its digests, which Path() would drop (the files were then hashed twice)
     manifest, data = read_model_files(path, KIND, FORMAT_VERSION, mapped=lambda name: True)
     path = Path(path)
-    # a model stored before marker_noise_mm existed interpolated its markers exactly
-    params = PdmParams(**{"marker_noise_mm": 0.0, **manifest["params"]})
+    # a model stored before marker_noise_mm existed interpolated its markers exactly; one
+    # stored before fine_driver existed has ma2008's fine band only
+    params = PdmParams(**{"marker_noise_mm": 0.0, "fine_driver": "deformation", **manifest["params"]})
     a = npz_mapped(data["model.npz"])
     F, uv, uvf = a["faces"], a["uv"], a["uv_faces"]
     K = polynomial.ORDERS[params.order]
@@ -257,7 +264,8 @@ def read_model(path) -> tuple[PdmData, PdmDerived]:
                     albedo=bands["albedo"], metrics=manifest["metrics"], validity=validity,
                     vertex_coeffs=a.get("vertex_coeffs"), marker_prior=MarkerPrior.from_arrays(a),
                     medium_skill=a.get("medium_skill"),
-                    medium_regression=read_regression(a, REGRESSION))
+                    medium_regression=read_regression(a, REGRESSION),
+                    fine_strain=StrainBand.from_arrays(a, FINE_STRAIN))
     derived = PdmDerived(basis=cache.get("basis"), energy=cache.get("energy"),
                          limits={k[:-6]: cache[k] for k in cache if k.endswith("_limit")},
                          operators={k[3:]: cache[k] for k in cache if k.startswith("op_")})

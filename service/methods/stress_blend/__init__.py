@@ -3,8 +3,8 @@ course, 2014: "surface stress values [are used] to blend diffuse texture, specul
 and displacement maps from the different high-resolution expression scans per-vertex at
 run time"), with the per-region wrinkle-map weights a real-time engine plays back.
 
-Modules: :mod:`.params` (the one parameter model), :mod:`.stress` (per-vertex surface
-stress from deformation gradients), :mod:`.weights` (stress similarity → blend weights),
+Modules: :mod:`.params` (the one parameter model), :mod:`service.geometry.surface_strain`
+(per-vertex surface stress from deformation gradients), :mod:`.weights` (stress similarity → blend weights),
 :mod:`.regions` (wrinkle masks and per-frame region weights), :mod:`.data` (the stored
 data), :mod:`.model` (training, the evaluator, synthesis), :mod:`.store` (model directories).
 """

@@ -4,7 +4,7 @@ Rendering": surface stress blends the maps of the expression scans per vertex).
 Training, from clips with displacement (and albedo) maps, e.g. the sample actor's training
 clips (neutral → expression → neutral):
 
-1. the local stress (:mod:`.stress`) of every frame with maps;
+1. the local stress (:mod:`service.geometry.surface_strain`) of every frame with maps;
 2. the scans: the frame of least mean stress over all clips is the neutral scan, and each
    clip's frame of largest mean stress is that clip's expression scan (the peak), K + 1
    scans in all, each with its stress field and its maps;
@@ -51,7 +51,7 @@ from service.methods.stress_blend.data import StressBlendData
 from service.methods.stress_blend.outputs import DEFAULT_OUTPUTS, OUTPUTS
 from service.methods.stress_blend.params import StressBlendParams
 from service.methods.stress_blend.regions import RegionFit, engine_weights, region_masks
-from service.methods.stress_blend.stress import StressField
+from service.geometry.surface_strain import StressField
 from service.methods.stress_blend.weights import shepard_weights
 
 

@@ -1,6 +1,6 @@
 """Blend weights of the expression scans from the similarity of local stress.
 
-For a vertex with local stress s (:mod:`.stress`) and the scans' local stresses s_0 (the
+For a vertex with local stress s (:mod:`service.geometry.surface_strain`) and the scans' local stresses s_0 (the
 neutral) … s_K at that vertex, the distances
 
     d_k² = ‖s − s_k‖² + β² D_k²,      D_k² = mean over vertices of ‖s − s_k‖²

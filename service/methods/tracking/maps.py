@@ -73,7 +73,7 @@ import numpy as np
 
 from service.geometry import optical_flow as of
 from service.geometry.uv_raster import interpolation_matrix, rasterize_uv
-from service.methods.stress_blend.stress import StressField
+from service.geometry.surface_strain import StressField
 from service.methods.stress_blend.weights import shepard_weights
 from service.methods.tracking.graph import flow_with_confidence, resize
 from service.methods.tracking.params import TrackingParams
@@ -96,7 +96,7 @@ def stress_similarity(artist: np.ndarray, faces: np.ndarray, uv: np.ndarray, uv_
 
     Digital Ira's stress blend, as the real-time renderer computes it
     (:mod:`service.methods.stress_blend`): the local Green strain of every frame and scan
-    against the artist mesh (:class:`~service.methods.stress_blend.stress.StressField`,
+    against the artist mesh (:class:`~service.geometry.surface_strain.StressField`,
     ``smoothing`` Laplacian steps) and Shepard weights over the registered scans
     (:func:`~service.methods.stress_blend.weights.shepard_weights`, exponent ``power``,
     whole-frame share ``global_weight``). Rows sum to 1; NaN rows of ``scans`` (a scan

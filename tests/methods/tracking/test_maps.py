@@ -72,7 +72,7 @@ def test_stress_similarity_picks_the_scan_stretched_like_the_frame():
 def test_stress_similarity_is_the_stress_blend_models_weights():
     # one surface-stress measure: the tracking's kernel is stress_blend's StressField and
     # shepard_weights, called with the tracking's parameters
-    from service.methods.stress_blend.stress import StressField
+    from service.geometry.surface_strain import StressField
     from service.methods.stress_blend.weights import shepard_weights
     from service.methods.tracking.maps import stress_similarity
     V, F = _grid(9)

@@ -1,7 +1,7 @@
 import numpy as np
 
 from service.geometry.deformation_gradient import rotation_exp
-from service.methods.stress_blend.stress import StressField
+from service.geometry.surface_strain import StressField
 from tests.methods.stress_blend.synthetic import actor
 
 
@@ -44,3 +44,20 @@ def test_smoothing_keeps_uniform_stress_and_batches_frames():
     assert s.shape == (2, len(a.vertices), 3)
     np.testing.assert_allclose(s[0, :, 0], 0.5 * (1.21 - 1), atol=1e-12)
     np.testing.assert_allclose(s[1], sf.stress(X[1]), atol=0)
+
+
+def test_the_compiled_strain_is_the_numpy_strain():
+    """stress32 (the compiled kernels, service.geometry.strain_kernels) against stress on a
+    random smooth deformation, with and without smoothing: float32 rounding apart; and the
+    hand-computed uniform stretch."""
+    rng = np.random.default_rng(4)
+    for steps in (0, 2):
+        a, sf = _field(steps)
+        X = a.vertices + 2.0 * np.sin(a.vertices[:, [1, 2, 0]] / 15.0 + rng.normal(size=3))
+        want = sf.stress(X)
+        np.testing.assert_allclose(sf.stress32(X), want, atol=1e-6 * max(1.0, np.abs(want).max()))
+        assert sf.stress32(X).dtype == np.float32 and sf.smoothed == (steps > 0)
+    a, sf = _field(0)
+    s = sf.stress32(a.vertices * [1.2, 1.0, 1.0])
+    np.testing.assert_allclose(s[:, 0], 0.5 * (1.2 ** 2 - 1), atol=1e-6)
+    np.testing.assert_allclose(s[:, 1:], 0.0, atol=1e-6)

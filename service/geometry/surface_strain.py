@@ -20,6 +20,7 @@ constant stiffness).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,6 +67,28 @@ class StressField:
         for _ in range(smoothing):
             S = (step @ S).tocsr()
         return cls(V, F, rest_frames_inverse(V, F), average, frames[:, :2], S)
+
+    def stress32(self, V: np.ndarray) -> np.ndarray:
+        """:meth:`stress` of one mesh (n,3) on the compiled kernels
+        (:mod:`.strain_kernels`), float32 (n,3): the same formulas summed in another order."""
+        from service.geometry import ranges
+        from service.geometry.strain_kernels import triangle_metrics, vertex_strain   # Numba
+
+        V = np.ascontiguousarray(V, np.float64)
+        C = ranges.scratch("strain.metrics", (len(self.faces), 6), np.float64)
+        ranges.run(triangle_metrics, len(self.faces), V, self.faces, self.rest_inverse, C)
+        out = np.empty((len(V), COMPONENTS), np.float32)
+        a = self.average
+        ranges.run(vertex_strain, len(V), a.indptr, a.indices, a.data, C, self.tangent, out)
+        if self.smoothed:
+            out = (self.smoothing @ out.astype(np.float64)).astype(np.float32)
+        return out
+
+    @functools.cached_property
+    def smoothed(self) -> bool:
+        """Whether ``smoothing`` is more than the identity (``smoothing`` steps > 0)."""
+        S = self.smoothing
+        return bool((S != sp.identity(S.shape[0], format="csr")).nnz)
 
     def stress(self, frames: np.ndarray) -> np.ndarray:
         """Local stress (…,n,3) of mesh(es) (…,n,3) in vertex correspondence with the neutral."""

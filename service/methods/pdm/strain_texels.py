@@ -1,0 +1,62 @@
+"""The strain-driven fine band's per-frame texel pass, compiled (issue 23): the band of
+:mod:`.strain_band` at the 715k texels of a level-1 fine map.
+
+As NumPy passes (the sparse interpolation of the vertex strain, the monomials, one product
+per term, the guards) a level-1 frame took about 55 ms (load 2); here one pass per texel
+reads its three vertices' strains and its coefficients once. The same operations as
+:meth:`.strain_band.StrainBand.__call__` in float32, the strain summed in float32 instead
+of the CSR product's float64 (values within rounding: tests/methods/pdm/test_strain_band.py).
+Numba is imported here, so this module is imported where an evaluator is built.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(nogil=True, cache=True)
+def texel_values(lo, hi, corner, weight, strain, inv_scale, box, coeffs, target_range, margin, fade, out, clamped):
+    """Texels [lo, hi) of a strain-driven band (:mod:`service.methods.pdm.strain_band`):
+    the strain interpolated from the vertices (``corner`` (3,P) uint32, ``weight`` (3,P)
+    float32; ``strain`` (n,3) float32), scaled by ``inv_scale`` (3,), clamped to the box
+    (P,2,3) widened by ``margin`` (< 0: no guard), the polynomial of ``coeffs`` (P,K) (K = 4
+    linear, 10 biquadratic), clipped to the widened ``target_range`` (P,2) and faded by
+    ``fade`` (P,) toward the constant (empty: no fade), into ``out`` (P,) float32;
+    ``clamped`` (P,) bool marks the texels whose strain was clamped."""
+    K = coeffs.shape[1]
+    m = np.float32(margin)
+    for p in range(lo, hi):
+        c0, c1, c2 = corner[0, p], corner[1, p], corner[2, p]
+        w0, w1, w2 = weight[0, p], weight[1, p], weight[2, p]
+        x0 = (w0 * strain[c0, 0] + w1 * strain[c1, 0] + w2 * strain[c2, 0]) * inv_scale[0]
+        x1 = (w0 * strain[c0, 1] + w1 * strain[c1, 1] + w2 * strain[c2, 1]) * inv_scale[1]
+        x2 = (w0 * strain[c0, 2] + w1 * strain[c1, 2] + w2 * strain[c2, 2]) * inv_scale[2]
+        hit = False
+        if margin >= 0:
+            x0, h0 = _clamp(x0, box[p, 0, 0], box[p, 1, 0], m)
+            x1, h1 = _clamp(x1, box[p, 0, 1], box[p, 1, 1], m)
+            x2, h2 = _clamp(x2, box[p, 0, 2], box[p, 1, 2], m)
+            hit = h0 or h1 or h2
+        a = coeffs[p]
+        v = a[0] + a[1] * x0 + a[2] * x1 + a[3] * x2
+        if K == 10:
+            v += (a[4] * x0 * x0 + a[5] * x1 * x1 + a[6] * x2 * x2
+                  + a[7] * x0 * x1 + a[8] * x0 * x2 + a[9] * x1 * x2)
+        if margin >= 0:
+            v, _ = _clamp(v, target_range[p, 0], target_range[p, 1], m)
+        if fade.shape[0]:
+            v = a[0] + fade[p] * (v - a[0])
+        out[p] = v
+        clamped[p] = hit
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _clamp(x, lo, hi, margin):
+    """x clamped to [lo, hi] widened by ``margin`` × (hi − lo) on each side; whether it was."""
+    pad = margin * (hi - lo)
+    if x < lo - pad:
+        return lo - pad, True
+    if x > hi + pad:
+        return hi + pad, True
+    return x, False
