@@ -43,6 +43,13 @@ Departures and choices (the paper is silent or differs):
   bermano2014 §7 shows the artefacts of extrapolating detail; the limit holds the detail
   of the most extreme trained expression instead. A per-axis box would not do: its
   corners are (d1, d2) pairs no training frame visited;
+* the fine band (issue 17, failure mode 2): its targets are the residual of the mesh synthesis
+  makes (with ``medium_regression``, the regression's mesh, not the medium polynomial's it
+  replaces: held-out map part of the detail error a 0.52 → 0.51, b 0.58 → 0.57 in range);
+  it is learned at the training maps' own resolution unless ``fine_resolution`` says
+  otherwise, and by default (``fine_driver`` "strain") driven by the Green strain of the
+  synthesized mesh at the texel rather than by d1, d2 (:mod:`.strain_band`, the measurements
+  there); ``fine.exr`` holds ma2008's (d1, d2) fine PDM either way, for renderers;
 * coefficients are rounded to float32 when training ends (the stored precision), so a
   saved and reloaded model synthesizes bit-identical results;
 * ``medium_regression`` (issue 17, s = 4 by default; null: the polynomial): the mesh's medium offsets, head-aligned,
