@@ -126,7 +126,7 @@ if TYPE_CHECKING:                          # Numba: imported where an evaluator 
     from service.methods.pdm.point_validity import PointValidity
     from service.methods.pdm.shell_mesh import ShellMesh
 from service.methods.pdm.params import PdmParams
-from service.methods.pdm.strain_band import StrainBand, StrainFit, TexelStrain, strain_order, texel_strain
+from service.methods.pdm.strain_band import StrainBand, StrainFit, TexelFade, TexelStrain, strain_order
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
 from service.methods.pdm.validity import (
     BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
@@ -333,6 +333,8 @@ class PdmEvaluator:
     strain_field : StressField | None   the detailed neutral's strain operators
     strain_interp : (Pf,n) CSR | None   vertices → fine texels (barycentric), ``fine``'s order
     strain_texels : TexelStrain | None   the same as the compiled pass reads it
+    strain_rho : TexelStrain | None     the UV points' ρ → fine texels (float64 weights: the
+                                    validity's operator) for the strain band's fade
     """
 
     data: PdmData = dataclasses.field(repr=False)
@@ -357,6 +359,7 @@ class PdmEvaluator:
     strain_field: StressField | None = dataclasses.field(default=None, repr=False)
     strain_interp: sp.csr_matrix | None = dataclasses.field(default=None, repr=False)
     strain_texels: TexelStrain | None = dataclasses.field(default=None, repr=False)
+    strain_rho: TexelStrain | None = dataclasses.field(default=None, repr=False)
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -451,6 +454,8 @@ class PdmEvaluator:
                 interp = interpolation_matrix(rasterize_uv(d.uv, d.uv_faces, Hf, Hf), d.faces, n)[fine.index].tocsr()
             strain = {"fine_strain": d.fine_strain.permuted(orders["fine"]), "strain_interp": interp,
                       "strain_texels": TexelStrain.from_csr(interp),
+                      "strain_rho": None if validity is None else TexelStrain.from_csr(validity.texel_rho["fine"],
+                                                                                       np.float64),
                       "strain_field": StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)}
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
@@ -590,19 +595,19 @@ class PdmEvaluator:
         With a strain-driven band (``fine_strain``) the values come from the strain of the
         head-aligned medium meshes ``medium`` (F,n,3) instead, clamped to the training
         (``params.extrapolation_margin``, whatever ``margin`` says: the band's own guards)
-        and faded by the texels' w(ρ) (:mod:`.strain_band`)."""
+        and faded by the texels' w(ρ) (:mod:`.strain_band`); the fraction is of the vertices
+        whose strain was clamped."""
         if self.fine_strain is None:
             values, frac = self.fine.synthesize(S, margin, self._band_validity(self.fine, "fine", rho))
             return values[..., 0], frac
-        weight = None
-        if rho is not None:
-            v = self._band_validity(self.fine, "fine", rho)
-            weight = falloff(v.rho - 1.0, v.width, np.float32)
         guard = self.data.params.extrapolation_margin if margin is not None or rho is not None else None
         out, frac = np.empty((len(medium), len(self.fine.index)), np.float32), np.empty(len(medium))
         for k, V in enumerate(medium):
-            frac[k] = self.fine_strain.compiled(self.strain_field.stress32(V), self.strain_texels, guard,
-                                                None if weight is None else weight[k], out[k])
+            fade = None
+            if rho is not None and np.max(rho[k]) > 1:   # else every texel's ρ ≤ 1: w = 1
+                op = self.strain_rho
+                fade = TexelFade(op.corner, op.weight, rho[k], self.validity.width)
+            frac[k] = self.fine_strain.compiled(self.strain_field.stress32(V), self.strain_texels, guard, fade, out[k])
         return out, frac
 
     def albedo_band(self, S: np.ndarray, margin: float | None, rho: np.ndarray | None = None) -> np.ndarray:
@@ -1092,7 +1097,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
     strain = None
     if params.fine_driver == "strain":       # the strain of the mesh synthesis makes (strain_band)
         strain_field = StressField.build(detailed_neutral(base, neutral_offset), F, uv, uvf, 0)
-        strain = StrainFit(len(idx_f), strain_order(params.order))
+        strain = StrainFit(len(idx_f), n, strain_order(params.order))
     for t0 in range(0, T, FRAME_CHUNK):
         t1 = min(t0 + FRAME_CHUNK, T)
         X = base.deform(u_H[t0:t1])
@@ -1115,7 +1120,7 @@ def train(actor: ActorData, clips: Sequence[Clip], params: PdmParams = PdmParams
             cols = list(pool.map(lambda k: split_f.highpass(r[:, k]), range(t1 - t0)))
         f_fine[t0:t1] = np.stack(cols)
         if strain is not None:
-            strain.add(texel_strain(strain_field, interp_f, result), f_fine[t0:t1])
+            strain.add(strain_field.stress(result), interp_f, f_fine[t0:t1])
     d1, d2 = _parameters(field_f, S)
     progress(0.6, "fine band fit")
     anchor_f = _neutral_target(f_fine, rest_frames) if anchored else None

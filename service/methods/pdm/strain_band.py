@@ -27,8 +27,9 @@ training frames, so features mean the same at both ends.
 
 Guards, so a pose outside the training does not extrapolate a polynomial:
 
-* the features are clamped per texel to the box of its training strains, widened by
-  ``margin`` × its extent on each side (``extrapolation_margin``; None: not clamped);
+* the strains are clamped per vertex to the box of its training strains, widened by
+  ``margin`` × its extent on each side (``extrapolation_margin``; None: not clamped), before
+  they are taken to the texels;
 * the value is clipped to the range of the texel's training targets, widened the same way;
 * with the medium band's validity ρ (:mod:`.validity`), the value fades by w(ρ) toward
   f_p(0) = a_p,0, the neutral's fine value (the static neutral map):
@@ -52,7 +53,7 @@ a      combinations 0.66 = 0.43/0.51  0.47 = 0.43/0.21  0.46 = 0.43/0.18
 a      out of range 0.48 = 0.10/0.48  0.24 = 0.10/0.22  0.22 = 0.10/0.21
 b      in range     0.59 = 0.15/0.57  0.35 = 0.15/0.33  0.24 = 0.15/0.21
 b      combinations 0.85 = 0.58/0.64  0.76 = 0.58/0.51  0.67 = 0.58/0.36
-b      out of range 0.55 = 0.13/0.53  0.44 = 0.13/0.42  0.26 = 0.13/0.24
+b      out of range 0.55 = 0.13/0.53  0.44 = 0.13/0.42  0.26 = 0.13/0.23
 ====== ============ ================= ================= =================
 
 The albedo PTM (§6) keeps d1, d2.
@@ -73,23 +74,13 @@ TERM_POWERS = {
 #: λ of the per-texel ridge, relative to tr(G_p)/K (module docstring: chosen on family a)
 RIDGE = 1e-3
 #: the stored fields, in the constructor's order (:meth:`StrainBand.arrays`)
-MEMBERS = ("coeffs", "scale", "box", "target_range")
+MEMBERS = ("coeffs", "scale", "vertex_box", "target_range")
 
 
 def strain_order(order: str) -> str:
     """The strain band's order for a PDM of ``order`` (bicubic: the biquadratic's 10 terms,
     already as many as a cubic in d1, d2)."""
     return "linear" if order == "linear" else "biquadratic"
-
-
-def texel_strain(field, interp, vertices: np.ndarray) -> np.ndarray:
-    """Strains (F,P,3) float32 at P texels of meshes (F,n,3) (or one mesh (n,3): (P,3)):
-    ``field`` a :class:`~service.geometry.surface_strain.StressField` of the neutral, ``interp``
-    (P,n) the texels' barycentric interpolation of the vertices."""
-    s = field.stress(vertices)
-    if s.ndim == 2:
-        return (interp @ s).astype(np.float32)
-    return np.stack([interp @ x for x in s]).astype(np.float32)
 
 
 def monomials(x: np.ndarray, order: str) -> np.ndarray:
@@ -107,17 +98,17 @@ def monomials(x: np.ndarray, order: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class StrainBand:
-    """A strain-driven scalar band over P texels (module docstring).
+    """A strain-driven scalar band over P texels of an n-vertex mesh (module docstring).
 
-    coeffs : (P,K) float32        a_p,k, mm (term order of :data:`TERM_POWERS`)
-    scale : (3,) float64          σ, the training RMS of each strain component
-    box : (P,2,3) float32         the training features' lower and upper bounds (scaled)
-    target_range : (P,2) float32  the training targets' lower and upper bounds, mm
+    coeffs : (P,K) float32          a_p,k, mm (term order of :data:`TERM_POWERS`)
+    scale : (3,) float64            σ, the training RMS of each strain component at the texels
+    vertex_box : (n,2,3) float32    each vertex's training strains' lower and upper bounds
+    target_range : (P,2) float32    the training targets' lower and upper bounds, mm
     """
 
     coeffs: np.ndarray
     scale: np.ndarray
-    box: np.ndarray
+    vertex_box: np.ndarray
     target_range: np.ndarray
 
     @property
@@ -126,22 +117,38 @@ class StrainBand:
 
     def permuted(self, order: np.ndarray) -> "StrainBand":
         """The band with its texels in ``order`` (P,) (indices into these texels)."""
-        return StrainBand(np.ascontiguousarray(self.coeffs[order]), self.scale,
-                          np.ascontiguousarray(self.box[order]), np.ascontiguousarray(self.target_range[order]))
+        return StrainBand(np.ascontiguousarray(self.coeffs[order]), self.scale, self.vertex_box,
+                          np.ascontiguousarray(self.target_range[order]))
 
-    def __call__(self, strain: np.ndarray, margin: float | None,
-                 weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Values (F,P) float32 at the texels' strains (F,P,3), and the fraction (F,) of texels
-        whose strain was clamped; ``margin`` widens the guards (None: no guard), ``weight``
-        (F,P) in [0, 1] fades toward a_0 (module docstring)."""
-        x = (np.asarray(strain, np.float32) / self.scale.astype(np.float32))
-        clamped = np.zeros(len(x))
-        if margin is not None:
-            lo, hi = self.box[:, 0], self.box[:, 1]
+    def clamp(self, strain: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Vertex strains (…,n,3) float32 clamped to the vertices' training box widened by
+        ``margin`` × its extent (None: unchanged), and the fraction (…) of vertices clamped."""
+        strain = np.asarray(strain, np.float32)
+        if margin is None:
+            return strain, np.zeros(strain.shape[:-2])
+        lo, hi = self._widened(float(margin))
+        out = np.minimum(np.maximum(strain, lo), hi)
+        return out, np.count_nonzero((out != strain).any(axis=-1), axis=-1) / max(strain.shape[-2], 1)
+
+    def _widened(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
+        """The vertex box (n,3) float32 lower and upper bounds widened by ``margin`` (made
+        once per margin: a frame's clamp is then two passes over n × 3)."""
+        cache = self.__dict__.setdefault("_widened_by", {})     # frozen: not a field
+        if margin not in cache:
+            lo, hi = self.vertex_box[:, 0], self.vertex_box[:, 1]
             pad = np.float32(margin) * (hi - lo)
-            xc = np.clip(x, lo - pad, hi + pad)
-            clamped = np.count_nonzero((xc != x).any(axis=-1), axis=-1) / max(x.shape[1], 1)
-            x = xc
+            cache[margin] = (lo - pad, hi + pad)
+        return cache[margin]
+
+    def __call__(self, strain: np.ndarray, interp, margin: float | None,
+                 weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Values (F,P) float32 for vertex strains (F,n,3) taken to the texels by ``interp``
+        (P,n), and the fraction (F,) of vertices whose strain was clamped; ``margin`` widens
+        the guards (None: no guard), ``weight`` (F,P) in [0, 1] fades toward a_0 (module
+        docstring)."""
+        strain, clamped = self.clamp(strain, margin)
+        x = np.stack([interp @ s.astype(np.float64) for s in strain]).astype(np.float32)
+        x /= self.scale.astype(np.float32)
         v = np.einsum("fpk,pk->fp", monomials(x, self.order), self.coeffs)
         if margin is not None:
             lo, hi = self.target_range[:, 0], self.target_range[:, 1]
@@ -153,23 +160,24 @@ class StrainBand:
         return v.astype(np.float32, copy=False), clamped
 
     def compiled(self, strain: np.ndarray, texels: "TexelStrain", margin: float | None,
-                 fade: np.ndarray | None, out: np.ndarray) -> float:
+                 fade: "TexelFade | None", out: np.ndarray) -> float:
         """One frame of :meth:`__call__` on the compiled pass (:mod:`.strain_texels`): the
-        vertices' strain (n,3) float32 taken to the texels by ``texels``, the values into
-        ``out`` (P,) float32; the fraction of texels clamped."""
+        vertices' strain (n,3) clamped, taken to the texels by ``texels``, faded by ``fade``
+        (None: not faded), the values into ``out`` (P,) float32; the fraction of vertices
+        clamped."""
         from service.geometry import ranges
         from service.methods.pdm.strain_texels import texel_values     # Numba: loaded on first use
 
-        P = len(self.coeffs)
-        clamped = ranges.scratch("pdm.strain_clamped", (P,), np.bool_)
-        fade = np.empty(0, np.float32) if fade is None else np.ascontiguousarray(fade, np.float32)
-        ranges.run(texel_values, P, texels.corner, texels.weight, np.ascontiguousarray(strain, np.float32),
-                   (1.0 / self.scale).astype(np.float32), self.box, self.coeffs, self.target_range,
-                   -1.0 if margin is None else float(margin), fade, out, clamped)
-        return float(np.count_nonzero(clamped)) / max(P, 1)
+        strain, clamped = self.clamp(strain, margin)
+        f = NO_FADE if fade is None else fade
+        ranges.run(texel_values, len(self.coeffs), texels.corner, texels.weight, np.ascontiguousarray(strain),
+                   (1.0 / self.scale).astype(np.float32), self.coeffs, self.target_range,
+                   -1.0 if margin is None else float(margin), f.corner, f.weight,
+                   np.ascontiguousarray(f.point_rho, np.float64), f.width, out)
+        return float(clamped)
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        """The model-file members ``PREFIX_coeffs``, ``_scale``, ``_box``, ``_target_range``."""
+        """The model-file members ``PREFIX_coeffs``, ``_scale``, ``_vertex_box``, ``_target_range``."""
         return {f"{prefix}_{k}": getattr(self, k) for k in MEMBERS}
 
     @classmethod
@@ -189,13 +197,14 @@ class TexelStrain:
     weight: np.ndarray
 
     @classmethod
-    def from_csr(cls, interp) -> "TexelStrain":
-        """From the interpolation CSR (P,n) of at most 3 entries a row."""
+    def from_csr(cls, interp, dtype=np.float32) -> "TexelStrain":
+        """From the interpolation CSR (P,n) of at most 3 entries a row (weights as ``dtype``)."""
+        interp = interp.tocsr()
         P = interp.shape[0]
         counts = np.diff(interp.indptr)
         if len(counts) and counts.max() > 3:
             raise ValueError(f"a texel interpolates {counts.max()} vertices, at most 3 expected")
-        corner, weight = np.zeros((3, P), np.uint32), np.zeros((3, P), np.float32)
+        corner, weight = np.zeros((3, P), np.uint32), np.zeros((3, P), dtype)
         for j in range(3):
             has = counts > j
             pos = interp.indptr[:-1][has] + j
@@ -203,12 +212,28 @@ class TexelStrain:
         return cls(corner, weight)
 
 
+@dataclass(frozen=True)
+class TexelFade:
+    """One frame's fade for the compiled pass: the UV points' gauge ``point_rho`` (Q,) float64,
+    the ρ operator to the texels padded (``corner`` (3,P) uint32, ``weight`` (3,P) float64:
+    :class:`.texel_validity.TexelValidity`'s) and the falloff's ``width``."""
+
+    corner: np.ndarray
+    weight: np.ndarray
+    point_rho: np.ndarray
+    width: float
+
+
+#: the compiled pass's "no fade" (width < 0)
+NO_FADE = TexelFade(np.zeros((3, 0), np.uint32), np.zeros((3, 0)), np.zeros(0), -1.0)
+
+
 class StrainFit:
     """Accumulates the per-texel normal equations over chunks of training frames, in raw
     strain units (σ is known only at the end; the monomials' scaling is applied to the sums
-    then), with the features' box and the targets' range."""
+    then), with the vertices' strain box and the targets' range."""
 
-    def __init__(self, points: int, order: str):
+    def __init__(self, points: int, vertices: int, order: str):
         self.order = order
         K = len(TERM_POWERS[order])
         self.G = np.zeros((points, K, K))
@@ -216,25 +241,27 @@ class StrainFit:
         self.yy = np.zeros(points)
         self.sq = np.zeros(3)
         self.count = 0
-        self.box = np.stack([np.full((points, 3), np.inf), np.full((points, 3), -np.inf)], axis=1)
+        self.box = np.stack([np.full((vertices, 3), np.inf), np.full((vertices, 3), -np.inf)], axis=1)
         self.range = np.stack([np.full(points, np.inf), np.full(points, -np.inf)], axis=1)
 
-    def add(self, strain: np.ndarray, targets: np.ndarray) -> None:
-        """Frames' strains (f,P,3) and targets (f,P) at the texels."""
-        s = np.asarray(strain, np.float64)
+    def add(self, strain: np.ndarray, interp, targets: np.ndarray) -> None:
+        """Frames' vertex strains (f,n,3), taken to the texels by ``interp`` (P,n), and their
+        targets (f,P) at the texels."""
+        strain = np.asarray(strain, np.float32)
+        np.minimum(self.box[:, 0], strain.min(axis=0), out=self.box[:, 0])
+        np.maximum(self.box[:, 1], strain.max(axis=0), out=self.box[:, 1])
+        np.minimum(self.range[:, 0], np.min(targets, axis=0), out=self.range[:, 0])
+        np.maximum(self.range[:, 1], np.max(targets, axis=0), out=self.range[:, 1])
         K = self.G.shape[1]
-        for x, y in zip(s, np.asarray(targets, np.float64)):        # a frame at a time: (P,K) terms
+        for v, y in zip(strain, np.asarray(targets, np.float64)):     # a frame at a time: (P,K) terms
+            x = interp @ v.astype(np.float64)
             X = monomials(x, self.order)
             for k in range(K):                                     # the upper triangle, mirrored
                 self.G[:, k, k:] += X[:, k:] * X[:, k, None]
             self.b += X * y[:, None]
             self.yy += y * y
-        self.sq += np.einsum("fpc,fpc->c", s, s)
-        self.count += s.shape[0] * s.shape[1]
-        np.minimum(self.box[:, 0], s.min(axis=0), out=self.box[:, 0])
-        np.maximum(self.box[:, 1], s.max(axis=0), out=self.box[:, 1])
-        np.minimum(self.range[:, 0], np.min(targets, axis=0), out=self.range[:, 0])
-        np.maximum(self.range[:, 1], np.max(targets, axis=0), out=self.range[:, 1])
+            self.sq += np.einsum("pc,pc->c", x, x)
+            self.count += len(x)
 
     def solve(self, ridge: float = RIDGE, anchor: np.ndarray | None = None) -> StrainBand:
         """The band of least ridge error (module docstring); with ``anchor`` (P,) the constant
@@ -256,7 +283,7 @@ class StrainFit:
         lam = ridge * np.einsum("pkk->p", G) / K
         G[:, np.arange(K), np.arange(K)] += np.maximum(lam, 1e-30)[:, None]
         coeffs[:, free:] = np.linalg.solve(G, b[..., None])[..., 0]
-        return StrainBand(coeffs.astype(np.float32), scale, (self.box / scale).astype(np.float32),
+        return StrainBand(coeffs.astype(np.float32), scale, self.box.astype(np.float32),
                           self.range.astype(np.float32))
 
     def _mirror(self) -> None:

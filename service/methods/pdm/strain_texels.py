@@ -14,16 +14,21 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from service.methods.pdm.texel_validity import _rho
+
 
 @njit(nogil=True, cache=True)
-def texel_values(lo, hi, corner, weight, strain, inv_scale, box, coeffs, target_range, margin, fade, out, clamped):
+def texel_values(lo, hi, corner, weight, strain, inv_scale, coeffs, target_range, margin,
+                 rho_corner, rho_weight, point_rho, width, out):
     """Texels [lo, hi) of a strain-driven band (:mod:`service.methods.pdm.strain_band`):
-    the strain interpolated from the vertices (``corner`` (3,P) uint32, ``weight`` (3,P)
-    float32; ``strain`` (n,3) float32), scaled by ``inv_scale`` (3,), clamped to the box
-    (P,2,3) widened by ``margin`` (< 0: no guard), the polynomial of ``coeffs`` (P,K) (K = 4
-    linear, 10 biquadratic), clipped to the widened ``target_range`` (P,2) and faded by
-    ``fade`` (P,) toward the constant (empty: no fade), into ``out`` (P,) float32;
-    ``clamped`` (P,) bool marks the texels whose strain was clamped."""
+    the (already clamped) vertex strain interpolated (``corner`` (3,P) uint32, ``weight``
+    (3,P) float32; ``strain`` (n,3) float32), scaled by ``inv_scale`` (3,), the polynomial of
+    ``coeffs`` (P,K) (K = 4 linear, 10 biquadratic), clipped to ``target_range`` (P,2)
+    widened by ``margin`` (< 0: no clip) and faded toward the constant by w(ρ), ρ the texel's
+    gauge from the UV points' ``point_rho`` (Q,) float64 through ``rho_corner`` (3,P) uint32,
+    ``rho_weight`` (3,P) float64 (:func:`.texel_validity._rho`) and w the smoothstep falloff
+    of ``width`` (:func:`service.methods.confidence.falloff`; ``width`` < 0: no fade), into
+    ``out`` (P,) float32."""
     K = coeffs.shape[1]
     m = np.float32(margin)
     for p in range(lo, hi):
@@ -32,31 +37,26 @@ def texel_values(lo, hi, corner, weight, strain, inv_scale, box, coeffs, target_
         x0 = (w0 * strain[c0, 0] + w1 * strain[c1, 0] + w2 * strain[c2, 0]) * inv_scale[0]
         x1 = (w0 * strain[c0, 1] + w1 * strain[c1, 1] + w2 * strain[c2, 1]) * inv_scale[1]
         x2 = (w0 * strain[c0, 2] + w1 * strain[c1, 2] + w2 * strain[c2, 2]) * inv_scale[2]
-        hit = False
-        if margin >= 0:
-            x0, h0 = _clamp(x0, box[p, 0, 0], box[p, 1, 0], m)
-            x1, h1 = _clamp(x1, box[p, 0, 1], box[p, 1, 1], m)
-            x2, h2 = _clamp(x2, box[p, 0, 2], box[p, 1, 2], m)
-            hit = h0 or h1 or h2
         a = coeffs[p]
         v = a[0] + a[1] * x0 + a[2] * x1 + a[3] * x2
         if K == 10:
             v += (a[4] * x0 * x0 + a[5] * x1 * x1 + a[6] * x2 * x2
                   + a[7] * x0 * x1 + a[8] * x0 * x2 + a[9] * x1 * x2)
         if margin >= 0:
-            v, _ = _clamp(v, target_range[p, 0], target_range[p, 1], m)
-        if fade.shape[0]:
-            v = a[0] + fade[p] * (v - a[0])
+            v = _clamp(v, target_range[p, 0], target_range[p, 1], m)
+        if width >= 0:
+            e = _rho(p, point_rho, rho_corner, rho_weight) - np.float32(1)
+            if e > 0:                                   # else w = 1
+                w = np.float32(0)
+                if width > 0:
+                    t = min(e / np.float32(width), np.float32(1))
+                    w = np.float32(1) - t * t * (np.float32(3) - np.float32(2) * t)
+                v = a[0] + w * (v - a[0])
         out[p] = v
-        clamped[p] = hit
 
 
 @njit(nogil=True, cache=True, inline="always")
 def _clamp(x, lo, hi, margin):
-    """x clamped to [lo, hi] widened by ``margin`` × (hi − lo) on each side; whether it was."""
+    """x clamped to [lo, hi] widened by ``margin`` × (hi − lo) on each side."""
     pad = margin * (hi - lo)
-    if x < lo - pad:
-        return lo - pad, True
-    if x > hi + pad:
-        return hi + pad, True
-    return x, False
+    return min(max(x, lo - pad), hi + pad)

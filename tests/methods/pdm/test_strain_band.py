@@ -3,6 +3,7 @@ the synthesized mesh's strain (service.methods.pdm.strain_band)."""
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from service.methods.pdm.model import PdmModel, PdmParams, train
 from service.methods.pdm.strain_band import TERM_POWERS, StrainFit, monomials
@@ -15,12 +16,16 @@ SMALL = dict(medium_resolution=64, fine_resolution=128)
 # the fit and the guards, hand-computed
 
 def _known(order, P=50, T=40, seed=0):
-    """Strains (T,P,3) of a few per cent and targets of known coefficients a (P,K) in the
-    scaled features."""
+    """Strains (T,P,3) float32 of a few per cent and coefficients a (P,K) of known targets in
+    the scaled features (one texel per vertex: the interpolation is the identity, ``EYE``)."""
     rng = np.random.default_rng(seed)
-    s = rng.normal(0, 0.03, (T, P, 3)) * np.array([1.0, 2.0, 0.5])
+    s = (rng.normal(0, 0.03, (T, P, 3)) * np.array([1.0, 2.0, 0.5])).astype(np.float32)
     a = rng.normal(0, 0.1, (P, len(TERM_POWERS[order])))
     return s, a
+
+
+def _eye(P):
+    return sp.identity(P, format="csr")
 
 
 @pytest.mark.parametrize("order", ["linear", "biquadratic"])
@@ -28,19 +33,20 @@ def test_the_fit_recovers_a_known_polynomial(order):
     """Targets that are a polynomial of the scaled strains are fitted back to 1e-5 (the ridge
     1e-9), residual ≈ 0; the box and range are the data's."""
     s, a = _known(order)
-    fit = StrainFit(s.shape[1], order)
-    scale = np.sqrt(np.mean(s.reshape(-1, 3) ** 2, axis=0))
+    P = s.shape[1]
+    fit = StrainFit(P, P, order)
+    scale = np.sqrt(np.mean(s.astype(np.float64).reshape(-1, 3) ** 2, axis=0))
     y = np.einsum("tpk,pk->tp", monomials(s / scale, order), a)
     for t in range(0, len(s), 16):                      # chunks, as training adds them
-        fit.add(s[t:t + 16], y[t:t + 16])
+        fit.add(s[t:t + 16], _eye(P), y[t:t + 16])
     band = fit.solve(ridge=1e-9)
-    np.testing.assert_allclose(band.scale, scale, rtol=1e-12)
+    np.testing.assert_allclose(band.scale, scale, rtol=1e-10)
     np.testing.assert_allclose(band.coeffs, a, atol=1e-5)
     assert fit.residual_sq(band).max() < 1e-8
-    np.testing.assert_allclose(band.box[:, 0], (s / scale).min(axis=0), rtol=1e-6)
+    np.testing.assert_array_equal(band.vertex_box[:, 0], s.min(axis=0))
     np.testing.assert_allclose(band.target_range[:, 1], y.max(axis=0), rtol=1e-6)
     # unguarded evaluation is the polynomial
-    v, clamped = band(s[:3], None)
+    v, clamped = band(s[:3], _eye(P), None)
     np.testing.assert_allclose(v, y[:3], atol=1e-5)
     assert not clamped.any()
 
@@ -50,38 +56,41 @@ def test_the_anchor_fixes_the_constant_and_fits_the_rest():
     s, a = _known("linear", seed=1)
     scale = np.sqrt(np.mean(s.reshape(-1, 3) ** 2, axis=0))
     y = np.einsum("tpk,pk->tp", monomials(s / scale, "linear"), a)
-    fit = StrainFit(s.shape[1], "linear")
-    fit.add(s, y)
+    P = s.shape[1]
+    fit = StrainFit(P, P, "linear")
+    fit.add(s, _eye(P), y)
     band = fit.solve(ridge=1e-9, anchor=a[:, 0])
     np.testing.assert_array_equal(band.coeffs[:, 0], a[:, 0].astype(np.float32))
     np.testing.assert_allclose(band.coeffs[:, 1:], a[:, 1:], atol=1e-5)
-    v, _ = band(np.zeros((1, s.shape[1], 3)), 0.25)            # zero strain: the anchor
+    v, _ = band(np.zeros((1, P, 3)), _eye(P), 0.25)            # zero strain: the anchor
     np.testing.assert_array_equal(v[0], band.coeffs[:, 0])
 
 
 def test_the_guards_clamp_outside_the_training_and_fade_to_the_constant():
-    """Inside the box the guarded value is the polynomial; a strain far outside is clamped
-    to the widened box and the value to the widened target range; weight 0 gives a_0 and
-    weight ½ halves the detail about it."""
+    """Inside the vertices' box the guarded value is the polynomial (but for values outside
+    the widened target range: none here); a strain far outside is clamped to the widened box
+    and the value to the widened target range; weight 0 gives a_0 and weight ½ halves the
+    detail about it."""
     s, a = _known("biquadratic", seed=2)
-    scale = np.sqrt(np.mean(s.reshape(-1, 3) ** 2, axis=0))
+    P = s.shape[1]
+    scale = np.sqrt(np.mean(s.astype(np.float64).reshape(-1, 3) ** 2, axis=0))
     y = np.einsum("tpk,pk->tp", monomials(s / scale, "biquadratic"), a)
-    fit = StrainFit(s.shape[1], "biquadratic")
-    fit.add(s, y)
+    fit = StrainFit(P, P, "biquadratic")
+    fit.add(s, _eye(P), y)
     band = fit.solve(ridge=1e-9)
     inside = s[:2]
-    np.testing.assert_array_equal(band(inside, 0.25)[0], band(inside, None)[0])
+    np.testing.assert_array_equal(band(inside, _eye(P), 0.25)[0], band(inside, _eye(P), None)[0])
     far = s[:1] * 50
-    v, clamped = band(far, 0.25)
+    v, clamped = band(far, _eye(P), 0.25)
     assert clamped[0] > 0.9
     lo, hi = band.target_range[:, 0], band.target_range[:, 1]
     assert np.all(v[0] >= lo - 0.25 * (hi - lo) - 1e-7) and np.all(v[0] <= hi + 0.25 * (hi - lo) + 1e-7)
-    raw, _ = band(far, None)
+    raw, _ = band(far, _eye(P), None)
     assert np.abs(raw).max() > 10 * np.abs(v).max()          # what the guards keep out
-    zero = np.zeros((1, s.shape[1]), np.float32)
-    np.testing.assert_array_equal(band(inside[:1], 0.25, zero)[0][0], band.coeffs[:, 0])
-    half, _ = band(inside[:1], 0.25, zero + 0.5)
-    full, _ = band(inside[:1], 0.25)
+    zero = np.zeros((1, P), np.float32)
+    np.testing.assert_array_equal(band(inside[:1], _eye(P), 0.25, zero)[0][0], band.coeffs[:, 0])
+    half, _ = band(inside[:1], _eye(P), 0.25, zero + 0.5)
+    full, _ = band(inside[:1], _eye(P), 0.25)
     np.testing.assert_allclose(half[0] - band.coeffs[:, 0], 0.5 * (full[0] - band.coeffs[:, 0]), atol=1e-6)
 
 
@@ -151,7 +160,7 @@ def test_the_strain_band_round_trips_bit_for_bit(pair, pdm_data, tmp_path):
     _, clips = pdm_data
     model.save(tmp_path / "strain")
     back = PdmModel.load(tmp_path / "strain")
-    for k in ("coeffs", "scale", "box", "target_range"):
+    for k in ("coeffs", "scale", "vertex_box", "target_range"):
         np.testing.assert_array_equal(getattr(back.data.fine_strain, k), getattr(model.data.fine_strain, k))
     markers = clips[1].markers[[4, 11]]
     outputs = ("mesh", "displacement", "normal_map", "mesh_detailed")
@@ -167,18 +176,13 @@ def test_the_strain_band_round_trips_bit_for_bit(pair, pdm_data, tmp_path):
 def test_the_compiled_pass_is_the_numpy_band():
     """StrainBand.compiled (service.methods.pdm.strain_texels) against __call__ on the CSR's
     interpolation of vertex strains: unguarded, guarded far outside and faded — float32
-    rounding apart; the same texels clamped."""
-    import scipy.sparse as sp
+    rounding apart; the same fraction of vertices clamped."""
+    from service.methods.confidence import falloff
+    from service.methods.pdm.strain_band import TexelFade, TexelStrain
 
-    from service.methods.pdm.strain_band import TexelStrain
-
-    s, a = _known("biquadratic", P=60, seed=5)
-    scale = np.sqrt(np.mean(s.reshape(-1, 3) ** 2, axis=0))
-    fit = StrainFit(s.shape[1], "biquadratic")
-    fit.add(s, np.einsum("tpk,pk->tp", monomials(s / scale, "biquadratic"), a))
-    band = fit.solve()
     rng = np.random.default_rng(6)
     n = 30                                         # vertices; each texel blends 1–3 of them
+    s, a = _known("biquadratic", P=60, seed=5)
     rows, cols, vals = [], [], []
     for p in range(len(a)):
         k = 1 + p % 3
@@ -187,13 +191,26 @@ def test_the_compiled_pass_is_the_numpy_band():
         cols += list(rng.choice(n, k, replace=False))
         vals += list(w)
     interp = sp.csr_matrix((vals, (rows, cols)), shape=(len(a), n))
+    sv = (rng.normal(0, 0.03, (len(s), n, 3))).astype(np.float32)          # vertex strains
+    x = np.stack([interp @ v.astype(np.float64) for v in sv])
+    scale = np.sqrt(np.mean(x.reshape(-1, 3) ** 2, axis=0))
+    fit = StrainFit(len(a), n, "biquadratic")
+    fit.add(sv, interp, np.einsum("tpk,pk->tp", monomials(x / scale, "biquadratic"), a))
+    band = fit.solve()
     texels = TexelStrain.from_csr(interp)
-    fade = rng.uniform(0, 1, len(a)).astype(np.float32)
-    for vertex_strain, margin, w in ((rng.normal(0, 0.03, (n, 3)), None, None),
+    # the fade: ρ at 20 UV points, taken to the texels by a barycentric operator of its own
+    Q = 20
+    R = sp.csr_matrix((np.asarray(vals), (rows, rng.integers(0, Q, len(rows)))), shape=(len(a), Q))
+    point_rho = rng.uniform(0.5, 2.5, Q)
+    op = TexelStrain.from_csr(R, np.float64)
+    fade = TexelFade(op.corner, op.weight, point_rho, 3.0)
+    w = falloff((R @ point_rho).astype(np.float32) - np.float32(1), 3.0, np.float32)
+    assert 0 < w.min() < 1 and w.max() == 1
+    for vertex_strain, margin, f in ((rng.normal(0, 0.03, (n, 3)), None, None),
                                      (rng.normal(0, 0.5, (n, 3)), 0.25, None),
                                      (rng.normal(0, 0.03, (n, 3)), 0.25, fade)):
         vs = vertex_strain.astype(np.float32)
-        want, frac = band((interp @ vs.astype(np.float64))[None], margin, None if w is None else w[None])
+        want, frac = band(vs[None], interp, margin, None if f is None else w[None])
         got = np.empty(len(a), np.float32)
-        assert band.compiled(vs, texels, margin, w, got) == pytest.approx(frac[0])
+        assert band.compiled(vs, texels, margin, f, got) == pytest.approx(frac[0])
         np.testing.assert_allclose(got, want[0], rtol=1e-5, atol=1e-6)
