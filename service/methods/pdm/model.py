@@ -768,8 +768,8 @@ class PdmModel:
         ``clamped`` (F,) the fraction of points outside their validity hull (or, with
         ``validity_width`` None, whose d1/d2 hit the extrapolation limit): of the fine map's
         texels when a fine-scale output (``displacement``, ``normal_map``, ``mesh_detailed``)
-        is asked, else of the mesh's UV points (the fine band is not computed for such a
-        call); ``confidence`` (F,) and ``confidence_vertices`` (F,n)
+        is asked (a strain-driven fine band: of the vertices whose strain was clamped), else
+        of the mesh's UV points (the fine band is not computed for such a call); ``confidence`` (F,) and ``confidence_vertices`` (F,n)
         (:mod:`service.methods.confidence`, :meth:`.validity.Validity.confidence`). With
         ``clamp`` the detail outside the hull is continued and faded to the neutral's
         (:mod:`.validity`); without, the raw polynomial. With ``marker_noise_mm = "auto"``
