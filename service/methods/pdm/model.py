@@ -125,6 +125,7 @@ if TYPE_CHECKING:                          # Numba: imported where an evaluator 
 
     from service.methods.pdm.point_validity import PointValidity
     from service.methods.pdm.shell_mesh import ShellMesh
+    from service.methods.pdm.texel_validity import TexelValidity
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.strain_band import StrainBand, StrainFit, TexelFade, TexelStrain, strain_order
 from service.methods.pdm.texel_band import CoefficientMap, TexelBand
@@ -331,10 +332,11 @@ class PdmEvaluator:
     fine_strain : StrainBand | None  the strain-driven fine band in ``fine``'s texel order
                                     (:mod:`.strain_band`; None: ``fine`` drives the fine band)
     strain_field : StressField | None   the detailed neutral's strain operators
-    strain_interp : (Pf,n) CSR | None   vertices → fine texels (barycentric), ``fine``'s order
-    strain_texels : TexelStrain | None   the same as the compiled pass reads it
-    strain_rho : TexelStrain | None     the UV points' ρ → fine texels (float64 weights: the
-                                    validity's operator) for the strain band's fade
+    strain_texels : TexelStrain | None   vertices → fine texels (barycentric, padded rows),
+                                    ``fine``'s order
+    strain_rho : TexelStrain | TexelValidity | None   the UV points' ρ → fine texels (padded
+                                    ``corner``, float64 ``weight``: the fine band's compiled
+                                    validity's own) for the strain band's fade
     """
 
     data: PdmData = dataclasses.field(repr=False)
@@ -357,9 +359,8 @@ class PdmEvaluator:
     medium_gain: np.ndarray | None = None
     fine_strain: StrainBand | None = None
     strain_field: StressField | None = dataclasses.field(default=None, repr=False)
-    strain_interp: sp.csr_matrix | None = dataclasses.field(default=None, repr=False)
     strain_texels: TexelStrain | None = dataclasses.field(default=None, repr=False)
-    strain_rho: TexelStrain | None = dataclasses.field(default=None, repr=False)
+    strain_rho: "TexelStrain | TexelValidity | None" = dataclasses.field(default=None, repr=False)
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -449,14 +450,15 @@ class PdmEvaluator:
             validity.prepare("fine", fine.coeffs)        # the fine band's compiled validity
         strain = {}
         if d.fine_strain is not None:
-            interp = sparse_matrix(ops, "strain_interp")
-            if interp is None:
-                interp = interpolation_matrix(rasterize_uv(d.uv, d.uv_faces, Hf, Hf), d.faces, n)[fine.index].tocsr()
-            strain = {"fine_strain": d.fine_strain.permuted(orders["fine"]), "strain_interp": interp,
-                      "strain_texels": TexelStrain.from_csr(interp),
-                      "strain_rho": None if validity is None else TexelStrain.from_csr(validity.texel_rho["fine"],
-                                                                                       np.float64),
-                      "strain_field": StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)}
+            texels = TexelStrain.from_arrays(ops, "strain_texels")
+            if texels is None or texels.corner.shape != (3, len(fine.index)):
+                texels = TexelStrain.from_csr(interpolation_matrix(rasterize_uv(d.uv, d.uv_faces, Hf, Hf),
+                                                                   d.faces, n)[fine.index])
+            # the fade's ρ operator: the fine band's compiled validity already holds it padded
+            rho_op = None if validity is None else \
+                validity.compiled.get("fine") or TexelStrain.from_csr(validity.texel_rho["fine"], np.float64)
+            strain = {"fine_strain": d.fine_strain.permuted(orders["fine"]), "strain_texels": texels,
+                      "strain_rho": rho_op, "strain_field": StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)}
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
@@ -495,7 +497,8 @@ class PdmEvaluator:
         that order (:attr:`.texel_band.TexelBand.terms`; a cache without them copies them from
         the maps', ~85 ms at level 1); ``frame_field_*`` the base surface's :class:`~service.geometry.tangent_frames.FrameField`
         operators (CSR; a cache without them builds it, ~70 ms at level 1); the CSR matrices ``seam_average``, ``fine_sampler`` and
-        ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``normal_mapper_*``
+        ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``strain_texels_*`` the
+        strain band's padded vertices → texels operator (:meth:`.strain_band.TexelStrain.arrays`); ``normal_mapper_*``
         the normal mapper's arrays (:meth:`~service.geometry.normal_map.NormalMapper.arrays`,
         27 MB at 1024²: a load maps them instead of reading the rasterization, 16 MB, and
         building the mapper, ~40 ms at level 1; a cache of this version with ``raster_triangle``
@@ -506,7 +509,7 @@ class PdmEvaluator:
         d, Hf = self.data, self.fine.resolution
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
-               **({} if self.strain_interp is None else sparse_members("strain_interp", self.strain_interp)),
+               **({} if self.strain_texels is None else self.strain_texels.arrays("strain_texels")),
                **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
         for k, m in self.base.frame_field.operators().items():
             out.update(sparse_members(f"frame_field_{k}", m))

@@ -14,7 +14,7 @@ Layout (DESIGN.md "Data and storage"):
   ``medium_regression``, its low-rank factors and means (``medium_regression_Pq``,
   ``_scale``, ``_Q``, ``_mean_u``, ``_mean_y``: :meth:`.MarkerRegression.arrays`; a model
   stored with the full CSR matrix is truncated on reading); with ``fine_driver`` "strain", the
-  strain-driven fine band (``fine_strain_coeffs``, ``_scale``, ``_box``, ``_target_range``:
+  strain-driven fine band (``fine_strain_coeffs``, ``_scale``, ``_vertex_box``, ``_target_range``:
   :meth:`.strain_band.StrainBand.arrays`, row-major texel order);
 * ``validity.npz`` the validity regions of the training data (:class:`~.validity.ValidityData`:
   ``hull`` at the UV points, ``<band>_envelope`` per evaluated band in row-major texel
@@ -36,7 +36,9 @@ Layout (DESIGN.md "Data and storage"):
   0.87 → 0.69 s, resident after load 438 → 336 MB and after three mesh frames 478 → 427 MB,
   peak 613 → 562 MB; permuted as before when absent) and its :class:`~service.geometry.shell_frames.ShellFrames`
   (``op_shell_mesh_frames_*``, +6.8 MB: 77 ms of a level-1 load not spent building the
-  vertex order and incidence; built as before when absent); ``op_fine_terms`` and
+  vertex order and incidence; built as before when absent); ``op_strain_texels_corner``,
+  ``_weight``, the strain band's vertices → fine texels (a cache without them rasterizes);
+  ``op_fine_terms`` and
   ``op_albedo_terms``, the bands' coefficients term-major in the evaluator's texel order,
   and ``op_frame_field_*``, the base surface's FrameField operators (+47 MB at level 1: a
   load maps them instead of copying the coefficients and building the field, load CPU

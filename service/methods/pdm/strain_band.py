@@ -198,18 +198,29 @@ class TexelStrain:
 
     @classmethod
     def from_csr(cls, interp, dtype=np.float32) -> "TexelStrain":
-        """From the interpolation CSR (P,n) of at most 3 entries a row (weights as ``dtype``)."""
+        """From the interpolation CSR (P,n) of at most 3 entries a row (weights as ``dtype``;
+        padded by :func:`.texel_validity.padded_rows`)."""
+        from service.methods.pdm.texel_validity import CORNERS, padded_rows     # Numba
+
         interp = interp.tocsr()
         P = interp.shape[0]
-        counts = np.diff(interp.indptr)
-        if len(counts) and counts.max() > 3:
-            raise ValueError(f"a texel interpolates {counts.max()} vertices, at most 3 expected")
-        corner, weight = np.zeros((3, P), np.uint32), np.zeros((3, P), dtype)
-        for j in range(3):
-            has = counts > j
-            pos = interp.indptr[:-1][has] + j
-            corner[j, has], weight[j, has] = interp.indices[pos], interp.data[pos]
+        most = int(np.diff(interp.indptr).max(initial=0))
+        if most > CORNERS:
+            raise ValueError(f"a texel interpolates {most} vertices, at most {CORNERS} expected")
+        corner, weight = np.empty((CORNERS, P), np.uint32), np.empty((CORNERS, P), dtype)
+        padded_rows(interp.indptr, interp.indices, interp.data, corner, weight)
         return cls(corner, weight)
+
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """``PREFIX_corner``, ``PREFIX_weight`` (a model cache's members)."""
+        return {f"{prefix}_corner": self.corner, f"{prefix}_weight": self.weight}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str) -> "TexelStrain | None":
+        """The operator stored by :meth:`arrays` (None when ``arrays`` has none)."""
+        if f"{prefix}_corner" not in arrays or f"{prefix}_weight" not in arrays:
+            return None
+        return cls(np.asarray(arrays[f"{prefix}_corner"]), np.asarray(arrays[f"{prefix}_weight"]))
 
 
 @dataclass(frozen=True)
