@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit, uint64
 
 
-@njit(nogil=True, cache=True, fastmath=True)
+@njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def row_products(lo, hi, Pq, z, out):
     """Rows [lo, hi): ``out[i] = Σ_k Pq[i,k] z[k]`` for Pq (m,r) int16, z (r,) float32,
     out (m,) float32 (each entry converted exactly, the sum in float32)."""

@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def sum3(p0, p1, p2):
     """``p0 + p1 + p2`` in the order ``einsum`` sums a length-3 axis: ``(p0 + p2) + p1``."""
     return (p0 + p2) + p1
@@ -36,7 +36,7 @@ def sum3_numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a[..., 0] * b[..., 0] + a[..., 2] * b[..., 2]) + a[..., 1] * b[..., 1]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def face_terms(P, F, twice_area, negdot):
     """Per face f of frame P (n,3): ``twice_area[f]`` = |(P1 − P0) × (P2 − P0)| and
     ``negdot[k, f]`` = −(a · b) of the edge pair at corner k ((e01, e20), (e12, e01),
@@ -58,7 +58,7 @@ def face_terms(P, F, twice_area, negdot):
         negdot[2, f] = -sum3(e20[0] * e12[0], e20[1] * e12[1], e20[2] * e12[2])
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def vertex_sums(P, F, twice_area, angles, N):
     """Unit vertex normals N (n,3) of frame P (n,3): each face's unit normal (its cross
     product times the reciprocal of twice its area; zero for a degenerate face) times the

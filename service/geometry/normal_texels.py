@@ -192,7 +192,7 @@ FLAT = np.float32([0, 0, 1])
 FLAT_HALF = np.uint16([0, 0, 0x3C00])
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def flat_runs(lo, hi, runs, out, flat):
     """Runs [lo, hi) of uncovered texels: ``out[p] = flat`` (H·W,3) for ``runs[r, 0] ≤ p <
     runs[r, 1]``: :data:`FLAT` for a float32 map, :data:`FLAT_HALF` for one of float16 bits."""

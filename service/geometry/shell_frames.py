@@ -75,7 +75,7 @@ def locality_order(F: np.ndarray, n: int) -> np.ndarray:
     return np.asarray(reverse_cuthill_mckee((A + A.T).tocsr(), symmetric_mode=True), np.int64)
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def _unit(x, y, z, xx):
     """(x, y, z) / sqrt(xx) in float32, xx its squared length; zeros where xx is not > 0."""
     if xx > 0:
@@ -84,7 +84,7 @@ def _unit(x, y, z, xx):
     return np.float32(0.0), np.float32(0.0), np.float32(0.0)
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def _row_product(B, k, u):
     """``u B[k]`` (3 float32): row k of a basis B (n,h) times handle displacements u (3,h)."""
     x = y = z = np.float32(0.0)
@@ -96,7 +96,7 @@ def _row_product(B, k, u):
     return x, y, z
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def displacements(lo, hi, B, u, U):
     """Vertices [lo, hi): the shell displacement ``U[:, k] = u B[k]`` (3,n) float32 of handle
     displacements u (3,h) float32 and the thin-shell basis rows B (n,h) float32 in the
@@ -105,7 +105,7 @@ def displacements(lo, hi, B, u, U):
         U[0, k], U[1, k], U[2, k] = _row_product(B, k, u)
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def displacement_pair(lo, hi, B, Bc, u, U, Uc):
     """Vertices [lo, hi): :func:`displacements` of two bases B, Bc (n,h) float32 for the same
     u (3,h) in one pass, ``U = u Bᵀ`` and ``Uc = u Bcᵀ`` (3,n): row k of both read back to
@@ -116,7 +116,7 @@ def displacement_pair(lo, hi, B, Bc, u, U, Uc):
         Uc[0, k], Uc[1, k], Uc[2, k] = _row_product(Bc, k, u)
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def triangle_terms(lo, hi, U, F, rest, out):
     """Triangles [lo, hi): ``out[t] = (dP/du, e1 × e2)`` (m,6) float32 of the shell whose
     displacement is U (3,n) (internal order); ``rest`` (m,8) holds the rest edges e1, e2 and
@@ -138,7 +138,7 @@ def triangle_terms(lo, hi, U, F, rest, out):
         out[t, 5] = e1x * e2y - e1y * e2x
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def frame_sums(lo, hi, terms, ptr, tri, angle, T, N, tmax):
     """Vertices [lo, hi): unit normal N and tangent T projected off it (3,n) float32, and
     tmax (n,) the largest |T| component, from the incident triangles' :func:`triangle_terms`
@@ -163,7 +163,7 @@ def frame_sums(lo, hi, terms, ptr, tri, angle, T, N, tmax):
         tmax[k] = max(abs(tx), abs(ty), abs(tz))
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def compose(lo, hi, T, N, floor, U, rest, C, R, t, order, aligned, world, Bout):
     """Vertices [lo, hi): finish the frames of :func:`frame_sums` (a tangent with
     ``|T|² ≤ floor`` replaced by the least-aligned axis projected off N, as FrameField;
@@ -214,7 +214,7 @@ def compose(lo, hi, T, N, floor, U, rest, C, R, t, order, aligned, world, Bout):
             Bout[0, k], Bout[1, k], Bout[2, k] = bx, by, bz
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def frame_coordinates(lo, hi, at, dest, T, B, N, W, base, sub, out):
     """Points [lo, hi) of a list sorted by vertex: ``out[dest[p]] = Frame(v) (base[:, v] +
     W[:, v]) − sub[:, v]`` (P,3) at the internal position ``v = at[p]``, in the finished
@@ -239,7 +239,7 @@ def frame_coordinates(lo, hi, at, dest, T, B, N, W, base, sub, out):
         out[q, 2] = c2 - sub[2, v]
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def compose_framed(lo, hi, T, B, N, U, rest, C, R, t, order, aligned, world):
     """Vertices [lo, hi): ``X = (rest + U) + (C₀T + C₁B + C₂N)`` in the finished frames of
     :meth:`ShellFrames.rows` (C as is where there is no normal), C (n,3) per internal

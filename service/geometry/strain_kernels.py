@@ -21,10 +21,10 @@ import numpy as np
 from numba import njit
 
 
-@njit(nogil=True, cache=True)
-def triangle_metrics(lo, hi, V, faces, rest_inverse, C):
+@njit(nogil=True, cache=True, error_model="numpy")
+def triangle_metrics(lo, hi, V, faces, R, C):
     """Triangles [lo, hi) of mesh V (n,3) float64: C = GᵀG into ``C`` (m,6) float64 in the
-    order xx yy zz xy xz yz; ``rest_inverse`` (m,3,3) the rest edge frames' inverses."""
+    order xx yy zz xy xz yz; ``R`` (m,3,3) the rest edge frames' inverses."""
     for t in range(lo, hi):
         a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
         e1x, e1y, e1z = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
@@ -32,17 +32,16 @@ def triangle_metrics(lo, hi, V, faces, rest_inverse, C):
         nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
         s = np.sqrt(np.sqrt(nx * nx + ny * ny + nz * nz))
         e3x, e3y, e3z = nx / s, ny / s, nz / s
-        R = rest_inverse[t]
         # G = [e1 e2 e3] R: column j of G is Σ_k column k of the frame × R[k, j]
-        g00 = e1x * R[0, 0] + e2x * R[1, 0] + e3x * R[2, 0]
-        g10 = e1y * R[0, 0] + e2y * R[1, 0] + e3y * R[2, 0]
-        g20 = e1z * R[0, 0] + e2z * R[1, 0] + e3z * R[2, 0]
-        g01 = e1x * R[0, 1] + e2x * R[1, 1] + e3x * R[2, 1]
-        g11 = e1y * R[0, 1] + e2y * R[1, 1] + e3y * R[2, 1]
-        g21 = e1z * R[0, 1] + e2z * R[1, 1] + e3z * R[2, 1]
-        g02 = e1x * R[0, 2] + e2x * R[1, 2] + e3x * R[2, 2]
-        g12 = e1y * R[0, 2] + e2y * R[1, 2] + e3y * R[2, 2]
-        g22 = e1z * R[0, 2] + e2z * R[1, 2] + e3z * R[2, 2]
+        g00 = e1x * R[t, 0, 0] + e2x * R[t, 1, 0] + e3x * R[t, 2, 0]
+        g10 = e1y * R[t, 0, 0] + e2y * R[t, 1, 0] + e3y * R[t, 2, 0]
+        g20 = e1z * R[t, 0, 0] + e2z * R[t, 1, 0] + e3z * R[t, 2, 0]
+        g01 = e1x * R[t, 0, 1] + e2x * R[t, 1, 1] + e3x * R[t, 2, 1]
+        g11 = e1y * R[t, 0, 1] + e2y * R[t, 1, 1] + e3y * R[t, 2, 1]
+        g21 = e1z * R[t, 0, 1] + e2z * R[t, 1, 1] + e3z * R[t, 2, 1]
+        g02 = e1x * R[t, 0, 2] + e2x * R[t, 1, 2] + e3x * R[t, 2, 2]
+        g12 = e1y * R[t, 0, 2] + e2y * R[t, 1, 2] + e3y * R[t, 2, 2]
+        g22 = e1z * R[t, 0, 2] + e2z * R[t, 1, 2] + e3z * R[t, 2, 2]
         C[t, 0] = g00 * g00 + g10 * g10 + g20 * g20
         C[t, 1] = g01 * g01 + g11 * g11 + g21 * g21
         C[t, 2] = g02 * g02 + g12 * g12 + g22 * g22
@@ -51,7 +50,7 @@ def triangle_metrics(lo, hi, V, faces, rest_inverse, C):
         C[t, 5] = g01 * g02 + g11 * g12 + g21 * g22
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def vertex_strain(lo, hi, indptr, indices, data, C, tangent, out):
     """Vertices [lo, hi): the Green strain ``(E_TT, E_BB, √2 E_TB)`` into ``out`` (n,3)
     float32 of the mean tensor ``Σ_t w_vt C_t`` (the averaging CSR ``indptr``, ``indices``,

@@ -36,7 +36,7 @@ def inverse_index(index: np.ndarray, size: int) -> np.ndarray:
     return inverse
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def band_image(lo, hi, inverse, values, out):
     """Texels [lo, hi) of a flat map ``out`` (H·W,): ``values[inverse[p]]`` (values (P,)) where
     ``inverse[p]`` (:func:`inverse_index`) is a band position, 0 where it is

@@ -34,7 +34,7 @@ def fma32(typingctx, a, b, c):
     return sig, codegen
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _form(c0, c1, c2, c3, c4, c5, mono, p):
     """``Σ_k c_k mono[k, p]`` float32: the first product rounded, then one fused
     multiply-add per term in term order (the GEMM kernel's arithmetic)."""
@@ -46,7 +46,7 @@ def _form(c0, c1, c2, c3, c4, c5, mono, p):
     return fma32(c5, mono[5, p], x)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def element_products(lo, hi, first, g, mono, starts, order, shift, d1, d2):
     """Elements ``first + [lo, hi)``: for each point p of element e (``starts[e] ≤ p <
     starts[e+1]``, positions in the element-sorted point order) and frame f,

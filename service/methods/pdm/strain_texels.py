@@ -17,7 +17,7 @@ from numba import njit
 from service.methods.pdm.texel_validity import _rho
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def texel_values(lo, hi, corner, weight, strain, inv_scale, coeffs, target_range, margin,
                  rho_corner, rho_weight, point_rho, width, out):
     """Texels [lo, hi) of a strain-driven band (:mod:`service.methods.pdm.strain_band`):
@@ -37,11 +37,11 @@ def texel_values(lo, hi, corner, weight, strain, inv_scale, coeffs, target_range
         x0 = (w0 * strain[c0, 0] + w1 * strain[c1, 0] + w2 * strain[c2, 0]) * inv_scale[0]
         x1 = (w0 * strain[c0, 1] + w1 * strain[c1, 1] + w2 * strain[c2, 1]) * inv_scale[1]
         x2 = (w0 * strain[c0, 2] + w1 * strain[c1, 2] + w2 * strain[c2, 2]) * inv_scale[2]
-        a = coeffs[p]
-        v = a[0] + a[1] * x0 + a[2] * x1 + a[3] * x2
+        a0 = coeffs[p, 0]          # indexed: no row view per texel (service.geometry.ranges)
+        v = a0 + coeffs[p, 1] * x0 + coeffs[p, 2] * x1 + coeffs[p, 3] * x2
         if K == 10:
-            v += (a[4] * x0 * x0 + a[5] * x1 * x1 + a[6] * x2 * x2
-                  + a[7] * x0 * x1 + a[8] * x0 * x2 + a[9] * x1 * x2)
+            v += (coeffs[p, 4] * x0 * x0 + coeffs[p, 5] * x1 * x1 + coeffs[p, 6] * x2 * x2
+                  + coeffs[p, 7] * x0 * x1 + coeffs[p, 8] * x0 * x2 + coeffs[p, 9] * x1 * x2)
         if margin >= 0:
             v = _clamp(v, target_range[p, 0], target_range[p, 1], m)
         if width >= 0:
@@ -51,11 +51,11 @@ def texel_values(lo, hi, corner, weight, strain, inv_scale, coeffs, target_range
                 if width > 0:
                     t = min(e / np.float32(width), np.float32(1))
                     w = np.float32(1) - t * t * (np.float32(3) - np.float32(2) * t)
-                v = a[0] + w * (v - a[0])
+                v = a0 + w * (v - a0)
         out[p] = v
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _clamp(x, lo, hi, margin):
     """x clamped to [lo, hi] widened by ``margin`` × (hi − lo) on each side."""
     pad = margin * (hi - lo)
