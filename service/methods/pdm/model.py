@@ -125,10 +125,9 @@ if TYPE_CHECKING:                          # Numba: imported where an evaluator 
 
     from service.methods.pdm.point_validity import PointValidity
     from service.methods.pdm.shell_mesh import ShellMesh
-    from service.methods.pdm.texel_validity import TexelValidity
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.strain_band import StrainBand, StrainFit, TexelFade, TexelStrain, strain_order
-from service.methods.pdm.texel_band import CoefficientMap, TexelBand
+from service.methods.pdm.texel_band import CoefficientMap, CoveredTexels, TexelBand
 from service.methods.pdm.validity import (
     BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
 )
@@ -306,7 +305,9 @@ class PdmEvaluator:
     ----------
     base : BaseSurface              head pose weights' rest markers, thin-shell basis, frames
     vertex_band : TexelBand         the medium PDM at the K UV points (:func:`vertex_band`)
-    fine : TexelBand                the fine PDM, texels grouped by coarse element
+    fine : TexelBand | CoveredTexels   the fine PDM, texels grouped by coarse element; with
+                                    ``fine_strain`` their layout only (resolution, index): the
+                                    (d1, d2) band is stored for renderers, never evaluated
     albedo : TexelBand | None       the albedo PTM, grouped the same way (None: no albedo)
     orders : dict name → (P,) int   each band's points as indices into the data's band
                                     (row-major texels; the UV points for ``vertex``)
@@ -334,15 +335,14 @@ class PdmEvaluator:
     strain_field : StressField | None   the detailed neutral's strain operators
     strain_texels : TexelStrain | None   vertices → fine texels (barycentric, padded rows),
                                     ``fine``'s order
-    strain_rho : TexelStrain | TexelValidity | None   the UV points' ρ → fine texels (padded
-                                    ``corner``, float64 ``weight``: the fine band's compiled
-                                    validity's own) for the strain band's fade
+    strain_rho : TexelStrain | None   the UV points' ρ → fine texels (padded ``corner``,
+                                    float64 ``weight``) for the strain band's fade
     """
 
     data: PdmData = dataclasses.field(repr=False)
     base: BaseSurface
     vertex_band: TexelBand
-    fine: TexelBand
+    fine: "TexelBand | CoveredTexels"
     albedo: TexelBand | None
     orders: dict
     seam_average: sp.csr_matrix
@@ -360,7 +360,7 @@ class PdmEvaluator:
     fine_strain: StrainBand | None = None
     strain_field: StressField | None = dataclasses.field(default=None, repr=False)
     strain_texels: TexelStrain | None = dataclasses.field(default=None, repr=False)
-    strain_rho: "TexelStrain | TexelValidity | None" = dataclasses.field(default=None, repr=False)
+    strain_rho: TexelStrain | None = dataclasses.field(default=None, repr=False)
 
     @classmethod
     def build(cls, d: PdmData, base: BaseSurface | None = None,
@@ -394,22 +394,33 @@ class PdmEvaluator:
                   if (a := _members(ops, f"{k}_field"))}
         bands = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes, d.vertex_coeffs, fields.get("vertex"))}
         orders = {"vertex": np.arange(K)}
+        stored_only = {}        # bands whose validity envelope is stored but which are not evaluated
         for name in ("fine", "albedo"):
             m = getattr(d, name)
             if m is not None:
-                if name in fields and f"{name}_order" in ops:
-                    order, fld = np.array(ops[f"{name}_order"]), fields[name]
+                layout_only = name == "fine" and d.fine_strain is not None
+                if (name in fields or layout_only) and f"{name}_order" in ops:
+                    order, fld = np.array(ops[f"{name}_order"]), fields.get(name)
                 else:
                     order, fld = element_field(d.mesh, d.axes, m.index, m.resolution)
-                if len(order) != len(m.index) or fld.n_points != len(order):
+                if len(order) != len(m.index) or (fld is not None and fld.n_points != len(order)):
                     raise ValueError(f"the stored {name} operators do not fit its {len(m.index)} texels")
                 orders[name] = order
+                if layout_only:         # the strain band drives it: ma2008's (d1, d2) band is never evaluated
+                    bands[name] = CoveredTexels(m.resolution, m.index[order])
+                    if d.validity is None and d.params.validity_width is not None:
+                        # ... but its envelope is stored, for a server of an earlier version
+                        fld = fld if fld is not None else element_field(d.mesh, d.axes, m.index, m.resolution)[1]
+                        stored_only[name] = TexelBand.build(m.resolution, m.index[order], m.coeffs[order], fld)
+                    continue
                 terms = ops.get(f"{name}_terms")          # term-major, as the band reads them
                 ok = (terms is not None and terms.shape == m.coeffs.shape[::-1] and terms.dtype == np.float32
                       and terms.flags.c_contiguous)
                 bands[name] = TexelBand.build(m.resolution, m.index[order], None if ok else m.coeffs[order], fld,
                                               terms=terms if ok else None)
         for name, band in bands.items():
+            if not isinstance(band, TexelBand):
+                continue
             limit = derived.limits.get(name)
             bands[name] = dataclasses.replace(band, limit=_limits(band.field, d.S_train) if limit is None else limit)
         seam = sparse_matrix(ops, "seam_average")
@@ -428,7 +439,8 @@ class PdmEvaluator:
             else:
                 raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
             normal_mapper = NormalMapper(raster, d.faces, d.uv, d.uv_faces, n)
-        texel_rho = {k: m for k in ("fine", "albedo") if (m := sparse_matrix(ops, f"{k}_texel_rho")) is not None}
+        texel_rho = {k: m for k in ("fine", "albedo") if isinstance(bands.get(k), TexelBand)
+                     and (m := sparse_matrix(ops, f"{k}_texel_rho")) is not None}
         detailed = detailed_neutral(base, d.neutral_offset)
         correction = ops.get("shell_correction")
         if correction is None:           # the detailed neutral's thin shell (seconds at level 0)
@@ -445,18 +457,21 @@ class PdmEvaluator:
 
         shell_mesh = ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
                                      d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
-        validity = _validity(d, base, bands, orders, seam, shell, texel_rho)
-        if validity is not None:
+        validity = _validity(d, base, bands, orders, seam, shell, texel_rho, stored_only)
+        if validity is not None and isinstance(fine, TexelBand):
             validity.prepare("fine", fine.coeffs)        # the fine band's compiled validity
         strain = {}
         if d.fine_strain is not None:
             texels = TexelStrain.from_arrays(ops, "strain_texels")
+            raster = None
             if texels is None or texels.corner.shape != (3, len(fine.index)):
-                texels = TexelStrain.from_csr(interpolation_matrix(rasterize_uv(d.uv, d.uv_faces, Hf, Hf),
-                                                                   d.faces, n)[fine.index])
-            # the fade's ρ operator: the fine band's compiled validity already holds it padded
-            rho_op = None if validity is None else \
-                validity.compiled.get("fine") or TexelStrain.from_csr(validity.texel_rho["fine"], np.float64)
+                raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
+                texels = TexelStrain.from_csr(interpolation_matrix(raster, d.faces, n)[fine.index])
+            # the fade's ρ operator, UV points → fine texels, padded (float64 weights, SciPy's sums)
+            rho_op = None if validity is None else TexelStrain.from_arrays(ops, "strain_rho")
+            if validity is not None and (rho_op is None or rho_op.corner.shape != (3, len(fine.index))):
+                raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf) if raster is None else raster
+                rho_op = TexelStrain.from_csr(interpolation_matrix(raster, d.uv_faces, K)[fine.index], np.float64)
             strain = {"fine_strain": d.fine_strain.permuted(orders["fine"]), "strain_texels": texels,
                       "strain_rho": rho_op, "strain_field": StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)}
         return cls(
@@ -475,7 +490,7 @@ class PdmEvaluator:
         (``vertex``), the fine and (if trained) the albedo texels. The medium texel maps
         themselves are only read to build ``vertex`` and written for renderers."""
         return {k: b for k, b in (("vertex", self.vertex_band), ("fine", self.fine),
-                                  ("albedo", self.albedo)) if b is not None}
+                                  ("albedo", self.albedo)) if isinstance(b, TexelBand)}
 
     def derived(self) -> PdmDerived:
         """What a load of the data would recompute (the store's optional files)."""
@@ -510,14 +525,15 @@ class PdmEvaluator:
         out = {"version": np.int64(OPERATORS_VERSION), **sparse_members("seam_average", self.seam_average),
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
                **({} if self.strain_texels is None else self.strain_texels.arrays("strain_texels")),
+               **({} if self.strain_rho is None else self.strain_rho.arrays("strain_rho")),
                **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
         for k, m in self.base.frame_field.operators().items():
             out.update(sparse_members(f"frame_field_{k}", m))
         for name, band in self.bands.items():
             out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
             if name != "vertex":
-                out[f"{name}_order"] = self.orders[name]
                 out[f"{name}_terms"] = band.terms
+        out.update({f"{name}_order": order for name, order in self.orders.items() if name != "vertex"})
         for name, m in ({} if self.validity is None else self.validity.texel_rho).items():
             out.update(sparse_members(f"{name}_texel_rho", m))
         out.update({f"normal_mapper_{k}": v for k, v in self.normal_mapper.arrays().items()})
@@ -677,15 +693,19 @@ def shell_fallback(base: BaseSurface, neutral_offset: np.ndarray, correction: np
     return out                          # (the same values as the strided gather: 0.85 → 0.46 ms)
 
 
-def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
-              seam: sp.csr_matrix, shell: tuple, texel_rho: dict | None = None) -> Validity | None:
+def _validity(d: PdmData, base: BaseSurface, bands: dict, orders: dict[str, np.ndarray],
+              seam: sp.csr_matrix, shell: tuple, texel_rho: dict | None = None,
+              stored_only: dict | None = None) -> Validity | None:
     """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
     when ``params.validity_width`` is None (the extrapolation limit applies instead): the
     stored ``d.validity`` (its envelopes put in the bands' order ``orders``), or, for a model
     stored without it, derived from ``d.S_train`` (seconds). ``shell``: the evaluator's
     (shell_correction, shell_offset, uv_vertex) (:meth:`PdmEvaluator.shell_fallback`), the
     fallback the medium band's sector envelope and box are measured from; ``texel_rho`` as
-    :meth:`.validity.Validity.build`'s."""
+    :meth:`.validity.Validity.build`'s. Only the evaluated bands (:class:`TexelBand`) take ρ;
+    a stored envelope of another band (the (d1, d2) fine band of a strain-driven model) is
+    kept, and derived for ``stored_only`` ones, so the model stays loadable by a server of an
+    earlier version."""
     if d.params.validity_width is None:
         return None
     S = d.S_train
@@ -700,17 +720,18 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders
                 yield (*field(S[t:t + FRAME_CHUNK]), shell_fallback(base, d.neutral_offset, *shell, u_H))
         return chunks
 
+    bands = {k: b for k, b in bands.items() if isinstance(b, TexelBand)}   # a strain-driven fine: its own fade
     vb = bands["vertex"]
     stored = d.validity is not None and d.validity.sector_box is not None
     sectors, box = (d.validity.sectors, d.validity.sector_box) if stored else \
         sector_envelope(vb.coeffs, with_shell(vb.field), None, box=True)    # a few seconds at level 0
     if d.validity is not None:
         hull = d.validity.hull
-        envelope = {k: d.validity.envelope[k][orders[k]] for k in bands}
+        envelope = {k: d.validity.envelope[k][orders[k]] for k in orders if k in d.validity.envelope}
     else:
         hull = training_hull(over_training(bands["vertex"].field))
         envelope = {k: training_envelope(b.coeffs, over_training(b.field), Validity.fallback(k, b.coeffs))
-                    for k, b in bands.items()}
+                    for k, b in {**bands, **(stored_only or {})}.items()}
     texels = {k: (b.resolution, b.index) for k, b in bands.items() if k != "vertex"}
     return Validity.build(hull, envelope, d.params.validity_width, d.params.validity_slope, d.uv,
                           d.uv_faces, seam, base.smooth, d.faces, texels, sectors, box, texel_rho)

@@ -37,7 +37,11 @@ Layout (DESIGN.md "Data and storage"):
   peak 613 → 562 MB; permuted as before when absent) and its :class:`~service.geometry.shell_frames.ShellFrames`
   (``op_shell_mesh_frames_*``, +6.8 MB: 77 ms of a level-1 load not spent building the
   vertex order and incidence; built as before when absent); ``op_strain_texels_corner``,
-  ``_weight``, the strain band's vertices → fine texels (a cache without them rasterizes);
+  ``_weight``, the strain band's vertices → fine texels, and ``op_strain_rho_corner``,
+  ``_weight``, its fade's UV points → fine texels (a cache without them rasterizes); a
+  strain-driven model's cache holds none of the (d1, d2) fine band's evaluation arrays
+  (``op_fine_terms``, ``op_fine_field_*``, ``op_fine_texel_rho_*``: no frame reads them, the
+  band is in ``fine.exr`` for renderers);
   ``op_fine_terms`` and
   ``op_albedo_terms``, the bands' coefficients term-major in the evaluator's texel order,
   and ``op_frame_field_*``, the base surface's FrameField operators (+47 MB at level 1: a

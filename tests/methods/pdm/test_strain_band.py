@@ -214,3 +214,57 @@ def test_the_compiled_pass_is_the_numpy_band():
         got = np.empty(len(a), np.float32)
         assert band.compiled(vs, texels, margin, f, got) == pytest.approx(frac[0])
         np.testing.assert_allclose(got, want[0], rtol=1e-5, atol=1e-6)
+
+
+def test_a_strain_driven_evaluator_keeps_only_the_fine_texels_layout(pair, pdm_data, tmp_path):
+    """With the strain band driving the fine texels, ma2008's (d1, d2) fine band is stored
+    (``fine.exr`` for renderers) but never evaluated: the evaluator holds the texels' layout
+    only, none of that band's term-major copy, parameter field, limits or ρ CSR (issue 23:
+    the model cache weighed them, ~80 MB at level 1, though no frame reads them). The fade's
+    padded ρ operator is cached with the model and mapped at load; frames outside the hull
+    (faded) are bit for bit those of a build that derives it."""
+    from service.methods.footprint import file_mapped, nbytes
+    from service.methods.pdm.model import PdmEvaluator
+    from service.methods.pdm.texel_band import TexelBand
+
+    poly, model = pair
+    actor, clips = pdm_data
+    ev = model.evaluator
+    assert isinstance(poly.evaluator.fine, TexelBand) and not isinstance(ev.fine, TexelBand)
+    assert "fine" not in ev.bands and "fine" not in ev.validity.texel_rho and "fine" not in ev.validity.compiled
+    assert nbytes(ev.fine) == ev.fine.index.nbytes < nbytes(poly.evaluator.fine) / 10
+    model.save(tmp_path / "strain")
+    back = PdmModel.load(tmp_path / "strain")
+    assert file_mapped(back.evaluator.strain_rho.weight) and file_mapped(back.evaluator.strain_rho.corner)
+    derived = PdmModel(back.data, PdmEvaluator.build(back.data))
+    rest = actor.marker_positions()
+    far = rest + 2.0 * (clips[2].markers[[5, 9]] - rest)               # beyond the training: faded
+    pose, u_H, S = back.evaluator.deformation(far)
+    d1, d2, _ = back.evaluator.vertex_band.parameters(S, None)
+    assert back.evaluator.gauge(d1, d2)[0].max() > 1
+    a, b = back.synthesize(far, ("displacement",)), derived.synthesize(far, ("displacement",))
+    np.testing.assert_array_equal(a["displacement"], b["displacement"])
+    np.testing.assert_array_equal(back.evaluator.strain_rho.weight, derived.evaluator.strain_rho.weight)
+
+
+def test_a_strain_driven_model_stays_loadable_by_the_deformation_band(pair, pdm_data, tmp_path):
+    """The stored validity keeps the (d1, d2) fine band's envelope, which the strain-driven
+    evaluator does not read, so a server that evaluates that band (an earlier version, or
+    this one told ``fine_driver: "deformation"``) loads the model: the same maps as a model
+    trained with that driver on the same clips."""
+    import dataclasses
+
+    from service.methods.pdm.model import PdmEvaluator
+
+    poly, model = pair
+    actor, clips = pdm_data
+    assert "fine" in model.data.validity.envelope
+    model.save(tmp_path / "strain")
+    data = PdmModel.load(tmp_path / "strain").data
+    as_poly = dataclasses.replace(data, fine_strain=None,
+                                  params=data.params.model_copy(update={"fine_driver": "deformation"}))
+    evaluated = PdmModel(as_poly, PdmEvaluator.build(as_poly))
+    trained = train(actor, clips, PdmParams(**SMALL, fine_driver="deformation"))
+    markers = clips[1].markers[[4, 11]]
+    np.testing.assert_array_equal(evaluated.synthesize(markers, ("displacement",))["displacement"],
+                                  trained.synthesize(markers, ("displacement",))["displacement"])
