@@ -13,7 +13,11 @@ frames of a large mapped database per request (shape space: the K active frames 
 bermano2014 §5.4) does not (``Kind.weighs_mapped``). A mapped array that no frame reads at
 all (the PDM's thin-shell bases in vertex order, which training and the NumPy reference
 paths use while synthesis reads their reordered copies) costs no resident memory: its
-dataclass field says so with ``metadata=UNREAD`` and it is not counted while mapped.
+dataclass field says so with ``metadata=UNREAD`` and it is not counted while mapped. A
+mapped copy of an array that another field holds, laid out for one path, where a frame
+reads one of the two and never both (the thin-shell basis: in vertex order for the marker
+regression's mesh, reordered for the compiled medium band's) is counted once, under the
+other field: ``metadata=COPY``.
 """
 
 from __future__ import annotations
@@ -32,6 +36,9 @@ FACTOR_ENTRY_BYTES = 12
 #: dataclass field metadata of an array no synthesized frame reads: not counted while it
 #: lies over a file mapping (its pages are never touched), counted as usual otherwise
 UNREAD = {"footprint": "unread"}
+#: dataclass field metadata of an array laid out again from one another field holds, where a
+#: frame reads either, never both: not counted while it lies over a file mapping
+COPY = {"footprint": "copy"}
 #: nesting depth followed into attributes, containers and their items (a served PDM: the
 #: stream's unit check → model → evaluator → validity → texel operators → CSR → arrays)
 MAX_DEPTH = 8
@@ -49,9 +56,9 @@ def file_mapped(array: np.ndarray) -> bool:
 
 def _counted(holder: Any, field: dataclasses.Field) -> Any:
     """The value of ``holder``'s dataclass ``field`` as :func:`nbytes` weighs it: None for
-    a file-mapped array its field marks :data:`UNREAD`."""
+    a file-mapped array its field marks :data:`UNREAD` or :data:`COPY`."""
     value = getattr(holder, field.name, None)
-    if field.metadata.get("footprint") == UNREAD["footprint"] and isinstance(value, np.ndarray) \
+    if field.metadata.get("footprint") in (UNREAD["footprint"], COPY["footprint"]) and isinstance(value, np.ndarray) \
             and file_mapped(value):
         return None
     return value

@@ -40,6 +40,7 @@ def test_counts_arrays_once_sparse_and_factors():
 _RESIDENT_COST = """
 import gc, json, sys
 from pathlib import Path
+import numpy as np
 from service.app.memory import release_free_heap
 from service.methods.footprint import nbytes
 from service.methods.kinds import get_kind
@@ -49,7 +50,9 @@ def rss():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) * 1024
 
-def frame(model):       # a neutral frame: the rest markers, or the neutral's vertices
+def frame(model):       # the frames given, or a neutral one: the rest markers, or the neutral's vertices
+    if len(sys.argv) > 3:
+        return np.load(sys.argv[3])
     data = model.data
     return (data.rest_markers if hasattr(data, "rest_markers") else data.neutral)[None]
 
@@ -68,7 +71,7 @@ print(json.dumps({"measured": rss() - before, "estimate": nbytes(model, mapped=k
 """
 
 
-def _resident_cost(kind: str, path) -> dict:
+def _resident_cost(kind: str, path, frames: np.ndarray | None = None) -> dict:
     import json
     import os
     import subprocess
@@ -77,15 +80,20 @@ def _resident_cost(kind: str, path) -> dict:
 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
            "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    out = subprocess.run([sys.executable, "-c", _RESIDENT_COST, kind, str(path)], env=env,
+    args = [kind, str(path)]
+    if frames is not None:
+        np.save(Path(path) / "resident_frames.npy", frames)
+        args.append(str(Path(path) / "resident_frames.npy"))
+    out = subprocess.run([sys.executable, "-c", _RESIDENT_COST, *args], env=env,
                          capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
 
-def resident_cost(kind: str, path) -> dict:
+def resident_cost(kind: str, path, frames: np.ndarray | None = None) -> dict:
     """``{"measured", "estimate"}`` bytes of loading the model directory ``path`` of ``kind``
-    in a fresh process (:data:`_RESIDENT_COST`)."""
-    return _resident_cost(kind, path)
+    in a fresh process and synthesizing every output of ``frames`` (default one neutral
+    frame; :data:`_RESIDENT_COST`)."""
+    return _resident_cost(kind, path, frames)
 
 
 def test_arrays_over_a_file_mapping_count_only_when_asked(tmp_path):
@@ -118,6 +126,26 @@ def test_a_mapped_array_no_frame_reads_is_not_counted(tmp_path):
     assert nbytes(Holder(files["b"], files["a"])) == 400                  # mapped: never paged in
     assert nbytes(Holder(files["b"], np.ones((100, 10), np.float32))) == 400 + 4000   # held: counts
     assert nbytes(Holder(files["a"], files["a"])) == 4000                 # read elsewhere: counts
+
+
+def test_a_mapped_copy_is_counted_once_under_the_array_it_copies(tmp_path):
+    """COPY: a mapped array laid out again for another path (a frame reads one of the two)
+    counts once, under the other field; held in memory it counts as usual."""
+    import dataclasses
+
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_mapped
+    from service.methods.footprint import COPY
+
+    @dataclasses.dataclass
+    class Holder:
+        original: np.ndarray
+        reordered: np.ndarray = dataclasses.field(metadata=COPY)
+
+    write_npz(tmp_path / "a.npz", {"a": np.ones((100, 10), np.float32), "r": np.ones((100, 10), np.float32)})
+    files = npz_mapped(tmp_path / "a.npz")
+    assert nbytes(Holder(files["a"], files["r"])) == 4000
+    assert nbytes(Holder(files["a"], np.ones((100, 10), np.float32))) == 8000
 
 
 def test_the_pdm_estimate_is_within_ten_percent_of_its_resident_cost(pdm_model, tmp_path):

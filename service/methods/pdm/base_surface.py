@@ -61,7 +61,6 @@ from service.geometry.thin_shell import (
     KB, KS, apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, thin_shell_basis,
 )
 from service.methods.confidence import MarkerEvidence
-from service.methods.footprint import UNREAD
 
 #: a frame needs at least this many visible markers (rigid fit and thin shell)
 MIN_VISIBLE_MARKERS = max(MIN_POINTS, 4)
@@ -222,7 +221,7 @@ class BaseSurface:
     faces: np.ndarray
     handles: np.ndarray
     rest_markers: np.ndarray
-    basis: np.ndarray = dataclasses.field(metadata=UNREAD)   # frames read ShellFrames' reordered copy
+    basis: np.ndarray         # read per frame by deform (ShellMesh's compiled path reads its reordered copy)
     energy: np.ndarray
     frame_field: FrameField
     noise_mm: float = 0.0

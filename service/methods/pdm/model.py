@@ -323,8 +323,10 @@ class PdmEvaluator:
                                     smooth neutral's (:meth:`shell_fallback`)
     shell_offset : (n,3) float64    detailed minus smooth neutral, world, mm
     uv_vertex : (K,) int64          the vertex of each UV point
-    shell_mesh : ShellMesh          the per-frame medium mesh on the compiled shell kernels
-                                    (:mod:`.shell_mesh`: base surface, fallback, composition)
+    shell_mesh : ShellMesh | None   the per-frame medium mesh on the compiled shell kernels
+                                    (:mod:`.shell_mesh`: base surface, fallback, composition;
+                                    None with ``medium_regression``, whose mesh is
+                                    ``base.deform`` plus the regression's offsets)
     point_validity : PointValidity | None   the medium band's validity at the UV points on
                                     compiled kernels (:mod:`.point_validity`; None without validity)
     onset : callable | None         the medium band's rest onset (:func:`rest_onset`) on its
@@ -455,8 +457,9 @@ class PdmEvaluator:
         from service.methods.pdm.point_onset import point_onset
         from service.methods.pdm.point_validity import PointValidity
 
-        shell_mesh = ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
-                                     d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
+        shell_mesh = None if d.medium_regression is not None else \
+            ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
+                            d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
         validity = _validity(d, base, bands, orders, seam, shell, texel_rho, stored_only)
         if validity is not None and isinstance(fine, TexelBand):
             validity.prepare("fine", fine.coeffs)        # the fine band's compiled validity
@@ -480,8 +483,8 @@ class PdmEvaluator:
             normal_mapper=normal_mapper,
             fine_inverse=inverse_index(fine.index, Hf * Hf), validity=validity, shell_correction=shell[0],
             shell_offset=shell[1], uv_vertex=uv_vertex, shell_mesh=shell_mesh,
-            point_validity=None if validity is None else PointValidity.build(validity, bands["vertex"].terms,
-                                                                               ops.get("point_box")),
+            point_validity=None if validity is None else PointValidity.build(
+                validity, bands["vertex"].terms, ops.get("point_box"), values=d.medium_regression is None),
             onset=None if validity is None else point_onset, medium_gain=medium_gain(d), **strain)
 
     @property
@@ -526,7 +529,8 @@ class PdmEvaluator:
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
                **({} if self.strain_texels is None else self.strain_texels.arrays("strain_texels")),
                **({} if self.strain_rho is None else self.strain_rho.arrays("strain_rho")),
-               **{f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()}}
+               **({} if self.shell_mesh is None else
+                  {f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()})}
         for k, m in self.base.frame_field.operators().items():
             out.update(sparse_members(f"frame_field_{k}", m))
         for name, band in self.bands.items():

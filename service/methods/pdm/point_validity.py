@@ -187,15 +187,21 @@ class PointValidity:
     slope: float
 
     @classmethod
-    def build(cls, validity: Validity, terms: np.ndarray, box: np.ndarray | None = None) -> "PointValidity":
+    def build(cls, validity: Validity, terms: np.ndarray, box: np.ndarray | None = None,
+              values: bool = True) -> "PointValidity":
         """From the model's :class:`~.validity.Validity` and the vertex band's ``terms`` (K',3,P);
         ``box``: the sector box already in the kernel's layout (:meth:`point_box` of this
-        validity, e.g. mapped from a model's cache), used when its shape is that layout's."""
+        validity, e.g. mapped from a model's cache), used when its shape is that layout's.
+        ``values`` False: only :meth:`gauge` is read (a PDM whose mesh is the marker
+        regression's never evaluates the medium band), so no sector box is held (35 MB at
+        level 1, never paged in: issue 23's cache weight against the resident cost)."""
         P, D = validity.hull_points.shape
         sectors = validity.sector_points if validity.sector_points is not None else np.empty((P, 0), np.float32)
         stored = validity.sector_box
         want = (0 if stored is None else stored.shape[1], P, 2, 3)
-        if box is None or box.shape != want or box.dtype != np.float32 or not box.flags.c_contiguous:
+        if not values:
+            box = np.empty((0, P, 2, 3), np.float32)
+        elif box is None or box.shape != want or box.dtype != np.float32 or not box.flags.c_contiguous:
             box = cls.point_box(validity)
         if sectors.shape[1] not in (0, D) or box.shape[0] not in (0, D):
             raise ValueError(f"the validity tables have {sectors.shape[1]} and {box.shape[0]} sectors, the hull {D}")

@@ -29,6 +29,7 @@ evaluator is built (:meth:`.model.PdmEvaluator.build`), never by ``facesynth ser
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,7 @@ import scipy.sparse as sp
 
 from service.geometry import ranges
 from service.geometry.shell_frames import ShellFrames, displacement_pair
+from service.methods.footprint import COPY
 
 
 @dataclass(frozen=True)
@@ -56,7 +58,7 @@ class ShellMesh:
     """
 
     frames: ShellFrames
-    basis: np.ndarray
+    basis: np.ndarray = dataclasses.field(metadata=COPY)   # the base's, reordered: one is read per frame
     correction: np.ndarray
     smooth: np.ndarray
     offset: np.ndarray

@@ -72,3 +72,26 @@ def test_the_regression_round_trips_bit_for_bit(pair, pdm_data, tmp_path):
     with np.load(tmp_path / "poly" / "model.npz") as z:
         assert not any(k.startswith("medium_regression") for k in z.files)
     assert PdmModel.load(tmp_path / "poly").data.medium_regression is None
+
+
+def test_the_regression_mesh_needs_no_compiled_shell_mesh(pair, pdm_data, tmp_path):
+    """The regression's mesh is the base surface (``base.deform``: the basis in vertex order)
+    plus its offsets: the evaluator builds no ShellMesh (its reordered bases, 2 × (n,M)
+    float32, and frames; issue 23: the model cache weighed them though no frame reads
+    them). Loaded, the default model's cache weight is within 10 % of the resident cost of
+    loading it and synthesizing every output of two training frames and one beyond the
+    training (where the detail fades; the polynomial model's on a neutral frame:
+    tests/methods/test_footprint.py)."""
+    from tests.methods.test_footprint import resident_cost
+
+    poly, reg = pair
+    actor, clips = pdm_data
+    rest = actor.marker_positions()
+    assert reg.evaluator.shell_mesh is None and poly.evaluator.shell_mesh is not None
+    reg.save(tmp_path / "reg")
+    with np.load(tmp_path / "reg" / "cache.npz") as z:
+        assert not any(k.startswith("op_shell_mesh_") for k in z.files)
+    frames = np.concatenate([clips[1].markers[[4, 11]], rest + 2.0 * (clips[2].markers[[9]] - rest)])
+    cost = resident_cost("pdm", tmp_path / "reg", frames)
+    assert cost["measured"] > 4 << 20, cost
+    assert abs(cost["estimate"] / cost["measured"] - 1) <= 0.10, cost
