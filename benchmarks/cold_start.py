@@ -27,7 +27,8 @@ frame of every output once and is dropped (imports, compiled kernels, lazily bui
 all in place), then loaded again the way the service loads it and synthesizes one maps
 frame; the resident memory that second load added (VmRSS, file pages of the mapped arrays
 included, the free heap handed back as ``Services`` does) against ``footprint.nbytes``, the
-cache's weight.
+cache's weight; then every output of that frame and of the out-of-range performance's
+farthest frame (where the detail fades: what a cached model serving any request holds).
 
 Run: ``python benchmarks/cold_start.py [--actor DIR] [--model DIR] [--rounds 2]
 [--against REV] [--footprint]``. The model is trained once into ``benchmarks/out/realtime/model-<actor>``
