@@ -328,7 +328,8 @@ class PdmEvaluator:
                                     None with ``medium_regression``, whose mesh is
                                     ``base.deform`` plus the regression's offsets)
     point_validity : PointValidity | None   the medium band's validity at the UV points on
-                                    compiled kernels (:mod:`.point_validity`; None without validity)
+                                    compiled kernels (:mod:`.point_validity`; None without validity;
+                                    with ``medium_regression`` its gauge only, no sector box)
     onset : callable | None         the medium band's rest onset (:func:`rest_onset`) on its
                                     compiled kernel (:func:`.point_onset.point_onset`; None
                                     without validity)

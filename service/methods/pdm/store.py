@@ -32,7 +32,7 @@ Layout (DESIGN.md "Data and storage"):
   sampling matrices, the detailed neutral's shell basis less the base's
   ``op_shell_correction``; issue 23: a level-1 load 4.8 → 0.45 s of CPU; a model stored without them
   derives them at load, as before); ``op_shell_mesh_*`` the compiled mesh's vertex order and
-  both bases in it, mapped instead of permuted at load (level 1, +54 MB on disk: load CPU
+  both bases in it (none for a PDM whose mesh is the marker regression's), mapped instead of permuted at load (level 1, +54 MB on disk: load CPU
   0.87 → 0.69 s, resident after load 438 → 336 MB and after three mesh frames 478 → 427 MB,
   peak 613 → 562 MB; permuted as before when absent) and its :class:`~service.geometry.shell_frames.ShellFrames`
   (``op_shell_mesh_frames_*``, +6.8 MB: 77 ms of a level-1 load not spent building the
@@ -50,7 +50,8 @@ Layout (DESIGN.md "Data and storage"):
   mapper's arrays (+27 MB, in place of its rasterization ``op_raster_*``, 16 MB, which a
   cache stored before holds and a load then reads to build the mapper); ``op_point_box``,
   the medium band's sector box in its kernel's (D,P,2,3) layout (+34 MB; transposed from
-  ``validity.npz``'s at load when absent); ``size_bytes`` counts the model without it;
+  ``validity.npz``'s at load when absent; none for a regression-mesh PDM, which never
+  evaluates the medium band); ``size_bytes`` counts the model without it;
 * ``manifest.json`` kind, format version, params, metrics, and the sha256 of every file.
 
 Coefficient ``a<k>`` multiplies term k of ``polynomial.TERM_POWERS[order]`` (for the
