@@ -116,8 +116,10 @@ class StrainBand:
         return next(o for o, t in TERM_POWERS.items() if len(t) == self.coeffs.shape[1])
 
     def permuted(self, order: np.ndarray) -> "StrainBand":
-        """The band with its texels in ``order`` (P,) (indices into these texels)."""
-        return StrainBand(np.ascontiguousarray(self.coeffs[order]), self.scale, self.vertex_box,
+        """The band with its texels in ``order`` (P,) (indices into these texels), its
+        ``coeffs`` laid out term-major: the transpose of a C-ordered (K,P), which the
+        compiled pass reads as it is (:meth:`compiled`)."""
+        return StrainBand(np.ascontiguousarray(self.coeffs[order].T).T, self.scale, self.vertex_box,
                           np.ascontiguousarray(self.target_range[order]))
 
     def clamp(self, strain: np.ndarray, margin: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -170,8 +172,9 @@ class StrainBand:
 
         strain, clamped = self.clamp(strain, margin)
         f = NO_FADE if fade is None else fade
-        ranges.run(texel_values, len(self.coeffs), texels.corner, texels.weight, np.ascontiguousarray(strain),
-                   (1.0 / self.scale).astype(np.float32), self.coeffs, self.target_range,
+        terms = np.ascontiguousarray(self.coeffs.T)         # no copy for a permuted band
+        ranges.run(texel_values, len(self.coeffs), texels.corner, texels.weight, np.ascontiguousarray(strain.T),
+                   (1.0 / self.scale).astype(np.float32), terms, self.target_range,
                    -1.0 if margin is None else float(margin), f.corner, f.weight,
                    np.ascontiguousarray(f.point_rho, np.float64), f.width, out)
         return float(clamped)
