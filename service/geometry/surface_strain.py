@@ -33,6 +33,9 @@ from service.geometry.tangent_frames import tangent_frames
 
 #: stress components per vertex (E_TT, E_BB, √2 E_TB)
 COMPONENTS = 3
+#: :meth:`StressField.operators`' arrays and sparse (CSR) matrices, by field name
+OPERATOR_ARRAYS = ("rest_inverse", "tangent")
+OPERATOR_MATRICES = ("average", "smoothing")
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,26 @@ class StressField:
         for _ in range(smoothing):
             S = (step @ S).tocsr()
         return cls(V, F, rest_frames_inverse(V, F), average, frames[:, :2], S)
+
+    def operators(self) -> dict:
+        """What :meth:`from_operators` takes back (e.g. from a model's cache): ``rest_inverse``
+        (m,3,3), ``tangent`` (n,2,3), and the CSR ``average`` and ``smoothing``."""
+        return {k: getattr(self, k) for k in OPERATOR_ARRAYS + OPERATOR_MATRICES}
+
+    @classmethod
+    def from_operators(cls, neutral: np.ndarray, faces: np.ndarray, operators: dict) -> "StressField | None":
+        """The field of the neutral (n,3) and faces (m,3) with the :meth:`operators` stored from
+        it (as given: no copy, the strains bit for bit those of the field stored), if all are
+        there with the shapes :meth:`build` makes, else None (then build it: ~0.2 s of a
+        level-1 PDM load, and the tangent frames' compiled normals loaded)."""
+        n, m = len(neutral), len(faces)
+        R, T = operators.get("rest_inverse"), operators.get("tangent")
+        A, S = operators.get("average"), operators.get("smoothing")
+        if not (isinstance(R, np.ndarray) and R.shape == (m, 3, 3) and isinstance(T, np.ndarray)
+                and T.shape == (n, 2, 3) and sp.issparse(A) and A.shape == (n, m) and sp.issparse(S)
+                and S.shape == (n, n)):
+            return None
+        return cls(np.asarray(neutral, np.float64), np.asarray(faces, np.int64), R, A.tocsr(), T, S.tocsr())
 
     def stress32(self, V: np.ndarray) -> np.ndarray:
         """:meth:`stress` of one mesh (n,3) on the compiled kernels

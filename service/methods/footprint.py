@@ -56,11 +56,16 @@ def file_mapped(array: np.ndarray) -> bool:
 
 def _counted(holder: Any, field: dataclasses.Field) -> Any:
     """The value of ``holder``'s dataclass ``field`` as :func:`nbytes` weighs it: None for
-    a file-mapped array its field marks :data:`UNREAD` or :data:`COPY`."""
+    a file-mapped array its field marks :data:`UNREAD` or :data:`COPY`, or such a dataclass
+    whose arrays all lie over a file mapping (a stored object no frame reads)."""
     value = getattr(holder, field.name, None)
-    if field.metadata.get("footprint") in (UNREAD["footprint"], COPY["footprint"]) and isinstance(value, np.ndarray) \
-            and file_mapped(value):
-        return None
+    if field.metadata.get("footprint") not in (UNREAD["footprint"], COPY["footprint"]):
+        return value
+    if isinstance(value, np.ndarray):
+        return None if file_mapped(value) else value
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        arrays = [a for f in dataclasses.fields(value) if isinstance(a := getattr(value, f.name), np.ndarray)]
+        return None if arrays and all(file_mapped(a) for a in arrays) else value
     return value
 
 

@@ -128,6 +128,31 @@ def test_a_mapped_array_no_frame_reads_is_not_counted(tmp_path):
     assert nbytes(Holder(files["a"], files["a"])) == 4000                 # read elsewhere: counts
 
 
+def test_a_stored_object_no_frame_reads_is_not_counted_while_mapped(tmp_path):
+    """UNREAD on a dataclass-valued field: not counted while every array of it is mapped
+    (the PDM's stored strain band, whose evaluator reads its own copy); counted as usual
+    once any of them is held in memory."""
+    import dataclasses
+
+    from service.io.atomic import write_npz
+    from service.io.npz import npz_mapped
+    from service.methods.footprint import UNREAD
+
+    @dataclasses.dataclass
+    class Band:
+        coeffs: np.ndarray
+        scale: np.ndarray
+
+    @dataclasses.dataclass
+    class Holder:
+        band: Band = dataclasses.field(metadata=UNREAD)
+
+    write_npz(tmp_path / "a.npz", {"c": np.ones((100, 10), np.float32), "s": np.ones(3)})
+    files = npz_mapped(tmp_path / "a.npz")
+    assert nbytes(Holder(Band(files["c"], files["s"]))) == 0
+    assert nbytes(Holder(Band(files["c"], np.ones(3)))) == 4000 + 24
+
+
 def test_a_mapped_copy_is_counted_once_under_the_array_it_copies(tmp_path):
     """COPY: a mapped array laid out again for another path (a frame reads one of the two)
     counts once, under the other field; held in memory it counts as usual."""

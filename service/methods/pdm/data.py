@@ -11,6 +11,7 @@ import numpy as np
 
 from service.geometry.marker_prior import MarkerPrior
 from service.geometry.marker_regression import MarkerRegression
+from service.methods.footprint import UNREAD
 from service.methods.pdm.deformation import DeformationAxes, MarkerMesh
 from service.methods.pdm.params import PdmParams
 from service.methods.pdm.strain_band import StrainBand
@@ -85,7 +86,8 @@ class PdmData:
     marker_prior: MarkerPrior | None = None
     medium_skill: np.ndarray | None = None
     medium_regression: MarkerRegression | None = None
-    fine_strain: StrainBand | None = None
+    # synthesis reads the evaluator's copy in its texel order (mapped from the model's cache)
+    fine_strain: StrainBand | None = field(default=None, metadata=UNREAD)
 
     @property
     def n_vertices(self) -> int:

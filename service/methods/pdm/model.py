@@ -96,7 +96,8 @@ from service.geometry import marker_regression, ranges
 from service.geometry.laplacian import triangle_areas
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
-from service.geometry.surface_strain import StressField
+from service.geometry.surface_strain import OPERATOR_ARRAYS as STRAIN_FIELD_ARRAYS
+from service.geometry.surface_strain import OPERATOR_MATRICES as STRAIN_FIELD_MATRICES, StressField
 from service.geometry.thin_shell import thin_shell_basis
 from service.geometry.tangent_frames import OPERATORS as FRAME_OPERATORS
 from service.geometry.tangent_frames import FrameField, tangent_frames, uv_handedness
@@ -476,8 +477,14 @@ class PdmEvaluator:
             if validity is not None and (rho_op is None or rho_op.corner.shape != (3, len(fine.index))):
                 raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf) if raster is None else raster
                 rho_op = TexelStrain.from_csr(interpolation_matrix(raster, d.uv_faces, K)[fine.index], np.float64)
-            strain = {"fine_strain": d.fine_strain.permuted(orders["fine"]), "strain_texels": texels,
-                      "strain_rho": rho_op, "strain_field": StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)}
+            band = StrainBand.from_arrays(ops, "strain_band")       # as the evaluator holds it, mapped
+            if band is None or band.coeffs.shape != d.fine_strain.coeffs.shape:
+                band = d.fine_strain.permuted(orders["fine"])
+            stored = {k: v for k in STRAIN_FIELD_ARRAYS if (v := ops.get(f"strain_field_{k}")) is not None}
+            stored.update({k: m for k in STRAIN_FIELD_MATRICES if (m := sparse_matrix(ops, f"strain_field_{k}")) is not None})
+            field = StressField.from_operators(detailed, d.faces, stored) or \
+                StressField.build(detailed, d.faces, d.uv, d.uv_faces, 0)
+            strain = {"fine_strain": band, "strain_texels": texels, "strain_rho": rho_op, "strain_field": field}
         return cls(
             data=d, base=base, vertex_band=bands["vertex"], fine=fine, albedo=bands.get("albedo"),
             orders=orders, seam_average=seam, fine_sampler=fine_sampler,
@@ -517,7 +524,12 @@ class PdmEvaluator:
         the maps', ~85 ms at level 1); ``frame_field_*`` the base surface's :class:`~service.geometry.tangent_frames.FrameField`
         operators (CSR; a cache without them builds it, ~70 ms at level 1); the CSR matrices ``seam_average``, ``fine_sampler`` and
         ``<band>_texel_rho`` (:func:`service.io.npz.sparse_members`); ``strain_texels_*`` the
-        strain band's padded vertices → texels operator (:meth:`.strain_band.TexelStrain.arrays`); ``normal_mapper_*``
+        strain band's padded vertices → texels operator (:meth:`.strain_band.TexelStrain.arrays`),
+        ``strain_rho_*`` its fade's, ``strain_band_*`` the band in the fine texels' order with
+        its coefficients term-major (:meth:`.strain_band.StrainBand.arrays`: mapped, not
+        permuted at load, 0.17 s at level 1) and ``strain_field_*`` its
+        :class:`~service.geometry.surface_strain.StressField` operators (not built at load, 0.2 s);
+        ``normal_mapper_*``
         the normal mapper's arrays (:meth:`~service.geometry.normal_map.NormalMapper.arrays`,
         27 MB at 1024²: a load maps them instead of reading the rasterization, 16 MB, and
         building the mapper, ~40 ms at level 1; a cache of this version with ``raster_triangle``
@@ -530,10 +542,13 @@ class PdmEvaluator:
                **sparse_members("fine_sampler", self.fine_sampler), "shell_correction": self.shell_correction,
                **({} if self.strain_texels is None else self.strain_texels.arrays("strain_texels")),
                **({} if self.strain_rho is None else self.strain_rho.arrays("strain_rho")),
+               **({} if self.fine_strain is None else self.fine_strain.arrays("strain_band")),
                **({} if self.shell_mesh is None else
                   {f"shell_mesh_{k}": v for k, v in self.shell_mesh.stored().items()})}
         for k, m in self.base.frame_field.operators().items():
             out.update(sparse_members(f"frame_field_{k}", m))
+        for k, v in ({} if self.strain_field is None else self.strain_field.operators()).items():
+            out.update(sparse_members(f"strain_field_{k}", v) if k in STRAIN_FIELD_MATRICES else {f"strain_field_{k}": v})
         for name, band in self.bands.items():
             out.update({f"{name}_field_{k}": v for k, v in band.field.arrays().items()})
             if name != "vertex":

@@ -38,7 +38,10 @@ Layout (DESIGN.md "Data and storage"):
   (``op_shell_mesh_frames_*``, +6.8 MB: 77 ms of a level-1 load not spent building the
   vertex order and incidence; built as before when absent); ``op_strain_texels_corner``,
   ``_weight``, the strain band's vertices → fine texels, and ``op_strain_rho_corner``,
-  ``_weight``, its fade's UV points → fine texels (a cache without them rasterizes); a
+  ``_weight``, its fade's UV points → fine texels (a cache without them rasterizes);
+  ``op_strain_band_*``, the band in the evaluator's texel order, coefficients term-major,
+  and ``op_strain_field_*``, the strain operators (mapped instead of permuted and built at
+  load: a level-1 load −0.4 s CPU; a cache without them permutes and builds); a
   strain-driven model's cache holds none of the (d1, d2) fine band's evaluation arrays
   (``op_fine_terms``, ``op_fine_field_*``, ``op_fine_texel_rho_*``: no frame reads them, the
   band is in ``fine.exr`` for renderers);

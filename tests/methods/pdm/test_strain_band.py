@@ -221,8 +221,9 @@ def test_a_strain_driven_evaluator_keeps_only_the_fine_texels_layout(pair, pdm_d
     (``fine.exr`` for renderers) but never evaluated: the evaluator holds the texels' layout
     only, none of that band's term-major copy, parameter field, limits or ρ CSR (issue 23:
     the model cache weighed them, ~80 MB at level 1, though no frame reads them). The fade's
-    padded ρ operator is cached with the model and mapped at load; frames outside the hull
-    (faded) are bit for bit those of a build that derives it."""
+    padded ρ operator, the band in the evaluator's texel order (term-major) and the strain
+    operators are cached with the model and mapped at load; frames outside the hull (faded)
+    are bit for bit those of a build that derives them."""
     from service.methods.footprint import file_mapped, nbytes
     from service.methods.pdm.model import PdmEvaluator
     from service.methods.pdm.texel_band import TexelBand
@@ -235,7 +236,10 @@ def test_a_strain_driven_evaluator_keeps_only_the_fine_texels_layout(pair, pdm_d
     assert nbytes(ev.fine) == ev.fine.index.nbytes < nbytes(poly.evaluator.fine) / 10
     model.save(tmp_path / "strain")
     back = PdmModel.load(tmp_path / "strain")
-    assert file_mapped(back.evaluator.strain_rho.weight) and file_mapped(back.evaluator.strain_rho.corner)
+    ev_back = back.evaluator
+    assert file_mapped(ev_back.strain_rho.weight) and file_mapped(ev_back.strain_rho.corner)
+    assert file_mapped(ev_back.fine_strain.coeffs) and ev_back.fine_strain.coeffs.T.flags.c_contiguous
+    assert file_mapped(ev_back.strain_field.rest_inverse) and file_mapped(ev_back.strain_field.average.data)
     derived = PdmModel(back.data, PdmEvaluator.build(back.data))
     rest = actor.marker_positions()
     far = rest + 2.0 * (clips[2].markers[[5, 9]] - rest)               # beyond the training: faded
