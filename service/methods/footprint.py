@@ -11,9 +11,10 @@ file, and the kernel drops them again under memory pressure. A kind that reads a
 them on every frame (the PDM's coefficient maps) counts them; one that reads a few
 frames of a large mapped database per request (shape space: the K active frames of N,
 bermano2014 §5.4) does not (``Kind.weighs_mapped``). A mapped array that no frame reads at
-all (the PDM's thin-shell bases in vertex order, which training and the NumPy reference
-paths use while synthesis reads their reordered copies) costs no resident memory: its
-dataclass field says so with ``metadata=UNREAD`` and it is not counted while mapped. A
+all (the PDM's stored coefficient maps and strain band, whose copies in the evaluator's
+texel order synthesis reads) costs no resident memory: its dataclass field says so with
+``metadata=UNREAD`` and it is not counted while mapped (a dataclass-valued field: while
+every array of it is mapped). A
 mapped copy of an array that another field holds, laid out for one path, where a frame
 reads one of the two and never both (the thin-shell basis: in vertex order for the marker
 regression's mesh, reordered for the compiled medium band's) is counted once, under the
