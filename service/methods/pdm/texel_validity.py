@@ -46,7 +46,7 @@ from service.methods.pdm.polynomial import TERM_POWERS, _order_of
 CORNERS = 3
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def padded_rows(indptr, indices, data, corner, weight):
     """The CSR rows (``indptr`` (P+1,), ``indices``, ``data``; at most :data:`CORNERS`
     entries a row) into ``corner`` (3,P) uint32 and ``weight`` (3,P) float64, each row's

@@ -38,7 +38,7 @@ FASTMATH = {"reassoc", "contract"}
 LANES = 8
 
 
-@njit(nogil=True, cache=True, fastmath=FASTMATH)
+@njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def correction_sums(lo, hi, ptr, edge, values, const, W, G, f, fade, D2, given, C):
     """Vertices [lo, hi) (rows of the CSR ``ptr``/``edge``): corrections C (3,n) float32 of
     the module docstring. ``values`` (nnz,4) holds α and the three polynomial

@@ -52,7 +52,7 @@ def _add_typed(o, v, w):
     return one
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def blend_rows(lo, hi, values, frames, coef, out):
     """Elements [lo, hi): ``out[e, c] = Σ_j coef[j, e] · values[frames[j], e, c]``, the sum in
     ``out``'s dtype (float32 or float64) over j in increasing order from zero.
