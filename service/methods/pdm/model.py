@@ -398,7 +398,8 @@ class PdmEvaluator:
                   if (a := _members(ops, f"{k}_field"))}
         bands = {"vertex": vertex_band(d.medium, d.uv, d.mesh, d.axes, d.vertex_coeffs, fields.get("vertex"))}
         orders = {"vertex": np.arange(K)}
-        stored_only = {}        # bands whose validity envelope is stored but which are not evaluated
+        layouts = {}            # texels whose band is not evaluated: the strain band drives them
+        stored_only = {}        # ... whose validity envelope is still stored
         for name in ("fine", "albedo"):
             m = getattr(d, name)
             if m is not None:
@@ -411,7 +412,7 @@ class PdmEvaluator:
                     raise ValueError(f"the stored {name} operators do not fit its {len(m.index)} texels")
                 orders[name] = order
                 if layout_only:         # the strain band drives it: ma2008's (d1, d2) band is never evaluated
-                    bands[name] = CoveredTexels(m.resolution, m.index[order])
+                    layouts[name] = CoveredTexels(m.resolution, m.index[order])
                     if d.validity is None and d.params.validity_width is not None:
                         # ... but its envelope is stored, for a server of an earlier version
                         fld = fld if fld is not None else element_field(d.mesh, d.axes, m.index, m.resolution)[1]
@@ -423,14 +424,12 @@ class PdmEvaluator:
                 bands[name] = TexelBand.build(m.resolution, m.index[order], None if ok else m.coeffs[order], fld,
                                               terms=terms if ok else None)
         for name, band in bands.items():
-            if not isinstance(band, TexelBand):
-                continue
             limit = derived.limits.get(name)
             bands[name] = dataclasses.replace(band, limit=_limits(band.field, d.S_train) if limit is None else limit)
         seam = sparse_matrix(ops, "seam_average")
         if seam is None:
             seam = seam_average_matrix(d.uv_faces, d.faces, n, K)
-        fine = bands["fine"]
+        fine = bands.get("fine") or layouts["fine"]
         Hf = fine.resolution
         fine_sampler = sparse_matrix(ops, "fine_sampler")
         if fine_sampler is None:
@@ -443,7 +442,7 @@ class PdmEvaluator:
             else:
                 raster = rasterize_uv(d.uv, d.uv_faces, Hf, Hf)
             normal_mapper = NormalMapper(raster, d.faces, d.uv, d.uv_faces, n)
-        texel_rho = {k: m for k in ("fine", "albedo") if isinstance(bands.get(k), TexelBand)
+        texel_rho = {k: m for k in ("fine", "albedo") if k in bands
                      and (m := sparse_matrix(ops, f"{k}_texel_rho")) is not None}
         detailed = detailed_neutral(base, d.neutral_offset)
         correction = ops.get("shell_correction")
@@ -463,7 +462,7 @@ class PdmEvaluator:
             ShellMesh.build(base.smooth, d.faces, d.uv, d.uv_faces, base.basis, correction, shell[1],
                             d.neutral_offset, uv_vertex, seam, _members(ops, "shell_mesh"))
         validity = _validity(d, base, bands, orders, seam, shell, texel_rho, stored_only)
-        if validity is not None and isinstance(fine, TexelBand):
+        if validity is not None and "fine" in bands:
             validity.prepare("fine", fine.coeffs)        # the fine band's compiled validity
         strain = {}
         if d.fine_strain is not None:
@@ -713,7 +712,7 @@ def shell_fallback(base: BaseSurface, neutral_offset: np.ndarray, correction: np
     return out                          # (the same values as the strided gather: 0.85 → 0.46 ms)
 
 
-def _validity(d: PdmData, base: BaseSurface, bands: dict, orders: dict[str, np.ndarray],
+def _validity(d: PdmData, base: BaseSurface, bands: dict[str, TexelBand], orders: dict[str, np.ndarray],
               seam: sp.csr_matrix, shell: tuple, texel_rho: dict | None = None,
               stored_only: dict | None = None) -> Validity | None:
     """The validity regions (:mod:`.validity`) of the training S at the UV points, or None
@@ -722,10 +721,9 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict, orders: dict[str, np.n
     stored without it, derived from ``d.S_train`` (seconds). ``shell``: the evaluator's
     (shell_correction, shell_offset, uv_vertex) (:meth:`PdmEvaluator.shell_fallback`), the
     fallback the medium band's sector envelope and box are measured from; ``texel_rho`` as
-    :meth:`.validity.Validity.build`'s. Only the evaluated bands (:class:`TexelBand`) take ρ;
-    a stored envelope of another band (the (d1, d2) fine band of a strain-driven model) is
-    kept, and derived for ``stored_only`` ones, so the model stays loadable by a server of an
-    earlier version."""
+    :meth:`.validity.Validity.build`'s. Only the evaluated ``bands`` take ρ; a stored envelope
+    of another band (the (d1, d2) fine band of a strain-driven model) is kept, and derived
+    for ``stored_only`` ones, so the model stays loadable by a server of an earlier version."""
     if d.params.validity_width is None:
         return None
     S = d.S_train
@@ -740,7 +738,6 @@ def _validity(d: PdmData, base: BaseSurface, bands: dict, orders: dict[str, np.n
                 yield (*field(S[t:t + FRAME_CHUNK]), shell_fallback(base, d.neutral_offset, *shell, u_H))
         return chunks
 
-    bands = {k: b for k, b in bands.items() if isinstance(b, TexelBand)}   # a strain-driven fine: its own fade
     vb = bands["vertex"]
     stored = d.validity is not None and d.validity.sector_box is not None
     sectors, box = (d.validity.sectors, d.validity.sector_box) if stored else \
