@@ -78,6 +78,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import harness as pdm  # noqa: E402  (data loading, baselines, detail metric, workers, cached builds)
+from service.geometry.marker_prior import AUTO  # noqa: E402
 from service.methods.pose_space.params import MARKER_REGRESSION_RIDGE, RECOMMENDED_MARKER_REGRESSION  # noqa: E402
 
 OUT = pdm.GENERALIZATION
@@ -227,17 +228,25 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
         for cname, suffix in CONDITIONS.items():
             if conditions is not None and cname not in conditions:
                 continue
-            gt = dataclasses.replace(gt_clean, name=perf + suffix,
-                                     markers=pdm.variant_markers(actor_dir, perf + suffix, gt_clean.frames, marker_filter))
+            # filtered as a synthesis job filters them for the model: "auto" in its prior's
+            # modes (the baselines and the PDMs: the biquadratic's; every other model its own;
+            # the worst-frame figure gives every method the biquadratic's)
+            def take(model, name=perf + suffix):
+                return pdm.variant_markers(actor_dir, name, gt_clean.frames, marker_filter,
+                                           model.marker_modes if marker_filter == AUTO else None)
+
+            gt = dataclasses.replace(gt_clean, name=perf + suffix, markers=take(bq))
+            own = take if marker_filter == AUTO else (lambda model: None)
             methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
             methods.update({f"PDM {o}": (lambda m, model=model: pdm_prediction(model, m))
                             for o, model in models.items()})
             if shape_space_rows:
-                methods[SS_MARKERS] = lambda m: shape_space(m, "markers")
+                methods[SS_MARKERS] = lambda m, mine=own(shape): shape_space(m if mine is None else mine, "markers")
             if shape_space_rows and cname == "clean":
                 methods[SS_RIG] = lambda m: shape_space(reg.propagate(lowres), "vertices")
-            methods.update({k: (lambda m, k=k: pose_space_prediction(k, m)) for k in ps_models})
+            methods.update({k: (lambda m, k=k, mine=own(ps_models[k]): pose_space_prediction(k, m if mine is None else mine))
+                            for k in ps_models})
             methods = {k: m for k, m in methods.items() if wanted(k)}
             if split:
                 truth_map = tex.truth_map(actor, gt)

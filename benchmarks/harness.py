@@ -780,15 +780,17 @@ def generalization_pdm_models(actor_dir: Path, retrain: bool, marker_noise_mm: f
     return models
 
 
-def variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float | str = 0.0) -> np.ndarray:
+def variant_markers(actor_dir: Path, name: str, frames: np.ndarray, filter_frames: float | str = 0.0,
+                    modes=None) -> np.ndarray:
     """The performance's markers at ``frames``; with ``filter_frames`` > 0 or "auto" the whole
     performance is first smoothed in time (:func:`~service.geometry.marker_filter.filter_performance`,
-    as the synthesis job's ``marker_filter_frames`` does)."""
+    as the synthesis job's ``marker_filter_frames`` does with the model's ``marker_modes``:
+    ``modes``)."""
     from service.geometry.marker_filter import filter_performance
 
     with np.load(actor_dir / "performances" / f"{name}.npz") as d:
         markers = d["markers"].astype(np.float64)
-    return (filter_performance(markers, filter_frames) if filter_frames else markers)[frames]
+    return (filter_performance(markers, filter_frames, modes=modes) if filter_frames else markers)[frames]
 
 
 WORKERS = {

@@ -1182,8 +1182,9 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                            help="smooth the markers in time on the server before synthesis "
                                 "(the job's marker_filter_frames: σ in frames of a local "
                                 "quadratic fit over the whole take; 3 at 30 fps for ordinary "
-                                "mocap noise; auto: the take's noise estimated and each "
-                                "marker's window chosen per frame; default 0: off)")
+                                "mocap noise; auto: the take's noise estimated and the "
+                                "window chosen per frame in the modes of the model's marker "
+                                "prior; default 0: off)")
 
     p = command(sub, "correspond", correspond,
                 "bring a source scan into a target scan's UV space (a correspondence job) "

@@ -157,3 +157,90 @@ def test_auto_fills_short_gaps_where_it_smooths_and_passes_through_filter_perfor
                                                         err(filter_performance(world, 3.0)))
     with pytest.raises(ValueError, match="auto"):
         filter_markers(noisy, "smooth")
+
+
+def _modes_take(frames=240, markers=30, seed=7):
+    """A take whose expression lives in 3 known orthonormal directions of the 3M marker
+    coordinates (a fast onset, a slow sine and a slower one), σ = 0.3 mm noise on it, and
+    a basis whose first columns are those directions (the rest: any orthonormal
+    completion), as a prior's modes would be."""
+    rng = np.random.default_rng(seed)
+    n = 3 * markers
+    basis, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    t = np.arange(frames) / 30.0
+    amplitudes = np.stack([6 * np.tanh((t - 4) * 6), 4 * np.sin(2 * np.pi * 0.5 * t),
+                           3 * np.sin(2 * np.pi * 0.2 * t)], -1)               # (F,3) mm
+    truth = (amplitudes @ basis[:, :3].T).reshape(frames, markers, 3)
+    noisy = truth + rng.normal(0, 0.3, truth.shape)
+    return truth, noisy, basis
+
+
+def test_filter_modes_in_the_identity_basis_is_the_per_coordinate_filter():
+    from service.geometry.marker_filter import MODE_BANDWIDTHS, filter_modes
+
+    _, noisy, _ = _modes_take(frames=90, markers=6)
+    expected, _ = filter_markers_auto(noisy, 0.3, MODE_BANDWIDTHS)
+    np.testing.assert_array_equal(filter_modes(noisy, np.eye(18), 0.3), expected)
+
+
+def test_filter_modes_takes_the_noise_of_the_still_modes_away():
+    """Three moving modes among 90: per coordinate every window must follow the onset; per
+    mode the 87 still ones take the widest window. 3-D RMS error against the truth (seeded):
+    per coordinate ~0.29 mm, per mode ~0.13 (bound 0.6×)."""
+    from service.geometry.marker_filter import filter_modes
+
+    truth, noisy, basis = _modes_take()
+    rms = lambda x: np.sqrt(np.mean(np.sum((x - truth) ** 2, -1)))             # noqa: E731
+    per_coordinate = rms(filter_markers_auto(noisy)[0])
+    per_mode = rms(filter_modes(noisy, basis))
+    assert per_mode < 0.8 * per_coordinate, (per_mode, per_coordinate)
+    with pytest.raises(ValueError, match="basis"):
+        filter_modes(noisy, basis[:-3, :-3])
+
+
+def test_filter_performance_in_modes_under_head_motion_and_occlusion():
+    """World markers of the take under a moving head: ``"auto"`` with the modes aligns each
+    frame onto the modes' rest with their weights, filters the complete frames per mode and
+    puts each pose back — better than per coordinate (the shape's 3-D RMS error, seeded: 0.118
+    against 0.141 mm; bound 0.9×); a frame with an occluded marker gets the per-coordinate
+    fit (the same alignment weights: the same values but where σ̂, a median over the
+    coordinate axes, moved with the frame's orientation and chose another window: 0.04 mm
+    on one marker here)."""
+    from scipy.spatial.transform import Rotation
+
+    from service.geometry.marker_filter import MarkerModes, filter_performance
+    from service.geometry.marker_prior import MarkerPrior
+    from service.geometry.rigid import rigid_align
+
+    truth, noisy, basis = _modes_take()
+    F, M, _ = truth.shape
+    rng = np.random.default_rng(8)
+    rest = rng.normal(0, 40.0, (M, 3))
+    weights = rng.uniform(0.5, 1.0, M)
+    # a prior whose eigenvectors are the basis (eigenvalues decreasing along it)
+    covariance = (basis * np.geomspace(100.0, 0.01, 3 * M)) @ basis.T
+    modes = MarkerModes.of(rest, MarkerPrior(np.zeros((M, 3)), covariance), weights)
+    assert MarkerModes.of(rest, None, weights) is None
+    np.testing.assert_allclose(np.abs(np.sum(modes.vectors[:, :3] * basis[:, :3], axis=0)), 1.0, atol=1e-9)
+    R = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.01, (F, 3)), axis=0)).as_matrix()
+    shift = np.cumsum(rng.normal(0, 0.5, (F, 3)), axis=0)
+    world = lambda x: np.einsum("fij,fmj->fmi", R, rest + x) + shift[:, None]     # noqa: E731
+    clean, observed = world(truth), world(noisy)
+    observed[100:103, 4] = np.nan
+    def err(x):    # of the shape: each frame rigidly fitted to the truth first (the pose is as measured)
+        fitted = np.stack([rigid_align(np.where(np.isfinite(f), f, np.nan), c).apply(f) for f, c in zip(x, clean)])
+        return np.sqrt(np.nanmean(np.sum((fitted - clean) ** 2, -1)))
+
+    in_modes = filter_performance(observed, "auto", modes=modes)
+    per_coordinate = filter_performance(observed, "auto", weights=weights)
+    assert err(in_modes) < 0.9 * err(per_coordinate), (err(in_modes), err(per_coordinate))
+    np.testing.assert_allclose(in_modes[100:103], per_coordinate[100:103], atol=0.05)
+    assert np.isnan(in_modes[100:103, 4]).all() == np.isnan(per_coordinate[100:103, 4]).all()
+    from service.geometry.marker_filter import filter_modes
+
+    gapped = noisy.copy()
+    gapped[50, 3] = np.nan
+    assert np.isnan(filter_modes(gapped, basis)[50]).all()
+    # a fixed window is the same filter in any basis: the modes change nothing
+    np.testing.assert_array_equal(filter_performance(observed, 2.0, modes=modes),
+                                  filter_performance(observed, 2.0))

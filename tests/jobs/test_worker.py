@@ -92,7 +92,9 @@ def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, traine
     for sigma in (2.0, "auto"):
         _, data, path = _run_synthesis_job(deployment, start_worker, model_id, markers,
                                            outputs=["mesh"], marker_filter_frames=sigma)
-        expected = kinds.get_kind("pdm").load(path).synthesize(filter_performance(markers, sigma), ("mesh",))
+        model = kinds.get_kind("pdm").load(path)          # "auto": in its prior's modes
+        assert model.marker_modes is not None
+        expected = model.synthesize(filter_performance(markers, sigma, modes=model.marker_modes), ("mesh",))
         np.testing.assert_array_equal(npz_arrays(data)["vertices"], expected["vertices"])
 
 

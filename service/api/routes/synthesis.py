@@ -241,9 +241,11 @@ async def submit_synthesis_job(
                 "longer one left to the thin shell's completion). 0 (default) is off; 3 "
                 "frames at 30 fps cut σ = 0.3 mm marker noise reaching the surface by more "
                 "than half at < 2 % cost on clean markers. `auto`: the performance's noise "
-                "is estimated and each marker's window chosen per frame by Stein's unbiased "
-                "risk estimate (clean markers are kept as they are, a marker at rest is "
-                "smoothed widely, a fast onset narrowly). Not for mesh input."))] = 0.0,
+                "is estimated and the window chosen per frame by Stein's unbiased risk "
+                "estimate, in the modes of the model's learned marker prior where it has "
+                "one (per marker otherwise, and in frames with an occluded marker): clean "
+                "markers are kept as they are, what the face rarely moves is smoothed "
+                "widely, a fast onset narrowly. Not for mesh input."))] = 0.0,
 ) -> schemas.JobAccepted:
     """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and
     `Location`. The job's result is an artifact (`GET /v1/artifacts/{id}`)."""

@@ -77,12 +77,14 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
         path = registry.model_dir(session, store.blobs, model_id)
         inputs, fps = read_frames(session, store.blobs, payload, key)
     registration = read_registration(store.blobs, payload) if payload.get("rig_id") else None
-    if payload.get("marker_filter_frames") and key == "markers":
-        # the whole performance at once: the filter looks ahead and behind (geometry/marker_filter.py)
-        inputs = filter_performance(inputs, payload["marker_filter_frames"])
     if registration is not None and key != "vertices":
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)
+    if payload.get("marker_filter_frames") and key == "markers":
+        # the whole performance at once: the filter looks ahead and behind; "auto" chooses its
+        # windows in the modes of the model's marker prior (geometry/marker_filter.py)
+        inputs = filter_performance(inputs, payload["marker_filter_frames"],
+                                    modes=getattr(trained, "marker_modes", None))
     frames = len(inputs)
     media_type, suffix = artifact_type(fmt, outputs)
     uv, uv_faces = getattr(trained, "uv", None), getattr(trained, "uv_faces", None)

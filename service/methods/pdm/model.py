@@ -94,6 +94,7 @@ import scipy.sparse as sp
 
 from service.geometry import marker_regression, ranges
 from service.geometry.laplacian import triangle_areas
+from service.geometry.marker_filter import MarkerModes
 from service.geometry.marker_prior import AdaptiveDenoiser
 from service.geometry.normal_map import NormalMapper
 from service.geometry.surface_strain import OPERATOR_ARRAYS as STRAIN_FIELD_ARRAYS
@@ -792,6 +793,14 @@ class PdmModel:
     @property
     def n_markers(self) -> int:
         return self.data.n_markers
+
+    @property
+    def marker_modes(self) -> MarkerModes | None:
+        """The modes of the learned marker prior, in which a synthesis job's
+        ``marker_filter_frames: "auto"`` filters the take
+        (:func:`~service.geometry.marker_filter.filter_performance`); None without a prior."""
+        base = self.evaluator.base
+        return MarkerModes.of(base.rest_markers, base.marker_prior, self.data.pose_weights)
 
     def neutral(self) -> np.ndarray:
         """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset."""

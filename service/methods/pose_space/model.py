@@ -169,6 +169,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from service.geometry import ranges
+from service.geometry.marker_filter import MarkerModes
 from service.geometry.normal_map import NormalMapper
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
@@ -446,6 +447,14 @@ class PoseSpaceModel:
     @property
     def n_markers(self) -> int:
         return self.data.n_markers
+
+    @property
+    def marker_modes(self) -> MarkerModes | None:
+        """The modes of the learned marker prior, in which a synthesis job's
+        ``marker_filter_frames: "auto"`` filters the take
+        (:func:`~service.geometry.marker_filter.filter_performance`); None without a prior."""
+        base = self.evaluator.base
+        return MarkerModes.of(base.rest_markers, base.marker_prior, self.data.pose_weights)
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
                    clamp: bool = True) -> dict[str, np.ndarray]:

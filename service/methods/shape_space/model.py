@@ -67,6 +67,7 @@ from service.geometry.deformation_gradient import (
 )
 from service.geometry.geodesic import HeatGeodesics
 from service.geometry.laplacian import triangle_areas
+from service.geometry.marker_filter import MarkerModes
 from service.geometry.normal_map import NormalMapper
 from service.geometry.normals import vertex_normals
 from service.geometry.rigid import rigid_align
@@ -230,6 +231,14 @@ class ShapeSpaceModel:
     @property
     def n_markers(self) -> int:
         return self.data.n_markers
+
+    @property
+    def marker_modes(self) -> MarkerModes | None:
+        """The modes of the learned marker prior, in which a synthesis job's
+        ``marker_filter_frames: "auto"`` filters the take
+        (:func:`~service.geometry.marker_filter.filter_performance`); None without a prior."""
+        shell = self.evaluator.shell
+        return None if shell is None else MarkerModes.of(shell.rest, self.data.marker_prior, shell.weights)
 
     def component_weights(self, region: int | None) -> np.ndarray:
         """Ω_r (9P,): region r's patch weights repeated over the 9 components (None: all 1)."""

@@ -8,6 +8,7 @@ import pytest
 from service.io.exr import read_exr
 from service.methods.pdm.model import PdmModel
 from service.methods.model_dir import ModelCorrupt
+from tests.methods.prior_modes import check_marker_modes
 from tests.methods.verified import load_verified_without_hashing
 
 
@@ -30,6 +31,9 @@ def test_round_trip_is_bit_exact(pdm_model, pdm_data, saved):
     assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir()
                                          if p.name not in ("manifest.json", "cache.npz"))
     assert manifest["derived_bytes"] == (path / "cache.npz").stat().st_size
+    # the learned marker prior's modes, for a job's "auto" marker filter
+    base = loaded.evaluator.base
+    check_marker_modes(loaded.marker_modes, base.rest_markers, base.marker_prior, loaded.data.pose_weights)
 
 
 def test_coefficient_maps_use_the_api_channel_names(saved):

@@ -5,6 +5,7 @@ import pytest
 
 from service.methods.model_dir import ModelCorrupt
 from service.methods.pose_space import PoseSpaceModel
+from tests.methods.prior_modes import check_marker_modes
 from tests.methods.verified import load_verified_without_hashing
 
 OUT = ("mesh", "mesh_detailed", "displacement", "normal_map")
@@ -26,6 +27,8 @@ def test_save_load_round_trip_is_bit_exact(which, request, ps_data, tmp_path):
     assert model.evaluator.base.marker_prior is not None
     np.testing.assert_array_equal(loaded.evaluator.base.marker_prior.covariance,
                                   model.evaluator.base.marker_prior.covariance)
+    base = loaded.evaluator.base
+    check_marker_modes(loaded.marker_modes, base.rest_markers, base.marker_prior, loaded.data.pose_weights)
     # without the derived cache the basis is recomputed: the same numbers
     (tmp_path / "m" / "cache.npz").unlink()
     import json

@@ -7,6 +7,7 @@ import pytest
 
 from service.methods.shape_space import ShapeSpaceModel
 from service.methods.model_dir import ModelCorrupt
+from tests.methods.prior_modes import check_marker_modes
 from tests.methods.verified import load_verified_without_hashing
 
 
@@ -40,6 +41,8 @@ def test_round_trip_is_bit_exact(shape_space_model, shape_space_data, saved):
     # the learned marker prior (issue 17) round-trips
     assert shape_space_model.data.marker_prior is not None
     np.testing.assert_array_equal(loaded.data.marker_prior.covariance, shape_space_model.data.marker_prior.covariance)
+    shell = loaded.evaluator.shell
+    check_marker_modes(loaded.marker_modes, shell.rest, loaded.data.marker_prior, shell.weights)
     assert manifest["kind"] == "shape_space" and manifest["region_names"] == list(loaded.region_names)
     assert manifest["size_bytes"] == sum(p.stat().st_size for p in path.iterdir()
                                          if p.name != "manifest.json")

@@ -276,7 +276,8 @@ class Synthesis(Resource):
         marker_filter_frames : float or "auto"   σ in frames of the server's temporal
                                        marker filter (marker-driven kinds; 0: off, 3 at 30
                                        fps for ordinary mocap noise; ``"auto"``: the take's
-                                       noise estimated, each marker's window chosen per frame)
+                                       noise estimated, the window chosen per frame in the
+                                       modes of the model's marker prior)
 
         Returns
         -------
