@@ -23,8 +23,13 @@ shell``: the noise that reaches the surface), averaged over the in-range, combin
 out-of-range performances. It needs no trained model, so it runs in a minute per family:
 the place to choose ``marker_noise_mm``'s default (on family a, confirmed on family b).
 
+``--auto-filter`` prints instead the table of :mod:`service.geometry.marker_filter`'s
+docstring: the job's ``marker_filter_frames: "auto"`` per marker coordinate against per mode
+of the learned prior, each followed by the methods' own head alignment and per-frame MAP at
+the take's σ̂ (``marker_noise_mm: "auto"``), against the shell of the clean markers.
+
 Run: ``python benchmarks/marker_denoise.py --actor a=benchmarks/out/actor-a-l0 [--actor b=DIR]
-[--prior-source train|database]`` (``database``: the priors fitted on the ``database``
+[--prior-source train|database] [--auto-filter]`` (``database``: the priors fitted on the ``database``
 performance, as shape space fits its own).
 """
 
@@ -48,17 +53,11 @@ TAPER_FLOORS = (0.003, 0.01, 0.03)
 BETAS = (0.0, 1.0)
 
 
-def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS, floors=FLOORS, betas=BETAS,
-                 occluded: bool = True, lengths=LENGTHS, taper_floors=TAPER_FLOORS,
-                 prior_source: str = "train") -> list[tuple]:
-    """(τ, rows, prior info): rows ``(markers, denoiser, s, σ, vs truth, vs clean shell,
-    per performance vs truth …, per performance vs clean shell …)``. The learned priors
-    are fitted on the ``train_*`` clips (``prior_source="train"``, the PDM's and pose
-    space's) or on the ``database`` performance (``"database"``, shape space's), head-aligned
-    with the training clips' stability weights."""
-    from service.geometry.marker_filter import filter_performance
-    from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
-    from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handle_operator, soft_handles
+def _family(actor_dir: Path, prior_source: str = "train"):
+    """(actor, the thin shell of its neutral (``BaseSurface``), rest markers (M,3), the
+    training clips' head-alignment weights (M,), their head-aligned markers (T,M,3), the
+    displacements the learned priors are fitted on (the training clips' or, for
+    ``prior_source="database"``, the database performance's) (T',M,3))."""
     from service.methods.pdm.base_surface import BaseSurface, handle_vertices, head_alignment, training_head_pose
     from service.samples.dataset import load_actor, performance_names
 
@@ -70,15 +69,71 @@ def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS, floors=FLOORS,
     pose, weights = training_head_pose(train, rest, ["frame"] * len(train))
     handles = handle_vertices(F, actor.marker_triangle, actor.marker_barycentric)
     base = BaseSurface.from_smooth(actor.vertices, F, actor.uv, actor.uv_faces, handles, rest)
-    G = base.energy
-    u_train = base.handle_displacements(pose.remove(train))
-    tau = shell_prior_scale(G, u_train)
-    d_train = pose.remove(train) - rest
+    aligned = pose.remove(train)
+    d_train = aligned - rest
     if prior_source == "database":
         db = np.load(actor_dir / "performances" / "database.npz")["markers"].astype(np.float64)
         d_train = head_alignment(db, rest, weights).remove(db) - rest
     elif prior_source != "train":
         raise ValueError(f"prior_source must be 'train' or 'database', got {prior_source!r}")
+    return actor, base, rest, weights, aligned, d_train
+
+
+def auto_filter_table(actor_dir: Path, prior_source: str = "train") -> list[tuple]:
+    """``marker_filter_frames: "auto"`` per marker coordinate against per mode of the learned
+    tapered prior (:func:`~service.geometry.marker_filter.filter_modes`, with the default
+    windows and with :data:`~service.geometry.marker_filter.MODE_BANDWIDTHS`), each followed
+    by what every method does with ``marker_noise_mm: "auto"``: its own head alignment and
+    the prior's per-frame MAP at the take's σ̂. Rows ``(markers, filter, vs clean shell mm
+    averaged over the performances, per performance …)``."""
+    from service.geometry import marker_filter
+    from service.geometry.marker_prior import AdaptiveDenoiser, MarkerPrior
+    from service.methods.pdm.base_surface import head_alignment
+
+    actor, base, rest, weights, _, d_train = _family(actor_dir, prior_source)
+    denoiser = AdaptiveDenoiser.build(MarkerPrior.fit_tapered(d_train, rest), base.energy)
+    modes = marker_filter.MarkerModes.of(rest, denoiser.prior, weights)
+    face = np.asarray(actor.regions["face"])
+    filters = {
+        "per coordinate": lambda m: marker_filter.filter_performance(m, "auto"),
+        "per mode, default windows": lambda m: marker_filter.filter_performance(
+            m, "auto", modes=modes, mode_bandwidths=marker_filter.AUTO_BANDWIDTHS),
+        "per mode, MODE_BANDWIDTHS": lambda m: marker_filter.filter_performance(m, "auto", modes=modes)}
+    acc: dict = {}
+    for perf in PERFORMANCES:
+        clean = np.load(actor_dir / "performances" / f"{perf}.npz")["markers"].astype(np.float64)
+        truth_pose = head_alignment(clean, rest, weights)
+        ref = base.deform(base.handle_displacements(truth_pose.remove(clean)))
+        for cname in ("noisy", "clean", "occluded"):
+            path = actor_dir / "performances" / (f"{perf}.npz" if cname == "clean" else f"{perf}_{cname}.npz")
+            if not path.exists():
+                continue
+            markers = np.load(path)["markers"].astype(np.float64)
+            for fname, fn in filters.items():
+                filtered = fn(markers)
+                p = head_alignment(filtered, rest, weights)
+                X = p.restore(base.deform(denoiser(p.remove(filtered) - rest)))
+                err = np.linalg.norm(truth_pose.remove(X) - ref, axis=-1)[:, face].mean()
+                acc.setdefault((cname, fname), []).append(err)
+    return [(*key, float(np.mean(v)), *v) for key, v in acc.items()]
+
+
+def family_table(actor_dir: Path, sigmas=SIGMAS, windows=WINDOWS, floors=FLOORS, betas=BETAS,
+                 occluded: bool = True, lengths=LENGTHS, taper_floors=TAPER_FLOORS,
+                 prior_source: str = "train") -> list[tuple]:
+    """(τ, rows, prior info): rows ``(markers, denoiser, s, σ, vs truth, vs clean shell,
+    per performance vs truth …, per performance vs clean shell …)``. The learned priors
+    are fitted on the ``train_*`` clips (``prior_source="train"``, the PDM's and pose
+    space's) or on the ``database`` performance (``"database"``, shape space's), head-aligned
+    with the training clips' stability weights."""
+    from service.geometry.marker_filter import filter_performance
+    from service.geometry.marker_prior import MarkerDenoiser, MarkerPrior
+    from service.geometry.thin_shell import marker_noise_ratio, shell_prior_scale, soft_handle_operator, soft_handles
+    from service.methods.pdm.base_surface import head_alignment
+
+    actor, base, rest, weights, train_aligned, d_train = _family(actor_dir, prior_source)
+    G = base.energy
+    tau = shell_prior_scale(G, base.handle_displacements(train_aligned))
     priors = {f"ppca f={f:g}": MarkerPrior.fit_ppca(d_train, f) for f in floors}
     priors.update({f"tapered ℓ={ell:g} f={f:g}": MarkerPrior.fit_tapered(d_train, rest, ell, f)
                    for ell in lengths for f in taper_floors})
@@ -142,9 +197,21 @@ def main() -> None:
     parser.add_argument("--prior-source", choices=("train", "database"), default="train",
                         help="fit the learned priors on the train_* clips (PDM, pose space; default) "
                              "or on the database performance (shape space)")
+    parser.add_argument("--auto-filter", action="store_true",
+                        help="only the table of marker_filter_frames \"auto\" per coordinate against "
+                             "per mode of the learned prior (service/geometry/marker_filter.py)")
     args = parser.parse_args()
     for item in args.actor:
         family, _, path = item.partition("=")
+        if args.auto_filter:
+            short = [p.removeprefix("heldout_") for p in PERFORMANCES]
+            print(f"\n## family {family} ({path}): \"auto\" filter, then σ̂ MAP; prior fitted on "
+                  f"{args.prior_source}; vs clean shell, face mean mm\n")
+            print("| markers | filter | mean | " + " | ".join(short) + " |")
+            print("|---|---|---|" + "---|" * len(short))
+            for r in auto_filter_table(Path(path), args.prior_source):
+                print(f"| {r[0]} | {r[1]} | {r[2]:.4f} | " + " | ".join(f"{x:.4f}" for x in r[3:]) + " |", flush=True)
+            continue
         tau, rows, info = family_table(Path(path), args.sigmas, args.windows, args.floors, args.betas,
                                        not args.no_occluded, args.lengths, args.taper_floors, args.prior_source)
         print(f"\n## family {family} ({path}); shell prior scale τ = {tau:.4f} mm; learned priors "

@@ -81,7 +81,7 @@ the per-coordinate fit. Measured on the held-out performances (level 0, σ = 0.3
 PDM's prior, fitted on the training clips; what reaches the thin shell after the model's
 own head alignment and per-frame MAP at its σ̂ (``marker_noise_mm: "auto"``): the face's
 mean vertex distance to the shell of the clean markers, mm, mean over in range /
-combinations / amplified):
+combinations / amplified; ``benchmarks/marker_denoise.py --auto-filter``):
 
 | family | per coordinate | per mode, :data:`AUTO_BANDWIDTHS` | per mode, :data:`MODE_BANDWIDTHS` |
 |---|---|---|---|
@@ -356,7 +356,8 @@ def filter_modes(u: np.ndarray, vectors: np.ndarray, noise_mm: float | None = No
 
 
 def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES, degree: int = DEGREE,
-                       weights: np.ndarray | None = None, modes: MarkerModes | None = None) -> np.ndarray:
+                       weights: np.ndarray | None = None, modes: MarkerModes | None = None,
+                       mode_bandwidths: tuple[float, ...] = MODE_BANDWIDTHS) -> np.ndarray:
     """:func:`filter_markers` in a head-aligned frame: rigid motion removed, filtered, restored.
 
     Each frame is rigidly aligned (Kabsch over its visible markers, :func:`rigid_align`)
@@ -374,6 +375,7 @@ def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FR
     weights : (M,) float       per-marker weights of the rigid fits (default: the modes',
                                else 1)
     modes : MarkerModes        the model's prior modes (M markers), for ``"auto"``
+    mode_bandwidths : floats   the windows ``"auto"`` chooses among in the modes, frames
 
     Returns
     -------
@@ -411,7 +413,7 @@ def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FR
             aligned[f] = T.apply(x[f])
     smooth = filter_markers(aligned, sigma_frames, degree)
     if in_modes:
-        fitted = filter_modes(aligned - modes.rest, modes.vectors, degree=degree) + modes.rest
+        fitted = filter_modes(aligned - modes.rest, modes.vectors, None, mode_bandwidths, degree) + modes.rest
         full = np.isfinite(fitted).all(axis=(1, 2))
         smooth[full] = fitted[full]
     out = x.copy()
