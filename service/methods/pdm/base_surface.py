@@ -52,6 +52,7 @@ import numpy as np
 
 from service.errors import InvalidInput
 from service.geometry.curvature_flow import LAMBDA_DT, frequency_separation
+from service.geometry.marker_filter import MarkerModes
 from service.geometry.marker_prior import (
     AUTO, AdaptiveDenoiser, MarkerDenoiser, MarkerPrior, ShellDenoiser, marker_denoiser,
 )
@@ -320,6 +321,13 @@ class BaseSurface:
         """This base (``marker_noise_mm = "auto"``) with the denoiser of one request's
         estimated σ = ``noise_mm`` (:meth:`~service.geometry.marker_prior.AdaptiveDenoiser.fixed`)."""
         return dataclasses.replace(self, denoise=self.denoise.fixed(noise_mm))
+
+    def marker_modes(self, weights: np.ndarray) -> MarkerModes | None:
+        """The modes of the learned marker prior, in which a synthesis job's
+        ``marker_filter_frames: "auto"`` filters the take
+        (:func:`~service.geometry.marker_filter.filter_performance`), aligned with the
+        model's head-alignment ``weights`` (M,); None without a prior."""
+        return MarkerModes.of(self.rest_markers, self.marker_prior, weights)
 
     def handle_displacements(self, aligned: np.ndarray) -> np.ndarray:
         """u_H (F,M,3) of aligned markers (F,M,3): the markers' displacements, missing rows

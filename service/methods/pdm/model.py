@@ -796,11 +796,8 @@ class PdmModel:
 
     @property
     def marker_modes(self) -> MarkerModes | None:
-        """The modes of the learned marker prior, in which a synthesis job's
-        ``marker_filter_frames: "auto"`` filters the take
-        (:func:`~service.geometry.marker_filter.filter_performance`); None without a prior."""
-        base = self.evaluator.base
-        return MarkerModes.of(base.rest_markers, base.marker_prior, self.data.pose_weights)
+        """:meth:`BaseSurface.marker_modes` of the model's base surface."""
+        return self.evaluator.base.marker_modes(self.data.pose_weights)
 
     def neutral(self) -> np.ndarray:
         """The detailed neutral (n,3): the smooth neutral plus its per-vertex offset."""

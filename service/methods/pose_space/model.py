@@ -450,11 +450,8 @@ class PoseSpaceModel:
 
     @property
     def marker_modes(self) -> MarkerModes | None:
-        """The modes of the learned marker prior, in which a synthesis job's
-        ``marker_filter_frames: "auto"`` filters the take
-        (:func:`~service.geometry.marker_filter.filter_performance`); None without a prior."""
-        base = self.evaluator.base
-        return MarkerModes.of(base.rest_markers, base.marker_prior, self.data.pose_weights)
+        """:meth:`BaseSurface.marker_modes` of the model's base surface."""
+        return self.evaluator.base.marker_modes(self.data.pose_weights)
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
                    clamp: bool = True) -> dict[str, np.ndarray]:
