@@ -90,6 +90,13 @@ combinations / amplified; ``benchmarks/marker_denoise.py --auto-filter``):
 
 (the wider windows chosen on a, confirmed on b). The filter costs 0.4–0.7 s per
 take (the held-out ones: 146–154 frames, 118–150 markers) instead of 0.2–0.3 s.
+
+One consequence downstream: :func:`~service.geometry.marker_prior.frame_noise` reads σ̂ in
+the prior's floor directions, which this filter smooths the most, so after it a noisy
+take's σ̂ is 0.05–0.11 mm (family a; 0.12–0.13 per coordinate, clean takes 0.006–0.06)
+while the noise left sits in the modes carrying the expression: the methods' MAP shrinks
+less, and the reported confidence's noise factor sees less of that noise (its ranking of
+the error out of range falls; README, *Noisy markers*).
 """
 
 from __future__ import annotations
