@@ -96,7 +96,9 @@ the prior's floor directions, which this filter smooths the most, so after it a 
 take's σ̂ is 0.05–0.11 mm (family a; 0.12–0.13 per coordinate, clean takes 0.006–0.06)
 while the noise left sits in the modes carrying the expression: the methods' MAP shrinks
 less, and the reported confidence's noise factor sees less of that noise (its ranking of
-the error out of range falls; README, *Noisy markers*).
+the error out of range falls; README, *Noisy markers*). Measured and not kept: the floor
+directions' part taken from the per-coordinate fit instead (so σ̂ reads 0.10–0.13 mm again
+on a noisy take) gives back about half the gain (a 0.137, b 0.126 mm in the table's terms).
 """
 
 from __future__ import annotations
