@@ -479,8 +479,9 @@ def main() -> None:
     parser.add_argument("--retrain", action="store_true", help="rebuild the cached models")
     parser.add_argument("--marker-filter", type=pdm.noise_arg, default=0.0, metavar="S",
                         help="smooth every performance's markers in time first (σ = S frames, "
-                             "or \"auto\": the windows chosen per marker and frame; the "
-                             "synthesis job's marker_filter_frames; default 0: off)")
+                             "or \"auto\": the windows chosen per frame in the modes of each "
+                             "model's marker prior; the synthesis job's marker_filter_frames; "
+                             "default 0: off)")
     parser.add_argument("--marker-noise", type=pdm.noise_arg, default=0.0, metavar="SIGMA",
                         help="train the PDMs and the shape-space model with marker_noise_mm = "
                              "SIGMA (soft marker constraints; \"auto\": σ estimated per request; "
