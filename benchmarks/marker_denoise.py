@@ -92,7 +92,7 @@ def auto_filter_table(actor_dir: Path, prior_source: str = "train") -> list[tupl
 
     actor, base, rest, weights, _, d_train = _family(actor_dir, prior_source)
     denoiser = AdaptiveDenoiser.build(MarkerPrior.fit_tapered(d_train, rest), base.energy)
-    modes = marker_filter.MarkerModes.of(rest, denoiser.prior, weights)
+    modes = marker_filter.MarkerModes.of(rest, denoiser.prior, weights, denoiser.eigen)
     face = np.asarray(actor.regions["face"])
     filters = {
         "per coordinate": lambda m: marker_filter.filter_performance(m, "auto"),

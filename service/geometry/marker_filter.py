@@ -88,8 +88,9 @@ combinations / amplified; ``benchmarks/marker_denoise.py --auto-filter``):
 | a, noisy / clean / occluded | 0.148 / 0.0096 / 0.0256 | 0.130 / 0.0093 / 0.0254 | **0.127** / 0.0093 / 0.0254 |
 | b, noisy / clean / occluded | 0.137 / 0.0033 / 0.0297 | 0.123 / 0.0029 / 0.0291 | **0.121** / 0.0029 / 0.0291 |
 
-(the wider windows chosen on a, confirmed on b). The filter costs 0.4–0.7 s per
-take (the held-out ones: 146–154 frames, 118–150 markers) instead of 0.2–0.3 s.
+(the wider windows chosen on a, confirmed on b). The filter costs 0.3–0.4 s per take
+(the held-out ones: 146–154 frames, 118–150 markers; 0.2–0.3 s with occluded markers, whose
+frames also take the per-coordinate pass) instead of 0.15–0.3 s per coordinate.
 
 One consequence downstream: :func:`~service.geometry.marker_prior.frame_noise` reads σ̂ in
 the prior's floor directions, which this filter smooths the most, so after it a noisy
@@ -107,7 +108,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.geometry.marker_prior import AUTO, MarkerPrior, temporal_noise
+from service.geometry.marker_prior import AUTO, MarkerPrior, PriorEigen, temporal_noise
 from service.geometry.rigid import MIN_POINTS, rigid_align
 
 #: default window of the temporal filter, frames (σ of the Gaussian weights)
@@ -237,6 +238,15 @@ def filter_markers(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES
     return _local_fit(x, float(sigma_frames), degree, min_support, max_gap)[0]
 
 
+def _take_noise(x: np.ndarray) -> float:
+    """:func:`temporal_noise` of a take (F ≥ 3), 0 where no marker is seen in three
+    consecutive frames."""
+    try:
+        return temporal_noise(x)
+    except ValueError:
+        return 0.0
+
+
 def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
                         bandwidths: tuple[float, ...] = AUTO_BANDWIDTHS, degree: int = DEGREE,
                         window_frames: float = RISK_WINDOW_FRAMES) -> tuple[np.ndarray, np.ndarray]:
@@ -276,10 +286,7 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
     if len(x) < 3:
         return x.copy(), np.zeros(x.shape[:2])
     if noise_mm is None:
-        try:
-            noise_mm = temporal_noise(x)
-        except ValueError:                      # no marker seen in three consecutive frames
-            noise_mm = 0.0
+        noise_mm = _take_noise(x)
     sigma = float(noise_mm)
     visible = np.isfinite(x).all(axis=2)
     window = _gaussian(window_frames)[None]
@@ -315,13 +322,15 @@ class MarkerModes:
     weights: np.ndarray
 
     @classmethod
-    def of(cls, rest: np.ndarray, prior: MarkerPrior | None, weights: np.ndarray) -> "MarkerModes | None":
+    def of(cls, rest: np.ndarray, prior: MarkerPrior | None, weights: np.ndarray,
+           eigen: PriorEigen | None = None) -> "MarkerModes | None":
         """The modes of ``prior`` over displacements from ``rest`` (M,3), aligned with
-        ``weights`` (M,); None without a prior."""
+        ``weights`` (M,); None without a prior. ``eigen``: the prior's decomposition where the
+        caller already holds it (:class:`~service.geometry.marker_prior.PriorEigen`)."""
         if prior is None:
             return None
-        _, vectors = np.linalg.eigh(prior.covariance)
-        return cls(np.asarray(rest, np.float64), np.ascontiguousarray(vectors[:, ::-1]),
+        eigen = PriorEigen.of(prior) if eigen is None else eigen
+        return cls(np.asarray(rest, np.float64), np.ascontiguousarray(eigen.vectors[:, ::-1]),
                    np.asarray(weights, np.float64))
 
 
@@ -351,10 +360,7 @@ def filter_modes(u: np.ndarray, vectors: np.ndarray, noise_mm: float | None = No
     if U.shape != (3 * M, 3 * M):
         raise ValueError(f"the basis must be ({3 * M},{3 * M}) for {M} markers, got {U.shape}")
     if noise_mm is None and len(u) >= 3:      # the coordinates' noise: the basis keeps it white
-        try:
-            noise_mm = temporal_noise(u)
-        except ValueError:                      # no marker seen in three consecutive frames
-            noise_mm = 0.0
+        noise_mm = _take_noise(u)
     full = np.isfinite(u).all(axis=(1, 2))
     coefficients = np.full((F, 3 * M), np.nan)
     coefficients[full] = u[full].reshape(-1, 3 * M) @ U
@@ -420,11 +426,13 @@ def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FR
             T = rigid_align(np.where(ok[:, None], x[f], np.nan), ref, weights)
             transforms[f] = T
             aligned[f] = T.apply(x[f])
-    smooth = filter_markers(aligned, sigma_frames, degree)
     if in_modes:
-        fitted = filter_modes(aligned - modes.rest, modes.vectors, None, mode_bandwidths, degree) + modes.rest
-        full = np.isfinite(fitted).all(axis=(1, 2))
-        smooth[full] = fitted[full]
+        smooth = filter_modes(aligned - modes.rest, modes.vectors, None, mode_bandwidths, degree) + modes.rest
+        full = np.isfinite(smooth).all(axis=(1, 2))
+        if not full.all():                        # the others per coordinate
+            smooth = np.where(full[:, None, None], smooth, filter_markers(aligned, sigma_frames, degree))
+    else:
+        smooth = filter_markers(aligned, sigma_frames, degree)
     out = x.copy()
     for f, T in transforms.items():
         out[f] = T.inverse().apply(smooth[f])

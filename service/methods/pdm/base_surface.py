@@ -327,7 +327,8 @@ class BaseSurface:
         ``marker_filter_frames: "auto"`` filters the take
         (:func:`~service.geometry.marker_filter.filter_performance`), aligned with the
         model's head-alignment ``weights`` (M,); None without a prior."""
-        return MarkerModes.of(self.rest_markers, self.marker_prior, weights)
+        return MarkerModes.of(self.rest_markers, self.marker_prior, weights,
+                              None if self.evidence is None else self.evidence.eigen)
 
     def handle_displacements(self, aligned: np.ndarray) -> np.ndarray:
         """u_H (F,M,3) of aligned markers (F,M,3): the markers' displacements, missing rows
