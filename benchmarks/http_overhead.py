@@ -13,6 +13,12 @@ protocol, ``--impl`` httptools on uvloop by default, in its own process):
 * ``bare ASGI`` — a plain ASGI function reading the body, one thread-pool hand-off, and
   sending the same answer: the floor of uvicorn + the parser.
 
+With ``--busy MS`` the stubbed synthesis (in the bare server, its thread-pool call) spends
+``MS`` ms of its thread's CPU streaming through :data:`BUSY_BYTES` of float32 data in 1 MiB
+pieces, as a frame streams through a model's arrays, so that the request's own Python code
+runs in the caches a real synthesis leaves it; the table then adds ``wall − busy``, the
+overhead per call.
+
 Clients, each with one keep-alive connection: ``httpx`` (its own transport, httpcore on h11),
 ``SDK transport`` (httpx with ``facesynth_client.transport.OnePieceTransport``, the SDK's
 default), and the standard library's ``http.client``. Each call sends a one-frame marker
@@ -22,7 +28,7 @@ wall time, this process's CPU time and the server process's CPU time (all its th
 /proc schedstat): medians in ms, with the load average.
 
 Run: ``python benchmarks/http_overhead.py [--calls 300] [--answer mesh|maps] [--impl
-httptools|h11]``; writes ``benchmarks/out/http_overhead-<answer>.md``.
+httptools|h11] [--busy MS]``; writes ``benchmarks/out/http_overhead-<answer>.md``.
 """
 
 from __future__ import annotations
@@ -45,6 +51,8 @@ SERVERS = {"app, lean path": "lean", "app, FastAPI route": "fastapi", "bare ASGI
 QUERY = "outputs=mesh&half=true&topology=false"
 VERTICES = 44_786
 MAP = 1024
+#: what ``--busy`` streams through (a level-1 PDM frame reads ~44 MB of coefficients)
+BUSY_BYTES = 48 << 20
 
 
 def answer(kind: str) -> bytes:
@@ -60,7 +68,21 @@ def answer(kind: str) -> bytes:
     return npz_bytes(**arrays)
 
 
-def serve(mode: str, port: int, kind: str, impl: str, data_dir: str) -> None:
+def busy(ms: float) -> "callable":
+    """A function spending ``ms`` ms of its thread's CPU time summing 1 MiB pieces of
+    :data:`BUSY_BYTES` of float32 in turn (0: returns at once)."""
+    data = np.ones(BUSY_BYTES // 4, np.float32).reshape(-1, 1 << 18)
+    where = [0]
+
+    def run() -> None:
+        end = time.thread_time() + ms * 1e-3
+        while ms > 0 and time.thread_time() < end:
+            data[where[0]].sum()
+            where[0] = (where[0] + 1) % len(data)
+    return run
+
+
+def serve(mode: str, port: int, kind: str, impl: str, data_dir: str, busy_ms: float) -> None:
     """Run one stub server (in its own process)."""
     import uvicorn
 
@@ -70,8 +92,12 @@ def serve(mode: str, port: int, kind: str, impl: str, data_dir: str) -> None:
     from service.config import Settings
 
     body = answer(kind)
-    operations.synthesize = lambda *args, **kwargs: operations.Synthesized(
-        "application/x-npz", body, 1, None)
+    work = busy(busy_ms)
+
+    def stub(*args, **kwargs):
+        work()
+        return operations.Synthesized("application/x-npz", body, 1, None)
+    operations.synthesize = stub
     settings = Settings(data_dir=Path(data_dir), tokens=[], lean_synthesis=mode == "lean")
     http = protocol_class(settings.header_timeout_seconds, settings.min_body_rate_bytes,
                           settings.body_rate_grace_seconds, settings.max_connections_per_client,
@@ -88,7 +114,7 @@ def serve(mode: str, port: int, kind: str, impl: str, data_dir: str) -> None:
         more = True
         while more:
             more = (await receive()).get("more_body", False)
-        await run_in_threadpool(lambda: None)
+        await run_in_threadpool(work)
         await send({"type": "http.response.start", "status": 200, "headers": [
             (b"content-type", b"application/x-npz"),
             (b"content-length", str(len(body)).encode())]})
@@ -110,7 +136,8 @@ def server_cpu_seconds(pid: int) -> float:
     return total * 1e-9
 
 
-def start(mode: str, kind: str, impl: str, work: Path) -> tuple[subprocess.Popen, str]:
+def start(mode: str, kind: str, impl: str, work: Path, busy_ms: float = 0.0
+          ) -> tuple[subprocess.Popen, str]:
     import httpx
 
     port = harness.free_port()
@@ -118,7 +145,7 @@ def start(mode: str, kind: str, impl: str, work: Path) -> tuple[subprocess.Popen
     data.mkdir(parents=True, exist_ok=True)
     env = {k: v for k, v in os.environ.items() if not k.startswith("FACESYNTH_")}
     proc = subprocess.Popen([sys.executable, __file__, "--serve", mode, str(port), kind, impl,
-                             str(data)], env=env, stdout=subprocess.DEVNULL,
+                             str(data), str(busy_ms)], env=env, stdout=subprocess.DEVNULL,
                             stderr=open(work / f"{mode}.log", "wb"))
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 60
@@ -164,18 +191,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=300)
     parser.add_argument("--answer", choices=("mesh", "maps"), default="mesh")
     parser.add_argument("--impl", choices=("httptools", "h11"), default="httptools")
-    parser.add_argument("--serve", nargs=5, help=argparse.SUPPRESS)
+    parser.add_argument("--busy", type=float, default=0.0, metavar="MS",
+                        help="the stubbed synthesis spends MS ms of CPU streaming memory")
+    parser.add_argument("--serve", nargs=6, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.serve:
-        mode, port, kind, impl, data = args.serve
-        serve(mode, int(port), kind, impl, data)
+        mode, port, kind, impl, data, busy_ms = args.serve
+        serve(mode, int(port), kind, impl, data, float(busy_ms))
         return 0
     work = harness.OUT / "http_overhead"
     load_start = harness.load_average()
     procs, calls = [], {}
     try:
         for label, mode in SERVERS.items():
-            proc, url = start(mode, args.answer, args.impl, work)
+            proc, url = start(mode, args.answer, args.impl, work, args.busy)
             procs.append(proc)
             for client, call in clients(url).items():
                 calls[(label, client)] = (call, proc.pid)
@@ -199,11 +228,15 @@ def main(argv: list[str] | None = None) -> int:
              f"{size:,} bytes, {args.impl})", "",
              f"Medians over {args.calls} interleaved calls, ms; load average {load_start} at "
              f"the start, {harness.load_average()} at the end; {os.cpu_count()} CPUs.", "",
-             "| server | client | wall ms | client CPU ms | server CPU ms |",
-             "|---|---|---:|---:|---:|"]
+             f"The stubbed synthesis spends {args.busy:g} ms of CPU streaming memory (`--busy`); "
+             "`− busy`: the column less that.", "",
+             "| server | client | wall ms | wall − busy | client CPU ms | server CPU ms | "
+             "server CPU − busy |",
+             "|---|---|---:|---:|---:|---:|---:|"]
     for (server, client), rows in times.items():
         wall, client_cpu, server_cpu = (1e3 * float(np.median(c)) for c in zip(*rows))
-        lines.append(f"| {server} | {client} | {wall:.3f} | {client_cpu:.3f} | {server_cpu:.3f} |")
+        lines.append(f"| {server} | {client} | {wall:.3f} | {wall - args.busy:.3f} | "
+                     f"{client_cpu:.3f} | {server_cpu:.3f} | {server_cpu - args.busy:.3f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     harness.OUT.mkdir(parents=True, exist_ok=True)
