@@ -185,8 +185,15 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
         k = D.shape[-1] // H
         return D.reshape(len(D), H, k, H, k).mean(axis=(2, 4)) if k > 1 else D
 
+    # the performance's markers as captured, where a filter smoothed them: the models read
+    # their noise for the confidence, as a synthesis job passes them (``captured``)
+    captured: dict = {"markers": None}
+
+    def as_captured():
+        return {} if captured["markers"] is None else {"captured": captured["markers"]}
+
     def pdm_prediction(model, markers):
-        out = model.synthesize(markers, pdm.BASIC_OUTPUTS)
+        out = model.synthesize(markers, pdm.BASIC_OUTPUTS, **as_captured())
         return (out["vertices"].astype(np.float64), tex.texels(at_map_resolution(out["displacement"])),
                 out["clamped"], out.get(CONFIDENCE))
 
@@ -198,7 +205,7 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
 
     def pose_space_prediction(name, markers):
         t0 = time.perf_counter()
-        out = ps_models[name].synthesize(markers, pdm.BASIC_OUTPUTS)
+        out = ps_models[name].synthesize(markers, pdm.BASIC_OUTPUTS, **as_captured())
         synth_ms.setdefault(name, []).append(1e3 * (time.perf_counter() - t0) / len(markers))
         return (out["vertices"].astype(np.float64), tex.texels(at_map_resolution(out["displacement"])),
                 None, out.get(CONFIDENCE))
@@ -236,6 +243,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                                            model.marker_modes if marker_filter == AUTO else None)
 
             gt = dataclasses.replace(gt_clean, name=perf + suffix, markers=take(bq))
+            captured["markers"] = (pdm.variant_markers(actor_dir, perf + suffix, gt_clean.frames)
+                                   if marker_filter else None)
             own = take if marker_filter == AUTO else (lambda model: None)
             methods = {"no detail": base.no_detail, "static neutral map": base.static_neutral_map,
                        "nearest training frame": lambda m: base.nearest(m)[:3]}
@@ -293,6 +302,11 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                         p = head_alignment(gt.markers, ev.base.rest_markers, model.data.pose_weights)
                         r_["noise_mm"] = frame_noise(ev.base.marker_prior,
                                                      p.remove(gt.markers) - ev.base.rest_markers).tolist()
+                        if marker_filter:       # and of the markers as captured, before the filter
+                            raw = captured["markers"]
+                            q = head_alignment(raw, ev.base.rest_markers, model.data.pose_weights)
+                            r_["noise_captured_mm"] = frame_noise(
+                                ev.base.marker_prior, q.remove(raw) - ev.base.rest_markers).tolist()
                 print(f"ROW | {family} | {rname} | {cname} | {name} | {r_['mean']:.3f} | {r_['p95']:.3f} "
                       f"| {r_['max']:.2f} | {r_['corr']:.2f} | {r_['rel']:.2f} |", file=sys.stderr, flush=True)
                 if name == WORST_OF and worst_frame:
@@ -302,7 +316,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                                  "performance": gt.name, "frame": int(gt.frames[k]), "slot": k,
                                  "gt": gt_clean.vertices[k], "markers": gt.markers[k:k + 1],
                                  "lowres": lowres[k:k + 1]}
-    # the worst frame, every method
+    # the worst frame, every method (its figure reads no confidence)
+    captured["markers"] = None
     errors = {}
     if worst is None:
         return {"rows": rows, "worst": None, "actor": actor, "pose_space_training": ps_train,

@@ -96,8 +96,13 @@ One consequence downstream: :func:`~service.geometry.marker_prior.frame_noise` r
 the prior's floor directions, which this filter smooths the most, so after it a noisy
 take's σ̂ is 0.05–0.11 mm (family a; 0.12–0.13 per coordinate, clean takes 0.006–0.06)
 while the noise left sits in the modes carrying the expression: the methods' MAP shrinks
-less, and the reported confidence's noise factor sees less of that noise (its ranking of
-the error out of range falls; README, *Noisy markers*). Measured and not kept: the floor
+less, and σ̂ no longer shows the take's noise, so a synthesis job passes the take as
+captured for the reported confidence to read (:mod:`service.methods.confidence`, *Filtered
+takes*). A MAP given the residual noise this filter leaves per mode and frame
+(σ² Σ_τ w(τ)² of the chosen fit's equivalent kernel w) instead of σ̂² I was measured and not
+kept: what reaches the shell falls 0.127 → 0.124 mm (a) and 0.121 → 0.119 (b), no more
+with each take's true residual per mode (0.125 / 0.120); the expression modes' prior
+variance is far above that noise, so their Wiener gain stays near 1 whatever it is. Measured and not kept: the floor
 directions' part taken from the per-coordinate fit instead (so σ̂ reads 0.10–0.13 mm again
 on a noisy take) gives back about half the gain (a 0.137, b 0.126 mm in the table's terms).
 """

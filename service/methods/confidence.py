@@ -37,6 +37,19 @@ held-out map frame, PDM biquadratic, mean face vertex error: out of range a 0.52
 mm, b 0.586 → 0.692 at ``marker_noise_mm`` = 0; a 0.337 → 0.471, b 0.408 → 0.534 with
 ``"auto"``; clean rows unchanged or worse by ≤ 0.011 mm): the markers' noise reaches the
 surface whether or not the detail is faded, so fading only removes correct detail.
+
+**Filtered takes.** A synthesis job's ``marker_filter_frames`` smooths a take in time
+before the model sees it (:mod:`service.geometry.marker_filter`); ``"auto"`` smooths the
+prior's floor directions the most, where σ̂ is read, so on the filtered frames a noisy
+take's σ̂ fell to 0.05–0.11 mm, near a clean take's, while the noise the filter leaves sits
+in the modes carrying the expression: with both ``auto`` settings the confidence ranked the
+error out of range at ρ 0.22 (family a) and 0.38 (b). The job therefore passes the frames
+as captured (``synthesize(..., captured=)``) and n reads their σ̂
+(:meth:`~service.methods.pdm.base_surface.BaseSurface.captured_noise`): 0.74 and 0.77
+(``benchmarks/generalization_report.py --pdm-only --marker-filter auto --marker-noise
+auto --conditions clean noisy``; in range 0.72 → 0.74 and 0.33 → 0.70, combinations 0.59 →
+0.64 and 0.08 → 0.32), with every synthesized array unchanged (the denoiser keeps the
+filtered frames' σ̂). :func:`captured_frames` checks that they are the same frames.
 """
 
 from __future__ import annotations
@@ -46,6 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.geometry.marker_prior import MarkerPrior, PriorEigen, dof_fraction, frame_noise
+from service.methods.inputs import InvalidInput
 
 #: result keys (API.md: per-frame arrays of the synthesize response)
 CONFIDENCE = "confidence"
@@ -84,6 +98,19 @@ def fade(detail: np.ndarray, fallback: np.ndarray, confidence: np.ndarray) -> np
     """``fallback + confidence · (detail − fallback)`` (broadcast): the detail at confidence 1,
     the fallback at 0."""
     return fallback + confidence * (detail - fallback)
+
+
+def captured_frames(captured: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Markers as captured (F,M,3) (or one (M,3) frame), float64, for a request of marker
+    frames of ``shape`` (F,M,3) that were smoothed from them; :class:`InvalidInput` naming
+    both shapes unless they match."""
+    frames = np.asarray(captured, np.float64)
+    if frames.ndim == 2:
+        frames = frames[None]
+    if frames.shape != tuple(shape):
+        raise InvalidInput(f"the captured markers have shape {frames.shape}, the filtered "
+                           f"ones {tuple(shape)}: give the same frames before the filter")
+    return frames
 
 
 @dataclass(frozen=True)

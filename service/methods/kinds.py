@@ -211,7 +211,8 @@ def get_kind(name: str) -> Kind:
 
 def takes(model: Any, option: str) -> bool:
     """Whether ``model.synthesize`` has the keyword parameter ``option`` (issue 23: ``half``,
-    maps written as float16 by the model, not in float32 and converted; ``confidence``); for
+    maps written as float16 by the model, not in float32 and converted; ``confidence``;
+    ``captured``, the markers before a synthesis job's filter); for
     a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
     holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
     try:

@@ -82,7 +82,8 @@ def test_synthesis_job_writes_an_npz_artifact(deployment, trained, start_worker,
 
 def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, trained, start_worker,
                                                               pdm_actor_dir):
-    """``marker_filter_frames``: the job synthesizes the temporally filtered performance."""
+    """``marker_filter_frames``: the job synthesizes the temporally filtered performance, and
+    the confidence reads the noise of the markers as captured (``captured``)."""
     from service.geometry.marker_filter import filter_performance
 
     model_id, _ = trained
@@ -94,8 +95,12 @@ def test_synthesis_job_filters_the_markers_in_time_when_asked(deployment, traine
                                            outputs=["mesh"], marker_filter_frames=sigma)
         model = kinds.get_kind("pdm").load(path)          # "auto": in its prior's modes
         assert model.marker_modes is not None
-        expected = model.synthesize(filter_performance(markers, sigma, modes=model.marker_modes), ("mesh",))
-        np.testing.assert_array_equal(npz_arrays(data)["vertices"], expected["vertices"])
+        filtered = filter_performance(markers, sigma, modes=model.marker_modes)
+        expected = model.synthesize(filtered, ("mesh",), captured=markers)
+        result = npz_arrays(data)
+        np.testing.assert_array_equal(result["vertices"], expected["vertices"])
+        np.testing.assert_array_equal(result["confidence"], expected["confidence"])
+        assert np.all(result["confidence"] < model.synthesize(filtered, ("mesh",))["confidence"])
 
 
 def test_training_job_on_the_redis_queue(deployment, redis_server, start_worker):

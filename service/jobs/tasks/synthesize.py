@@ -45,7 +45,7 @@ from service.jobs.frame_usd import DEFAULT_FPS, FrameUsdWriter
 from service.jobs.frame_zip import FrameZipWriter
 from service.jobs.running import RunningJob
 from service.methods.inputs import InvalidInput
-from service.methods.kinds import get_kind
+from service.methods.kinds import get_kind, takes
 from service.methods.outputs import DEFAULT_OUTPUTS
 from service.methods.shape_space.registration import RigRegistration
 
@@ -80,9 +80,11 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
     if registration is not None and key != "vertices":
         raise InvalidInput(f"a {kind.name} model is driven by markers; an input rig does not apply")
     trained = kind.load(path)
+    captured = None                   # the markers before the filter, where the model reads them
     if payload.get("marker_filter_frames") and key == "markers":
         # the whole performance at once: the filter looks ahead and behind; "auto" chooses its
         # windows in the modes of the model's marker prior (geometry/marker_filter.py)
+        captured = inputs if takes(trained, "captured") else None
         inputs = filter_performance(inputs, payload["marker_filter_frames"],
                                     modes=getattr(trained, "marker_modes", None))
     frames = len(inputs)
@@ -104,7 +106,8 @@ def synthesize(job: RunningJob) -> dict[str, Any]:
                 chunk = inputs[start:stop]
                 if registration is not None:
                     chunk = registration.propagate(chunk)
-                writer.write(start, trained.synthesize(chunk, outputs, clamp))
+                extra = {} if captured is None else {"captured": captured[start:stop]}
+                writer.write(start, trained.synthesize(chunk, outputs, clamp, **extra))
             except InvalidInput as error:
                 raise InvalidInput(f"frames {start}-{stop - 1}: {error}") from None
         job.progress(SYNTHESIZED, "storing the result")

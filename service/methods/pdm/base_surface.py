@@ -317,6 +317,23 @@ class BaseSurface:
             return np.ones(len(aligned))
         return self.evidence.factor(aligned - self.rest_markers, u_H, sigma)
 
+    def captured_noise(self, captured: np.ndarray, weights: np.ndarray) -> np.ndarray | None:
+        """σ̂ (F,) mm of markers as captured (F,M,3), NaN rows occluded, before a temporal
+        filter smoothed the frames a model is given (a synthesis job's
+        ``marker_filter_frames``): aligned with the model's head-alignment ``weights`` (M,)
+        and read as :meth:`input_confidence` reads σ̂. The reported confidence's noise factor
+        takes this instead of the filtered frames' σ̂ (:mod:`service.methods.confidence`,
+        *Filtered takes*). None without a learned prior, or where a frame has too few
+        visible markers to align (the filtered frames' own σ̂ then stands)."""
+        if self.evidence is None:
+            return None
+        captured = np.asarray(captured, np.float64)
+        try:
+            pose = head_alignment(captured, self.rest_markers, weights)
+        except TooFewMarkers:
+            return None
+        return self.evidence.noise(pose.remove(captured) - self.rest_markers)
+
     def with_noise_estimate(self, noise_mm: float) -> "BaseSurface":
         """This base (``marker_noise_mm = "auto"``) with the denoiser of one request's
         estimated σ = ``noise_mm`` (:meth:`~service.geometry.marker_prior.AdaptiveDenoiser.fixed`)."""

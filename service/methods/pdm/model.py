@@ -133,7 +133,7 @@ from service.methods.pdm.texel_band import CoefficientMap, CoveredTexels, TexelB
 from service.methods.pdm.validity import (
     BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
 )
-from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE, falloff
+from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE, captured_frames, falloff
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
@@ -805,7 +805,8 @@ class PdmModel:
 
     # ------------------------------------------------------------------ synthesis
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
-                   clamp: bool = True, half: bool = False, confidence: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, half: bool = False, confidence: bool = True,
+                   captured: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Meshes and maps for world-space markers (F,M,3), NaN for occluded (ma2008 §5).
 
         Returns a dict with (as asked in ``outputs``, API.md): ``vertices`` (F,n,3) medium
@@ -826,7 +827,10 @@ class PdmModel:
         (:meth:`.base_surface.BaseSurface.input_confidence`, the rule of
         :mod:`service.methods.confidence`: the Wiener fraction at its own noise estimate,
         which occlusion enters through, times the size factor of its handle displacements
-        u_H); the fade stays the validity's.
+        u_H); the fade stays the validity's. ``captured`` (F,M,3): the same frames as
+        captured, where ``markers`` were smoothed in time (a synthesis job's
+        ``marker_filter_frames``): the noise factor then reads their σ̂
+        (:meth:`.base_surface.BaseSurface.captured_noise`); the synthesis is unchanged.
 
         With ``half`` the maps (``displacement``, ``normal_map``, ``albedo``) are float16:
         NumPy's ``astype(np.float16)`` of the float32 maps bit for bit, written as such by the
@@ -876,6 +880,9 @@ class PdmModel:
         except TooFewMarkers as e:
             raise InvalidInput(f"frame {e.frame} has {e.visible} visible markers, at "
                                f"least {e.required} are needed") from None
+        if confidence and captured is not None:   # σ̂ of the noise factor only: the denoiser keeps its σ
+            noise = base.captured_noise(captured_frames(captured, markers.shape), d.pose_weights)
+            sigma = sigma if noise is None else noise
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             try:

@@ -174,7 +174,7 @@ from service.geometry.normal_map import NormalMapper
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
 )
-from service.methods.confidence import exponential
+from service.methods.confidence import captured_frames, exponential
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
@@ -454,7 +454,7 @@ class PoseSpaceModel:
         return self.evaluator.base.marker_modes(self.data.pose_weights)
 
     def synthesize(self, markers: np.ndarray, outputs: Sequence[str] = ("mesh", "displacement"),
-                   clamp: bool = True) -> dict[str, np.ndarray]:
+                   clamp: bool = True, captured: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Meshes and maps for world-space markers (F,M,3), NaN for occluded (§5.3 run time).
 
         Returns a dict with (as asked in ``outputs``, API.md; the PDM's keys):
@@ -463,7 +463,9 @@ class PoseSpaceModel:
         ``displacement`` (F,H,H) float32 the fine map (detail below the mesh, relative to
         ``vertices``, along the normal); ``normal_map`` (F,H,H,3) tangent space; always
         ``faces``, ``clamped`` (F,) the fraction of features limited (``clamp``) and
-        ``confidence`` (F,) (module docstring).
+        ``confidence`` (F,) (module docstring). ``captured`` (F,M,3): the same frames as
+        captured, where ``markers`` were smoothed in time (a synthesis job's
+        ``marker_filter_frames``): the confidence's noise factor reads their σ̂ (as the PDM's).
 
         Raises :class:`InvalidInput` for a wrong marker shape, too few visible markers, an
         unknown output, or a map output of a model trained without maps.
@@ -494,12 +496,15 @@ class PoseSpaceModel:
         if "normal_map" in want:
             out["normal_map"] = np.empty((nf, H, H, 3), np.float32)
         margin = d.params.extrapolation_margin if clamp else None
+        noise = (None if captured is None else
+                 ev.base.captured_noise(captured_frames(captured, markers.shape), d.pose_weights))
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             pose, u_H = ev.deformation(markers[sl])
             f = ev.features(u_H)
             conf = ev.confidence(f)                                 # the range's: it fades
-            out["confidence"][sl] = conf * ev.base.input_confidence(pose.remove(markers[sl]), u_H)
+            out["confidence"][sl] = conf * ev.base.input_confidence(
+                pose.remove(markers[sl]), u_H, None if noise is None else noise[sl])
             fade = conf.astype(np.float32) if d.params.confidence_fade else None     # (f,)
             f, out["clamped"][sl] = ev.limit(f, margin)
             vis = ev.edge_visibility(markers[sl]) if d.params.occlusion == "reweight" else None

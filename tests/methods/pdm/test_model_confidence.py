@@ -146,3 +146,41 @@ def test_exact_interpolation_also_reports_the_noise_factor_without_fading_by_it(
     assert np.all(factor[:2] > 0.999) and np.all(factor[2:] < 0.5)
     assert (out[CONFIDENCE] / g)[2:].max() < 0.5 * (out[CONFIDENCE] / g)[:2].min()
     np.testing.assert_array_equal(pdm_model.synthesize(frames[:1], ("mesh",))["vertices"][0], out["vertices"][0])
+
+
+def test_a_filtered_take_reports_the_noise_of_its_markers_as_captured(pdm_model, pdm_data):
+    """``captured``: the frames a synthesis job filtered in time, as captured. The filtered
+    frames (here the clean ones, as a perfect filter would give) read σ̂ ≈ 0; with their
+    noisy capture beside them the noise factor is n(σ̂ of the capture), every other output
+    bit for bit the same (the denoiser keeps the filtered frames' σ̂), so the noisy takes'
+    frames report well under half the clean ones' confidence."""
+    from service.geometry.marker_prior import frame_noise, noise_confidence
+    from service.methods.inputs import InvalidInput
+    from service.methods.pdm.base_surface import head_alignment
+
+    _, clips = pdm_data
+    ev = pdm_model.evaluator
+    filtered = clips[3].markers[::6][:4].copy()
+    captured = filtered.copy()
+    captured[2:] += np.random.default_rng(2).normal(scale=0.5, size=captured[2:].shape)
+    outputs = ("mesh", "displacement")
+    plain = pdm_model.synthesize(filtered, outputs)
+    out = pdm_model.synthesize(filtered, outputs, captured=captured)
+    for key in ("vertices", "displacement", "clamped"):
+        np.testing.assert_array_equal(out[key], plain[key])
+    pose = head_alignment(captured, ev.base.rest_markers, pdm_model.data.pose_weights)
+    sigma = frame_noise(ev.base.marker_prior, pose.remove(captured) - ev.base.rest_markers)
+    factor = noise_confidence(ev.base.marker_prior, sigma)
+    expected = _range_confidence(pdm_model, filtered) * factor * _size_factor(pdm_model, filtered)
+    np.testing.assert_allclose(out[CONFIDENCE], expected, rtol=1e-5)
+    np.testing.assert_allclose(out[VERTEX_CONFIDENCE], np.repeat(out[CONFIDENCE][:, None], pdm_model.n_vertices, 1),
+                               rtol=1e-6)
+    np.testing.assert_allclose(out[CONFIDENCE][:2], plain[CONFIDENCE][:2], rtol=1e-5)   # clean: as before
+    assert np.all(sigma[:2] < 0.1) and np.all(sigma[2:] > 0.35)
+    assert np.all(out[CONFIDENCE][2:] < 0.5 * plain[CONFIDENCE][2:])
+    try:
+        pdm_model.synthesize(filtered, outputs, captured=captured[:3])
+    except InvalidInput as error:
+        assert "(3, " in str(error) and "(4, " in str(error)
+    else:
+        raise AssertionError("a captured take of other frames must be refused")

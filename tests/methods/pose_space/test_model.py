@@ -260,3 +260,17 @@ def test_regression_model_reproduces_its_example_poses(wpsd_regression, wpsd_exa
         assert gap <= np.abs(out["displacement"][0]).max() + 1e-3
     m, m0 = wpsd_regression.metrics, wpsd_exact.metrics
     assert m["correction_signal_rms_mm"]["face"] < 0.5 * m0["correction_signal_rms_mm"]["face"]
+
+
+def test_a_filtered_take_reports_the_noise_of_its_markers_as_captured(wpsd_exact, ps_data):
+    """As the PDM's (tests/methods/pdm/test_model_confidence.py): with the frames as captured
+    beside the filtered ones, the confidence's noise factor reads the capture's σ̂ and every
+    other output is the same, bit for bit."""
+    _, clips = ps_data
+    filtered = clips[0].markers[[3, 5, 7]]
+    captured = filtered + np.random.default_rng(3).normal(scale=0.5, size=filtered.shape) * [[[0]], [[1]], [[1]]]
+    plain = wpsd_exact.synthesize(filtered, ("mesh",))
+    out = wpsd_exact.synthesize(filtered, ("mesh",), captured=captured)
+    np.testing.assert_array_equal(out["vertices"], plain["vertices"])
+    np.testing.assert_allclose(out["confidence"][0], plain["confidence"][0], rtol=1e-5)
+    assert np.all(out["confidence"][1:] < 0.5 * plain["confidence"][1:])
