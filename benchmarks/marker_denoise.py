@@ -26,7 +26,9 @@ the place to choose ``marker_noise_mm``'s default (on family a, confirmed on fam
 ``--auto-filter`` prints instead the table of :mod:`service.geometry.marker_filter`'s
 docstring: the job's ``marker_filter_frames: "auto"`` per marker coordinate against per mode
 of the learned prior, each followed by the methods' own head alignment and per-frame MAP at
-the take's σ̂ (``marker_noise_mm: "auto"``), against the shell of the clean markers.
+the take's σ̂ (``marker_noise_mm: "auto"``), against the shell of the clean markers; and,
+on the noisy takes, the same per mode with each window chosen by its true error instead of
+SURE (``truth=``, the clean markers): how far any choice among these windows could go.
 
 Run: ``python benchmarks/marker_denoise.py --actor a=benchmarks/out/actor-a-l0 [--actor b=DIR]
 [--prior-source train|database] [--auto-filter]`` (``database``: the priors fitted on the ``database``
@@ -98,7 +100,10 @@ def auto_filter_table(actor_dir: Path, prior_source: str = "train") -> list[tupl
         "per coordinate": lambda m: marker_filter.filter_performance(m, "auto"),
         "per mode, default windows": lambda m: marker_filter.filter_performance(
             m, "auto", modes=modes, mode_bandwidths=marker_filter.AUTO_BANDWIDTHS),
-        "per mode, MODE_BANDWIDTHS": lambda m: marker_filter.filter_performance(m, "auto", modes=modes)}
+        "per mode, MODE_BANDWIDTHS": lambda m: marker_filter.filter_performance(m, "auto", modes=modes),
+        # the bound of any window choice: the true error in place of SURE (noisy takes)
+        "per mode, oracle windows": lambda m: marker_filter.filter_performance(m, "auto", modes=modes,
+                                                                               truth=clean)}
     acc: dict = {}
     for perf in PERFORMANCES:
         clean = np.load(actor_dir / "performances" / f"{perf}.npz")["markers"].astype(np.float64)
@@ -110,6 +115,8 @@ def auto_filter_table(actor_dir: Path, prior_source: str = "train") -> list[tupl
                 continue
             markers = np.load(path)["markers"].astype(np.float64)
             for fname, fn in filters.items():
+                if fname.endswith("oracle windows") and cname != "noisy":
+                    continue
                 filtered = fn(markers)
                 p = head_alignment(filtered, rest, weights)
                 X = p.restore(base.deform(denoiser(p.remove(filtered) - rest)))

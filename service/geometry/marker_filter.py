@@ -88,7 +88,11 @@ combinations / amplified; ``benchmarks/marker_denoise.py --auto-filter``):
 | a, noisy / clean / occluded | 0.148 / 0.0096 / 0.0256 | 0.130 / 0.0093 / 0.0254 | **0.127** / 0.0093 / 0.0254 |
 | b, noisy / clean / occluded | 0.137 / 0.0033 / 0.0297 | 0.123 / 0.0029 / 0.0291 | **0.121** / 0.0029 / 0.0291 |
 
-(the wider windows chosen on a, confirmed on b). The filter costs 0.3–0.4 s per take
+(the wider windows chosen on a, confirmed on b). How far any choice among these windows
+could go: each chosen by its true error instead of SURE (``truth=``, an oracle with the
+same candidates and risk window; the table's ``per mode, oracle windows`` row) gives noisy
+a 0.120 and b 0.116 (b amplified 0.118 → 0.112); windows of 32–64 frames added to
+:data:`MODE_BANDWIDTHS` 0.127 → 0.126 on a (not kept). The filter costs 0.3–0.4 s per take
 (the held-out ones: 146–154 frames, 118–150 markers; 0.2–0.3 s with occluded markers, whose
 frames also take the per-coordinate pass) instead of 0.15–0.3 s per coordinate.
 
@@ -254,7 +258,8 @@ def _take_noise(x: np.ndarray) -> float:
 
 def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
                         bandwidths: tuple[float, ...] = AUTO_BANDWIDTHS, degree: int = DEGREE,
-                        window_frames: float = RISK_WINDOW_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+                        window_frames: float = RISK_WINDOW_FRAMES, truth: np.ndarray | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`filter_markers` with the window chosen per marker and frame by Stein's unbiased
     risk estimate (SURE; Stein 1981), locally in time.
 
@@ -281,6 +286,10 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
     noise_mm : float          σ per coordinate, mm (default: estimated)
     bandwidths : floats       the candidate windows s, frames (0: no filtering)
     window_frames : float     σ of the Gaussian over which the risk is summed, frames
+    truth : (F,M,3) float     the noise-free samples, for a bound in benchmarks: each window
+                              is then chosen by its true squared error ‖x*_t − x̂_t(s)‖²,
+                              summed over the same risk window, in place of SURE (an oracle
+                              no rule choosing among these windows with this locality beats)
 
     Returns
     -------
@@ -301,7 +310,8 @@ def filter_markers_auto(markers: np.ndarray, noise_mm: float | None = None,
         undefined = visible & ~np.isfinite(hat)
         fit = np.where(undefined[..., None], x, fit)
         hat = np.where(undefined, 1.0, hat)
-        r = np.where(visible, np.sum((x - fit) ** 2, axis=-1) + 6.0 * sigma ** 2 * hat, 0.0)
+        r = np.where(visible, np.sum((x - fit) ** 2, axis=-1) + 6.0 * sigma ** 2 * hat
+                     if truth is None else np.nan_to_num(np.sum((truth - fit) ** 2, axis=-1)), 0.0)
         risk = _moments(r, window)[0]
         better = risk < least               # strict: the first of equal risks wins
         out[better], chosen[better], least[better] = fit[better], s, risk[better]
@@ -340,7 +350,8 @@ class MarkerModes:
 
 
 def filter_modes(u: np.ndarray, vectors: np.ndarray, noise_mm: float | None = None,
-                 bandwidths: tuple[float, ...] = MODE_BANDWIDTHS, degree: int = DEGREE) -> np.ndarray:
+                 bandwidths: tuple[float, ...] = MODE_BANDWIDTHS, degree: int = DEGREE,
+                 truth: np.ndarray | None = None) -> np.ndarray:
     """:func:`filter_markers_auto` of the coefficients ``c = Uᵀ u`` of each frame in an
     orthonormal basis U, then back: ``û = U ĉ``. The risk is summed over consecutive
     triples of columns as over a marker's three coordinates, so U's columns are best
@@ -352,7 +363,7 @@ def filter_modes(u: np.ndarray, vectors: np.ndarray, noise_mm: float | None = No
     u : (F,M,3) float          head-aligned marker displacements (or positions), mm; NaN rows occluded
     vectors : (3M,3M) float    U, orthonormal columns
     noise_mm : float           σ per coordinate, mm (default: :func:`temporal_noise` of u)
-    bandwidths, degree         as :func:`filter_markers_auto`
+    bandwidths, degree, truth  as :func:`filter_markers_auto` (``truth`` (F,M,3) as u)
 
     Returns
     -------
@@ -369,7 +380,10 @@ def filter_modes(u: np.ndarray, vectors: np.ndarray, noise_mm: float | None = No
     full = np.isfinite(u).all(axis=(1, 2))
     coefficients = np.full((F, 3 * M), np.nan)
     coefficients[full] = u[full].reshape(-1, 3 * M) @ U
-    fitted, _ = filter_markers_auto(coefficients.reshape(F, M, 3), noise_mm, bandwidths, degree)
+    if truth is not None:
+        truth = (_as_markers(truth).reshape(F, 3 * M) @ U).reshape(F, M, 3)
+    fitted, _ = filter_markers_auto(coefficients.reshape(F, M, 3), noise_mm, bandwidths, degree,
+                                    truth=truth)
     out = np.full_like(u, np.nan)
     out[full] = (fitted[full].reshape(-1, 3 * M) @ U.T).reshape(-1, M, 3)
     return out
@@ -377,7 +391,8 @@ def filter_modes(u: np.ndarray, vectors: np.ndarray, noise_mm: float | None = No
 
 def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FRAMES, degree: int = DEGREE,
                        weights: np.ndarray | None = None, modes: MarkerModes | None = None,
-                       mode_bandwidths: tuple[float, ...] = MODE_BANDWIDTHS) -> np.ndarray:
+                       mode_bandwidths: tuple[float, ...] = MODE_BANDWIDTHS,
+                       truth: np.ndarray | None = None) -> np.ndarray:
     """:func:`filter_markers` in a head-aligned frame: rigid motion removed, filtered, restored.
 
     Each frame is rigidly aligned (Kabsch over its visible markers, :func:`rigid_align`)
@@ -396,6 +411,10 @@ def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FR
                                else 1)
     modes : MarkerModes        the model's prior modes (M markers), for ``"auto"``
     mode_bandwidths : floats   the windows ``"auto"`` chooses among in the modes, frames
+    truth : (F,M,3) float      the noise-free world markers, for a bound in benchmarks: in
+                               the modes, each window chosen by its true error
+                               (:func:`filter_markers_auto`), aligned by the frames' own
+                               transforms
 
     Returns
     -------
@@ -425,14 +444,18 @@ def filter_performance(markers: np.ndarray, sigma_frames: float | str = SIGMA_FR
         ref = rigid_align(ref, modes.rest, weights).apply(ref)
     transforms = {}
     aligned[:] = np.nan
+    true = None if truth is None else np.full_like(x, np.nan)
     for f in np.flatnonzero(usable):
         ok = visible[f] & np.isfinite(ref).all(axis=1)
         if ok.sum() >= MIN_POINTS:
             T = rigid_align(np.where(ok[:, None], x[f], np.nan), ref, weights)
             transforms[f] = T
             aligned[f] = T.apply(x[f])
+            if true is not None:
+                true[f] = T.apply(np.asarray(truth[f], np.float64))
     if in_modes:
-        smooth = filter_modes(aligned - modes.rest, modes.vectors, None, mode_bandwidths, degree) + modes.rest
+        smooth = filter_modes(aligned - modes.rest, modes.vectors, None, mode_bandwidths, degree,
+                              None if true is None else true - modes.rest) + modes.rest
         full = np.isfinite(smooth).all(axis=(1, 2))
         if not full.all():                        # the others per coordinate
             smooth = np.where(full[:, None, None], smooth, filter_markers(aligned, sigma_frames, degree))

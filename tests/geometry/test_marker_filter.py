@@ -244,3 +244,22 @@ def test_filter_performance_in_modes_under_head_motion_and_occlusion():
     # a fixed window is the same filter in any basis: the modes change nothing
     np.testing.assert_array_equal(filter_performance(observed, 2.0, modes=modes),
                                   filter_performance(observed, 2.0))
+
+
+def test_the_oracle_choice_keeps_a_noise_free_take_and_bounds_sure_from_below():
+    """``truth=``: each window chosen by its true error. Given the samples themselves as the
+    truth, the sample (s = 0, no error) is chosen everywhere; given the clean take beside a
+    noisy one, its error is below SURE's (seeded: 3-D RMS 0.152 against 0.159 mm) and per
+    mode too (0.089 against 0.102)."""
+    from service.geometry.marker_filter import filter_modes
+
+    truth = _onset_rest_and_sine()
+    noisy = truth + np.random.default_rng(3).normal(0, 0.3, truth.shape)
+    out, chosen = filter_markers_auto(noisy, truth=noisy)
+    np.testing.assert_array_equal(out, noisy)
+    assert (chosen == 0).all()
+    rms = lambda x, t: np.sqrt(np.mean(np.sum((x - t) ** 2, -1)))               # noqa: E731
+    sure, oracle = filter_markers_auto(noisy)[0], filter_markers_auto(noisy, truth=truth)[0]
+    assert rms(oracle, truth) < rms(sure, truth), (rms(oracle, truth), rms(sure, truth))
+    truth, noisy, basis = _modes_take()
+    assert rms(filter_modes(noisy, basis, truth=truth), truth) < rms(filter_modes(noisy, basis), truth)
