@@ -40,6 +40,8 @@ from typing import Any, Literal
 import h11
 from uvicorn.protocols.http.h11_impl import DEFAULT_MAX_INCOMPLETE_EVENT_SIZE, H11Protocol
 
+from service.api.coalesced_writes import coalesced
+
 try:                                    # uvicorn[standard]
     import httptools  # noqa: F401
     from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
@@ -108,6 +110,8 @@ class ConnectionGuard(abc.ABC):
     # -- connection ------------------------------------------------------------------------
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)  # type: ignore[misc]
+        # a response's head and body in one write (service/api/coalesced_writes.py)
+        self.transport = coalesced(transport, self.loop)  # type: ignore[attr-defined]
         self._address = self.client[0] if self.client else None  # type: ignore[attr-defined]
         if self._address is not None:
             self.per_client[self._address] += 1
