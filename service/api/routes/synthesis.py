@@ -245,7 +245,8 @@ async def submit_synthesis_job(
                 "estimate, in the modes of the model's learned marker prior where it has "
                 "one (per marker otherwise, and in frames with an occluded marker): clean "
                 "markers are kept as they are, what the face rarely moves is smoothed "
-                "widely, a fast onset narrowly. Not for mesh input."))] = 0.0,
+                "widely, a fast onset narrowly. The frames' reported confidence reads the "
+                "noise of the markers as sent, before the filter. Not for mesh input."))] = 0.0,
 ) -> schemas.JobAccepted:
     """Queue the synthesis of a whole performance; answers 202 with `{job_id}` and
     `Location`. The job's result is an artifact (`GET /v1/artifacts/{id}`)."""
