@@ -48,8 +48,10 @@ as captured (``synthesize(..., captured=)``) and n reads their σ̂
 (:meth:`~service.methods.pdm.base_surface.BaseSurface.captured_noise`): 0.74 and 0.77
 (``benchmarks/generalization_report.py --pdm-only --marker-filter auto --marker-noise
 auto --conditions clean noisy``; in range 0.72 → 0.74 and 0.33 → 0.70, combinations 0.59 →
-0.64 and 0.08 → 0.32), with every synthesized array unchanged (the denoiser keeps the
-filtered frames' σ̂). :func:`captured_frames` checks that they are the same frames.
+0.64 and 0.08 → 0.32; WPSD + regression 0.28 → 0.72 and 0.16 → 0.76 out of range), with
+every synthesized array unchanged (the denoiser keeps the filtered frames' σ̂). Plain WPSD,
+whose error is mostly its own rather than the noise, ranks worse on family b (0.67 →
+0.47). :func:`captured_frames` checks that they are the same frames.
 """
 
 from __future__ import annotations
