@@ -303,10 +303,8 @@ def evaluate_family(family: str, actor_dir: Path, frames: int | None, retrain: b
                         r_["noise_mm"] = frame_noise(ev.base.marker_prior,
                                                      p.remove(gt.markers) - ev.base.rest_markers).tolist()
                         if marker_filter:       # and of the markers as captured, before the filter
-                            raw = captured["markers"]
-                            q = head_alignment(raw, ev.base.rest_markers, model.data.pose_weights)
-                            r_["noise_captured_mm"] = frame_noise(
-                                ev.base.marker_prior, q.remove(raw) - ev.base.rest_markers).tolist()
+                            noise = ev.base.captured_noise(captured["markers"], model.data.pose_weights)
+                            r_["noise_captured_mm"] = None if noise is None else noise.tolist()
                 print(f"ROW | {family} | {rname} | {cname} | {name} | {r_['mean']:.3f} | {r_['p95']:.3f} "
                       f"| {r_['max']:.2f} | {r_['corr']:.2f} | {r_['rel']:.2f} |", file=sys.stderr, flush=True)
                 if name == WORST_OF and worst_frame:

@@ -71,12 +71,14 @@ def answer(kind: str) -> bytes:
 def busy(ms: float) -> "callable":
     """A function spending ``ms`` ms of its thread's CPU time summing 1 MiB pieces of
     :data:`BUSY_BYTES` of float32 in turn (0: returns at once)."""
+    if ms <= 0:
+        return lambda: None
     data = np.ones(BUSY_BYTES // 4, np.float32).reshape(-1, 1 << 18)
     where = [0]
 
     def run() -> None:
         end = time.thread_time() + ms * 1e-3
-        while ms > 0 and time.thread_time() < end:
+        while time.thread_time() < end:
             data[where[0]].sum()
             where[0] = (where[0] + 1) % len(data)
     return run

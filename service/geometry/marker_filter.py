@@ -106,9 +106,10 @@ takes*). A MAP given the residual noise this filter leaves per mode and frame
 (σ² Σ_τ w(τ)² of the chosen fit's equivalent kernel w) instead of σ̂² I was measured and not
 kept: what reaches the shell falls 0.127 → 0.124 mm (a) and 0.121 → 0.119 (b), no more
 with each take's true residual per mode (0.125 / 0.120); the expression modes' prior
-variance is far above that noise, so their Wiener gain stays near 1 whatever it is. Measured and not kept: the floor
-directions' part taken from the per-coordinate fit instead (so σ̂ reads 0.10–0.13 mm again
-on a noisy take) gives back about half the gain (a 0.137, b 0.126 mm in the table's terms).
+variance is far above that noise, so their Wiener gain stays near 1 whatever it is. Nor
+kept: the floor directions' part taken from the per-coordinate fit instead (so σ̂ reads
+0.10–0.13 mm again on a noisy take), which gives back about half the gain (a 0.137, b
+0.126 mm in the table's terms).
 """
 
 from __future__ import annotations

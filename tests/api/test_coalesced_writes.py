@@ -35,11 +35,15 @@ class RecordingTransport:
         return {"peername": ("127.0.0.1", 1234)}.get(name, default)
 
 
+def _wrapped() -> tuple[RecordingTransport, CoalescedWrites]:
+    """A recording transport and its wrapper on the running loop."""
+    inner = RecordingTransport()
+    return inner, CoalescedWrites(inner, asyncio.get_running_loop())
+
+
 def test_writes_of_one_iteration_go_out_in_one_writelines_in_order():
     async def run():
-        loop = asyncio.get_running_loop()
-        inner = RecordingTransport()
-        t = CoalescedWrites(inner, loop)
+        inner, t = _wrapped()
         t.write(b"HTTP/1.1 200 OK\r\n\r\n")
         t.write(b"")                                     # nothing to send: nothing kept
         t.writelines([b"body-1", memoryview(b"body-2")])
@@ -55,9 +59,7 @@ def test_writes_of_one_iteration_go_out_in_one_writelines_in_order():
 
 def test_close_hands_over_what_is_kept_first_and_a_closing_transport_gets_nothing():
     async def run():
-        loop = asyncio.get_running_loop()
-        inner = RecordingTransport()
-        t = CoalescedWrites(inner, loop)
+        inner, t = _wrapped()
         t.write(b"408")
         t.close()
         assert inner.calls == [("write", b"408"), ("close",)]
@@ -68,8 +70,11 @@ def test_close_hands_over_what_is_kept_first_and_a_closing_transport_gets_nothin
 
 
 def test_only_uvloop_transports_are_wrapped():
-    inner = RecordingTransport()
-    assert coalesced(inner, asyncio.new_event_loop()) is inner
+    inner, loop = RecordingTransport(), asyncio.new_event_loop()
+    try:
+        assert coalesced(inner, loop) is inner
+    finally:
+        loop.close()
     uvloop = pytest.importorskip("uvloop")
 
     async def run():

@@ -61,7 +61,7 @@ from service.geometry.tangent_frames import FrameField
 from service.geometry.thin_shell import (
     KB, KS, apply_basis, handle_energy_matrix, marker_noise_ratio, shell_prior_scale, thin_shell_basis,
 )
-from service.methods.confidence import MarkerEvidence
+from service.methods.confidence import MarkerEvidence, captured_frames
 
 #: a frame needs at least this many visible markers (rigid fit and thin shell)
 MIN_VISIBLE_MARKERS = max(MIN_POINTS, 4)
@@ -317,17 +317,21 @@ class BaseSurface:
             return np.ones(len(aligned))
         return self.evidence.factor(aligned - self.rest_markers, u_H, sigma)
 
-    def captured_noise(self, captured: np.ndarray, weights: np.ndarray) -> np.ndarray | None:
+    def captured_noise(self, captured: np.ndarray, weights: np.ndarray,
+                       shape: tuple[int, ...] | None = None) -> np.ndarray | None:
         """σ̂ (F,) mm of markers as captured (F,M,3), NaN rows occluded, before a temporal
         filter smoothed the frames a model is given (a synthesis job's
         ``marker_filter_frames``): aligned with the model's head-alignment ``weights`` (M,)
         and read as :meth:`input_confidence` reads σ̂. The reported confidence's noise factor
         takes this instead of the filtered frames' σ̂ (:mod:`service.methods.confidence`,
-        *Filtered takes*). None without a learned prior, or where a frame has too few
-        visible markers to align (the filtered frames' own σ̂ then stands)."""
+        *Filtered takes*). ``shape``: the filtered frames' (F,M,3), which the captured ones
+        must have (:func:`~service.methods.confidence.captured_frames`). None without a
+        learned prior, or where a frame has too few visible markers to align (the filtered
+        frames' own σ̂ then stands)."""
+        captured = (np.asarray(captured, np.float64) if shape is None
+                    else captured_frames(captured, shape))
         if self.evidence is None:
             return None
-        captured = np.asarray(captured, np.float64)
         try:
             pose = head_alignment(captured, self.rest_markers, weights)
         except TooFewMarkers:

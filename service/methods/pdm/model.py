@@ -133,7 +133,7 @@ from service.methods.pdm.texel_band import CoefficientMap, CoveredTexels, TexelB
 from service.methods.pdm.validity import (
     BandValidity, Validity, ValidityData, sector_envelope, training_envelope, training_hull,
 )
-from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE, captured_frames, falloff
+from service.methods.confidence import CONFIDENCE, VERTEX_CONFIDENCE, falloff
 
 #: frames processed at once (bounds the (frames, texels) work arrays)
 FRAME_CHUNK = 8
@@ -881,7 +881,7 @@ class PdmModel:
             raise InvalidInput(f"frame {e.frame} has {e.visible} visible markers, at "
                                f"least {e.required} are needed") from None
         if confidence and captured is not None:   # σ̂ of the noise factor only: the denoiser keeps its σ
-            noise = base.captured_noise(captured_frames(captured, markers.shape), d.pose_weights)
+            noise = base.captured_noise(captured, d.pose_weights, markers.shape)
             sigma = sigma if noise is None else noise
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))

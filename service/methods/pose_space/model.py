@@ -174,7 +174,7 @@ from service.geometry.normal_map import NormalMapper
 from service.geometry.uv_raster import (
     interpolation_matrix, rasterize_uv, sample_map, sampling_matrix, texel_centers_uv,
 )
-from service.methods.confidence import captured_frames, exponential
+from service.methods.confidence import exponential
 from service.methods.inputs import ActorData, Clip, InvalidInput, Progress, check_clips, no_progress
 from service.methods.outputs import check_outputs
 from service.methods.pdm.base_surface import (
@@ -497,7 +497,7 @@ class PoseSpaceModel:
             out["normal_map"] = np.empty((nf, H, H, 3), np.float32)
         margin = d.params.extrapolation_margin if clamp else None
         noise = (None if captured is None else
-                 ev.base.captured_noise(captured_frames(captured, markers.shape), d.pose_weights))
+                 ev.base.captured_noise(captured, d.pose_weights, markers.shape))
         for s in range(0, nf, FRAME_CHUNK):
             sl = slice(s, min(s + FRAME_CHUNK, nf))
             pose, u_H = ev.deformation(markers[sl])
