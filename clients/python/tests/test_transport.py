@@ -234,3 +234,51 @@ def test_the_client_sends_through_it_by_default(origin):
         assert fs.health is not None
     with Client(origin[0], transport=Recording()) as fs:
         assert isinstance(fs._http._transport, Recording)
+
+
+def test_the_client_hands_requests_to_it_directly(origin):
+    """The SDK's own client skips ``httpx.Client.send`` and sends the same request: the
+    same headers, path and body as through httpx with the same transport."""
+    from facesynth_client._core import Call
+
+    call = Call("POST", "/echo", params={"outputs": "mesh", "half": None, "topology": "false"},
+                content=b"abc", headers={"Content-Type": "application/x-npz"})
+    with Client(origin[0], token="t0k") as direct, \
+            httpx.Client(transport=OnePieceTransport(), timeout=5) as plain_http, \
+            Client(origin[0], token="t0k", http_client=plain_http) as through_httpx:
+        assert direct._direct is direct._http._transport and through_httpx._direct is None
+
+        def refused(*args, **kwargs):
+            raise AssertionError("httpx.Client.send was called")
+        direct._http.send = refused
+        a = direct._run(direct._core.call_json(call))
+        b = through_httpx._run(through_httpx._core.call_json(call))
+        assert a["path"] == b["path"] == "/echo?outputs=mesh&topology=false"
+        assert a["sha256"] == b["sha256"] == hashlib.sha256(b"abc").hexdigest()
+        assert a["headers"] == b["headers"]
+        assert a["headers"]["authorization"] == "Bearer t0k"
+        missing = direct._run(direct._core.send(Call("GET", "/missing", accept_statuses=(404,))))
+        assert missing.status_code == 404 and missing.request.url.path == "/missing"
+        del direct._http.send
+    with pytest.raises(RuntimeError, match="closed"):    # as httpx answers a closed client
+        direct.health()
+
+
+def test_request_urls_are_parsed_once_per_path_and_query():
+    from facesynth_client._core import URL_CACHE_MAX, Core
+
+    core = Core(base_url="http://fs.test:9/", token=None, timeout=httpx.Timeout(1),
+                max_retries=0, backoff=0, backoff_max=0, poll_interval=1,
+                build_request=httpx.Client().build_request)
+    params = {"outputs": "mesh,normal_map", "clamp": None, "half": "true", "n": 2}
+    url = core.request_url("/v1/models/m 1/synthesize", params)
+    expected = httpx.Request("POST", "http://fs.test:9/v1/models/m 1/synthesize",
+                             params={"outputs": "mesh,normal_map", "half": "true", "n": 2}).url
+    assert url == expected and str(url).endswith("synthesize?outputs=mesh%2Cnormal_map&half=true&n=2")
+    assert core.request_url("/v1/models/m 1/synthesize", dict(params)) is url
+    assert core.request_url("/healthz", None) == httpx.URL("http://fs.test:9/healthz")
+    listed = core.request_url("/x", {"outputs": ["mesh", "albedo"]})      # unhashable: not kept
+    assert str(listed) == "http://fs.test:9/x?outputs=mesh&outputs=albedo"
+    for k in range(URL_CACHE_MAX + 5):
+        core.request_url(f"/p{k}", None)
+    assert len(core._urls) <= URL_CACHE_MAX

@@ -45,6 +45,8 @@ _NOT_SENT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
 #: errors of a broken stream while reading a body
 STREAM_ERRORS = (httpx.TransportError, httpx.StreamError)
 DEFAULT_BASE_URL = "http://127.0.0.1:8000"
+#: distinct (path, query) URLs kept parsed by :meth:`Core.request_url` (then it starts over)
+URL_CACHE_MAX = 256
 
 
 # ---------------------------------------------------------------------------- effects
@@ -241,18 +243,33 @@ class Core:
     headers: Mapping[str, str] = field(default_factory=dict)
     random: Callable[[], float] = random.random
     clock: Callable[[], float] = time.monotonic
+    _urls: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ sending
     def url(self, path: str) -> str:
         return self.base_url.rstrip("/") + "/" + path.lstrip("/")
+
+    def request_url(self, path: str, params: Mapping[str, Any] | None) -> httpx.URL:
+        """The URL of ``path`` with the query ``params`` (None values left out), parsed once
+        per distinct pair: a per-frame call repeats the same one, and httpx would parse the
+        string twice per request (0.07 ms of the SDK's ~0.3 ms a one-frame synthesis)."""
+        items = tuple((k, v) for k, v in (params or {}).items() if v is not None)
+        try:
+            url = self._urls.get((path, items))
+        except TypeError:                       # an unhashable value (a list): not kept
+            return httpx.URL(self.url(path), params=dict(items) or None)
+        if url is None:
+            if len(self._urls) >= URL_CACHE_MAX:
+                self._urls.clear()
+            url = self._urls[(path, items)] = httpx.URL(self.url(path), params=dict(items) or None)
+        return url
 
     def build(self, call: Call) -> httpx.Request:
         headers = {"Accept": "application/json, application/problem+json;q=0.9, */*;q=0.5",
                    **self.headers, **(call.headers or {})}
         if self.token:
             headers["Authorization"] = f"Bearer {self.token}"
-        params = {k: v for k, v in (call.params or {}).items() if v is not None}
-        return self.build_request(call.method, self.url(call.path), params=params or None,
+        return self.build_request(call.method, self.request_url(call.path, call.params),
                                   json=call.json, content=call.content, files=call.files,
                                   data=call.data, headers=headers,
                                   timeout=call.timeout or self.timeout)

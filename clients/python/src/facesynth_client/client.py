@@ -203,9 +203,11 @@ class Client(_Api):
                  headers: Mapping[str, str] | None = None,
                  random: Callable[[], float] | None = None):
         self._own = http_client is None
+        transport = transport if transport is not None else OnePieceTransport()
         self._http = http_client if http_client is not None else httpx.Client(
-            transport=transport if transport is not None else OnePieceTransport(),
-            timeout=_timeout(timeout))
+            transport=transport, timeout=_timeout(timeout))
+        #: the transport requests are handed to directly (:meth:`_send`), or None
+        self._direct = transport if self._own and isinstance(transport, OnePieceTransport) else None
         self._sleep = sleep if sleep is not None else time.sleep
         super().__init__(base_url, token, timeout=timeout, max_retries=max_retries,
                          backoff=backoff, backoff_max=backoff_max, poll_interval=poll_interval,
@@ -223,9 +225,19 @@ class Client(_Api):
         self.close()
 
     # ------------------------------------------------------------------ the driver
+    def _send(self, request: httpx.Request) -> httpx.Response:
+        """``request``'s response, its body not yet read: from the SDK's own transport
+        directly where this client made its httpx client with one (no auth, cookies, event
+        hooks, redirects or proxy mounts to apply), else through ``httpx.Client.send``."""
+        if self._direct is None or self._http.is_closed:
+            return self._http.send(request, stream=True)
+        response = self._direct.handle_request(request)
+        response.request = request
+        return response
+
     def _perform(self, effect: Any, streams: dict) -> Any:
         if isinstance(effect, Send):
-            response = self._http.send(effect.request, stream=True)
+            response = self._send(effect.request)
             if effect.stream and response.status_code < 400:
                 streams[id(response)] = (response, response.iter_bytes())
             else:
