@@ -169,6 +169,12 @@ class Settings(BaseSettings):
                     "a lean ASGI path (service/api/lean.py: the same answers, without "
                     "FastAPI's routing and dependency solving); false: through FastAPI like "
                     "every other route.")
+    opentelemetry: bool = Field(
+        default=False,
+        description="FastAPI's own OpenTelemetry spans, metrics and logs, sent to the globally "
+                    "configured providers (e.g. under opentelemetry-instrument); false: the "
+                    "service's /metrics and JSON logs only, and FastAPI no longer looks the "
+                    "providers up on every request (~0.03-0.08 ms of a request's server CPU).")
     loop: Literal["auto", "asyncio", "uvloop"] = Field(
         default="auto",
         description="The HTTP server's event loop: asyncio, or uvloop (from "
