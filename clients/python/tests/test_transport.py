@@ -282,3 +282,86 @@ def test_request_urls_are_parsed_once_per_path_and_query():
     for k in range(URL_CACHE_MAX + 5):
         core.request_url(f"/p{k}", None)
     assert len(core._urls) <= URL_CACHE_MAX
+
+
+class Scripted:
+    """A one-connection loopback server answering each request with the next of ``answers``
+    (raw bytes), then closing (or, with ``keep``, waiting for the next request)."""
+
+    def __init__(self, answers: list[bytes], keep: bool = False):
+        import socket
+
+        self.answers, self.keep, self.requests = list(answers), keep, []
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.server.getsockname()[1]}"
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        conn, _ = self.server.accept()
+        with conn:
+            reader = conn.makefile("rb")
+            for answer in self.answers:
+                head = b""
+                while not head.endswith(b"\r\n\r\n"):
+                    line = reader.readline()
+                    if not line:
+                        return
+                    head += line
+                length = next((int(v) for k, v in (h.split(b":", 1) for h in head.split(b"\r\n")[1:] if b":" in h)
+                               if k.strip().lower() == b"content-length"), 0)
+                self.requests.append(head + reader.read(length))
+                conn.sendall(answer)
+                if not self.keep:
+                    break
+        self.server.close()
+
+
+@pytest.mark.parametrize("answer, method, status, content", [
+    (b"HTTP/1.1 100 Continue\r\n\r\nHTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nok", "GET", 200, b"ok"),
+    (b"HTTP/1.1 204 No Content\r\n\r\n", "GET", 204, b""),
+    (b"HTTP/1.1 200 OK\r\nContent-Length: 9\r\n\r\n", "HEAD", 200, b""),
+    (b"HTTP/1.0 200 OK\r\nContent-Type: text/plain\r\n\r\nuntil the end", "GET", 200, b"until the end"),
+    (b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=1\r\nabc\r\n2\r\nde\r\n0\r\nT: 1\r\n\r\n",
+     "GET", 200, b"abcde"),
+])
+def test_answers_are_framed_as_rfc_9112_says(answer, method, status, content):
+    origin = Scripted([answer])
+    with httpx.Client(transport=OnePieceTransport(), timeout=5) as client:
+        response = client.request(method, f"{origin.url}/x")
+    assert (response.status_code, response.content) == (status, content)
+
+
+def test_an_answer_cut_short_or_malformed_is_a_remote_protocol_error():
+    for answer in (b"HTTP/1.1 200 OK\r\nContent-Length: 10\r\n\r\nshort",
+                   b"ICY 200 OK\r\n\r\n", b"HTTP/1.1 200 OK\r\nno colon here\r\n\r\n",
+                   b"HTTP/1.1 200 OK\r\nContent-Length: 2, 3\r\n\r\nab", b""):
+        origin = Scripted([answer])
+        with httpx.Client(transport=OnePieceTransport(), timeout=5) as client:
+            with pytest.raises(httpx.RemoteProtocolError):
+                client.get(f"{origin.url}/x")
+
+
+def test_a_header_that_would_inject_a_line_is_refused():
+    with httpx.Client(transport=OnePieceTransport(), timeout=5) as client:
+        with pytest.raises(httpx.LocalProtocolError):
+            client.get("http://127.0.0.1:9/x", headers={"X-A": "1\r\nX-Injected: 2"})
+
+
+def transport_of(client: httpx.Client) -> OnePieceTransport:
+    return client._transport
+
+
+def test_a_connection_is_kept_only_while_the_server_keeps_it():
+    ok = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nok"
+    origin = Scripted([ok, ok], keep=True)
+    with httpx.Client(transport=OnePieceTransport(), timeout=5) as client:
+        assert client.get(f"{origin.url}/a").content == b"ok"
+        assert sum(map(len, transport_of(client)._idle.values())) == 1
+        assert client.post(f"{origin.url}/b", content=b"xyz").content == b"ok"   # same connection
+    assert [r.split(b"\r\n", 1)[0] for r in origin.requests] == [b"GET /a HTTP/1.1", b"POST /b HTTP/1.1"]
+    assert origin.requests[1].endswith(b"\r\n\r\nxyz")
+    closing = Scripted([b"HTTP/1.1 200 OK\r\nConnection: close\r\nContent-Length: 2\r\n\r\nok"])
+    transport = OnePieceTransport()
+    with httpx.Client(transport=transport, timeout=5) as client:
+        assert client.get(f"{closing.url}/a").content == b"ok"
+        assert not any(transport._idle.values())           # closed, not kept

@@ -1,4 +1,4 @@
-"""The sync client's HTTP transport: ``http.client`` keep-alive connections behind httpx's
+"""The sync client's HTTP transport: keep-alive HTTP/1.1 connections behind httpx's
 transport interface (issue 23, per-frame requests).
 
 httpx's own transport (httpcore over h11) writes a request's headers and body in two
@@ -13,39 +13,53 @@ load 5-6, medians of interleaved calls), per call, wall / client CPU in ms:
 client                 538 kB (mesh) answer  8.9 MB (maps) answer
 =====================  ====================  =====================
 httpx's transport      1.80 / 1.03           25.6 / 10.1
-this transport         1.24 / 0.58           12.7 / 2.9
+this transport (then)  1.24 / 0.58           12.7 / 2.9
 ``http.client`` alone  1.32 / 0.45           14.2 / 4.5
 =====================  ====================  =====================
 
 :class:`OnePieceTransport` sends plain-``http`` requests whose body is in memory (what
-every JSON and NPZ call of the SDK sends) through ``http.client``: headers and body in one
-write (a body up to :data:`ONE_WRITE_MAX`; ``http.client`` itself writes them in two), and an answer with a ``Content-Length`` up to :data:`ONE_PIECE_MAX` read in one piece
-when httpx reads the response (one buffer, no per-chunk parsing). Answers without a
-length, or longer ones (job event streams, artifact downloads), are read as they arrive in
-:data:`CHUNK` pieces, so streaming works as before. Everything else — ``https`` URLs,
-request bodies that stream (multipart file uploads from disk) — goes to httpx's own
-transport. Connections are kept per host and port and reused while the server keeps them
+every JSON and NPZ call of the SDK sends) itself: headers and body in one write (a body up
+to :data:`ONE_WRITE_MAX`; ``http.client`` writes them in two), and an answer with a
+``Content-Length`` up to :data:`ONE_PIECE_MAX` read in one piece before the response is
+returned (one buffer, no per-chunk parsing). Answers without a length (chunked, or until
+the server closes), or longer ones (job event streams, artifact downloads), are read as they
+arrive in pieces of at most :data:`CHUNK`, so streaming works as before. The answer's
+status line and headers are read from a buffered reader the connection keeps (RFC 9112:
+interim 1xx answers skipped; no body for HEAD, 1xx, 204 and 304; chunked before
+``Content-Length``; keep-alive by version and ``Connection``), as ``http.client`` reads
+them but without its per-answer reader and its e-mail header parser. Everything else —
+``https`` URLs, request bodies that stream (multipart file uploads from disk) — goes to
+httpx's own transport. Connections are kept per host and port and reused while the server keeps them
 open; an idle one that became readable (the server closed it) is dropped before reuse, as
 httpcore does, and a request whose reused connection turns out closed before any answer
 (the server's keep-alive timeout raced it) is sent once more on a new connection. Socket
-errors are raised as httpx's exception classes (``ConnectError``,
-``ReadTimeout``, ...), so the client's retry rules are unchanged.
+and protocol errors are raised as httpx's exception classes (``ConnectError``,
+``ReadTimeout``, ``RemoteProtocolError``, ...), so the client's retry rules are unchanged.
 
 A :class:`~facesynth_client.Client` that made its httpx client with this transport (the
 default) hands it each request directly (``Client._send``): ``httpx.Client.send`` would
 add only what that client does not use (auth flows, cookies, event hooks, redirects; a
 client given a transport mounts no proxies), and the request is the one ``build_request``
-made, its URL parsed once per path and query (``Core.request_url``). Per one-frame mesh
-synthesis against the stubbed app (``http_overhead.py``'s lean server, 538 kB answers, 300
-interleaved calls, the previous SDK beside this one), wall / client CPU in ms:
-0.958 / 0.574 → 0.827 / 0.442; with ``--busy 12`` (the server streams memory for 12 ms
-first, as a frame does) 14.187 / 1.165 → 13.955 / 0.966 (``http.client`` alone: 13.395 /
-0.400).
+made, its URL parsed once per path and query (``Core.request_url``). Measured against the
+stubbed app (``http_overhead.py``'s lean server; the SDK before these changes and after,
+interleaved in one process, 500 calls; ``--busy 12``: the server first streams memory for
+12 ms, as a frame does), per one-frame ``synthesize``, wall / client CPU in ms:
+
+=============================  ===============  ===============  ================
+SDK                            mesh             mesh, busy 12    maps, busy 12
+=============================  ===============  ===============  ================
+before                         1.079 / 0.696    14.167 / 1.205   18.712 / 3.719
+after                          0.803 / 0.407    13.784 / 0.817   18.163 / 3.259
+``http.client`` alone          0.643 / 0.252    13.367 / 0.417   17.708 / 2.756
+=============================  ===============  ===============  ================
+
+(before: this transport over ``http.client``'s connections and answers, through
+``httpx.Client.send``; the last row a bare ``http.client`` loop, no SDK.)
 """
 
 from __future__ import annotations
 
-import http.client
+import re
 import select
 import socket
 import threading
@@ -58,15 +72,42 @@ __all__ = ["OnePieceTransport", "ONE_PIECE_MAX", "ONE_WRITE_MAX", "CHUNK"]
 #: answers with a Content-Length up to this many bytes are read in one piece (a streamed
 #: download of that size is then held in memory once; larger ones stream in pieces)
 ONE_PIECE_MAX = 64 << 20
-#: the piece size of other answers (streams, larger downloads)
+#: the largest piece of other answers (streams, larger downloads)
 CHUNK = 64 << 10
+#: a request body up to this many bytes goes out in the headers' write (one copy of it)
+ONE_WRITE_MAX = 64 << 10
+#: the longest status or header line, and the most header lines, of an answer (as
+#: ``http.client``)
+MAX_LINE = 65536
+MAX_HEADERS = 100
+
+#: a header name as it may be, and what a value must not hold (``http.client``'s checks:
+#: no injected lines)
+_LEGAL_NAME = re.compile(rb"[^:\s][^:\r\n]*").fullmatch
+_ILLEGAL_VALUE = re.compile(rb"\n(?![ \t])|\r(?![ \t\n])").search
 
 
 def _timeout(request: httpx.Request, kind: str) -> float | None:
     return (request.extensions.get("timeout") or {}).get(kind)
 
 
-def _is_closed(connection: http.client.HTTPConnection) -> bool:
+class _Connection:
+    """One keep-alive connection: its socket and the buffered reader its answers are read
+    from (kept across answers: nothing read ahead is lost)."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock = sock
+        self.reader = sock.makefile("rb")
+        self.fresh = True
+
+    def close(self) -> None:
+        sock, self.sock = self.sock, None
+        if sock is not None:
+            self.reader.close()
+            sock.close()
+
+
+def _is_closed(connection: _Connection) -> bool:
     """Whether an idle keep-alive connection can no longer be used: no socket, or one that
     is readable while no request is in flight (the server closed it, or sent something
     unasked)."""
@@ -84,68 +125,143 @@ def _is_closed(connection: http.client.HTTPConnection) -> bool:
     return bool(readable)
 
 
-#: a request body up to this many bytes goes out in the headers' write (one copy of it)
-ONE_WRITE_MAX = 64 << 10
+def _request_head(request: httpx.Request) -> bytes:
+    """The request line and headers, ending in the blank line; a header that would inject a
+    line is refused (``httpx.LocalProtocolError``)."""
+    lines = [b"%s %s HTTP/1.1" % (request.method.encode("ascii"), request.url.raw_path)]
+    for name, value in request.headers.raw:
+        if not _LEGAL_NAME(name) or _ILLEGAL_VALUE(value):
+            raise httpx.LocalProtocolError(f"invalid header {name!r}: {value!r}", request=request)
+        lines.append(name + b": " + value)
+    lines += (b"", b"")
+    return b"\r\n".join(lines)
 
 
-class _Connection(http.client.HTTPConnection):
-    """``http.client``'s connection writing the headers and a body of up to
-    :data:`ONE_WRITE_MAX` bytes in one ``sendall``: Python 3's ``endheaders(body)`` writes
-    them in two, so the server is woken for the headers and again for the body (a per-frame
-    synthesis request: 0.3 kB of headers, 3.6 kB of markers)."""
+class _Closed(Exception):
+    """The server closed the connection before an answer's status line."""
 
-    def _send_output(self, message_body=None, encode_chunked=False):   # noqa: ANN001
-        if (isinstance(message_body, (bytes, bytearray)) and not encode_chunked
-                and len(message_body) <= ONE_WRITE_MAX):
-            self._buffer.extend((b"", b""))
-            head = b"\r\n".join(self._buffer)
-            del self._buffer[:]
-            self.send(head + message_body)
-            return
-        super()._send_output(message_body, encode_chunked)
+
+class _Head:
+    """An answer's status line and headers, and how its body is framed."""
+
+    __slots__ = ("version", "status", "reason", "headers", "length", "chunked", "keep_alive")
+
+    def __init__(self, reader, method: str):
+        while True:
+            line = reader.readline(MAX_LINE + 1)
+            if not line:
+                raise _Closed("the server closed the connection without an answer")
+            version, _, rest = line.rstrip(b"\r\n").partition(b" ")
+            code, _, reason = rest.partition(b" ")
+            if not version.startswith(b"HTTP/1.") or len(code) != 3 or not code.isdigit():
+                raise httpx.RemoteProtocolError(f"malformed status line {line[:80]!r}")
+            headers = _read_headers(reader)
+            status = int(code)
+            if not 100 <= status < 200:
+                break
+        self.version, self.status, self.reason, self.headers = version, status, reason, headers
+        fields: dict[bytes, bytes] = {}
+        for name, value in headers:
+            key = name.lower()
+            fields[key] = fields[key] + b"," + value if key in fields else value
+        connection = fields.get(b"connection", b"").lower()
+        self.keep_alive = b"close" not in connection if version == b"HTTP/1.1" \
+            else b"keep-alive" in connection
+        self.chunked = False
+        self.length: int | None = None
+        if method == "HEAD" or status in (204, 304):
+            self.length = 0
+        elif b"chunked" in fields.get(b"transfer-encoding", b"").lower():
+            self.chunked = True
+        elif b"content-length" in fields:
+            values = {v.strip() for v in fields[b"content-length"].split(b",")}
+            if len(values) != 1 or not next(iter(values)).isdigit():
+                raise httpx.RemoteProtocolError(f"bad Content-Length {fields[b'content-length']!r}")
+            self.length = int(values.pop())
+        else:                               # read until the server closes
+            self.keep_alive = False
+
+
+def _read_headers(reader) -> list[tuple[bytes, bytes]]:
+    headers = []
+    while True:
+        line = reader.readline(MAX_LINE + 1)
+        if len(line) > MAX_LINE:
+            raise httpx.RemoteProtocolError("header line too long")
+        if line in (b"\r\n", b"\n", b""):
+            return headers
+        name, colon, value = line.partition(b":")
+        if not colon:
+            raise httpx.RemoteProtocolError(f"malformed header line {line[:80]!r}")
+        headers.append((name.strip(), value.strip()))
+        if len(headers) > MAX_HEADERS:
+            raise httpx.RemoteProtocolError(f"more than {MAX_HEADERS} headers")
+
+
+def _read_exactly(reader, n: int) -> bytes:
+    data = reader.read(n)
+    if len(data) < n:
+        raise httpx.RemoteProtocolError(f"the answer ended after {len(data)} of {n} bytes")
+    return data
 
 
 class _Body(httpx.SyncByteStream):
-    """A response body read from ``http.client``; on close the connection goes back to the
-    transport's idle pool if the answer was read to its end and the server keeps the
-    connection, else it is closed."""
+    """A streamed answer's body: chunked, of a length above :data:`ONE_PIECE_MAX`, or until
+    the server closes; on close the connection goes back to the transport's idle pool if
+    the body was read to its end and the server keeps the connection, else it is closed."""
 
     def __init__(self, transport: "OnePieceTransport", key: tuple[str, int],
-                 connection: http.client.HTTPConnection, response: http.client.HTTPResponse,
-                 request: httpx.Request):
-        self.transport, self.key = transport, key
-        self.connection, self.response, self.request = connection, response, request
+                 connection: _Connection, head: _Head, request: httpx.Request):
+        self.transport, self.key, self.connection = transport, key, connection
+        self.head, self.request = head, request
+        self.done = False
 
     def __iter__(self) -> Iterator[bytes]:
-        response = self.response
+        reader, head = self.connection.reader, self.head
         try:
-            if not response.chunked and response.length is not None \
-                    and response.length <= ONE_PIECE_MAX:
-                data = response.read()     # exactly Content-Length bytes, or IncompleteRead
-                if data:
-                    yield data
-                return
-            while True:
-                chunk = response.read1(CHUNK)
-                if not chunk:
-                    return
-                yield chunk
+            if head.chunked:
+                while True:
+                    size_line = reader.readline(MAX_LINE + 1)
+                    size = size_line.split(b";", 1)[0].strip()
+                    try:
+                        left = int(size, 16)
+                    except ValueError:
+                        raise httpx.RemoteProtocolError(f"bad chunk size {size_line[:80]!r}") from None
+                    if left == 0:
+                        _read_headers(reader)            # trailers
+                        break
+                    while left:
+                        piece = reader.read1(min(left, CHUNK))
+                        if not piece:
+                            raise httpx.RemoteProtocolError("the answer ended inside a chunk")
+                        left -= len(piece)
+                        yield piece
+                    if reader.readline(MAX_LINE + 1) not in (b"\r\n", b"\n"):
+                        raise httpx.RemoteProtocolError("a chunk did not end in CRLF")
+            elif head.length is not None:
+                left = head.length
+                while left:
+                    piece = reader.read1(min(left, CHUNK))
+                    if not piece:
+                        raise httpx.RemoteProtocolError(f"the answer ended {left} bytes short")
+                    left -= len(piece)
+                    yield piece
+            else:
+                while piece := reader.read1(CHUNK):
+                    yield piece
+            self.done = True
         except Exception as error:
             raise _mapped(error, self.request, "read") from error
 
     def close(self) -> None:
-        response, connection = self.response, self.connection
-        reusable = response.isclosed() and not response.will_close
-        response.close()
-        if reusable:
-            self.transport._check_in(self.key, connection)
+        if self.done and self.head.keep_alive:
+            self.transport._check_in(self.key, self.connection)
         else:
-            connection.close()
+            self.connection.close()
 
 
 def _mapped(error: Exception, request: httpx.Request, phase: str) -> Exception:
-    """The httpx exception for a socket or ``http.client`` error in ``phase`` (``connect``,
-    ``write``, ``read``)."""
+    """The httpx exception for a socket error in ``phase`` (``connect``, ``write``, ``read``)."""
     if isinstance(error, httpx.HTTPError):
         return error
     text = f"{type(error).__name__}: {error}"
@@ -155,8 +271,7 @@ def _mapped(error: Exception, request: httpx.Request, phase: str) -> Exception:
         return kind(text, request=request)
     if phase == "connect" and isinstance(error, OSError):
         return httpx.ConnectError(text, request=request)
-    if isinstance(error, (http.client.HTTPException, ConnectionError)) and not isinstance(
-            error, (BrokenPipeError,)):
+    if isinstance(error, (_Closed, ConnectionResetError, ConnectionAbortedError)):
         return httpx.RemoteProtocolError(text, request=request)
     if isinstance(error, OSError):
         return (httpx.WriteError if phase == "write" else httpx.ReadError)(text, request=request)
@@ -164,7 +279,7 @@ def _mapped(error: Exception, request: httpx.Request, phase: str) -> Exception:
 
 
 class OnePieceTransport(httpx.BaseTransport):
-    """httpx transport over ``http.client`` for plain ``http`` (see the module docstring).
+    """httpx transport for plain ``http`` (see the module docstring).
 
     Parameters
     ----------
@@ -176,12 +291,12 @@ class OnePieceTransport(httpx.BaseTransport):
     def __init__(self, fallback: httpx.BaseTransport | None = None, max_idle: int = 8):
         self.fallback = fallback if fallback is not None else httpx.HTTPTransport()
         self.max_idle = max_idle
-        self._idle: dict[tuple[str, int], list[http.client.HTTPConnection]] = {}
+        self._idle: dict[tuple[str, int], list[_Connection]] = {}
         self._lock = threading.Lock()
         self._closed = False
 
     # ------------------------------------------------------------------ the pool
-    def _check_out(self, key: tuple[str, int]) -> http.client.HTTPConnection | None:
+    def _check_out(self, key: tuple[str, int]) -> _Connection | None:
         with self._lock:
             idle = self._idle.get(key, [])
             while idle:
@@ -191,7 +306,7 @@ class OnePieceTransport(httpx.BaseTransport):
                 connection.close()
         return None
 
-    def _check_in(self, key: tuple[str, int], connection: http.client.HTTPConnection) -> None:
+    def _check_in(self, key: tuple[str, int], connection: _Connection) -> None:
         with self._lock:
             idle = self._idle.setdefault(key, [])
             if not self._closed and len(idle) < self.max_idle:
@@ -213,55 +328,61 @@ class OnePieceTransport(httpx.BaseTransport):
         if request.url.scheme != "http" or not isinstance(request.stream, httpx.ByteStream):
             return self.fallback.handle_request(request)
         key = (request.url.host, request.url.port or 80)
+        head = _request_head(request)
         body = request.read()
         connection = self._check_out(key)
         if connection is not None:
             try:
-                return self._exchange(key, connection, request, body)
+                return self._exchange(key, connection, request, head, body)
             except _Stale:   # closed by the server meanwhile: once more, on a new connection
                 pass
-        return self._exchange(key, self._connect(key, request), request, body)
+        return self._exchange(key, self._connect(key, request), request, head, body)
 
-    def _connect(self, key: tuple[str, int], request: httpx.Request
-                 ) -> http.client.HTTPConnection:
-        connection = _Connection(*key, timeout=_timeout(request, "connect"))
+    def _connect(self, key: tuple[str, int], request: httpx.Request) -> _Connection:
         try:
-            connection.connect()
-            connection.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock = socket.create_connection(key, timeout=_timeout(request, "connect"))
         except Exception as error:
-            connection.close()
             raise _mapped(error, request, "connect") from error
-        connection.fresh = True   # type: ignore[attr-defined]
-        return connection
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return _Connection(sock)
 
-    def _exchange(self, key: tuple[str, int], connection: http.client.HTTPConnection,
-                  request: httpx.Request, body: bytes) -> httpx.Response:
-        """Send ``request`` on ``connection`` and read the status line and headers;
-        :class:`_Stale` if a reused connection turns out closed before any answer."""
-        reused = not getattr(connection, "fresh", False)
-        connection.fresh = False   # type: ignore[attr-defined]
+    def _exchange(self, key: tuple[str, int], connection: _Connection, request: httpx.Request,
+                  head: bytes, body: bytes) -> httpx.Response:
+        """Send ``request`` on ``connection`` and read the status line and headers, and a
+        sized body up to :data:`ONE_PIECE_MAX`; :class:`_Stale` if a reused connection
+        turns out closed before any answer."""
+        reused, connection.fresh = not connection.fresh, False
         phase = "write"
         try:
-            connection.sock.settimeout(_timeout(request, "write"))
-            connection.putrequest(request.method, request.url.raw_path.decode("ascii"),
-                                  skip_host=True, skip_accept_encoding=True)
-            for name, value in request.headers.raw:
-                connection.putheader(name, value)
-            connection.endheaders(body or None)   # headers and body in one write
+            sock = connection.sock
+            sock.settimeout(_timeout(request, "write"))
+            if body and len(body) <= ONE_WRITE_MAX:
+                sock.sendall(head + body)                # headers and body in one write
+            else:
+                sock.sendall(head)
+                if body:
+                    sock.sendall(body)
             phase = "read"
-            connection.sock.settimeout(_timeout(request, "read"))
-            response = connection.getresponse()
+            sock.settimeout(_timeout(request, "read"))
+            answer = _Head(connection.reader, request.method)
+            data = None
+            if not answer.chunked and answer.length is not None and answer.length <= ONE_PIECE_MAX:
+                data = _read_exactly(connection.reader, answer.length)
         except Exception as error:
             connection.close()
-            if reused and isinstance(error, (BrokenPipeError, ConnectionResetError,
-                                             http.client.RemoteDisconnected)):
+            if reused and isinstance(error, (_Closed, BrokenPipeError, ConnectionResetError)):
                 raise _Stale() from error
             raise _mapped(error, request, phase) from error
-        return httpx.Response(
-            response.status, headers=response.getheaders(),
-            stream=_Body(self, key, connection, response, request),
-            extensions={"http_version": b"HTTP/1.1" if response.version == 11 else b"HTTP/1.0",
-                        "reason_phrase": response.reason.encode("ascii", "replace")})
+        extensions = {"http_version": answer.version, "reason_phrase": answer.reason}
+        if data is None:
+            return httpx.Response(answer.status, headers=answer.headers, extensions=extensions,
+                                  stream=_Body(self, key, connection, answer, request))
+        if answer.keep_alive:
+            self._check_in(key, connection)
+        else:
+            connection.close()
+        return httpx.Response(answer.status, headers=answer.headers, extensions=extensions,
+                              stream=httpx.ByteStream(data))
 
 
 class _Stale(Exception):
