@@ -9,7 +9,11 @@ sample actor answers one frame of held-out markers at a time, for two output set
 Paths, each a median over ``--calls`` calls (frames cycle through the first 50 of
 ``heldout_in_range``):
 
-1. **in-process**: ``PdmModel.synthesize(markers, outputs)`` on a loaded model;
+1. **in-process**: ``PdmModel.synthesize(markers, outputs)`` on a loaded model, with the
+   servers' sizing (one synthesis slot per core, so one kernel and BLAS thread each: the
+   reference of every ratio) and, on a machine of several cores, again with the kernels on
+   every core (``service.geometry.ranges.frame_threads``; one BLAS thread still), as a
+   caller computing one frame at a time in-process would;
 2. **HTTP**: ``POST /v1/models/{id}/synthesize`` (one frame, NPZ body, keep-alive httpx
    client) against a real ``facesynth serve`` — the round trip includes the server's
    encoding and the client's ``np.load`` of every array; variants: float32 with the
@@ -477,10 +481,21 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict] = []
     base_ms: dict[str, float] = {}
     profiles: dict[str, str] = {}
+    from service.app.threads import cores as cpu_cores
+
+    cores = cpu_cores()
     for name, outputs in OUTPUT_SETS.items():
         base_ms[name] = in_process(model, markers, outputs, args.calls)
         rows.append({"outputs": name, "path": "in-process", "ms": base_ms[name], "load": harness.load_average()})
         print(rows[-1], file=sys.stderr, flush=True)
+        if cores > 1:       # one frame at a time on every core (ranges.frame_threads)
+            from service.geometry import ranges
+
+            with ranges.frame_threads(cores):
+                ms = in_process(model, markers, outputs, args.calls)
+            rows.append({"outputs": name, "path": f"in-process, {cores} kernel threads", "ms": ms,
+                         "load": harness.load_average()})
+            print(rows[-1], file=sys.stderr, flush=True)
         if args.profile:
             profiles[name] = profile(model, markers, outputs, min(args.calls, 30))
 
@@ -558,8 +573,12 @@ def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
     lines += ["", "Targets (level 1):", ""]
     for name in OUTPUT_SETS:
         got = base_ms[name]
+        every = [r["ms"] for r in rows if r["outputs"] == name and r["path"].endswith("kernel threads")]
+        best = min([got, *every])
         lines.append(f"- in-process {name} ≤ {TARGET_MS[name]:g} ms: "
-                     f"**{'met' if got <= TARGET_MS[name] else 'missed'}** ({got:.1f} ms)")
+                     f"**{'met' if best <= TARGET_MS[name] else 'missed'}** ({got:.1f} ms as "
+                     "the servers size it" + (f", {every[0]:.1f} ms on every core" if every else "")
+                     + ")")
         http = [r for r in rows if r["outputs"] == name and r["path"].startswith("HTTP")]
         if http:
             best = min(http, key=lambda r: r["ms"] / r["ref"])

@@ -15,8 +15,16 @@ frame 39.7–45.8 → 33.6–41.1 ms CPU, every output bit for bit; the vertex s
 3.3 → 1.7 ms). Their inner loops index arrays element by element: a row view taken per
 element (``a = coeffs[p]``) cost the strain band's texel pass ~40 %.
 
-The thread count of a kernel call is :func:`kernel_threads`: ``NUMBA_NUM_THREADS`` (set by
-``facesynth serve`` with the BLAS threads, :mod:`service.app.threads`), else 1.
+The thread count of a kernel call is :func:`kernel_threads`: the calling thread's
+:func:`frame_threads` setting, else ``NUMBA_NUM_THREADS`` (set by ``facesynth serve`` with the
+BLAS threads, :mod:`service.app.threads`), else 1. A caller computing one frame at a time
+in-process (a DCC plug-in, ``benchmarks/realtime.py``'s second in-process rows) runs its
+kernels on every core with ``with frame_threads(cores):`` — and one BLAS thread: OpenBLAS's
+idle workers spin after each product and take the cores the kernels need. Measured, level 1,
+2 vCPUs, medians of 55 frames, runs alternating: a maps frame (mesh + displacement + normal
+map) 42.9–43.7 ms wall on one kernel thread, 31.0–31.6 ms on two with one BLAS thread, 44.0–
+45.3 ms on two with two BLAS threads (what an earlier measurement took for the two vCPUs
+sharing one core); a mesh frame 13.8–14.0 → 11.8–12.1 ms.
 
 :func:`scratch` hands a calling thread the same work array for the same key on every call, so
 a per-frame kernel's temporaries are not fresh allocations (at level 2 a frame's temporaries
@@ -25,24 +33,43 @@ are ~15 MB; freshly mapped pages fault on first touch: measured 2–3 ms of a 10
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
 _SCRATCH = threading.local()
+_LOCAL = threading.local()          # the calling thread's frame_threads setting
 
 
 def kernel_threads() -> int:
-    """Threads a per-frame kernel call may use: ``NUMBA_NUM_THREADS`` or 1."""
+    """Threads a per-frame kernel call may use: the calling thread's :func:`frame_threads`,
+    else ``NUMBA_NUM_THREADS``, else 1."""
+    count = getattr(_LOCAL, "threads", None)
+    if count is not None:
+        return count
     try:
         return max(1, int(os.environ.get("NUMBA_NUM_THREADS", "1")))
     except ValueError:
         return 1
+
+
+@contextlib.contextmanager
+def frame_threads(count: int) -> Iterator[None]:
+    """Within the block, the calling thread's kernel calls (:func:`run` without ``threads``)
+    use ``count`` threads (at least 1); other threads keep theirs, and the previous setting
+    comes back after the block (module docstring: with one BLAS thread)."""
+    previous = getattr(_LOCAL, "threads", None)
+    _LOCAL.threads = max(1, int(count))
+    try:
+        yield
+    finally:
+        _LOCAL.threads = previous
 
 
 def split(n: int, parts: int) -> np.ndarray:

@@ -54,3 +54,26 @@ def test_scratch_is_one_array_per_key_and_thread():
     with ThreadPoolExecutor(1) as ex:
         theirs = ex.submit(ranges.scratch, "t.c", (2,)).result()
     assert theirs is not mine
+
+
+def test_frame_threads_sets_the_calling_threads_kernel_calls_only(monkeypatch):
+    import threading
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "1")
+    calls: list[tuple[int, int]] = []
+
+    def kernel(lo, hi):
+        calls.append((lo, hi))
+
+    with ranges.frame_threads(3):
+        assert ranges.kernel_threads() == 3
+        ranges.run(kernel, 9)
+        other: list[int] = []
+        worker = threading.Thread(target=lambda: other.append(ranges.kernel_threads()))
+        worker.start()
+        worker.join()
+        with ranges.frame_threads(0):                  # at least one, and nested blocks restore
+            assert ranges.kernel_threads() == 1
+        assert ranges.kernel_threads() == 3
+    assert sorted(calls) == [(0, 3), (3, 6), (6, 9)] and other == [1]
+    assert ranges.kernel_threads() == 1
