@@ -201,7 +201,9 @@ def main() -> int:
                         help="comma-separated synthesis slot x BLAS thread sizings, each in its "
                              "own server: 'auto' (slots = cores, BLAS threads = cores // slots: "
                              "service.app.threads) or SxT, e.g. 2x2 (the oversubscribed sizing "
-                             "of a 2-core machine before issue 23), 1x2 (default auto)")
+                             "of a 2-core machine before issue 23), 1x2 (default auto); "
+                             "+share after one: the kernels share the cores among the running "
+                             "syntheses (auto+share)")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     OUT.mkdir(parents=True, exist_ok=True)
@@ -220,8 +222,11 @@ def main() -> int:
     try:
         for k, sizing in enumerate(sizings):
             sized = dict(env)
-            if sizing != "auto":
-                slots, threads = sizing.split("x")
+            slots_threads, _, kernels = sizing.partition("+")
+            if kernels:                 # e.g. auto+share: Settings.synthesis_kernel_threads
+                sized["FACESYNTH_SYNTHESIS_KERNEL_THREADS"] = kernels
+            if slots_threads != "auto":
+                slots, threads = slots_threads.split("x")
                 sized.update({"FACESYNTH_MAX_CONCURRENT_SYNTHESES": slots,
                               "FACESYNTH_BLAS_THREADS": threads})
             server = start_server(args.work, port, sized)

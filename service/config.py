@@ -118,6 +118,13 @@ class Settings(BaseSettings):
                     "None: the CPU cores divided by max_concurrent_syntheses (at least 1), "
                     "so slots x threads fill the cores without oversubscribing them, unless "
                     "those variables are already set.")
+    synthesis_kernel_threads: Literal["slot", "share"] = Field(
+        default="slot",
+        description="Threads of a synthesis's compiled per-frame kernels: slot, the per-slot "
+                    "count (NUMBA_NUM_THREADS, sized with the BLAS threads); share, the CPU "
+                    "cores divided among the syntheses running when it starts, so a lone "
+                    "request uses every core (level-1 maps frame ~43 -> ~31 ms on 2 cores; "
+                    "best with one BLAS thread per slot).")
     synthesis_queue_seconds: float = Field(
         default=30.0, ge=0,
         description="How long a synchronous synthesis waits for a free slot before it is "

@@ -29,7 +29,7 @@ from models_store.registry._common import in_tenant
 from service.app.limits import REGISTRATION_CACHE_BYTES
 from service.app.marker_units import MarkerReference, face_unit, layout_positions
 from service.app.memory import release_free_heap
-from service.app.threads import SynthesisPool
+from service.app.threads import SynthesisPool, cores
 from service.config import Settings
 from service.methods.footprint import nbytes
 from service.errors import Conflict
@@ -192,7 +192,9 @@ class Services:
 
     def __post_init__(self) -> None:
         if self.synthesis is None:
-            self.synthesis = SynthesisPool(self.settings.max_concurrent_syntheses)
+            self.synthesis = SynthesisPool(
+                self.settings.max_concurrent_syntheses,
+                share_cores=cores() if self.settings.synthesis_kernel_threads == "share" else None)
 
     @classmethod
     def open(cls, settings: Settings, synthesis: SynthesisPool | None = None) -> "Services":

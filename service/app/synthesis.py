@@ -277,7 +277,8 @@ class Synthesizer:
                                   "synthesis job", retry_after=RETRY_AFTER_SECONDS)
         try:
             start = time.perf_counter()
-            yield
+            with self.pool.kernel_share():
+                yield
             seconds = time.perf_counter() - start
         finally:
             self.pool.release()

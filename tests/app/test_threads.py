@@ -72,3 +72,27 @@ def test_the_pool_bounds_slot_holders_and_its_threads_together():
         assert pool.running == 1
     assert pool.running == 0
     pool.shutdown()
+
+
+def test_shared_cores_go_to_the_syntheses_running(monkeypatch):
+    """With ``share_cores`` a synthesis's kernels take the cores over the syntheses running
+    when it starts, on either path (a submitted call, the HTTP slot); without, the per-slot
+    count (NUMBA_NUM_THREADS) stays."""
+    from service.app.metrics import Metrics
+    from service.app.synthesis import Synthesizer
+    from service.app.threads import SynthesisPool
+    from service.geometry import ranges
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "1")
+    pool = SynthesisPool(2, share_cores=4)
+    assert pool.submit(ranges.kernel_threads).result(2) == 4          # alone: every core
+    with pool.hold():                                                 # another one running
+        assert pool.submit(ranges.kernel_threads).result(2) == 2
+    synthesizer = Synthesizer(Metrics(), pool=pool)
+    with synthesizer.slot("pdm", 1):
+        assert ranges.kernel_threads() == 4
+    assert ranges.kernel_threads() == 1
+    pool.shutdown()
+    plain = SynthesisPool(2)
+    assert plain.submit(ranges.kernel_threads).result(2) == 1
+    plain.shutdown()
