@@ -334,7 +334,8 @@ def test_answers_are_framed_as_rfc_9112_says(answer, method, status, content):
 def test_an_answer_cut_short_or_malformed_is_a_remote_protocol_error():
     for answer in (b"HTTP/1.1 200 OK\r\nContent-Length: 10\r\n\r\nshort",
                    b"ICY 200 OK\r\n\r\n", b"HTTP/1.1 200 OK\r\nno colon here\r\n\r\n",
-                   b"HTTP/1.1 200 OK\r\nContent-Length: 2, 3\r\n\r\nab", b""):
+                   b"HTTP/1.1 200 OK\r\nContent-Length: 2, 3\r\n\r\nab", b"",
+                   b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n"):
         origin = Scripted([answer])
         with httpx.Client(transport=OnePieceTransport(), timeout=5) as client:
             with pytest.raises(httpx.RemoteProtocolError):

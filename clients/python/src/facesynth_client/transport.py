@@ -183,12 +183,15 @@ class _Head:
 
 
 def _read_headers(reader) -> list[tuple[bytes, bytes]]:
+    """The header (or trailer) lines up to the blank line, as (name, value) stripped."""
     headers = []
     while True:
         line = reader.readline(MAX_LINE + 1)
         if len(line) > MAX_LINE:
             raise httpx.RemoteProtocolError("header line too long")
-        if line in (b"\r\n", b"\n", b""):
+        if not line:
+            raise httpx.RemoteProtocolError("the answer ended inside its headers")
+        if line in (b"\r\n", b"\n"):
             return headers
         name, colon, value = line.partition(b":")
         if not colon:
