@@ -254,14 +254,17 @@ class Core:
         per distinct pair: a per-frame call repeats the same one, and httpx would parse the
         string twice per request (0.07 ms of the SDK's ~0.3 ms a one-frame synthesis)."""
         items = tuple((k, v) for k, v in (params or {}).items() if v is not None)
+        key = (path, items)
         try:
-            url = self._urls.get((path, items))
+            url = self._urls.get(key)
         except TypeError:                       # an unhashable value (a list): not kept
-            return httpx.URL(self.url(path), params=dict(items) or None)
+            key = url = None
         if url is None:
-            if len(self._urls) >= URL_CACHE_MAX:
-                self._urls.clear()
-            url = self._urls[(path, items)] = httpx.URL(self.url(path), params=dict(items) or None)
+            url = httpx.URL(self.url(path), params=dict(items) or None)
+            if key is not None:
+                if len(self._urls) >= URL_CACHE_MAX:
+                    self._urls.clear()
+                self._urls[key] = url
         return url
 
     def build(self, call: Call) -> httpx.Request:

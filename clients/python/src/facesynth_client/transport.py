@@ -208,6 +208,16 @@ def _read_exactly(reader, n: int) -> bytes:
     return data
 
 
+def _pieces(reader, n: int) -> Iterator[bytes]:
+    """The next ``n`` bytes as they arrive, in pieces of at most :data:`CHUNK`."""
+    while n:
+        piece = reader.read1(min(n, CHUNK))
+        if not piece:
+            raise httpx.RemoteProtocolError(f"the answer ended {n} bytes short")
+        n -= len(piece)
+        yield piece
+
+
 class _Body(httpx.SyncByteStream):
     """A streamed answer's body: chunked, of a length above :data:`ONE_PIECE_MAX`, or until
     the server closes; on close the connection goes back to the transport's idle pool if
@@ -233,22 +243,11 @@ class _Body(httpx.SyncByteStream):
                     if left == 0:
                         _read_headers(reader)            # trailers
                         break
-                    while left:
-                        piece = reader.read1(min(left, CHUNK))
-                        if not piece:
-                            raise httpx.RemoteProtocolError("the answer ended inside a chunk")
-                        left -= len(piece)
-                        yield piece
+                    yield from _pieces(reader, left)
                     if reader.readline(MAX_LINE + 1) not in (b"\r\n", b"\n"):
                         raise httpx.RemoteProtocolError("a chunk did not end in CRLF")
             elif head.length is not None:
-                left = head.length
-                while left:
-                    piece = reader.read1(min(left, CHUNK))
-                    if not piece:
-                        raise httpx.RemoteProtocolError(f"the answer ended {left} bytes short")
-                    left -= len(piece)
-                    yield piece
+                yield from _pieces(reader, head.length)
             else:
                 while piece := reader.read1(CHUNK):
                     yield piece
@@ -257,10 +256,7 @@ class _Body(httpx.SyncByteStream):
             raise _mapped(error, self.request, "read") from error
 
     def close(self) -> None:
-        if self.done and self.head.keep_alive:
-            self.transport._check_in(self.key, self.connection)
-        else:
-            self.connection.close()
+        self.transport._release(self.key, self.connection, self.done and self.head.keep_alive)
 
 
 def _mapped(error: Exception, request: httpx.Request, phase: str) -> Exception:
@@ -309,12 +305,15 @@ class OnePieceTransport(httpx.BaseTransport):
                 connection.close()
         return None
 
-    def _check_in(self, key: tuple[str, int], connection: _Connection) -> None:
-        with self._lock:
-            idle = self._idle.setdefault(key, [])
-            if not self._closed and len(idle) < self.max_idle:
-                idle.append(connection)
-                return
+    def _release(self, key: tuple[str, int], connection: _Connection, reusable: bool) -> None:
+        """A connection whose answer is done: back to the idle pool if ``reusable`` (and the
+        pool has room), else closed."""
+        if reusable:
+            with self._lock:
+                idle = self._idle.setdefault(key, [])
+                if not self._closed and len(idle) < self.max_idle:
+                    idle.append(connection)
+                    return
         connection.close()
 
     def close(self) -> None:
@@ -380,10 +379,7 @@ class OnePieceTransport(httpx.BaseTransport):
         if data is None:
             return httpx.Response(answer.status, headers=answer.headers, extensions=extensions,
                                   stream=_Body(self, key, connection, answer, request))
-        if answer.keep_alive:
-            self._check_in(key, connection)
-        else:
-            connection.close()
+        self._release(key, connection, answer.keep_alive)
         return httpx.Response(answer.status, headers=answer.headers, extensions=extensions,
                               stream=httpx.ByteStream(data))
 
