@@ -8,6 +8,7 @@ else a fresh one; it is echoed in the response's ``X-Request-ID``, put in proble
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 import time
@@ -44,6 +45,11 @@ class RequestContextMiddleware:
     answered here as a 500 problem; every response of status 500 or more carries
     ``Connection: close`` (the server closes the connection after it, and a client's
     connection pool must not reuse it).
+
+    The log line and the metrics come one event-loop iteration after the answer's last
+    piece, once a coalesced transport has handed it to the socket: on the level-1 mesh
+    frame they took 0.19 ms that the client otherwise waited for (timestamps on the
+    server, median of 200 SDK calls).
     """
 
     def __init__(self, app: ASGIApp, metrics: Metrics):
@@ -70,6 +76,12 @@ class RequestContextMiddleware:
                     headers.append((b"connection", b"close"))   # the server will close it
                 message["headers"] = headers
             await send(message)
+            if message["type"] == "http.response.body" and not message.get("more_body", False):
+                # the answer is complete; a coalesced transport hands it to the socket at the
+                # end of this loop iteration (service.api.coalesced_writes): end the
+                # iteration here, so the client reads it while the log line and the metrics
+                # are written, not after them
+                await asyncio.sleep(0)
 
         try:
             try:

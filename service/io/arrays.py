@@ -215,6 +215,9 @@ def check_finite(values: Any, name: str, labels: Sequence[str], allow_nan: bool 
     Raises ``error("clip frame 2 vertex 5 has a non-finite coordinate (3 such entries in
     all)")`` — "coordinate" when one axis is left, "value" otherwise.
     """
+    if isinstance(values, np.ndarray) and (not np.isinf(values).any() if allow_nan
+                                           else np.isfinite(values).all()):
+        return                                # the usual case, in one pass and no mask
     lead = len(labels)
     count, first, ndim = 0, None, lead
     for start, block in blocks(values):

@@ -20,6 +20,7 @@ Examples
 
 from __future__ import annotations
 
+import functools
 import inspect
 from dataclasses import dataclass
 from pathlib import Path
@@ -215,12 +216,20 @@ def takes(model: Any, option: str) -> bool:
     ``captured``, the markers before a synthesis job's filter); for
     a wrapper whose ``synthesize`` passes keyword options on (``**options``) to the model it
     holds as ``model.model`` (e.g. a unit check in front of it), whether that model's does."""
-    try:
-        parameters = inspect.signature(model.synthesize).parameters
-    except (AttributeError, TypeError, ValueError):       # no signature to read: the plain call
+    synthesize = getattr(model, "synthesize", None)
+    try:      # a method's signature is its class's function's: read once (a frame's path asks)
+        names, passes_on = _keywords(getattr(synthesize, "__func__", synthesize))
+    except (TypeError, ValueError):       # unhashable, or no signature to read: the plain call
         return False
-    if option in parameters:
+    if option in names:
         return True
-    passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
     inner = getattr(model, "model", None)
     return passes_on and inner is not None and inner is not model and takes(inner, option)
+
+
+@functools.lru_cache(maxsize=256)
+def _keywords(function: Callable) -> tuple[frozenset[str], bool]:
+    """The parameter names of ``function`` and whether it takes ``**options``."""
+    parameters = inspect.signature(function).parameters
+    return (frozenset(parameters),
+            any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()))

@@ -34,6 +34,19 @@ def test_ratio_ignores_rigid_motion_and_compares_the_visible_markers():
     np.testing.assert_allclose(ratios, [1.0, 0.001, 1.0])       # the 1-marker frame is skipped
 
 
+def test_frames_with_every_marker_visible_give_the_masked_ratios():
+    """The all-visible shortcut against the masked formula (forced by one occluded frame
+    appended), and the hand-computed ratio of a rigidly moved and a scaled square."""
+    rng = np.random.default_rng(3)
+    rest = rng.normal(scale=50.0, size=(30, 3))
+    frames = rest * rng.uniform(0.5, 2.0, size=(6, 1, 1)) + rng.normal(size=(6, 30, 3))
+    masked = np.concatenate([frames, np.full((1, 30, 3), np.nan)])
+    np.testing.assert_allclose(spread_ratios(frames, rest), spread_ratios(masked, rest), rtol=1e-12)
+    moved = SQUARE @ _rotation(0.3).T + 5.0
+    np.testing.assert_allclose(spread_ratios(np.stack([moved, 3 * SQUARE]), SQUARE), [1.0, 3.0])
+    assert len(spread_ratios(np.stack([SQUARE]), np.zeros((4, 3)))) == 0   # a layout without spread
+
+
 def test_a_face_in_band_passes_and_metres_for_millimetres_is_named():
     rng = np.random.default_rng(0)
     rest = rng.normal(scale=60.0, size=(40, 3))                  # a layout spread ~100 mm
