@@ -47,7 +47,7 @@ from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
 from service.io.arrays import ArraySpec, Axes
-from service.io.npz import ZIP_ERRORS, NpyMember
+from service.io.npz import ZIP_ERRORS, BufferMember, NpyMember, buffer_members
 from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
@@ -83,7 +83,10 @@ class NpzUpload:
     (nothing decompressed yet): ``shapes`` and ``dims`` (symbol → length) are known,
     :meth:`load` reads the data into memory, :meth:`members` gives it as
     :class:`~service.io.npz.NpyMember` arrays read in blocks (so a spooled body of hundreds
-    of MiB is checked and rewritten holding a few MiB of it: issue 16, defect 11).
+    of MiB is checked and rewritten holding a few MiB of it: issue 16, defect 11). A body in
+    memory that is a plain archive of stored members is read from its zip records directly
+    (:func:`~service.io.npz.buffer_members`); any other goes through :mod:`zipfile`, whose
+    errors it reports.
 
     Parameters
     ----------
@@ -103,24 +106,30 @@ class NpzUpload:
     dims: dict[str, int] = field(init=False)
 
     def __post_init__(self) -> None:
-        source = io.BytesIO(self.data) if isinstance(self.data, (bytes, bytearray)) else self.data
-        try:
-            self._zip = zipfile.ZipFile(source)
-            members = self._zip.infolist()
-        except ZIP_ERRORS as error:
-            raise FormatError(f"the {self.what} is not a readable .npz archive: {error}") from None
+        in_memory = isinstance(self.data, (bytes, bytearray))
+        members = buffer_members(self.data) if in_memory else None
+        self._zip = None
+        if members is None:                 # not a plain stored archive: zipfile reads it
+            source = io.BytesIO(self.data) if in_memory else self.data
+            try:
+                self._zip = zipfile.ZipFile(source)
+                members = self._zip.infolist()
+            except ZIP_ERRORS as error:
+                raise FormatError(f"the {self.what} is not a readable .npz archive: {error}") from None
         if len(members) > NPZ_MAX_MEMBERS:
             raise SizeLimitError("arrays", len(members), NPZ_MAX_MEMBERS)
         self.shapes, self._members = {}, {}
         axes = Axes()
         total = 0
         for info in members:
-            if not info.filename.endswith(".npy"):
-                raise FormatError(f"the {self.what} .npz holds '{info.filename}', which is not "
-                                  "an array (.npy)")
-            key = info.filename[:-4]
+            if isinstance(info, zipfile.ZipInfo):
+                if not info.filename.endswith(".npy"):
+                    raise FormatError(f"the {self.what} .npz holds '{info.filename}', which "
+                                      "is not an array (.npy)")
+                key, member = info.filename[:-4], self._header(info)
+            else:
+                key, member = info.name, info
             spec = self._spec(key)
-            member = self._header(info)
             shape = spec.check(f"'{key}'", member.shape, member.dtype, axes, FormatError)
             total += member.nbytes
             if total > self.max_bytes:
@@ -172,13 +181,14 @@ class NpzUpload:
 
     def close(self) -> None:
         """Close the archive (and the spool file it reads)."""
-        self._zip.close()
+        if self._zip is not None:
+            self._zip.close()
 
 
 class _UploadedArray:
     """An :class:`NpyMember` whose read errors are :class:`FormatError` naming the upload."""
 
-    def __init__(self, member: NpyMember, what: str):
+    def __init__(self, member: NpyMember | BufferMember, what: str):
         self.member, self.what = member, what
         self.shape, self.dtype, self.ndim = member.shape, member.dtype, member.ndim
 

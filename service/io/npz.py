@@ -167,6 +167,102 @@ class NpyMember:
                 raise ValueError(f"'{self.name}' holds more data than its header declares")
 
 
+class BufferMember:
+    """One stored ``.npy`` member of an in-memory archive (:func:`buffer_members`), with
+    :class:`NpyMember`'s attributes and reads; its bytes were checked against the CRC."""
+
+    def __init__(self, name: str, data: memoryview, shape: tuple[int, ...], fortran_order: bool,
+                 dtype: np.dtype):
+        self.name, self._data = name, data
+        self.shape, self.fortran_order, self.dtype = shape, fortran_order, dtype
+
+    ndim, nbytes, __len__ = NpyMember.ndim, NpyMember.nbytes, NpyMember.__len__
+
+    def read(self) -> np.ndarray:
+        """The whole array, a writable copy (as :meth:`NpyMember.read` gives)."""
+        values = np.frombuffer(self._data, self.dtype, math.prod(self.shape)).copy()
+        return values.reshape(self.shape, order="F" if self.fortran_order else "C")
+
+    def blocks(self, max_bytes: int) -> Iterator[tuple[int, np.ndarray]]:
+        """As :meth:`NpyMember.blocks` (read-only views of the archive's bytes)."""
+        if self.ndim == 0 or (self.fortran_order and self.ndim > 1) or self.nbytes == 0:
+            yield 0, self.read()
+            return
+        row_shape = self.shape[1:]
+        row = math.prod(row_shape) * self.dtype.itemsize
+        step = max(1, max_bytes // max(row, 1))
+        for start in range(0, self.shape[0], step):
+            n = min(step, self.shape[0] - start)
+            rows = self._data[start * row:(start + n) * row]
+            yield start, np.frombuffer(rows, self.dtype).reshape((n,) + row_shape)
+
+
+#: a zip's local file header, central directory header and end record (APPNOTE.TXT 4.3.7,
+#: 4.3.12, 4.3.16), little-endian
+_LOCAL = struct.Struct("<IHHHHHIIIHH")
+_CENTRAL = struct.Struct("<IHHHHHHIIIHHHHHII")
+_END = struct.Struct("<IHHHHIIH")
+#: their signatures
+_LOCAL_SIGNATURE, _CENTRAL_SIGNATURE, _END_SIGNATURE = 0x04034B50, 0x02014B50, 0x06054B50
+
+
+def buffer_members(data: bytes | bytearray) -> list[BufferMember] | None:
+    """The members of an in-memory ``.npz`` whose every member is a plain stored ``.npy``
+    (what ``np.savez`` and the client SDK write), read from the zip's records directly, in
+    the central directory's order; None for any other archive, which ``zipfile`` then reads
+    and refuses with its own errors.
+
+    Issue 23: a one-frame synthesis request's body through :class:`zipfile.ZipFile` and
+    :class:`NpyMember` took 0.16-0.25 ms with the caches a frame leaves, 0.05 ms this way.
+    Accepted only where ``zipfile`` reads the same bytes without complaint: the end record
+    at the very end (no comment, nothing before the archive), no zip64 value, entries
+    neither encrypted nor compressed nor patched (flags only UTF-8 names), the local
+    header's name the directory's, each member's data the length its header declares and its
+    CRC-32 the directory's, and a plain header of a non-object dtype.
+    """
+    try:
+        return _buffer_members(memoryview(data))
+    except (struct.error, UnicodeDecodeError, ValueError, *_HEADER_ERRORS):
+        return None
+
+
+def _buffer_members(buffer: memoryview) -> list[BufferMember] | None:
+    end = len(buffer) - _END.size
+    if end < 0:
+        return None
+    signature, disk, start_disk, on_disk, count, size, start, comment = _END.unpack_from(buffer, end)
+    if (signature != _END_SIGNATURE or disk or start_disk or on_disk != count or comment
+            or start + size != end or 0xFFFFFFFF in (size, start) or 0xFFFF == count):
+        return None
+    members: list[BufferMember] = []
+    at = start
+    for _ in range(count):
+        (signature, _made, _needed, flags, method, _time, _date, crc, packed, unpacked,
+         name_length, extra_length, comment_length, _disk, _internal, _external,
+         local) = _CENTRAL.unpack_from(buffer, at)
+        raw_name = bytes(buffer[at + _CENTRAL.size:at + _CENTRAL.size + name_length])
+        at += _CENTRAL.size + name_length + extra_length + comment_length
+        if (signature != _CENTRAL_SIGNATURE or flags & ~0x800 or method or packed != unpacked
+                or _needed > zipfile.MAX_EXTRACT_VERSION or 0xFFFFFFFF in (packed, local) or at > end):
+            return None
+        name = raw_name.decode("utf-8" if flags & 0x800 else "cp437")
+        local_signature, *_, local_name, local_extra = _LOCAL.unpack_from(buffer, local)
+        begin = local + _LOCAL.size + local_name + local_extra
+        if (local_signature != _LOCAL_SIGNATURE or not name.endswith(".npy") or begin + packed > start
+                or bytes(buffer[local + _LOCAL.size:local + _LOCAL.size + local_name]) != raw_name):
+            return None
+        member = buffer[begin:begin + packed]
+        if crc32(member) != crc:
+            return None
+        f = io.BytesIO(member[:min(packed, 16 + _MAX_PLAIN_HEADER)])
+        shape, fortran_order, dtype = _read_header(f)
+        offset = f.tell()
+        if dtype.hasobject or dtype.itemsize == 0 or offset + math.prod(shape) * dtype.itemsize != packed:
+            return None
+        members.append(BufferMember(name[:-4], member[offset:], shape, fortran_order, dtype))
+    return members if at == end else None
+
+
 def _read_exact(f: BinaryIO, size: int) -> bytes:
     """``size`` bytes of ``f`` (EOFError if it ends first)."""
     data = f.read(size)
@@ -301,11 +397,6 @@ def npz_bytes(**arrays: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-#: a zip's local file header, central directory header and end record (APPNOTE.TXT 4.3.7,
-#: 4.3.12, 4.3.16), little-endian
-_LOCAL = struct.Struct("<IHHHHHIIIHH")
-_CENTRAL = struct.Struct("<IHHHHHHIIIHHHHHII")
-_END = struct.Struct("<IHHHHIIH")
 #: 1980-01-01 00:00 in DOS form (what :func:`models_store.atomic.aligned_member` stamps)
 _DOS_TIME, _DOS_DATE = 0, (1 << 5) | 1
 #: version 2.0 (stored members, no zip64)
@@ -435,7 +526,7 @@ def npz_parts(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None
         data = _stored(values, dtype)
         size = len(header) + data.size
         crc = crc32(data, crc32(header))
-        joined += _LOCAL.pack(0x04034B50, _VERSION, 0, zipfile.ZIP_STORED, _DOS_TIME, _DOS_DATE,
+        joined += _LOCAL.pack(_LOCAL_SIGNATURE, _VERSION, 0, zipfile.ZIP_STORED, _DOS_TIME, _DOS_DATE,
                               crc, size, size, len(filename), len(extra))
         joined += filename + extra + header
         if data.size >= PIECE_BYTES:
@@ -443,11 +534,11 @@ def npz_parts(arrays: Mapping[str, Any], dtypes: Mapping[str, Any] | None = None
             joined.clear()
         else:
             joined += data.data
-        central += _CENTRAL.pack(0x02014B50, _VERSION, _VERSION, 0, zipfile.ZIP_STORED,
+        central += _CENTRAL.pack(_CENTRAL_SIGNATURE, _VERSION, _VERSION, 0, zipfile.ZIP_STORED,
                                  _DOS_TIME, _DOS_DATE, crc, size, size, len(filename), 0, 0, 0,
                                  0, 0o644 << 16, start) + filename
     joined += central
-    joined += _END.pack(0x06054B50, 0, 0, len(members), len(members), len(central), directory, 0)
+    joined += _END.pack(_END_SIGNATURE, 0, 0, len(members), len(members), len(central), directory, 0)
     pieces.append(bytes(joined))
     return NpzParts(tuple(pieces), total)
 

@@ -279,3 +279,109 @@ def test_other_headers_go_to_numpy_s_parser(header, error):
     else:
         with pytest.raises(ValueError, match=error):
             _read_header(stream)
+
+
+def _arrays_for_buffers() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(5)
+    return {"markers": rng.normal(size=(3, 20, 3)).astype(np.float32), "fps": np.float64(30),
+            "ids": np.arange(7, dtype=">i8"), "empty": np.zeros((0, 3)),
+            "fortran": np.asfortranarray(rng.normal(size=(3, 4))), "text": np.array(["ab", "c"]),
+            "record": np.zeros(2, [("x", "<f4"), ("y", "<i2")])}
+
+
+def _savez(**arrays) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("writer", ["np.savez", "npz_body"])
+def test_buffer_members_read_what_zipfile_reads(writer):
+    """issue 23: a plain stored archive in memory is read from its records directly, the
+    members in the directory's order, every array (and every block of it) bit for bit the
+    zipfile reader's, writable copies from read()."""
+    from service.io.npz import NpyMember, buffer_members
+
+    arrays = _arrays_for_buffers()
+    data = _savez(**arrays) if writer == "np.savez" else bytes(npz_body(arrays))
+    members = buffer_members(data)
+    archive = zipfile.ZipFile(io.BytesIO(data))
+    assert [m.name for m in members] == list(arrays)
+    for member, info in zip(members, archive.infolist()):
+        reference = NpyMember(archive, info)
+        assert (member.shape, member.dtype, member.fortran_order, member.nbytes, member.ndim) == \
+            (reference.shape, reference.dtype, reference.fortran_order, reference.nbytes, reference.ndim)
+        got, want = member.read(), reference.read()
+        assert got.flags.writeable and got.tobytes("A") == want.tobytes("A")
+        assert got.flags.f_contiguous == want.flags.f_contiguous
+        for (a, x), (b, y) in zip(member.blocks(100), reference.blocks(100), strict=True):
+            assert a == b and x.tobytes() == y.tobytes()
+    from service.app.uploads import NpzUpload
+    from service.io.arrays import ArraySpec
+    from service.io.npz import BufferMember
+
+    specs = {name: ArraySpec(tuple(f"{name}{i}" for i in range(np.ndim(v))), "fiubUV")
+             for name, v in arrays.items()}
+    upload = NpzUpload(data, specs, 1 << 20)
+    assert all(isinstance(m.member, BufferMember) for m in upload.members().values())
+    assert all(np.array_equal(upload.load()[k], v) for k, v in arrays.items())
+
+
+def _edited(data: bytes, at: int, value: bytes) -> bytes:
+    return data[:at] + value + data[at + len(value):]
+
+
+def _unusual_archives() -> dict[str, bytes]:
+    plain = _savez(markers=np.ones((1, 4, 3)))
+    compressed = io.BytesIO()
+    np.savez_compressed(compressed, markers=np.ones((1, 4, 3)))
+    commented = io.BytesIO(plain)
+    with zipfile.ZipFile(commented, "a") as archive:
+        archive.comment = b"note"
+    text = io.BytesIO()
+    with zipfile.ZipFile(text, "w") as archive:
+        archive.writestr("notes.txt", b"hello")
+    crc_at = plain.index(b"PK\x01\x02") + 16
+    name_at = 30                                       # the local header's name
+    data_at = plain.index(b"\x93NUMPY") + 128          # a data byte
+    return {"deflated": compressed.getvalue(), "commented": commented.getvalue(),
+            "prefixed": b"MZ" + plain, "not an array": text.getvalue(), "truncated": plain[:-30],
+            "bad CRC": _edited(plain, data_at, b"\x01"),
+            "directory CRC": _edited(plain, crc_at, b"\0\0\0\0"),
+            "local name": _edited(plain, name_at, b"n"),
+            "object array": _savez(values=np.array([{"a": 1}], dtype=object))}
+
+
+@pytest.mark.parametrize("name", list(_unusual_archives()))
+def test_buffer_members_leave_every_other_archive_to_zipfile(name):
+    """Anything but a plain stored archive (compressed, commented, shifted, cut short, a bad
+    CRC, names that differ, another file, an object array) is None; NpzUpload then gives
+    zipfile's own verdict, as before the direct reader existed."""
+    from service.app.uploads import NpzUpload
+    from service.io.errors import FormatError
+    from service.io.npz import buffer_members
+    from service.io.arrays import ArraySpec
+
+    data = _unusual_archives()[name]
+    assert buffer_members(data) is None
+    specs = {"markers": ArraySpec(("F", "M", 3), "f", False), "values": ArraySpec(("F",), "O", False)}
+    try:
+        upload = NpzUpload(data, specs, 1 << 20, what="request")
+        arrays = upload.load()
+    except FormatError as error:
+        outcome = str(error)
+    else:
+        outcome = {k: v.tolist() for k, v in arrays.items()}
+    expected = {"deflated": {"markers": np.ones((1, 4, 3)).tolist()},
+                "commented": {"markers": np.ones((1, 4, 3)).tolist()},
+                "prefixed": {"markers": np.ones((1, 4, 3)).tolist()},
+                "not an array": "the request .npz holds 'notes.txt', which is not an array (.npy)",
+                "truncated": "the request is not a readable .npz archive",
+                "bad CRC": "cannot read the header of 'markers' in the request .npz: Bad CRC-32",
+                "directory CRC": "cannot read the header of 'markers' in the request .npz: Bad CRC-32",
+                "local name": "cannot read the header of 'markers' in the request .npz: File name in directory",
+                "object array": "'values' holds Python objects"}[name]
+    if isinstance(expected, str):
+        assert isinstance(outcome, str) and outcome.startswith(expected), outcome
+    else:
+        assert outcome == expected
