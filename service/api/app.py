@@ -21,6 +21,7 @@ from service.api.auth import check_bearer
 from service.api.edge import UrlGuardMiddleware
 from service.api.lean import LeanSynthesize
 from service.api.logs import RequestContextMiddleware
+from service.api.thread_handoff import ThreadHandoff
 from service.api.errors import PROBLEM_JSON
 from service.app.metrics import Metrics
 from service.api.routes import (actors, artifacts, bone_rigs, clips, health, jobs, models, rigs,
@@ -95,8 +96,9 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
 
     Returns
     -------
-    FastAPI   with ``app.state.services`` (during its lifespan), ``app.state.metrics`` and
-              ``app.state.synthesizer``
+    FastAPI   with ``app.state.services`` (during its lifespan), ``app.state.metrics``,
+              ``app.state.synthesizer`` and ``app.state.synthesis_threads`` (the
+              synchronous syntheses' :class:`~service.api.thread_handoff.ThreadHandoff`)
     """
     settings = settings if settings is not None else (
         services.settings if services is not None else get_settings())
@@ -126,6 +128,10 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                                         settings.synthesis_queue_seconds,
                                         settings.synthesis_queue_depth,
                                         pool=services.synthesis if services is not None else None)
+    # the synchronous syntheses' threads: each running, waiting for a slot, or being refused
+    app.state.synthesis_threads = ThreadHandoff(
+        app.state.synthesizer.limit + app.state.synthesizer.max_queue + 2,
+        name="facesynth-request")
     errors.install(app)
     if settings.lean_synthesis:   # innermost: inside every middleware below
         app.add_middleware(LeanSynthesize)

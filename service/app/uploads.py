@@ -47,7 +47,7 @@ from service.io.errors import FormatError, MeshFormatError, SizeLimitError
 from service.io.markers import MarkerSequence, read_marker_layout, read_markers
 from service.io.mesh import Mesh, read_obj, write_npz
 from service.io.arrays import ArraySpec, Axes
-from service.io.npz import ZIP_ERRORS, BufferMember, NpyMember, buffer_members
+from service.io.npz import ZIP_ERRORS, NpyMember, buffer_members
 from service.errors import InvalidInput, MalformedInput
 
 NPZ_TYPES = ("application/x-npz", "application/zip")
@@ -188,7 +188,7 @@ class NpzUpload:
 class _UploadedArray:
     """An :class:`NpyMember` whose read errors are :class:`FormatError` naming the upload."""
 
-    def __init__(self, member: NpyMember | BufferMember, what: str):
+    def __init__(self, member: NpyMember, what: str):
         self.member, self.what = member, what
         self.shape, self.dtype, self.ndim = member.shape, member.dtype, member.ndim
 

@@ -15,6 +15,7 @@ response body as the pieces it is sent in, the arrays stored as they are not cop
 
 from __future__ import annotations
 
+import functools
 import io
 import math
 import mmap
@@ -147,16 +148,24 @@ class NpyMember:
                 got += n
         return values.reshape(shape, order="F" if fortran_order else "C")
 
+    def _rows(self, max_bytes: int) -> tuple[tuple[int, ...], int, int] | None:
+        """(row shape, bytes a row, rows a block) of :meth:`blocks`, None when the array
+        comes as one block."""
+        if self.ndim == 0 or (self.fortran_order and self.ndim > 1) or self.nbytes == 0:
+            return None
+        row_shape = self.shape[1:]
+        row = math.prod(row_shape) * self.dtype.itemsize
+        return row_shape, row, max(1, max_bytes // max(row, 1))
+
     def blocks(self, max_bytes: int) -> Iterator[tuple[int, np.ndarray]]:
         """``(first row, block)`` along axis 0, each of about ``max_bytes`` (at least one row),
         read in order from the member (a 0-d or Fortran-ordered array comes as one block: its
         rows are not contiguous in the file)."""
-        if self.ndim == 0 or (self.fortran_order and self.ndim > 1) or self.nbytes == 0:
+        rows = self._rows(max_bytes)
+        if rows is None:
             yield 0, self.read()
             return
-        row_shape = self.shape[1:]
-        row = math.prod(row_shape) * self.dtype.itemsize
-        step = max(1, max_bytes // max(row, 1))
+        row_shape, row, step = rows
         with self.archive.open(self.info) as f:
             _read_header(f)
             for start in range(0, self.shape[0], step):
@@ -167,16 +176,14 @@ class NpyMember:
                 raise ValueError(f"'{self.name}' holds more data than its header declares")
 
 
-class BufferMember:
-    """One stored ``.npy`` member of an in-memory archive (:func:`buffer_members`), with
-    :class:`NpyMember`'s attributes and reads; its bytes were checked against the CRC."""
+class BufferMember(NpyMember):
+    """One stored ``.npy`` member of an in-memory archive (:func:`buffer_members`), read
+    as :class:`NpyMember` reads one; its bytes were checked against the CRC."""
 
     def __init__(self, name: str, data: memoryview, shape: tuple[int, ...], fortran_order: bool,
                  dtype: np.dtype):
         self.name, self._data = name, data
         self.shape, self.fortran_order, self.dtype = shape, fortran_order, dtype
-
-    ndim, nbytes, __len__ = NpyMember.ndim, NpyMember.nbytes, NpyMember.__len__
 
     def read(self) -> np.ndarray:
         """The whole array, a writable copy (as :meth:`NpyMember.read` gives)."""
@@ -185,12 +192,11 @@ class BufferMember:
 
     def blocks(self, max_bytes: int) -> Iterator[tuple[int, np.ndarray]]:
         """As :meth:`NpyMember.blocks` (read-only views of the archive's bytes)."""
-        if self.ndim == 0 or (self.fortran_order and self.ndim > 1) or self.nbytes == 0:
+        rows = self._rows(max_bytes)
+        if rows is None:
             yield 0, self.read()
             return
-        row_shape = self.shape[1:]
-        row = math.prod(row_shape) * self.dtype.itemsize
-        step = max(1, max_bytes // max(row, 1))
+        row_shape, row, step = rows
         for start in range(0, self.shape[0], step):
             n = min(step, self.shape[0] - start)
             rows = self._data[start * row:(start + n) * row]
@@ -405,8 +411,11 @@ _VERSION = 20
 _ZIP32_LIMIT = 0xFFFFFFFF - (1 << 20)
 
 
+@functools.lru_cache(maxsize=256)
 def _npy_header(dtype: np.dtype, shape: tuple[int, ...]) -> bytes:
-    """The ``.npy`` header NumPy writes for ``dtype`` and ``shape`` (padded to 64 bytes)."""
+    """The ``.npy`` header NumPy writes for ``dtype`` and ``shape`` (padded to 64 bytes);
+    remembered, since a server's answers repeat the same few (NumPy's writer is ~10 µs a
+    member with a frame's cold caches)."""
     header = io.BytesIO()
     fields = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
               "shape": tuple(int(n) for n in shape)}

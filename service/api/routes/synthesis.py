@@ -75,7 +75,7 @@ async def _synthesize(model_id: str, request: Request, services: ServicesDep, ou
                       rig: str | None = None, topology: bool = True) -> Response:
     kind, data = await bodies.read_body(
         request, uploads.NPZ_TYPES + ((uploads.JSON_TYPE,) if route_input == "markers" else ()))
-    answer = await run_in_threadpool(
+    answer = await request.app.state.synthesis_threads.run(
         lambda: operations.synthesize(services, request.app.state.synthesizer, model_id, kind,
                                       data, accept=accept, outputs=parse_outputs(outputs),
                                       clamp=clamp, half=half, route_input=route_input, rig=rig,
