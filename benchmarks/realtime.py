@@ -30,7 +30,10 @@ Paths, each a median over ``--calls`` calls (frames cycle through the first 50 o
 
 Every row is also a ratio against in-process measured in the same run, and the load
 average (``os.getloadavg()``) is recorded beside each row: the machine is shared, so only
-ratios within one run compare. ``--profile`` adds a cProfile breakdown of the in-process
+ratios within one run compare. An HTTP row's calls take turns with in-process frames, frame
+by frame (:func:`interleaved_ms`), and its ratio is against those: measured one block after
+the other, the ratio moved with the host's speed between the blocks (the SDK's mesh frame
+1.09-1.21× in four runs of one hour). ``--profile`` adds a cProfile breakdown of the in-process
 frame (top functions by own time) per output set.
 
 With ``--against REV`` the HTTP and gRPC rows come instead from a server of commit ``REV``
@@ -218,14 +221,19 @@ def http_call(client, model_id: str, markers: np.ndarray, outputs, params: dict,
     return call
 
 
-def http_ms(base: str, model_id: str, markers: np.ndarray, outputs, calls: int,
-            params: dict) -> tuple[float, int]:
-    """Median round trip (ms) of one-frame syntheses, the response decoded; body bytes."""
+def http_ms(base: str, model, model_id: str, markers: np.ndarray, outputs, calls: int,
+            params: dict) -> tuple[float, float, int]:
+    """Median round trip (ms) of one-frame syntheses, the response decoded, and of the
+    in-process frame, the two taking turns frame by frame (:func:`interleaved_ms`); body
+    bytes."""
     import httpx
 
     size = [0]
     with httpx.Client(base_url=base, timeout=300) as client:
-        return median_ms(http_call(client, model_id, markers, outputs, params, size), calls), size[0]
+        got = interleaved_ms({
+            "in-process": lambda k: model.synthesize(markers[k % len(markers)][None], outputs),
+            "HTTP": http_call(client, model_id, markers, outputs, params, size)}, calls)
+    return got["HTTP"]["ms"], got["in-process"]["ms"], size[0]
 
 
 def server_cpu_seconds(pid: int) -> float:
@@ -515,16 +523,17 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 model_id = harness.register_model(base, work, actor_dir, model_dir)
                 for name, outputs in OUTPUT_SETS.items():
-                    # in-process again beside each server: the ratio is within the same minute
-                    ref = in_process(model, markers, outputs, args.calls)
                     if "http" in paths:
                         for label, params in variants:
-                            ms, size = http_ms(base, model_id, markers, outputs, args.calls, params)
+                            ms, ref, size = http_ms(base, model, model_id, markers, outputs,
+                                                    args.calls, params)
                             rows.append({"outputs": name, "path": f"HTTP {impl}, {label}", "ms": ms,
                                          "ref": ref, "bytes": size or "–",
                                          "load": harness.load_average()})
                             print(rows[-1], file=sys.stderr, flush=True)
                     if "grpc" in paths and impl == "h11":
+                        # in-process again beside the server: the ratio is within the same minute
+                        ref = in_process(model, markers, outputs, args.calls)
                         for half in (False, True) if grpc_supports_half() else (False,):
                             got = grpc_stream(target, model_id, markers, outputs, args.calls, half,
                                               server.pid)
@@ -552,8 +561,9 @@ def report(rows, base_ms, meta, actor_dir, calls, profiles) -> str:
         f"gRPC: wall time per frame of a {calls}-frame stream. {meta['cpus']} CPUs, "
         f"{meta['blas']} BLAS thread(s) in-process and in the servers, NumPy "
         f"{numpy.__version__}; load average (1, 5, 15 min) {meta['load_start']} at the start, "
-        f"{meta['load_end']} at the end. Ratio: against in-process in the same run (for the "
-        "transports, measured again beside each server)."
+        f"{meta['load_end']} at the end. Ratio: against in-process in the same run (HTTP: "
+        "the in-process frames taking turns with its calls; gRPC: measured again beside the "
+        "server)."
         + (" CPU columns (`--against`): medians per frame of this process's CPU time (the "
            "client's; for in-process the synthesis itself) and of the server process's (all "
            "its threads, /proc schedstat)." if cpu else ""),
