@@ -61,8 +61,13 @@ class ThreadHandoff:
             if start:
                 self.threads += 1
         if start:
-            threading.Thread(target=self._work, name=f"{self.name}-{self.threads}",
-                             daemon=True).start()
+            try:
+                threading.Thread(target=self._work, name=f"{self.name}-{self.threads}",
+                                 daemon=True).start()
+            except RuntimeError:        # no thread to be had: the caller's error, not a hang
+                with self._lock:
+                    self.threads -= 1
+                raise
         return await future
 
     def _work(self) -> None:

@@ -122,14 +122,13 @@ class NpzUpload:
         axes = Axes()
         total = 0
         for info in members:
-            if isinstance(info, zipfile.ZipInfo):
-                if not info.filename.endswith(".npy"):
-                    raise FormatError(f"the {self.what} .npz holds '{info.filename}', which "
-                                      "is not an array (.npy)")
-                key, member = info.filename[:-4], self._header(info)
-            else:
-                key, member = info.name, info
+            read = isinstance(info, zipfile.ZipInfo)       # else a BufferMember, read already
+            if read and not info.filename.endswith(".npy"):
+                raise FormatError(f"the {self.what} .npz holds '{info.filename}', which is not "
+                                  "an array (.npy)")
+            key = info.filename[:-4] if read else info.name
             spec = self._spec(key)
+            member = self._header(info) if read else info
             shape = spec.check(f"'{key}'", member.shape, member.dtype, axes, FormatError)
             total += member.nbytes
             if total > self.max_bytes:

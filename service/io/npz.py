@@ -243,13 +243,13 @@ def _buffer_members(buffer: memoryview) -> list[BufferMember] | None:
     members: list[BufferMember] = []
     at = start
     for _ in range(count):
-        (signature, _made, _needed, flags, method, _time, _date, crc, packed, unpacked,
+        (signature, _made, needed, flags, method, _time, _date, crc, packed, unpacked,
          name_length, extra_length, comment_length, _disk, _internal, _external,
          local) = _CENTRAL.unpack_from(buffer, at)
         raw_name = bytes(buffer[at + _CENTRAL.size:at + _CENTRAL.size + name_length])
         at += _CENTRAL.size + name_length + extra_length + comment_length
         if (signature != _CENTRAL_SIGNATURE or flags & ~0x800 or method or packed != unpacked
-                or _needed > zipfile.MAX_EXTRACT_VERSION or 0xFFFFFFFF in (packed, local) or at > end):
+                or needed > zipfile.MAX_EXTRACT_VERSION or 0xFFFFFFFF in (packed, local) or at > end):
             return None
         name = raw_name.decode("utf-8" if flags & 0x800 else "cp437")
         local_signature, *_, local_name, local_extra = _LOCAL.unpack_from(buffer, local)

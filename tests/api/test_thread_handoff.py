@@ -100,3 +100,21 @@ def test_a_cancelled_caller_leaves_the_call_to_finish_and_its_result_dropped():
 
     assert asyncio.run(run()) == "next"
     assert done.is_set() and errors == []
+
+
+def test_a_thread_that_cannot_start_is_the_caller_s_error_not_a_hang(monkeypatch):
+    handoff = ThreadHandoff(2)
+    start = threading.Thread.start
+
+    def refuse(self):
+        raise RuntimeError("can't start new thread")
+
+    async def run():
+        monkeypatch.setattr(threading.Thread, "start", refuse)
+        with pytest.raises(RuntimeError, match="can't start new thread"):
+            await asyncio.wait_for(handoff.run(lambda: 1), 5)
+        assert handoff.threads == 0
+        monkeypatch.setattr(threading.Thread, "start", start)
+        return await asyncio.wait_for(handoff.run(lambda: 2), 5)
+
+    assert asyncio.run(run()) == 2
