@@ -334,7 +334,10 @@ class BlobStore:
         NotFound      no file blob under ``key``
         BlobCorrupt   the content does not match ``sha256``
         """
-        data = self._file(key).read_bytes()
+        try:
+            data = self._file(key).read_bytes()
+        except FileNotFoundError:            # deleted between the check and the read
+            raise NotFound("blob", key) from None
         _check(key, sha256, hashlib.sha256(data).hexdigest())
         return data
 

@@ -157,17 +157,39 @@ def _swap_blob(session: Session, blobs: BlobStore, actor_id: str, column: Any, n
 def read_neutral(session: Session, blobs: BlobStore, actor_id: str, *,
                  tenant: str | None = None) -> bytes:
     """The stored neutral mesh's bytes, verified (NotFound if none was set)."""
-    actor = get_actor(session, actor_id, tenant=tenant)
-    if actor.neutral_blob is None:
-        raise NotFound("neutral", actor_id, "the actor has no neutral mesh yet")
-    return blobs.read_bytes(actor.neutral_blob, actor.neutral_sha256)  # type: ignore[arg-type]
+    return _read_current(session, blobs, actor_id, "neutral_blob", "neutral_sha256", tenant,
+                         NotFound("neutral", actor_id, "the actor has no neutral mesh yet"))
 
 
 def read_markers(session: Session, blobs: BlobStore, actor_id: str, *,
                  tenant: str | None = None) -> bytes:
     """The stored marker layout's bytes, verified (NotFound if none was set)."""
+    return _read_current(session, blobs, actor_id, "markers_blob", "markers_sha256", tenant,
+                         NotFound("marker layout", actor_id, "the actor has no marker layout yet"))
+
+
+def _read_current(session: Session, blobs: BlobStore, actor_id: str, key: str, sha256: str,
+                  tenant: str | None, unset: NotFound) -> bytes:
+    """The bytes of the blob the actor's ``key`` column names, verified (``unset`` if none).
+
+    A concurrent replacement may commit between this read of the row and the read of the
+    blob, and it deletes the blob it replaced (:func:`_swap_blob`): the row is then read
+    again in a new transaction and the blob it names now is read (a marker layout's PUT
+    answered 404 while a neutral was being replaced). Only a blob the row still names is
+    missing for real.
+    """
     actor = get_actor(session, actor_id, tenant=tenant)
-    if actor.markers_blob is None:
-        raise NotFound("marker layout", actor_id, "the actor has no marker layout yet")
-    return blobs.read_bytes(actor.markers_blob, actor.markers_sha256)  # type: ignore[arg-type]
+    for _ in range(MAX_SWAP_ROUNDS):
+        named = getattr(actor, key)
+        if named is None:
+            raise unset
+        try:
+            return blobs.read_bytes(named, getattr(actor, sha256))
+        except NotFound:
+            session.rollback()                      # the next read sees the latest commit
+            actor = get_actor(session, actor_id, tenant=tenant)
+            if getattr(actor, key) == named:
+                raise
+    raise Conflict(f"actor {actor_id!r} was changed concurrently {MAX_SWAP_ROUNDS} times; "
+                   "try again")
 

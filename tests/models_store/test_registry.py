@@ -563,6 +563,33 @@ def test_concurrent_replacements_leave_exactly_the_referenced_blob(sessions, ses
         i + 3 if what == "neutral" else i + 1)
 
 
+@pytest.mark.parametrize("what", ["neutral", "markers"])
+def test_a_read_racing_replacements_gets_a_current_blob(sessions, session, blobs, actor, what):
+    """Readers during 12 concurrent replacements each get one of the written blobs, never a
+    NotFound for the blob a replacement deleted under them; a blob missing for real (the
+    row still names it) stays NotFound."""
+    put = reg.set_neutral if what == "neutral" else reg.set_markers
+    read = reg.read_neutral if what == "neutral" else reg.read_markers
+    counts = {"vertex_count": 3, "triangle_count": 1} if what == "neutral" else {"marker_count": 1}
+    put(session, blobs, actor.id, b"first", **counts)
+    got: list[bytes] = []
+
+    def race(i):
+        with sessions() as own:
+            if i % 2:
+                put(own, blobs, actor.id, b"blob %d" % i, **counts)
+            else:
+                for _ in range(20):
+                    got.append(read(own, blobs, actor.id))
+
+    assert _concurrently(24, race) == []
+    assert len(got) == 12 * 20 and all(d == b"first" or d.startswith(b"blob ") for d in got)
+    row = reg.get_actor(session, actor.id)
+    blobs.delete(row.neutral_blob if what == "neutral" else row.markers_blob)
+    with pytest.raises(NotFound):
+        read(session, blobs, actor.id)
+
+
 def test_concurrent_rig_replacements_leave_exactly_the_referenced_blob(sessions, session, blobs,
                                                                        actor):
     reg.put_input_rig(session, blobs, actor.id, "lowres", b"first")
