@@ -108,13 +108,14 @@ def spread_ratios(frames: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """
     X = np.asarray(frames, np.float64)
     R = np.asarray(rest, np.float64)
-    if np.isfinite(X).all():           # every marker visible: no masks (a per-frame request)
-        ms_r = np.einsum("mk,mk->", R - R.mean(axis=0), R - R.mean(axis=0)) / len(R)
+    visible = np.isfinite(X).all(axis=2)                           # (F,M)
+    if visible.all():                  # every marker visible: no masks (a per-frame request)
+        ms_r = rms_spread(R) ** 2
         if len(R) < MIN_VISIBLE or ms_r <= 0:
             return np.zeros(0)
         Xc = X - X.mean(axis=1, keepdims=True)
         return np.sqrt(np.einsum("fmk,fmk->f", Xc, Xc) / (len(R) * ms_r))
-    W = np.isfinite(X).all(axis=2).astype(np.float64)              # (F,M) visible
+    W = visible.astype(np.float64)
     n = W.sum(axis=1)
     keep = n >= MIN_VISIBLE
     W, n, X = W[keep], n[keep], np.nan_to_num(X[keep])

@@ -199,8 +199,8 @@ class BufferMember(NpyMember):
         row_shape, row, step = rows
         for start in range(0, self.shape[0], step):
             n = min(step, self.shape[0] - start)
-            rows = self._data[start * row:(start + n) * row]
-            yield start, np.frombuffer(rows, self.dtype).reshape((n,) + row_shape)
+            yield start, np.frombuffer(self._data[start * row:(start + n) * row],
+                                       self.dtype).reshape((n,) + row_shape)
 
 
 #: a zip's local file header, central directory header and end record (APPNOTE.TXT 4.3.7,
